@@ -1,0 +1,85 @@
+"""Command line: ``cfm-fem <command> ...``. Parsing, progress, messages and exit codes live here only.
+
+Each subcommand is a module in this package with ``NAME``, ``HELP``, ``add_args(parser)`` and
+``run(args) -> int``; add it to ``_COMMANDS`` below.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import shlex
+import sys
+import warnings
+
+from .. import __version__
+from ..errors import CfmInputError, CfmInputWarning
+
+__all__ = ["main"]
+
+#: Subcommand modules, in the order ``--help`` lists them.
+_COMMANDS = ["sweep"]
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_BAD_INPUT = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of exiting, so ``main`` keeps control of the exit code."""
+
+    def error(self, message):
+        raise CfmInputError(f"{self.prog}: {message}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="cfm-fem",
+        description="Field-mapping uncertainty of Hall-probe benches from FEM field maps.",
+    )
+    parser.add_argument("--version", action="version", version=f"cfm-fem {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in _COMMANDS:
+        mod = importlib.import_module(f".{name}", __name__)
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.__doc__)
+        mod.add_args(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def main(argv=None) -> int:
+    """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code.
+
+    0 on success, 2 on bad input (message on stderr, no traceback, no output written), 1 when
+    interrupted.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    old_show = warnings.showwarning
+    warnings.showwarning = _show_warning
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", CfmInputWarning)
+            warnings.showwarning = _show_warning
+            args = parser.parse_args(argv)
+            if not getattr(args, "command", None):
+                parser.print_help()
+                return EXIT_BAD_INPUT
+            args.command_line = "cfm-fem " + " ".join(shlex.quote(a) for a in argv)
+            return int(args._run(args) or EXIT_OK)
+    except CfmInputError as exc:
+        print(f"cfm-fem: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("cfm-fem: interrupted; completed outputs are kept, nothing half-written", file=sys.stderr)
+        return EXIT_FAILURE
+    finally:
+        warnings.showwarning = old_show
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,43 @@
+"""The one exception family of cfm_fem and the warning category for recoverable input issues."""
+
+from __future__ import annotations
+
+__all__ = ["CfmInputError", "CfmInputWarning", "location"]
+
+
+def location(file=None, line=None) -> str:
+    """Format ``file:line`` (either part optional) for messages."""
+    if file is None:
+        return "" if line is None else f"line {line}"
+    return f"{file}" if line is None else f"{file}:{line}"
+
+
+class CfmInputError(ValueError):
+    """Bad input: a file, an argument or a bench description the tool cannot use.
+
+    The message reads ``"<file>:<line>: <what>"``; ``what`` names the column (if any) and what was
+    expected, for example ``"column 'Bx' must be a number; found 'abc'"``.
+
+    Parameters
+    ----------
+    what : str
+        What is wrong and what was expected.
+    file : str or path-like, optional
+        The file the problem is in.
+    line : int, optional
+        1-based line number in ``file``.
+    column : str, optional
+        Column name, kept as an attribute for programs and tests (name it in ``what`` too).
+    """
+
+    def __init__(self, what: str, *, file=None, line: int | None = None, column: str | None = None):
+        self.what = what
+        self.file = None if file is None else str(file)
+        self.line = line
+        self.column = column
+        loc = location(self.file, line)
+        super().__init__(f"{loc}: {what}" if loc else what)
+
+
+class CfmInputWarning(UserWarning):
+    """Input that is usable but suspicious (wrong node count in a header, placeholder rows, ...)."""
