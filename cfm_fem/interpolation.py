@@ -1,0 +1,361 @@
+"""Piecewise-linear interpolation of a `FieldMap` on a simplicial mesh that can be walked.
+
+Three ways to get the simplices, chosen by :func:`build_mesh` and always stated in the outputs:
+
+- ``native``: the export's own linear tetrahedra (or triangles); the interpolant follows the FEM
+  domain, gaps between poles stay gaps.
+- ``grid``: nodes on a full rectilinear grid get the Kuhn triangulation (6 tetrahedra per voxel,
+  2 triangles per square), which is conforming and free of the degenerate simplices Qhull makes on
+  co-spherical grid points.
+- ``delaunay``: scattered nodes get ``scipy.spatial.Delaunay``; it fills the convex hull, so it
+  bridges non-convex gaps (between poles) that the FEM domain does not contain.
+
+Planar maps (all nodes in one plane) are triangulated in that plane; out-of-plane displacements
+of the probe are then not covered, and the outputs say so.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.spatial
+
+from . import _kernels
+from .errors import CfmInputError
+from .field import FieldMap
+
+__all__ = ["SimplexMesh", "build_mesh", "LinearInterpolator"]
+
+#: Relative singular value below which a point set is treated as planar (or collinear).
+FLAT_TOL = 1e-9
+
+
+@dataclass
+class SimplexMesh:
+    """Simplices with neighbours and barycentric transforms, in local coordinates.
+
+    Attributes
+    ----------
+    dim : int
+        2 (planar map) or 3.
+    coords : ndarray, shape (n, dim), mm
+        Node coordinates in the mesh's own frame: the map frame for 3-D, in-plane coordinates
+        ``(p - origin) @ basis`` for a planar map.
+    simplices : ndarray, shape (m, dim + 1), int64
+    neighbors : ndarray, shape (m, dim + 1), int64
+        ``neighbors[s, j]`` is the simplex across the face opposite vertex ``j``; -1 on the border.
+    transform : ndarray, shape (m, dim + 1, dim), float64
+        scipy's layout: barycentric ``c[:dim] = T[:dim] @ (p - T[dim])``, ``c[dim] = 1 - sum``.
+    node_cell : ndarray, shape (n,), int64
+        One simplex incident to each node (-1 for nodes in no simplex).
+    origin : ndarray, shape (3,), mm
+    basis : ndarray, shape (3, dim)
+        Orthonormal columns spanning the mesh frame (identity for 3-D).
+    kind : str
+        ``"native"``, ``"grid"`` or ``"delaunay"``.
+    notes : list of str
+    """
+
+    dim: int
+    coords: np.ndarray
+    simplices: np.ndarray
+    neighbors: np.ndarray
+    transform: np.ndarray
+    node_cell: np.ndarray
+    origin: np.ndarray
+    basis: np.ndarray
+    kind: str
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def description(self) -> str:
+        what = {
+            "native": "linear interpolation in the export's own cells",
+            "grid": "linear interpolation on the Kuhn triangulation of the structured grid",
+            "delaunay": "linear interpolation on the Delaunay triangulation (scipy/Qhull) of the "
+            "nodes; it fills the convex hull and bridges gaps the FEM domain may not contain",
+        }[self.kind]
+        plane = " in the plane of the map (out-of-plane displacement not covered)" if self.dim == 2 else ""
+        return f"{what}{plane}; {len(self.simplices)} simplices"
+
+    def to_local(self, points) -> np.ndarray:
+        """Map-frame points (k, 3) mm to mesh-frame coordinates (k, dim)."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.basis
+
+    def cells_3d(self) -> np.ndarray:
+        """Simplices for VTK output, shape (m, dim + 1)."""
+        return self.simplices
+
+
+def _frame(points, source):
+    """Origin, orthonormal basis (3, dim) and dim of the affine hull of ``points``."""
+    n = len(points)
+    if n < 3:
+        raise CfmInputError(
+            f"the map has {n} node(s); expected at least 4 non-coplanar nodes (or 3 in a plane)",
+            file=source,
+        )
+    origin = points.mean(axis=0)
+    _, s, vt = np.linalg.svd(points - origin, full_matrices=False)
+    if s[0] == 0 or s[1] <= FLAT_TOL * s[0]:
+        raise CfmInputError(
+            "all nodes lie on one line (collinear); expected a 3-D volume or a plane of nodes",
+            file=source,
+        )
+    if s[2] <= FLAT_TOL * s[0]:
+        basis = vt[:2].T.copy()
+        # Prefer the map's own axes when the plane is a coordinate plane (readable outputs).
+        for drop in range(3):
+            e = np.delete(np.eye(3), drop, axis=1)
+            if np.allclose(np.abs(np.linalg.det(np.c_[e, vt[2]])), 1.0, atol=1e-12):
+                basis = e
+                break
+        return origin, basis, 2
+    return np.zeros(3), np.eye(3), 3
+
+
+def _grid_axes(coords):
+    """Sorted distinct values per axis if ``coords`` is a full rectilinear grid, else None."""
+    n, d = coords.shape
+    span = np.ptp(coords, axis=0).max()
+    axes, index = [], []
+    for k in range(d):
+        vals = np.unique(np.round(coords[:, k] / (span * 1e-9)))
+        if len(vals) < 2:
+            return None
+        axes.append(vals)
+        index.append(np.searchsorted(vals, np.round(coords[:, k] / (span * 1e-9))))
+    if np.prod([len(a) for a in axes]) != n:
+        return None
+    flat = np.ravel_multi_index(index, [len(a) for a in axes])
+    if len(np.unique(flat)) != n:
+        return None
+    order = np.empty(n, dtype=np.int64)
+    order[flat] = np.arange(n)
+    return [len(a) for a in axes], order  # order[grid flat index] = node index
+
+
+def kuhn_simplices(shape, order) -> np.ndarray:
+    """Kuhn (Freudenthal) triangulation of a grid: d! simplices per cell, conforming.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Number of grid values per axis (2 or 3 axes).
+    order : ndarray, shape (prod(shape),)
+        Node index of each grid point in C order.
+    """
+    d = len(shape)
+    base = np.stack(
+        np.meshgrid(*[np.arange(s - 1) for s in shape], indexing="ij"), axis=-1
+    ).reshape(-1, d)
+    out = []
+    for perm in itertools.permutations(range(d)):
+        corners = [base.copy()]
+        cur = base.copy()
+        for axis in perm:
+            cur = cur.copy()
+            cur[:, axis] += 1
+            corners.append(cur)
+        idx = [order[np.ravel_multi_index(c.T, shape)] for c in corners]
+        out.append(np.stack(idx, axis=1))
+    return np.concatenate(out).astype(np.int64)
+
+
+def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
+    """Neighbour across each face of each simplex (-1 on the border), by matching sorted faces.
+
+    Raises
+    ------
+    CfmInputError
+        If a face is shared by more than two simplices (non-manifold mesh).
+    """
+    m, k = simplices.shape
+    faces = np.stack([np.delete(simplices, j, axis=1) for j in range(k)], axis=1)
+    faces = np.sort(faces, axis=2).reshape(-1, k - 1)
+    n_bits = max(int(simplices.max()).bit_length(), 1)
+    if n_bits * (k - 1) <= 63:
+        key = np.zeros(len(faces), dtype=np.int64)
+        for j in range(k - 1):
+            key = (key << n_bits) | faces[:, j]
+        order = np.argsort(key, kind="stable")
+        same = key[order][1:] == key[order][:-1]
+    else:
+        order = np.lexsort(faces.T[::-1])
+        fs = faces[order]
+        same = np.all(fs[1:] == fs[:-1], axis=1)
+    if np.any(same[1:] & same[:-1]):
+        raise CfmInputError(
+            "a face is shared by more than two cells (non-manifold mesh); expected a conforming "
+            "mesh of linear cells",
+            file=source,
+        )
+    a = order[:-1][same]
+    b = order[1:][same]
+    nb = np.full(m * k, -1, dtype=np.int64)
+    nb[a] = b // k
+    nb[b] = a // k
+    return nb.reshape(m, k)
+
+
+def barycentric_transforms(coords, simplices):
+    """scipy-layout barycentric transforms and signed measures (volume or area) of simplices."""
+    d = coords.shape[1]
+    v = coords[simplices]  # (m, d+1, d)
+    r = v[:, d, :]
+    A = np.swapaxes(v[:, :d, :] - r[:, None, :], 1, 2)  # columns v_j - v_d
+    det = np.linalg.det(A)
+    T = np.empty((len(simplices), d + 1, d))
+    ok = np.abs(det) > 0
+    T[ok, :d, :] = np.linalg.inv(A[ok])
+    T[~ok, :d, :] = np.nan
+    T[:, d, :] = r
+    return T, det / (2.0 if d == 2 else 6.0)
+
+
+def build_mesh(fm: FieldMap, method: str = "auto") -> SimplexMesh:
+    """Choose and build the simplicial mesh that interpolates ``fm``.
+
+    Parameters
+    ----------
+    fm : FieldMap
+    method : {"auto", "native", "grid", "delaunay"}
+        ``auto`` takes the export's cells if it has them, a Kuhn triangulation for a full grid,
+        and Delaunay otherwise.
+
+    Raises
+    ------
+    CfmInputError
+        Too few nodes, collinear nodes, degenerate or non-manifold native cells, or a method that
+        does not apply to this map.
+    """
+    if method not in ("auto", "native", "grid", "delaunay"):
+        raise CfmInputError(f"interpolation must be auto, native, grid or delaunay; got {method!r}")
+    src = fm.source
+    origin, basis, dim = _frame(fm.points, src)
+    coords = (fm.points - origin) @ basis
+    notes = []
+    kind = method
+    simplices = None
+    if method in ("auto", "native") and fm.cells is not None and fm.cells.shape[1] == dim + 1:
+        simplices, kind = fm.cells, "native"
+    elif method == "native":
+        raise CfmInputError(
+            f"interpolation 'native' needs {'triangles' if dim == 2 else 'tetrahedra'} in the "
+            "export; this map has none",
+            file=src,
+        )
+    if simplices is None and method in ("auto", "grid"):
+        grid = _grid_axes(coords)
+        if grid is not None:
+            simplices, kind = kuhn_simplices(*grid), "grid"
+        elif method == "grid":
+            raise CfmInputError("interpolation 'grid' needs nodes on a full rectilinear grid", file=src)
+    if simplices is None:
+        simplices, kind, coords, extra = _delaunay(coords, src)
+        notes += extra
+    T, measure = barycentric_transforms(coords, simplices)
+    scale = np.ptp(coords, axis=0).prod() / max(len(simplices), 1)
+    flat = np.abs(measure) <= 1e-12 * scale
+    if flat.any():
+        if kind == "native":
+            s = int(np.flatnonzero(flat)[0])
+            raise CfmInputError(
+                f"{int(flat.sum())} cell(s) of the export have zero volume (first: cell {s}, "
+                f"nodes {simplices[s].tolist()}); expected non-degenerate linear cells",
+                file=src,
+            )
+        raise AssertionError("degenerate simplices after triangulation")  # pragma: no cover
+    neighbors = face_neighbors(simplices, src)
+    node_cell = np.full(len(coords), -1, dtype=np.int64)
+    for j in range(dim + 1):
+        node_cell[simplices[:, j]] = np.arange(len(simplices))
+    orphans = int((node_cell < 0).sum())
+    if orphans:
+        notes.append(f"{orphans} node(s) belong to no cell; they get no statistics (NaN)")
+    return SimplexMesh(
+        dim=dim,
+        coords=np.ascontiguousarray(coords),
+        simplices=np.ascontiguousarray(simplices, dtype=np.int64),
+        neighbors=neighbors,
+        transform=T,
+        node_cell=node_cell,
+        origin=origin,
+        basis=basis,
+        kind=kind,
+        notes=notes,
+    )
+
+
+def _delaunay(coords, source):
+    """Delaunay triangulation; jitter nodes by 1e-9 of the map size only if Qhull leaves flat simplices."""
+    notes = []
+    try:
+        tri = scipy.spatial.Delaunay(coords)
+    except scipy.spatial.QhullError as exc:  # pragma: no cover - _frame catches flat sets first
+        raise CfmInputError(f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source) from None
+    _, measure = barycentric_transforms(coords, tri.simplices)
+    scale = np.ptp(coords, axis=0).prod() / len(tri.simplices)
+    if np.any(np.abs(measure) <= 1e-12 * scale):
+        # Co-spherical nodes (partly structured exports): Qhull triangulates them with flat
+        # simplices whose barycentric transform is singular. A deterministic 1e-9 jitter makes
+        # every simplex proper; at that size it is far below any positioning uncertainty.
+        rng = np.random.default_rng(12345)
+        span = np.ptp(coords, axis=0).max()
+        coords = coords + rng.uniform(-1e-9, 1e-9, coords.shape) * span
+        tri = scipy.spatial.Delaunay(coords)
+        notes.append("nodes jittered by at most 1e-9 of the map size to break Delaunay degeneracies")
+    if len(tri.coplanar):
+        notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
+    return tri.simplices.astype(np.int64), "delaunay", coords, notes
+
+
+class LinearInterpolator:
+    """Evaluate the piecewise-linear field of a map at arbitrary points.
+
+    Parameters
+    ----------
+    fm : FieldMap
+    method : {"auto", "native", "grid", "delaunay"}
+
+    Examples
+    --------
+    >>> interp = LinearInterpolator(fieldmap)                      # doctest: +SKIP
+    >>> B, inside = interp.field_at([[0.0, 1.0, 2.0]])             # doctest: +SKIP
+    """
+
+    def __init__(self, fm: FieldMap, method: str = "auto"):
+        self.fieldmap = fm
+        self.mesh = build_mesh(fm, method)
+        self._tree = None
+
+    def field_at(self, points):
+        """Interpolated B at ``points``.
+
+        Parameters
+        ----------
+        points : array_like, shape (k, 3), mm
+
+        Returns
+        -------
+        B : ndarray, shape (k, 3), T
+            NaN where the point is outside the mesh (never extrapolated).
+        inside : ndarray, shape (k,), bool
+        """
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        if self._tree is None:
+            self._tree = scipy.spatial.cKDTree(self.mesh.coords)
+        local = self.mesh.to_local(pts)
+        _, nearest = self._tree.query(local)
+        start = self.mesh.node_cell[nearest]
+        B, cell = _kernels.interpolate_points(
+            np.ascontiguousarray(local),
+            start,
+            self.mesh.simplices,
+            self.mesh.transform,
+            self.mesh.neighbors,
+            self.fieldmap.B,
+        )
+        return B, cell >= 0

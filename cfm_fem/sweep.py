@@ -1,0 +1,289 @@
+"""Positioning-uncertainty sweep: per-node field uncertainty U_f of a map for a list of U_p values.
+
+Paper eq. 16: x_meas = x_nom + N(0, U_p) per coordinate; the field is interpolated at x_meas and
+B_meas - B_nom collected over the trials, per node, for each component and for |B|.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _kernels
+from .errors import CfmInputError
+from .field import FieldMap
+from .interpolation import SimplexMesh, build_mesh
+from .mc import numerical_tolerance
+
+__all__ = ["SweepConfig", "SweepResult", "run_sweep", "node_gradients", "parse_up_range"]
+
+COMPONENTS = _kernels.COMPONENTS
+STAT_NAMES = _kernels.STAT_NAMES
+#: 97.5 % quantile of the standard normal: the GUM 95 % half-width is Z95 * u.
+Z95 = 1.959963984540054
+
+
+@dataclass
+class SweepConfig:
+    """What to run.
+
+    Attributes
+    ----------
+    up_um : list of float
+        U_p values, um (standard deviation of each coordinate, paper eq. 16).
+    trials : int
+        Monte Carlo trials per node and U_p value.
+    seed : int
+    axis_scale : tuple of 3 float
+        Per-axis multiplier of U_p (x, y, z); (1, 1, 1) is isotropic.
+    b_ref_T : float or None
+        Reference field for "units" (1e-4 B_ref); default max |B| over the map nodes.
+    coverage : float
+        Coverage probability of the intervals.
+    interpolation : {"auto", "native", "grid", "delaunay"}
+    mode : {"gauss", "htm"}
+    chunk_nodes : int
+        Nodes per chunk (progress granularity and memory; results do not depend on it).
+    """
+
+    up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
+    trials: int = 2000
+    seed: int = 0
+    axis_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    b_ref_T: float | None = None
+    coverage: float = 0.95
+    interpolation: str = "auto"
+    mode: str = "gauss"
+    chunk_nodes: int = 20000
+
+
+@dataclass
+class SweepResult:
+    """Per-node statistics of a sweep.
+
+    Attributes
+    ----------
+    fieldmap : FieldMap
+    mesh : SimplexMesh
+    config : SweepConfig
+    b_ref_T : float
+    stats : ndarray, shape (n, n_up, 4, 6), T
+        Error B_meas - B_nom per node, U_p value, component (Bx, By, Bz, |B|) and statistic
+        (mean, std, symmetric low/high, shortest low/high).
+    n_outside : ndarray, shape (n, n_up), int64
+    n_walk_failed : ndarray, shape (n, n_up), int64
+    linear_in_up : ndarray, shape (n,), bool
+        Every trial stayed in a cell incident to the node.
+    gradient : ndarray, shape (n, 3, 3), T/mm
+        ``gradient[i, c, j] = dB_c/dx_j`` at node i (volume-weighted over incident cells).
+    gum_u : ndarray, shape (n, n_up, 4), T
+        Linearised (GUM) standard uncertainty sqrt(sum_j (U_p,j dB_c/dx_j)^2).
+    seconds : float
+    """
+
+    fieldmap: FieldMap
+    mesh: SimplexMesh
+    config: SweepConfig
+    b_ref_T: float
+    stats: np.ndarray
+    n_outside: np.ndarray
+    n_walk_failed: np.ndarray
+    linear_in_up: np.ndarray
+    gradient: np.ndarray
+    gum_u: np.ndarray
+    seconds: float
+
+    def to_units(self, x):
+        """Convert T to units of 1e-4 B_ref."""
+        return np.asarray(x) / self.b_ref_T * 1e4
+
+    def expanded_95(self) -> np.ndarray:
+        """Symmetric 95 % expanded uncertainty max(|low|, |high|), shape (n, n_up, 4), T."""
+        lo, hi = self.stats[..., 2], self.stats[..., 3]
+        return np.maximum(np.abs(lo), np.abs(hi))
+
+    def uf_units(self) -> np.ndarray:
+        """U_f of each node: 95 % expanded uncertainty of |B| in units, shape (n, n_up)."""
+        return self.to_units(self.expanded_95()[..., 3])
+
+    def complete(self) -> np.ndarray:
+        """Nodes whose every trial stayed inside the map, shape (n, n_up), bool."""
+        return (self.n_outside == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
+
+    def gum_check(self):
+        """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
+
+        The tolerance is delta (JCGM 101 7.9.2, two significant digits of u), widened to three
+        times the Monte Carlo standard error of a 2.5 % quantile where that is larger (fixed
+        trial counts cannot resolve differences below their own noise).
+
+        Returns
+        -------
+        d_max : ndarray, shape (n, n_up, 4), T
+            max(d_low, d_high).
+        tol : ndarray, shape (n, n_up, 4), T
+        disagree : ndarray, shape (n, n_up, 4), bool
+        """
+        u_mc = self.stats[..., 1]
+        lo, hi = self.stats[..., 2], self.stats[..., 3]
+        U = Z95 * self.gum_u
+        d_max = np.maximum(np.abs(-U - lo), np.abs(U - hi))
+        n = self.config.trials - self.n_outside - self.n_walk_failed
+        # standard error of the 2.5 % quantile of a normal: sqrt(p(1-p)/N) / phi(z)
+        se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
+        tol = np.maximum(numerical_tolerance(u_mc), 3.0 * se)
+        with np.errstate(invalid="ignore"):
+            disagree = d_max > tol
+        return d_max, tol, disagree
+
+
+def parse_up_range(text: str) -> list[float]:
+    """Parse ``START:STOP:STEP`` (STOP included) or a comma list of U_p values in um."""
+    try:
+        if ":" in text:
+            parts = [float(v) for v in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, step = parts
+            if step <= 0 or stop < start:
+                raise ValueError
+            n = int(np.floor((stop - start) / step + 1e-9)) + 1
+            values = [start + i * step for i in range(n)]
+        else:
+            values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise CfmInputError(
+            f"--up must be START:STOP:STEP with STEP > 0 or a comma list of um; got {text!r}"
+        ) from None
+    if not values or any(not np.isfinite(v) or v < 0 for v in values):
+        raise CfmInputError(f"--up values must be finite and >= 0 um; got {text!r}")
+    return values
+
+
+def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
+    """Gradient of the piecewise-linear field at each node, volume-weighted over incident cells.
+
+    Parameters
+    ----------
+    mesh : SimplexMesh
+    B : ndarray, shape (n, 3), T
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3), T/mm
+        ``[i, c, j] = dB_c/dx_j`` in the map frame (zero along the normal of a planar map).
+    """
+    d = mesh.dim
+    T = mesh.transform[:, :d, :]  # (m, d, d): rows are grad(lambda_j), j < d
+    grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
+    cell_grad = np.einsum("mjc,mjk->mck", B[mesh.simplices], grad_lam)  # (m, 3, d)
+    vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
+    n = len(mesh.coords)
+    acc = np.zeros((n, 3, d))
+    wsum = np.zeros(n)
+    for j in range(d + 1):
+        np.add.at(acc, mesh.simplices[:, j], cell_grad * vol[:, None, None])
+        np.add.at(wsum, mesh.simplices[:, j], vol)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acc /= wsum[:, None, None]
+    return acc @ mesh.basis.T  # local -> map frame
+
+
+def _gum_u(gradient, B, sigma_mm):
+    """Linearised standard uncertainty per node, U_p value and component; shape (n, n_up, 4)."""
+    absb = np.sqrt((B**2).sum(axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grad_abs = np.einsum("nc,ncj->nj", B, gradient) / absb[:, None]
+    grad_abs[absb < 1e-12 * max(absb.max(), 1e-300)] = np.nan  # |B| not differentiable at 0
+    g4 = np.concatenate([gradient, grad_abs[:, None, :]], axis=1)  # (n, 4, 3)
+    return np.sqrt(np.einsum("ncj,kj->nkc", g4**2, sigma_mm**2))
+
+
+def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
+    if cfg.mode == "htm":
+        raise CfmInputError(
+            "--mode htm needs the bench kinematics model, which is not integrated in this "
+            "version yet; use --mode gauss"
+        )
+    if cfg.mode != "gauss":
+        raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
+    if cfg.trials < 20:
+        raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {cfg.trials}")
+    if not 0.5 < cfg.coverage < 1.0:
+        raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
+    if any(not np.isfinite(a) or a < 0 for a in cfg.axis_scale) or max(cfg.axis_scale) == 0:
+        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {cfg.axis_scale}")
+    extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
+    up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
+    if up_max_mm * 5.0 > extent:
+        raise CfmInputError(
+            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
+            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            file=fm.source,
+        )
+    if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
+        raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
+
+
+def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh | None = None):
+    """Run the Monte Carlo sweep over ``cfg.up_um`` for every node of ``fm``.
+
+    Parameters
+    ----------
+    fm : FieldMap
+    cfg : SweepConfig
+    progress : callable(int), optional
+        Called with the number of nodes finished after each chunk.
+    mesh : SimplexMesh, optional
+        Reuse a mesh built earlier (it must belong to ``fm``).
+
+    Returns
+    -------
+    SweepResult
+    """
+    t0 = time.perf_counter()
+    mesh = build_mesh(fm, cfg.interpolation) if mesh is None else mesh
+    _check_config(cfg, fm, mesh)
+    b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
+    if b_ref <= 0:
+        raise CfmInputError("the map's field is zero everywhere; give B_ref explicitly", file=fm.source)
+    scales = np.asarray(cfg.up_um, dtype=np.float64) * 1e-3  # um -> mm
+    axis = np.asarray(cfg.axis_scale, dtype=np.float64)
+    n = fm.n_nodes
+    n_up = len(scales)
+    stats = np.empty((n, n_up, 4, 6))
+    n_out = np.empty((n, n_up), dtype=np.int64)
+    n_lost = np.empty((n, n_up), dtype=np.int64)
+    star = np.empty(n, dtype=bool)
+    values = np.ascontiguousarray(fm.B)
+    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
+    start_cells = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps)
+    basis = np.ascontiguousarray(mesh.basis)
+    for a in range(0, n, cfg.chunk_nodes):
+        nodes = np.arange(a, min(a + cfg.chunk_nodes, n), dtype=np.int64)
+        s, o, lost, st = _kernels.gauss_sweep(
+            nodes, mesh.coords, values, mesh.simplices, mesh.transform, mesh.neighbors,
+            start_cells, basis, axis, scales, int(cfg.trials), int(cfg.seed),
+            float(cfg.coverage), 32,
+        )  # fmt: skip
+        stats[nodes], n_out[nodes], n_lost[nodes], star[nodes] = s, o, lost, st
+        if progress is not None:
+            progress(len(nodes))
+    gradient = node_gradients(mesh, fm.B)
+    sigma_mm = scales[:, None] * axis[None, :]
+    gum_u = _gum_u(gradient, fm.B, sigma_mm)
+    return SweepResult(
+        fieldmap=fm,
+        mesh=mesh,
+        config=cfg,
+        b_ref_T=b_ref,
+        stats=stats,
+        n_outside=n_out,
+        n_walk_failed=n_lost,
+        linear_in_up=star,
+        gradient=gradient,
+        gum_u=gum_u,
+        seconds=time.perf_counter() - t0,
+    )
