@@ -1,0 +1,607 @@
+"""Shared parsing for the text field-map readers: lines, column names and units, number blocks.
+
+The readers (:mod:`.comsol`, :mod:`.opera`, :mod:`.table`) differ only in how they find the header;
+everything after that (which column is x or Bx, which unit applies, turning the data block into
+numbers, placeholder rows, building the `FieldMap`) happens here, once.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CfmInputError, CfmInputWarning
+from ..field import FieldMap
+from ..units import FIELD_TO_T, LENGTH_TO_MM, field_scale, length_scale
+
+COORDS = ("x", "y", "z")
+FIELDS = ("Bx", "By", "Bz")
+ROLES = COORDS + FIELDS
+ZERO_ROWS_CHOICES = ("warn", "drop", "keep")
+
+# --------------------------------------------------------------------------- text
+
+
+def read_lines(path, max_bytes: int | None = None) -> list[str]:
+    """Lines of a text file without line ends; ``lines[i]`` is line ``i + 1``.
+
+    UTF-8 (with or without BOM), falling back to Latin-1; CR, LF and CRLF ends all accepted.
+    Only these three count as line ends, so line numbers match what an editor shows.
+    ``max_bytes`` reads only the start of the file (to guess its format).
+    """
+    try:
+        with open(path, "rb") as stream:
+            raw = stream.read(-1 if max_bytes is None else max_bytes)
+    except OSError as exc:
+        raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        # a multi-byte character cut at max_bytes is not a reason to leave UTF-8
+        cut = max_bytes is not None and exc.start >= len(raw) - 3
+        text = raw[: exc.start].decode("utf-8-sig") if cut else raw.decode("latin-1")
+    if not text.strip():
+        raise CfmInputError("the file is empty; expected a field map", file=path)
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def data_rows(lines, start: int, comment_chars: str = "#%"):
+    """Non-blank, non-comment lines from index ``start`` on.
+
+    Returns
+    -------
+    rows : list of str
+    row_lines : ndarray, shape (n,), int64
+        1-based line number of each row.
+    """
+    end = len(lines)
+    while end > start and not lines[end - 1].strip():
+        end -= 1
+    rows = lines[start:end]
+    skip = re.compile(rf"^[^\S\n]*(?:[{re.escape(comment_chars)}]|$)", re.MULTILINE)
+    if not skip.search("\n".join(rows)):  # the usual case: one data row per line, checked in C
+        return rows, np.arange(start + 1, start + 1 + len(rows), dtype=np.int64)
+    keep = [i for i in range(start, end) if _is_data(lines[i], comment_chars)]
+    return [lines[i] for i in keep], np.asarray(keep, dtype=np.int64) + 1
+
+
+def _is_data(line: str, comment_chars: str) -> bool:
+    s = line.lstrip()
+    return bool(s) and s[0] not in comment_chars
+
+
+def detect_delimiter(header: str, first_row: str | None):
+    """The delimiter (``,`` ``;`` or tab) used by the header and first data row; None for blanks."""
+    for delim in (",", ";", "\t"):
+        if delim in header and (first_row is None or delim in first_row):
+            return delim
+    return None
+
+
+def split_fields(line: str, delimiter) -> list[str]:
+    """Fields of one line: blank-separated, or delimited with ``"`` quoting (CSV rules)."""
+    if delimiter is None:
+        return line.split()
+    return next(csv.reader([line], delimiter=delimiter))
+
+
+def header_names(text: str, delimiter) -> list[str]:
+    """Column names of a header line.
+
+    Blank-separated headers cannot hold names with blanks, except a unit in brackets written
+    apart from its name: ``mf.Bx (T)`` and ``x [mm]`` stay one name each.
+    """
+    if delimiter is not None:
+        return [name.strip() for name in split_fields(text, delimiter)]
+    names: list[str] = []
+    for token in text.split():
+        if names and (
+            _bracket_depth(names[-1]) > 0 or (token[0] in "([" and not _has_unit(names[-1]))
+        ):
+            names[-1] += " " + token
+        else:
+            names.append(token)
+    return names
+
+
+def _bracket_depth(name: str) -> int:
+    return name.count("(") + name.count("[") - name.count(")") - name.count("]")
+
+
+def _has_unit(name: str) -> bool:
+    # "x[mm]" already carries its unit; a following "(T)" starts a new (odd) name.
+    return name.endswith(("]", ")"))
+
+
+# --------------------------------------------------------------------------- numbers
+
+_THOUSANDS = re.compile(r"[+-]?\d{1,3}(?:,\d{3})+(?:\.\d*)?(?:[eE][+-]?\d+)?")
+
+
+def parse_number(token: str, *, column: str, file, line, was_quoted: bool = False) -> float:
+    """One number as written in a file; ``"1,066.67"`` (thousands separators) is 1066.67.
+
+    Thousands separators are accepted only where they cannot be a decimal comma: in a quoted
+    field (``was_quoted``, or quotes still on ``token``) or when a decimal point follows them.
+
+    Raises
+    ------
+    CfmInputError
+        ``"<file>:<line>: column 'Bx' must be a number; found 'abc'"``.
+    """
+    s = token.strip()
+    was_quoted = was_quoted or s[:1] in "\"'"
+    s = s.strip("\"'").strip()
+    try:
+        return float(s)
+    except ValueError:
+        pass
+    if _THOUSANDS.fullmatch(s) and (was_quoted or "." in s):
+        return float(s.replace(",", ""))
+    found = "an empty field" if not s else f"'{s}'"
+    raise CfmInputError(
+        f"column '{column}' must be a number; found {found}", file=file, line=line, column=column
+    )
+
+
+def parse_block(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarray:
+    """Numbers of the columns ``usecols`` of the data rows.
+
+    Fast path: numpy parses the whole block at once. Only if that fails (a bad field, quoted
+    numbers, a short line, text in an extra column) does a line-by-line scan run, which accepts what
+    is acceptable and otherwise names the first bad line and column.
+
+    Parameters
+    ----------
+    rows : list of str
+    row_lines : ndarray, shape (n,), int
+        1-based line of each row, for messages.
+    names : list of str
+        All column names of the header, as the file spells them.
+    usecols : sequence of int
+        Indices (into ``names``) of the columns to return.
+
+    Returns
+    -------
+    ndarray, shape (n, len(usecols)), float64
+    """
+    try:
+        block = np.loadtxt(rows, delimiter=delimiter, comments=None, ndmin=2, dtype=np.float64)
+    except ValueError:
+        block = None
+    if block is not None and block.shape[1] == len(names):
+        return block[:, list(usecols)]
+    return _scan_rows(rows, row_lines, names, usecols, delimiter=delimiter, file=file)
+
+
+def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarray:
+    """Exact line-by-line parse (the slow path of `parse_block`)."""
+    n_names = len(names)
+    comma_quoted = delimiter == ","  # a comma inside a field of a CSV row was quoted
+    out = np.empty((len(rows), len(usecols)), dtype=np.float64)
+    reader = (
+        (line.split() for line in rows)
+        if delimiter is None
+        else csv.reader(rows, delimiter=delimiter)
+    )
+    for i, fields in enumerate(reader):
+        line = int(row_lines[i])
+        n = len(fields)
+        if n == n_names + 1 and not fields[-1].strip():
+            n = n_names  # a trailing delimiter at the end of the row
+        if n < n_names:
+            raise CfmInputError(
+                f"the row has {n} field(s) but the header names {n_names}; column "
+                f"'{names[n]}' is missing (truncated line?)",
+                file=file,
+                line=line,
+                column=names[n],
+            )
+        if n > n_names:
+            raise CfmInputError(
+                f"the row has {n} fields but the header names only {n_names} "
+                f"({', '.join(names)}); expected one field per column",
+                file=file,
+                line=line,
+            )
+        for j, c in enumerate(usecols):
+            out[i, j] = parse_number(
+                fields[c], column=names[c], file=file, line=line, was_quoted=comma_quoted
+            )
+    return out
+
+
+# --------------------------------------------------------------------------- column names
+
+#: Words in brackets or glued to an axis name that say which frame a coordinate is in, not its unit.
+QUALIFIERS = ("magnet", "stage")
+KNOWN_UNITS = set(LENGTH_TO_MM) | set(FIELD_TO_T)
+_BRACKETED = re.compile(r"^(?P<base>.*?)\s*(?:\[(?P<square>[^\[\]]*)\]|\((?P<round>[^()]*)\))$")
+_SUFFIXED = re.compile(r"^(?P<base>.+?)_(?P<unit>[^\s_]+)$")
+_TAG = re.compile(r"^[a-z][a-z0-9]*\.(?=[a-z])")  # COMSOL physics tag: "mf.", "mfnc."
+_ROLE_OF_KEY = {
+    "x": "x",
+    "y": "y",
+    "z": "z",
+    **{f"{p}{a}": f"B{a}" for p in ("b", "field", "bfield") for a in "xyz"},
+}
+
+
+@dataclass
+class Column:
+    """One column of a header.
+
+    Attributes
+    ----------
+    name : str
+        As the file spells it (used in every message).
+    index : int
+        0-based position in the row.
+    line : int or None
+        1-based line of the header (or of this column's definition).
+    role : str or None
+        ``'x'``, ``'y'``, ``'z'``, ``'Bx'``, ``'By'``, ``'Bz'`` or None (an extra column).
+    unit : str or None
+        Unit written in the name (``'mm'`` for ``x [mm]`` or ``x_mm``), or None.
+    qualifier : str or None
+        Frame word such as ``'magnet'`` (``Zmagnet``) or ``'stage'`` (``Z(stage)``).
+    key : str
+        The name without unit, physics tag, blanks, ``_``, ``-``, in lower case (``'bx'``).
+    """
+
+    name: str
+    index: int
+    line: int | None
+    role: str | None
+    unit: str | None
+    qualifier: str | None
+    key: str = ""
+
+
+def describe_column(name: str, index: int, line: int | None, unit: str | None = None) -> Column:
+    """Work out role, unit and qualifier from a column name.
+
+    ``unit`` (for formats that give it apart from the name, like Opera) is used when the name
+    has none. Accepted forms: ``x``, ``X [mm]``, ``x (in)``, ``x_mm``, ``Bx [T]``, ``Bx_mT``,
+    ``mf.Bx (T)``, ``mfnc.BZ (kG)``, ``Field X (T)``, ``Zmagnet``, ``Z(stage)``, any case.
+    """
+    base = name.strip().strip("\"'").strip()
+    qualifier = None
+    m = _BRACKETED.match(base)
+    if m and m["base"]:
+        inner = (m["square"] if m["square"] is not None else m["round"]).strip()
+        base = m["base"]
+        if inner.lower() in QUALIFIERS:
+            qualifier = inner.lower()
+        else:
+            unit = inner
+    else:
+        m = _SUFFIXED.match(base)
+        if m and m["unit"].lower() in KNOWN_UNITS:
+            base, unit = m["base"], m["unit"]
+    key = _TAG.sub("", re.sub(r"[\s_\-]", "", base).lower())
+    role = _ROLE_OF_KEY.get(key)
+    if role is None:
+        for q in QUALIFIERS:
+            if key.endswith(q) and _ROLE_OF_KEY.get(key[: -len(q)]) in COORDS:
+                role, qualifier = _ROLE_OF_KEY[key[: -len(q)]], q
+    return Column(name, index, line, role=role, unit=unit, qualifier=qualifier, key=key)
+
+
+def pick_columns(columns, *, file, line, optional=()) -> tuple[dict, list[str]]:
+    """Choose the column for each of x, y, z, Bx, By, Bz.
+
+    Several candidates for one role: a coordinate qualified ``magnet`` (the map's frame) wins,
+    else the one unqualified name; anything else is ambiguous and an error.
+
+    Parameters
+    ----------
+    columns : list of Column
+    optional : tuple of str
+        Roles that may be absent (then mapped to None), e.g. ``('z', 'Bz')`` for 2-D exports.
+
+    Returns
+    -------
+    chosen : dict role -> Column or None
+    notes : list of str
+    """
+    notes: list[str] = []
+    chosen: dict = {}
+    for role in ROLES:
+        cands = [c for c in columns if c.role == role]
+        if len(cands) <= 1:
+            chosen[role] = cands[0] if cands else None
+            continue
+        magnet = [c for c in cands if c.qualifier == "magnet"]
+        plain = [c for c in cands if c.qualifier is None]
+        best = magnet if magnet else plain
+        if len(best) != 1:
+            listed = ", ".join(f"'{c.name}'" for c in cands)
+            raise CfmInputError(
+                f"several columns could be '{role}': {listed}; expected one (rename the others)",
+                file=file,
+                line=line,
+            )
+        chosen[role] = best[0]
+        others = ", ".join(f"'{c.name}'" for c in cands if c is not best[0])
+        why = "the magnet frame" if magnet else "the unqualified name"
+        notes.append(f"'{role}' read from column '{best[0].name}' ({why}); ignored {others}")
+    missing = [r for r in ROLES if chosen[r] is None and r not in optional]
+    if missing:
+        found = ", ".join(f"'{c.name}'" for c in columns) or "none"
+        raise CfmInputError(
+            f"missing column(s) {', '.join(repr(r) for r in missing)}: expected coordinates "
+            f"x, y, z and field Bx, By, Bz (any order, names like 'x [mm]' or 'Bx [T]'); "
+            f"found {found}",
+            file=file,
+            line=line,
+            column=missing[0],
+        )
+    return chosen, notes
+
+
+def resolve_unit(
+    kind: str, columns, *, option, fallback, file, line, assumed=None
+) -> tuple[float, list[str]]:
+    """Scale factor to mm (``kind='length'``) or T (``kind='field'``) for a group of columns.
+
+    Precedence: the ``option`` the user passed (overrides the file, with a warning if they
+    disagree), then units written in the column names (all the same, else an error), then
+    ``fallback`` (e.g. COMSOL's ``% Length unit``), else an error asking for the unit.
+
+    Parameters
+    ----------
+    columns : list of Column
+        The x, y, z (or Bx, By, Bz) columns actually used.
+    option : str or None
+        ``length_unit`` / ``field_unit`` as passed by the user.
+    fallback : tuple (unit, where, line) or None
+        A unit the file states elsewhere, ``where`` saying where (for notes), its line.
+    assumed : tuple (unit, why) or None
+        The unit to assume when nothing else gives one (mesh files); noted, never an error.
+    """
+    to_scale = length_scale if kind == "length" else field_scale
+    listed = ", ".join(f"'{c.name}'" for c in columns)
+    notes: list[str] = []
+    if option is not None:
+        scale = to_scale(option)
+        said = [(c.unit, f"column '{c.name}'") for c in columns if c.unit is not None]
+        if not said and fallback is not None:
+            said = [(fallback[0], fallback[1])]
+        differ = [f"'{u}' ({where})" for u, where in said if _scale_or_none(kind, u) != scale]
+        if differ:
+            msg = f"{file}: {kind}_unit='{option}' overrides the file's {', '.join(differ)}"
+            warnings.warn(msg, CfmInputWarning, stacklevel=4)
+            notes.append(msg)
+        notes.append(f"{kind} unit '{option}' for {listed} (from the {kind}_unit option)")
+        return scale, notes
+    stated = [c for c in columns if c.unit is not None]
+    scales = {c.name: to_scale(c.unit, file=file, line=c.line, column=c.name) for c in stated}
+    if len(set(scales.values())) > 1:
+        mixed = ", ".join(f"'{c.name}' ({c.unit})" for c in stated)
+        raise CfmInputError(
+            f"mixed {kind} units in columns {mixed}; expected one unit for {listed}",
+            file=file,
+            line=line,
+            column=stated[0].name,
+        )
+    if stated:
+        unit = stated[0].unit
+        unstated = [c.name for c in columns if c.unit is None]
+        extra = f" (applied also to {', '.join(repr(n) for n in unstated)})" if unstated else ""
+        notes.append(f"{kind} unit '{unit}' from the column names{extra}")
+        return scales[stated[0].name], notes
+    if fallback is not None:
+        unit, where, fb_line = fallback
+        scale = to_scale(unit, file=file, line=fb_line)
+        notes.append(f"{kind} unit '{unit}' for {listed} ({where})")
+        return scale, notes
+    if assumed is not None:
+        notes.append(f"{kind} unit '{assumed[0]}' for {listed} assumed: {assumed[1]}")
+        return to_scale(assumed[0]), notes
+    example = "mm" if kind == "length" else "T"
+    named = "x [mm]" if kind == "length" else "Bx [T]"
+    raise CfmInputError(
+        f"no {kind} unit for columns {listed}: name it in the header (e.g. '{named}') or pass "
+        f"{kind}_unit (e.g. {kind}_unit='{example}')",
+        file=file,
+        line=line,
+        column=columns[0].name,
+    )
+
+
+def _scale_or_none(kind, unit):
+    table = LENGTH_TO_MM if kind == "length" else FIELD_TO_T
+    return table.get(str(unit).strip().lower())
+
+
+# --------------------------------------------------------------------------- assembly
+
+
+def check_zero_rows(zero_rows: str) -> None:
+    """Reject a ``zero_rows`` value other than 'warn', 'drop' or 'keep'."""
+    if zero_rows not in ZERO_ROWS_CHOICES:
+        raise CfmInputError(
+            f"zero_rows must be one of {', '.join(ZERO_ROWS_CHOICES)}; instead received "
+            f"{zero_rows!r}"
+        )
+
+
+def table_fieldmap(
+    header_columns,
+    rows,
+    row_lines,
+    *,
+    delimiter,
+    file,
+    header_line,
+    length_unit,
+    field_unit,
+    zero_rows,
+    length_fallback=None,
+    optional=(),
+    notes=(),
+    check_points=None,
+) -> FieldMap:
+    """Pick columns, resolve units, parse the block and build the `FieldMap` (all text readers).
+
+    Parameters
+    ----------
+    header_columns : list of Column
+        Every column of the header, in file order.
+    rows, row_lines :
+        From `data_rows`.
+    header_line : int
+        1-based line of the header, for messages about columns.
+    length_fallback : tuple (unit, where, line), optional
+        Length unit stated elsewhere in the file.
+    optional : tuple of str
+        Roles allowed to be absent (filled with 0, with a note).
+    check_points : callable, optional
+        ``check_points(points)`` with points (n, 3) mm of every row, returning notes; for
+        format-specific checks such as Opera's point counts.
+    """
+    check_zero_rows(zero_rows)
+    notes = list(notes)
+    names = [c.name for c in header_columns]
+    if not rows:
+        raise CfmInputError(
+            f"no data rows after the header (line {header_line}); expected one row of "
+            f"{len(names)} numbers per node",
+            file=file,
+            line=header_line,
+        )
+    chosen, pick_notes = pick_columns(
+        header_columns, file=file, line=header_line, optional=optional
+    )
+    notes += pick_notes
+    present = [r for r in ROLES if chosen[r] is not None]
+    coords = [chosen[r] for r in COORDS if chosen[r] is not None]
+    fields = [chosen[r] for r in FIELDS if chosen[r] is not None]
+    mm, unit_notes = resolve_unit(
+        "length",
+        coords,
+        option=length_unit,
+        fallback=length_fallback,
+        file=file,
+        line=header_line,
+    )
+    notes += unit_notes
+    tesla, unit_notes = resolve_unit(
+        "field", fields, option=field_unit, fallback=None, file=file, line=header_line
+    )
+    notes += unit_notes
+    block = parse_block(
+        rows, row_lines, names, [chosen[r].index for r in present], delimiter=delimiter, file=file
+    )
+    values = np.zeros((len(rows), 6), dtype=np.float64)
+    for j, role in enumerate(present):
+        values[:, ROLES.index(role)] = block[:, j] * (mm if role in COORDS else tesla)
+    for role in ROLES:
+        if chosen[role] is None:
+            notes.append(f"no '{role}' column: {role} = 0 at every node")
+    if check_points is not None:
+        notes += check_points(values[:, :3])
+    spelled = [chosen[r].name if chosen[r] is not None else r for r in ROLES]
+    return build_fieldmap(
+        values[:, :3],
+        values[:, 3:],
+        source=file,
+        lines=row_lines,
+        notes=notes,
+        columns=spelled,
+        zero_rows=zero_rows,
+    )
+
+
+def build_fieldmap(
+    points, B, *, source, lines, notes, columns=ROLES, cells=None, zero_rows="warn"
+) -> FieldMap:
+    """Handle placeholder rows (B exactly 0, 0, 0), then `FieldMap.from_arrays`.
+
+    ``zero_rows``: ``'warn'`` keeps them with a `CfmInputWarning`, ``'drop'`` drops them (and
+    any cell using them), ``'keep'`` keeps them silently; each case leaves a note with the count.
+    """
+    check_zero_rows(zero_rows)
+    source = str(source)
+    notes = list(notes)
+    _check_finite(points, B, columns, lines, source)
+    zero = np.all(B == 0.0, axis=1)
+    n_zero = int(zero.sum())
+    if n_zero:
+        first = np.flatnonzero(zero)[0]
+        where = f"line {int(lines[first])}" if lines is not None else f"node {first}"
+        what = f"{n_zero} row(s) have {', '.join(columns[3:])} exactly 0 0 0 (first at {where})"
+        if zero_rows == "drop":
+            keep = ~zero
+            points, B = points[keep], B[keep]
+            lines = None if lines is None else lines[keep]
+            had_cells = cells is not None
+            cells = _cells_without(cells, keep)
+            notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
+            if had_cells and cells is None:
+                notes.append("no cell is left without a dropped node: cells=None (Delaunay)")
+        elif zero_rows == "warn":
+            msg = (
+                f"{source}: {what}; kept as real 0 T values. If they are placeholders, drop them "
+                f"with zero_rows='drop'"
+            )
+            warnings.warn(msg, CfmInputWarning, stacklevel=3)
+            notes.append(msg)
+        else:
+            notes.append(f"{what}: kept (zero_rows='keep')")
+    return FieldMap.from_arrays(
+        points, B, cells=cells, source=source, lines=lines, notes=notes, columns=tuple(columns)
+    )
+
+
+def _check_finite(points, B, columns, lines, source):
+    """NaN or inf: name the first one's line and column (as the file spells it)."""
+    for values, names in ((points, columns[:3]), (B, columns[3:])):
+        bad = ~np.isfinite(values)
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            where = {"line": int(lines[i])} if lines is not None else {}
+            node = "" if lines is not None else f" at node {i} (0-based)"
+            raise CfmInputError(
+                f"column '{names[j]}' must be a finite number; found {float(values[i, j])}{node}",
+                file=source,
+                column=names[j],
+                **where,
+            )
+
+
+def _cells_without(cells, keep):
+    """Cells that use only kept nodes, renumbered; None if none is left."""
+    if cells is None:
+        return None
+    cells = cells[keep[cells].all(axis=1)]
+    new_index = np.cumsum(keep) - 1
+    return new_index[cells] if len(cells) else None
+
+
+# --------------------------------------------------------------------------- text output
+
+
+def write_rows(path, header_lines, values, *, sep: str, width: int = 0) -> None:
+    """Write header lines then one row per line of ``values``, atomically.
+
+    Numbers are written as the shortest text that reads back to the same float64 (Python
+    ``repr``), so a written map reads back exactly. ``width`` left-justifies each number.
+
+    Parameters
+    ----------
+    values : ndarray, shape (n, k), float64
+    """
+    from ._atomic import atomic_path
+
+    as_text = (lambda v: repr(v).ljust(width)) if width else repr
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as out:
+        out.writelines(line + "\n" for line in header_lines)
+        for start in range(0, len(values), 65536):
+            chunk = np.asarray(values[start : start + 65536], dtype=np.float64).tolist()
+            out.write("".join(sep.join(map(as_text, row)).rstrip() + "\n" for row in chunk))

@@ -1,0 +1,245 @@
+"""Mesh files through meshio (VTU, VTK, Gmsh ``.msh``, XDMF, ...): field as point data.
+
+The field is point data ``B`` with 3 components, or ``Bx``, ``By``, ``Bz`` (also ``mf.B``,
+``magnetic_flux_density``, ``B [T]``, ... when only one candidate exists). The export's own
+cells are kept when they are linear tetrahedra (or the corners of quadratic ones), or triangles
+of a planar map; other cells are dropped and the interpolator falls back to a Delaunay
+triangulation of the nodes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CfmInputError
+from ..field import FieldMap
+from ._atomic import atomic_path
+from ._parse import Column, build_fieldmap, describe_column, resolve_unit
+
+__all__ = ["read_meshfile", "write_meshfile", "meshio_format"]
+
+#: Normalised point-data names taken as the flux density vector.
+_VECTOR_NAMES = {"b", "bfield", "magneticfluxdensity", "fluxdensity"}
+#: Extensions meshio would guess wrongly or that we read as text first.
+_FORMAT_OF_SUFFIX = {".msh": "gmsh"}
+_DELAUNAY = "interpolation will use a Delaunay triangulation of the nodes"
+
+
+def meshio_format(path, file_format=None) -> str:
+    """meshio format name for ``path`` (``'vtu'``, ``'gmsh'``, ...), or a `CfmInputError`."""
+    import meshio
+
+    if file_format:
+        return file_format
+    suffix = Path(path).suffix.lower()
+    if suffix in _FORMAT_OF_SUFFIX:
+        return _FORMAT_OF_SUFFIX[suffix]
+    formats = meshio.extension_to_filetypes.get(suffix)
+    if not formats:
+        known = ", ".join(sorted(meshio.extension_to_filetypes))
+        raise CfmInputError(
+            f"unknown mesh file extension '{suffix}'; expected one of {known} (or pass fmt=)",
+            file=path,
+        )
+    return formats[0]
+
+
+def read_meshfile(
+    path, *, file_format=None, length_unit=None, field_unit=None, zero_rows="warn"
+) -> FieldMap:
+    """Read a field map from a mesh file.
+
+    Parameters
+    ----------
+    path : path-like
+    file_format : str, optional
+        meshio format name; guessed from the extension otherwise.
+    length_unit : str, optional
+        Unit of the node coordinates. Mesh files carry none, so mm is assumed (and noted).
+    field_unit : str, optional
+        Unit of the field; taken from the point-data name (``B [T]``) if it has one, else T is
+        assumed (and noted).
+    zero_rows : {'warn', 'drop', 'keep'}
+        What to do with nodes whose field is exactly 0 0 0 (``'drop'`` also drops their cells).
+
+    Returns
+    -------
+    FieldMap
+        ``points`` (n, 3) mm (2-D coordinates get z = 0), ``B`` (n, 3) T, ``cells`` (m, 4)
+        tetrahedra, (m, 3) triangles of a planar map, or None; ``lines`` is None.
+    """
+    file = str(path)
+    if not Path(path).is_file():
+        raise CfmInputError("cannot read the file: it does not exist", file=file)
+    fmt = meshio_format(path, file_format)
+    try:
+        mesh = _meshio_read(path, fmt)
+    except Exception as exc:  # meshio raises many types (ReadError, KeyError, struct.error, ...)
+        raise CfmInputError(f"cannot read as a '{fmt}' mesh file: {exc}", file=file) from None
+    notes: list[str] = []
+    points = np.asarray(mesh.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] not in (2, 3) or len(points) == 0:
+        raise CfmInputError(
+            f"expected node coordinates of shape (n, 2) or (n, 3); found {points.shape}", file=file
+        )
+    if points.shape[1] == 2:
+        points = np.column_stack([points, np.zeros(len(points))])
+        notes.append("2-D node coordinates: z = 0 at every node")
+    B, used, field_notes = _flux_density(mesh.point_data, len(points), file)
+    notes += field_notes
+    mm, unit_notes = resolve_unit(
+        "length",
+        [Column("node coordinates", 0, None, None, None, None)],
+        option=length_unit,
+        fallback=None,
+        assumed=("mm", "mesh files carry no length unit; pass length_unit if not mm"),
+        file=file,
+        line=None,
+    )
+    notes += unit_notes
+    field_columns = [describe_column(name, 0, None) for name in used]
+    tesla, unit_notes = resolve_unit(
+        "field",
+        field_columns,
+        option=field_unit,
+        fallback=None,
+        assumed=("T", "the point data name gives no unit; pass field_unit if not T"),
+        file=file,
+        line=None,
+    )
+    notes += unit_notes
+    points = points * mm
+    cells = _usable_cells(mesh.cells, points, notes)
+    return build_fieldmap(
+        points,
+        B * tesla,
+        source=file,
+        lines=None,
+        notes=notes,
+        columns=("x", "y", "z", *_component_names(used)),
+        cells=cells,
+        zero_rows=zero_rows,
+    )
+
+
+def _meshio_read(path, fmt):
+    """meshio's reader for ``fmt``, called directly: ``meshio.read`` prints and calls
+    ``sys.exit(1)`` when the file is broken."""
+    import meshio
+
+    module = getattr(meshio, fmt.split("-")[0].removesuffix("22"), None)
+    if module is not None and hasattr(module, "read"):
+        return module.read(str(path))
+    try:
+        return meshio.read(path, file_format=fmt)
+    except SystemExit:
+        raise meshio.ReadError(f"meshio could not read it as {fmt}") from None
+
+
+def _flux_density(point_data, n, file):
+    """(B (n, 3) in the file's unit, names used, notes) from meshio point data."""
+    vectors = []
+    components: dict[str, list[str]] = {"Bx": [], "By": [], "Bz": []}
+    for name, values in point_data.items():
+        arr = np.asarray(values)
+        column = describe_column(name, 0, None)
+        if column.key in _VECTOR_NAMES and arr.ndim == 2 and arr.shape[1] in (2, 3):
+            vectors.append(name)
+        elif column.role in components and (arr.ndim == 1 or arr.shape[1:] == (1,)):
+            components[column.role].append(name)
+    found = ", ".join(f"'{k}'" for k in point_data) or "no point data"
+    notes = []
+    if len(vectors) > 1:
+        raise CfmInputError(
+            f"several point data could be the flux density: {', '.join(map(repr, vectors))}; "
+            f"expected exactly one (rename the others)",
+            file=file,
+        )
+    if vectors:
+        arr = np.asarray(point_data[vectors[0]], dtype=np.float64)
+        if arr.shape[1] == 2:
+            arr = np.column_stack([arr, np.zeros(n)])
+            notes.append(f"point data '{vectors[0]}' has 2 components: Bz = 0 at every node")
+        return arr, vectors, notes
+    if all(len(v) == 1 for v in components.values()):
+        used = [components[c][0] for c in ("Bx", "By", "Bz")]
+        arr = np.column_stack([np.asarray(point_data[u], dtype=np.float64).ravel() for u in used])
+        return arr, used, notes
+    raise CfmInputError(
+        f"no unambiguous flux density in the point data: expected 'B' (3 components) or "
+        f"'Bx', 'By', 'Bz'; found {found}",
+        file=file,
+    )
+
+
+def _component_names(used):
+    if len(used) == 3:
+        return tuple(used)
+    return tuple(f"{used[0]}[{k}]" for k in range(3))
+
+
+def _usable_cells(blocks, points, notes):
+    """Tetrahedra (m, 4), triangles (m, 3) of a planar map, or None; notes say which and why."""
+    by_dim: dict[int, list] = {}
+    for block in blocks:
+        by_dim.setdefault(int(block.dim), []).append(block)
+    for dim, corners, kind in ((3, 4, "tetra"), (2, 3, "triangle")):
+        if dim not in by_dim:
+            continue
+        types = sorted({b.type for b in by_dim[dim]})
+        if any(not t.startswith(kind) for t in types):
+            notes.append(f"cells of type {', '.join(types)} are not used: {_DELAUNAY}")
+            return None
+        if dim == 2:
+            plane = _constant_axis(points)
+            if plane is None:
+                notes.append(f"triangles of a non-planar surface are not used: {_DELAUNAY}")
+                return None
+            notes.append(f"planar map in the plane {plane}")
+        cells = np.concatenate([np.asarray(b.data)[:, :corners] for b in by_dim[dim]])
+        higher = [t for t in types if t != kind]
+        if higher:
+            notes.append(f"{', '.join(higher)} cells: only their {corners} corner nodes are used")
+        return cells.astype(np.int64)
+    notes.append(f"no volume cells: {_DELAUNAY}")
+    return None
+
+
+def _constant_axis(points):
+    extent = np.ptp(points, axis=0)
+    tol = 1e-9 * max(float(extent.max()), 1.0)
+    for k in (2, 0, 1):
+        if extent[k] <= tol:
+            return f"{'xyz'[k]} = {float(points[0, k])!r} mm"
+    return None
+
+
+def write_meshfile(path, fieldmap: FieldMap, file_format=None) -> None:
+    """Write ``fieldmap`` with meshio (atomically): point data ``B`` (n, 3) in T, points in mm.
+
+    Cells are written as ``tetra`` or ``triangle`` when the map has them, otherwise one
+    ``vertex`` cell per node. XDMF is written with inline XML data (no ``.h5`` side file, which
+    would not survive the atomic rename).
+    """
+    import meshio
+
+    fmt = meshio_format(path, file_format)
+    n = fieldmap.n_nodes
+    if fieldmap.cells is None:
+        cells = [("vertex", np.arange(n, dtype=np.int64).reshape(-1, 1))]
+    else:
+        kind = "tetra" if fieldmap.cells.shape[1] == 4 else "triangle"
+        cells = [(kind, fieldmap.cells)]
+    mesh = meshio.Mesh(fieldmap.points, cells, point_data={"B": fieldmap.B})
+    kwargs = {"data_format": "XML"} if fmt == "xdmf" else {}
+    try:
+        with atomic_path(path) as tmp:
+            meshio.write(tmp, mesh, file_format=fmt, **kwargs)
+    except ModuleNotFoundError as exc:  # meshio's XDMF writer needs h5py even for XML data
+        raise CfmInputError(
+            f"writing '{fmt}' needs the Python package '{exc.name}' (pip install {exc.name}); "
+            f"or write .vtu instead",
+            file=path,
+        ) from None

@@ -1,0 +1,249 @@
+"""Bad input: one CfmInputError naming the file, the line, the column and what was expected."""
+
+from __future__ import annotations
+
+import meshio
+import numpy as np
+import pytest
+
+from cfm_fem.errors import CfmInputError
+from cfm_fem.io import read_field
+
+CSV_HEADER = "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+GOOD_ROW = "1,2,3,0.1,0.2,0.3\n"
+COMSOL_HEAD = "% Nodes: 2\n% Length unit: mm\n% X Y Z mf.Bx (T) mf.By (T) mf.Bz (T)\n"
+OPERA_HEAD = " 1 1 1 2\n 1 X [M]\n 2 Y [M]\n 3 Z [M]\n 4 BX [T]\n 5 BY [T]\n 6 BZ [T]\n 0\n"
+
+# (file name, content, line, column, what the message must say)
+CASES = {
+    "empty file": ("m.csv", "", None, None, "the file is empty; expected a field map"),
+    "blank file": ("m.txt", "\n  \n\t\n", None, None, "the file is empty"),
+    "only comments": ("m.csv", "# nothing\n# here\n", None, None, "only comment lines"),
+    "header only": (
+        "m.csv",
+        CSV_HEADER,
+        1,
+        None,
+        "no data rows after the header (line 1); expected one row of 6 numbers per node",
+    ),
+    "comsol header only": ("m.txt", COMSOL_HEAD, 3, None, "no data rows after the header"),
+    "truncated last line": (
+        "m.csv",
+        CSV_HEADER + GOOD_ROW + "4,5,6,0.4",
+        3,
+        "By [T]",
+        "the row has 4 field(s) but the header names 6; column 'By [T]' is missing (truncated",
+    ),
+    "truncated blank-separated line": (
+        "m.txt",
+        COMSOL_HEAD + "1 2 3 0.1 0.2 0.3\n1 2 4 0.1 0.2\n",
+        5,
+        "mf.Bz (T)",
+        "column 'mf.Bz (T)' is missing",
+    ),
+    "too many fields": (
+        "m.csv",
+        CSV_HEADER + GOOD_ROW + "1,2,4,0.1,0.2,0.3,7\n",
+        3,
+        None,
+        "the row has 7 fields but the header names only 6",
+    ),
+    "text in a numeric column": (
+        "m.csv",
+        "x [mm],y [mm],z [mm],Bx,By [T],Bz [T]\n" + GOOD_ROW + "1,2,4,abc,0.2,0.3\n",
+        3,
+        "Bx",
+        "column 'Bx' must be a number; found 'abc'",
+    ),
+    "empty field": (
+        "m.csv",
+        CSV_HEADER + "1,,3,0.1,0.2,0.3\n",
+        2,
+        "y [mm]",
+        "column 'y [mm]' must be a number; found an empty field",
+    ),
+    "nan": (
+        "m.txt",
+        COMSOL_HEAD + "1 2 3 0.1 0.2 0.3\n1 2 4 0.1 nan 0.3\n",
+        5,
+        "mf.By (T)",
+        "column 'mf.By (T)' must be a finite number; found nan",
+    ),
+    "inf": (
+        "m.csv",
+        CSV_HEADER + GOOD_ROW + "1,2,-inf,0.1,0.2,0.3\n",
+        3,
+        "z [mm]",
+        "column 'z [mm]' must be a finite number; found -inf",
+    ),
+    "overflow": (
+        "m.csv",
+        CSV_HEADER + "1,2,3,1e999,0.2,0.3\n",
+        2,
+        "Bx [T]",
+        "column 'Bx [T]' must be a finite number; found inf",
+    ),
+    "unknown length unit": (
+        "m.csv",
+        "x [furlong],y [furlong],z [furlong],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,
+        1,
+        "x [furlong]",
+        "column 'x [furlong]': unknown length unit 'furlong'; expected one of",
+    ),
+    "unknown field unit": (
+        "m.txt",
+        COMSOL_HEAD.replace("mf.By (T)", "mf.By (kT)") + "1 2 3 0.1 0.2 0.3\n",
+        3,
+        "mf.By (kT)",
+        "unknown field unit 'kT'",
+    ),
+    "field unit on a coordinate": (
+        "m.csv",
+        "x [T],y [T],z [T],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,
+        1,
+        "x [T]",
+        "unknown length unit 'T'",
+    ),
+    "mixed length units": (
+        "m.csv",
+        "x [mm],y [in],z [mm],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,
+        1,
+        "x [mm]",
+        "mixed length units in columns 'x [mm]' (mm), 'y [in]' (in), 'z [mm]' (mm)",
+    ),
+    "mixed field units": (
+        "m.csv",
+        "x [mm],y [mm],z [mm],Bx [T],By [mT],Bz [T]\n" + GOOD_ROW,
+        1,
+        "Bx [T]",
+        "mixed field units",
+    ),
+    "missing column": (
+        "m.csv",
+        "x [mm],y [mm],z [mm],Bx [T],By [T],B [T]\n" + GOOD_ROW,
+        1,
+        "Bz",
+        "missing column(s) 'Bz': expected coordinates x, y, z and field Bx, By, Bz (any order, "
+        "names like 'x [mm]' or 'Bx [T]'); found 'x [mm]', 'y [mm]', 'z [mm]', 'Bx [T]', "
+        "'By [T]', 'B [T]'",
+    ),
+    "no header row": (
+        "m.csv",
+        GOOD_ROW + GOOD_ROW,
+        1,
+        None,
+        "the first row holds numbers, not column names; expected a header row such as "
+        "'x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]'",
+    ),
+    "comsol without column line": (
+        "m.txt",
+        "% Model: m\n% Length unit: mm\n1 2 3 4 5 6\n",
+        3,
+        None,
+        "no column line such as '% X Y Z mf.Bx (T) mf.By (T) mf.Bz (T)'",
+    ),
+    "opera without end of header": (
+        "m.table",
+        OPERA_HEAD.replace(" 0\n", "") + " -0.1 0.2 0.3 1 2 3\n",
+        8,
+        None,
+        "expected column definition '7 <NAME> [<UNIT>]' or the line '0' ending the header; "
+        "found '-0.1 0.2 0.3 1 2 3'",
+    ),
+    "opera header never ends": (
+        "m.table",
+        OPERA_HEAD.replace(" 0\n", ""),
+        7,
+        None,
+        "the header never ends: expected a line '0' after the 6 column definition(s)",
+    ),
+    "opera bad counts line": (
+        "m.table",
+        "counts: 21 11 41\n" + OPERA_HEAD.split("\n", 1)[1] + " 1 2 3 4 5 6\n",
+        1,
+        None,
+        "line 1 of an Opera table must hold the point counts and a trailing flag",
+    ),
+    "opera column numbering": (
+        "m.table",
+        OPERA_HEAD.replace(" 3 Z [M]", " 4 Z [M]"),
+        4,
+        None,
+        "expected column definition '3 <NAME> [<UNIT>]'",
+    ),
+    "opera header only": ("m.table", OPERA_HEAD, 2, None, "no data rows after the header"),
+    "duplicate node with another field": (
+        "m.csv",
+        CSV_HEADER + GOOD_ROW + "1,2,3,0.5,0.2,0.3\n",
+        3,
+        None,
+        "duplicate node at [1.0, 2.0, 3.0] mm (also on line 2) with a different field",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_file_gives_one_clear_error(tmp_path, case):
+    name, text, line, column, what = CASES[case]
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(CfmInputError) as info:
+        read_field(path)
+    error = info.value
+    prefix = f"{path}:{line}: " if line is not None else f"{path}: "
+    assert str(error).startswith(prefix), str(error)
+    assert what in str(error), str(error)
+    assert error.file == str(path)
+    assert error.line == line
+    if column is not None:
+        assert error.column == column
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(CfmInputError, match=r"cannot read the file"):
+        read_field(tmp_path / "absent.csv")
+    with pytest.raises(CfmInputError, match=r"cannot read the file: it does not exist"):
+        read_field(tmp_path / "absent.vtu")
+
+
+def test_corrupt_mesh_file(tmp_path):
+    path = tmp_path / "broken.vtu"
+    path.write_text("<VTKFile><UnstructuredGrid>", encoding="utf-8")
+    with pytest.raises(CfmInputError, match=r"broken.vtu: cannot read as a 'vtu' mesh file"):
+        read_field(path)
+
+
+def test_unknown_extension(tmp_path):
+    path = tmp_path / "map.xyz123"
+    path.write_text(CSV_HEADER + GOOD_ROW, encoding="utf-8")
+    with pytest.raises(CfmInputError, match=r"unknown mesh file extension '.xyz123'.*fmt="):
+        read_field(path)
+
+
+def test_unknown_unit_option(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("x,y,z,Bx [T],By [T],Bz [T]\n" + GOOD_ROW, encoding="utf-8")
+    with pytest.raises(CfmInputError, match=r"unknown length unit 'parsec'"):
+        read_field(path, length_unit="parsec")
+
+
+def test_error_deep_in_a_large_file_names_its_line(tmp_path):
+    rows = [f"{i} 0 0 0.1 0.2 0.3" for i in range(20000)]
+    rows[17321] = "17321 0 0 0.1 0.2 O.3"  # letter O for zero
+    path = tmp_path / "big.txt"
+    path.write_text("x [mm] y [mm] z [mm] Bx [T] By [T] Bz [T]\n" + "\n".join(rows), "utf-8")
+    with pytest.raises(CfmInputError) as info:
+        read_field(path)
+    assert str(info.value) == f"{path}:17323: column 'Bz [T]' must be a number; found 'O.3'"
+
+
+def test_nan_in_mesh_point_data_names_the_node(tmp_path):
+    field = np.ones((4, 3))
+    field[3, 1] = np.nan
+    path = tmp_path / "m.vtu"
+    meshio.write(path, meshio.Mesh(np.eye(4, 3), [("tetra", [[0, 1, 2, 3]])], {"B": field}))
+    with pytest.raises(CfmInputError) as info:
+        read_field(path)
+    assert str(info.value) == (
+        f"{path}: column 'B[1]' must be a finite number; found nan at node 3 (0-based)"
+    )
