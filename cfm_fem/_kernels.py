@@ -42,7 +42,7 @@ def stream_key(seed, stream):
 @nb.njit(**JIT)
 def uniform_at(key, counter):
     """Uniform double in [0, 1) at position ``counter`` of stream ``key`` (53-bit resolution)."""
-    h = mix64(key + (np.uint64(counter) + np.uint64(1)) * _GOLDEN)
+    h = mix64(np.uint64(key) + (np.uint64(counter) + np.uint64(1)) * _GOLDEN)
     return float(h >> np.uint64(11)) * _INV_2_53
 
 
@@ -60,6 +60,7 @@ def normal_next(key, state, spare):
 
     The sequence depends only on ``key`` and the number of draws made, never on threads.
     """
+    key = np.uint64(key)
     if state[1] == 1:
         state[1] = 0
         return spare[0]
@@ -110,6 +111,8 @@ def locate(p, start, transform, neighbors, bary):
     """
     d = p.shape[0]
     s = start
+    if s < 0:
+        return OUTSIDE
     for _ in range(MAX_WALK):
         last = 1.0
         for j in range(d):
@@ -356,8 +359,25 @@ def _star_contains(simplices, s, node):
 
 @nb.njit(**JIT)
 def _node_gauss(
-    g, coords, values, simplices, transform, neighbors, start_cells, basis, sigma_axes, scales,
-    n_trials, seed, p, comp, absb, scratch, stats, n_out, n_lost,
+    g,
+    coords,
+    values,
+    simplices,
+    transform,
+    neighbors,
+    start_cells,
+    basis,
+    sigma_axes,
+    scales,
+    n_trials,
+    seed,
+    p,
+    comp,
+    absb,
+    scratch,
+    stats,
+    n_out,
+    n_lost,
 ):
     """All trials and statistics of node ``g`` (see `gauss_sweep`). Buffers are per thread."""
     d = coords.shape[1]
@@ -451,7 +471,9 @@ def _node_gauss(
         for k in range(n_up):
             for c in range(3):
                 nk = nvalid[k]
-                sample_stats(comp[k, c], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, c], scratch)
+                sample_stats(
+                    comp[k, c], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, c], scratch
+                )
     for k in range(n_up):
         nk = nvalid[k]
         sample_stats(absb[k], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, 3], scratch)
@@ -460,8 +482,20 @@ def _node_gauss(
 
 @nb.njit(**PJIT)
 def gauss_sweep(
-    nodes, coords, values, simplices, transform, neighbors, start_cells, basis, sigma_axes, scales,
-    n_trials, seed, p, block,
+    nodes,
+    coords,
+    values,
+    simplices,
+    transform,
+    neighbors,
+    start_cells,
+    basis,
+    sigma_axes,
+    scales,
+    n_trials,
+    seed,
+    p,
+    block,
 ):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node, statistics streamed per node.
 
@@ -515,7 +549,24 @@ def gauss_sweep(
             if start_cells[g, 0] < 0:
                 continue
             star[i] = _node_gauss(
-                g, coords, values, simplices, transform, neighbors, start_cells, basis, sigma_axes,
-                scales, n_trials, seed, p, comp, absb, scratch, stats[i], n_out[i], n_lost[i],
+                g,
+                coords,
+                values,
+                simplices,
+                transform,
+                neighbors,
+                start_cells,
+                basis,
+                sigma_axes,
+                scales,
+                n_trials,
+                seed,
+                p,
+                comp,
+                absb,
+                scratch,
+                stats[i],
+                n_out[i],
+                n_lost[i],
             )
     return stats, n_out, n_lost, star

@@ -103,14 +103,16 @@ class FieldMap:
                 file=source,
             )
         if points.shape[0] == 0:
-            raise CfmInputError("the file holds no data rows; expected at least 4 nodes", file=source)
+            raise CfmInputError(
+                "the file holds no data rows; expected at least 4 nodes", file=source
+            )
         for arr, names in ((points, columns[:3]), (B, columns[3:])):
             bad = ~np.isfinite(arr)
             if bad.any():
                 i, j = np.argwhere(bad)[0]
                 line = None if lines is None else int(lines[i])
                 raise CfmInputError(
-                    f"column '{names[j]}' must be a finite number; found {arr[i, j]!r}",
+                    f"column '{names[j]}' must be a finite number; found {float(arr[i, j])}",
                     file=source,
                     line=line,
                     column=names[j],

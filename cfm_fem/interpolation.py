@@ -77,7 +77,11 @@ class SimplexMesh:
             "delaunay": "linear interpolation on the Delaunay triangulation (scipy/Qhull) of the "
             "nodes; it fills the convex hull and bridges gaps the FEM domain may not contain",
         }[self.kind]
-        plane = " in the plane of the map (out-of-plane displacement not covered)" if self.dim == 2 else ""
+        plane = (
+            " in the plane of the map (out-of-plane displacement not covered)"
+            if self.dim == 2
+            else ""
+        )
         return f"{what}{plane}; {len(self.simplices)} simplices"
 
     def to_local(self, points) -> np.ndarray:
@@ -116,25 +120,36 @@ def _frame(points, source):
     return np.zeros(3), np.eye(3), 3
 
 
-def _grid_axes(coords):
-    """Sorted distinct values per axis if ``coords`` is a full rectilinear grid, else None."""
+def _lattice(coords):
+    """Lattice shape and node index per lattice point if the nodes sit on a rectilinear lattice.
+
+    The lattice may be incomplete (measured grids with placeholder rows removed); it is accepted
+    when it has at most 4 times as many points as there are nodes.
+
+    Returns
+    -------
+    (shape, order) or None
+        ``order[flat lattice index]`` is the node index, -1 where the lattice has no node.
+    """
     n, d = coords.shape
     span = np.ptp(coords, axis=0).max()
     axes, index = [], []
     for k in range(d):
-        vals = np.unique(np.round(coords[:, k] / (span * 1e-9)))
+        key = np.round(coords[:, k] / (span * 1e-9))
+        vals = np.unique(key)
         if len(vals) < 2:
             return None
         axes.append(vals)
-        index.append(np.searchsorted(vals, np.round(coords[:, k] / (span * 1e-9))))
-    if np.prod([len(a) for a in axes]) != n:
+        index.append(np.searchsorted(vals, key))
+    shape = tuple(len(a) for a in axes)
+    if np.prod(shape, dtype=np.float64) > 4.0 * n:
         return None
-    flat = np.ravel_multi_index(index, [len(a) for a in axes])
+    flat = np.ravel_multi_index(index, shape)
     if len(np.unique(flat)) != n:
         return None
-    order = np.empty(n, dtype=np.int64)
+    order = np.full(int(np.prod(shape)), -1, dtype=np.int64)
     order[flat] = np.arange(n)
-    return [len(a) for a in axes], order  # order[grid flat index] = node index
+    return shape, order
 
 
 def kuhn_simplices(shape, order) -> np.ndarray:
@@ -145,7 +160,8 @@ def kuhn_simplices(shape, order) -> np.ndarray:
     shape : tuple of int
         Number of grid values per axis (2 or 3 axes).
     order : ndarray, shape (prod(shape),)
-        Node index of each grid point in C order.
+        Node index of each grid point in C order, -1 where a node is missing; simplices touching
+        a missing node are left out (the map has no field there).
     """
     d = len(shape)
     base = np.stack(
@@ -159,8 +175,8 @@ def kuhn_simplices(shape, order) -> np.ndarray:
             cur = cur.copy()
             cur[:, axis] += 1
             corners.append(cur)
-        idx = [order[np.ravel_multi_index(c.T, shape)] for c in corners]
-        out.append(np.stack(idx, axis=1))
+        idx = np.stack([order[np.ravel_multi_index(c.T, shape)] for c in corners], axis=1)
+        out.append(idx[(idx >= 0).all(axis=1)])
     return np.concatenate(out).astype(np.int64)
 
 
@@ -248,11 +264,19 @@ def build_mesh(fm: FieldMap, method: str = "auto") -> SimplexMesh:
             file=src,
         )
     if simplices is None and method in ("auto", "grid"):
-        grid = _grid_axes(coords)
-        if grid is not None:
-            simplices, kind = kuhn_simplices(*grid), "grid"
-        elif method == "grid":
-            raise CfmInputError("interpolation 'grid' needs nodes on a full rectilinear grid", file=src)
+        lattice = _lattice(coords)
+        if lattice is not None:
+            simplices, kind = kuhn_simplices(*lattice), "grid"
+            missing = int((lattice[1] < 0).sum())
+            if missing:
+                notes.append(
+                    f"nodes on a rectilinear grid with {missing} grid point(s) missing: cells "
+                    "touching a missing point are left out, not bridged"
+                )
+            if len(simplices) == 0:
+                simplices = None
+        if simplices is None and method == "grid":
+            raise CfmInputError("interpolation 'grid' needs nodes on a rectilinear grid", file=src)
     if simplices is None:
         simplices, kind, coords, extra = _delaunay(coords, src)
         notes += extra
@@ -295,18 +319,30 @@ def _delaunay(coords, source):
     try:
         tri = scipy.spatial.Delaunay(coords)
     except scipy.spatial.QhullError as exc:  # pragma: no cover - _frame catches flat sets first
-        raise CfmInputError(f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source) from None
+        raise CfmInputError(
+            f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source
+        ) from None
     _, measure = barycentric_transforms(coords, tri.simplices)
     scale = np.ptp(coords, axis=0).prod() / len(tri.simplices)
     if np.any(np.abs(measure) <= 1e-12 * scale):
-        # Co-spherical nodes (partly structured exports): Qhull triangulates them with flat
-        # simplices whose barycentric transform is singular. A deterministic 1e-9 jitter makes
-        # every simplex proper; at that size it is far below any positioning uncertainty.
+        # Co-spherical nodes off any lattice: Qhull triangulates them with flat simplices whose
+        # barycentric transform is singular. A deterministic jitter of 1e-5 of the map size
+        # (0.001 um on a 100 mm map) makes the slivers well enough conditioned (their volume
+        # grows with the jitter squared) and stays far below any positioning uncertainty.
         rng = np.random.default_rng(12345)
         span = np.ptp(coords, axis=0).max()
-        coords = coords + rng.uniform(-1e-9, 1e-9, coords.shape) * span
+        coords = coords + rng.uniform(-1e-5, 1e-5, coords.shape) * span
         tri = scipy.spatial.Delaunay(coords)
-        notes.append("nodes jittered by at most 1e-9 of the map size to break Delaunay degeneracies")
+        _, measure = barycentric_transforms(coords, tri.simplices)
+        if np.any(np.abs(measure) <= 1e-12 * scale):
+            raise CfmInputError(
+                "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
+                "export the mesh cells with the field, or the nodes of a rectilinear grid",
+                file=source,
+            )
+        notes.append(
+            "nodes jittered by at most 1e-5 of the map size to break Delaunay degeneracies"
+        )
     if len(tri.coplanar):
         notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
     return tri.simplices.astype(np.int64), "delaunay", coords, notes
@@ -347,15 +383,27 @@ class LinearInterpolator:
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
         if self._tree is None:
             self._tree = scipy.spatial.cKDTree(self.mesh.coords)
-        local = self.mesh.to_local(pts)
-        _, nearest = self._tree.query(local)
-        start = self.mesh.node_cell[nearest]
+        local = np.ascontiguousarray(self.mesh.to_local(pts))
+        k = min(8, len(self.mesh.coords))
+        _, nearest = self._tree.query(local, k=k)
+        nearest = nearest.reshape(len(local), k)
+        m = self.mesh
         B, cell = _kernels.interpolate_points(
-            np.ascontiguousarray(local),
-            start,
-            self.mesh.simplices,
-            self.mesh.transform,
-            self.mesh.neighbors,
+            local,
+            m.node_cell[nearest[:, 0]],
+            m.simplices,
+            m.transform,
+            m.neighbors,
             self.fieldmap.B,
         )
+        # A walk can be blocked by a hole of a non-convex mesh: retry from the next nearest nodes.
+        for j in range(1, k):
+            redo = np.flatnonzero(cell < 0)
+            if redo.size == 0:
+                break
+            b2, c2 = _kernels.interpolate_points(
+                local[redo], m.node_cell[nearest[redo, j]], m.simplices, m.transform,
+                m.neighbors, self.fieldmap.B,
+            )  # fmt: skip
+            B[redo], cell[redo] = b2, c2
         return B, cell >= 0

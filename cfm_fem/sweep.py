@@ -17,7 +17,14 @@ from .field import FieldMap
 from .interpolation import SimplexMesh, build_mesh
 from .mc import numerical_tolerance
 
-__all__ = ["SweepConfig", "SweepResult", "run_sweep", "node_gradients", "parse_up_range"]
+__all__ = [
+    "SweepConfig",
+    "SweepResult",
+    "run_sweep",
+    "summarize",
+    "node_gradients",
+    "parse_up_range",
+]
 
 COMPONENTS = _kernels.COMPONENTS
 STAT_NAMES = _kernels.STAT_NAMES
@@ -110,7 +117,9 @@ class SweepResult:
 
     def complete(self) -> np.ndarray:
         """Nodes whose every trial stayed inside the map, shape (n, n_up), bool."""
-        return (self.n_outside == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
+        return (
+            (self.n_outside == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
+        )
 
     def gum_check(self):
         """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
@@ -135,7 +144,8 @@ class SweepResult:
         se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
         tol = np.maximum(numerical_tolerance(u_mc), 3.0 * se)
         with np.errstate(invalid="ignore"):
-            disagree = d_max > tol
+            # where the linearisation does not exist (|B| = 0) the GUM cannot give the result
+            disagree = (d_max > tol) | (np.isnan(self.gum_u) & np.isfinite(u_mc) & (u_mc > 0))
         return d_max, tol, disagree
 
 
@@ -248,7 +258,9 @@ def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh |
     _check_config(cfg, fm, mesh)
     b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
     if b_ref <= 0:
-        raise CfmInputError("the map's field is zero everywhere; give B_ref explicitly", file=fm.source)
+        raise CfmInputError(
+            "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
+        )
     scales = np.asarray(cfg.up_um, dtype=np.float64) * 1e-3  # um -> mm
     axis = np.asarray(cfg.axis_scale, dtype=np.float64)
     n = fm.n_nodes
@@ -259,7 +271,9 @@ def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh |
     star = np.empty(n, dtype=bool)
     values = np.ascontiguousarray(fm.B)
     eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
-    start_cells = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps)
+    start_cells = _kernels.octant_cells(
+        mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
+    )
     basis = np.ascontiguousarray(mesh.basis)
     for a in range(0, n, cfg.chunk_nodes):
         nodes = np.arange(a, min(a + cfg.chunk_nodes, n), dtype=np.int64)
@@ -287,3 +301,74 @@ def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh |
         gum_u=gum_u,
         seconds=time.perf_counter() - t0,
     )
+
+
+def summarize(res: SweepResult) -> dict:
+    """The ``summary.json`` content (DESIGN.md 4.1) plus the context a reader needs.
+
+    U_f percentiles are taken over the nodes whose every trial stayed inside the map
+    (``uf_nodes`` counts them); nodes near the map's border lose trials and are reported through
+    ``outside_fraction`` instead of being summarised from a truncated sample.
+    """
+    cfg = res.config
+    uf = res.uf_units()
+    complete = res.complete()
+    _, _, disagree = res.gum_check()
+    processed = res.mesh.node_cell >= 0
+    pct = {"p50": [], "p95": [], "p99": [], "max": []}
+    for k in range(len(cfg.up_um)):
+        vals = uf[complete[:, k], k]
+        for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
+            pct[name].append(float(np.percentile(vals, q)) if vals.size else None)
+    n_samples = max(int(processed.sum()), 1) * cfg.trials
+    with np.errstate(invalid="ignore"):
+        dis_frac = [
+            {name: float(np.mean(disagree[complete[:, k], k, c])) if complete[:, k].any() else None
+             for c, name in enumerate(COMPONENTS)}
+            for k in range(len(cfg.up_um))
+        ]  # fmt: skip
+    notes = list(res.fieldmap.notes) + list(res.mesh.notes)
+    if res.mesh.dim == 2:
+        notes.append(
+            "planar map: perturbations are projected into the plane of the map; the out-of-plane "
+            "component of U_p is not covered (the field off the plane is unknown)"
+        )
+    return {
+        "b_ref_T": res.b_ref_T,
+        "b_ref_rule": "max |B| over the map nodes" if cfg.b_ref_T is None else "given by the user",
+        "trials": cfg.trials,
+        "seed": cfg.seed,
+        "up_um": list(map(float, cfg.up_um)),
+        "uf_units": pct,
+        "uf_nodes": [int(complete[:, k].sum()) for k in range(len(cfg.up_um))],
+        "nodes": int(res.fieldmap.n_nodes),
+        "outside_fraction": [
+            float(res.n_outside[:, k].sum() / n_samples) for k in range(len(cfg.up_um))
+        ],
+        "walk_failed_fraction": [
+            float(res.n_walk_failed[:, k].sum() / n_samples) for k in range(len(cfg.up_um))
+        ],
+        "uf_relative_mc_std": float(1.363 / np.sqrt(cfg.trials)),
+        "gum_disagree_fraction": dis_frac,
+        "linear_in_up_fraction": float(res.linear_in_up[processed].mean())
+        if processed.any()
+        else None,
+        "seconds": res.seconds,
+        "definitions": {
+            "U_f": "95 % expanded uncertainty of |B| per node: max(|low|, |high|) of the "
+            "probabilistically symmetric 95 % interval of |B|(x_meas) - |B|(x_nom), in units of "
+            "1e-4 B_ref",
+            "uf_relative_mc_std": "normal-theory relative standard error of one node's U_f from "
+            "the finite trial count: sqrt(p(1-p)/N) / (phi(z) z), p = 0.025",
+            "gum_disagree": "GUM-S1 section 8: |+-1.96 u_GUM - MC interval end| > max(delta, 3 "
+            "MC standard errors), u_GUM = sqrt(sum_j (U_p,j dB/dx_j)^2)",
+        },
+        "mode": cfg.mode,
+        "axis_scale": list(cfg.axis_scale),
+        "coverage": cfg.coverage,
+        "interpolation": res.mesh.description,
+        "perturbation": "x_meas = x_nom + N(0, U_p) per coordinate (paper eq. 16); the same "
+        "standard normals serve every U_p value of the sweep (common random numbers)",
+        "notes": notes,
+        "source": res.fieldmap.source,
+    }

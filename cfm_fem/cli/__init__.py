@@ -75,7 +75,10 @@ def main(argv=None) -> int:
         print(f"cfm-fem: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print("cfm-fem: interrupted; completed outputs are kept, nothing half-written", file=sys.stderr)
+        print(
+            "cfm-fem: interrupted; completed outputs are kept, nothing half-written",
+            file=sys.stderr,
+        )
         return EXIT_FAILURE
     finally:
         warnings.showwarning = old_show

@@ -23,8 +23,11 @@ def atomic_path(path, suffix: str | None = None):
         prefix=f".{path.name}.", suffix=(path.suffix if suffix is None else suffix), dir=path.parent
     )
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs follow the umask
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

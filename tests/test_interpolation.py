@@ -1,0 +1,158 @@
+"""Piecewise-linear interpolation: exact on linear fields, on every kind of mesh."""
+
+import numpy as np
+import pytest
+
+from cfm_fem import CfmInputError, FieldMap
+from cfm_fem.interpolation import LinearInterpolator, build_mesh, face_neighbors, kuhn_simplices
+
+G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
+B0 = np.array([0.1, -0.2, 0.5])
+
+
+def linear(p):
+    return p @ G.T + B0
+
+
+def grid(nx=5, ny=4, nz=6, h=(1.0, 0.5, 2.0)):
+    ax = [np.arange(n) * s for n, s in zip((nx, ny, nz), h, strict=True)]
+    return np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+
+
+def query_inside(pts, n=500, seed=0):
+    lo, hi = pts.min(0), pts.max(0)
+    return np.random.default_rng(seed).uniform(lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo), (n, 3))
+
+
+@pytest.mark.parametrize("kind", ["delaunay", "grid"])
+def test_linear_field_interpolated_exactly(kind):
+    pts = grid() if kind == "grid" else np.random.default_rng(1).uniform(0, 5, (300, 3))
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)), method=kind)
+    assert interp.mesh.kind == kind
+    q = query_inside(pts) if kind == "grid" else pts[:50] * 0.9 + 0.25
+    B, inside = interp.field_at(q)
+    assert inside.all()
+    np.testing.assert_allclose(B, linear(q), rtol=1e-12, atol=1e-12)
+
+
+def test_native_tetra_cells_are_used():
+    pts = grid(3, 3, 3, (1, 1, 1))
+    order = np.arange(len(pts))
+    cells = kuhn_simplices((3, 3, 3), order)
+    fm = FieldMap.from_arrays(pts, linear(pts), cells=cells)
+    interp = LinearInterpolator(fm)
+    assert interp.mesh.kind == "native"
+    q = query_inside(pts, 200, 3)
+    np.testing.assert_allclose(interp.field_at(q)[0], linear(q), atol=1e-12)
+
+
+def test_native_cells_keep_gaps_that_delaunay_fills():
+    # two separate blocks of cells: the gap between them is not part of the FEM domain
+    pts = grid(3, 3, 2, (1, 1, 1))
+    cells = kuhn_simplices((3, 3, 2), np.arange(len(pts)))
+    pts2 = pts + [0, 0, 3.0]
+    fm = FieldMap.from_arrays(
+        np.r_[pts, pts2], linear(np.r_[pts, pts2]), cells=np.r_[cells, cells + len(pts)]
+    )
+    gap = np.array([[1.0, 1.0, 2.0]])
+    assert not LinearInterpolator(fm, "native").field_at(gap)[1][0]
+    assert LinearInterpolator(fm, "delaunay").field_at(gap)[1][0]
+
+
+def test_points_outside_are_nan_not_extrapolated():
+    pts = grid()
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)))
+    B, inside = interp.field_at([[-0.5, 0.5, 0.5], [1.0, 0.5, 1.0]])
+    assert list(inside) == [False, True]
+    assert np.isnan(B[0]).all() and np.isfinite(B[1]).all()
+
+
+def test_kuhn_triangulation_is_conforming_and_fills_the_box():
+    pts = grid(4, 3, 5, (1.0, 2.0, 0.5))
+    mesh = build_mesh(FieldMap.from_arrays(pts, linear(pts)), "grid")
+    vol = np.abs(1 / np.linalg.det(mesh.transform[:, :3, :]) / 6)
+    np.testing.assert_allclose(vol.sum(), 3 * 4 * 2, rtol=1e-12)
+    nb = mesh.neighbors
+    # every interior face has exactly one partner, and links are symmetric
+    for s, j in zip(*np.nonzero(nb >= 0), strict=True):
+        assert s in nb[nb[s, j]]
+    n_border = (nb < 0).sum()  # 2 triangles per boundary square
+    assert n_border == 2 * 2 * (3 * 2 + 3 * 4 + 2 * 4)
+
+
+def test_face_neighbors_of_two_tets():
+    cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    nb = face_neighbors(cells)
+    assert nb[0, 0] == 1 and nb[1, 3] == 0 and (nb >= 0).sum() == 2
+
+
+def test_non_manifold_mesh_is_rejected():
+    cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [1, 2, 3, 5]])
+    with pytest.raises(CfmInputError, match="more than two cells"):
+        face_neighbors(cells)
+
+
+def test_planar_map_is_triangulated_in_its_plane():
+    rng = np.random.default_rng(4)
+    uv = rng.uniform(-3, 3, (200, 2))
+    pts = np.c_[uv[:, 0], np.full(200, 7.5), uv[:, 1]]  # the y = 7.5 mid-plane
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)))
+    assert interp.mesh.dim == 2 and "out-of-plane" in interp.mesh.description
+    q = np.c_[rng.uniform(-1, 1, (50, 2))[:, 0], np.full(50, 7.5), rng.uniform(-1, 1, 50)]
+    np.testing.assert_allclose(interp.field_at(q)[0], linear(q), atol=1e-12)
+
+
+def test_tilted_planar_map():
+    rng = np.random.default_rng(6)
+    uv = rng.uniform(-3, 3, (150, 2))
+    e1, e2 = np.array([1.0, 1.0, 0.0]) / np.sqrt(2), np.array([0.0, 0.0, 1.0])
+    pts = uv[:, :1] * e1 + uv[:, 1:] * e2 + [1, 2, 3]
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)))
+    q = np.array([[0.5, 0.5]]) @ np.c_[e1, e2].T + [1, 2, 3]
+    np.testing.assert_allclose(interp.field_at(q)[0], linear(q), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "pts, match",
+    [
+        (np.c_[np.arange(10.0), 2 * np.arange(10.0), np.zeros(10)], "collinear"),
+        (np.zeros((2, 3)) + [[0, 0, 0], [1, 0, 0]], "at least"),
+    ],
+)
+def test_degenerate_point_sets_give_clear_errors(pts, match):
+    with pytest.raises(CfmInputError, match=match):
+        build_mesh(FieldMap.from_arrays(pts, np.ones_like(pts)))
+
+
+def test_flat_native_cell_is_rejected_with_its_index():
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0.0]])
+    cells = np.array([[0, 1, 2, 3], [0, 1, 2, 4]])  # the second lies in z = 0
+    with pytest.raises(CfmInputError, match="zero volume.*cell 1"):
+        build_mesh(FieldMap.from_arrays(pts, np.ones((5, 3)), cells=cells))
+
+
+def test_incomplete_grid_leaves_the_missing_region_out():
+    # a measured grid with its corner node dropped (placeholder rows): Kuhn cells of the rest
+    pts = grid(4, 4, 4, (1, 1, 1))[1:]
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)))
+    assert interp.mesh.kind == "grid" and "missing" in interp.mesh.notes[0]
+    q = query_inside(pts, 400, 8)
+    B, inside = interp.field_at(q)
+    assert not inside[np.all(q < 1, axis=1)].any()  # the voxel touching the missing node
+    assert inside[np.any(q > 1, axis=1)].all()
+    np.testing.assert_allclose(B[inside], linear(q[inside]), atol=1e-12)
+
+
+def test_cospherical_scattered_nodes_get_proper_simplices():
+    # a grid turned by 30 degrees is no lattice along x, y, z: Delaunay, where Qhull would make
+    # flat simplices of the co-spherical voxel corners
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    pts = grid(4, 4, 4, (1, 1, 1)) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)))
+    assert interp.mesh.kind == "delaunay" and np.isfinite(interp.mesh.transform).all()
+    assert "jittered" in interp.mesh.notes[0]
+    q = pts[10:40] * 0.95 + pts.mean(0) * 0.05
+    B, inside = interp.field_at(q)
+    assert inside.all()
+    # linear fields stay exact up to the jitter (1e-5 of the map size) times the gradient
+    np.testing.assert_allclose(B, linear(q), atol=1e-5 * 5 * np.abs(G).sum())

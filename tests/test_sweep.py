@@ -1,0 +1,143 @@
+"""Statistics of the Gaussian sweep against closed forms, with tolerances from the trial count."""
+
+import numba
+import numpy as np
+import pytest
+
+from cfm_fem import CfmInputError, FieldMap
+from cfm_fem.sweep import SweepConfig, parse_up_range, run_sweep, summarize
+
+Z = 1.959963984540054
+G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
+B0 = np.array([0.1, -0.2, 0.5])
+#: normal-theory standard error of a 2.5 % / 97.5 % sample quantile, in units of sigma, times sqrt(N)
+SE_Q = np.sqrt(0.025 * 0.975) / 0.05844
+
+
+def grid_map(n=9, h=1.0, field=None):
+    ax = np.arange(n) * h
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = pts @ G.T + B0 if field is None else field(pts)
+    return FieldMap.from_arrays(pts, B)
+
+
+def interior(fm, margin):
+    lo, hi = fm.points.min(0) + margin, fm.points.max(0) - margin
+    return np.all((fm.points > lo) & (fm.points < hi), axis=1)
+
+
+def test_linear_field_half_width_is_1_96_up_grad():
+    fm = grid_map()
+    up_um, n = 40.0, 4000
+    res = run_sweep(fm, SweepConfig(up_um=[up_um], trials=n, seed=1))
+    inner = interior(fm, 0.5)
+    sigma = up_um * 1e-3 * np.linalg.norm(G, axis=1)  # exact std of B_i, T
+    st = res.stats[inner, 0, :3]
+    half = (st[..., 3] - st[..., 2]) / 2  # 95 % half-width per node, (nodes, 3)
+    # every node is an independent Monte Carlo of the same value; the two interval ends are
+    # nearly independent quantile estimates, so the half-width has standard error SE_Q/sqrt(2N)
+    se_node = SE_Q * sigma / np.sqrt(2 * n)
+    m = inner.sum()
+    np.testing.assert_array_less(np.abs(half.mean(0) - Z * sigma), 4 * se_node / np.sqrt(m))
+    np.testing.assert_allclose(half.std(0), se_node, rtol=0.3)
+    # standard uncertainty and the GUM figure
+    u = res.stats[inner, 0, :3, 1]
+    np.testing.assert_allclose(u.mean(0), sigma, rtol=4 / np.sqrt(2 * n * m))
+    np.testing.assert_allclose(res.gum_u[inner, 0, :3], np.broadcast_to(sigma, (m, 3)), rtol=1e-12)
+    assert res.linear_in_up[inner].all()
+    assert (res.n_outside[inner] == 0).all()
+
+
+def test_mc_spread_shrinks_as_one_over_sqrt_n():
+    fm = grid_map(7)
+    inner = interior(fm, 0.5)
+    spread = {}
+    for n in (400, 6400):
+        res = run_sweep(fm, SweepConfig(up_um=[20.0], trials=n, seed=3))
+        spread[n] = res.expanded_95()[inner, 0, 1].std()
+    ratio = spread[400] / spread[6400]
+    # ratio of two sample std's over m = 125 nodes: sqrt(16) = 4 within ~3 sigma of ~9 %
+    assert 4 * 0.72 < ratio < 4 * 1.38
+
+
+def test_same_seed_same_numbers_whatever_threads_and_chunks():
+    fm = grid_map(6)
+    cfg = dict(up_um=[0.0, 30.0, 300.0], trials=300, seed=7)
+    numba.set_num_threads(1)
+    a = run_sweep(fm, SweepConfig(**cfg, chunk_nodes=1000))
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    b = run_sweep(fm, SweepConfig(**cfg, chunk_nodes=7))
+    np.testing.assert_array_equal(a.stats, b.stats)
+    np.testing.assert_array_equal(a.n_outside, b.n_outside)
+    c = run_sweep(fm, SweepConfig(**{**cfg, "seed": 8}))
+    assert not np.array_equal(a.stats[:, 1], c.stats[:, 1])
+
+
+def test_zero_up_gives_exact_zeros():
+    res = run_sweep(grid_map(4), SweepConfig(up_um=[0.0], trials=50))
+    assert np.all(res.stats[..., :] == 0.0)
+    assert summarize(res)["uf_units"]["max"] == [0.0]
+
+
+def test_border_nodes_lose_about_half_their_trials_and_are_reported():
+    fm = grid_map(5)
+    res = run_sweep(fm, SweepConfig(up_um=[50.0], trials=2000, seed=2))
+    corner = np.all(fm.points == 0, axis=1)
+    yz = fm.points[:, 1:]
+    face = (fm.points[:, 0] == 0) & np.all((yz > 0.5) & (yz < 3.5), axis=1)
+    assert face.sum() == 9
+    # leaving through one face: P = 1/2; through a corner's three faces: P = 1 - 1/8
+    frac_face = res.n_outside[face, 0] / 2000
+    assert abs(frac_face.mean() - 0.5) < 4 * np.sqrt(0.25 / 2000 / face.sum())
+    assert abs(res.n_outside[corner, 0][0] / 2000 - 0.875) < 4 * np.sqrt(0.875 * 0.125 / 2000)
+    s = summarize(res)
+    assert s["uf_nodes"] == [int(interior(fm, 0.5).sum())]
+    assert 0 < s["outside_fraction"][0] < 0.5
+
+
+def test_planar_map_covers_in_plane_displacements_only():
+    uv = np.stack(np.meshgrid(np.arange(9.0), np.arange(9.0), indexing="ij"), -1).reshape(-1, 2)
+    pts = np.c_[uv[:, 0], np.full(len(uv), 3.0), uv[:, 1]]  # plane y = 3
+    fm = FieldMap.from_arrays(pts, pts @ G.T + B0)
+    res = run_sweep(fm, SweepConfig(up_um=[40.0], trials=3000, seed=4))
+    inner = (pts[:, 0] > 0.5) & (pts[:, 0] < 7.5) & (pts[:, 2] > 0.5) & (pts[:, 2] < 7.5)
+    sigma_in_plane = 0.04 * np.linalg.norm(G[:, [0, 2]], axis=1)
+    u = res.stats[inner, 0, :3, 1].mean(0)
+    np.testing.assert_allclose(u, sigma_in_plane, rtol=5 / np.sqrt(2 * 3000 * inner.sum()))
+    assert any("out-of-plane" in n for n in summarize(res)["notes"])
+
+
+def test_gum_flag_where_the_linear_model_fails():
+    # quadrupole: |B| = g r has a kink at the axis, where |B| errors are Rayleigh, not Gaussian
+    def quad(p):
+        return 0.1 * np.c_[p[:, 1] - 4, p[:, 0] - 4, np.zeros(len(p))]
+
+    fm = grid_map(9, field=quad)
+    res = run_sweep(fm, SweepConfig(up_um=[30.0], trials=4000, seed=5))
+    _, _, disagree = res.gum_check()
+    axis = np.all(fm.points[:, :2] == 4, axis=1) & (fm.points[:, 2] > 0) & (fm.points[:, 2] < 8)
+    assert disagree[axis, 0, 3].all()  # |B| at the axis: flagged
+    off = interior(fm, 0.5) & (np.hypot(fm.points[:, 0] - 4, fm.points[:, 1] - 4) >= 3)
+    assert disagree[off, 0, 0].mean() < 0.05  # linear components: (almost) never flagged
+
+
+def test_parse_up_range():
+    assert parse_up_range("0:50:10") == [0, 10, 20, 30, 40, 50]
+    assert parse_up_range("5,15") == [5, 15]
+    for bad in ("0:50", "0:50:0", "a:b:c", "-1,2", "nan"):
+        with pytest.raises(CfmInputError):
+            parse_up_range(bad)
+
+
+@pytest.mark.parametrize(
+    "cfg, match",
+    [
+        (SweepConfig(up_um=[10.0], trials=5), "at least 20"),
+        (SweepConfig(up_um=[5e5], trials=50), "too large"),
+        (SweepConfig(up_um=[10.0], trials=50, mode="htm"), "not integrated"),
+        (SweepConfig(up_um=[10.0], trials=50, b_ref_T=-1.0), "positive"),
+    ],
+)
+def test_bad_config(cfg, match):
+    with pytest.raises(CfmInputError, match=match):
+        run_sweep(grid_map(3), cfg)
