@@ -469,12 +469,19 @@ def _node_gauss(
                         stats[k, c, j] = r * stats[kmax, c, j]
     else:
         for k in range(n_up):
+            if scales[k] == 0.0:
+                continue  # set to zero below
             for c in range(3):
                 nk = nvalid[k]
                 sample_stats(
                     comp[k, c], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, c], scratch
                 )
     for k in range(n_up):
+        if scales[k] == 0.0:  # no displacement: every error is exactly zero
+            for c in range(4):
+                for j in range(6):
+                    stats[k, c, j] = 0.0
+            continue
         nk = nvalid[k]
         sample_stats(absb[k], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, 3], scratch)
     return all_star

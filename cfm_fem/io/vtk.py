@@ -5,18 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-import meshio
 import numpy as np
+import pyvista as pv
+from pyvista import CellType
 
 from ._atomic import atomic_path, write_text
 
 __all__ = ["write_vtu", "write_pvd"]
 
-_CELL_TYPES = {2: "triangle", 3: "tetra"}
-
-
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
-    """Write an unstructured grid ``.vtu`` (binary, zlib) atomically.
+    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (raw appended, zlib).
 
     Parameters
     ----------
@@ -25,27 +23,24 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     cells : ndarray, shape (m, 4) or (m, 3), int, optional
         Tetrahedra or triangles; None writes one vertex cell per point (a point cloud).
     point_data : dict of str -> ndarray, shape (n,) or (n, k), optional
-    field_data : dict of str -> str or number, optional
-        Dataset-level metadata (B_ref, U_p, seed, ...); strings are stored as character arrays.
+        Arrays are written with their own dtype (float32 keeps large maps small).
+    field_data : dict of str -> number, optional
+        Dataset-level metadata (B_ref, U_p, seed, ...).
     """
     points = np.asarray(points, dtype=np.float64)
+    n = len(points)
     if cells is None:
-        cell_blocks = [("vertex", np.arange(len(points), dtype=np.int64)[:, None])]
+        grid = pv.UnstructuredGrid({CellType.VERTEX: np.arange(n, dtype=np.int64)[:, None]}, points)
     else:
         cells = np.asarray(cells, dtype=np.int64)
-        cell_blocks = [(_CELL_TYPES[cells.shape[1] - 1], cells)]
-    pdata = {k: np.ascontiguousarray(v) for k, v in (point_data or {}).items()}
-    fdata = {}
-    for k, v in (field_data or {}).items():
-        # VTK field data must be arrays; strings go in as bytes so ParaView shows them.
-        fdata[k] = (
-            np.frombuffer(str(v).encode(), dtype=np.uint8)
-            if isinstance(v, str)
-            else (np.atleast_1d(np.asarray(v, dtype=np.float64)))
-        )
-    mesh = meshio.Mesh(points, cell_blocks, point_data=pdata, field_data=fdata)
+        kind = CellType.TETRA if cells.shape[1] == 4 else CellType.TRIANGLE
+        grid = pv.UnstructuredGrid({kind: cells}, points)
+    for name, values in (point_data or {}).items():
+        grid.point_data[name] = np.ascontiguousarray(values)
+    for name, value in (field_data or {}).items():
+        grid.field_data[name] = np.atleast_1d(np.asarray(value, dtype=np.float64))
     with atomic_path(path) as tmp:
-        meshio.write(tmp, mesh, file_format="vtu", binary=True, compression="zlib")
+        grid.save(tmp, binary=True)
 
 
 def write_pvd(path, entries) -> None:

@@ -1,0 +1,155 @@
+"""Benchmark the sweep: walk kernel vs scipy, and the million-node run. Prints the figures.
+
+    python scripts/bench_sweep.py ratio              # 100,000 scattered nodes, U_p = 20 um
+    python scripts/bench_sweep.py big                # 1,000,000 nodes, 10,000 trials, 6 U_p
+    python scripts/bench_sweep.py big --nodes 200000 --trials 2000   # smaller, same code path
+
+``ratio``: perturbed-interpolation samples per second of the numba walk kernel against
+``scipy.interpolate.LinearNDInterpolator`` on the same map and the same perturbed points, handed
+to scipy grouped by node (its fastest order, consecutive queries share a simplex), in one run.
+Also prints the throughput of the full sweep kernel (random numbers and per-node statistics
+included), which is what a user gets.
+
+``big``: the whole sweep as the CLI runs it (mesh, kernel, statistics, VTU/PVD/JSON output) on
+an FEM-like map with native tetrahedra; prints wall time and peak resident memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import tempfile
+import time
+
+import numba
+import numpy as np
+from scipy.interpolate import LinearNDInterpolator
+
+from cfm_fem import FieldMap, _kernels
+from cfm_fem.interpolation import build_mesh, kuhn_simplices
+from cfm_fem.io.sweep_out import write_sweep
+from cfm_fem.sweep import SweepConfig, run_sweep
+
+
+def quadrupole_with_ends(p):
+    """Smooth 3-D test field (T) of a 60 T/m quadrupole with soft ends at z = +-40 mm (p in mm)."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    g = 0.06 / (1 + np.exp((np.abs(z) - 40) / 5))  # T/mm
+    dg = -np.sign(z) * g * (1 - g / 0.06) / 5
+    return np.c_[g * y, g * x, dg * x * y]
+
+
+def peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+def bench_ratio(n_nodes: int, trials: int, up_um: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    # scattered nodes in a 20 x 20 x 120 mm aperture box
+    pts = rng.uniform([-10, -10, -60], [10, 10, 60], (n_nodes, 3))
+    fm = FieldMap.from_arrays(pts, quadrupole_with_ends(pts), source="synthetic scattered map")
+    t0 = time.perf_counter()
+    mesh = build_mesh(fm, "delaunay")
+    t_mesh = time.perf_counter() - t0
+    sigma = up_um * 1e-3
+    disp = rng.normal(0.0, sigma, (n_nodes, trials, 3))
+    queries = (pts[:, None, :] + disp).reshape(-1, 3)  # grouped by node
+    start = np.repeat(mesh.node_cell, trials)
+    # warm up the kernel (compile) on a few points
+    _kernels.interpolate_points(queries[:10], start[:10], mesh.simplices, mesh.transform, mesh.neighbors, fm.B)
+    t0 = time.perf_counter()
+    ours, cell = _kernels.interpolate_points(
+        queries, start, mesh.simplices, mesh.transform, mesh.neighbors, fm.B
+    )
+    t_ours = time.perf_counter() - t0
+    tri = LinearNDInterpolator(build_scipy_delaunay(mesh), fm.B)
+    t0 = time.perf_counter()
+    ref = tri(queries)
+    t_scipy = time.perf_counter() - t0
+    inside = cell >= 0
+    assert np.array_equal(inside, np.isfinite(ref[:, 0])), "kernel and scipy disagree on inside"
+    err = np.abs(ours[inside] - ref[inside]).max()
+    n = len(queries)
+    print(f"map: {n_nodes} scattered nodes, Delaunay {len(mesh.simplices)} tetrahedra ({t_mesh:.1f} s)")
+    print(f"perturbed points: {n} ({trials} per node, U_p = {up_um:g} um), grouped by node")
+    print(f"  numba walk kernel : {n / t_ours:12.4g} samples/s ({t_ours:.2f} s, {numba.get_num_threads()} threads)")
+    print(f"  scipy LinearND    : {n / t_scipy:12.4g} samples/s ({t_scipy:.2f} s)")
+    print(f"  ratio             : {t_scipy / t_ours:.1f} x   (max |difference| {err:.2e} T)")
+    # full sweep kernel: random numbers, walk, statistics per node, 1 U_p value
+    cfg = SweepConfig(up_um=[up_um], trials=trials, seed=1)
+    run_sweep(fem_like_map(2000), SweepConfig(up_um=[up_um], trials=20))  # compile outside the timing
+    t0 = time.perf_counter()
+    res = run_sweep(fm, cfg, mesh=mesh)
+    t_full = time.perf_counter() - t0
+    print(
+        f"  full sweep kernel : {n / t_full:12.4g} samples/s incl. RNG and statistics "
+        f"({t_full:.2f} s; {t_scipy / t_full:.1f} x scipy's interpolation alone)"
+    )
+    print(f"  nodes whose trials all stayed in their own cells: {res.linear_in_up.mean():.3f}")
+
+
+def build_scipy_delaunay(mesh):
+    """scipy's Delaunay object for the same points (LinearNDInterpolator needs it)."""
+    from scipy.spatial import Delaunay
+
+    return Delaunay(mesh.coords)
+
+
+def fem_like_map(n_target: int, seed: int = 0) -> FieldMap:
+    """Native tetrahedra on a jittered grid filling a 20 x 20 x 120 mm aperture box.
+
+    Kuhn tetrahedra of a grid whose inner nodes are moved by up to 15 % of the spacing: an
+    unstructured-looking but valid FEM mesh with cells, like an export with its elements.
+    """
+    nx = int(round((n_target / 6) ** (1 / 3)))
+    shape = (nx, nx, 6 * nx)
+    axes = [np.linspace(-10, 10, shape[0]), np.linspace(-10, 10, shape[1]), np.linspace(-60, 60, shape[2])]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    h = np.array([a[1] - a[0] for a in axes])
+    idx = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
+    inner = np.all((idx > 0) & (idx < np.array(shape) - 1), axis=1)
+    rng = np.random.default_rng(seed)
+    pts[inner] += rng.uniform(-0.15, 0.15, (inner.sum(), 3)) * h
+    cells = kuhn_simplices(shape, np.arange(len(pts)))
+    return FieldMap.from_arrays(pts, quadrupole_with_ends(pts), cells=cells, source="synthetic FEM map")
+
+
+def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None):
+    t0 = time.perf_counter()
+    fm = fem_like_map(n_nodes)
+    t_map = time.perf_counter() - t0
+    cfg = SweepConfig(up_um=ups, trials=trials, seed=0)
+    run_sweep(fem_like_map(2000), SweepConfig(up_um=ups, trials=20))  # compile outside the timing
+    t0 = time.perf_counter()
+    res = run_sweep(fm, cfg)
+    t_run = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory(dir=out) as tmp:
+        t1 = time.perf_counter()
+        s = write_sweep(tmp, res, {})
+        t_write = time.perf_counter() - t1
+    total = t_run + t_write
+    print(f"map: {fm.n_nodes} nodes, {len(fm.cells)} native tetrahedra (made in {t_map:.1f} s)")
+    print(f"sweep: {trials} trials per node, U_p = {ups} um, {numba.get_num_threads()} threads")
+    print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
+    print(f"  writing {len(ups)} .vtu + pvd + json: {t_write:8.1f} s")
+    print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
+    print(f"  peak resident memory       : {peak_rss_gb():8.2f} GB")
+    print(f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} (all {len(ups)} U_p values per trial)")
+    print(f"  U_f p95 per U_p [units]    : {[round(v, 2) if v is not None else None for v in s['uf_units']['p95']]}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["ratio", "big"])
+    ap.add_argument("--nodes", type=int)
+    ap.add_argument("--trials", type=int)
+    ap.add_argument("--out", help="folder for the temporary outputs of 'big' (default: system temp)")
+    a = ap.parse_args()
+    if a.what == "ratio":
+        bench_ratio(a.nodes or 100_000, a.trials or 50, 20.0)
+    else:
+        bench_big(a.nodes or 1_000_000, a.trials or 10_000, [0.0, 10.0, 20.0, 30.0, 40.0, 50.0], a.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,98 @@
+"""`cfm-fem sweep` as a user runs it: outputs, contract keys, exit codes, nothing half-written."""
+
+import json
+import xml.etree.ElementTree as ET
+
+import meshio
+import numpy as np
+import pytest
+
+from cfm_fem.cli import main
+
+G = np.array([[0.2, 0.0, 0.0], [0.0, -0.2, 0.0], [0.0, 0.0, 0.1]])
+
+
+@pytest.fixture
+def csv_map(tmp_path):
+    ax = np.arange(6.0)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = pts @ G.T + [0.0, 0.0, 1.0]
+    path = tmp_path / "map.csv"
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    return path
+
+
+def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
+    out = tmp_path / "res"
+    rc = main(["sweep", str(csv_map), "--up", "0:20:10", "--trials", "400", "--seed", "3", "--out", str(out)])
+    assert rc == 0
+    s = json.loads((out / "summary.json").read_text())
+    for key in ("b_ref_T", "trials", "seed", "up_um", "uf_units", "outside_fraction", "seconds"):
+        assert key in s
+    assert s["up_um"] == [0, 10, 20] and s["trials"] == 400 and s["seed"] == 3
+    assert set(s["uf_units"]) == {"p50", "p95", "p99", "max"}
+    assert s["provenance"]["inputs"]["field"]["sha256"]
+    # B_ref defaults to max |B|; U_f of a node ~ 1.96 U_p |grad |B|| / B_ref (|B| ~ Bz here)
+    absb = np.linalg.norm(np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3) @ G.T + [0, 0, 1], axis=1)
+    assert s["b_ref_T"] == pytest.approx(absb.max())
+    timesteps = [float(d.get("timestep")) for d in ET.parse(out / "sweep.pvd").getroot().iter("DataSet")]
+    assert timesteps == [0.0, 10.0, 20.0]
+    m = meshio.read(out / "uf_up20um.vtu")
+    assert len(m.points) == 216 and m.cells[0].type == "tetra"
+    uf = m.point_data["U_f_units"]
+    np.testing.assert_allclose(np.nanmax(uf[m.point_data["complete"] == 1]), s["uf_units"]["max"][2])
+    assert "Bz_gum_disagree" in m.point_data and "grad_B_T_per_mm" in m.point_data
+    printed = capsys.readouterr().out
+    assert "U_f p50" in printed and "Kuhn" in printed
+
+
+def test_help_exits_zero(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["sweep", "--help"])
+    assert exc.value.code == 0
+    assert "--up" in capsys.readouterr().out
+
+
+def _bad(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+HEADER = "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+GOOD_ROWS = "".join(f"{i % 2},{i // 2 % 2},{i // 4},0,0,1\n" for i in range(8))
+
+
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("empty.csv", "", "empty"),
+        ("header_only.csv", HEADER, "no data"),
+        ("missing.csv", "x [mm],y [mm],z [mm],Bx [T],By [T]\n0,0,0,1,1\n", "Bz"),
+        ("text.csv", HEADER + GOOD_ROWS + "1,1,2,abc,0,1\n", "abc"),
+        ("nan.csv", HEADER + GOOD_ROWS + "1,1,2,nan,0,1\n", "finite"),
+        ("unit.csv", "x [furlong],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + GOOD_ROWS, "furlong"),
+        ("truncated.csv", HEADER + GOOD_ROWS + "1,1,2,0\n", "truncated.csv:10:"),
+        ("dup.csv", HEADER + GOOD_ROWS + "0,0,0,0,0,2\n", "duplicate"),
+        ("coplanar.csv", HEADER + "".join(f"{i},{2 * i},0,0,0,1\n" for i in range(6)), "collinear"),
+    ],
+)
+def test_bad_input_exit_2_and_nothing_written(tmp_path, capsys, name, text, message):
+    out = tmp_path / "out"
+    rc = main(["sweep", str(_bad(tmp_path, name, text)), "--trials", "50", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err and name in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
+    for args in (["--up", "0:10"], ["--trials", "3"], ["--up", "0:900000:300000"], ["--axis-scale", "1,2"]):
+        out = tmp_path / "o"
+        assert main(["sweep", str(csv_map), "--out", str(out), *args]) == 2
+        assert not out.exists()
+    assert main(["sweep", str(tmp_path / "nope.vtu"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["nonsense"]) == 2
+    assert "error" in capsys.readouterr().err
