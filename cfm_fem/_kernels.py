@@ -387,6 +387,9 @@ def _node_gauss(
         if scales[k] > scales[kmax]:
             kmax = k
     smax = scales[kmax]
+    ratio = np.empty(n_up)
+    for k in range(n_up):
+        ratio[k] = scales[k] / smax if smax > 0 else 0.0
     z = np.empty(3)
     disp = np.empty(d)
     pt = np.empty(d)
@@ -422,7 +425,9 @@ def _node_gauss(
             # Affine on a cell incident to the node: errors scale exactly with U_p.
             _interp_in(s, bary, simplices, values, bi)
             for k in range(n_up):
-                r = scales[k] / smax
+                r = ratio[k]
+                if r == 0.0:
+                    continue  # zero U_p: statistics are set to exact zeros below
                 m2 = 0.0
                 for c in range(3):
                     e = r * (bi[c] - b0[c])
@@ -435,11 +440,7 @@ def _node_gauss(
         cell = start
         for k in range(n_up):
             if scales[k] == 0.0:
-                for c in range(3):
-                    comp[k, c, nvalid[k]] = 0.0
-                absb[k, nvalid[k]] = 0.0
-                nvalid[k] += 1
-                continue
+                continue  # statistics are set to exact zeros below
             for a in range(d):
                 pt[a] = coords[g, a] + scales[k] * disp[a]
             s = locate(pt, cell if cell >= 0 else start, transform, neighbors, bary)
@@ -464,9 +465,8 @@ def _node_gauss(
             sample_stats(comp[kmax, c], nk, coverage_count(nk, p), stats[kmax, c], scratch)
             for k in range(n_up):
                 if k != kmax:
-                    r = scales[k] / smax
                     for j in range(6):
-                        stats[k, c, j] = r * stats[kmax, c, j]
+                        stats[k, c, j] = ratio[k] * stats[kmax, c, j]
     else:
         for k in range(n_up):
             if scales[k] == 0.0:
