@@ -405,7 +405,7 @@ def _node_gauss(
     for k in range(n_up):
         n_out[k] = 0
         n_lost[k] = 0
-    for t in range(n_trials):
+    for _ in range(n_trials):
         for c in range(3):
             z[c] = normal_next(key, rstate, spare)
         # displacement direction in the mesh frame (projection for a planar map)
@@ -514,7 +514,8 @@ def gauss_sweep(
     values : ndarray, shape (n, 3), T
     simplices, transform, neighbors : arrays of a `SimplexMesh`
     start_cells : ndarray, shape (n, 2**d), int64
-        Walk start per node and octant of the displacement (`octant_cells`); -1 for nodes in no cell.
+        Walk start per node and octant of the displacement (`octant_cells`); -1 for nodes in
+        no cell.
     basis : ndarray, shape (3, d)
         Map frame -> mesh frame (identity for 3-D).
     sigma_axes : ndarray, shape (3,)

@@ -1,4 +1,4 @@
-"""`FieldMap`: nodes (mm) carrying a flux density (T), with the export's own cells when it has them."""
+"""`FieldMap`: nodes (mm) carrying a flux density (T), with the export's cells if it has them."""
 
 from __future__ import annotations
 

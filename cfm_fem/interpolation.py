@@ -314,7 +314,7 @@ def build_mesh(fm: FieldMap, method: str = "auto") -> SimplexMesh:
 
 
 def _delaunay(coords, source):
-    """Delaunay triangulation; jitter nodes by 1e-9 of the map size only if Qhull leaves flat simplices."""
+    """Delaunay triangulation; nodes are jittered only if Qhull leaves flat simplices."""
     notes = []
     try:
         tri = scipy.spatial.Delaunay(coords)

@@ -56,7 +56,9 @@ def bench_ratio(n_nodes: int, trials: int, up_um: float, seed: int = 0):
     queries = (pts[:, None, :] + disp).reshape(-1, 3)  # grouped by node
     start = np.repeat(mesh.node_cell, trials)
     # warm up the kernel (compile) on a few points
-    _kernels.interpolate_points(queries[:10], start[:10], mesh.simplices, mesh.transform, mesh.neighbors, fm.B)
+    _kernels.interpolate_points(
+        queries[:10], start[:10], mesh.simplices, mesh.transform, mesh.neighbors, fm.B
+    )
     t0 = time.perf_counter()
     ours, cell = _kernels.interpolate_points(
         queries, start, mesh.simplices, mesh.transform, mesh.neighbors, fm.B
@@ -70,14 +72,22 @@ def bench_ratio(n_nodes: int, trials: int, up_um: float, seed: int = 0):
     assert np.array_equal(inside, np.isfinite(ref[:, 0])), "kernel and scipy disagree on inside"
     err = np.abs(ours[inside] - ref[inside]).max()
     n = len(queries)
-    print(f"map: {n_nodes} scattered nodes, Delaunay {len(mesh.simplices)} tetrahedra ({t_mesh:.1f} s)")
+    print(
+        f"map: {n_nodes} scattered nodes, Delaunay {len(mesh.simplices)} tetrahedra "
+        f"({t_mesh:.1f} s)"
+    )
     print(f"perturbed points: {n} ({trials} per node, U_p = {up_um:g} um), grouped by node")
-    print(f"  numba walk kernel : {n / t_ours:12.4g} samples/s ({t_ours:.2f} s, {numba.get_num_threads()} threads)")
+    print(
+        f"  numba walk kernel : {n / t_ours:12.4g} samples/s ({t_ours:.2f} s, "
+        f"{numba.get_num_threads()} threads)"
+    )
     print(f"  scipy LinearND    : {n / t_scipy:12.4g} samples/s ({t_scipy:.2f} s)")
     print(f"  ratio             : {t_scipy / t_ours:.1f} x   (max |difference| {err:.2e} T)")
     # full sweep kernel: random numbers, walk, statistics per node, 1 U_p value
     cfg = SweepConfig(up_um=[up_um], trials=trials, seed=1)
-    run_sweep(fem_like_map(2000), SweepConfig(up_um=[up_um], trials=20))  # compile outside the timing
+    run_sweep(
+        fem_like_map(2000), SweepConfig(up_um=[up_um], trials=20)
+    )  # compile outside the timing
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg, mesh=mesh)
     t_full = time.perf_counter() - t0
@@ -103,7 +113,11 @@ def fem_like_map(n_target: int, seed: int = 0) -> FieldMap:
     """
     nx = int(round((n_target / 6) ** (1 / 3)))
     shape = (nx, nx, 6 * nx)
-    axes = [np.linspace(-10, 10, shape[0]), np.linspace(-10, 10, shape[1]), np.linspace(-60, 60, shape[2])]
+    axes = [
+        np.linspace(-10, 10, shape[0]),
+        np.linspace(-10, 10, shape[1]),
+        np.linspace(-60, 60, shape[2]),
+    ]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     h = np.array([a[1] - a[0] for a in axes])
     idx = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
@@ -111,7 +125,9 @@ def fem_like_map(n_target: int, seed: int = 0) -> FieldMap:
     rng = np.random.default_rng(seed)
     pts[inner] += rng.uniform(-0.15, 0.15, (inner.sum(), 3)) * h
     cells = kuhn_simplices(shape, np.arange(len(pts)))
-    return FieldMap.from_arrays(pts, quadrupole_with_ends(pts), cells=cells, source="synthetic FEM map")
+    return FieldMap.from_arrays(
+        pts, quadrupole_with_ends(pts), cells=cells, source="synthetic FEM map"
+    )
 
 
 def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None):
@@ -134,21 +150,33 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None):
     print(f"  writing {len(ups)} .vtu + pvd + json: {t_write:8.1f} s")
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
     print(f"  peak resident memory       : {peak_rss_gb():8.2f} GB")
-    print(f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} (all {len(ups)} U_p values per trial)")
-    print(f"  U_f p95 per U_p [units]    : {[round(v, 2) if v is not None else None for v in s['uf_units']['p95']]}")
+    print(
+        f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
+        f"(all {len(ups)} U_p values per trial)"
+    )
+    print(
+        f"  U_f p95 per U_p [units]    : "
+        f"{[round(v, 2) if v is not None else None for v in s['uf_units']['p95']]}"
+    )
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("what", choices=["ratio", "big"])
     ap.add_argument("--nodes", type=int)
     ap.add_argument("--trials", type=int)
-    ap.add_argument("--out", help="folder for the temporary outputs of 'big' (default: system temp)")
+    ap.add_argument(
+        "--out", help="folder for the temporary outputs of 'big' (default: system temp)"
+    )
     a = ap.parse_args()
     if a.what == "ratio":
         bench_ratio(a.nodes or 100_000, a.trials or 50, 20.0)
     else:
-        bench_big(a.nodes or 1_000_000, a.trials or 10_000, [0.0, 10.0, 20.0, 30.0, 40.0, 50.0], a.out)
+        bench_big(
+            a.nodes or 1_000_000, a.trials or 10_000, [0.0, 10.0, 20.0, 30.0, 40.0, 50.0], a.out
+        )
 
 
 if __name__ == "__main__":

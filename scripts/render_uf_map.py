@@ -15,7 +15,9 @@ import pyvista as pv
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("vtu")
     ap.add_argument("png")
     ap.add_argument("--array", default="U_f_units")

@@ -25,7 +25,20 @@ def csv_map(tmp_path):
 
 def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
     out = tmp_path / "res"
-    rc = main(["sweep", str(csv_map), "--up", "0:20:10", "--trials", "400", "--seed", "3", "--out", str(out)])
+    rc = main(
+        [
+            "sweep",
+            str(csv_map),
+            "--up",
+            "0:20:10",
+            "--trials",
+            "400",
+            "--seed",
+            "3",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     s = json.loads((out / "summary.json").read_text())
     for key in ("b_ref_T", "trials", "seed", "up_um", "uf_units", "outside_fraction", "seconds"):
@@ -34,14 +47,22 @@ def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
     assert set(s["uf_units"]) == {"p50", "p95", "p99", "max"}
     assert s["provenance"]["inputs"]["field"]["sha256"]
     # B_ref defaults to max |B|; U_f of a node ~ 1.96 U_p |grad |B|| / B_ref (|B| ~ Bz here)
-    absb = np.linalg.norm(np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3) @ G.T + [0, 0, 1], axis=1)
+    absb = np.linalg.norm(
+        np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3) @ G.T
+        + [0, 0, 1],
+        axis=1,
+    )
     assert s["b_ref_T"] == pytest.approx(absb.max())
-    timesteps = [float(d.get("timestep")) for d in ET.parse(out / "sweep.pvd").getroot().iter("DataSet")]
+    timesteps = [
+        float(d.get("timestep")) for d in ET.parse(out / "sweep.pvd").getroot().iter("DataSet")
+    ]
     assert timesteps == [0.0, 10.0, 20.0]
     m = meshio.read(out / "uf_up20um.vtu")
     assert len(m.points) == 216 and m.cells[0].type == "tetra"
     uf = m.point_data["U_f_units"]
-    np.testing.assert_allclose(np.nanmax(uf[m.point_data["complete"] == 1]), s["uf_units"]["max"][2])
+    np.testing.assert_allclose(
+        np.nanmax(uf[m.point_data["complete"] == 1]), s["uf_units"]["max"][2]
+    )
     assert "Bz_gum_disagree" in m.point_data and "grad_B_T_per_mm" in m.point_data
     printed = capsys.readouterr().out
     assert "U_f p50" in printed and "Kuhn" in printed
@@ -89,7 +110,12 @@ def test_bad_input_exit_2_and_nothing_written(tmp_path, capsys, name, text, mess
 
 
 def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
-    for args in (["--up", "0:10"], ["--trials", "3"], ["--up", "0:900000:300000"], ["--axis-scale", "1,2"]):
+    for args in (
+        ["--up", "0:10"],
+        ["--trials", "3"],
+        ["--up", "0:900000:300000"],
+        ["--axis-scale", "1,2"],
+    ):
         out = tmp_path / "o"
         assert main(["sweep", str(csv_map), "--out", str(out), *args]) == 2
         assert not out.exists()

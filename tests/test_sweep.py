@@ -10,7 +10,7 @@ from cfm_fem.sweep import SweepConfig, parse_up_range, run_sweep, summarize
 Z = 1.959963984540054
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
 B0 = np.array([0.1, -0.2, 0.5])
-#: normal-theory standard error of a 2.5 % / 97.5 % sample quantile, in units of sigma, times sqrt(N)
+#: normal-theory standard error of a 2.5 % or 97.5 % sample quantile, in sigma, times sqrt(N)
 SE_Q = np.sqrt(0.025 * 0.975) / 0.05844
 
 

@@ -132,7 +132,8 @@ def run(args) -> int:
         chunk_nodes=args.chunk_nodes,
     )
     print(
-        f"cfm-fem sweep: {fm.n_nodes} nodes from {fm.source}; U_p = {', '.join(f'{u:g}' for u in up)} um; "
+        f"cfm-fem sweep: {fm.n_nodes} nodes from {fm.source}; "
+        f"U_p = {', '.join(f'{u:g}' for u in up)} um; "
         f"{cfg.trials} trials per node, seed {cfg.seed}",
         file=sys.stderr,
     )
@@ -151,13 +152,15 @@ def _print_summary(s, out):
         f"U_f of one node known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo)"
     )
     print(
-        f"{'U_p [um]':>9} {'U_f p50':>9} {'p95':>9} {'p99':>9} {'max':>9}  [units]  {'outside':>9} {'nodes':>8}"
+        f"{'U_p [um]':>9} {'U_f p50':>9} {'p95':>9} {'p99':>9} {'max':>9}  [units]  "
+        f"{'outside':>9} {'nodes':>8}"
     )
     for k, up in enumerate(s["up_um"]):
         row = [s["uf_units"][q][k] for q in ("p50", "p95", "p99", "max")]
         cells = " ".join(f"{v:9.3g}" if v is not None else f"{'-':>9}" for v in row)
         print(
-            f"{up:9g} {cells}           {100 * s['outside_fraction'][k]:8.3f}% {s['uf_nodes'][k]:8d}"
+            f"{up:9g} {cells}           {100 * s['outside_fraction'][k]:8.3f}% "
+            f"{s['uf_nodes'][k]:8d}"
         )
     for note in s["notes"]:
         print(f"note: {note}")

@@ -1,4 +1,4 @@
-"""Write files under a temporary name in the same folder and rename, so a crash never leaves half a file."""
+"""Write under a temporary name in the same folder, then rename: never half a file on disk."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ __all__ = ["atomic_path", "write_json", "write_text"]
 def atomic_path(path, suffix: str | None = None):
     """Yield a temporary path beside ``path``; rename it to ``path`` only if the block succeeds.
 
-    ``suffix`` defaults to the suffix of ``path`` (writers such as meshio choose the format from it).
+    ``suffix`` defaults to the suffix of ``path`` (writers choose the format from it).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -54,5 +54,5 @@ def _jsonable(obj):
 
 
 def write_json(path, data) -> None:
-    """Write ``data`` as indented JSON atomically; numpy arrays and scalars become lists and numbers."""
+    """Write ``data`` as indented JSON atomically; numpy arrays and scalars become plain JSON."""
     write_text(path, json.dumps(data, indent=2, default=_jsonable, allow_nan=False) + "\n")

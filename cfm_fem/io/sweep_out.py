@@ -74,7 +74,7 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
             "B_ref_T": res.b_ref_T,
             "trials": res.config.trials,
             "seed": res.config.seed,
-        }  # numbers only: meshio and other readers reject VTK string arrays; text is in summary.json
+        }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
         write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
         entries.append((up, path))
     write_pvd(out / "sweep.pvd", entries)

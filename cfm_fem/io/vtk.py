@@ -13,6 +13,7 @@ from ._atomic import atomic_path, write_text
 
 __all__ = ["write_vtu", "write_pvd"]
 
+
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
     """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (raw appended, zlib).
 
