@@ -122,3 +122,11 @@ def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
     assert main(["sweep", str(tmp_path / "nope.vtu"), "--out", str(tmp_path / "o")]) == 2
     assert main(["nonsense"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_top_level_help_lists_every_command(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "sweep" in out and "U_f maps (95 %)" in out

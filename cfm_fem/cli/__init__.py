@@ -1,4 +1,6 @@
-"""Command line: ``cfm-fem <command> ...``. Parsing, progress, messages and exit codes live here only.
+"""Command line: ``cfm-fem <command> ...``.
+
+Parsing, progress, messages and exit codes live here only.
 
 Each subcommand is a module in this package with ``NAME``, ``HELP``, ``add_args(parser)`` and
 ``run(args) -> int``; add it to ``_COMMANDS`` below.
@@ -18,7 +20,7 @@ from ..errors import CfmInputError, CfmInputWarning
 __all__ = ["main"]
 
 #: Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["sweep"]
+_COMMANDS = ["sweep", "kinematics", "tolerance"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1

@@ -16,7 +16,7 @@ from ..sweep import SweepConfig, parse_up_range, run_sweep
 from ._progress import progress_bar
 
 NAME = "sweep"
-HELP = "U_f maps (95 %) of a field map for a sweep of U_p; VTK output for ParaView"
+HELP = "U_f maps (95 %%) of a field map for a sweep of U_p; VTK output for ParaView"
 
 
 def _triplet(text):

@@ -1,0 +1,474 @@
+"""Bench description files (TOML): read into a :class:`cfm_fem.bench.Bench`, write back.
+
+The layout is the shipped ``cfm_fem/data/cfm_reference_bench.toml``, which documents every key.
+Units are converted once, here: lengths to mm, angles to rad, times to s. Unknown keys and
+impossible values raise :class:`~cfm_fem.errors.CfmInputError` naming the file, the line (found
+by scanning the text; tomllib does not report positions), the key and what was expected.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from ..bench import (
+    AXES,
+    ERROR_NAMES,
+    Axis,
+    Bench,
+    ErrorSpec,
+    Grid,
+    MagnetPlacement,
+    ReadingDelay,
+)
+from ..errors import CfmInputError
+from ..mc import PDF_PARAMETERS, Pdf
+from ._atomic import write_text
+
+__all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench", "REFERENCE_BENCH"]
+
+#: Name of the shipped reference bench inside the package data.
+REFERENCE_BENCH = "cfm_reference_bench.toml"
+
+_LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "nm": 1e-6}
+_ANGLE_UNITS = {
+    "rad": 1.0,
+    "mrad": 1e-3,
+    "urad": 1e-6,
+    "µrad": 1e-6,
+    "deg": np.pi / 180,
+    "arcsec": np.pi / 180 / 3600,
+}
+_ERROR_KEYS = {"pdf", "unit", "note", "profile"} | {p for ps in PDF_PARAMETERS.values() for p in ps}
+_ERROR_GROUPS = {
+    "x": [f"{k}_{c}" for k in ("delta", "eps") for c in AXES],
+    "y": [f"{k}_{c}" for k in ("delta", "eps") for c in AXES],
+    "z": [f"{k}_{c}" for k in ("delta", "eps") for c in AXES],
+    "squareness": ["alpha_xy", "alpha_xz", "alpha_yz"],
+}
+
+
+class _Doc:
+    """The parsed TOML with the raw text, to turn a dotted key into a line number."""
+
+    def __init__(self, path, text):
+        self.path = str(path)
+        self.lines = text.splitlines()
+
+    def line_of(self, dotted: str) -> int | None:
+        """1-based line where ``dotted`` (``'errors.x.delta_x.low'``) is set or its table opens."""
+        parts = dotted.split(".")
+        table: list[str] = []
+        best = None
+        header = re.compile(r"^\s*\[\[?\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
+        keyline = re.compile(r"^\s*([A-Za-z0-9_\-\"']+)\s*=")
+        for n, line in enumerate(self.lines, 1):
+            m = header.match(line)
+            if m:
+                table = [p.strip().strip("\"'") for p in m.group(1).split(".")]
+                if table == parts:
+                    return n
+                continue
+            k = keyline.match(line)
+            if not k:
+                continue
+            full = table + [k.group(1).strip("\"'")]
+            if full == parts:
+                return n
+            # a key inside an inline table: report the line of the parent key
+            if len(parts) > len(full) and parts[: len(full)] == full and best is None:
+                best = n
+        if best is not None:
+            return best
+        if len(parts) > 1:
+            return self.line_of(".".join(parts[:-1]))
+        return None
+
+    def error(self, key: str, what: str) -> CfmInputError:
+        return CfmInputError(f"'{key}' {what}", file=self.path, line=self.line_of(key))
+
+
+def _check_keys(doc: _Doc, table: dict, allowed, prefix: str):
+    for k in table:
+        if k not in allowed:
+            key = f"{prefix}.{k}" if prefix else k
+            raise doc.error(
+                key, f"is not a known key; expected one of {', '.join(sorted(allowed))}"
+            )
+
+
+def _get(doc, table, key, prefix, kind, default=None, required=False):
+    full = f"{prefix}.{key}" if prefix else key
+    if key not in table:
+        if required:
+            raise CfmInputError(
+                f"'{full}' is missing; expected {kind}",
+                file=doc.path,
+                line=doc.line_of(prefix) if prefix else None,
+            )
+        return default
+    v = table[key]
+    if kind == "number":
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise doc.error(full, f"must be a finite number; found {v!r}")
+        return float(v)
+    if kind == "integer":
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise doc.error(full, f"must be an integer; found {v!r}")
+        return v
+    if kind == "string":
+        if not isinstance(v, str):
+            raise doc.error(full, f"must be a string; found {v!r}")
+        return v
+    if kind == "vector3":
+        ok = isinstance(v, list) and len(v) == 3
+        ok = ok and all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in v)
+        if not ok or not np.all(np.isfinite(v)):
+            raise doc.error(full, f"must be a list of 3 finite numbers; found {v!r}")
+        return np.array(v, dtype=np.float64)
+    if kind == "numbers":
+        ok = isinstance(v, list) and len(v) > 0
+        ok = ok and all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in v)
+        if not ok or not np.all(np.isfinite(v)):
+            raise doc.error(full, f"must be a non-empty list of finite numbers; found {v!r}")
+        return tuple(float(x) for x in v)
+    if kind == "table":
+        if not isinstance(v, dict):
+            raise doc.error(full, f"must be a table; found {v!r}")
+        return v
+    raise AssertionError(kind)
+
+
+def _std_or_vector(doc, table, key, prefix, default):
+    """A std given as one number (all axes) or as 3 numbers, in um -> mm."""
+    if key not in table:
+        return np.full(3, default)
+    v = table[key]
+    full = f"{prefix}.{key}"
+    if isinstance(v, list):
+        vec = _get(doc, table, key, prefix, "vector3")
+    else:
+        vec = np.full(3, _get(doc, table, key, prefix, "number"))
+    if np.any(vec < 0):
+        raise doc.error(full, f"must be >= 0 (a standard deviation); found {v!r}")
+    return vec * 1e-3
+
+
+def _pdf(doc, table, prefix, scale, unit_kind):
+    kind = _get(doc, table, "pdf", prefix, "string", required=True)
+    if kind not in PDF_PARAMETERS:
+        raise doc.error(
+            f"{prefix}.pdf", f"must be one of {', '.join(PDF_PARAMETERS)}; found {kind!r}"
+        )
+    params = {}
+    for name in PDF_PARAMETERS[kind]:
+        params[name] = _get(doc, table, name, prefix, "number", required=True)
+    extra = [
+        k
+        for k in table
+        if k in _ERROR_KEYS - {"pdf", "unit", "note", "profile"} and k not in PDF_PARAMETERS[kind]
+    ]
+    if extra:
+        raise doc.error(
+            f"{prefix}.{extra[0]}",
+            f"is not a parameter of pdf '{kind}'; it takes {', '.join(PDF_PARAMETERS[kind])}",
+        )
+    try:
+        pdf = Pdf.from_params(kind, **params)
+    except CfmInputError as exc:
+        raise doc.error(f"{prefix}.pdf", f"has impossible parameters: {exc}") from None
+    try:
+        pdf.kernel_code()
+    except CfmInputError as exc:
+        raise doc.error(f"{prefix}.pdf", str(exc)) from None
+    # beta of a trapezoid is dimensionless; everything else scales with the unit
+    if kind == "trapezoidal":
+        return Pdf(kind, (pdf.params[0] * scale, pdf.params[1] * scale, pdf.params[2]))
+    return pdf.scaled(scale)
+
+
+def _read_error(doc, table, group, key):
+    name = f"{key}({group})" if group != "squareness" else key
+    prefix = f"errors.{group}.{key}"
+    _check_keys(doc, table, _ERROR_KEYS, prefix)
+    is_angle = key.startswith(("eps", "alpha"))
+    units = _ANGLE_UNITS if is_angle else _LENGTH_UNITS
+    unit = _get(doc, table, "unit", prefix, "string", default="urad" if is_angle else "um")
+    if unit not in units:
+        raise doc.error(
+            f"{prefix}.unit",
+            f"must be one of {', '.join(units)} for {'an angle' if is_angle else 'a length'}; "
+            f"found {unit!r}",
+        )
+    pdf = _pdf(doc, table, prefix, units[unit], "angle" if is_angle else "length")
+    profile = _get(doc, table, "profile", prefix, "numbers", default=(1.0,))
+    if group == "squareness" and any(c != 0 for c in profile[1:]):
+        raise doc.error(f"{prefix}.profile", "is not allowed: squareness is position independent")
+    note = _get(doc, table, "note", prefix, "string", default="")
+    return ErrorSpec(name=name, pdf=pdf, profile=profile, unit=unit, note=note)
+
+
+def read_bench(path) -> Bench:
+    """Read a bench TOML file.
+
+    Parameters
+    ----------
+    path : path-like
+
+    Returns
+    -------
+    Bench
+        In internal units (mm, rad, s).
+
+    Raises
+    ------
+    CfmInputError
+        Unreadable file, TOML syntax error, unknown key, missing or impossible value.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CfmInputError(
+            f"cannot read the bench file: {exc.strerror or exc}", file=path
+        ) from None
+    except UnicodeDecodeError:
+        raise CfmInputError("the bench file is not UTF-8 text", file=path) from None
+    return parse_bench(text, source=str(path))
+
+
+def read_reference_bench() -> Bench:
+    """The shipped CFM reference bench (DESIGN.md section 5 with Table II PDFs)."""
+    ref = resources.files("cfm_fem.data").joinpath(REFERENCE_BENCH)
+    with resources.as_file(ref) as p:
+        return read_bench(p)
+
+
+def parse_bench(text: str, source: str = "<string>") -> Bench:
+    """Parse bench TOML text (``source`` names it in messages)."""
+    doc = _Doc(source, text)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        m = re.search(r"line (\d+)", str(exc))
+        raise CfmInputError(
+            f"not valid TOML: {exc}", file=source, line=int(m.group(1)) if m else None
+        ) from None
+    top = {
+        "format",
+        "version",
+        "name",
+        "frame",
+        "axes",
+        "grid",
+        "errors",
+        "vibration",
+        "reading_delay",
+        "magnet",
+        "assumptions",
+    }
+    _check_keys(doc, data, top, "")
+    fmt = _get(doc, data, "format", "", "string", default="cfm-bench")
+    if fmt != "cfm-bench":
+        raise doc.error("format", f"must be 'cfm-bench'; found {fmt!r}")
+    version = _get(doc, data, "version", "", "integer", default=1)
+    if version != 1:
+        raise doc.error("version", f"must be 1 (the only bench format version); found {version}")
+    name = _get(doc, data, "name", "", "string", default=Path(source).stem)
+
+    frame = _get(doc, data, "frame", "", "table", required=True)
+    _check_keys(doc, frame, {"stack", "tool_offset_mm", "description"}, "frame")
+    stack = frame.get("stack", ["z", "x", "y"])
+    if not (isinstance(stack, list) and sorted(map(str, stack)) == sorted(AXES)):
+        raise doc.error("frame.stack", f"must list 'x', 'y' and 'z' once each; found {stack!r}")
+    tool = _get(doc, frame, "tool_offset_mm", "frame", "vector3", required=True)
+
+    axes_t = _get(doc, data, "axes", "", "table", required=True)
+    _check_keys(doc, axes_t, set(AXES), "axes")
+    axes = {}
+    for a in AXES:
+        t = _get(doc, axes_t, a, "axes", "table", required=True)
+        _check_keys(doc, t, {"stroke_mm", "mount_offset_mm"}, f"axes.{a}")
+        stroke = _get(doc, t, "stroke_mm", f"axes.{a}", "number", required=True)
+        if stroke <= 0:
+            raise doc.error(f"axes.{a}.stroke_mm", f"must be > 0 (mm); found {stroke:g}")
+        mount = _get(doc, t, "mount_offset_mm", f"axes.{a}", "vector3", default=np.zeros(3))
+        axes[a] = Axis(a, stroke, mount)
+
+    grid_t = _get(doc, data, "grid", "", "table", default={})
+    _check_keys(doc, grid_t, {f"{a}_mm" for a in AXES}, "grid")
+    grid_args = {}
+    for a in AXES:
+        key = f"{a}_mm"
+        if key not in grid_t:
+            grid_args[a] = getattr(Grid(), a)
+            continue
+        g = _get(doc, grid_t, key, "grid", "table")
+        _check_keys(doc, g, {"start", "stop", "num"}, f"grid.{key}")
+        start = _get(doc, g, "start", f"grid.{key}", "number", required=True)
+        stop = _get(doc, g, "stop", f"grid.{key}", "number", required=True)
+        num = _get(doc, g, "num", f"grid.{key}", "integer", required=True)
+        if num < 1:
+            raise doc.error(f"grid.{key}.num", f"must be >= 1; found {num}")
+        if min(start, stop) < 0 or max(start, stop) > axes[a].stroke_mm + 1e-9:
+            raise doc.error(
+                f"grid.{key}",
+                f"must stay within the stroke [0, {axes[a].stroke_mm:g}] mm; "
+                f"found start={start:g}, stop={stop:g}",
+            )
+        grid_args[a] = (start, stop, num)
+
+    err_t = _get(doc, data, "errors", "", "table", required=True)
+    _check_keys(doc, err_t, set(_ERROR_GROUPS), "errors")
+    specs = {}
+    for group, keys in _ERROR_GROUPS.items():
+        gt = _get(doc, err_t, group, "errors", "table", required=True)
+        _check_keys(doc, gt, set(keys), f"errors.{group}")
+        for key in keys:
+            t = _get(doc, gt, key, f"errors.{group}", "table", required=True)
+            spec = _read_error(doc, t, group, key)
+            specs[spec.name] = spec
+    errors = tuple(specs[n] for n in ERROR_NAMES)
+
+    vib_t = _get(doc, data, "vibration", "", "table", default={})
+    _check_keys(doc, vib_t, {"std_um"}, "vibration")
+    vib = _std_or_vector(doc, vib_t, "std_um", "vibration", 0.0)
+
+    del_t = _get(doc, data, "reading_delay", "", "table", default={})
+    _check_keys(doc, del_t, {"model", "std_um", "speed_mm_s", "tau"}, "reading_delay")
+    model = _get(doc, del_t, "model", "reading_delay", "string", default="normal")
+    if model == "normal":
+        for k in ("speed_mm_s", "tau"):
+            if k in del_t:
+                raise doc.error(f"reading_delay.{k}", "is only used with model = 'speed_tau'")
+        delay = ReadingDelay("normal", _std_or_vector(doc, del_t, "std_um", "reading_delay", 0.0))
+    elif model == "speed_tau":
+        if "std_um" in del_t:
+            raise doc.error("reading_delay.std_um", "is only used with model = 'normal'")
+        speed = _get(doc, del_t, "speed_mm_s", "reading_delay", "vector3", required=True)
+        tau_t = _get(doc, del_t, "tau", "reading_delay", "table", required=True)
+        _check_keys(doc, tau_t, _ERROR_KEYS - {"profile", "note"}, "reading_delay.tau")
+        unit = _get(doc, tau_t, "unit", "reading_delay.tau", "string", default="s")
+        scales = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+        if unit not in scales:
+            raise doc.error("reading_delay.tau.unit", f"must be one of s, ms, us; found {unit!r}")
+        tau = _pdf(doc, tau_t, "reading_delay.tau", scales[unit], "time")
+        delay = ReadingDelay("speed_tau", np.zeros(3), speed, tau)
+    else:
+        raise doc.error("reading_delay.model", f"must be 'normal' or 'speed_tau'; found {model!r}")
+
+    mag_t = _get(doc, data, "magnet", "", "table", default={})
+    _check_keys(doc, mag_t, {"rotation_deg", "translation_mm"}, "magnet")
+    rot = _get(doc, mag_t, "rotation_deg", "magnet", "vector3", default=np.zeros(3))
+    trans = _get(doc, mag_t, "translation_mm", "magnet", "vector3", default=np.zeros(3))
+
+    ass_t = _get(doc, data, "assumptions", "", "table", default={})
+    _check_keys(doc, ass_t, {"notes"}, "assumptions")
+    notes = ass_t.get("notes", [])
+    if not (isinstance(notes, list) and all(isinstance(n, str) for n in notes)):
+        raise doc.error("assumptions.notes", "must be a list of strings")
+
+    try:
+        return Bench(
+            name=name,
+            stack=tuple(str(s) for s in stack),
+            axes=axes,
+            tool_offset_mm=tool,
+            errors=errors,
+            vibration_std_mm=vib,
+            delay=delay,
+            magnet=MagnetPlacement(np.deg2rad(rot), trans),
+            grid=Grid(**grid_args),
+            assumptions=tuple(notes),
+            source=source,
+        )
+    except CfmInputError as exc:  # model-level checks: name the file, the key is in the text
+        key = exc.what.split(" ")[0].strip("'")
+        raise CfmInputError(exc.what, file=source, line=doc.line_of(key)) from None
+
+
+def _fmt(v) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return repr(float(v))
+
+
+def bench_to_toml(bench: Bench) -> str:
+    """TOML text that :func:`parse_bench` reads back into an equal bench (round trip)."""
+    out = [
+        "# cfm_fem bench description, written by cfm_fem (cfm_reference_bench.toml explains keys)",
+        'format = "cfm-bench"',
+        "version = 1",
+        f"name = {_fmt(bench.name)}",
+        "",
+        "[frame]",
+        f"stack = {_fmt(list(bench.stack))}",
+        f"tool_offset_mm = {_fmt(bench.tool_offset_mm)}",
+    ]
+    for a in AXES:
+        ax = bench.axes[a]
+        out += [
+            "",
+            f"[axes.{a}]",
+            f"stroke_mm = {_fmt(ax.stroke_mm)}",
+            f"mount_offset_mm = {_fmt(ax.mount_offset_mm)}",
+        ]
+    out += ["", "[grid]"]
+    for a in AXES:
+        s, e, n = getattr(bench.grid, a)
+        out.append(f"{a}_mm = {{ start = {_fmt(s)}, stop = {_fmt(e)}, num = {int(n)} }}")
+    for spec in bench.errors:
+        name = spec.name
+        group, key = ("squareness", name) if "(" not in name else (name[-2], name[:-3])
+        units = _ANGLE_UNITS if spec.is_angle else _LENGTH_UNITS
+        pdf = spec.pdf
+        if pdf.kind == "trapezoidal":
+            s = 1.0 / units[spec.unit]
+            shown = Pdf(pdf.kind, (pdf.params[0] * s, pdf.params[1] * s, pdf.params[2]))
+        else:
+            shown = pdf.scaled(1.0 / units[spec.unit])
+        out += ["", f"[errors.{group}.{key}]"]
+        if spec.note:
+            out.append(f"note = {_fmt(spec.note)}")
+        out.append(f"pdf = {_fmt(shown.kind)}")
+        out += [f"{k} = {_fmt(v)}" for k, v in shown.named_params().items()]
+        out.append(f"unit = {_fmt(spec.unit)}")
+        if tuple(spec.profile) != (1.0,):
+            out.append(f"profile = {_fmt(list(spec.profile))}")
+    out += ["", "[vibration]", f"std_um = {_fmt(np.asarray(bench.vibration_std_mm) * 1e3)}"]
+    d = bench.delay
+    out += ["", "[reading_delay]", f"model = {_fmt(d.model)}"]
+    if d.model == "normal":
+        out.append(f"std_um = {_fmt(np.asarray(d.std_mm) * 1e3)}")
+    else:
+        out.append(f"speed_mm_s = {_fmt(d.speed_mm_s)}")
+        tau = ", ".join(f"{k} = {_fmt(v)}" for k, v in d.tau_pdf.named_params().items())
+        out.append(f'tau = {{ pdf = {_fmt(d.tau_pdf.kind)}, {tau}, unit = "s" }}')
+    out += [
+        "",
+        "[magnet]",
+        f"rotation_deg = {_fmt(np.rad2deg(bench.magnet.rotation_rad))}",
+        f"translation_mm = {_fmt(bench.magnet.translation_mm)}",
+        "",
+        "[assumptions]",
+        "notes = [",
+        *[f"  {_fmt(n)}," for n in bench.assumptions],
+        "]",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def write_bench(path, bench: Bench) -> None:
+    """Write ``bench`` as TOML, atomically."""
+    write_text(path, bench_to_toml(bench))

@@ -1,0 +1,178 @@
+"""GUM-S1 engine against the JCGM 101:2008 worked examples (10**6 trials, vectorised numpy).
+
+Tolerances come from the Monte Carlo numerical uncertainty: the standard deviation of each
+result is estimated from 20 sub-runs of the 10**6 values (s / sqrt(20)); published Monte Carlo
+values are themselves 10**6-trial results with the same numerical uncertainty, so a difference
+is allowed 4 x sqrt(2) standard deviations plus half a unit of the published last digit.
+Published values that are exact (analytic) get 4 standard deviations plus the rounding.
+"""
+
+import numpy as np
+import pytest
+
+from cfm_fem.mc import (
+    Pdf,
+    adaptive_monte_carlo,
+    coverage_count,
+    gum_linear,
+    monte_carlo,
+    numerical_tolerance,
+    shortest_interval,
+    summarize,
+    symmetric_interval,
+    symmetric_ranks,
+    validate_gum,
+    variance_shares,
+)
+
+M = 10**6
+
+
+def _numerical_std(values, p, interval="symmetric", parts=20):
+    """Standard deviation of (y, u, low, high) of the full run, from ``parts`` sub-runs."""
+    stats = []
+    for chunk in np.array_split(values, parts):
+        s = summarize(chunk, p)
+        lo, hi = (s.low, s.high) if interval == "symmetric" else (s.short_low, s.short_high)
+        stats.append([s.y, s.u, lo, hi])
+    return np.std(stats, axis=0, ddof=1) / np.sqrt(parts)
+
+
+def _check(got, published, sd, last_digit, mc_reference=True):
+    k = 4 * np.sqrt(2) if mc_reference else 4
+    tol = k * sd + 0.5 * last_digit
+    assert abs(got - published) <= tol, (got, published, tol)
+
+
+def test_ranks_agree_with_the_sorted_interval():
+    x = np.random.default_rng(0).normal(size=1001)
+    r_lo, r_hi = symmetric_ranks(1001, 0.95)
+    lo, hi = symmetric_interval(x)
+    xs = np.sort(x)
+    assert (xs[r_lo - 1], xs[r_hi - 1]) == (lo, hi)
+    assert r_hi - r_lo == coverage_count(1001, 0.95)
+
+
+def test_9_2_2_sum_of_four_normals():
+    pdfs = [Pdf.normal(0.0, 1.0)] * 4
+    v = monte_carlo(lambda x: x.sum(axis=1), pdfs, M, seed=1)
+    s = summarize(v)
+    sd = _numerical_std(v, 0.95)
+    # exact: y = 0, u = 2, 95 % interval +-1.96 * 2 = +-3.92
+    _check(s.y, 0.0, sd[0], 0.0, mc_reference=False)
+    _check(s.u, 2.00, sd[1], 0.01, mc_reference=False)
+    _check(s.low, -3.92, sd[2], 0.01, mc_reference=False)
+    _check(s.high, 3.92, sd[3], 0.01, mc_reference=False)
+    g = gum_linear(lambda x: x.sum(axis=1), pdfs)
+    assert g.u == pytest.approx(2.0, rel=1e-9)
+    assert validate_gum(*g.interval(0.95), s, ndig=2)["valid"]
+
+
+def test_9_2_3_sum_of_four_rectangulars():
+    pdfs = [Pdf.uniform(-np.sqrt(3), np.sqrt(3))] * 4  # std 1
+    v = monte_carlo(lambda x: x.sum(axis=1), pdfs, M, seed=2)
+    s = summarize(v)
+    sd = _numerical_std(v, 0.95)
+    _check(s.u, 2.00, sd[1], 0.01, mc_reference=False)
+    _check(s.low, -3.88, sd[2], 0.01)
+    _check(s.high, 3.88, sd[3], 0.01)
+    lo, hi = gum_linear(lambda x: x.sum(axis=1), pdfs).interval(0.95)
+    assert (round(lo, 2), round(hi, 2)) == (-3.92, 3.92)
+
+
+def _mass(x):
+    m_r, dm_r, rho_a, rho_w, rho_r = x.T
+    return (m_r + dm_r) * (1 + (rho_a - 1.2) * (1 / rho_w - 1 / rho_r)) - 100_000.0  # mg
+
+
+MASS_PDFS = [
+    Pdf.normal(100_000.000, 0.050),
+    Pdf.normal(1.234, 0.020),
+    Pdf.uniform(1.10, 1.30),
+    Pdf.uniform(7000.0, 9000.0),
+    Pdf.uniform(7950.0, 8050.0),
+]
+
+
+def test_9_3_mass_calibration_and_gum_fails_validation():
+    v = monte_carlo(_mass, MASS_PDFS, M, seed=3)
+    s = summarize(v)
+    sd = _numerical_std(v, 0.95, interval="shortest")
+    _check(s.y, 1.2341, sd[0], 1e-4)
+    _check(s.u, 0.0754, sd[1], 1e-4)
+    _check(s.short_low, 1.0834, sd[2], 1e-4)
+    _check(s.short_high, 1.3825, sd[3], 1e-4)
+    g = gum_linear(_mass, MASS_PDFS)
+    assert round(float(g.y), 4) == 1.2340
+    assert round(float(g.u), 4) == 0.0539
+    # section 8 with one significant digit of u = 0.08 mg: delta = 0.005 mg, and the GUM fails
+    val = validate_gum(*g.interval(0.95), s, ndig=1)
+    assert float(val["delta"]) == pytest.approx(0.005)
+    assert not val["valid"]
+    assert min(val["d_low"], val["d_high"]) > 0.005
+
+
+def _gauge(x):
+    ls, d, d1, d2, alpha_s, theta_bar, delta, d_alpha, d_theta = x.T
+    theta = theta_bar + delta
+    return ls + d + d1 + d2 - ls * (d_alpha * theta + alpha_s * d_theta) - 50_000_000.0  # nm
+
+
+GAUGE_PDFS = [
+    Pdf.student_t(50_000_623.0, 25.0, 18),  # scale = GUM standard uncertainty, not the std
+    Pdf.student_t(215.0, 5.8, 24),
+    Pdf.student_t(0.0, 3.9, 5),
+    Pdf.student_t(0.0, 6.7, 8),
+    Pdf.uniform(9.5e-6, 13.5e-6),
+    Pdf.normal(-0.1, 0.2),
+    Pdf.arcsine(-0.5, 0.5),
+    Pdf.curvilinear_trapezoidal(-1.0e-6, 1.0e-6, 0.1e-6),
+    Pdf.curvilinear_trapezoidal(-0.050, 0.050, 0.025),
+]
+
+
+def test_9_5_gauge_block_99_percent():
+    v = monte_carlo(_gauge, GAUGE_PDFS, M, seed=5)
+    s = summarize(v, 0.99)
+    sd = _numerical_std(v, 0.99)
+    _check(s.y, 838.0, sd[0], 1.0)
+    _check(s.u, 36.0, sd[1], 1.0)
+    _check(s.low, 745.0, sd[2], 1.0)
+    _check(s.high, 932.0, sd[3], 1.0)
+
+    # the other scale convention (scale = std of the t variable) would give a visibly smaller u
+    def as_std(p):
+        loc, scale, dof = p.params
+        return Pdf.student_t(loc, scale / np.sqrt(dof / (dof - 2)), dof)
+
+    wrong = [as_std(p) if p.kind == "student_t" else p for p in GAUGE_PDFS]
+    s_wrong = summarize(monte_carlo(_gauge, wrong, 200_000, seed=6), 0.99)
+    assert s.u - s_wrong.u > 10 * sd[1]
+
+
+def test_adaptive_procedure_stops_at_the_numerical_tolerance():
+    r = adaptive_monte_carlo(lambda x: x.sum(axis=1), [Pdf.normal(0, 1)] * 4, ndig=2, seed=7)
+    assert r.converged
+    assert np.all(r.two_s <= r.delta)
+    assert float(r.delta) == 0.05  # u = 2.0 -> two significant digits -> 10**-1 / 2
+    s = r.summary
+    assert s.trials == r.batches * r.batch_trials >= 2 * 10**4
+    # the result is within the stated tolerance of the exact values
+    assert abs(s.u - 2.0) <= r.delta and abs(s.high - 3.92) <= 2 * r.delta
+
+
+def test_numerical_tolerance_examples():
+    # JCGM 101 7.9.2 example: u = 0.02 mg (one significant digit)? here two digits of 0.028
+    assert numerical_tolerance(0.028, 2) == pytest.approx(0.0005)
+    assert numerical_tolerance(0.0754, 1) == pytest.approx(0.005)
+    assert numerical_tolerance(36.0, 2) == pytest.approx(0.5)
+
+
+def test_variance_shares_and_shortest_interval():
+    sh = variance_shares(np.array([1.0, 2.0, 0.0]), np.array([3.0, 1.0, 5.0]))
+    np.testing.assert_allclose(sh, [9 / 13, 4 / 13, 0.0])
+    x = np.random.default_rng(1).exponential(size=200_001)
+    lo, hi = shortest_interval(x, 0.95)
+    slo, shi = symmetric_interval(x, 0.95)
+    assert hi - lo < shi - slo  # skewed: the shortest interval is shorter
+    assert lo == pytest.approx(0.0, abs=1e-3)
