@@ -1,0 +1,184 @@
+"""Performance of the paper-scale kinematics Monte Carlo (issue 3); prints figures, asserts nothing.
+
+    python scripts/bench_kinematics.py [--trials 1000000] [--numpy-trials 1000] [--threads N]
+
+1. the full run: ``run_kinematics`` on the reference bench, 936 points, exact HTM chain,
+   vibration and delay drawn per point and trial, exact 95 % intervals (two passes), wall time
+   per stage; and the one-pass variant (intervals interpolated in their slot);
+2. a straightforward numpy implementation of the same model and statistics (vectorised over
+   points and a batch of trials: 4x4 HTMs of eq. 2-5, numpy's generator, sorting for the
+   intervals), run on a subset of trials and scaled linearly to the full run (sorting grows
+   faster than linearly, so the scaled figure favours numpy);
+3. the arithmetic lower bound on this machine: the normal variates the model needs (3 per point
+   and trial, each generated at least once) at the best measured generator throughput, and the
+   floating-point work at a measured vectorised peak; and how close the kernel comes (cpu and
+   wall).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numba
+import numpy as np
+
+from cfm_fem import _kernels_kinematics as K
+from cfm_fem import kinematics as kin
+from cfm_fem.io.bench_toml import read_reference_bench
+from cfm_fem.mc import symmetric_interval
+
+
+def numpy_reference_run(bench, trials, seed=0, batch=50):
+    """The same Monte Carlo in plain numpy: returns per-point mean, std, low, high (n, 4)."""
+    rng = np.random.default_rng(seed)
+    q = bench.grid_points()
+    sig = bench.noise_std_mm()
+    vals = np.empty((trials, len(q), 4))
+    for a in range(0, trials, batch):
+        m = min(batch, trials - a)
+        params = np.stack([e.pdf.sample(rng, m) for e in bench.errors], axis=-1)
+        dq = rng.standard_normal((m, len(q), 3)) * sig
+        e = kin.probe_errors_for_bench(bench, params, q, dq)
+        vals[a : a + m, :, :3] = e
+        vals[a : a + m, :, 3] = np.linalg.norm(e, axis=-1)
+    lo, hi = symmetric_interval(vals, 0.95, axis=0)
+    return vals.mean(0), vals.std(0, ddof=1), lo, hi
+
+
+@numba.njit(**K.JIT)
+def _normals_loop(nkey, fkey, n, point):
+    s = 0.0
+    for t in range(n):
+        z0, z1, z2 = K._three_normals(K.trial_key(nkey, t), fkey, point)
+        s += z0 + z1 + z2
+    return s
+
+
+@numba.njit(**K.JIT)
+def _flop_loop(x, y, reps):
+    # independent elements in L1: vectorised multiplies and adds (11 flops per element)
+    for _ in range(reps):
+        for i in range(x.shape[0]):
+            v = x[i]
+            y[i] = ((((v * 1.0001 + 0.5) * v + 0.25) * v + 0.125) * v + 0.0625) * v + y[i] * 0.5
+
+
+def measure_peaks():
+    """(ns per normal: counter-based ziggurat, numpy's generator) and GFLOP/s, one core."""
+    _, nkey, fkey = kin._keys(0)
+    _normals_loop(nkey, fkey, 10, 3)
+    n = 2_000_000
+    t = time.process_time()
+    _normals_loop(nkey, fkey, n, 3)
+    ns_ours = (time.process_time() - t) / (3 * n) * 1e9
+    rng = np.random.default_rng(0)
+    rng.standard_normal(10)
+    t = time.process_time()
+    rng.standard_normal(6_000_000)
+    ns_numpy = (time.process_time() - t) / 6_000_000 * 1e9
+    x = np.random.default_rng(1).random(2048)
+    y = np.zeros_like(x)
+    _flop_loop(x, y, 1)
+    reps = 20_000
+    t = time.process_time()
+    _flop_loop(x, y, reps)
+    gflops = 11 * 2048 * reps / (time.process_time() - t) / 1e9
+    return ns_ours, ns_numpy, gflops
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=1_000_000)
+    ap.add_argument("--numpy-trials", type=int, default=1000)
+    ap.add_argument("--threads", type=int, default=numba.config.NUMBA_NUM_THREADS)
+    args = ap.parse_args()
+    numba.set_num_threads(args.threads)
+    bench = read_reference_bench()
+    npts = len(bench.grid_points())
+    pairs = args.trials * npts
+    print(
+        f"machine: {os.cpu_count()} CPUs, numba threads {numba.get_num_threads()}, "
+        f"load average {os.getloadavg()[0]:.2f}"
+    )
+
+    t = time.perf_counter()
+    kin.run_kinematics(bench, trials=5000, seed=1)  # compile (cached) and warm up
+    kin.run_kinematics(bench, trials=5000, seed=1, exact=False)
+    print(f"warm-up (compile or load from cache): {time.perf_counter() - t:.1f} s")
+
+    t = time.perf_counter()
+    c = time.process_time()
+    full = kin.run_kinematics(bench, trials=args.trials, seed=0)
+    wall_full = time.perf_counter() - t
+    cpu_full = time.process_time() - c
+    print(
+        f"\nfull run, exact intervals: {args.trials} trials x {npts} points = {pairs:.3g} samples"
+    )
+    print(
+        f"  wall {wall_full:.2f} s (cpu {cpu_full:.1f} s); stages: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in full.seconds.items())
+    )
+    print(f"  {wall_full / pairs * 1e9:.1f} ns wall per (trial, point) sample over both passes")
+    t = time.perf_counter()
+    one = kin.run_kinematics(bench, trials=args.trials, seed=0, exact=False)
+    wall_one = time.perf_counter() - t
+    print(f"one pass (intervals interpolated in their slot): wall {wall_one:.2f} s")
+    for a in "xyz":
+        p = full.pooled[a]
+        print(
+            f"  {a.upper()}: systematic {p['systematic_um']:.2f} um, std {p['std_um']:.2f} um, "
+            f"U_p {p['U_p_um']:.2f} um"
+        )
+    d = np.abs(one.high - full.high).max() * 1e3
+    print(f"  largest difference one-pass vs exact interval end: {d:.3g} um")
+
+    m = args.numpy_trials
+    t = time.perf_counter()
+    ref = numpy_reference_run(bench, m)
+    wall_np = time.perf_counter() - t
+    scaled = wall_np * args.trials / m
+    print(
+        f"\nnumpy implementation of the same model: {m} trials in {wall_np:.2f} s "
+        f"({wall_np / (m * npts) * 1e9:.0f} ns per sample, one thread)"
+    )
+    print(
+        f"  scaled to {args.trials} trials: {scaled:.0f} s  ->  kernel speed-up "
+        f"{scaled / wall_full:.0f}x (exact, two passes), {scaled / wall_one:.0f}x (one pass)"
+    )
+    chk = kin.run_kinematics(bench, trials=m, seed=3)
+    print(
+        f"  (same statistics; numpy {m} trials vs kernel {m} trials, different random streams: "
+        f"pooled X std {np.sqrt(np.mean(ref[1][:, 0] ** 2)) * 1e3:.2f} vs "
+        f"{chk.pooled['x']['std_um']:.2f} um)"
+    )
+
+    ns_ours, ns_numpy, gflops = measure_peaks()
+    cores = numba.get_num_threads()
+    # every sample needs its 3 normals at least once, whatever the statistics algorithm
+    normals = 3 * pairs
+    best = min(ns_ours, ns_numpy)
+    cpu_rng = normals * best * 1e-9
+    flops = 40 * pairs  # 18 multiply-adds (36 flops), |E| (6): per sample, once
+    cpu_flop = flops / (gflops * 1e9)
+    cpu_bound = max(cpu_rng, cpu_flop)
+    print("\narithmetic lower bound on this machine (each sample generated once):")
+    print(f"  normal variates: 3 per sample, {normals:.3g}; measured {ns_ours:.2f} ns each "
+          f"(counter-based ziggurat), numpy's generator {ns_numpy:.2f} ns")  # fmt: skip
+    print(f"  -> {cpu_rng:.1f} cpu-s at {best:.2f} ns per normal")
+    print(f"  floating point: ~{flops:.3g} flops at a measured {gflops:.1f} GFLOP/s per core "
+          f"(vectorised) -> {cpu_flop:.1f} cpu-s")  # fmt: skip
+    print(f"  bound {cpu_bound:.1f} cpu-s = {cpu_bound / cores:.2f} s wall on {cores} cores")
+    print(f"  the exact run used {cpu_full:.1f} cpu-s ({cpu_full / cpu_bound:.1f}x the bound) and "
+          f"{wall_full:.1f} s wall ({wall_full / (cpu_bound / cores):.1f}x); the one-pass run "
+          f"{wall_one:.1f} s wall ({wall_one / (cpu_bound / cores):.1f}x)")  # fmt: skip
+    if cpu_full < 1.5 * wall_full:
+        print(
+            f"  note: cpu {cpu_full:.1f} s for {wall_full:.1f} s wall: the {cores} threads did "
+            "not get their cores (other load on the machine); the wall figures are inflated"
+        )
+
+
+if __name__ == "__main__":
+    main()
