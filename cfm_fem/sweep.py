@@ -18,6 +18,10 @@ from .interpolation import SimplexMesh, build_mesh
 from .mc import numerical_tolerance
 
 __all__ = [
+    "SweepProblem",
+    "chunk_ranges",
+    "serial_map",
+    "prepare_sweep",
     "SweepConfig",
     "SweepResult",
     "run_sweep",
@@ -237,7 +241,100 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
 
 
-def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh | None = None):
+@dataclass
+class SweepProblem:
+    """Everything needed to run any chunk of nodes of a sweep: read-only and picklable.
+
+    A chunk's result depends only on the node indices, never on which process computes it or in
+    which order, so chunks can be spread over threads, processes or a Dask cluster and merged
+    exactly (see `run_sweep`'s ``map_chunks``).
+    """
+
+    coords: np.ndarray
+    values: np.ndarray
+    simplices: np.ndarray
+    transform: np.ndarray
+    neighbors: np.ndarray
+    start_cells: np.ndarray
+    basis: np.ndarray
+    axis_scale: np.ndarray
+    scales_mm: np.ndarray
+    trials: int
+    seed: int
+    coverage: float
+
+    def run_chunk(self, start: int, stop: int):
+        """Statistics of nodes ``start .. stop-1``.
+
+        Returns
+        -------
+        stats : ndarray, shape (k, n_up, 4, 6), T
+        n_outside, n_walk_failed : ndarray, shape (k, n_up), int64
+        linear_in_up : ndarray, shape (k,), bool
+        """
+        nodes = np.arange(start, stop, dtype=np.int64)
+        return _kernels.gauss_sweep(
+            nodes, self.coords, self.values, self.simplices, self.transform, self.neighbors,
+            self.start_cells, self.basis, self.axis_scale, self.scales_mm, int(self.trials),
+            int(self.seed), float(self.coverage), 32,
+        )  # fmt: skip
+
+
+def chunk_ranges(n: int, chunk_nodes: int) -> list[tuple[int, int]]:
+    """Node ranges [start, stop) of at most ``chunk_nodes`` nodes covering 0 .. n-1."""
+    return [(a, min(a + chunk_nodes, n)) for a in range(0, n, chunk_nodes)]
+
+
+def serial_map(problem: SweepProblem, chunks):
+    """Run chunks one after the other in this process (numba threads inside each chunk)."""
+    for a, b in chunks:
+        yield (a, b), problem.run_chunk(a, b)
+
+
+def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = None):
+    """Check the configuration and build the mesh and the `SweepProblem`.
+
+    Returns
+    -------
+    mesh : SimplexMesh
+    problem : SweepProblem
+    b_ref : float, T
+    """
+    mesh = build_mesh(fm, cfg.interpolation) if mesh is None else mesh
+    _check_config(cfg, fm, mesh)
+    b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
+    if b_ref <= 0:
+        raise CfmInputError(
+            "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
+        )
+    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
+    start_cells = _kernels.octant_cells(
+        mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
+    )
+    problem = SweepProblem(
+        coords=mesh.coords,
+        values=np.ascontiguousarray(fm.B),
+        simplices=mesh.simplices,
+        transform=mesh.transform,
+        neighbors=mesh.neighbors,
+        start_cells=start_cells,
+        basis=np.ascontiguousarray(mesh.basis),
+        axis_scale=np.asarray(cfg.axis_scale, dtype=np.float64),
+        scales_mm=np.asarray(cfg.up_um, dtype=np.float64) * 1e-3,
+        trials=int(cfg.trials),
+        seed=int(cfg.seed),
+        coverage=float(cfg.coverage),
+    )
+    return mesh, problem, b_ref
+
+
+def run_sweep(
+    fm: FieldMap,
+    cfg: SweepConfig,
+    progress=None,
+    mesh: SimplexMesh | None = None,
+    map_chunks=None,
+):
     """Run the Monte Carlo sweep over ``cfg.up_um`` for every node of ``fm``.
 
     Parameters
@@ -248,45 +345,32 @@ def run_sweep(fm: FieldMap, cfg: SweepConfig, progress=None, mesh: SimplexMesh |
         Called with the number of nodes finished after each chunk.
     mesh : SimplexMesh, optional
         Reuse a mesh built earlier (it must belong to ``fm``).
+    map_chunks : callable(problem, chunks) -> iterable of ((start, stop), result), optional
+        Runs the chunks (in any order, anywhere: a Dask cluster, a resumable store); default
+        `serial_map`. Results are identical whatever runs them.
 
     Returns
     -------
     SweepResult
     """
     t0 = time.perf_counter()
-    mesh = build_mesh(fm, cfg.interpolation) if mesh is None else mesh
-    _check_config(cfg, fm, mesh)
-    b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
-    if b_ref <= 0:
-        raise CfmInputError(
-            "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
-        )
-    scales = np.asarray(cfg.up_um, dtype=np.float64) * 1e-3  # um -> mm
-    axis = np.asarray(cfg.axis_scale, dtype=np.float64)
-    n = fm.n_nodes
-    n_up = len(scales)
-    stats = np.empty((n, n_up, 4, 6))
-    n_out = np.empty((n, n_up), dtype=np.int64)
-    n_lost = np.empty((n, n_up), dtype=np.int64)
-    star = np.empty(n, dtype=bool)
-    values = np.ascontiguousarray(fm.B)
-    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
-    start_cells = _kernels.octant_cells(
-        mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
-    )
-    basis = np.ascontiguousarray(mesh.basis)
-    for a in range(0, n, cfg.chunk_nodes):
-        nodes = np.arange(a, min(a + cfg.chunk_nodes, n), dtype=np.int64)
-        s, o, lost, st = _kernels.gauss_sweep(
-            nodes, mesh.coords, values, mesh.simplices, mesh.transform, mesh.neighbors,
-            start_cells, basis, axis, scales, int(cfg.trials), int(cfg.seed),
-            float(cfg.coverage), 32,
-        )  # fmt: skip
-        stats[nodes], n_out[nodes], n_lost[nodes], star[nodes] = s, o, lost, st
+    mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh)
+    n, n_up = fm.n_nodes, len(cfg.up_um)
+    stats = np.full((n, n_up, 4, 6), np.nan)
+    n_out = np.zeros((n, n_up), dtype=np.int64)
+    n_lost = np.zeros((n, n_up), dtype=np.int64)
+    star = np.zeros(n, dtype=bool)
+    done = np.zeros(n, dtype=bool)
+    mapper = serial_map if map_chunks is None else map_chunks
+    for (a, b), (s, o, lost, st) in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
+        stats[a:b], n_out[a:b], n_lost[a:b], star[a:b] = s, o, lost, st
+        done[a:b] = True
         if progress is not None:
-            progress(len(nodes))
+            progress(b - a)
+    if not done.all():
+        raise RuntimeError(f"{int((~done).sum())} nodes were not computed by the chunk mapper")
     gradient = node_gradients(mesh, fm.B)
-    sigma_mm = scales[:, None] * axis[None, :]
+    sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]
     gum_u = _gum_u(gradient, fm.B, sigma_mm)
     return SweepResult(
         fieldmap=fm,

@@ -141,3 +141,23 @@ def test_parse_up_range():
 def test_bad_config(cfg, match):
     with pytest.raises(CfmInputError, match=match):
         run_sweep(grid_map(3), cfg)
+
+
+def test_chunks_in_any_order_merge_exactly():
+    fm = grid_map(5)
+    cfg = SweepConfig(up_um=[0.0, 40.0], trials=200, seed=9, chunk_nodes=11)
+
+    def reversed_map(problem, chunks):
+        for a, b in reversed(chunks):
+            yield (a, b), problem.run_chunk(a, b)
+
+    a = run_sweep(fm, cfg)
+    b = run_sweep(fm, cfg, map_chunks=reversed_map)
+    np.testing.assert_array_equal(a.stats, b.stats)
+    np.testing.assert_array_equal(a.n_outside, b.n_outside)
+
+    def lossy_map(problem, chunks):
+        yield chunks[0], problem.run_chunk(*chunks[0])
+
+    with pytest.raises(RuntimeError, match="not computed"):
+        run_sweep(fm, cfg, map_chunks=lossy_map)
