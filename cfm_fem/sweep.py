@@ -55,6 +55,8 @@ class SweepConfig:
         Coverage probability of the intervals.
     interpolation : {"auto", "native", "grid", "delaunay"}
     mode : {"gauss", "htm"}
+    bench : Bench or None
+        Bench model for mode ``htm`` (`cfm_fem.bench.Bench`); None means the reference bench.
     chunk_nodes : int
         Nodes per chunk (progress granularity and memory; results do not depend on it).
     """
@@ -67,6 +69,7 @@ class SweepConfig:
     coverage: float = 0.95
     interpolation: str = "auto"
     mode: str = "gauss"
+    bench: object | None = None
     chunk_nodes: int = 20000
 
 

@@ -10,6 +10,7 @@ import sys
 
 from ..errors import CfmInputError
 from ..io import read_field
+from ..io.bench_toml import read_bench, read_reference_bench
 from ..io.provenance import provenance
 from ..io.sweep_out import write_sweep
 from ..sweep import SweepConfig, parse_up_range, run_sweep
@@ -112,8 +113,11 @@ def run(args) -> int:
     up = parse_up_range(args.up)
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
-    if args.mode == "htm" and args.bench is None:
-        pass  # the default reference bench is used once the htm mode is integrated
+    bench = None
+    if args.bench is not None:
+        bench = read_bench(args.bench)
+    elif args.mode == "htm":
+        bench = read_reference_bench()
     fm = read_field(
         args.field,
         fmt=args.fmt,
@@ -129,6 +133,7 @@ def run(args) -> int:
         b_ref_T=args.b_ref,
         interpolation=args.interpolation,
         mode=args.mode,
+        bench=bench,
         chunk_nodes=args.chunk_nodes,
     )
     print(
