@@ -1,10 +1,36 @@
 """All numba code of cfm_fem: raw kernels with no I/O and no checks.
 
-Callers validate inputs. Every kernel has a plain-numpy twin (in the module that calls it or in the
-tests) that the tests compare it with. Numba options are set once, here.
+Callers validate inputs. Every kernel has a plain-numpy twin (in the module that calls it or in
+``tests/twins.py``) that the tests compare it with. Numba options are set once, here.
+
+Sections: counter-based random numbers (shared by every workflow), bench kinematics, point
+location and interpolation, order statistics, the field-map sweep.
+
+Random numbers
+--------------
+Every number is a pure function of (seed, stream, index), so results do not depend on threads,
+chunking or the order of evaluation. The generator is SplitMix64 read at a position
+(state = key + counter * gamma, output = Stafford's mix13 finaliser). Normals come from Marsaglia
+and Tsang's ziggurat (256 layers) with independent bits for the value (32) and the layer (8);
+the slow path (about 1 %) draws from a separate stream. The kinematics reads one sequence per
+seed for the error amplitudes at 32 * trial + k and, for the noise of trial t, positions
+4 * point + slot of a sequence keyed by a double hash of (seed, t) (`trial_key`): consecutive
+positions, the way SplitMix64 is meant to be used (a strided counter, e.g. trial << 32, gave
+visibly correlated outputs). The sweep keys one sequence per node (`trial_key` of the node
+index) and reads positions 4 * trial, 4 * trial + 1 for the three normals of a trial.
+
+Bench kinematics
+----------------
+Hot loop (constant error profiles): per trial the 21 errors are common to all points, so the
+chain collapses exactly (no approximation) to E = C + sum_a q_a G_a + sum_a n_a D_a, with
+D_a = (product of the rotations below axis a) d_a, G_a = D_a - e_a and C the offset. The 21
+numbers (C, G, D) are computed once per trial; each (point, trial) then costs 3 normals and
+18 multiply-adds.
 """
 
 from __future__ import annotations
+
+import math
 
 import numba as nb
 import numpy as np
@@ -14,20 +40,74 @@ JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 PJIT = dict(JIT, parallel=True)
 
 # ---------------------------------------------------------------------------------------------
-# Counter-based random numbers: every draw is a hash of (seed, node, trial, slot), so the numbers
-# do not depend on the thread count, the chunking or the order nodes are processed in.
-# splitmix64's finaliser on a Weyl sequence is SplitMix64 itself (passes BigCrush).
+# Random numbers and bench kinematics
 # ---------------------------------------------------------------------------------------------
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_NODE_GAMMA = np.uint64(0xD1B54A32D192ED03)
+GAMMA = np.uint64(0x9E3779B97F4A7C15)
+_ZIG_R = 3.6541528853610088  # ziggurat base-strip edge, 256 layers
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
-_INV_2_53 = 1.0 / 9007199254740992.0
+_LOW32 = np.uint64(0xFFFFFFFF)
+#: Stream identifiers mixed into the seed: error amplitudes, per-point noise, ziggurat fallback.
+STREAM_ERRORS = np.uint64(0x45525253)
+STREAM_NOISE = np.uint64(0x4E4F4953)
+STREAM_FALLBACK = np.uint64(0x46414C4C)
+STREAM_SWEEP = np.uint64(0x53574550)
 
 
-@nb.njit(**JIT)
+def ziggurat_tables(layers: int = 256):
+    """Ziggurat tables of Marsaglia & Tsang (2000) for 32-bit signed values.
+
+    The 256-layer variant (r = 3.6541528853610088, v = 4.92867323399e-3): about 1 % of draws
+    take the slow path, against 2.7 % with 128 layers (the top layer is always slow).
+
+    Returns
+    -------
+    kn : ndarray, shape (layers,), float64
+        Acceptance thresholds on |value| (value in [-2**31, 2**31)).
+    wn : ndarray, shape (layers,), float64
+        Scale of each layer: x = value * wn[layer].
+    fn : ndarray, shape (layers,), float64
+        exp(-x**2 / 2) at the layer edges.
+    """
+    r, v = {128: (3.442619855899, 9.91256303526217e-3), 256: (_ZIG_R, 4.92867323399e-3)}[layers]
+    m1 = 2.0**31
+    dn = r
+    tn = dn
+    kn = np.zeros(layers)
+    wn = np.zeros(layers)
+    fn = np.zeros(layers)
+    q = v / math.exp(-0.5 * dn * dn)
+    kn[0] = (dn / q) * m1
+    kn[1] = 0.0
+    wn[0] = q / m1
+    wn[layers - 1] = dn / m1
+    fn[0] = 1.0
+    fn[layers - 1] = math.exp(-0.5 * dn * dn)
+    for i in range(layers - 2, 0, -1):
+        dn = math.sqrt(-2.0 * math.log(v / dn + math.exp(-0.5 * dn * dn)))
+        kn[i + 1] = (dn / tn) * m1
+        tn = dn
+        fn[i] = math.exp(-0.5 * dn * dn)
+        wn[i] = dn / m1
+    return kn, wn, fn
+
+
+#: Trailing-zero count of a power of two by de Bruijn multiplication (bit scans in pass 2).
+_DEBRUIJN = np.uint64(0x03F79D71B4CB0A89)
+_DEBRUIJN_INDEX = np.zeros(64, dtype=np.int64)
+for _b in range(64):
+    _DEBRUIJN_INDEX[((1 << _b) * 0x03F79D71B4CB0A89 & (2**64 - 1)) >> 58] = _b
+del _b
+
+# Module constants: numba freezes global arrays into the compiled code, so the hot loops pass
+# no array arguments for them (array arguments of helpers cost reference counting per call).
+_KN, _WN, _FN = ziggurat_tables()
+
+
+@nb.njit(inline="always", **JIT)
 def mix64(z):
-    """splitmix64 finaliser of a uint64."""
+    """SplitMix64 output function (Stafford mix13): a bijection of uint64."""
+    z = np.uint64(z)  # a key boxed by Python may arrive as int64; int64 + uint64 is float64
     z = (z ^ (z >> np.uint64(30))) * _M1
     z = (z ^ (z >> np.uint64(27))) * _M2
     return z ^ (z >> np.uint64(31))
@@ -35,47 +115,1009 @@ def mix64(z):
 
 @nb.njit(**JIT)
 def stream_key(seed, stream):
-    """Key of an independent stream (e.g. one per node) derived from the user's seed."""
-    return mix64(mix64(np.uint64(seed)) + (np.uint64(stream) + np.uint64(1)) * _NODE_GAMMA)
+    """Key of one random stream: a hash of (seed, stream id)."""
+    return mix64(mix64(np.uint64(seed) * GAMMA + np.uint64(1)) ^ np.uint64(stream))
+
+
+@nb.njit(inline="always", **JIT)
+def _draw(key, counter):
+    return mix64(np.uint64(key) + np.uint64(counter) * GAMMA)
+
+
+@nb.njit(inline="always", **JIT)
+def uniform53(h):
+    """Uniform in (0, 1) from the top 53 bits: (k + 1/2) / 2**53, never 0 or 1."""
+    return (np.float64(h >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
 
 
 @nb.njit(**JIT)
-def uniform_at(key, counter):
-    """Uniform double in [0, 1) at position ``counter`` of stream ``key`` (53-bit resolution)."""
-    h = mix64(np.uint64(key) + (np.uint64(counter) + np.uint64(1)) * _GOLDEN)
-    return float(h >> np.uint64(11)) * _INV_2_53
+def ndtri(p):
+    """Inverse of the standard normal CDF, full double precision.
+
+    Acklam's rational approximation (rel. error 1.15e-9) refined by one Halley step on
+    0.5 * erfc(-x / sqrt 2) - p, which brings it to rounding level.
+    """
+    a1, a2, a3 = -3.969683028665376e01, 2.209460984245205e02, -2.759285104469687e02
+    a4, a5, a6 = 1.383577518672690e02, -3.066479806614716e01, 2.506628277459239e00
+    b1, b2, b3 = -5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02
+    b4, b5 = 6.680131188771972e01, -1.328068155288572e01
+    c1, c2, c3 = -7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e00
+    c4, c5, c6 = -2.549732539343734e00, 4.374664141464968e00, 2.938163982698783e00
+    d1, d2, d3, d4 = (
+        7.784695709041462e-03,
+        3.224671290700398e-01,
+        2.445134137142996e00,
+        3.754408661907416e00,
+    )
+    plow = 0.02425
+    if p < plow:
+        q = math.sqrt(-2.0 * math.log(p))
+        x = (((((c1 * q + c2) * q + c3) * q + c4) * q + c5) * q + c6) / (
+            (((d1 * q + d2) * q + d3) * q + d4) * q + 1.0
+        )
+    elif p <= 1.0 - plow:
+        q = p - 0.5
+        r = q * q
+        x = (
+            (((((a1 * r + a2) * r + a3) * r + a4) * r + a5) * r + a6)
+            * q
+            / (((((b1 * r + b2) * r + b3) * r + b4) * r + b5) * r + 1.0)
+        )
+    else:
+        q = math.sqrt(-2.0 * math.log(1.0 - p))
+        x = -(((((c1 * q + c2) * q + c3) * q + c4) * q + c5) * q + c6) / (
+            (((d1 * q + d2) * q + d3) * q + d4) * q + 1.0
+        )
+    # Halley step; in the upper tail work with the complement to keep relative accuracy.
+    if p > 0.5:
+        e = 0.5 * math.erfc(x / math.sqrt(2.0)) - (1.0 - p)
+        u = -e * math.sqrt(2.0 * math.pi) * math.exp(0.5 * x * x)
+    else:
+        e = 0.5 * math.erfc(-x / math.sqrt(2.0)) - p
+        u = e * math.sqrt(2.0 * math.pi) * math.exp(0.5 * x * x)
+    return x - u / (1.0 + 0.5 * x * u)
 
 
 @nb.njit(**JIT)
-def normal_next(key, state, spare):
-    """Next standard normal of the sequential stream ``key`` (Marsaglia's polar method).
+def pdf_ppf(code, par, u):
+    """Inverse CDF of the kernel PDFs (codes in ``cfm_fem.mc.KERNEL_PDF_CODES``).
 
     Parameters
     ----------
-    key : uint64
-        Stream key from `stream_key`.
-    state : ndarray, shape (2,), uint64
-        [next uniform counter, 1 if ``spare`` holds an unused normal]; start from zeros.
-    spare : ndarray, shape (1,), float64
-
-    The sequence depends only on ``key`` and the number of draws made, never on threads.
+    code : int
+    par : ndarray, shape (4,)
+    u : float in (0, 1)
     """
-    key = np.uint64(key)
-    if state[1] == 1:
-        state[1] = 0
-        return spare[0]
+    p0 = par[0]
+    p1 = par[1]
+    p2 = par[2]
+    if code == 0:
+        return p0
+    if code == 1:
+        return p0 + (p1 - p0) * u
+    if code == 2:
+        return p0 + p1 * ndtri(u)
+    if code == 3:
+        fc = (p1 - p0) / (p2 - p0)
+        if u < fc:
+            return p0 + math.sqrt(u * (p2 - p0) * (p1 - p0))
+        return p2 - math.sqrt((1.0 - u) * (p2 - p0) * (p2 - p1))
+    if code == 4:
+        s = math.sin(0.5 * math.pi * u)
+        return p0 + (p1 - p0) * s * s
+    # trapezoidal (code 5)
+    ramp = 0.5 * (p1 - p0) * (1.0 - p2)
+    h = 1.0 / (p1 - p0 - ramp)
+    f1 = 0.5 * h * ramp
+    if u < f1:
+        return p0 + math.sqrt(2.0 * ramp * u / h)
+    if u > 1.0 - f1:
+        return p1 - math.sqrt(2.0 * ramp * (1.0 - u) / h)
+    return p0 + ramp + (u - f1) / h
+
+
+@nb.njit(**PJIT)
+def draw_error_params(key, t0, n, codes, pars, out):
+    """Error amplitudes of trials t0 .. t0+n-1 into ``out`` (n, k).
+
+    Amplitude k of trial t uses uniform number (t * 32 + k) of the error stream ``key``.
+    """
+    k = codes.shape[0]
+    for i in nb.prange(n):
+        base = np.uint64(t0 + i) * np.uint64(32)
+        for j in range(k):
+            u = uniform53(_draw(key, base + np.uint64(j)))
+            out[i, j] = pdf_ppf(codes[j], pars[j], u)
+
+
+@nb.njit(**JIT)
+def _zig_fallback(hz, iz, fkey):
+    """Slow path of the ziggurat (Marsaglia & Tsang nfix); ``fkey`` keys a private stream."""
+    kn, wn, fn = _KN, _WN, _FN
+    c = np.uint64(0)
     while True:
-        u = 2.0 * uniform_at(key, state[0]) - 1.0
-        v = 2.0 * uniform_at(key, state[0] + np.uint64(1))
-        v -= 1.0
-        state[0] += np.uint64(2)
-        s = u * u + v * v
-        if 0.0 < s < 1.0:
-            break
-    f = np.sqrt(-2.0 * np.log(s) / s)
-    spare[0] = v * f
-    state[1] = 1
-    return u * f
+        x = hz * wn[iz]
+        if iz == 0:  # tail beyond r
+            while True:
+                c += np.uint64(1)
+                x = -math.log(uniform53(_draw(fkey, c))) / _ZIG_R
+                c += np.uint64(1)
+                y = -math.log(uniform53(_draw(fkey, c)))
+                if y + y >= x * x:
+                    break
+            return _ZIG_R + x if hz > 0 else -_ZIG_R - x
+        c += np.uint64(1)
+        if fn[iz] + uniform53(_draw(fkey, c)) * (fn[iz - 1] - fn[iz]) < math.exp(-0.5 * x * x):
+            return x
+        c += np.uint64(1)
+        h = _draw(fkey, c)
+        hz = np.float64(np.int32(h & _LOW32))
+        iz = np.int64((h >> np.uint64(32)) & np.uint64(255))
+        if abs(hz) < kn[iz]:
+            return hz * wn[iz]
+
+
+@nb.njit(**JIT)
+def normal_from_bits(value32, layer, fkey, fb):
+    """Standard normal from 32 random bits (a signed value) and an 8-bit layer (ziggurat).
+
+    ``fkey`` and ``fb`` (a number unique to this draw) key the fallback stream of the rare slow
+    path (about 1 % of draws with these tables, the top layer always included).
+    """
+    hz = np.float64(np.int32(value32))
+    if abs(hz) < _KN[layer]:
+        return hz * _WN[layer]
+    return _zig_fallback(hz, layer, mix64(np.uint64(fkey) ^ np.uint64(fb)))
+
+
+@nb.njit(**JIT)
+def trial_key(nkey, trial):
+    """Key of the noise of one trial: every (trial, point) pair then reads positions
+    4 * point .. 4 * point + 3 of a SplitMix64 sequence starting at this key."""
+    return mix64(mix64(np.uint64(nkey) + np.uint64(trial) * GAMMA))
+
+
+@nb.njit(**PJIT)
+def trial_keys(nkey, t0, n, out):
+    """``trial_key`` of trials t0 .. t0+n-1 into out (n,) uint64."""
+    for k in nb.prange(n):
+        out[k] = trial_key(nkey, t0 + k)
+
+
+@nb.njit(**JIT)
+def _three_normals(tkey, fkey, point):
+    c = np.uint64(point) * np.uint64(4)
+    h1 = _draw(tkey, c)
+    h2 = _draw(tkey, c + np.uint64(1))
+    l0 = np.int64((h2 >> np.uint64(32)) & np.uint64(255))
+    l1 = np.int64((h2 >> np.uint64(40)) & np.uint64(255))
+    l2 = np.int64((h2 >> np.uint64(48)) & np.uint64(255))
+    fb = np.uint64(tkey) + c * GAMMA
+    z0 = normal_from_bits(h1 & _LOW32, l0, fkey, fb)
+    z1 = normal_from_bits(h1 >> np.uint64(32), l1, fkey, fb + np.uint64(1))
+    z2 = normal_from_bits(h2 & _LOW32, l2, fkey, fb + np.uint64(2))
+    return z0, z1, z2
+
+
+@nb.njit(**JIT)
+def axis_noise_mm(nkey, fkey, trial, point, sig, speed, tau_code, tau_par, out):
+    """Axis-position noise (vibration + reading delay, eq. 9-10) of one (trial, point), mm.
+
+    Parameters
+    ----------
+    nkey, fkey : uint64
+        ``stream_key(seed, STREAM_NOISE)`` and ``stream_key(seed, STREAM_FALLBACK)``.
+    trial, point : int
+        Trial index (< 2**32) and point index (< 2**30); the draw depends on nothing else.
+    sig : ndarray, shape (3,), mm
+        Normal std per axis (x, y, z): vibration, combined in quadrature with a normal reading
+        delay (the sum of independent normals is normal: same distribution, half the draws).
+    speed : ndarray, shape (3,), mm/s
+        Speeds for the eq. 9 delay ``speed * tau`` (zeros when the delay is normal).
+    tau_code : int
+        PDF code of tau (s); -1 for no speed x tau delay.
+    tau_par : ndarray, shape (4,)
+    out : ndarray, shape (3,), mm
+        Receives (n_x, n_y, n_z), to add to the commanded positions.
+    """
+    tkey = trial_key(nkey, trial)
+    z0, z1, z2 = _three_normals(tkey, fkey, point)
+    out[0] = sig[0] * z0
+    out[1] = sig[1] * z1
+    out[2] = sig[2] * z2
+    if tau_code >= 0:
+        c = np.uint64(point) * np.uint64(4) + np.uint64(2)
+        tau = pdf_ppf(tau_code, tau_par, uniform53(_draw(tkey, c)))
+        out[0] += speed[0] * tau
+        out[1] += speed[1] * tau
+        out[2] += speed[2] * tau
+
+
+@nb.njit(inline="always", **JIT)
+def rotation_zyx_into(phi, theta, psi, r):
+    """Paper eq. 4 into ``r`` (3, 3): Rz(psi) Ry(theta) Rx(phi)."""
+    cf = math.cos(phi)
+    sf = math.sin(phi)
+    ct = math.cos(theta)
+    st = math.sin(theta)
+    cp = math.cos(psi)
+    sp = math.sin(psi)
+    r[0, 0] = cp * ct
+    r[0, 1] = cp * sf * st - cf * sp
+    r[0, 2] = sf * sp + cf * cp * st
+    r[1, 0] = ct * sp
+    r[1, 1] = cf * cp + sf * sp * st
+    r[1, 2] = cf * sp * st - cp * sf
+    r[2, 0] = -st
+    r[2, 1] = ct * sf
+    r[2, 2] = cf * ct
+
+
+@nb.njit(inline="always", **JIT)
+def _squareness_into(stack, a_xy, a_xz, a_yz, ang):
+    """Zyx angles per bench axis (ang[a, :]) for the squareness convention of kinematics.py."""
+    for a in range(3):
+        for c in range(3):
+            ang[a, c] = 0.0
+    level = np.empty(3, np.int64)
+    for j in range(3):
+        level[stack[j]] = j
+    for col in range(3):
+        if col == 0:
+            a, b, alpha = 0, 1, a_xy
+        elif col == 1:
+            a, b, alpha = 0, 2, a_xz
+        else:
+            a, b, alpha = 1, 2, a_yz
+        if level[a] > level[b]:
+            up, lo = a, b
+        else:
+            up, lo = b, a
+        c = 3 - a - b
+        cyclic = (up == 0 and lo == 1) or (up == 1 and lo == 2) or (up == 2 and lo == 0)
+        ang[up, c] += alpha if cyclic else -alpha
+
+
+@nb.njit(**JIT)
+def _tilt(stack, a, a_xy, a_xz, a_yz):
+    """Zyx angles (phi, theta, psi) tilting axis a's travel direction (``_squareness_into``)."""
+    lx = 0
+    ly = 0
+    lz = 0
+    for j in range(3):
+        if stack[j] == 0:
+            lx = j
+        elif stack[j] == 1:
+            ly = j
+        else:
+            lz = j
+    ang0 = 0.0
+    ang1 = 0.0
+    ang2 = 0.0
+    # pair (x, y) -> about z; (x, z) -> about y; (y, z) -> about x; the upper axis is tilted
+    for col in range(3):
+        if col == 0:
+            p, q, alpha, lp, lq = 0, 1, a_xy, lx, ly
+        elif col == 1:
+            p, q, alpha, lp, lq = 0, 2, a_xz, lx, lz
+        else:
+            p, q, alpha, lp, lq = 1, 2, a_yz, ly, lz
+        up, lo = (p, q) if lp > lq else (q, p)
+        if up != a:
+            continue
+        c = 3 - p - q
+        cyclic = (up == 0 and lo == 1) or (up == 1 and lo == 2) or (up == 2 and lo == 0)
+        sgn = alpha if cyclic else -alpha
+        if c == 0:
+            ang0 += sgn
+        elif c == 1:
+            ang1 += sgn
+        else:
+            ang2 += sgn
+    return ang0, ang1, ang2
+
+
+@nb.njit(inline="always", **JIT)
+def _rot_apply(phi, theta, psi, v0, v1, v2):
+    """R(phi, theta, psi) of eq. 4 applied to (v0, v1, v2), without building the matrix."""
+    cf = math.cos(phi)
+    sf = math.sin(phi)
+    ct = math.cos(theta)
+    st = math.sin(theta)
+    cp = math.cos(psi)
+    sp = math.sin(psi)
+    w0 = cp * ct * v0 + (cp * sf * st - cf * sp) * v1 + (sf * sp + cf * cp * st) * v2
+    w1 = ct * sp * v0 + (cf * cp + sf * sp * st) * v1 + (cf * sp * st - cp * sf) * v2
+    w2 = -st * v0 + ct * sf * v1 + cf * ct * v2
+    return w0, w1, w2
+
+
+@nb.njit(inline="always", **JIT)
+def _horner(profiles, k, u):
+    p = 0.0
+    for c in range(profiles.shape[1] - 1, -1, -1):
+        p = p * u + profiles[k, c]
+    return p
+
+
+@nb.njit(**JIT)
+def probe_error_mm(params, q_cmd, dq, stack, mounts, tool, strokes, profiles, out):
+    """Probe position error of one (point, trial): exact HTM chain (eq. 4, 5, 8, 10), bench frame.
+
+    Callable from the user's own ``@njit`` code, once per (node, trial).
+
+    Parameters
+    ----------
+    params : ndarray, shape (21,)
+        Error amplitudes of this trial (mm, rad) in ``cfm_fem.bench.ERROR_NAMES`` order: one row
+        of ``cfm_fem.kinematics.draw_error_sets``.
+    q_cmd : ndarray, shape (3,), mm
+        Commanded positions of the x, y, z axes (``Bench.axis_positions_for``).
+    dq : ndarray, shape (3,), mm
+        Vibration + delay added to the commanded positions (``axis_noise_mm``), or zeros.
+    stack : ndarray, shape (3,), int64
+        Bench axis index (0=x, 1=y, 2=z) of bodies 1, 2, 3 from the foundation.
+    mounts : ndarray, shape (3, 3), mm
+        Mount offsets in stack order.
+    tool : ndarray, shape (3,), mm
+        Probe offset in the top carriage frame.
+    strokes : ndarray, shape (3,), mm
+        Strokes of the x, y, z axes (normalise the profile argument).
+    profiles : ndarray, shape (21, n_coef)
+        Polynomial profile coefficients of the errors.
+    out : ndarray, shape (3,), mm
+        Receives E = P_actual - P_nominal.
+    """
+    # Walk the chain from the tool down: v <- m_j + (q+n) d_j + delta_j + R_j v (no allocation:
+    # this runs once per (node, trial) inside the caller's loops).
+    v0 = tool[0]
+    v1 = tool[1]
+    v2 = tool[2]
+    for jj in range(2, -1, -1):
+        a = stack[jj]
+        base = 6 * a
+        u = q_cmd[a] / strokes[a]
+        ex = params[base + 3] * _horner(profiles, base + 3, u)
+        ey = params[base + 4] * _horner(profiles, base + 4, u)
+        ez = params[base + 5] * _horner(profiles, base + 5, u)
+        w0, w1, w2 = _rot_apply(ex, ey, ez, v0, v1, v2)
+        t0, t1, t2 = _tilt(stack, a, params[18], params[19], params[20])
+        d0, d1, d2 = _rot_apply(
+            t0, t1, t2, 1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0
+        )
+        s = q_cmd[a] + dq[a]
+        v0 = mounts[jj, 0] + s * d0 + params[base] * _horner(profiles, base, u) + w0
+        v1 = mounts[jj, 1] + s * d1 + params[base + 1] * _horner(profiles, base + 1, u) + w1
+        v2 = mounts[jj, 2] + s * d2 + params[base + 2] * _horner(profiles, base + 2, u) + w2
+    out[0] = v0 - (mounts[0, 0] + mounts[1, 0] + mounts[2, 0] + q_cmd[0] + tool[0])
+    out[1] = v1 - (mounts[0, 1] + mounts[1, 1] + mounts[2, 1] + q_cmd[1] + tool[1])
+    out[2] = v2 - (mounts[0, 2] + mounts[1, 2] + mounts[2, 2] + q_cmd[2] + tool[2])
+
+
+@nb.njit(**PJIT)
+def trial_terms(params, stack, mounts, tool, out):
+    """Per-trial constants of the collapsed chain (constant profiles only), into out (m, 21).
+
+    out[t] = (C, G_x, G_y, G_z, D_x, D_y, D_z) with E = C + sum_a q_a G_a + sum_a n_a D_a exactly
+    (module docstring). Same math as ``probe_error_mm``.
+    """
+    m = params.shape[0]
+    nchunk = 64  # fixed layout: scratch arrays once per chunk, not per trial
+    per = (m + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        r = np.empty((3, 3))
+        rs = np.empty((3, 3))
+        a_acc = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        ang = np.empty((3, 3))
+        cc = np.empty(3)
+        for t in range(ch * per, min(m, (ch + 1) * per)):
+            p = params[t]
+            for i in range(3):
+                cc[i] = 0.0
+                for k in range(3):
+                    a_acc[i, k] = 1.0 if i == k else 0.0
+            _squareness_into(stack, p[18], p[19], p[20], ang)
+            for j in range(3):
+                a = stack[j]
+                base = 6 * a
+                rotation_zyx_into(ang[a, 0], ang[a, 1], ang[a, 2], rs)
+                # D_a = A_j d_a (A_j: product of the error rotations below body j)
+                for i in range(3):
+                    d = a_acc[i, 0] * rs[0, a] + a_acc[i, 1] * rs[1, a] + a_acc[i, 2] * rs[2, a]
+                    out[t, 12 + 3 * a + i] = d
+                    out[t, 3 + 3 * a + i] = d - (1.0 if i == a else 0.0)
+                # C += A_j (m_j + delta_j) - m_j
+                v0 = mounts[j, 0] + p[base]
+                v1 = mounts[j, 1] + p[base + 1]
+                v2 = mounts[j, 2] + p[base + 2]
+                for i in range(3):
+                    cc[i] += a_acc[i, 0] * v0 + a_acc[i, 1] * v1 + a_acc[i, 2] * v2 - mounts[j, i]
+                rotation_zyx_into(p[base + 3], p[base + 4], p[base + 5], r)
+                for i in range(3):
+                    for k in range(3):
+                        tmp[i, k] = (
+                            a_acc[i, 0] * r[0, k] + a_acc[i, 1] * r[1, k] + a_acc[i, 2] * r[2, k]
+                        )
+                for i in range(3):
+                    for k in range(3):
+                        a_acc[i, k] = tmp[i, k]
+            # the tool through all three rotations, minus the nominal tool
+            for i in range(3):
+                out[t, i] = (
+                    cc[i]
+                    + a_acc[i, 0] * tool[0]
+                    + a_acc[i, 1] * tool[1]
+                    + a_acc[i, 2] * tool[2]
+                    - tool[i]
+                )
+
+
+# ------------------------------------------------------------------------------------------
+# Monte Carlo passes over (point, trial). Parallel over points; each point sees the trials of a
+# block in increasing order, so sums and counts are bit-identical whatever the number of threads.
+# Per (point, block): fill the values E_x, E_y, E_z, |E| of the block's trials (the hot loop),
+# then reduce them in separate loops (vectorisable sums and counts, rare window work).
+# ------------------------------------------------------------------------------------------
+
+N_QTY = 4  # quantities per point: E_x, E_y, E_z, |E|
+#: Reductions may be reassociated (vectorised); the order is fixed by the compiled code.
+_RJIT = dict(JIT, fastmath={"reassoc"})
+
+
+@nb.njit(**JIT)
+def _sample(
+    linear,
+    terms,
+    params,
+    tt,
+    t,
+    i,
+    pi,
+    q,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    dq,
+    e,
+):
+    """E of row i of q (point index pi) in trial t into e (3,); tt: row of t in terms/params."""
+    axis_noise_mm(nkey, fkey, t, pi, sig, speed, tau_code, tau_par, dq)
+    if linear:
+        n0 = dq[0]
+        n1 = dq[1]
+        n2 = dq[2]
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        r = terms[tt]
+        e[0] = r[0] + q0 * r[3] + q1 * r[6] + q2 * r[9] + n0 * r[12] + n1 * r[15] + n2 * r[18]
+        e[1] = r[1] + q0 * r[4] + q1 * r[7] + q2 * r[10] + n0 * r[13] + n1 * r[16] + n2 * r[19]
+        e[2] = r[2] + q0 * r[5] + q1 * r[8] + q2 * r[11] + n0 * r[14] + n1 * r[17] + n2 * r[20]
+    else:
+        probe_error_mm(params[tt], q[i], dq, stack, mounts, tool, strokes, profiles, e)
+
+
+@nb.njit(**JIT)
+def fill_values(
+    linear,
+    terms,
+    params,
+    t0,
+    n,
+    q,
+    i,
+    pi,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    tkeys,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    ev,
+):
+    """Values of point i (index pi) for trials t0..t0+n-1 into ev (4, >= n): E_x, E_y, E_z, |E|.
+
+    ``linear`` with ``tau_code < 0`` is the hot path (collapsed chain, three normals, written
+    out); otherwise ``probe_error_mm`` / the collapsed chain with ``axis_noise_mm``. Both give
+    the same numbers for the same (seed, trial, point).
+    """
+    if linear and tau_code < 0:
+        s0 = sig[0]
+        s1 = sig[1]
+        s2 = sig[2]
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        for k in range(n):
+            z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
+            n0 = s0 * z0
+            n1 = s1 * z1
+            n2 = s2 * z2
+            e0 = (terms[k, 0] + q0 * terms[k, 3] + q1 * terms[k, 6] + q2 * terms[k, 9]
+                  + n0 * terms[k, 12] + n1 * terms[k, 15] + n2 * terms[k, 18])  # fmt: skip
+            e1 = (terms[k, 1] + q0 * terms[k, 4] + q1 * terms[k, 7] + q2 * terms[k, 10]
+                  + n0 * terms[k, 13] + n1 * terms[k, 16] + n2 * terms[k, 19])  # fmt: skip
+            e2 = (terms[k, 2] + q0 * terms[k, 5] + q1 * terms[k, 8] + q2 * terms[k, 11]
+                  + n0 * terms[k, 14] + n1 * terms[k, 17] + n2 * terms[k, 20])  # fmt: skip
+            ev[0, k] = e0
+            ev[1, k] = e1
+            ev[2, k] = e2
+            ev[3, k] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    else:
+        e = np.empty(3)
+        dq = np.zeros(3)
+        for k in range(n):
+            _sample(
+                linear,
+                terms,
+                params,
+                k,
+                t0 + k,
+                i,
+                pi,
+                q,
+                sig,
+                speed,
+                tau_code,
+                tau_par,
+                nkey,
+                fkey,
+                stack,
+                mounts,
+                tool,
+                strokes,
+                profiles,
+                dq,
+                e,
+            )
+            ev[0, k] = e[0]
+            ev[1, k] = e[1]
+            ev[2, k] = e[2]
+            ev[3, k] = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+
+
+@nb.njit(**_RJIT)
+def _sums_below(v, n, shift, lo0, lo1):
+    """sum (v - shift), sum (v - shift)^2, #(v < lo0), #(v < lo1) over v[:n]."""
+    s = 0.0
+    s2 = 0.0
+    b0 = 0
+    b1 = 0
+    for k in range(n):
+        d = v[k] - shift
+        s += d
+        s2 += d * d
+        b0 += v[k] < lo0
+        b1 += v[k] < lo1
+    return s, s2, b0, b1
+
+
+@nb.njit(inline="always", **JIT)
+def _slot(v, lo, inv):
+    """Window slot of v (the same expression in both passes): floor((v - lo) * inv)."""
+    return (v - lo) * inv
+
+
+@nb.njit(**JIT)
+def _hits(v, a, b, lo0, hi0, lo1, hi1):
+    """Number of v[a:b] inside [lo0, hi0] or [lo1, hi1] (a vectorised pre-scan)."""
+    h = 0
+    for k in range(a, b):
+        x = v[k]
+        h += ((x >= lo0) & (x <= hi0)) | ((x >= lo1) & (x <= hi1))
+    return h
+
+
+@nb.njit(**JIT)
+def _count_windows(v, n, lo0, inv0, lo1, inv1, wh0, wh1, flag):
+    """Add the v[:n] that fall in the slots of window 0 (low end) or 1 (high end); flag[k] = 1
+    for those trials (candidates for pass 2)."""
+    nw = wh0.shape[0]
+    top0 = lo0 + (nw + 1) / inv0  # above this, window 0 cannot be hit (one slot of slack)
+    for k in range(n):
+        x = v[k]
+        if x < top0:
+            y = _slot(x, lo0, inv0)
+            if y >= 0.0 and y < nw:
+                wh0[np.int64(y)] += 1
+                flag[k] = 1
+        if x >= lo1:
+            y = _slot(x, lo1, inv1)
+            if y >= 0.0 and y < nw:
+                wh1[np.int64(y)] += 1
+                flag[k] = 1
+
+
+@nb.njit(**PJIT)
+def pass_pilot(
+    linear,
+    terms,
+    params,
+    t0,
+    n,
+    q,
+    pidx,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    tkeys,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    out,
+):
+    """Values of trials t0..t0+n-1 into out (npts, 4, n)."""
+    for i in nb.prange(q.shape[0]):
+        fill_values(
+            linear,
+            terms,
+            params,
+            t0,
+            n,
+            q,
+            i,
+            pidx[i],
+            sig,
+            speed,
+            tau_code,
+            tau_par,
+            nkey,
+            tkeys,
+            fkey,
+            stack,
+            mounts,
+            tool,
+            strokes,
+            profiles,
+            out[i],
+        )
+
+
+@nb.njit(**PJIT)
+def pass_pilot_quantiles(
+    linear,
+    terms,
+    params,
+    t0,
+    n,
+    q,
+    pidx,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    tkeys,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    kth,
+    out,
+):
+    """Order statistics ``kth`` (0-based, sorted) of trials t0..t0+n-1 per point and quantity,
+    into out (npts, 4, len(kth)), plus the mean in out[..., -1] (one point's values at a time,
+    so a large pilot needs no trials x points memory)."""
+    npts = q.shape[0]
+    nchunk = min(npts, 64)  # one scratch array per chunk of points, not per point
+    per = (npts + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        ev = np.empty((4, n))
+        for i in range(ch * per, min(npts, (ch + 1) * per)):
+            _pilot_point(linear, terms, params, t0, n, q, i, pidx[i], sig, speed, tau_code,
+                         tau_par, nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles,
+                         kth, out, ev)  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _pilot_point(linear, terms, params, t0, n, q, i, pi, sig, speed, tau_code, tau_par, nkey,
+                 tkeys, fkey, stack, mounts, tool, strokes, profiles, kth, out, ev):  # fmt: skip
+    """Pilot order statistics and mean of point i (scratch ev (4, n) reused across points)."""
+    fill_values(linear, terms, params, t0, n, q, i, pi, sig, speed, tau_code, tau_par, nkey,
+                tkeys, fkey, stack, mounts, tool, strokes, profiles, ev)  # fmt: skip
+    # kth = (low end: lower, upper bracket; high end: lower, upper; 0; n - 1). The brackets only
+    # place windows, so a histogram of the pilot with conservative bin edges is enough (a
+    # selection per bracket costs several times more).
+    nb_ = 2048
+    counts = np.empty(nb_, np.int64)
+    for c in range(4):
+        v = ev[c]
+        vmin = v[:n].min()
+        vmax = v[:n].max()
+        out[i, c, 4] = vmin
+        out[i, c, 5] = vmax
+        out[i, c, 6] = v[:n].mean()
+        width = (vmax - vmin) / nb_
+        if not width > 0.0:
+            for j in range(4):
+                out[i, c, j] = vmin
+            continue
+        counts[:] = 0
+        inv = 1.0 / width
+        for k in range(n):
+            b = min(np.int64((v[k] - vmin) * inv), nb_ - 1)
+            counts[b] += 1
+        for j in range(4):
+            r = kth[j] + 1  # 1-based rank
+            cum = 0
+            b = 0
+            while cum + counts[b] < r:
+                cum += counts[b]
+                b += 1
+            # lower brackets take the bin's lower edge, upper brackets its upper edge
+            out[i, c, j] = vmin + (b if j % 2 == 0 else b + 1) * width
+
+
+@nb.njit(**PJIT)
+def pass_window(
+    linear,
+    terms,
+    params,
+    t0,
+    n,
+    q,
+    pidx,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    tkeys,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    shift,
+    wlo,
+    winv,
+    acc,
+    below,
+    whist,
+    bits,
+):
+    """Pass 1: shifted sums, and counts around each interval end, over trials t0..t0+n-1.
+
+    acc (npts, 4, 2): sum of (v - shift) and of (v - shift)**2 per quantity (shift: a pilot
+    mean, which keeps the variance free of cancellation). For each point, quantity c and
+    interval end s, a window of W slots [wlo, wlo + W / winv): below[i, c, s] counts values under
+    it, whist[i, c, s, k] values in slot k (floor((v - wlo) * winv) == k).
+    bits (npts, words) uint64: bit t of point i set when trial t put some value in a window (t0
+    must be a multiple of 64); pass 2 regenerates only those trials. A (npts, 0) array skips it.
+    """
+    for i in nb.prange(q.shape[0]):
+        ev = np.empty((4, n))
+        flag = np.zeros(n, np.uint8)
+        fill_values(
+            linear,
+            terms,
+            params,
+            t0,
+            n,
+            q,
+            i,
+            pidx[i],
+            sig,
+            speed,
+            tau_code,
+            tau_par,
+            nkey,
+            tkeys,
+            fkey,
+            stack,
+            mounts,
+            tool,
+            strokes,
+            profiles,
+            ev,
+        )
+        for c in range(4):
+            a, b, c0, c1 = _sums_below(ev[c], n, shift[i, c], wlo[i, c, 0], wlo[i, c, 1])
+            acc[i, c, 0] += a
+            acc[i, c, 1] += b
+            below[i, c, 0] += c0
+            below[i, c, 1] += c1
+            _count_windows(
+                ev[c],
+                n,
+                wlo[i, c, 0],
+                winv[i, c, 0],
+                wlo[i, c, 1],
+                winv[i, c, 1],
+                whist[i, c, 0],
+                whist[i, c, 1],
+                flag,
+            )
+        if bits.shape[1] > 0:
+            _pack(flag, n, bits[i], t0 // 64)
+
+
+@nb.njit(**JIT)
+def _pack(flag, n, row, w0):
+    for w in range((n + 63) // 64):
+        word = np.uint64(0)
+        for b in range(min(64, n - 64 * w)):
+            if flag[64 * w + b]:
+                word |= np.uint64(1) << np.uint64(b)
+        row[w0 + w] = word
+
+
+@nb.njit(**JIT)
+def _keep(v, n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf):
+    """Append to buf the v[:n] in the target slot of either interval end of quantity c."""
+    lo0 = vlo[i, c, 0]
+    hi0 = vhi[i, c, 0]
+    lo1 = vlo[i, c, 1]
+    hi1 = vhi[i, c, 1]
+    for a in range(0, n, 256):  # most stretches of 256 values hold no candidate at all
+        b = min(n, a + 256)
+        if _hits(v, a, b, lo0, hi0, lo1, hi1) == 0:
+            continue
+        for k in range(a, b):
+            x = v[k]
+            # range pre-tests; the slot index, computed as in pass 1, decides
+            if x >= lo0 and x <= hi0:
+                y = _slot(x, wlo[i, c, 0], winv[i, c, 0])
+                if y >= 0.0 and np.int64(y) == target[i, c, 0]:
+                    buf[offset[i, c, 0] + fill[i, c, 0]] = x
+                    fill[i, c, 0] += 1
+            if x >= lo1 and x <= hi1:
+                y = _slot(x, wlo[i, c, 1], winv[i, c, 1])
+                if y >= 0.0 and np.int64(y) == target[i, c, 1]:
+                    buf[offset[i, c, 1] + fill[i, c, 1]] = x
+                    fill[i, c, 1] += 1
+
+
+@nb.njit(**PJIT)
+def pass_capture_candidates(
+    terms,
+    t0,
+    n,
+    q,
+    pidx,
+    sig,
+    tkeys,
+    fkey,
+    bits,
+    wlo,
+    winv,
+    target,
+    vlo,
+    vhi,
+    offset,
+    fill,
+    buf,
+):
+    """Pass 2 of the hot path (constant profiles, normal noise) for the points listed in
+    ``q``/``pidx``: regenerate only the trials flagged in ``bits`` (those that reached a window
+    in pass 1; the others cannot hold a target) and keep the values of the target slots.
+    Arguments as ``pass_capture``; ``bits`` as ``pass_window``, rows matching ``q``.
+    """
+    s0 = sig[0]
+    s1 = sig[1]
+    s2 = sig[2]
+    for i in nb.prange(q.shape[0]):
+        pi = pidx[i]
+        q0 = q[i, 0]
+        q1 = q[i, 1]
+        q2 = q[i, 2]
+        ev = np.empty(4)
+        w0 = t0 // 64
+        for w in range((n + 63) // 64):
+            word = bits[i, w0 + w]
+            while word != 0:
+                low = word & (~word + np.uint64(1))  # lowest set bit
+                word ^= low
+                k = 64 * w + _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))]
+                z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
+                n0 = s0 * z0
+                n1 = s1 * z1
+                n2 = s2 * z2
+                e0 = (terms[k, 0] + q0 * terms[k, 3] + q1 * terms[k, 6] + q2 * terms[k, 9]
+                      + n0 * terms[k, 12] + n1 * terms[k, 15] + n2 * terms[k, 18])  # fmt: skip
+                e1 = (terms[k, 1] + q0 * terms[k, 4] + q1 * terms[k, 7] + q2 * terms[k, 10]
+                      + n0 * terms[k, 13] + n1 * terms[k, 16] + n2 * terms[k, 19])  # fmt: skip
+                e2 = (terms[k, 2] + q0 * terms[k, 5] + q1 * terms[k, 8] + q2 * terms[k, 11]
+                      + n0 * terms[k, 14] + n1 * terms[k, 17] + n2 * terms[k, 20])  # fmt: skip
+                ev[0] = e0
+                ev[1] = e1
+                ev[2] = e2
+                ev[3] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                for c in range(4):
+                    x = ev[c]
+                    for e in range(2):
+                        if x >= vlo[i, c, e] and x <= vhi[i, c, e]:
+                            y = _slot(x, wlo[i, c, e], winv[i, c, e])
+                            if y >= 0.0 and np.int64(y) == target[i, c, e]:
+                                buf[offset[i, c, e] + fill[i, c, e]] = x
+                                fill[i, c, e] += 1
+
+
+@nb.njit(**PJIT)
+def pass_capture(
+    linear,
+    terms,
+    params,
+    t0,
+    n,
+    q,
+    pidx,
+    sig,
+    speed,
+    tau_code,
+    tau_par,
+    nkey,
+    tkeys,
+    fkey,
+    stack,
+    mounts,
+    tool,
+    strokes,
+    profiles,
+    wlo,
+    winv,
+    target,
+    vlo,
+    vhi,
+    offset,
+    fill,
+    buf,
+):
+    """Pass 2: keep the values in window slot target[i, c, s] (exact order statistics).
+
+    vlo, vhi (npts, 4, 2): that slot's value range widened by a few ulps (pre-test);
+    offset (npts, 4, 2): start of each capture in buf; fill: values stored so far.
+    """
+    for i in nb.prange(q.shape[0]):
+        ev = np.empty((4, n))
+        fill_values(
+            linear,
+            terms,
+            params,
+            t0,
+            n,
+            q,
+            i,
+            pidx[i],
+            sig,
+            speed,
+            tau_code,
+            tau_par,
+            nkey,
+            tkeys,
+            fkey,
+            stack,
+            mounts,
+            tool,
+            strokes,
+            profiles,
+            ev,
+        )
+        for c in range(4):
+            _keep(ev[c], n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -370,7 +1412,8 @@ def _node_gauss(
     sigma_axes,
     scales,
     n_trials,
-    seed,
+    skey,
+    fkey,
     p,
     comp,
     absb,
@@ -397,17 +1440,14 @@ def _node_gauss(
     bi = np.empty(3)
     b0 = values[g]
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-    key = stream_key(seed, g)
-    rstate = np.zeros(2, dtype=np.uint64)
-    spare = np.empty(1)
+    key = trial_key(skey, g)  # one sequence per node: positions 4t, 4t + 1 serve trial t
     nvalid = np.zeros(n_up, dtype=np.int64)
     all_star = True
     for k in range(n_up):
         n_out[k] = 0
         n_lost[k] = 0
-    for _ in range(n_trials):
-        for c in range(3):
-            z[c] = normal_next(key, rstate, spare)
+    for t in range(n_trials):
+        z[0], z[1], z[2] = _three_normals(key, fkey, t)
         # displacement direction in the mesh frame (projection for a planar map)
         for a in range(d):
             acc = 0.0
@@ -548,6 +1588,8 @@ def gauss_sweep(
     n_lost = np.zeros((k_nodes, n_up), dtype=np.int64)
     star = np.zeros(k_nodes, dtype=np.bool_)
     n_blocks = (k_nodes + block - 1) // block
+    skey = stream_key(seed, STREAM_SWEEP)
+    fkey = stream_key(seed, STREAM_FALLBACK)
     for b in nb.prange(n_blocks):
         comp = np.empty((n_up, 3, n_trials))
         absb = np.empty((n_up, n_trials))
@@ -568,7 +1610,8 @@ def gauss_sweep(
                 sigma_axes,
                 scales,
                 n_trials,
-                seed,
+                skey,
+                fkey,
                 p,
                 comp,
                 absb,
@@ -578,3 +1621,47 @@ def gauss_sweep(
                 n_lost[i],
             )
     return stats, n_out, n_lost, star
+
+
+# =============================================================================================
+# Coupled field Monte Carlo (issue 4; cfm_fem/coupled.py). Appended section: the probe position
+# errors of a block of (trial, point) pairs with exactly the kinematics kernels above
+# (`axis_noise_mm`, `probe_error_mm`), so the coupled model sees the same E_p samples as
+# `cfm-fem kinematics` for the same (seed, trial, point index). Plain-numpy twin:
+# `cfm_fem.kinematics.probe_errors_for_bench` with `point_noise` (tests/test_coupled.py).
+# =============================================================================================
+@nb.njit(**PJIT)
+def coupled_probe_errors(
+    params, t0, q_cmd, pidx, nkey, fkey, stack, mounts, tool, strokes, profiles, sig, speed,
+    tau_code, tau_par, out,
+):  # fmt: skip
+    """Probe position errors E_p of trials t0..t0+m-1 at the given points, bench frame, mm.
+
+    Parameters
+    ----------
+    params : ndarray, shape (m, 21)
+        Error amplitudes of the trials (rows of ``kinematics.draw_error_sets``).
+    t0 : int
+        Trial index of ``params[0]`` (selects the noise stream of each trial).
+    q_cmd : ndarray, shape (n, 3), mm
+        Commanded axis positions.
+    pidx : ndarray, shape (n,), int64
+        Point index of each row of ``q_cmd`` in the noise stream (``axis_noise_mm``).
+    nkey, fkey : uint64
+        ``kinematics.noise_keys(seed)``.
+    stack, mounts, tool, strokes, profiles, sig, speed, tau_code, tau_par
+        ``kinematics.kernel_geometry(bench)`` fields.
+    out : ndarray, shape (m, n, 3), mm
+        Receives E_p = P_actual - P_nominal.
+    """
+    m = params.shape[0]
+    n = q_cmd.shape[0]
+    for t in nb.prange(m):
+        dq = np.empty(3)
+        e = np.empty(3)
+        for i in range(n):
+            axis_noise_mm(nkey, fkey, t0 + t, pidx[i], sig, speed, tau_code, tau_par, dq)
+            probe_error_mm(params[t], q_cmd[i], dq, stack, mounts, tool, strokes, profiles, e)
+            out[t, i, 0] = e[0]
+            out[t, i, 1] = e[1]
+            out[t, i, 2] = e[2]

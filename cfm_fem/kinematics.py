@@ -5,13 +5,13 @@ Sections of this module:
 1. exact reference in plain numpy: full rotation matrices (eq. 4, no small-angle shortcut),
    4x4 HTMs (eq. 2) multiplied along the chain (eq. 5), the probe error as actual minus nominal
    probe position (eq. 8) with vibration and reading delay added to the commanded positions
-   (eq. 10); the numba kernels in :mod:`cfm_fem._kernels_kinematics` use the same math and are
+   (eq. 10); the numba kernels in :mod:`cfm_fem._kernels` use the same math and are
    tested against it;
 2. the GUM-S1 Monte Carlo over the scan grid (``run_kinematics``), streamed, with exact
    per-point coverage intervals, Table IV pooling and the JCGM 101 7.9 adaptive option;
 3. the seam for other workflows: ``draw_error_sets`` (per-trial error amplitudes from the seed
    alone), ``kernel_geometry`` and ``noise_keys`` (arguments of the njit functions
-   ``_kernels_kinematics.probe_error_mm`` and ``axis_noise_mm``);
+   ``_kernels.probe_error_mm`` and ``axis_noise_mm``);
 4. the uncertainty budget and the design in reverse (linearised model, exact sensitivities).
 
 Chain. Body j (j = 1, 2, 3 from the foundation) is the carriage of axis ``stack[j]``; with
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _kernels_kinematics as K
+from . import _kernels as K
 from .bench import AXES, ERROR_DESCRIPTIONS, ERROR_NAMES, Bench
 from .errors import CfmInputError
 from .mc import gum_validation, numerical_tolerance, ppf_numpy, symmetric_ranks
@@ -361,7 +361,7 @@ def _keys(seed: int):
 
 def noise_keys(seed: int) -> tuple[np.uint64, np.uint64]:
     """Stream keys (nkey, fkey) of the per-point noise for ``seed``: the first two arguments of
-    ``_kernels_kinematics.axis_noise_mm``, so user kernels draw the same noise as kinematics."""
+    ``_kernels.axis_noise_mm``, so user kernels draw the same noise as kinematics."""
     _, nkey, fkey = _keys(seed)
     return nkey, fkey
 

@@ -402,7 +402,7 @@ class Pdf:
 
 
 def ppf_numpy(code: int, par, u):
-    """Inverse CDF of the kernel PDFs (plain-numpy twin of ``_kernels_kinematics.pdf_ppf``).
+    """Inverse CDF of the kernel PDFs (plain-numpy twin of ``_kernels.pdf_ppf``).
 
     Parameters
     ----------

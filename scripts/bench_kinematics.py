@@ -24,7 +24,7 @@ import time
 import numba
 import numpy as np
 
-from cfm_fem import _kernels_kinematics as K
+from cfm_fem import _kernels as K
 from cfm_fem import kinematics as kin
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.mc import symmetric_interval

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cfm_fem import _kernels_kinematics as K
+from cfm_fem import _kernels as K
 from cfm_fem.bench import ERROR_NAMES, error_index
 from cfm_fem.errors import CfmInputError
 from cfm_fem.io.bench_toml import bench_to_toml, parse_bench, read_bench, read_reference_bench

@@ -12,27 +12,27 @@ from cfm_fem.mc import coverage_count
 
 
 def test_counter_rng_matches_twin_bit_for_bit():
-    key = _kernels.stream_key(42, 7)
-    assert int(key) == twins.stream_key(42, 7)
+    key = _kernels.stream_key(42, _kernels.STREAM_SWEEP)
+    assert int(key) == twins.stream_key(42, twins.STREAM_SWEEP)
+    tkey = _kernels.trial_key(key, 7)
+    assert int(tkey) == twins.trial_key(int(key), 7)
     for c in (0, 1, 12345, 2**40):
-        assert _kernels.uniform_at(key, c) == twins.uniform_at(twins.stream_key(42, 7), c)
+        assert int(_kernels._draw(tkey, c)) == twins.draw(int(tkey), c)
 
 
 @numba.njit
-def _draw_normals(key, n):  # a user's own @njit code calling the kernel (numba-stats habit)
-    state = np.zeros(2, dtype=np.uint64)
-    spare = np.empty(1)
-    out = np.empty(n)
-    for i in range(n):
-        out[i] = _kernels.normal_next(key, state, spare)
+def _sweep_normals(seed, node, n):  # a user's own @njit code calling the kernels
+    key = _kernels.trial_key(_kernels.stream_key(seed, _kernels.STREAM_SWEEP), node)
+    fkey = _kernels.stream_key(seed, _kernels.STREAM_FALLBACK)
+    out = np.empty((n, 3))
+    for t in range(n):
+        out[t, 0], out[t, 1], out[t, 2] = _kernels._three_normals(key, fkey, t)
     return out
 
 
-def test_normal_stream_matches_twin_and_is_standard_normal():
-    key = _kernels.stream_key(1, 0)
-    z = _draw_normals(key, 200_000)
-    ref = twins.NormalStream(twins.stream_key(1, 0))
-    np.testing.assert_allclose(z[:1000], [ref.next() for _ in range(1000)], rtol=1e-14, atol=1e-15)
+def test_sweep_normals_match_twin_and_are_standard_normal():
+    z = _sweep_normals(1, 0, 100_000).ravel()
+    np.testing.assert_array_equal(z[:3000].reshape(-1, 3), twins.sweep_normals(1, 0, 1000))
     n = len(z)
     # mean ~ N(0, 1/n), variance ~ N(1, 2/n): 4-sigma bounds
     assert abs(z.mean()) < 4 / np.sqrt(n)
@@ -40,6 +40,9 @@ def test_normal_stream_matches_twin_and_is_standard_normal():
     # tail probability P(|z| > 1.96) = 0.05 +- 4 sigma of a binomial proportion
     frac = np.mean(np.abs(z) > 1.959963984540054)
     assert abs(frac - 0.05) < 4 * np.sqrt(0.05 * 0.95 / n)
+    # different nodes give different, uncorrelated streams
+    w = _sweep_normals(1, 1, 100_000).ravel()
+    assert abs(np.corrcoef(z, w)[0, 1]) < 4 / np.sqrt(n)
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,7 @@ import numba
 import numpy as np
 import pytest
 
-from cfm_fem import _kernels_kinematics as K
+from cfm_fem import _kernels as K
 from cfm_fem import kinematics as kin
 from cfm_fem.bench import ERROR_NAMES, ReadingDelay, error_index
 from cfm_fem.io.bench_toml import read_reference_bench

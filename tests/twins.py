@@ -5,11 +5,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.spatial
 
+from cfm_fem import _kernels
 from cfm_fem.mc import coverage_count, shortest_interval, symmetric_interval
 
 M64 = (1 << 64) - 1
-GOLDEN = 0x9E3779B97F4A7C15
-NODE_GAMMA = 0xD1B54A32D192ED03
+GAMMA = 0x9E3779B97F4A7C15
+STREAM_SWEEP = 0x53574550
+STREAM_FALLBACK = 0x46414C4C
+KN, WN, FN = _kernels.ziggurat_tables()
+ZIG_R = 3.6541528853610088
 
 
 def mix64(z: int) -> int:
@@ -20,33 +24,73 @@ def mix64(z: int) -> int:
 
 
 def stream_key(seed: int, stream: int) -> int:
-    return mix64(mix64(seed) + (stream + 1) * NODE_GAMMA)
+    return mix64(mix64(seed * GAMMA + 1) ^ stream)
 
 
-def uniform_at(key: int, counter: int) -> float:
-    return (mix64(key + (counter + 1) * GOLDEN) >> 11) * (1.0 / 9007199254740992.0)
+def trial_key(key: int, index: int) -> int:
+    return mix64(mix64(key + index * GAMMA))
 
 
-class NormalStream:
-    """Marsaglia polar method on the counter-based uniforms, spare kept, as the kernel does."""
+def draw(key: int, counter: int) -> int:
+    return mix64(key + counter * GAMMA)
 
-    def __init__(self, key: int):
-        self.key, self.counter, self.spare = key, 0, None
 
-    def next(self) -> float:
-        if self.spare is not None:
-            v, self.spare = self.spare, None
-            return v
-        while True:
-            u = 2.0 * uniform_at(self.key, self.counter) - 1.0
-            v = 2.0 * uniform_at(self.key, self.counter + 1) - 1.0
-            self.counter += 2
-            s = u * u + v * v
-            if 0.0 < s < 1.0:
-                break
-        f = np.sqrt(-2.0 * np.log(s) / s)
-        self.spare = v * f
-        return u * f
+def uniform53(h: int) -> float:
+    return ((h >> 11) + 0.5) / 9007199254740992.0
+
+
+def int32(v: int) -> float:
+    v &= 0xFFFFFFFF
+    return float(v - (1 << 32) if v >= 1 << 31 else v)
+
+
+def zig_fallback(hz: float, iz: int, fkey: int) -> float:
+    c = 0
+    while True:
+        x = hz * WN[iz]
+        if iz == 0:
+            while True:
+                c += 1
+                x = -np.log(uniform53(draw(fkey, c))) / ZIG_R
+                c += 1
+                y = -np.log(uniform53(draw(fkey, c)))
+                if y + y >= x * x:
+                    break
+            return ZIG_R + x if hz > 0 else -ZIG_R - x
+        c += 1
+        if FN[iz] + uniform53(draw(fkey, c)) * (FN[iz - 1] - FN[iz]) < np.exp(-0.5 * x * x):
+            return x
+        c += 1
+        h = draw(fkey, c)
+        hz, iz = int32(h), (h >> 32) & 255
+        if abs(hz) < KN[iz]:
+            return hz * WN[iz]
+
+
+def normal_from_bits(value32: int, layer: int, fkey: int, fb: int) -> float:
+    hz = int32(value32)
+    if abs(hz) < KN[layer]:
+        return hz * WN[layer]
+    return zig_fallback(hz, layer, mix64(fkey ^ (fb & M64)))
+
+
+def three_normals(tkey: int, fkey: int, index: int):
+    """Twin of `_kernels._three_normals`: two hashes, three ziggurat normals."""
+    c = index * 4
+    h1, h2 = draw(tkey, c), draw(tkey, c + 1)
+    fb = tkey + c * GAMMA
+    return (
+        normal_from_bits(h1 & 0xFFFFFFFF, (h2 >> 32) & 255, fkey, fb),
+        normal_from_bits(h1 >> 32, (h2 >> 40) & 255, fkey, fb + 1),
+        normal_from_bits(h2 & 0xFFFFFFFF, (h2 >> 48) & 255, fkey, fb + 2),
+    )
+
+
+def sweep_normals(seed: int, node: int, n_trials: int) -> np.ndarray:
+    """The (n_trials, 3) standard normals the sweep kernel draws for ``node``."""
+    key = trial_key(stream_key(seed, STREAM_SWEEP), node)
+    fkey = stream_key(seed, STREAM_FALLBACK)
+    return np.array([three_normals(key, fkey, t) for t in range(n_trials)])
 
 
 def sample_stats(a, p=0.95):
@@ -69,8 +113,7 @@ def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95):
     n_out = np.zeros((n, n_up), dtype=np.int64)
     abs0 = np.linalg.norm(B, axis=1)
     for g in range(n):
-        rs = NormalStream(stream_key(seed, g))
-        z = np.array([[rs.next() for _ in range(3)] for _ in range(n_trials)])
+        z = sweep_normals(seed, g, n_trials)
         for k, s in enumerate(up_mm):
             pts = points[g] + s * z * np.asarray(axis)
             Bm = f(pts)
