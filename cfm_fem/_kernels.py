@@ -1665,3 +1665,118 @@ def coupled_probe_errors(
             out[t, i, 0] = e[0]
             out[t, i, 1] = e[1]
             out[t, i, 2] = e[2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Bench-model sweep (mode htm): probe errors from the 21-error HTM chain plus vibration/delay.
+# ---------------------------------------------------------------------------------------------
+@nb.njit(**PJIT)
+def htm_sweep(
+    nodes, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
+    params, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack, mounts,
+    tool, strokes, profiles, p, block,
+):  # fmt: skip
+    """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
+
+    Trial t uses error amplitudes ``params[t]`` for every node (a real bench has one set of
+    geometric errors per scan) and the per-(trial, node) vibration and delay of
+    `axis_noise_mm` (node index as the point index), so maps are reproducible from the seed.
+
+    Parameters
+    ----------
+    nodes : ndarray, shape (k,), int64
+    coords, values, simplices, transform, neighbors, start_cells, basis :
+        As in `gauss_sweep`.
+    rot : ndarray, shape (3, 3)
+        Bench frame -> map (magnet) frame.
+    q_nodes : ndarray, shape (n, 3), mm
+        Commanded axis positions that bring the probe to each node.
+    params : ndarray, shape (T, 21)
+        Error amplitudes per trial (`cfm_fem.kinematics.draw_error_sets`).
+    use_geometric, use_noise : bool
+        Include the 21 geometric errors / the vibration and delay (to split the two parts).
+    nkey, fkey, sig, speed, tau_code, tau_par :
+        Noise model, as in `axis_noise_mm`.
+    stack, mounts, tool, strokes, profiles :
+        Bench geometry, as in `probe_error_mm`.
+    p : float
+        Coverage probability.
+    block : int
+
+    Returns
+    -------
+    stats : ndarray, shape (k, 1, 4, 6), T
+    n_out, n_lost : ndarray, shape (k, 1), int64
+    pos : ndarray, shape (k, 2, 3), mm
+        Mean and standard deviation of the probe error per map axis, over all trials.
+    """
+    k_nodes = nodes.shape[0]
+    n_trials = params.shape[0]
+    d = coords.shape[1]
+    stats = np.full((k_nodes, 1, 4, 6), np.nan)
+    n_out = np.zeros((k_nodes, 1), dtype=np.int64)
+    n_lost = np.zeros((k_nodes, 1), dtype=np.int64)
+    pos = np.full((k_nodes, 2, 3), np.nan)
+    n_blocks = (k_nodes + block - 1) // block
+    zero = np.zeros(params.shape[1])
+    for b in nb.prange(n_blocks):
+        comp = np.empty((3, n_trials))
+        absb = np.empty(n_trials)
+        scratch = np.empty(n_trials)
+        dq = np.zeros(3)
+        e = np.empty(3)
+        dm = np.empty(3)
+        pt = np.empty(d)
+        bary = np.empty(d + 1)
+        bi = np.empty(3)
+        for i in range(b * block, min((b + 1) * block, k_nodes)):
+            g = nodes[i]
+            if start_cells[g, 0] < 0:
+                continue
+            b0 = values[g]
+            abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+            nv = 0
+            s1 = np.zeros(3)
+            s2 = np.zeros(3)
+            for t in range(n_trials):
+                if use_noise:
+                    axis_noise_mm(nkey, fkey, t, g, sig, speed, tau_code, tau_par, dq)
+                prm = params[t] if use_geometric else zero
+                probe_error_mm(prm, q_nodes[g], dq, stack, mounts, tool, strokes, profiles, e)
+                octant = 0
+                for a in range(3):
+                    dm[a] = rot[a, 0] * e[0] + rot[a, 1] * e[1] + rot[a, 2] * e[2]
+                    s1[a] += dm[a]
+                    s2[a] += dm[a] * dm[a]
+                for a in range(d):
+                    acc = 0.0
+                    for c in range(3):
+                        acc += basis[c, a] * dm[c]
+                    pt[a] = coords[g, a] + acc
+                    if acc < 0.0:
+                        octant |= 1 << a
+                s = locate(pt, start_cells[g, octant], transform, neighbors, bary)
+                if s == OUTSIDE:
+                    n_out[i, 0] += 1
+                    continue
+                if s == WALK_FAILED:
+                    n_lost[i, 0] += 1
+                    continue
+                _interp_in(s, bary, simplices, values, bi)
+                m2 = 0.0
+                for c in range(3):
+                    comp[c, nv] = bi[c] - b0[c]
+                    m2 += bi[c] * bi[c]
+                absb[nv] = np.sqrt(m2) - abs0
+                nv += 1
+            for a in range(3):
+                mean = s1[a] / n_trials
+                pos[i, 0, a] = mean
+                pos[i, 1, a] = np.sqrt(
+                    max(s2[a] / n_trials - mean * mean, 0.0) * n_trials / max(n_trials - 1, 1)
+                )
+            q = coverage_count(nv, p) if nv > 1 else 1
+            for c in range(3):
+                sample_stats(comp[c], nv, q, stats[i, 0, c], scratch)
+            sample_stats(absb, nv, q, stats[i, 0, 3], scratch)
+    return stats, n_out, n_lost, pos

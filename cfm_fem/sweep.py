@@ -32,6 +32,12 @@ __all__ = [
 
 COMPONENTS = _kernels.COMPONENTS
 STAT_NAMES = _kernels.STAT_NAMES
+#: Columns of a mode-htm sweep: (include the 21 geometric errors, include vibration and delay).
+HTM_PARTS = {
+    "htm_total": (True, True),
+    "htm_geometric": (True, False),
+    "htm_vibration_delay": (False, True),
+}
 #: 97.5 % quantile of the standard normal: the GUM 95 % half-width is Z95 * u.
 Z95 = 1.959963984540054
 
@@ -93,8 +99,13 @@ class SweepResult:
     gradient : ndarray, shape (n, 3, 3), T/mm
         ``gradient[i, c, j] = dB_c/dx_j`` at node i (volume-weighted over incident cells).
     gum_u : ndarray, shape (n, n_up, 4), T
-        Linearised (GUM) standard uncertainty sqrt(sum_j (U_p,j dB_c/dx_j)^2).
+        Linearised (GUM) standard uncertainty sqrt(sum_j (U_p,j dB_c/dx_j)^2); in mode htm
+        U_p,j is the node's standard deviation of the probe error along map axis j
+        (correlations between axes and the systematic part left out).
     seconds : float
+    positioning : ndarray, shape (n, 3, 2, 3), mm, or None
+        Mode htm: mean and standard deviation of the probe position error per map axis, for
+        each column (total, geometric, vibration and delay).
     """
 
     fieldmap: FieldMap
@@ -108,6 +119,23 @@ class SweepResult:
     gradient: np.ndarray
     gum_u: np.ndarray
     seconds: float
+    positioning: np.ndarray | None = None
+
+    @property
+    def labels(self) -> list[str]:
+        """Name of each column: ``up<U_p>um`` (gauss) or the `HTM_PARTS` names (htm)."""
+        if self.config.mode == "htm":
+            return list(HTM_PARTS)
+        return [f"up{u:g}um" for u in self.config.up_um]
+
+    def column_up_um(self) -> list[float]:
+        """U_p of each column, um: the sweep values (gauss), or for htm the RMS over the
+        reachable nodes of sqrt(|mean|^2 + |std|^2) of the 3-D probe position error."""
+        if self.positioning is None:
+            return [float(u) for u in self.config.up_um]
+        m, sd = self.positioning[:, :, 0], self.positioning[:, :, 1]  # (n, n_col, 3)
+        e2 = (m**2).sum(-1) + (sd**2).sum(-1)
+        return [float(np.sqrt(np.nanmean(e2[:, k])) * 1e3) for k in range(e2.shape[1])]
 
     def to_units(self, x):
         """Convert T to units of 1e-4 B_ref."""
@@ -209,22 +237,24 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
 
 
 def _gum_u(gradient, B, sigma_mm):
-    """Linearised standard uncertainty per node, U_p value and component; shape (n, n_up, 4)."""
+    """Linearised standard uncertainty per node, column and component; shape (n, n_col, 4).
+
+    ``sigma_mm`` (1 or n, n_col, 3): standard deviation of the probe position per map axis.
+    """
     absb = np.sqrt((B**2).sum(axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
         grad_abs = np.einsum("nc,ncj->nj", B, gradient) / absb[:, None]
     grad_abs[absb < 1e-12 * max(absb.max(), 1e-300)] = np.nan  # |B| not differentiable at 0
     g4 = np.concatenate([gradient, grad_abs[:, None, :]], axis=1)  # (n, 4, 3)
-    return np.sqrt(np.einsum("ncj,kj->nkc", g4**2, sigma_mm**2))
+    return np.sqrt(
+        np.einsum(
+            "ncj,nkj->nkc", g4**2, np.broadcast_to(sigma_mm**2, (len(B), *sigma_mm.shape[1:]))
+        )
+    )
 
 
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
-    if cfg.mode == "htm":
-        raise CfmInputError(
-            "--mode htm needs the bench kinematics model, which is not integrated in this "
-            "version yet; use --mode gauss"
-        )
-    if cfg.mode != "gauss":
+    if cfg.mode not in ("gauss", "htm"):
         raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
     if cfg.trials < 20:
         raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {cfg.trials}")
@@ -232,6 +262,10 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
     if any(not np.isfinite(a) or a < 0 for a in cfg.axis_scale) or max(cfg.axis_scale) == 0:
         raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {cfg.axis_scale}")
+    if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
+        raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
+    if cfg.mode == "htm":
+        return
     extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
     up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if up_max_mm * 5.0 > extent:
@@ -240,8 +274,6 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
             f"extent of {extent:g} mm, so most perturbed points would leave the map",
             file=fm.source,
         )
-    if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
-        raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
 
 
 @dataclass
@@ -265,22 +297,67 @@ class SweepProblem:
     trials: int
     seed: int
     coverage: float
+    htm: dict | None = None  # mode htm: bench arrays (see `_htm_arrays`)
 
     def run_chunk(self, start: int, stop: int):
         """Statistics of nodes ``start .. stop-1``.
 
         Returns
         -------
-        stats : ndarray, shape (k, n_up, 4, 6), T
-        n_outside, n_walk_failed : ndarray, shape (k, n_up), int64
+        stats : ndarray, shape (k, n_col, 4, 6), T
+            n_col = number of U_p values (gauss) or 3 (htm: total, geometric, vibration+delay).
+        n_outside, n_walk_failed : ndarray, shape (k, n_col), int64
         linear_in_up : ndarray, shape (k,), bool
+        positioning : ndarray, shape (k, n_col, 2, 3), mm (htm) or shape (k, 0, 2, 3) (gauss)
+            Mean and standard deviation of the probe position error per map axis.
         """
         nodes = np.arange(start, stop, dtype=np.int64)
-        return _kernels.gauss_sweep(
+        if self.htm is not None:
+            return self._run_htm(nodes)
+        s, o, lost, star = _kernels.gauss_sweep(
             nodes, self.coords, self.values, self.simplices, self.transform, self.neighbors,
             self.start_cells, self.basis, self.axis_scale, self.scales_mm, int(self.trials),
             int(self.seed), float(self.coverage), 32,
         )  # fmt: skip
+        return s, o, lost, star, np.empty((len(nodes), 0, 2, 3))
+
+    def _run_htm(self, nodes):
+        h = self.htm
+        parts = []
+        for geo, noise in HTM_PARTS.values():
+            parts.append(
+                _kernels.htm_sweep(
+                    nodes,
+                    self.coords,
+                    self.values,
+                    self.simplices,
+                    self.transform,
+                    self.neighbors,
+                    self.start_cells,
+                    self.basis,
+                    h["rot"],
+                    h["q_nodes"],
+                    h["params"],
+                    geo,
+                    noise,
+                    h["nkey"],
+                    h["fkey"],
+                    h["sig"],
+                    h["speed"],
+                    h["tau_code"],
+                    h["tau_par"],
+                    h["stack"],
+                    h["mounts"],
+                    h["tool"],
+                    h["strokes"],
+                    h["profiles"],
+                    float(self.coverage),
+                    16,
+                )  # fmt: skip
+            )
+        stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
+        pos = pos.reshape(len(nodes), len(HTM_PARTS), 2, 3)
+        return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos
 
 
 def chunk_ranges(n: int, chunk_nodes: int) -> list[tuple[int, int]]:
@@ -314,6 +391,22 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     start_cells = _kernels.octant_cells(
         mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
     )
+    htm = None
+    if cfg.mode == "htm":
+        htm, unreachable = _htm_arrays(cfg, fm)
+        if unreachable.all():
+            raise CfmInputError(
+                "no node of the map is within the strokes of the bench's axes; check the magnet "
+                "placement in the bench file ([magnet] rotation_deg, translation_mm)",
+                file=fm.source,
+            )
+        if unreachable.any():
+            start_cells = start_cells.copy()
+            start_cells[unreachable] = -1
+            mesh.notes.append(
+                f"{int(unreachable.sum())} node(s) lie outside the strokes of the bench's axes: "
+                "no statistics (NaN)"
+            )
     problem = SweepProblem(
         coords=mesh.coords,
         values=np.ascontiguousarray(fm.B),
@@ -327,8 +420,38 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
         trials=int(cfg.trials),
         seed=int(cfg.seed),
         coverage=float(cfg.coverage),
+        htm=htm,
     )
     return mesh, problem, b_ref
+
+
+def _htm_arrays(cfg: SweepConfig, fm: FieldMap):
+    """Bench arrays of mode htm for `SweepProblem`, and the nodes the bench cannot reach."""
+    from .io.bench_toml import read_reference_bench  # the packaged default bench
+    from .kinematics import draw_error_sets, kernel_geometry, noise_keys
+
+    bench = cfg.bench if cfg.bench is not None else read_reference_bench()
+    q = np.ascontiguousarray(bench.axis_positions_for(fm.points))
+    g = kernel_geometry(bench)
+    nkey, fkey = noise_keys(cfg.seed)
+    arrays = dict(
+        rot=np.ascontiguousarray(bench.bench_to_magnet_rotation()),
+        q_nodes=q,
+        params=np.ascontiguousarray(draw_error_sets(bench, cfg.trials, cfg.seed)),
+        nkey=nkey,
+        fkey=fkey,
+        sig=g.sig,
+        speed=g.speed,
+        tau_code=g.tau_code,
+        tau_par=g.tau_par,
+        stack=g.stack,
+        mounts=g.mounts,
+        tool=g.tool,
+        strokes=g.strokes,
+        profiles=g.profiles,
+        bench_name=bench.name,
+    )
+    return arrays, bench.outside_stroke(q)
 
 
 def run_sweep(
@@ -358,23 +481,30 @@ def run_sweep(
     """
     t0 = time.perf_counter()
     mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh)
-    n, n_up = fm.n_nodes, len(cfg.up_um)
-    stats = np.full((n, n_up, 4, 6), np.nan)
-    n_out = np.zeros((n, n_up), dtype=np.int64)
-    n_lost = np.zeros((n, n_up), dtype=np.int64)
+    n = fm.n_nodes
+    n_col = len(HTM_PARTS) if cfg.mode == "htm" else len(cfg.up_um)
+    stats = np.full((n, n_col, 4, 6), np.nan)
+    n_out = np.zeros((n, n_col), dtype=np.int64)
+    n_lost = np.zeros((n, n_col), dtype=np.int64)
     star = np.zeros(n, dtype=bool)
+    positioning = np.full((n, n_col, 2, 3), np.nan) if cfg.mode == "htm" else None
     done = np.zeros(n, dtype=bool)
     mapper = serial_map if map_chunks is None else map_chunks
-    for (a, b), (s, o, lost, st) in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
+    for (a, b), (s, o, lost, st, pos) in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
         stats[a:b], n_out[a:b], n_lost[a:b], star[a:b] = s, o, lost, st
+        if positioning is not None:
+            positioning[a:b] = pos
         done[a:b] = True
         if progress is not None:
             progress(b - a)
     if not done.all():
         raise RuntimeError(f"{int((~done).sum())} nodes were not computed by the chunk mapper")
     gradient = node_gradients(mesh, fm.B)
-    sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]
-    gum_u = _gum_u(gradient, fm.B, sigma_mm)
+    if positioning is None:
+        sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]  # (n_up, 3)
+        gum_u = _gum_u(gradient, fm.B, sigma_mm[None])
+    else:
+        gum_u = _gum_u(gradient, fm.B, positioning[:, :, 1])  # per-node std, (n, 3, 3)
     return SweepResult(
         fieldmap=fm,
         mesh=mesh,
@@ -387,6 +517,7 @@ def run_sweep(
         gradient=gradient,
         gum_u=gum_u,
         seconds=time.perf_counter() - t0,
+        positioning=positioning,
     )
 
 
@@ -398,12 +529,16 @@ def summarize(res: SweepResult) -> dict:
     ``outside_fraction`` instead of being summarised from a truncated sample.
     """
     cfg = res.config
+    n_col = res.stats.shape[1]
     uf = res.uf_units()
     complete = res.complete()
     _, _, disagree = res.gum_check()
-    processed = res.mesh.node_cell >= 0
+    # nodes that were simulated (htm: reachable by the bench; all: in some cell)
+    processed = (res.n_outside + res.n_walk_failed > 0).any(axis=1) | np.isfinite(
+        res.stats[:, :, 3, 1]
+    ).any(axis=1)
     pct = {"p50": [], "p95": [], "p99": [], "max": []}
-    for k in range(len(cfg.up_um)):
+    for k in range(n_col):
         vals = uf[complete[:, k], k]
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
             pct[name].append(float(np.percentile(vals, q)) if vals.size else None)
@@ -412,7 +547,7 @@ def summarize(res: SweepResult) -> dict:
         dis_frac = [
             {name: float(np.mean(disagree[complete[:, k], k, c])) if complete[:, k].any() else None
              for c, name in enumerate(COMPONENTS)}
-            for k in range(len(cfg.up_um))
+            for k in range(n_col)
         ]  # fmt: skip
     notes = list(res.fieldmap.notes) + list(res.mesh.notes)
     if res.mesh.dim == 2:
@@ -425,15 +560,14 @@ def summarize(res: SweepResult) -> dict:
         "b_ref_rule": "max |B| over the map nodes" if cfg.b_ref_T is None else "given by the user",
         "trials": cfg.trials,
         "seed": cfg.seed,
-        "up_um": list(map(float, cfg.up_um)),
+        "up_um": res.column_up_um(),
+        "columns": res.labels,
         "uf_units": pct,
-        "uf_nodes": [int(complete[:, k].sum()) for k in range(len(cfg.up_um))],
+        "uf_nodes": [int(complete[:, k].sum()) for k in range(n_col)],
         "nodes": int(res.fieldmap.n_nodes),
-        "outside_fraction": [
-            float(res.n_outside[:, k].sum() / n_samples) for k in range(len(cfg.up_um))
-        ],
+        "outside_fraction": [float(res.n_outside[:, k].sum() / n_samples) for k in range(n_col)],
         "walk_failed_fraction": [
-            float(res.n_walk_failed[:, k].sum() / n_samples) for k in range(len(cfg.up_um))
+            float(res.n_walk_failed[:, k].sum() / n_samples) for k in range(n_col)
         ],
         "uf_relative_mc_std": float(1.363 / np.sqrt(cfg.trials)),
         "gum_disagree_fraction": dis_frac,
@@ -454,8 +588,15 @@ def summarize(res: SweepResult) -> dict:
         "axis_scale": list(cfg.axis_scale),
         "coverage": cfg.coverage,
         "interpolation": res.mesh.description,
-        "perturbation": "x_meas = x_nom + N(0, U_p) per coordinate (paper eq. 16); the same "
-        "standard normals serve every U_p value of the sweep (common random numbers)",
+        "perturbation": (
+            "x_meas = x_nom + N(0, U_p) per coordinate (paper eq. 16); the same standard normals "
+            "serve every U_p value of the sweep (common random numbers)"
+            if cfg.mode == "gauss"
+            else "x_meas = x_nom + E_p, E_p from the bench model (paper eq. 10): one draw of the "
+            "21 geometric errors per trial common to all nodes, vibration and reading delay per "
+            "node; columns: total, geometric errors only, vibration and delay only; up_um is the "
+            "RMS over nodes of the 3-D positioning error sqrt(|mean|^2 + |std|^2)"
+        ),
         "notes": notes,
         "source": res.fieldmap.source,
     }

@@ -134,7 +134,7 @@ def test_parse_up_range():
     [
         (SweepConfig(up_um=[10.0], trials=5), "at least 20"),
         (SweepConfig(up_um=[5e5], trials=50), "too large"),
-        (SweepConfig(up_um=[10.0], trials=50, mode="htm"), "not integrated"),
+        (SweepConfig(up_um=[10.0], trials=50, mode="laser"), "gauss or htm"),
         (SweepConfig(up_um=[10.0], trials=50, b_ref_T=-1.0), "positive"),
     ],
 )

@@ -8,13 +8,20 @@ from __future__ import annotations
 
 import sys
 
+from ..distributed import dask_chunk_map, dask_client
 from ..errors import CfmInputError
 from ..io import read_field
 from ..io.bench_toml import read_bench, read_reference_bench
-from ..io.provenance import provenance
-from ..io.sweep_out import write_sweep
-from ..sweep import SweepConfig, parse_up_range, run_sweep
+from ..io.provenance import file_sha256, provenance
+from ..io.sweep_out import write_sweep, write_sweep_pieces
+from ..pieces import run_sweep_pieces
+from ..resume import ResumableRun, describe_sweep
+from ..sweep import SweepConfig, chunk_ranges, parse_up_range, run_sweep
 from ._progress import progress_bar
+
+#: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
+#: maps and exhaust the memory before anything is computed).
+MAX_UP_VALUES = 1000
 
 NAME = "sweep"
 HELP = "U_f maps (95 %%) of a field map for a sweep of U_p; VTK output for ParaView"
@@ -107,12 +114,71 @@ def add_args(p):
         metavar="K",
         help="nodes per chunk (memory/progress; results do not depend on it)",
     )
+    add_scale_out_args(p)
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse the finished chunks of an interrupted run with the same input and options "
+        "(kept in DIR/.cfm_fem_chunks); refused, naming what differs, if they do not match",
+    )
+    p.add_argument(
+        "--keep-chunks",
+        action="store_true",
+        help="keep DIR/.cfm_fem_chunks after a successful run (deleted by default)",
+    )
+    p.add_argument(
+        "--pieces",
+        type=int,
+        metavar="K",
+        help="write each U_p map as K .vtu pieces and a .pvtu index (ParaView opens it as one "
+        "map), holding one piece's statistics in memory at a time; for maps whose statistics "
+        "do not fit in memory",
+    )
+
+
+def add_scale_out_args(p):
+    """``--scheduler`` and ``--workers`` (shared with ``kinematics``)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="run on a running Dask cluster (pip install 'cfm_fem[dask]'); same numbers",
+    )
+    g.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="start a local Dask cluster of N worker processes for the run; same numbers",
+    )
+
+
+def _check_up_count(text):
+    """Refuse START:STOP:STEP ranges with more than MAX_UP_VALUES values before expanding them."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        return
+    try:
+        start, stop, step = (float(v) for v in parts)
+    except ValueError:
+        return  # parse_up_range gives the message
+    if step > 0 and stop >= start and (stop - start) / step + 1 > MAX_UP_VALUES:
+        raise CfmInputError(
+            f"--up {text} asks for {(stop - start) / step + 1:.3g} U_p values; expected at most "
+            f"{MAX_UP_VALUES} (is STEP in um?)"
+        )
 
 
 def run(args) -> int:
+    _check_up_count(args.up)
     up = parse_up_range(args.up)
+    if len(up) > MAX_UP_VALUES:
+        raise CfmInputError(f"--up gives {len(up)} U_p values; expected at most {MAX_UP_VALUES}")
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
+    if args.pieces is not None and args.pieces < 1:
+        raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
+    if args.pieces is not None and args.mode != "gauss":
+        raise CfmInputError("--pieces is available for --mode gauss only in this version")
     bench = None
     if args.bench is not None:
         bench = read_bench(args.bench)
@@ -136,18 +202,79 @@ def run(args) -> int:
         bench=bench,
         chunk_nodes=args.chunk_nodes,
     )
+    what = (
+        f"U_p = {', '.join(f'{u:g}' for u in up)} um"
+        if cfg.mode == "gauss"
+        else "mode htm: bench model " + (args.bench or "(packaged CFM reference bench)")
+    )
     print(
-        f"cfm-fem sweep: {fm.n_nodes} nodes from {fm.source}; "
-        f"U_p = {', '.join(f'{u:g}' for u in up)} um; "
+        f"cfm-fem sweep: {fm.n_nodes} nodes from {fm.source}; {what}; "
         f"{cfg.trials} trials per node, seed {cfg.seed}",
         file=sys.stderr,
     )
-    with progress_bar(fm.n_nodes, "nodes") as bar:
-        res = run_sweep(fm, cfg, progress=bar.update)
+    read_options = {
+        "fmt": args.fmt,
+        "length_unit": args.length_unit,
+        "field_unit": args.field_unit,
+        "zero_rows": args.zero_rows,
+    }
+    bench_sha = file_sha256(args.bench) if args.bench else None
+    description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
+    runner = ResumableRun(args.out, description, resume=args.resume)
+    runner.check()
+    try:
+        with dask_client(args.scheduler, args.workers) as client:
+            mapper = runner.mapper(None if client is None else dask_chunk_map(client))
+            with progress_bar(fm.n_nodes, "nodes") as bar:
+                if args.pieces:
+                    res = run_sweep_pieces(fm, cfg, mapper, progress=bar.update)
+                else:
+                    res = run_sweep(fm, cfg, progress=bar.update, map_chunks=mapper)
+    except KeyboardInterrupt:
+        if runner.store.completed():
+            print(
+                f"cfm-fem sweep: {len(runner.store.completed())} finished chunk(s) kept in "
+                f"{runner.store.path}; run the same command with --resume to continue",
+                file=sys.stderr,
+            )
+        raise
+    if args.resume:
+        print(
+            f"resumed: {runner.loaded} chunk(s) read from {runner.store.path}, "
+            f"{runner.computed} computed"
+            + (
+                f" ({runner.rejected} unreadable chunk file(s) recomputed)"
+                if runner.rejected
+                else ""
+            ),
+            file=sys.stderr,
+        )
     prov = provenance({"field": args.field, "bench": args.bench}, args.command_line)
-    summary = write_sweep(args.out, res, prov)
+    prov.update(
+        seed=cfg.seed,
+        trials=cfg.trials,
+        run_key=runner.key,
+        backend=_backend(args),
+        resumed_chunks=runner.loaded,
+    )
+    if args.pieces:
+        chunks = chunk_ranges(fm.n_nodes, cfg.chunk_nodes)
+        summary = write_sweep_pieces(
+            args.out, res, args.pieces, lambda nodes: runner.gather(nodes, chunks), prov
+        )
+    else:
+        summary = write_sweep(args.out, res, prov)
+    runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out)
     return 0
+
+
+def _backend(args) -> str:
+    if args.scheduler:
+        return f"dask scheduler {args.scheduler}"
+    if args.workers:
+        return f"dask LocalCluster, {args.workers} worker process(es)"
+    return "this process (numba threads)"
 
 
 def _print_summary(s, out):
@@ -163,12 +290,18 @@ def _print_summary(s, out):
     for k, up in enumerate(s["up_um"]):
         row = [s["uf_units"][q][k] for q in ("p50", "p95", "p99", "max")]
         cells = " ".join(f"{v:9.3g}" if v is not None else f"{'-':>9}" for v in row)
+        label = "" if s["mode"] == "gauss" else f"  {s['columns'][k]}"
         print(
-            f"{up:9g} {cells}           {100 * s['outside_fraction'][k]:8.3f}% "
-            f"{s['uf_nodes'][k]:8d}"
+            f"{up:9.3g} {cells}           {100 * s['outside_fraction'][k]:8.3f}% "
+            f"{s['uf_nodes'][k]:8d}{label}"
         )
+    if s["mode"] == "htm":
+        print("(htm: U_p is the RMS over nodes of the 3-D probe position error of that column)")
     for note in s["notes"]:
         print(f"note: {note}")
-    print(
-        f"{s['seconds']:.1f} s; wrote {out}/sweep.pvd, {len(s['up_um'])} .vtu maps and summary.json"
+    maps = (
+        f"{len(s['up_um'])} .pvtu maps of {s['pieces']} pieces"
+        if "pieces" in s
+        else (f"{len(s['up_um'])} .vtu maps")
     )
+    print(f"{s['seconds']:.1f} s; wrote {out}/sweep.pvd, {maps} and summary.json")

@@ -3,20 +3,35 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from ..sweep import COMPONENTS, SweepResult, summarize
 from ._atomic import write_json
+from .pvtu import write_pvtu
 from .vtk import write_pvd, write_vtu
 
-__all__ = ["write_sweep", "vtu_name"]
+__all__ = ["write_sweep", "write_sweep_pieces", "vtu_name", "provenance_codes", "read_provenance"]
 
 
-def vtu_name(up_um: float) -> str:
-    """File name of the map for one U_p value, e.g. ``uf_up20um.vtu``."""
-    return f"uf_up{up_um:g}um.vtu"
+def vtu_name(label: str) -> str:
+    """File name of the map of one column, e.g. ``uf_up20um.vtu`` or ``uf_htm_total.vtu``."""
+    return f"uf_{label}.vtu"
+
+
+def provenance_codes(provenance: dict | None) -> np.ndarray:
+    """The provenance as JSON, UTF-8 byte values in a float array (VTK field data readable by
+    ParaView, VTK and meshio alike; `read_provenance` turns it back)."""
+    text = json.dumps(provenance or {}, sort_keys=True)
+    return np.frombuffer(text.encode("utf-8"), dtype=np.uint8).astype(np.float64)
+
+
+def read_provenance(codes) -> dict:
+    """Inverse of `provenance_codes`: the field data ``provenance_utf8`` of an output back to
+    a dict."""
+    return json.loads(bytes(np.asarray(codes, dtype=np.uint8).ravel()).decode("utf-8"))
 
 
 def _point_data(res: SweepResult, k: int) -> dict:
@@ -37,6 +52,9 @@ def _point_data(res: SweepResult, k: int) -> dict:
         "complete": res.complete()[:, k].astype(np.uint8),
         "linear_in_up": res.linear_in_up.astype(np.uint8),
     }
+    if res.positioning is not None:
+        data["positioning_mean_um"] = (res.positioning[:, k, 0] * 1e3).astype(f32)
+        data["positioning_std_um"] = (res.positioning[:, k, 1] * 1e3).astype(f32)
     for c, name in enumerate(COMPONENTS):
         per = {
             "systematic_units": units(st[:, c, 0]),
@@ -67,15 +85,88 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
     summary = summarize(res)
     summary["provenance"] = provenance or {}
     entries = []
-    for k, up in enumerate(res.config.up_um):
-        path = out / vtu_name(up)
+    ups = res.column_up_um()
+    for k, label in enumerate(res.labels):
+        path = out / vtu_name(label)
+        up = ups[k]
         fields = {
             "U_p_um": up,
             "B_ref_T": res.b_ref_T,
             "trials": res.config.trials,
             "seed": res.config.seed,
+            "provenance_utf8": provenance_codes(summary["provenance"]),
         }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
         write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
+        entries.append((up if res.config.mode == "gauss" else float(k), path))
+    write_pvd(out / "sweep.pvd", entries)
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def pieces_name(up_um: float) -> str:
+    """Index file of the pieces of one U_p value, e.g. ``uf_up20um.pvtu``."""
+    return f"uf_up{up_um:g}um.pvtu"
+
+
+def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict | None = None):
+    """Write a sweep as ``n_pieces`` ``.vtu`` pieces per U_p value, a ``.pvtu`` index each, the
+    ``sweep.pvd`` over the indices and ``summary.json``; only one piece in memory at a time.
+
+    Parameters
+    ----------
+    out_dir : path-like
+    compact : cfm_fem.pieces.CompactSweep
+    n_pieces : int
+    load : callable(nodes) -> (stats, n_outside, n_walk_failed, linear_in_up)
+        Reads back the statistics of the sorted node indices ``nodes`` (e.g. from the chunk
+        store: `cfm_fem.resume.ResumableRun.gather`).
+    provenance : dict, optional
+
+    Returns
+    -------
+    dict
+        The summary written (the same as `write_sweep` gives for the same run).
+
+    Notes
+    -----
+    Pieces are node ranges; each cell belongs to the piece of its highest node, and a piece
+    also holds the nodes of its cells that lie in earlier ranges (their data are repeated), so
+    every cell is drawn once and ParaView shows one continuous map.
+    """
+    from ..pieces import partition, piece_result
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = summarize(compact)
+    summary["provenance"] = provenance or {}
+    summary["pieces"] = int(n_pieces)
+    ups = list(compact.config.up_um)
+    names = {}
+    written = {k: [] for k in range(len(ups))}
+    fm = compact.fieldmap
+    for p, (nodes, cells) in enumerate(partition(compact.mesh.simplices, fm.n_nodes, n_pieces)):
+        res = piece_result(compact, nodes, load(nodes))
+        for k, up in enumerate(ups):
+            folder = out / pieces_name(up).removesuffix(".pvtu")
+            path = folder / f"piece_{p:04d}.vtu"
+            fields = {
+                "U_p_um": up,
+                "B_ref_T": compact.b_ref_T,
+                "trials": compact.config.trials,
+                "seed": compact.config.seed,
+                "piece": p,
+                "provenance_utf8": provenance_codes(summary["provenance"]),
+            }
+            data = _point_data(res, k)
+            write_vtu(path, res.fieldmap.points, cells, data, fields)
+            written[k].append(path)
+            names[k] = {name: values[:1] for name, values in data.items()}
+        del res
+    entries = []
+    comment = "cfm_fem provenance: " + json.dumps(provenance or {}, sort_keys=True)
+    for k, up in enumerate(ups):
+        path = out / pieces_name(up)
+        write_pvtu(path, written[k], names[k], comment=comment)
         entries.append((up, path))
     write_pvd(out / "sweep.pvd", entries)
     write_json(out / "summary.json", summary)

@@ -1,0 +1,245 @@
+"""Dask backend: sweep chunks and kinematics point blocks on a cluster.
+
+Results do not depend on where they are computed: a sweep chunk's statistics depend only on its
+node range (counter-based random numbers keyed by seed and node), so `dask_chunk_map` yields
+exactly the chunks `cfm_fem.sweep.serial_map` would, in completion order, and `run_sweep` merges
+them into bit-identical arrays. Kinematics points are likewise independent of each other (each
+point's statistics use its own noise stream and its own windows), see `run_kinematics_dask`.
+
+Dask is an optional dependency (``pip install cfm_fem[dask]``); it is imported only here and
+only when a cluster is asked for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+
+import numpy as np
+
+from .errors import CfmInputError
+
+__all__ = [
+    "dask_client",
+    "dask_chunk_map",
+    "kinematics_supports_points",
+    "run_kinematics_dask",
+]
+
+
+#: Seconds to wait for a ``--scheduler`` before giving up.
+CONNECT_TIMEOUT_S = 20
+
+
+def _import_distributed():
+    try:
+        import distributed
+    except ImportError:
+        raise CfmInputError(
+            "--scheduler and --workers need Dask: pip install 'cfm_fem[dask]'"
+        ) from None
+    return distributed
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int | None = None):
+    """A Dask client: to a running scheduler, or to a local cluster started for the run.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        Address of a running scheduler, e.g. ``tcp://10.0.0.5:8786``.
+    workers : int, optional
+        Start a `distributed.LocalCluster` with this many worker processes (one thread each:
+        the numba kernels are the parallel part). Closed on exit.
+
+    Yields
+    ------
+    distributed.Client or None
+        None when neither is given (run in this process).
+
+    Raises
+    ------
+    CfmInputError
+        Both given, ``workers < 1``, Dask missing, or the scheduler cannot be reached.
+    """
+    if scheduler is None and workers is None:
+        yield None
+        return
+    if scheduler is not None and workers is not None:
+        raise CfmInputError("give either --scheduler or --workers, not both")
+    if workers is not None and workers < 1:
+        raise CfmInputError(f"--workers must be >= 1; got {workers}")
+    distributed = _import_distributed()
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            try:
+                client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise CfmInputError(
+                    f"cannot reach the Dask scheduler {scheduler!r}: {exc}; expected the address "
+                    "of a running scheduler such as tcp://HOST:8786"
+                ) from None
+        else:
+            cluster = stack.enter_context(
+                distributed.LocalCluster(
+                    n_workers=int(workers),
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    host="127.0.0.1",
+                )
+            )
+            client = distributed.Client(cluster)
+        stack.enter_context(client)
+        yield client
+
+
+def _run_chunk(problem, start, stop):
+    return problem.run_chunk(start, stop)
+
+
+def dask_chunk_map(client):
+    """Chunk mapper for `cfm_fem.sweep.run_sweep` that runs the chunks on ``client``'s cluster.
+
+    The `SweepProblem` is scattered once to every worker (broadcast); each chunk is one task;
+    results are yielded as they complete and released on the cluster at once.
+
+    Parameters
+    ----------
+    client : distributed.Client
+
+    Returns
+    -------
+    callable(problem, chunks) -> iterator of ((start, stop), result)
+    """
+    distributed = _import_distributed()
+
+    def run(problem, chunks):
+        chunks = [(int(a), int(b)) for a, b in chunks]
+        if not chunks:
+            return
+        shared = client.scatter(problem, broadcast=True, hash=False)
+        futures = {
+            client.submit(_run_chunk, shared, a, b, pure=False, key=f"cfm-sweep-chunk-{a}-{b}"): (
+                a,
+                b,
+            )
+            for a, b in chunks
+        }
+        try:
+            for future, result in distributed.as_completed(futures, with_results=True):
+                yield futures.pop(future), result
+                future.release()
+        finally:
+            for future in futures:
+                future.cancel()
+            shared.release()
+
+    return run
+
+
+def kinematics_supports_points() -> bool:
+    """True if `cfm_fem.kinematics.run_kinematics` takes ``point_index`` (the point seam)."""
+    from .kinematics import run_kinematics
+
+    return "point_index" in inspect.signature(run_kinematics).parameters
+
+
+def _kinematics_block(bench, trials, seed, q, index, exact):
+    from .kinematics import run_kinematics
+
+    return run_kinematics(bench, trials=trials, seed=seed, q_cmd=q, point_index=index, exact=exact)
+
+
+def run_kinematics_dask(client, bench, trials, seed, *, exact=True, block_points=64, progress=None):
+    """`run_kinematics` over blocks of scan points on a Dask cluster; same numbers as one process.
+
+    Every point's statistics (pilot windows, shifted sums per trial block, exact order
+    statistics) use only that point's samples, and its noise stream is keyed by its index in
+    the full grid (``point_index``), so a block of points gives the rows of the full run
+    bit for bit; the Table IV pooling is then done on the merged per-point arrays.
+
+    Parameters
+    ----------
+    client : distributed.Client
+    bench : Bench
+    trials, seed : int
+    exact : bool
+        Exact interval ends (two passes), as `run_kinematics`.
+    block_points : int
+        Points per task.
+    progress : callable(int), optional
+        Called with the number of points finished.
+
+    Returns
+    -------
+    KinematicsResult
+
+    Raises
+    ------
+    CfmInputError
+        This version's `run_kinematics` has no ``point_index`` argument (see the README).
+    """
+    from .kinematics import KinematicsResult, pool_table_iv
+
+    if not kinematics_supports_points():
+        raise CfmInputError(
+            "cfm-fem kinematics on Dask needs run_kinematics(..., point_index=...), which this "
+            "version does not have yet; run it without --scheduler/--workers"
+        )
+    distributed = _import_distributed()
+    q = np.ascontiguousarray(bench.grid_points())
+    npts = len(q)
+    blocks = [(a, min(a + block_points, npts)) for a in range(0, npts, block_points)]
+    shared = client.scatter(bench, broadcast=True, hash=False)
+    futures = {
+        client.submit(
+            _kinematics_block,
+            shared,
+            int(trials),
+            int(seed),
+            q[a:b],
+            np.arange(a, b, dtype=np.int64),
+            bool(exact),
+            pure=False,
+        ): (a, b)
+        for a, b in blocks
+    }
+    parts = {}
+    for future, res in distributed.as_completed(futures, with_results=True):
+        a, b = futures[future]
+        parts[a] = res
+        future.release()
+        if progress is not None:
+            progress(b - a)
+    shared.release()
+    ordered = [parts[a] for a, _ in blocks]
+
+    def cat(name):
+        return np.concatenate([getattr(r, name) for r in ordered])
+
+    mean, std = cat("mean"), cat("std")
+    notes = list(dict.fromkeys(n for r in ordered for n in r.notes))
+    notes.append(f"computed on Dask in {len(blocks)} blocks of up to {block_points} points")
+    seconds = {}
+    for r in ordered:
+        for k, v in r.seconds.items():
+            seconds[f"{k}_worker_sum"] = seconds.get(f"{k}_worker_sum", 0.0) + v
+    first = ordered[0]
+    return KinematicsResult(
+        q_cmd=cat("q_cmd"),
+        nominal=cat("nominal"),
+        mean=mean,
+        std=std,
+        low=cat("low"),
+        high=cat("high"),
+        trials=first.trials,
+        seed=first.seed,
+        pooled=pool_table_iv(mean, std),
+        seconds=seconds,
+        interval_method=first.interval_method,
+        p=first.p,
+        notes=notes,
+        adaptive=None,
+    )

@@ -1,0 +1,97 @@
+"""On-disk store of finished sweep chunks: one ``.npz`` per chunk plus a ``manifest.json``.
+
+Layout of ``DIR/.cfm_fem_chunks/``::
+
+    manifest.json              the run key and what it was computed from (written first)
+    chunk_<start>_<stop>.npz   arrays of nodes start .. stop-1 and the run key
+
+Every file is written under a temporary name and renamed, so a killed run leaves only complete
+chunk files. What the arrays mean and when a store may be reused is decided by
+:mod:`cfm_fem.resume`; this module only reads and writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CfmInputError
+from ._atomic import atomic_path, write_json
+
+__all__ = ["STORE_NAME", "ChunkStore"]
+
+#: Folder of the store inside the output folder.
+STORE_NAME = ".cfm_fem_chunks"
+_CHUNK = re.compile(r"^chunk_(\d+)_(\d+)\.npz$")
+
+
+class ChunkStore:
+    """Chunk files of one output folder.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        The output folder of the run; the store is ``out_dir / STORE_NAME``.
+    """
+
+    def __init__(self, out_dir):
+        self.path = Path(out_dir) / STORE_NAME
+
+    def exists(self) -> bool:
+        """True if the store folder is there."""
+        return self.path.is_dir()
+
+    def read_manifest(self) -> dict | None:
+        """The manifest, or None if there is none or it cannot be read."""
+        try:
+            return json.loads((self.path / "manifest.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+
+    def write_manifest(self, manifest: dict) -> None:
+        """Create the store (if needed) and write its manifest atomically."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CfmInputError(
+                f"cannot create the chunk store: {exc.strerror or exc}", file=self.path
+            ) from None
+        write_json(self.path / "manifest.json", manifest)
+
+    def chunk_path(self, start: int, stop: int) -> Path:
+        """File of the chunk of nodes ``start .. stop-1``."""
+        return self.path / f"chunk_{int(start)}_{int(stop)}.npz"
+
+    def completed(self) -> list[tuple[int, int]]:
+        """Node ranges (start, stop) that have a chunk file, sorted."""
+        if not self.exists():
+            return []
+        found = []
+        for p in self.path.iterdir():
+            m = _CHUNK.match(p.name)
+            if m:
+                found.append((int(m[1]), int(m[2])))
+        return sorted(found)
+
+    def save(self, start: int, stop: int, arrays: dict) -> None:
+        """Write the arrays of one chunk atomically (uncompressed ``.npz``)."""
+        with atomic_path(self.chunk_path(start, stop), suffix=".npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+
+    def load(self, start: int, stop: int) -> dict | None:
+        """Arrays of one chunk, or None if the file is missing or unreadable."""
+        try:
+            with np.load(self.chunk_path(start, stop), allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None
+
+    def remove(self) -> None:
+        """Delete the store and everything in it."""
+        shutil.rmtree(self.path, ignore_errors=True)

@@ -1,0 +1,99 @@
+"""Mode htm of the sweep: probe errors from the bench model, against closed forms."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cfm_fem import FieldMap
+from cfm_fem.bench import ERROR_NAMES, ReadingDelay
+from cfm_fem.io.bench_toml import read_reference_bench
+from cfm_fem.mc import Pdf
+from cfm_fem.sweep import HTM_PARTS, SweepConfig, run_sweep, summarize
+
+G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
+Z = 1.959963984540054
+
+
+def grid_map(n=7, h=1.0):
+    ax = np.arange(n) * h - (n - 1) * h / 2
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    return FieldMap.from_arrays(pts, pts @ G.T + [0.1, -0.2, 0.5])
+
+
+def quiet_bench(vibration_mm=0.0, constant=None):
+    """Reference bench with every geometric error zero (or one constant), chosen vibration."""
+    bench = read_reference_bench()
+    errors = []
+    for e in bench.errors:
+        value = 0.0 if constant is None or e.name != constant[0] else constant[1]
+        errors.append(replace(e, pdf=Pdf.from_params("constant", value=value)))
+    return replace(
+        bench,
+        errors=tuple(errors),
+        vibration_std_mm=np.full(3, vibration_mm),
+        delay=ReadingDelay(model="normal", std_mm=np.zeros(3)),
+    )
+
+
+def test_a_constant_positioning_error_shifts_every_node_by_it():
+    fm = grid_map()
+    c = 0.02  # mm: X axis positioning error delta_x(x), bench x = magnet x (no rotation)
+    assert "delta_x(x)" in ERROR_NAMES
+    bench = quiet_bench(constant=("delta_x(x)", c))
+    res = run_sweep(fm, SweepConfig(trials=50, mode="htm", bench=bench))
+    assert res.labels == list(HTM_PARTS)
+    inner = np.all(np.abs(fm.points) < 2.5, axis=1)
+    st = res.stats[inner, 0]  # total column
+    np.testing.assert_allclose(
+        st[:, :3, 0], np.broadcast_to(G[:, 0] * c, (inner.sum(), 3)), atol=1e-12
+    )
+    np.testing.assert_allclose(st[:, :3, 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(res.positioning[inner, 0, 0], [[c, 0, 0]] * inner.sum(), atol=1e-12)
+    # the vibration/delay column has no displacement at all
+    np.testing.assert_allclose(res.stats[inner, 2, :3, :], 0.0, atol=1e-15)
+
+
+def test_vibration_only_gives_the_gaussian_half_width():
+    fm = grid_map()
+    s, n = 0.03, 3000
+    res = run_sweep(
+        fm, SweepConfig(trials=n, seed=2, mode="htm", bench=quiet_bench(vibration_mm=s))
+    )
+    inner = np.all(np.abs(fm.points) < 2.5, axis=1)
+    st = res.stats[inner, 0, :3]
+    half = (st[..., 3] - st[..., 2]) / 2
+    sigma = s * np.linalg.norm(G, axis=1)
+    se = np.sqrt(0.025 * 0.975) / 0.05844 * sigma / np.sqrt(2 * n)
+    assert np.all(np.abs(half.mean(0) - Z * sigma) < 4 * se / np.sqrt(inner.sum()))
+    # geometric column: zero errors, zero field error
+    assert np.all(res.stats[inner, 1, :3, :] == 0.0)
+    # positioning std per axis is the vibration std, within its sampling error
+    np.testing.assert_allclose(
+        res.positioning[inner, 0, 1].mean(0), s, rtol=4 / np.sqrt(2 * n * inner.sum())
+    )
+    assert summarize(res)["up_um"][2] == pytest.approx(np.sqrt(3) * s * 1e3, rel=0.05)
+
+
+def test_reference_bench_splits_total_into_geometric_and_random_parts():
+    fm = grid_map(5)
+    res = run_sweep(fm, SweepConfig(trials=2000, seed=1, mode="htm"))
+    inner = np.all(np.abs(fm.points) < 1.5, axis=1)
+    u = res.stats[inner, :, :3, 1]  # (nodes, 3 columns, 3 components)
+    # independent parts add in quadrature (linear field): u_total^2 = u_geo^2 + u_random^2
+    np.testing.assert_allclose(u[:, 0] ** 2, u[:, 1] ** 2 + u[:, 2] ** 2, rtol=0.15)
+
+
+def test_nodes_out_of_the_bench_strokes_get_no_statistics():
+    fm = grid_map()
+    bench = read_reference_bench()
+    far = replace(
+        bench, magnet=replace(bench.magnet, translation_mm=np.array([148.0, 15.0, 900.0]))
+    )
+    res = run_sweep(fm, SweepConfig(trials=50, mode="htm", bench=far))
+    unreachable = fm.points[:, 0] > 2.0  # 148 + x > 150 mm stroke of X
+    assert np.isnan(res.stats[unreachable, 0, 3, 1]).all()
+    assert np.isfinite(
+        res.stats[~unreachable & np.all(np.abs(fm.points) < 2.5, axis=1), 0, 3, 1]
+    ).all()
+    assert any("outside the strokes" in n for n in summarize(res)["notes"])
