@@ -1,0 +1,205 @@
+"""Simulation against recordings (DESIGN.md 4.2 files).
+
+``--tracker REC.csv``: Table IV of the recording and of the kinematic Monte Carlo at the same
+commanded positions, per-point standardised residuals, the Fig. 12 view and ISO 230-2 for any
+bidirectional single-axis runs in the recording. ``--hall-map REC.csv --reference FIELD``: Table V
+of the map against the reference field (harmonics or FEM export) and of the coupled Monte Carlo,
+the Fig. 13 view. Writes DIR/compare.json, DIR/points.csv, DIR/report.html and PNG figures.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from ..compare import compare_hall, compare_tracker
+from ..coupled import field_budget
+from ..errors import CfmInputError
+from ..io.compare_out import (
+    hall_points_csv,
+    hall_summary,
+    tracker_points_csv,
+    tracker_summary,
+    write_run,
+)
+from ..io.provenance import provenance
+from ..io.recordings import read_hall_map, read_tracker
+from ..io.reference_field import read_reference
+from ..kinematics import uncertainty_budget
+from ..probe import HallProbe
+from ..report.runs import hall_report, tracker_report
+from ._progress import progress_bar
+from .coupled import add_common, check_common, load_bench
+
+NAME = "compare"
+HELP = "recordings against the simulation: Table IV / Fig. 12 (tracker), Table V / Fig. 13 (Hall)"
+
+
+def add_args(p):
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--tracker", metavar="REC.csv", help="laser-tracker recording")
+    src.add_argument("--hall-map", metavar="REC.csv", help="Hall-probe map recording")
+    p.add_argument(
+        "--reference",
+        metavar="FIELD",
+        help="reference field of a Hall map: harmonics .csv (n,Bn,An) or an FEM export",
+    )
+    p.add_argument(
+        "--tracker-u-um",
+        type=float,
+        default=0.0,
+        metavar="UM",
+        help="standard uncertainty of the tracker, added to the simulated std in the "
+        "residuals (default 0; the paper's LT: 5)",
+    )
+    p.add_argument(
+        "--no-budget",
+        action="store_true",
+        help="Hall map: skip the positioning-only / probe-only split",
+    )
+    add_common(p)
+
+
+def run(args) -> int:
+    check_common(args)
+    if args.hall_map and not args.reference:
+        raise CfmInputError("--hall-map needs --reference FIELD (harmonics .csv or FEM export)")
+    if args.tracker and args.reference:
+        raise CfmInputError("--reference applies to --hall-map only")
+    if not args.tracker_u_um >= 0:
+        raise CfmInputError(f"--tracker-u-um must be >= 0; got {args.tracker_u_um}")
+    bench, bench_note = load_bench(args)
+    if args.tracker:
+        return _tracker(args, bench, bench_note)
+    return _hall(args, bench, bench_note)
+
+
+def _tracker(args, bench, bench_note) -> int:
+    rec = read_tracker(args.tracker)
+    print(
+        f"cfm-fem compare: {args.tracker}: {len(rec)} readings; {args.trials} trials",
+        file=sys.stderr,
+    )
+    with progress_bar(None, "trials") as bar:
+        comp = compare_tracker(
+            rec,
+            bench,
+            trials=args.trials,
+            seed=args.seed,
+            tracker_u_um=args.tracker_u_um,
+            progress=bar.update,
+        )
+    if bench_note:
+        comp.notes.append(bench_note)
+    prov = provenance({"bench": args.bench, "tracker": args.tracker}, args.command_line)
+    summary = tracker_summary(
+        comp, bench, budget=uncertainty_budget(bench, comp.cmd), extra={"provenance": prov}
+    )
+    rep = tracker_report(comp, summary, args.command_line)
+    files = {"compare.json": summary, "points.csv": tracker_points_csv(comp)}
+    files.update(rep.images)
+    files["report.html"] = rep.render()
+    paths = write_run(args.out, files)
+    _print_tracker(summary)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
+def _hall(args, bench, bench_note) -> int:
+    rec = read_hall_map(args.hall_map)
+    ref = read_reference(args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
+    probe = HallProbe(model=args.probe)
+    _, pts = rec.point_cmd()
+    print(
+        f"cfm-fem compare: {args.hall_map}: {len(rec)} readings at {len(pts)} points; "
+        f"{args.trials} trials",
+        file=sys.stderr,
+    )
+    with progress_bar(len(pts), "points") as bar:
+        comp = compare_hall(
+            rec,
+            ref,
+            bench,
+            probe=probe,
+            trials=args.trials,
+            seed=args.seed,
+            align=args.align,
+            progress=bar.update,
+        )
+    if bench_note:
+        comp.notes.append(bench_note)
+    fb = None
+    if not args.no_budget:
+        fb = field_budget(
+            ref,
+            bench,
+            pts,
+            probe=probe,
+            trials=min(args.trials, 20_000),
+            seed=args.seed,
+            align=args.align,
+        )
+    prov = provenance(
+        {"bench": args.bench, "hall_map": args.hall_map, "reference": args.reference},
+        args.command_line,
+    )
+    summary = hall_summary(comp, bench, field_budget=fb, extra={"provenance": prov})
+    rep = hall_report(comp, summary, args.command_line)
+    files = {"compare.json": summary, "points.csv": hall_points_csv(comp)}
+    files.update(rep.images)
+    files["report.html"] = rep.render()
+    paths = write_run(args.out, files)
+    _print_hall(summary)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
+def _print_tracker(s: dict) -> None:
+    t = s["table_iv"]
+    print(
+        f"Table IV, E_p [um]: {s['points']} points, {s['readings']} readings; simulation "
+        f"{s['trials']} trials, seed {s['seed']}"
+    )
+    print(
+        f"{'axis':6}{'exp sys':>9}{'exp std':>9}{'sim sys':>9}{'sim std':>9}"
+        f"{'z RMS':>8}{'|z|>2':>7}  Fig. 12"
+    )
+    for r in s["fig12"]:
+        a = r["name"]
+        e, m = t["experiment"][a], t["simulation"][a]
+        pp = s["per_point"]
+        print(
+            f"{a.upper():6}{e['systematic_um']:9.1f}{e['std_um']:9.1f}{m['systematic_um']:9.1f}"
+            f"{m['std_um']:9.1f}{pp['z_rms'][a]:8.2f}{pp['fraction_abs_z_above_2'][a]:7.2f}  "
+            + ("overlap" if r["overlap"] else "NO overlap")
+        )
+    for line in s["iso230_2"]:
+        v = line["axis_values_um"]
+        print(
+            f"ISO 230-2 {line['axis'].upper()} at {line['fixed_mm']} mm: "
+            + ", ".join(f"{k} {v[k]:.2f}" for k in ("A", "E", "M", "R", "B", "B_mean"))
+            + " um"
+        )
+    for note in s["notes"]:
+        print(f"note: {note}")
+
+
+def _print_hall(s: dict) -> None:
+    t = s["table_v"]
+    print(
+        f"Table V, E_f [units of 1e-4 B_ref = {s['b_ref_T']:.6g} T]: {s['points']} points, "
+        f"{s['readings']} readings; simulation {s['trials']} trials, seed {s['seed']}"
+    )
+    print(
+        f"{'':8}{'exp sys':>9}{'exp std':>9}{'exp U_f':>9}{'sim sys':>9}{'sim std':>9}"
+        f"{'sim U_f':>9}  Fig. 13"
+    )
+    for r in s["fig13"]:
+        q = r["name"]
+        e, m = t["experiment"][q], t["simulation"][q]
+        print(
+            f"{q:8}{e['systematic_units']:9.2f}{e['std_units']:9.2f}{e['U_f_units']:9.2f}"
+            f"{m['systematic_units']:9.2f}{m['std_units']:9.2f}{m['U_f_units']:9.2f}  "
+            + ("overlap" if r["overlap"] else "NO overlap")
+        )
+    for note in s["notes"]:
+        print(f"note: {note}")

@@ -1,0 +1,246 @@
+"""Coupled mechanical-magnetic Monte Carlo (paper eq. 12-14): the field error E_f per point from
+the bench's positioning errors and the Hall probe together, pooled as the paper's Table V.
+
+Writes DIR/summary.json (Table V beside the paper, B_ref, R_ref, region, every assumption),
+DIR/points.csv (per point and component), DIR/report.html and its PNG figures.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from ..coupled import (
+    PAPER_TABLE_V,
+    FieldModel,
+    centred_on_travel,
+    default_region,
+    field_budget,
+    run_coupled,
+)
+from ..errors import CfmInputError
+from ..io.bench_toml import read_bench, read_reference_bench
+from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
+from ..io.harmonics import qfdp4_path, read_qfdp4
+from ..io.provenance import provenance
+from ..io.reference_field import read_reference
+from ..kinematics import uncertainty_budget
+from ..probe import HallProbe
+from ..report.runs import coupled_report
+from ._progress import progress_bar
+
+NAME = "coupled"
+HELP = "field error E_f from positioning and probe together (eq. 12-14): Table V"
+
+
+def add_common(p):
+    """Options shared with ``compare``: bench, probe, alignment, Monte Carlo."""
+    p.add_argument(
+        "--bench", metavar="B.toml", help="bench file (default: the CFM reference bench)"
+    )
+    p.add_argument(
+        "--trials",
+        type=int,
+        default=100_000,
+        metavar="N",
+        help="Monte Carlo trials (default 1e5; the paper used 1e6)",
+    )
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
+    p.add_argument(
+        "--probe",
+        choices=["paper", "table1"],
+        default="paper",
+        help="paper: S_HP uniform, std 0.15 %% (default); table1: every Table I line",
+    )
+    p.add_argument(
+        "--align",
+        choices=["placement", "probe"],
+        default="placement",
+        help="placement: magnet where the bench file puts it (bench offsets count); "
+        "probe: magnet located with the probe, per-trial common offset removed",
+    )
+    p.add_argument(
+        "--centre-magnet",
+        action="store_true",
+        help="move the magnet origin to mid-travel of X and Y (keeps its Z travel)",
+    )
+    p.add_argument(
+        "--b-ref",
+        type=float,
+        metavar="T",
+        help="B_ref of a field map (default max |B|); harmonics use the main harmonic",
+    )
+    p.add_argument(
+        "--r-ref",
+        type=float,
+        metavar="MM",
+        help="R_ref for a harmonics file that does not state it",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+
+
+def add_args(p):
+    p.add_argument(
+        "--field",
+        metavar="FIELD",
+        help="harmonics .csv (n,Bn,An) or FEM export (default: bundled QFDp4, Table III, "
+        "R_ref = 10 mm assumed)",
+    )
+    p.add_argument(
+        "--radius",
+        type=float,
+        metavar="MM",
+        help="scan region radius (default R_ref; for a map 0.8 x its transverse extent)",
+    )
+    p.add_argument(
+        "--step",
+        type=float,
+        default=2.0,
+        metavar="MM",
+        help="transverse grid step of the region (default 2 mm)",
+    )
+    p.add_argument(
+        "--z",
+        default=None,
+        metavar="Z1,Z2,..",
+        help="planes along the magnet axis, mm (default -100,-50,0,50,100; for a map "
+        "five planes over the middle half of its length)",
+    )
+    p.add_argument(
+        "--no-budget",
+        action="store_true",
+        help="skip the positioning-only / probe-only split (two extra runs)",
+    )
+    add_common(p)
+
+
+def check_common(args):
+    if args.trials < 20:
+        raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
+    if not 0 <= args.seed < 2**63:
+        raise CfmInputError(f"--seed must be in [0, 2**63); got {args.seed}")
+
+
+def load_bench(args):
+    """The bench (reference bench by default), centred when ``--centre-magnet``; and a note."""
+    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    if args.centre_magnet:
+        return centred_on_travel(bench), "magnet moved to mid-travel of X and Y (--centre-magnet)"
+    return bench, None
+
+
+def _parse_z(text):
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise CfmInputError(f"--z must be comma-separated numbers in mm; got {text!r}") from None
+
+
+def _region(args, fm: FieldModel):
+    z = None if args.z is None else _parse_z(args.z)
+    if fm.multipole is not None:
+        r = fm.multipole.r_ref if args.radius is None else args.radius
+        z = [-100.0, -50.0, 0.0, 50.0, 100.0] if z is None else z
+        what = f"R_ref = {fm.multipole.r_ref:g} mm" if args.radius is None else "--radius"
+    else:
+        pts = fm.interpolator.fieldmap.points
+        half = min(np.abs(pts[:, 0]).max(), np.abs(pts[:, 1]).max())
+        r = 0.8 * half if args.radius is None else args.radius
+        if z is None:
+            z0, z1 = pts[:, 2].min(), pts[:, 2].max()
+            z = list(np.linspace(0.75 * z0 + 0.25 * z1, 0.25 * z0 + 0.75 * z1, 5))
+        what = "0.8 x the map's transverse extent" if args.radius is None else "--radius"
+    if not (r > 0 and args.step > 0):
+        raise CfmInputError("--radius and --step must be > 0 mm")
+    pts = default_region(r, args.step, z)
+    desc = (
+        f"transverse grid step {args.step:g} mm inside r <= {r:g} mm ({what}), "
+        f"z planes {', '.join(f'{v:g}' for v in z)} mm (magnet frame); {len(pts)} points"
+    )
+    return pts, desc
+
+
+def run(args) -> int:
+    check_common(args)
+    bench, bench_note = load_bench(args)
+    if args.field is None:
+        fm = FieldModel.from_multipole(read_qfdp4())
+        field_path = qfdp4_path()
+    else:
+        fm = read_reference(args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
+        field_path = args.field
+    points, region = _region(args, fm)
+    probe = HallProbe(model=args.probe)
+    print(
+        f"cfm-fem coupled: {fm.describe()}; {region}; {args.trials} trials, seed {args.seed}, "
+        f"align {args.align}",
+        file=sys.stderr,
+    )
+    with progress_bar(len(points), "points") as bar:
+        res = run_coupled(
+            fm,
+            bench,
+            points,
+            probe=probe,
+            trials=args.trials,
+            seed=args.seed,
+            align=args.align,
+            region=region,
+            progress=bar.update,
+        )
+    fb = None
+    if not args.no_budget:
+        fb = field_budget(
+            fm,
+            bench,
+            points,
+            probe=probe,
+            trials=min(args.trials, 20_000),
+            seed=args.seed,
+            align=args.align,
+        )
+    if bench_note:
+        res.notes.append(bench_note)
+    prov = provenance({"bench": args.bench, "field": field_path}, args.command_line)
+    summary = coupled_summary(
+        res,
+        bench,
+        field_budget=fb,
+        bench_budget=uncertainty_budget(bench, res.q_cmd),
+        extra={"provenance": prov},
+    )
+    rep = coupled_report(res, summary, args.command_line)
+    files = {"summary.json": summary, "points.csv": coupled_points_csv(res)}
+    files.update(rep.images)
+    files["report.html"] = rep.render()
+    paths = write_run(args.out, files)
+    print_table_v(summary)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
+def print_table_v(s: dict) -> None:
+    """Table V of this run beside the paper's, with B_ref, R_ref and the region."""
+    t = s["table_v"]["simulated"]
+    print(f"E_f [units of 1e-4 B_ref], B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']})")
+    print(f"region: {s['region']}; {s['trials']} trials, seed {s['seed']}, align {s['align']}")
+    print(f"{'':26}{'systematic':>11}{'std':>8}{'U_f':>8}")
+    print(
+        f"{'this run':26}{t['systematic_units']:11.2f}{t['std_units']:8.2f}"
+        f"{t['U_f_units']:8.2f}   (num. u {t['systematic_num_u']:.2g} / {t['std_num_u']:.2g} / "
+        f"{t['U_f_num_u']:.2g})"
+    )
+    for label, key in (("paper, simulated", "simulation"), ("paper, experimental", "experiment")):
+        p = PAPER_TABLE_V[key]
+        print(f"{label:26}{p['systematic_units']:11.1f}{p['std_units']:8.1f}{p['U_f_units']:8.1f}")
+    fb = s.get("field_budget")
+    if fb:
+        for label, key in (("positioning only", "positioning_only"), ("probe only", "probe_only")):
+            d = fb[key]
+            print(
+                f"{label:26}{d['systematic_units']:11.2f}{d['std_units']:8.2f}"
+                f"{d['U_f_units']:8.2f}   ({fb['trials']} trials)"
+            )
+    for note in s["notes"]:
+        print(f"note: {note}")

@@ -1,0 +1,384 @@
+"""Tracker recordings and Hall maps in and out (the CSV contract of DESIGN.md 4.2).
+
+Comma separated, one header row, ``#`` comment lines anywhere, column names case-insensitive and in
+any order:
+
+=========  ====================================================================  =======
+kind       required columns                                                      units
+=========  ====================================================================  =======
+tracker    ``point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas``                mm
+hall       ``point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz``                            mm, T
+=========  ====================================================================  =======
+
+Optional: ``t_s`` (s), ``dir_x,dir_y,dir_z`` (-1, 0, +1; a missing one of the three is 0),
+``speed`` (mm/s, >= 0), ``temp_C``. Other columns are kept in ``Recording.extra`` and ignored.
+
+Rejected with a `CfmInputError` naming file, line and column: a missing required column, a
+repeated column, a field that is not a number, NaN or infinity, a non-integer ``point_id``/``rep``,
+a repeated (point_id, rep), a direction outside -1/0/+1, a negative speed, a row with the wrong
+number of fields, no data rows.
+"""
+
+from __future__ import annotations
+
+import csv
+import warnings
+
+import numpy as np
+
+from ..errors import CfmInputError, CfmInputWarning
+from ..recordings import Recording
+from ._atomic import atomic_path
+from ._parse import data_rows, parse_number, read_lines
+
+__all__ = [
+    "TRACKER_COLUMNS",
+    "HALL_COLUMNS",
+    "OPTIONAL_COLUMNS",
+    "read_tracker",
+    "read_hall_map",
+    "read_recording",
+    "write_tracker",
+    "write_hall_map",
+    "write_recording",
+]
+
+_KEY = ("point_id", "rep", "x_cmd", "y_cmd", "z_cmd")
+TRACKER_COLUMNS = _KEY + ("x_meas", "y_meas", "z_meas")
+HALL_COLUMNS = _KEY + ("Bx", "By", "Bz")
+OPTIONAL_COLUMNS = ("t_s", "dir_x", "dir_y", "dir_z", "speed", "temp_C")
+_REQUIRED = {"tracker": TRACKER_COLUMNS, "hall": HALL_COLUMNS}
+_WHAT = {"tracker": "a laser-tracker recording", "hall": "a Hall map"}
+#: Two rows of one point whose commands differ by more than this (mm) trigger a warning.
+CMD_TOLERANCE_MM = 1e-3
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_tracker(path) -> Recording:
+    """Read a laser-tracker recording.
+
+    Parameters
+    ----------
+    path : str or path-like
+        CSV with ``point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas`` (mm) and optional columns.
+
+    Returns
+    -------
+    Recording
+        ``kind="tracker"``, ``meas`` in mm (bench frame).
+
+    Raises
+    ------
+    CfmInputError
+        ``"<file>:<line>: column 'x_meas' must be a number; found 'abc'"`` and the like.
+    """
+    return _read(path, "tracker")
+
+
+def read_hall_map(path) -> Recording:
+    """Read a Hall-probe field map recording.
+
+    Parameters
+    ----------
+    path : str or path-like
+        CSV with ``point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz`` (mm in the magnet frame, T).
+
+    Returns
+    -------
+    Recording
+        ``kind="hall"``, ``B`` in T.
+
+    Raises
+    ------
+    CfmInputError
+        As `read_tracker`.
+    """
+    return _read(path, "hall")
+
+
+def read_recording(path) -> Recording:
+    """Read either kind, chosen from the header (``x_meas`` -> tracker, ``Bx`` -> Hall map)."""
+    lines = read_lines(path)
+    hline, names = _header(lines, path, "a recording")
+    low = {n.lower() for n in names}
+    if "bx" in low and "x_meas" not in low:
+        kind = "hall"
+    elif "x_meas" in low and "bx" not in low:
+        kind = "tracker"
+    else:
+        raise CfmInputError(
+            "cannot tell a tracker recording (x_meas,y_meas,z_meas) from a Hall map (Bx,By,Bz): "
+            f"the header names {', '.join(names)}",
+            file=path,
+            line=hline + 1,
+        )
+    return _read(path, kind, lines=lines)
+
+
+def _header(lines, path, what):
+    for i, text in enumerate(lines):
+        s = text.strip()
+        if s and not s.startswith("#"):
+            return i, [n.strip() for n in next(csv.reader([text]))]
+    raise CfmInputError(
+        f"no header row; expected {what} with a header row of column names", file=path
+    )
+
+
+def _read(path, kind, lines=None) -> Recording:
+    source = str(path)
+    lines = read_lines(path) if lines is None else lines
+    hidx, names = _header(lines, path, _WHAT[kind])
+    hline = hidx + 1
+    index = _column_index(names, kind, path, hline)
+    rows, row_lines = data_rows(lines, hidx + 1, comment_chars="#")
+    if not rows:
+        raise CfmInputError(
+            f"no data rows after the header (line {hline}); expected one row per acquisition",
+            file=path,
+            line=hline,
+        )
+    table = _split(rows, row_lines, names, path)  # list of columns of str
+
+    def num(col, *, finite=True):
+        return _numbers(table[index[col]], row_lines, names[index[col]], path, finite=finite)
+
+    def integer(col, lo=None, hi=None, what="an integer"):
+        v = num(col)
+        bad = (v != np.round(v)) | (np.abs(v) > 2**53)
+        if lo is not None:
+            bad |= (v < lo) | (v > hi)
+        if bad.any():
+            i = int(np.argmax(bad))
+            found = table[index[col]][i].strip()
+            raise CfmInputError(
+                f"column '{names[index[col]]}' must be {what}; found {found!r}",
+                file=path,
+                line=int(row_lines[i]),
+                column=names[index[col]],
+            )
+        return v.astype(np.int64)
+
+    point_id = integer("point_id")
+    rep = integer("rep")
+    _check_unique(point_id, rep, row_lines, path)
+    cmd = np.column_stack([num(c) for c in ("x_cmd", "y_cmd", "z_cmd")])
+    vals = np.column_stack([num(c) for c in _REQUIRED[kind][5:]])
+
+    def opt(col):
+        return num(col) if col in index else None
+
+    direction = None
+    if any(c in index for c in ("dir_x", "dir_y", "dir_z")):
+        zero = np.zeros(len(rows), dtype=np.int64)
+        direction = np.column_stack(
+            [
+                integer(c, -1, 1, "-1, 0 or +1 (approach direction)") if c in index else zero
+                for c in ("dir_x", "dir_y", "dir_z")
+            ]
+        ).astype(np.int8)
+    speed = opt("speed")
+    if speed is not None and np.any(speed < 0):
+        i = int(np.argmax(speed < 0))
+        raise CfmInputError(
+            f"column '{names[index['speed']]}' must be a speed >= 0 mm/s; found {speed[i]!r}",
+            file=path,
+            line=int(row_lines[i]),
+            column=names[index["speed"]],
+        )
+    known = set(index.values())
+    extra = {}
+    for j, name in enumerate(names):
+        if j not in known:
+            try:
+                extra[name] = np.asarray(table[j], dtype=np.float64)
+            except ValueError:
+                extra[name] = np.asarray([s.strip() for s in table[j]])
+    rec = Recording(
+        kind=kind,
+        point_id=point_id,
+        rep=rep,
+        cmd=cmd,
+        meas=vals if kind == "tracker" else None,
+        B=vals if kind == "hall" else None,
+        t_s=opt("t_s"),
+        dir=direction,
+        speed=speed,
+        temp_C=opt("temp_C"),
+        extra=extra,
+        source=source,
+        lines=row_lines,
+    )
+    _warn_inconsistent_cmd(rec, path)
+    return rec
+
+
+def _column_index(names, kind, path, hline) -> dict:
+    """Canonical column name -> position in the header; checks required and repeated names."""
+    canon = {c.lower(): c for c in _REQUIRED[kind] + OPTIONAL_COLUMNS}
+    index: dict[str, int] = {}
+    seen: dict[str, int] = {}
+    for j, name in enumerate(names):
+        key = name.lower()
+        if key in seen:
+            raise CfmInputError(
+                f"column '{name}' appears twice in the header (fields {seen[key] + 1} and {j + 1})",
+                file=path,
+                line=hline,
+                column=name,
+            )
+        seen[key] = j
+        if key in canon:
+            index[canon[key]] = j
+    missing = [c for c in _REQUIRED[kind] if c not in index]
+    if missing:
+        raise CfmInputError(
+            f"column '{missing[0]}' is missing; {_WHAT[kind]} needs the columns "
+            f"{','.join(_REQUIRED[kind])}; the header names {','.join(names)}",
+            file=path,
+            line=hline,
+            column=missing[0],
+        )
+    return index
+
+
+def _split(rows, row_lines, names, path) -> list[list[str]]:
+    """Fields of the rows, column by column; every row must have one field per column."""
+    n_names = len(names)
+    fields = list(csv.reader(rows))
+    for i, f in enumerate(fields):
+        n = len(f)
+        if n == n_names + 1 and not f[-1].strip():
+            f.pop()  # a trailing comma
+            n = n_names
+        if n != n_names:
+            if n < n_names:
+                what = (
+                    f"the row has {n} field(s) but the header names {n_names}; "
+                    f"column '{names[n]}' is missing (truncated line?)"
+                )
+                col = names[n]
+            else:
+                what = f"the row has {n} fields but the header names only {n_names}"
+                col = None
+            raise CfmInputError(what, file=path, line=int(row_lines[i]), column=col)
+    return [list(c) for c in zip(*fields, strict=True)]
+
+
+def _numbers(texts, row_lines, column, path, *, finite=True) -> np.ndarray:
+    try:
+        v = np.asarray(texts, dtype=np.float64)
+    except ValueError:
+        v = np.array(
+            [
+                parse_number(t, column=column, file=path, line=int(row_lines[i]))
+                for i, t in enumerate(texts)
+            ]
+        )
+    if finite and not np.all(np.isfinite(v)):
+        i = int(np.argmax(~np.isfinite(v)))
+        raise CfmInputError(
+            f"column '{column}' must be a finite number; found {texts[i].strip()}",
+            file=path,
+            line=int(row_lines[i]),
+            column=column,
+        )
+    return v
+
+
+def _check_unique(point_id, rep, row_lines, path) -> None:
+    key = np.column_stack([point_id, rep])
+    order = np.lexsort((rep, point_id))
+    k = key[order]
+    dup = np.flatnonzero(np.all(k[1:] == k[:-1], axis=1))
+    if dup.size:
+        a, b = sorted((int(row_lines[order[dup[0]]]), int(row_lines[order[dup[0] + 1]])))
+        pid, r = k[dup[0]]
+        raise CfmInputError(
+            f"(point_id, rep) = ({pid}, {r}) appears twice (lines {a} and {b}); "
+            "expected one row per point and repetition",
+            file=path,
+            line=b,
+            column="rep",
+        )
+
+
+def _warn_inconsistent_cmd(rec: Recording, path) -> None:
+    ids, index = rec.point_index()
+    lo = np.full((ids.size, 3), np.inf)
+    hi = np.full((ids.size, 3), -np.inf)
+    np.minimum.at(lo, index, rec.cmd)
+    np.maximum.at(hi, index, rec.cmd)
+    spread = (hi - lo).max(axis=1)
+    if np.any(spread > CMD_TOLERANCE_MM):
+        k = int(np.argmax(spread))
+        warnings.warn(
+            f"{path}: point_id {ids[k]} is commanded to positions up to {spread[k]:.4g} mm apart; "
+            "its rows are treated as one point (their mean command)",
+            CfmInputWarning,
+            stacklevel=3,
+        )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_tracker(path, rec: Recording, comments=()) -> None:
+    """Write a tracker `Recording` in the 4.2 layout, atomically; `read_tracker` reads it back.
+
+    Parameters
+    ----------
+    path : str or path-like
+    rec : Recording
+        ``kind="tracker"``.
+    comments : sequence of str
+        Lines written first, each prefixed with ``# ``.
+    """
+    if rec.kind != "tracker":
+        raise CfmInputError(f"write_tracker needs a tracker Recording; got kind {rec.kind!r}")
+    write_recording(path, rec, comments)
+
+
+def write_hall_map(path, rec: Recording, comments=()) -> None:
+    """Write a Hall-map `Recording` in the 4.2 layout, atomically; `read_hall_map` reads it back."""
+    if rec.kind != "hall":
+        raise CfmInputError(f"write_hall_map needs a hall Recording; got kind {rec.kind!r}")
+    write_recording(path, rec, comments)
+
+
+def write_recording(path, rec: Recording, comments=()) -> None:
+    """Write either kind (columns: required, then the optional ones present, then ``extra``)."""
+    n = len(rec)
+    cols: list[tuple[str, list[str]]] = [
+        ("point_id", [str(v) for v in rec.point_id.tolist()]),
+        ("rep", [str(v) for v in rec.rep.tolist()]),
+    ]
+    for j, c in enumerate(("x_cmd", "y_cmd", "z_cmd")):
+        cols.append((c, _floats(rec.cmd[:, j])))
+    for j, c in enumerate(_REQUIRED[rec.kind][5:]):
+        cols.append((c, _floats(rec.values[:, j])))
+    if rec.t_s is not None:
+        cols.append(("t_s", _floats(rec.t_s)))
+    if rec.dir is not None:
+        for j, c in enumerate(("dir_x", "dir_y", "dir_z")):
+            cols.append((c, [str(v) for v in rec.dir[:, j].astype(int).tolist()]))
+    if rec.speed is not None:
+        cols.append(("speed", _floats(rec.speed)))
+    if rec.temp_C is not None:
+        cols.append(("temp_C", _floats(rec.temp_C)))
+    for name, v in rec.extra.items():
+        v = np.asarray(v)
+        cols.append((name, _floats(v) if v.dtype.kind == "f" else [str(s) for s in v.tolist()]))
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as out:
+        for line in comments:
+            out.write(f"# {line}\n")
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow([c for c, _ in cols])
+        values = [v for _, v in cols]
+        writer.writerows([col[i] for col in values] for i in range(n))
+
+
+def _floats(a) -> list[str]:
+    return [repr(v) for v in np.asarray(a, dtype=np.float64).tolist()]

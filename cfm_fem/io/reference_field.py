@@ -1,0 +1,58 @@
+"""Read the reference field of a comparison: a harmonics file or any FEM export.
+
+A ``.csv`` whose header names the columns ``n``, ``Bn``, ``An`` is a harmonics file
+(`cfm_fem.io.harmonics.read_harmonics`); anything else goes to `cfm_fem.io.read_field`.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from ..coupled import FieldModel
+from . import read_field
+from ._parse import read_lines
+from .harmonics import read_harmonics
+
+__all__ = ["is_harmonics_file", "read_reference"]
+
+
+def is_harmonics_file(path) -> bool:
+    """True when ``path`` is a CSV whose first non-comment line names n, Bn and An."""
+    if Path(path).suffix.lower() != ".csv":
+        return False
+    for line in read_lines(path, max_bytes=65536):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            names = {n.strip().lower() for n in next(csv.reader([s]))}
+            return {"n", "bn", "an"} <= names
+    return False
+
+
+def read_reference(path, *, b_ref_T: float | None = None, r_ref_mm: float | None = None):
+    """The reference field as a `FieldModel`.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Harmonics file (``n, Bn, An``) or FEM export.
+    b_ref_T : float, optional
+        Reference field for units of a map (default max |B| of the map). For harmonics B_ref is
+        the main harmonic at R_ref and this must not be given.
+    r_ref_mm : float, optional
+        R_ref for a harmonics file that does not state it.
+
+    Returns
+    -------
+    FieldModel
+    """
+    from ..errors import CfmInputError
+
+    if is_harmonics_file(path):
+        if b_ref_T is not None:
+            raise CfmInputError(
+                "--b-ref applies to field maps; for harmonics B_ref is the main harmonic at R_ref",
+                file=path,
+            )
+        return FieldModel.from_multipole(read_harmonics(path, r_ref_mm=r_ref_mm))
+    return FieldModel.from_map(read_field(path), b_ref_T)

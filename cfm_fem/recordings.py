@@ -1,0 +1,175 @@
+"""Recordings of a real bench: laser-tracker positions or Hall-probe field maps (no I/O here).
+
+The file contract is DESIGN.md 4.2; :mod:`cfm_fem.io.recordings` reads and writes it. A
+`Recording` holds one row per acquisition (one point, one repetition) with the commanded axis
+positions and either the measured probe position (``kind="tracker"``) or the measured field
+(``kind="hall"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import CfmInputError
+
+__all__ = ["KINDS", "Recording"]
+
+KINDS = ("tracker", "hall")
+
+
+def _vec(a, name, n, dtype=np.float64):
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.shape != (n, 3):
+        raise CfmInputError(f"Recording.{name} must have shape ({n}, 3); instead {a.shape}")
+    return a
+
+
+def _col(a, name, n, dtype=np.float64):
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.shape != (n,):
+        raise CfmInputError(f"Recording.{name} must have shape ({n},); instead {a.shape}")
+    return a
+
+
+@dataclass
+class Recording:
+    """Rows of a tracker recording or a Hall map, converted to mm, T, s.
+
+    Attributes
+    ----------
+    kind : {"tracker", "hall"}
+    point_id : ndarray, shape (n,), int64
+        Target point of each row; rows of one point share ``cmd``.
+    rep : ndarray, shape (n,), int64
+        Repetition number; (point_id, rep) is unique.
+    cmd : ndarray, shape (n, 3), mm
+        Commanded axis positions (tracker: bench axis frame; Hall map: magnet frame).
+    meas : ndarray, shape (n, 3), mm, or None
+        Measured probe (reflector) position in the bench frame; tracker recordings only.
+    B : ndarray, shape (n, 3), T, or None
+        Measured field (Bx, By, Bz); Hall maps only.
+    t_s : ndarray, shape (n,), s, or None
+        Time since the start of the recording.
+    dir : ndarray, shape (n, 3), int8, or None
+        Approach direction of the last move per axis: -1, 0 (no move), +1.
+    speed : ndarray, shape (n,), mm/s, or None
+        Speed at acquisition, 0 for stop-and-go.
+    temp_C : ndarray, shape (n,), degC, or None
+    extra : dict of str to ndarray, shape (n,)
+        Other columns, kept (float64 when every value is a number, else str) and ignored.
+    source : str
+        Where the rows came from (file path or a description).
+    lines : ndarray, shape (n,), int64
+        1-based source line of each row (0 when not read from a file).
+    """
+
+    kind: str
+    point_id: np.ndarray
+    rep: np.ndarray
+    cmd: np.ndarray
+    meas: np.ndarray | None = None
+    B: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+    dir: np.ndarray | None = None
+    speed: np.ndarray | None = None
+    temp_C: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+    source: str = "<memory>"
+    lines: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise CfmInputError(f"Recording.kind must be one of {KINDS}; instead {self.kind!r}")
+        self.point_id = np.ascontiguousarray(self.point_id, dtype=np.int64).reshape(-1)
+        n = self.point_id.shape[0]
+        self.rep = _col(self.rep, "rep", n, np.int64)
+        self.cmd = _vec(self.cmd, "cmd", n)
+        if self.kind == "tracker":
+            if self.meas is None or self.B is not None:
+                raise CfmInputError("a tracker Recording needs meas (mm) and no B")
+            self.meas = _vec(self.meas, "meas", n)
+        else:
+            if self.B is None or self.meas is not None:
+                raise CfmInputError("a hall Recording needs B (T) and no meas")
+            self.B = _vec(self.B, "B", n)
+        for name in ("t_s", "speed", "temp_C"):
+            if getattr(self, name) is not None:
+                setattr(self, name, _col(getattr(self, name), name, n))
+        if self.dir is not None:
+            d = _vec(self.dir, "dir", n, np.int64)
+            if np.any(np.abs(d) > 1):
+                raise CfmInputError("Recording.dir values must be -1, 0 or +1")
+            self.dir = d.astype(np.int8)
+        self.extra = {k: np.asarray(v) for k, v in self.extra.items()}
+        for k, v in self.extra.items():
+            if v.shape != (n,):
+                raise CfmInputError(f"Recording.extra[{k!r}] must have shape ({n},); {v.shape}")
+        self.lines = (
+            np.zeros(n, dtype=np.int64)
+            if self.lines is None
+            else _col(self.lines, "lines", n, np.int64)
+        )
+
+    # ------------------------------------------------------------------ views
+
+    def __len__(self) -> int:
+        return int(self.point_id.shape[0])
+
+    @property
+    def values(self) -> np.ndarray:
+        """``meas`` (mm) for a tracker recording, ``B`` (T) for a Hall map; shape (n, 3)."""
+        return self.meas if self.kind == "tracker" else self.B
+
+    def point_ids(self) -> np.ndarray:
+        """Distinct point ids, sorted; shape (m,), int64."""
+        return np.unique(self.point_id)
+
+    def point_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """Distinct point ids and, per row, the index of its point in them.
+
+        Returns
+        -------
+        ids : ndarray, shape (m,), int64
+        index : ndarray, shape (n,), int64
+        """
+        ids, index = np.unique(self.point_id, return_inverse=True)
+        return ids, index.astype(np.int64)
+
+    def point_cmd(self) -> tuple[np.ndarray, np.ndarray]:
+        """Commanded position of every distinct point (the mean over its rows).
+
+        Returns
+        -------
+        ids : ndarray, shape (m,), int64
+        cmd : ndarray, shape (m, 3), mm
+        """
+        ids, index = self.point_index()
+        cmd = np.zeros((ids.size, 3))
+        np.add.at(cmd, index, self.cmd)
+        cmd /= np.bincount(index, minlength=ids.size)[:, None]
+        return ids, cmd
+
+    def select(self, mask) -> Recording:
+        """The rows where ``mask`` (bool (n,) or integer indices) holds, as a new Recording."""
+        idx = np.arange(len(self))[mask]
+
+        def take(a):
+            return None if a is None else a[idx]
+
+        return Recording(
+            kind=self.kind,
+            point_id=self.point_id[idx],
+            rep=self.rep[idx],
+            cmd=self.cmd[idx],
+            meas=take(self.meas),
+            B=take(self.B),
+            t_s=take(self.t_s),
+            dir=take(self.dir),
+            speed=take(self.speed),
+            temp_C=take(self.temp_C),
+            extra={k: v[idx] for k, v in self.extra.items()},
+            source=self.source,
+            lines=self.lines[idx],
+        )

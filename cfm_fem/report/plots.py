@@ -1,0 +1,214 @@
+"""Figures of the reports (matplotlib, Agg backend); every function returns PNG bytes.
+
+Figure analogues of the paper: Fig. 4 (U_f against U_p, and the map on the longitudinal plane),
+Fig. 10 (systematic positioning error over the volume), Fig. 12 / 13 (95 % intervals of simulation
+and experiment), and histograms of E_p and E_f with their coverage intervals.
+"""
+
+from __future__ import annotations
+
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = [
+    "png_bytes",
+    "hist_figure",
+    "interval_figure",
+    "fig4_curve",
+    "fig4_plane",
+    "fig10_systematic",
+    "residual_figure",
+]
+
+DPI = 110
+
+
+def png_bytes(fig) -> bytes:
+    """Render ``fig`` to PNG bytes and close it."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _hist(ax, x, low, high, label, unit, color="C0"):
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    ax.hist(x, bins=80, color=color, alpha=0.75, density=True)
+    for v, ls in ((low, "--"), (high, "--"), (float(np.mean(x)), "-")):
+        ax.axvline(v, color="k", ls=ls, lw=1)
+    ax.set_title(f"{label}: mean {np.mean(x):.3g}, 95 % [{low:.3g}, {high:.3g}]", fontsize=8)
+    ax.set_xlabel(unit, fontsize=8)
+    ax.tick_params(labelsize=7)
+
+
+def hist_figure(panels, title: str) -> bytes:
+    """Histograms with the mean (solid) and the 95 % interval (dashed).
+
+    Parameters
+    ----------
+    panels : sequence of (samples (M,), low, high, label, unit)
+    title : str
+    """
+    n = len(panels)
+    cols = 3 if n in (5, 6, 9) else min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols, 2.6 * rows), squeeze=False)
+    for k, (x, lo, hi, label, unit) in enumerate(panels):
+        _hist(axes[k // cols][k % cols], x, lo, hi, label, unit, color=f"C{k % 10}")
+    for k in range(n, rows * cols):
+        axes[k // cols][k % cols].set_visible(False)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def interval_figure(rows, unit: str, title: str, labels=("MC", "experiment")) -> bytes:
+    """Fig. 12 / 13 analogue: systematic -+ 2u of simulation and experiment per quantity.
+
+    Parameters
+    ----------
+    rows : list of dict
+        `cfm_fem.compare.interval_view` rows.
+    unit : str
+        Axis label unit.
+    """
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.4))
+    for i, r in enumerate(rows):
+        for j, (side, lab) in enumerate(zip(("sim", "exp"), labels, strict=True)):
+            d = r[side]
+            x = i + (-0.12 if j == 0 else 0.12)
+            ax.errorbar(
+                x,
+                d["systematic"],
+                yerr=[[d["systematic"] - d["low"]], [d["high"] - d["systematic"]]],
+                fmt="o" if j == 0 else "s",
+                color=f"C{j}",
+                capsize=4,
+                label=lab if i == 0 else None,
+            )
+        ax.annotate(
+            "overlap" if r["overlap"] else "NO overlap",
+            (i, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(0, -10),
+            textcoords="offset points",
+            ha="center",
+            fontsize=7,
+        )
+    ax.axhline(0, color="0.6", lw=0.8)
+    ax.set_xticks(range(len(rows)), [r["name"] for r in rows])
+    ax.set_ylabel(unit)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def fig4_curve(up_um, series: dict, paper=None, analytic=None) -> bytes:
+    """U_f (95 %) against U_p.
+
+    Parameters
+    ----------
+    up_um : sequence of float
+    series : dict of label -> sequence of float (units), one value per U_p
+    paper : dict of U_p -> U_f (units), optional
+        The paper's figures, drawn as crosses.
+    analytic : sequence of float, optional
+        1.96 U_p |grad |B|| / B_ref, dashed.
+    """
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for k, (lab, v) in enumerate(series.items()):
+        ax.plot(up_um, v, "o-", color=f"C{k}", label=lab)
+    if analytic is not None:
+        ax.plot(up_um, analytic, "k--", lw=1, label="1.96 U_p |grad|B|| / B_ref")
+    if paper:
+        ax.plot(list(paper), list(paper.values()), "rx", ms=9, mew=2, label="paper (its magnet)")
+    ax.set_xlabel("U_p [um]")
+    ax.set_ylabel("U_f (95 %) [units of 1e-4 B_ref]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def fig4_plane(points, uf, up_um, title: str) -> bytes:
+    """U_f on the longitudinal x-z plane, one panel per U_p (nodes near y = 0).
+
+    Parameters
+    ----------
+    points : ndarray, shape (k, 3), mm
+    uf : ndarray, shape (k, n_up), units
+    up_um : sequence of float
+    """
+    n = len(up_um)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(4.2 * cols, 2.6 * rows), squeeze=False, constrained_layout=True
+    )
+    vmax = float(np.nanmax(uf)) if np.isfinite(uf).any() else 1.0
+    for k, up in enumerate(up_um):
+        ax = axes[k // cols][k % cols]
+        sc = ax.scatter(
+            points[:, 2], points[:, 0], c=uf[:, k], s=4, cmap="viridis", vmin=0, vmax=vmax
+        )
+        ax.set_title(f"U_p = {up:g} um", fontsize=8)
+        ax.set_xlabel("z [mm]", fontsize=7)
+        ax.set_ylabel("x [mm]", fontsize=7)
+        ax.tick_params(labelsize=6)
+    for k in range(n, rows * cols):
+        axes[k // cols][k % cols].set_visible(False)
+    fig.colorbar(sc, ax=axes.ravel().tolist(), label="U_f [units]")
+    fig.suptitle(title, fontsize=9)
+    return png_bytes(fig)
+
+
+def fig10_systematic(points, mean_um, title: str) -> bytes:
+    """Fig. 10 analogue: systematic positioning error per point over the volume.
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3), mm
+        Commanded axis positions.
+    mean_um : ndarray, shape (m, 3), um
+        Systematic error per point and axis.
+    """
+    fig = plt.figure(figsize=(12.5, 3.2))
+    norm = np.sqrt((mean_um**2).sum(1))
+    panels = [(f"E_{a}", mean_um[:, k]) for k, a in enumerate("xyz")] + [("|E|", norm)]
+    for k, (name, v) in enumerate(panels):
+        ax = fig.add_subplot(1, 4, k + 1, projection="3d")
+        sc = ax.scatter(points[:, 0], points[:, 2], points[:, 1], c=v, cmap="coolwarm", s=12)
+        ax.set_xlabel("x", fontsize=7)
+        ax.set_ylabel("z", fontsize=7)
+        ax.set_zlabel("y", fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.set_title(f"systematic {name} [um]", fontsize=8)
+        cb = fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12)
+        cb.ax.tick_params(labelsize=6)
+    fig.suptitle(title, fontsize=9)
+    return png_bytes(fig)
+
+
+def residual_figure(z, labels, title: str) -> bytes:
+    """Histogram of standardised residuals per quantity against the standard normal."""
+    z = np.asarray(z, dtype=np.float64)
+    fig, axes = plt.subplots(1, z.shape[1], figsize=(3.0 * z.shape[1], 2.6), squeeze=False)
+    grid = np.linspace(-4, 4, 200)
+    for k, lab in enumerate(labels):
+        ax = axes[0][k]
+        v = z[:, k][np.isfinite(z[:, k])]
+        if v.size:
+            ax.hist(v, bins=20, density=True, alpha=0.7, color=f"C{k}")
+        ax.plot(grid, np.exp(-0.5 * grid**2) / np.sqrt(2 * np.pi), "k--", lw=1)
+        ax.set_title(f"{lab}: {np.mean(np.abs(v) > 2) * 100:.0f} % beyond |z| > 2", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return png_bytes(fig)
