@@ -22,6 +22,7 @@ from .errors import CfmInputError
 __all__ = [
     "dask_client",
     "dask_chunk_map",
+    "check_workers",
     "kinematics_supports_points",
     "run_kinematics_dask",
 ]
@@ -99,10 +100,44 @@ def _run_chunk(problem, start, stop):
     return problem.run_chunk(start, stop)
 
 
+def _fingerprint():
+    from .resume import code_fingerprint
+
+    return code_fingerprint()
+
+
+def check_workers(client) -> None:
+    """Refuse workers that run other cfm_fem code than this process (other numbers).
+
+    Raises
+    ------
+    CfmInputError
+        A worker cannot import cfm_fem, or its number-deciding sources differ from ours.
+    """
+    from .resume import code_fingerprint
+
+    mine = code_fingerprint()
+    try:
+        theirs = client.run(_fingerprint)
+    except Exception as exc:  # ModuleNotFoundError on the worker, comm errors, ...
+        raise CfmInputError(
+            f"the Dask workers cannot run cfm_fem ({type(exc).__name__}: {exc}); install the "
+            "same cfm_fem version in the workers' environment"
+        ) from None
+    other = sorted(addr for addr, fp in theirs.items() if fp != mine)
+    if other:
+        raise CfmInputError(
+            f"{len(other)} Dask worker(s) run other cfm_fem code than this process (first: "
+            f"{other[0]}); install the same cfm_fem version on the workers so that the numbers "
+            "are those of a single-process run"
+        )
+
+
 def dask_chunk_map(client):
     """Chunk mapper for `cfm_fem.sweep.run_sweep` that runs the chunks on ``client``'s cluster.
 
-    The `SweepProblem` is scattered once to every worker (broadcast); each chunk is one task;
+    The workers are first checked to run the same cfm_fem code (`check_workers`); the
+    `SweepProblem` is then scattered once to every worker (broadcast); each chunk is one task;
     results are yielded as they complete and released on the cluster at once.
 
     Parameters
@@ -119,6 +154,7 @@ def dask_chunk_map(client):
         chunks = [(int(a), int(b)) for a, b in chunks]
         if not chunks:
             return
+        check_workers(client)
         shared = client.scatter(problem, broadcast=True, hash=False)
         futures = {
             client.submit(_run_chunk, shared, a, b, pure=False, key=f"cfm-sweep-chunk-{a}-{b}"): (
@@ -189,6 +225,7 @@ def run_kinematics_dask(client, bench, trials, seed, *, exact=True, block_points
             "version does not have yet; run it without --scheduler/--workers"
         )
     distributed = _import_distributed()
+    check_workers(client)
     q = np.ascontiguousarray(bench.grid_points())
     npts = len(q)
     blocks = [(a, min(a + block_points, npts)) for a in range(0, npts, block_points)]

@@ -665,6 +665,7 @@ def run_kinematics(
     adaptive_digits: int | None = None,
     max_trials: int = 10_000_000,
     progress=None,
+    point_index=None,
 ) -> KinematicsResult:
     """Monte Carlo of the probe position error over the scan grid (paper section III-A).
 
@@ -710,6 +711,10 @@ def run_kinematics(
         Cap of the adaptive run.
     progress : callable(int), optional
         Called with the number of trials just processed in a pass (e.g. a tqdm ``update``).
+    point_index : ndarray, shape (n,), int, optional
+        Index of each point of ``q_cmd`` in the full grid: it keys the point's vibration and
+        delay stream, so a block of points run alone (e.g. on a Dask worker) draws the same
+        numbers as in the full run. Default 0 .. n-1.
 
     Returns
     -------
@@ -723,7 +728,12 @@ def run_kinematics(
         raise CfmInputError(f"at most 2**30 points; found {npts}")
     if adaptive_digits is None and int(trials) < 2:
         raise CfmInputError(f"trials must be >= 2; found {trials}")
-    pidx = np.arange(npts, dtype=np.int64)
+    if point_index is None:
+        pidx = np.arange(npts, dtype=np.int64)
+    else:
+        pidx = np.ascontiguousarray(point_index, dtype=np.int64)
+        if pidx.shape != (npts,):
+            raise CfmInputError(f"point_index must have shape ({npts},); found {pidx.shape}")
     block = BLOCK
     eng = _Engine(bench, seed, block)
     notes = []

@@ -33,10 +33,13 @@ __all__ = ["CompactSweep", "run_sweep_pieces", "partition", "piece_result"]
 
 @dataclass
 class CompactSweep(SweepResult):
-    """A `SweepResult` without the full statistics (``stats`` and ``gum_u`` are None).
+    """A `SweepResult` without the full statistics, for `cfm_fem.sweep.summarize`.
 
-    Gives `cfm_fem.sweep.summarize` the same values as the full result: ``uf_units``,
-    ``complete`` and the GUM-S1 flags of ``gum_check`` are kept per node.
+    ``uf_units``, ``complete`` and the GUM-S1 flags of ``gum_check`` are kept per node;
+    ``stats`` is a read-only view of shape (n, n_col, 4, 6) in which every entry of a node and
+    column holds the standard uncertainty of |B| (``stats[..., 3, 1]`` is exact, the other
+    entries are not statistics); ``gum_u`` is None. `tests/test_pieces.py` checks that the
+    summary equals that of the full result.
     """
 
     uf: np.ndarray | None = None
@@ -124,9 +127,11 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         disagree=np.zeros((n, n_col, 4), dtype=bool),
     )
     compact.sigma_mm = _sigma_mm(problem)
+    u_abs = np.full((n, n_col), np.nan)
     done = np.zeros(n, dtype=bool)
     for (a, b), parts in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
         part = _part_result(compact, np.arange(a, b), parts)
+        u_abs[a:b] = part.stats[:, :, 3, 1]
         compact.uf[a:b] = part.uf_units()
         compact.complete_[a:b] = part.complete()
         compact.disagree[a:b] = part.gum_check()[2]
@@ -138,6 +143,9 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
             progress(b - a)
     if not done.all():
         raise RuntimeError(f"{int((~done).sum())} nodes were not computed by the chunk mapper")
+    compact.stats = np.lib.stride_tricks.as_strided(
+        u_abs, shape=(n, n_col, 4, 6), strides=u_abs.strides + (0, 0), writeable=False
+    )
     compact.seconds = time.perf_counter() - t0
     return compact
 

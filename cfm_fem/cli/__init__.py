@@ -20,7 +20,7 @@ from ..errors import CfmInputError, CfmInputWarning
 __all__ = ["main"]
 
 #: Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["sweep", "kinematics", "tolerance", "coupled", "fig4", "compare"]
+_COMMANDS = ["sweep", "kinematics", "tolerance", "coupled", "fig4", "compare", "diagnose"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1

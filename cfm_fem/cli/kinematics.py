@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import sys
 
+from ..distributed import dask_client, run_kinematics_dask
 from ..errors import CfmInputError
 from ..io.bench_toml import read_bench, read_reference_bench
 from ..io.kinematics_out import PAPER_TABLE_IV, kinematics_summary, write_kinematics
 from ..io.provenance import provenance
 from ..kinematics import gum_check, run_kinematics, uncertainty_budget
 from ._progress import progress_bar
+from .sweep import add_scale_out_args
 
 NAME = "kinematics"
 HELP = "probe positioning error of the bench (21 errors, HTM, Monte Carlo): Table IV per point"
@@ -46,6 +48,7 @@ def add_args(p):
         action="store_true",
         help="skip the exact second pass; interval ends interpolated inside their slot",
     )
+    add_scale_out_args(p)
 
 
 def run(args) -> int:
@@ -64,19 +67,49 @@ def run(args) -> int:
         + f", seed {args.seed}",
         file=sys.stderr,
     )
-    total = None if args.adaptive else passes * args.trials
-    with progress_bar(total, "trials") as bar:
-        res = run_kinematics(
-            bench,
-            trials=args.trials,
-            seed=args.seed,
-            exact=not args.fast_intervals,
-            adaptive_digits=args.adaptive,
-            progress=bar.update,
+    on_dask = args.scheduler is not None or args.workers is not None
+    if on_dask and args.adaptive is not None:
+        raise CfmInputError(
+            "--adaptive stops on the pooled result of all points and cannot be split over Dask "
+            "workers; drop --scheduler/--workers or --adaptive"
         )
+    if on_dask:
+        with dask_client(args.scheduler, args.workers) as client:
+            with progress_bar(npts, "points") as bar:
+                res = run_kinematics_dask(
+                    client,
+                    bench,
+                    args.trials,
+                    args.seed,
+                    exact=not args.fast_intervals,
+                    progress=bar.update,
+                )
+    else:
+        total = None if args.adaptive else passes * args.trials
+        with progress_bar(total, "trials") as bar:
+            res = run_kinematics(
+                bench,
+                trials=args.trials,
+                seed=args.seed,
+                exact=not args.fast_intervals,
+                adaptive_digits=args.adaptive,
+                progress=bar.update,
+            )
     budget = uncertainty_budget(bench, res.q_cmd)
     gum = gum_check(bench, res)
     prov = provenance({"bench": args.bench}, args.command_line)
+    prov.update(
+        bench_name=bench.name,
+        seed=int(args.seed),
+        trials=int(res.trials),
+        backend=(
+            f"dask scheduler {args.scheduler}"
+            if args.scheduler
+            else f"dask LocalCluster, {args.workers} worker process(es)"
+            if args.workers
+            else "this process (numba threads)"
+        ),
+    )
     summary = kinematics_summary(res, bench, budget=budget, gum=gum, extra={"provenance": prov})
     paths = write_kinematics(args.out, res, bench, summary)
     print_table_iv(summary)

@@ -221,7 +221,13 @@ def run(args) -> int:
     bench_sha = file_sha256(args.bench) if args.bench else None
     description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
     runner = ResumableRun(args.out, description, resume=args.resume)
-    runner.check()
+    runner.check()  # a store made by another run: refuse before any work
+    if not args.resume and runner.store.completed():
+        print(
+            f"cfm-fem sweep: {len(runner.store.completed())} chunk(s) of an earlier run in "
+            f"{runner.store.path} are discarded (add --resume to continue that run instead)",
+            file=sys.stderr,
+        )
     try:
         with dask_client(args.scheduler, args.workers) as client:
             mapper = runner.mapper(None if client is None else dask_chunk_map(client))
@@ -230,14 +236,16 @@ def run(args) -> int:
                     res = run_sweep_pieces(fm, cfg, mapper, progress=bar.update)
                 else:
                     res = run_sweep(fm, cfg, progress=bar.update, map_chunks=mapper)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not _interrupted(exc):
+            raise
         if runner.store.completed():
             print(
                 f"cfm-fem sweep: {len(runner.store.completed())} finished chunk(s) kept in "
                 f"{runner.store.path}; run the same command with --resume to continue",
                 file=sys.stderr,
             )
-        raise
+        raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
     if args.resume:
         print(
             f"resumed: {runner.loaded} chunk(s) read from {runner.store.path}, "
@@ -267,6 +275,17 @@ def run(args) -> int:
     runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out)
     return 0
+
+
+def _interrupted(exc) -> bool:
+    """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _backend(args) -> str:

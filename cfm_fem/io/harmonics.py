@@ -221,11 +221,15 @@ def read_harmonics(
     """
     source = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        raw = Path(path).read_bytes()
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the harmonics file: {exc.strerror or exc}", file=source
         ) from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:  # not UTF-8: read as Latin-1 like the field-map readers
+        text = raw.decode("latin-1")
     return parse_harmonics(text, source=source, r_ref_mm=r_ref_mm, convention=convention, main=main)
 
 

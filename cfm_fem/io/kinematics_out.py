@@ -6,6 +6,7 @@ All writes are atomic (temporary name, then rename).
 from __future__ import annotations
 
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -101,10 +102,15 @@ def kinematics_summary(result, bench, budget=None, gum=None, extra=None) -> dict
     return doc
 
 
-def write_points_csv(path, result, bench) -> None:
-    """Per-point statistics, one row per point, um for errors, mm for positions."""
+def write_points_csv(path, result, bench, provenance: dict | None = None) -> None:
+    """Per-point statistics, one row per point, um for errors, mm for positions.
+
+    ``provenance`` (input hashes, version, command line) goes into a ``# provenance:`` line.
+    """
     buf = io.StringIO()
     buf.write(f"# cfm-fem kinematics: {bench.name}; trials={result.trials}; seed={result.seed}\n")
+    if provenance:
+        buf.write(f"# provenance: {json.dumps(provenance, sort_keys=True)}\n")
     buf.write("# bench frame, mm; errors E = actual - nominal probe position, um\n")
     buf.write(
         f"# intervals: {int(round(100 * result.p))} % probabilistically symmetric; "
@@ -138,8 +144,11 @@ def write_points_csv(path, result, bench) -> None:
     write_text(path, buf.getvalue())
 
 
-def write_points_vtu(path, result, bench) -> None:
-    """Point cloud at the nominal probe positions (bench frame, mm) with the statistics (um)."""
+def write_points_vtu(path, result, bench, provenance: dict | None = None) -> None:
+    """Point cloud at the nominal probe positions (bench frame, mm) with the statistics (um).
+
+    ``provenance`` goes into the field data ``provenance_utf8`` (JSON as UTF-8 byte values,
+    `cfm_fem.io.sweep_out.read_provenance` decodes it)."""
     pd = {
         "E_systematic_um": 1e3 * result.mean[:, :3],
         "E_std_um": 1e3 * result.std[:, :3],
@@ -153,6 +162,9 @@ def write_points_vtu(path, result, bench) -> None:
     }
     # numbers only (the bench and its assumptions are in summary.json and points.csv)
     fd = {"trials": result.trials, "seed": result.seed, "coverage_probability": result.p}
+    if provenance:
+        text = json.dumps(provenance, sort_keys=True).encode("utf-8")
+        fd["provenance_utf8"] = np.frombuffer(text, dtype=np.uint8).astype(np.float64)
     write_vtu(path, result.nominal, point_data=pd, field_data=fd)
 
 
@@ -169,7 +181,7 @@ def write_kinematics(out_dir, result, bench, summary: dict) -> dict:
         "csv": out / "points.csv",
         "vtu": out / "points.vtu",
     }
-    write_points_csv(paths["csv"], result, bench)
-    write_points_vtu(paths["vtu"], result, bench)
+    write_points_csv(paths["csv"], result, bench, summary.get("provenance"))
+    write_points_vtu(paths["vtu"], result, bench, summary.get("provenance"))
     write_json(paths["summary"], summary)
     return paths

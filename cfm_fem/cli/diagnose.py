@@ -1,0 +1,129 @@
+"""Find what the simulation left out: calibrate the bench model to tracker or Hall-map
+recordings, locate significant residuals, attribute them to catalogued physical effects by nested
+model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json
+(DESIGN.md 4.3), DIR/report.md with PNG plots, and residual maps DIR/residual_*.vtu.
+
+--reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
+'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
+itself (global, or in z windows).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from ..errors import CfmInputError
+from ._progress import progress_bar
+
+NAME = "diagnose"
+HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or Hall map)"
+
+
+def add_args(p):
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--tracker", metavar="REC.csv", help="laser-tracker recording (DESIGN 4.2)")
+    g.add_argument("--hall-map", metavar="REC.csv", help="Hall-probe map recording (DESIGN 4.2)")
+    p.add_argument("--reference", metavar="FIELD", help="reference field (Hall map only)")
+    p.add_argument("--bench", metavar="B.toml", help="bench file (default: the reference bench)")
+    p.add_argument("--b-ref", type=float, metavar="T", help="reference field of units (T)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+
+
+def _reference(spec, rec):
+    """(field function, b_ref, smooth, description)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
+
+    if spec.startswith(("fit:", "fitz:")):
+        try:
+            deg = int(spec.split(":", 1)[1])
+        except ValueError:
+            raise CfmInputError(f"--reference {spec}: expected fit:DEG, DEG an integer") from None
+        if not 1 <= deg <= 12:
+            raise CfmInputError(f"--reference {spec}: DEG must be 1..12")
+        fn = (fit_harmonic_field if spec.startswith("fit:") else fit_piecewise_harmonic)(
+            rec.cmd, rec.B, deg
+        )
+        return fn, float(np.abs(rec.B).max()), True, f"harmonic polynomial fit ({spec})"
+    path = Path(spec)
+    if not path.exists():
+        raise CfmInputError(f"--reference: no such file '{spec}'")
+    if path.suffix.lower() == ".csv":
+        from ..io.harmonics import read_harmonics
+
+        try:
+            mp = read_harmonics(path)
+            return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
+        except CfmInputError:
+            pass
+    from ..interpolation import LinearInterpolator
+    from ..io import read_field
+
+    fm = read_field(path)
+    interp = LinearInterpolator(fm)
+
+    def fn(p):
+        b, inside = interp.field_at(p)
+        return b
+
+    b, inside = interp.field_at(rec.cmd)
+    if not inside.all():
+        raise CfmInputError(
+            f"{rec.source}: {int((~inside).sum())} map points lie outside the reference "
+            f"field '{spec}'"
+        )
+    return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), False, f"FEM map {path.name}"
+
+
+def run(args) -> int:
+    from ..diagnose.problem import hall_problem, tracker_problem
+    from ..diagnose.report import figures, markdown
+    from ..diagnose.workflow import diagnose
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.diagnosis_out import write_diagnosis
+    from ..io.recordings import read_hall_map, read_tracker
+
+    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    if args.tracker:
+        if args.reference:
+            raise CfmInputError("--reference is for --hall-map only")
+        rec = read_tracker(args.tracker)
+        prob = tracker_problem(rec, bench)
+        src = args.tracker
+    else:
+        if not args.reference:
+            raise CfmInputError("--hall-map needs --reference FIELD")
+        rec = read_hall_map(args.hall_map)
+        fn, b_ref, smooth, desc = _reference(args.reference, rec)
+        if args.b_ref is not None:
+            if not args.b_ref > 0:
+                raise CfmInputError(f"--b-ref must be > 0; got {args.b_ref}")
+            b_ref = args.b_ref
+        prob = hall_problem(rec, fn, b_ref, bench, smooth=smooth)
+        prob.notes.append(f"reference: {desc}")
+        src = args.hall_map
+    print(f"cfm-fem diagnose: {len(rec)} rows from {src}", file=sys.stderr)
+    with progress_bar(None, "fits") as bar:
+        d = diagnose(prob, progress=bar.update)
+    s = d.summary
+    s["source"] = str(src)
+    paths = write_diagnosis(args.out, s, d.arrays, markdown(s, str(src)), figures(s, d.arrays))
+    fit = s["fit"]
+    print(f"mismatch: {s['mismatch']}")
+    for e in s["effects"]:
+        ps = ", ".join(
+            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}" for k, v in e["params"].items()
+        )
+        print(f"  {e['name']}: delta BIC {e['delta_bic']}; {ps}")
+    print(
+        f"RMS {fit['rms_before']:.3g} -> {fit['rms_after']:.3g} {fit['unit']}; chi2/dof "
+        f"{fit['chi2_dof_before']:.3g} -> {fit['chi2_dof_after']:.3g}; held-out RMS "
+        f"{fit['cv_rms_before']:.3g} -> {fit['cv_rms_after']:.3g}"
+    )
+    for a in s["advice"]:
+        print(f"advice: {a}")
+    print(f"wrote {paths['json']}, {paths['report']}, {paths['vtu_points']}")
+    return 0

@@ -1,0 +1,244 @@
+"""Linear-Gaussian MAP calibration: the engine under every fit of the diagnosis.
+
+The data are residuals ``y`` of shape (n, 3) (tracker: measured minus nominal probe position, mm;
+Hall map: measured minus reference field, T) with a standard deviation ``sigma`` of the same
+shape. A model is a set of columns ``J`` of shape (n, 3, p): the change of ``y`` per unit of
+each parameter, parameters in display units (um, urad, ppm, ...). Parameters may carry a Gaussian
+prior (mean, std; std = inf for none). The MAP estimate minimises
+
+    chi2(theta) = sum ((y - J theta) / sigma)**2 + sum ((theta - m0) / s0)**2
+
+solved as one augmented least-squares problem by SVD (rank-deficient combinations are
+regularised by the priors, or reported as non-identifiable when no prior holds them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Columns", "Fit", "fit_map", "identifiability"]
+
+
+@dataclass
+class Columns:
+    """A block of model columns with names, units and priors.
+
+    Attributes
+    ----------
+    J : ndarray, shape (n, 3, p)
+        Change of the residual per unit of each parameter (mm or T per display unit).
+    names : list of str, length p
+    units : list of str, length p
+    prior_mean : ndarray, shape (p,)
+    prior_std : ndarray, shape (p,)
+        ``inf`` for no prior.
+    group : str
+        Which block it is (``'bench'``, ``'registration'``, an effect name).
+    """
+
+    J: np.ndarray
+    names: list
+    units: list
+    prior_mean: np.ndarray
+    prior_std: np.ndarray
+    group: str
+
+    @property
+    def p(self) -> int:
+        return self.J.shape[-1]
+
+    def released(self, group: str) -> Columns:
+        """The same columns without priors (a 'prior release' effect)."""
+        return Columns(
+            self.J,
+            list(self.names),
+            list(self.units),
+            np.zeros(self.p),
+            np.full(self.p, np.inf),
+            group,
+        )
+
+
+def stack(blocks) -> Columns:
+    """Concatenate column blocks (group of the result: ``'+'``-joined)."""
+    blocks = list(blocks)
+    return Columns(
+        np.concatenate([b.J for b in blocks], axis=-1),
+        [n for b in blocks for n in b.names],
+        [u for b in blocks for u in b.units],
+        np.concatenate([b.prior_mean for b in blocks]),
+        np.concatenate([b.prior_std for b in blocks]),
+        "+".join(b.group for b in blocks),
+    )
+
+
+@dataclass
+class Fit:
+    """Result of :func:`fit_map`.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (p,)
+        MAP estimate, display units.
+    cov : ndarray, shape (p, p)
+        Posterior covariance (inverse of the augmented normal matrix, pseudo-inverse when
+        singular).
+    resid : ndarray, shape (n, 3)
+        y - J theta on all rows (held-out rows too).
+    chi2_data : float
+        Sum of squared standardised residuals over the fitted rows.
+    chi2_prior : float
+    n_obs : int
+        Number of fitted scalar observations.
+    edf : float
+        Effective number of fitted parameters, trace of the hat matrix (p minus prior shrinkage).
+    rank : int
+    singular_values : ndarray
+        Of the whitened augmented system.
+    """
+
+    theta: np.ndarray
+    cov: np.ndarray
+    resid: np.ndarray
+    chi2_data: float
+    chi2_prior: float
+    n_obs: int
+    edf: float
+    rank: int
+    singular_values: np.ndarray
+    vt: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def objective(self) -> float:
+        return self.chi2_data + self.chi2_prior
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.cov), 0, None))
+
+
+def fit_map(y, sigma, cols: Columns, mask=None, rcond: float = 1e-10) -> Fit:
+    """MAP estimate of the parameters of ``cols`` from the rows in ``mask``.
+
+    Parameters
+    ----------
+    y : ndarray, shape (n, 3)
+    sigma : ndarray, shape (n, 3)
+        Standard deviation of each observation (same unit as ``y``); inf drops it.
+    cols : Columns
+    mask : ndarray of bool, shape (n,), optional
+        Rows used for fitting (default all); residuals are returned for every row.
+    rcond : float
+        Relative cut-off of singular values (directions below it are left at the prior mean).
+
+    Returns
+    -------
+    Fit
+    """
+    y = np.asarray(y, dtype=np.float64)
+    n = y.shape[0]
+    mask = np.ones(n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    J = cols.J
+    w = 1.0 / np.asarray(sigma, dtype=np.float64)
+    A = (J[mask] * w[mask][..., None]).reshape(-1, cols.p)
+    b = (y[mask] * w[mask]).reshape(-1)
+    keep = np.isfinite(b)
+    A, b = A[keep], b[keep]
+    has_prior = np.isfinite(cols.prior_std) & (cols.prior_std > 0)
+    P = np.zeros(cols.p)
+    P[has_prior] = 1.0 / cols.prior_std[has_prior]
+    # column scaling for conditioning
+    scale = np.sqrt((A**2).sum(0) + P**2)
+    scale[scale == 0] = 1.0
+    prow = np.diag(P)[has_prior]
+    Aa = np.vstack([A, prow]) / scale
+    ba = np.concatenate([b, (cols.prior_mean * P)[has_prior]])
+    u, s, vt = np.linalg.svd(Aa, full_matrices=False)
+    good = s > rcond * s[0]
+    sinv = np.where(good, 1.0 / np.where(good, s, 1.0), 0.0)
+    z = vt.T @ (sinv * (u.T @ ba))
+    theta = z / scale
+    cov = (vt.T * sinv**2) @ vt / np.outer(scale, scale)
+    resid = y - np.einsum("nkp,p->nk", J, theta)
+    r = (resid[mask] * w[mask]).reshape(-1)[keep]
+    chi2_data = float(r @ r)
+    chi2_prior = float((((theta - cols.prior_mean) * P)[has_prior] ** 2).sum())
+    # effective dof: p - trace(cov * P^2)
+    edf = float(good.sum() - np.sum(np.diag(cov) * P**2))
+    return Fit(
+        theta=theta,
+        cov=cov,
+        resid=resid,
+        chi2_data=chi2_data,
+        chi2_prior=chi2_prior,
+        n_obs=int(keep.sum()),
+        edf=edf,
+        rank=int(good.sum()),
+        singular_values=s,
+        vt=vt,
+        scale=scale,
+    )
+
+
+def identifiability(y_sigma, cols: Columns, n_show: int = 5, tol: float = 1e-6) -> dict:
+    """What the data alone (no priors) can tell apart.
+
+    Parameters
+    ----------
+    y_sigma : ndarray, shape (n, 3)
+        Standard deviations of the observations.
+    cols : Columns
+    n_show : int
+        Number of null-space combinations and correlated pairs to report.
+    tol : float
+        Relative singular value below which a combination is called not identifiable.
+
+    Returns
+    -------
+    dict
+        ``condition_number`` (of the column-scaled data Jacobian, identifiable part),
+        ``rank``, ``n_params``, ``not_identifiable`` (list of combinations, each a dict of the
+        largest coefficients), ``correlated_pairs`` (largest |correlation| of the posterior).
+    """
+    w = 1.0 / y_sigma
+    A = (cols.J * w[..., None]).reshape(-1, cols.p)
+    A = A[np.isfinite(A).all(1)]
+    sc = np.sqrt((A**2).sum(0))
+    zero = sc == 0
+    sc[zero] = 1.0
+    _, s, vt = np.linalg.svd(A / sc, full_matrices=False)
+    good = s > tol * s[0]
+    rank = int(good.sum())
+    cond = float(s[0] / s[good][-1]) if rank else float("inf")
+    null = []
+    for v in vt[~good][:n_show]:
+        order = np.argsort(-np.abs(v))[:4]
+        null.append({cols.names[k]: round(float(v[k]), 3) for k in order if abs(v[k]) > 0.05})
+    null.extend({cols.names[k]: 1.0} for k in np.flatnonzero(zero)[:n_show])
+    return {
+        "condition_number": cond,
+        "rank": rank,
+        "n_params": cols.p,
+        "n_not_identifiable": int(cols.p - rank),
+        "not_identifiable": null[:n_show],
+    }
+
+
+def correlated_pairs(fit: Fit, names, n_show: int = 5, threshold: float = 0.9) -> list:
+    """Parameter pairs with the largest posterior |correlation| above ``threshold``."""
+    sd = fit.std
+    ok = sd > 0
+    c = fit.cov / np.outer(np.where(ok, sd, 1), np.where(ok, sd, 1))
+    iu = np.triu_indices(len(sd), 1)
+    vals = np.abs(c[iu])
+    order = np.argsort(-vals)
+    out = []
+    for k in order[:n_show]:
+        if vals[k] < threshold:
+            break
+        i, j = iu[0][k], iu[1][k]
+        out.append({"a": names[i], "b": names[j], "correlation": round(float(c[i, j]), 4)})
+    return out

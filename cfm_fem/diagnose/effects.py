@@ -1,0 +1,326 @@
+"""The catalogue of physical effects: each a small parametric model, linear in its parameters.
+
+Every builder takes a :class:`~cfm_fem.diagnose.problem.Problem` and returns either a
+:class:`~cfm_fem.diagnose.calibrate.Columns` block (change of the residual per unit of each
+physical parameter) or a string saying why the recording cannot test it (which is then turned into
+advice). Names follow DESIGN.md 4.3.
+
+Positioning (tracker), displacement of the probe in the bench frame:
+
+* ``thermal_drift``: screw/frame expansion growing with time (or temperature when logged):
+  E_a += tau (d_a + s_a q_a), d in um/h (um/K), s in ppm/h (ppm/K).
+* ``reversal``: backlash, E_a += b_a dir_a / 2 (b = full hysteresis width, um).
+* ``reading_delay``: position read late in on-the-fly scans, E_a += tau_ms 1e-3 speed dir_a.
+* ``position_dependent_geometric``: the 18 axis errors with linear and quadratic profiles in
+  the normalised axis position, through the HTM chain (um or urad at full stroke).
+* ``arm_deflection``: load-dependent sag of the probe: E_y -= c_x s(u_x) + c_z s(u_z),
+  s(u) = 16 u^2 (1 - u)^2 (moving load on a beam; c in um at mid-stroke).
+* ``parameter_bias``: the 21 errors free of their Table II PDFs (prior release).
+
+Field (Hall map), change of the measured field in the magnet frame:
+
+* ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad).
+* ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um).
+* ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
+* ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components.
+* ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %).
+* ``magnet_temperature``: Delta B = beta (T - T_mean) B (ppm/K; ppm/h against time without a
+  temperature log).
+* ``fringe_field_3d``: Delta B = (a1 zeta + a2 zeta^2) B, zeta = normalised z: a z-dependence that
+  a 2-D multipole cannot have (dimensionless, 1e-4).
+* ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24, um^2
+  ... reported as mm^2 x 1e-3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..bench import ERROR_NAMES
+from ..kinematics import probe_errors_for_bench
+from .calibrate import Columns
+from .problem import UM, URAD, field_hessian_diag
+
+__all__ = ["EFFECTS", "POSITIONING", "FIELD", "build", "ADVICE", "DESCRIPTION"]
+
+WIDE = 1e6  # prior std of effect parameters (display units): effectively none, keeps cov finite
+
+
+def _cols(J, names, units, group, std=WIDE):
+    p = J.shape[-1]
+    return Columns(J, names, units, np.zeros(p), np.full(p, float(std)), group)
+
+
+def _time_var(prob):
+    """Temperature change since the first acquisition (K) or time since start (h)."""
+    if prob.temp is not None and np.ptp(prob.temp) > 0:
+        first = np.argmin(prob.t_h) if prob.t_h is not None else 0
+        return prob.temp - prob.temp[first], "K"
+    if prob.t_h is not None and np.ptp(prob.t_h) > 0:
+        return prob.t_h, "h"
+    return None, None
+
+
+# ------------------------------------------------------------------ positioning
+
+
+def thermal_drift(prob):
+    tau, u = _time_var(prob)
+    if tau is None:
+        return "no time or temperature column (t_s, temp_C): drift cannot be told from noise"
+    n = prob.n
+    J = np.zeros((n, 3, 6))
+    q = prob.q - prob.q.mean(0)
+    for a in range(3):
+        J[:, a, a] = tau * UM
+        J[:, a, 3 + a] = tau * q[:, a] * 1e-6
+    names = [f"drift_{a}" for a in "xyz"] + [f"scale_drift_{a}" for a in "xyz"]
+    return _cols(J, names, [f"um/{u}"] * 3 + [f"ppm/{u}"] * 3, "thermal_drift")
+
+
+def reversal(prob):
+    if prob.dir is None:
+        return "no dir_x/dir_y/dir_z columns: backlash needs the approach direction"
+    d = prob.dir
+    ok = [a for a in range(3) if np.any(d[:, a] > 0) and np.any(d[:, a] < 0)]
+    if not ok:
+        return "every axis approached from one side only: backlash is a constant offset"
+    J = np.zeros((prob.n, 3, len(ok)))
+    for k, a in enumerate(ok):
+        J[:, a, k] = 0.5 * d[:, a] * UM
+    return _cols(J, [f"backlash_{'xyz'[a]}" for a in ok], ["um"] * len(ok), "reversal")
+
+
+def reading_delay(prob):
+    if prob.speed is None or prob.dir is None or not np.any(prob.speed > 0):
+        return "no on-the-fly acquisition (speed and dir columns): a delay has no signature"
+    J = np.zeros((prob.n, 3, 1))
+    J[:, :, 0] = prob.speed[:, None] * prob.dir * 1e-3  # tau in ms -> mm
+    return _cols(J, ["tau"], ["ms"], "reading_delay")
+
+
+def position_dependent_geometric(prob):
+    bench = prob.ctx["bench"]
+    q = prob.q
+    upts, inv = np.unique(np.round(q, 9), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    idx = [k for k, n in enumerate(ERROR_NAMES) if not n.startswith("alpha")]
+    cols, names, units = [], [], []
+    for order in (1, 2):
+        prof = np.zeros((21, order + 1))
+        prof[:, order] = 1.0
+        errs = tuple(
+            replace(e, profile=tuple(prof[k])) if k in idx else e
+            for k, e in enumerate(bench.errors)
+        )
+        b2 = replace(bench, errors=errs)
+        unit = np.array([URAD if ERROR_NAMES[k].startswith("eps") else UM for k in idx])
+        params = np.zeros((2 * len(idx), 21))
+        for i, k in enumerate(idx):
+            params[i, k] = unit[i]
+            params[len(idx) + i, k] = -unit[i]
+        e = probe_errors_for_bench(b2, params, upts)  # (2m, npts, 3)
+        d = (e[: len(idx)] - e[len(idx) :]) / 2.0  # per display unit
+        cols.append(np.moveaxis(d, 0, -1)[inv])
+        names += [f"{ERROR_NAMES[k]}_u{order}" for k in idx]
+        units += ["urad" if u == URAD else "um" for u in unit]
+    J = np.concatenate(cols, axis=-1)
+    return _cols(J, names, units, "position_dependent_geometric")
+
+
+def _sag(u):
+    return 16.0 * u**2 * (1.0 - u) ** 2
+
+
+def arm_deflection(prob):
+    bench = prob.ctx["bench"]
+    u = prob.q / bench.strokes_mm
+    J = np.zeros((prob.n, 3, 2))
+    J[:, 1, 0] = -_sag(u[:, 0]) * UM
+    J[:, 1, 1] = -_sag(u[:, 2]) * UM
+    return _cols(J, ["sag_x", "sag_z"], ["um", "um"], "arm_deflection")
+
+
+def parameter_bias(prob):
+    base = [b for b in prob.baseline if b.group == "bench"]
+    if not base:
+        return "no bench model"
+    return base[0].released("parameter_bias")
+
+
+# ------------------------------------------------------------------ field
+
+
+def probe_misalignment(prob):
+    B = prob.ctx["B0"]
+    J = np.zeros((prob.n, 3, 6))
+    names = []
+    k = 0
+    for i in range(3):
+        for j in range(3):
+            if i != j:
+                J[:, i, k] = B[:, j] * 1e-3
+                names.append(f"m_{'xyz'[i]}{'xyz'[j]}")
+                k += 1
+    return _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+
+
+def sensor_offset(prob):
+    G = prob.ctx["G"]
+    J = np.zeros((prob.n, 3, 9))
+    names = []
+    for i in range(3):
+        for j in range(3):
+            J[:, i, 3 * i + j] = G[:, i, j] * UM
+            names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
+    return _cols(J, names, ["um"] * 9, "sensor_offset")
+
+
+def magnet_misalignment(prob):
+    reg = [b for b in prob.baseline if b.group == "registration"]
+    return reg[0].released("magnet_misalignment")
+
+
+def planar_hall(prob):
+    B = prob.ctx["B0"]
+    J = np.zeros((prob.n, 3, 3))
+    for i in range(3):
+        j, k = [c for c in range(3) if c != i]
+        J[:, i, i] = B[:, j] * B[:, k]
+    return _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+
+
+def hall_offset_gain(prob):
+    B = prob.ctx["B0"]
+    J = np.zeros((prob.n, 3, 6))
+    for i in range(3):
+        J[:, i, i] = 1e-6
+        J[:, i, 3 + i] = B[:, i] * 1e-2
+    names = [f"offset_{a}" for a in "xyz"] + [f"gain_{a}" for a in "xyz"]
+    return _cols(J, names, ["uT"] * 3 + ["%"] * 3, "hall_offset_gain")
+
+
+def magnet_temperature(prob):
+    tau, u = _time_var(prob)
+    if tau is None:
+        return (
+            "no temperature log (temp_C) nor time (t_s): a magnet temperature change is a "
+            "uniform scale, the same as a common Hall gain"
+        )
+    B = prob.ctx["B0"]
+    J = (B * 1e-6 * tau[:, None])[..., None]
+    return _cols(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
+
+
+def fringe_field_3d(prob):
+    z = prob.pos[:, 2]
+    if np.ptp(z) <= 0:
+        return "a single z plane: no z-dependence to see"
+    zeta = (z - 0.5 * (z.max() + z.min())) / (0.5 * np.ptp(z))
+    B = prob.ctx["B0"]
+    J = np.stack([B * zeta[:, None] * 1e-4, B * zeta[:, None] ** 2 * 1e-4], axis=-1)
+    return _cols(J, ["a1", "a2"], ["1e-4", "1e-4"], "fringe_field_3d")
+
+
+def sensor_volume_averaging(prob):
+    if not prob.ctx.get("smooth", True):
+        return "the reference map is piecewise linear: no second derivatives to average"
+    ctx = prob.ctx
+    if "H" not in ctx:
+        ctx["H"] = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)[ctx["uinv"]]
+    H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
+    J = H * 1e-3  # w in 1e-3 mm^2
+    return _cols(J, [f"w_{a}" for a in "xyz"], ["1e-3 mm^2"] * 3, "sensor_volume_averaging")
+
+
+POSITIONING = {
+    "thermal_drift": thermal_drift,
+    "reversal": reversal,
+    "reading_delay": reading_delay,
+    "position_dependent_geometric": position_dependent_geometric,
+    "arm_deflection": arm_deflection,
+    "parameter_bias": parameter_bias,
+}
+FIELD = {
+    "probe_misalignment": probe_misalignment,
+    "sensor_offset": sensor_offset,
+    "magnet_misalignment": magnet_misalignment,
+    "planar_hall": planar_hall,
+    "hall_offset_gain": hall_offset_gain,
+    "magnet_temperature": magnet_temperature,
+    "fringe_field_3d": fringe_field_3d,
+    "sensor_volume_averaging": sensor_volume_averaging,
+}
+EFFECTS = {**POSITIONING, **FIELD}
+
+#: Effects whose model is a released prior of baseline parameters (no new signature).
+PRIOR_RELEASE = {"parameter_bias", "magnet_misalignment"}
+
+#: The measurement that reveals or separates each effect.
+ADVICE = {
+    "thermal_drift": "log the time (t_s) and the temperature (temp_C) of every acquisition, "
+    "and repeat a reference point through the run",
+    "reversal": "approach every point from both directions (dir_x, dir_y, dir_z columns)",
+    "reading_delay": "scan on the fly at a second speed (or stop-and-go): a delay scales with "
+    "speed, backlash does not",
+    "position_dependent_geometric": "measure straightness and angular errors along each axis "
+    "(laser interferometer/autocollimator, ISO 230-1) over the full stroke",
+    "arm_deflection": "repeat the map with an added mass on the arm: a deflection scales with "
+    "the load, a geometric error does not",
+    "parameter_bias": "re-measure the stages (metrology report) whose fitted errors leave their "
+    "PDFs",
+    "probe_misalignment": "rotate the probe by 180 deg about its axis (probe flip) in a known "
+    "field, or calibrate it in a uniform dipole field at several orientations",
+    "sensor_offset": "measure a known gradient field twice with the probe flipped: element "
+    "offsets change sign",
+    "magnet_misalignment": "survey the magnet fiducials with the laser tracker",
+    "planar_hall": "calibrate the probe in a rotating uniform field (planar Hall terms are "
+    "quadratic in the in-plane field)",
+    "hall_offset_gain": "zero the probe in a zero-gauss chamber and calibrate in a reference "
+    "dipole (NMR)",
+    "magnet_temperature": "log the magnet temperature (temp_C) during the map",
+    "fringe_field_3d": "use a 3-D reference (FEM map) near the magnet ends, or map the ends "
+    "separately",
+    "sensor_volume_averaging": "measure with a probe of a different sensitive volume, or where "
+    "the field curvature is largest",
+}
+
+DESCRIPTION = {
+    "thermal_drift": "time- or temperature-dependent offsets and scale of the axes",
+    "reversal": "backlash: error depends on the approach direction",
+    "reading_delay": "position read late during on-the-fly motion (speed x delay)",
+    "position_dependent_geometric": "axis errors that vary along the stroke (profiles in u, u^2)",
+    "arm_deflection": "load-dependent sag of the probe as the carriages move",
+    "parameter_bias": "the bench errors are outside their stated (Table II) PDFs",
+    "probe_misalignment": "the Hall elements are not along the magnet axes (component mixing)",
+    "sensor_offset": "the three Hall elements are not co-located (component-specific shifts)",
+    "magnet_misalignment": "magnet offset/roll beyond the survey (feed-down, normal/skew mix)",
+    "planar_hall": "planar Hall effect: quadratic in the in-plane field",
+    "hall_offset_gain": "Hall offsets and gains off their calibration",
+    "magnet_temperature": "field scale following temperature (or time)",
+    "fringe_field_3d": "z-dependence near magnet ends absent from a 2-D model",
+    "sensor_volume_averaging": "field averaged over the sensitive volume (curvature terms)",
+}
+
+
+def build(prob, names=None) -> tuple[dict, dict]:
+    """Build the candidate blocks applicable to ``prob``.
+
+    Returns
+    -------
+    blocks : dict name -> Columns
+    untestable : dict name -> reason
+    """
+    table = POSITIONING if prob.kind == "tracker" else FIELD
+    blocks, untestable = {}, {}
+    for name, fn in table.items():
+        if names is not None and name not in names:
+            continue
+        out = fn(prob)
+        if isinstance(out, str):
+            untestable[name] = out
+        elif out is not None:
+            blocks[name] = out
+    return blocks, untestable

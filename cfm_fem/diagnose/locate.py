@@ -1,0 +1,166 @@
+"""Locate the mismatch: standardised residuals and where they are significant.
+
+Per point and component, the mean residual over the repetitions is standardised by its predicted
+standard deviation (sigma / sqrt(R)) and tested two-sided; per-group means (repetition, time block,
+approach direction, speed, region of the volume) likewise. All p-values of one analysis form one
+family controlled by Benjamini-Hochberg at level ``q``. A global lack-of-fit F test compares the
+scatter of the point means with the pure error of the repetitions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from .problem import Problem
+
+__all__ = ["standardised", "locate", "benjamini_hochberg"]
+
+COMP = "xyz"
+
+
+def benjamini_hochberg(p, q: float) -> np.ndarray:
+    """Boolean mask of the discoveries of the BH step-up procedure at FDR ``q``."""
+    p = np.asarray(p, dtype=np.float64)
+    m = p.size
+    if m == 0:
+        return np.zeros(0, dtype=bool)
+    order = np.argsort(p)
+    thresh = q * np.arange(1, m + 1) / m
+    below = p[order] <= thresh
+    out = np.zeros(m, dtype=bool)
+    if below.any():
+        kmax = np.flatnonzero(below).max()
+        out[order[: kmax + 1]] = True
+    return out
+
+
+def standardised(prob: Problem, resid, sigma):
+    """Per-row z (n, 3) and per-point z of the mean over repetitions (m, 3)."""
+    z_row = resid / sigma
+    cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
+    zp = np.zeros((prob.n_points, 3))
+    for c in range(3):
+        s = np.bincount(prob.point, z_row[:, c], prob.n_points)
+        zp[:, c] = s / np.sqrt(np.maximum(cnt, 1))
+    return z_row, zp
+
+
+def _region_words(pos, sel, frame):
+    lo, hi = pos[sel].min(0), pos[sel].max(0)
+    span = pos.max(0) - pos.min(0)
+    parts = []
+    for a in range(3):
+        if span[a] > 0 and (hi[a] - lo[a]) < 0.6 * span[a]:
+            parts.append(f"{COMP[a]} in [{lo[a]:.0f}, {hi[a]:.0f}] mm")
+    return (", ".join(parts) or "spread over the whole volume") + f" ({frame})"
+
+
+def _groups(prob: Problem):
+    """(label, row mask) groupings whose means may deviate: reps, time, direction, speed, region."""
+    out = []
+    reps = np.unique(prob.rep)
+    if reps.size > 1:
+        for r in reps:
+            out.append((f"repetition {r}", prob.rep == r))
+    if prob.t_h is not None and np.ptp(prob.t_h) > 0:
+        edges = np.quantile(prob.t_h, np.linspace(0, 1, 6))
+        b = np.clip(np.searchsorted(edges, prob.t_h, side="right") - 1, 0, 4)
+        for k in range(5):
+            out.append((f"time block {k + 1}/5 (t {edges[k]:.2f}-{edges[k + 1]:.2f} h)", b == k))
+    if prob.dir is not None:
+        for a in range(3):
+            for s in (-1, 1):
+                m = prob.dir[:, a] == s
+                if 0 < m.sum() < prob.n:
+                    out.append((f"approach {'+' if s > 0 else '-'}{COMP[a]}", m))
+    if prob.speed is not None:
+        sp = np.unique(prob.speed)
+        if sp.size > 1:
+            for s in sp:
+                out.append((f"speed {s:g} mm/s", prob.speed == s))
+    return out
+
+
+def locate(prob: Problem, resid, sigma, q: float = 0.01, frame: str = "", edf: float = 0.0) -> dict:
+    """Where the residuals are significant.
+
+    Returns
+    -------
+    dict
+        ``located``: list of 4.3 entries (component, where, n_points, max_abs_z), strongest first;
+        ``z_point`` (m, 3), ``z_row`` (n, 3), ``significant_point`` (m, 3) bool, ``lack_of_fit``
+        (F, p per component), ``groups`` (label, component, z, significant).
+    """
+    z_row, zp = standardised(prob, resid, sigma)
+    p_pt = 2 * stats.norm.sf(np.abs(zp))
+    group_list = _groups(prob)
+    gz = []
+    for label, m in group_list:
+        for c in range(3):
+            # group mean of within-point deviations: removes the point means, keeps rep structure
+            gz.append((label, c, float(z_row[m, c].sum() / np.sqrt(m.sum()))))
+    # within-point centred z for group tests (point means are tested separately)
+    cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
+    if prob.n_reps >= 2 and group_list:
+        gz = []
+        zc = np.empty_like(z_row)
+        for c in range(3):
+            mean = np.bincount(prob.point, z_row[:, c], prob.n_points) / np.maximum(cnt, 1)
+            zc[:, c] = z_row[:, c] - mean[prob.point]
+        for label, m in group_list:
+            for c in range(3):
+                # variance of a sum of centred z over the rows: sum (1 - 1/R_i) for disjoint reps
+                v = np.sum(1 - 1 / cnt[prob.point[m]])
+                gz.append((label, c, float(zc[m, c].sum() / np.sqrt(max(v, 1e-12)))))
+    p_g = np.array([2 * stats.norm.sf(abs(z)) for _, _, z in gz])
+    allp = np.concatenate([p_pt.reshape(-1), p_g])
+    disc = benjamini_hochberg(allp, q)
+    sig_pt = disc[: p_pt.size].reshape(p_pt.shape)
+    sig_g = disc[p_pt.size :]
+    located = []
+    upos = np.zeros((prob.n_points, 3))
+    np.add.at(upos, prob.point, prob.pos)
+    upos /= np.maximum(cnt, 1)[:, None]
+    for c in range(3):
+        sel = sig_pt[:, c]
+        if sel.any():
+            located.append(
+                {
+                    "component": COMP[c],
+                    "where": _region_words(upos, sel, frame),
+                    "n_points": int(sel.sum()),
+                    "max_abs_z": round(float(np.abs(zp[sel, c]).max()), 2),
+                    "mean_z": round(float(zp[sel, c].mean()), 2),
+                }
+            )
+    for (label, c, z), s in zip(gz, sig_g, strict=True):
+        if s:
+            located.append(
+                {
+                    "component": COMP[c],
+                    "where": label,
+                    "n_points": int(len(np.unique(prob.point[dict(group_list)[label]]))),
+                    "max_abs_z": round(abs(z), 2),
+                    "mean_z": round(z, 2),
+                }
+            )
+    located.sort(key=lambda d: -d["max_abs_z"])
+    lof = []
+    if prob.n_reps >= 2:
+        for c in range(3):
+            ss_lof = float((zp[:, c] ** 2).sum())
+            dof1 = max(prob.n_points - edf / 3.0, 1.0)
+            F = ss_lof / dof1
+            # pure-error z are unit variance by construction of sigma; F ~ chi2(m)/m
+            p = float(stats.chi2.sf(ss_lof, dof1))
+            lof.append({"component": COMP[c], "F": round(F, 4), "p": p})
+    return {
+        "located": located,
+        "z_point": zp,
+        "z_row": z_row,
+        "significant_point": sig_pt,
+        "lack_of_fit": lof,
+        "groups": [(lb, COMP[c], z, bool(s)) for (lb, c, z), s in zip(gz, sig_g, strict=True)],
+        "point_pos": upos,
+    }

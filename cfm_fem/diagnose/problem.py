@@ -1,0 +1,351 @@
+"""From a recording to a diagnosis problem: residuals, positions, aux columns, baseline model.
+
+Tracker: y = measured - nominal probe position (bench frame, mm); baseline = the 21 geometric
+errors (exact HTM chain, linearised at zero, Table II priors) + the tracker-to-bench registration
+(3 translations, 3 small rotations about the centroid of the points).
+
+Hall map: y = measured - reference field (magnet frame, T); baseline = the 21 errors seen through
+the field gradient, the magnet-to-bench registration (translation, small rotation about the
+magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..bench import AXES, ERROR_NAMES, Bench
+from ..kinematics import sensitivities
+from .calibrate import Columns
+
+__all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]
+
+UM, URAD = 1e-3, 1e-6  # display units of the bench errors (mm, rad per unit)
+
+
+@dataclass
+class Problem:
+    """Everything the diagnosis needs, independent of file formats.
+
+    Attributes
+    ----------
+    kind : {'tracker', 'hall'}
+    y : ndarray, shape (n, 3)
+        Residual to explain (mm or T).
+    pos : ndarray, shape (n, 3), mm
+        Position of each row for maps and regions (bench frame or magnet frame).
+    q : ndarray, shape (n, 3), mm
+        Commanded axis positions (bench axes).
+    point : ndarray, shape (n,), int
+        Index of the distinct point of each row.
+    rep : ndarray, shape (n,), int
+    t_h, speed, temp : ndarray, shape (n,), or None
+        Time (h), speed (mm/s), temperature (degC).
+    dir : ndarray, shape (n, 3), or None
+    to_display : float
+        Factor from the unit of ``y`` to the reported unit (``unit``).
+    unit : str
+    var_known : ndarray, shape (n, 3)
+        Variance known from the bench model (vibration + delay through the gradient), y units^2.
+    baseline : list of Columns
+    ctx : dict
+        Model pieces the effect catalogue needs (field values, gradients, bench).
+    notes : list of str
+    """
+
+    kind: str
+    y: np.ndarray
+    pos: np.ndarray
+    q: np.ndarray
+    point: np.ndarray
+    rep: np.ndarray
+    t_h: np.ndarray | None
+    dir: np.ndarray | None
+    speed: np.ndarray | None
+    temp: np.ndarray | None
+    to_display: float
+    unit: str
+    var_known: np.ndarray
+    baseline: list
+    ctx: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return self.y.shape[0]
+
+    @property
+    def n_points(self) -> int:
+        return int(self.point.max()) + 1
+
+    @property
+    def n_reps(self) -> int:
+        return int(np.bincount(self.point).max())
+
+
+def _aux(rec):
+    t_h = None if rec.t_s is None else rec.t_s / 3600.0
+    d = None if rec.dir is None else rec.dir.astype(np.float64)
+    return t_h, d, rec.speed, rec.temp_C
+
+
+def bench_columns(bench: Bench, q, lever_to=None) -> Columns:
+    """The 21 errors as columns (n, 3, 21) of probe displacement, mm per um or urad.
+
+    ``lever_to``: optional (n, 3, 3) matrix applied to the displacement (gradient for a Hall map).
+    """
+    upts, inv = np.unique(np.round(q, 9), axis=0, return_inverse=True)
+    s = sensitivities(bench, upts, at=np.zeros(len(ERROR_NAMES)))  # (m, 3, 21) mm/mm, mm/rad
+    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
+    J = s[inv.reshape(-1)] * unit
+    if lever_to is not None:
+        J = np.einsum("nij,njp->nip", lever_to, J)
+    mean = bench.error_means() / unit
+    std = bench.error_stds() / unit
+    std = np.where(std > 0, std, 1e-6)
+    units = ["urad" if u == URAD else "um" for u in unit]
+    return Columns(J, list(ERROR_NAMES), units, mean, std, "bench")
+
+
+def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: float = 1e-3):
+    """Problem of a laser-tracker recording (bench frame, mm).
+
+    Parameters
+    ----------
+    rec : Recording, kind 'tracker'
+    bench : Bench
+    reg_std_mm, reg_std_rad : float
+        Prior std of the tracker-to-bench registration (translation mm, rotation rad).
+    """
+    ids, point = np.unique(rec.point_id, return_inverse=True)
+    q = rec.cmd
+    nominal = bench.nominal_probe_mm(q)
+    y = rec.meas - nominal
+    n = len(rec)
+    base = bench_columns(bench, q)
+    c = nominal - nominal.mean(0)
+    reg = np.zeros((n, 3, 6))
+    for a in range(3):
+        reg[:, a, a] = UM
+    for a in range(3):  # small rotation about axis a: omega x c
+        e = np.zeros(3)
+        e[a] = URAD
+        reg[:, :, 3 + a] = np.cross(e, c)
+    regc = Columns(
+        reg,
+        ["t_x", "t_y", "t_z", "rot_x", "rot_y", "rot_z"],
+        ["um"] * 3 + ["urad"] * 3,
+        np.zeros(6),
+        np.r_[np.full(3, reg_std_mm / UM), np.full(3, reg_std_rad / URAD)],
+        "registration",
+    )
+    t_h, d, speed, temp = _aux(rec)
+    notes = [
+        "tracker residual = measured - (commanded + mounts + tool offset), bench frame",
+        f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (1 sigma)",
+    ]
+    return Problem(
+        kind="tracker",
+        y=y,
+        pos=nominal,
+        q=q,
+        point=point.reshape(-1),
+        rep=rec.rep,
+        t_h=t_h,
+        dir=d,
+        speed=speed,
+        temp=temp,
+        to_display=1e3,
+        unit="um",
+        var_known=np.zeros_like(y),
+        baseline=[base, regc],
+        ctx={"bench": bench, "nominal": nominal, "point_ids": ids},
+        notes=notes,
+    )
+
+
+def field_jacobian(f, p, h: float = 0.5) -> np.ndarray:
+    """Central-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm."""
+    out = np.empty((len(p), 3, 3))
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        out[:, :, j] = (f(p + e) - f(p - e)) / (2 * h)
+    return out
+
+
+def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
+    """d^2 B_i / dx_j^2 by central differences, shape (n, 3, 3) [i, j], T/mm^2."""
+    b0 = f(p)
+    out = np.empty((len(p), 3, 3))
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        out[:, :, j] = (f(p + e) - 2 * b0 + f(p - e)) / h**2
+    return out
+
+
+def hall_problem(
+    rec,
+    field_fn,
+    b_ref: float,
+    bench: Bench | None,
+    reg_std_mm: float = 0.05,
+    reg_std_rad: float = 1e-4,
+    gain_std_pct: float = 0.15,
+    smooth: bool = True,
+    h: float = 0.5,
+):
+    """Problem of a Hall map against a reference field.
+
+    Parameters
+    ----------
+    rec : Recording, kind 'hall'
+    field_fn : callable
+        ``field_fn(points (k, 3) mm, magnet frame) -> B (k, 3) T``.
+    b_ref : float, T
+        Reference field of 'units' (1e-4 b_ref).
+    bench : Bench or None
+        None: no positioning-error columns (bench unknown).
+    reg_std_mm, reg_std_rad : float
+        Prior std of the magnet-to-bench registration (survey after alignment).
+    gain_std_pct : float
+        Prior std of each Hall element's gain (S_HP of Table I), percent.
+    smooth : bool
+        False for piecewise-linear references (second derivatives not used).
+    h : float, mm
+        Step of the finite-difference gradient.
+    """
+    ids, point = np.unique(rec.point_id, return_inverse=True)
+    point = point.reshape(-1)
+    p = rec.cmd
+    upts, uinv = np.unique(np.round(p, 9), axis=0, return_inverse=True)
+    uinv = uinv.reshape(-1)
+    B0u = field_fn(upts)
+    Gu = field_jacobian(field_fn, upts, h)
+    B0, G = B0u[uinv], Gu[uinv]
+    y = rec.B - B0
+    n = len(rec)
+    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T"]
+    blocks = []
+    var_known = np.zeros_like(y)
+    q = np.zeros_like(p)
+    if bench is not None:
+        q = bench.axis_positions_for(p)
+        if np.any(bench.outside_stroke(q)):
+            span = p.max(0) - p.min(0)
+            if np.any(span > bench.strokes_mm):
+                notes.append(
+                    "the map is larger than the bench strokes: positioning errors not modelled"
+                )
+                bench = None
+            else:
+                q = q - q.mean(0) + bench.strokes_mm / 2
+                notes.append(
+                    "bench magnet placement puts the map outside the strokes; the map was "
+                    "centred in the working volume (assumption)"
+                )
+    if bench is not None:
+        R = bench.bench_to_magnet_rotation()
+        lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
+        blocks.append(bench_columns(bench, q, lever_to=lever))
+        nv = bench.noise_std_mm() ** 2
+        var_known = np.einsum("nik,k->ni", lever**2, nv)
+    reg = np.zeros((n, 3, 6))
+    reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = URAD
+        reg[:, :, 3 + a] = np.cross(e, B0) - np.einsum("nij,nj->ni", G, np.cross(e, p))
+    blocks.append(
+        Columns(
+            reg,
+            ["magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll"],
+            ["um"] * 3 + ["urad"] * 3,
+            np.zeros(6),
+            np.r_[np.full(3, reg_std_mm / UM), np.full(3, reg_std_rad / URAD)],
+            "registration",
+        )
+    )
+    gain = np.zeros((n, 3, 3))
+    for i in range(3):
+        gain[:, i, i] = B0[:, i] * 1e-2
+    blocks.append(
+        Columns(
+            gain,
+            ["gain_x", "gain_y", "gain_z"],
+            ["%"] * 3,
+            np.zeros(3),
+            np.full(3, gain_std_pct),
+            "probe",
+        )
+    )
+    notes.append(
+        f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
+        f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
+    )
+    t_h, d, speed, temp = _aux(rec)
+    ctx = {
+        "B0": B0,
+        "G": G,
+        "field_fn": field_fn,
+        "b_ref": b_ref,
+        "smooth": smooth,
+        "upts": upts,
+        "uinv": uinv,
+        "point_ids": ids,
+        "bench": bench,
+    }
+    return Problem(
+        kind="hall",
+        y=y,
+        pos=p,
+        q=q,
+        point=point,
+        rep=rec.rep,
+        t_h=t_h,
+        dir=d,
+        speed=speed,
+        temp=temp,
+        to_display=1e4 / b_ref,
+        unit="units",
+        var_known=var_known,
+        baseline=blocks,
+        ctx=ctx,
+        notes=notes,
+    )
+
+
+def noise_sigma(prob: Problem, resid, edf: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-observation sigma from the within-point scatter of the residuals.
+
+    sigma_ic**2 = a_c + var_known_ic, a_c from the pooled within-point variance of ``resid``
+    (pure error; model independent for effects that do not vary between repetitions). With one
+    repetition per point, a_c comes from the residuals themselves (dof n - edf).
+
+    Returns
+    -------
+    sigma : ndarray, shape (n, 3)
+    a : ndarray, shape (3,)
+        The estimated white-noise variance per component (y units^2).
+    """
+    cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
+    a = np.zeros(3)
+    if prob.n_reps >= 2:
+        for c in range(3):
+            m = np.bincount(prob.point, resid[:, c], prob.n_points) / np.maximum(cnt, 1)
+            dev = resid[:, c] - m[prob.point]
+            dof = np.sum(cnt - 1)
+            known = np.sum(prob.var_known[:, c] * (cnt[prob.point] - 1) / cnt[prob.point])
+            a[c] = (dev @ dev - known) / dof
+    else:
+        dof = max(prob.n - edf / 3.0, 1.0)
+        for c in range(3):
+            a[c] = (resid[:, c] @ resid[:, c] - prob.var_known[:, c].sum()) / dof
+    floor = 1e-6 * max(float(np.mean(np.abs(prob.y))) ** 2, 1e-30)
+    a = np.maximum(a, floor)
+    return np.sqrt(a[None, :] + prob.var_known), a
+
+
+__all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]

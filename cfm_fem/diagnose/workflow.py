@@ -1,0 +1,261 @@
+"""The diagnosis workflow: calibrate, locate, attribute, model, advise (issue 5).
+
+``diagnose(problem)`` returns a :class:`Diagnosis` whose ``summary`` is the DESIGN.md 4.3
+document; the arrays (residuals before/after, standardised residuals) feed the report and the
+``.vtu`` maps.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import effects as fx
+from .calibrate import correlated_pairs, fit_map, identifiability, stack
+from .locate import locate
+from .problem import Problem, noise_sigma
+from .select import cv_rms, overlaps, select_effects
+
+__all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
+
+#: Decision thresholds (documented in the outputs).
+DEFAULTS = {"bic_min": 10.0, "alpha": 0.01, "cv_z": 2.0, "fdr_q": 0.01, "overlap_max": 0.9}
+
+
+@dataclass
+class Diagnosis:
+    summary: dict
+    arrays: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _rms(prob, resid):
+    return float(np.sqrt(np.mean((resid * prob.to_display) ** 2)))
+
+
+def _chi2_dof(resid, sigma, edf):
+    r = resid / sigma
+    return float((r**2).sum() / max(r.size - edf, 1))
+
+
+def _fmt_params(cand, model_p):
+    names, units = cand.cols.names, cand.cols.units
+    th = cand.fit.theta[model_p : model_p + len(names)]
+    sd = cand.fit.std[model_p : model_p + len(names)]
+    return names, units, th, sd
+
+
+def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
+    """Run the whole diagnosis on a problem.
+
+    Parameters
+    ----------
+    prob : Problem
+    progress : callable, optional
+        Called with an increment after each candidate fit.
+    **opts
+        Overrides of ``DEFAULTS``.
+    """
+    t0 = time.perf_counter()
+    o = {**DEFAULTS, **opts}
+    base = stack(prob.baseline)
+
+    def sigma_fn(resid, edf):
+        return noise_sigma(prob, resid, edf)[0]
+
+    # 1. calibrate what the model already contains
+    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
+    sigma0 = sigma_fn(fit0.resid, fit0.edf)
+    fit_b = fit_map(prob.y, sigma0, base)
+    ident = identifiability(sigma0, base)
+    corr = correlated_pairs(fit_b, base.names)
+    # prior consistency of the calibrated parameters (z of posterior vs prior)
+    has = np.isfinite(base.prior_std)
+    zprior = np.where(has, (fit_b.theta - base.prior_mean) / np.where(has, base.prior_std, 1), 0)
+    calib = {
+        "parameters": [
+            {
+                "name": n,
+                "unit": u,
+                "value": float(v),
+                "std": float(s),
+                "prior_mean": float(m),
+                "prior_std": float(ps) if np.isfinite(ps) else None,
+                "z_vs_prior": float(z),
+            }
+            for n, u, v, s, m, ps, z in zip(
+                base.names,
+                base.units,
+                fit_b.theta,
+                fit_b.std,
+                base.prior_mean,
+                base.prior_std,
+                zprior,
+                strict=True,
+            )
+        ],
+        **ident,
+        "correlated_pairs": corr,
+    }
+    # 2. locate (against the calibrated baseline)
+    loc0 = locate(prob, fit_b.resid, sigma0, q=o["fdr_q"], edf=fit_b.edf)
+    # 3. attribute
+    blocks, untestable = fx.build(prob)
+    sel = select_effects(
+        prob,
+        sigma_fn,
+        blocks,
+        prior_release=fx.PRIOR_RELEASE,
+        bic_min=o["bic_min"],
+        alpha=o["alpha"],
+        cv_z=o["cv_z"],
+        progress=progress,
+    )
+    # 4. model: final fit with the selected effects
+    model = sel.model
+    sigma1 = sel.sigma
+    fit1 = fit_map(prob.y, sigma1, model)
+    loc1 = locate(prob, fit1.resid, sigma1, q=o["fdr_q"], edf=fit1.edf)
+    cv_b, _ = cv_rms(prob, sigma0, base, sel.folds)
+    cv_a, _ = cv_rms(prob, sigma1, model, sel.folds) if sel.selected else (cv_b, None)
+    eff_out = []
+    p_at = base.p
+    for name in sel.selected:
+        c = sel.candidates[name]
+        blk = blocks[name]
+        th = fit1.theta[p_at : p_at + blk.p]
+        sd = fit1.std[p_at : p_at + blk.p]
+        p_at += blk.p
+        keep = sd < 0.5 * fx.WIDE  # parameters the data determine
+        eff_out.append(
+            {
+                "name": name,
+                "params": {n: float(v) for n, v, k in zip(blk.names, th, keep, strict=True) if k},
+                "param_std": {
+                    n: float(s) for n, s, k in zip(blk.names, sd, keep, strict=True) if k
+                },
+                "units": {n: u for n, u, k in zip(blk.names, blk.units, keep, strict=True) if k},
+                "not_determined": [n for n, k in zip(blk.names, keep, strict=True) if not k],
+                "delta_bic": round(c.delta_bic, 2),
+                "delta_chi2": round(c.delta_chi2, 2),
+                "k_eff": round(c.k, 2),
+                "p_holm": c.p_holm,
+                "survival": None if not np.isfinite(c.survival) else round(c.survival, 3),
+                "cv_rms_before": c.cv_before,
+                "cv_rms_after": c.cv_after,
+                "description": fx.DESCRIPTION[name],
+            }
+        )
+    # candidates table
+    cand_out = []
+    for name, c in sorted(sel.candidates.items(), key=lambda kv: -kv[1].delta_bic):
+        status = c.status
+        if (
+            status == "not significant"
+            and np.isfinite(c.survival)
+            and c.survival < 0.3
+            and c.delta_chi2 > 0
+        ):
+            status = "absorbed or absent"
+        cand_out.append(
+            {
+                "name": name,
+                "status": status,
+                "round": c.round,
+                "delta_bic": round(c.delta_bic, 2),
+                "delta_chi2": round(c.delta_chi2, 2),
+                "k_eff": round(c.k, 2),
+                "p_holm": c.p_holm,
+                "survival": None if not np.isfinite(c.survival) else round(c.survival, 3),
+            }
+        )
+    # 5. advise
+    advice = []
+    ov = []
+    cand_names = list(blocks)
+    strong = [nm for nm, b in (sel.rounds[0] if sel.rounds else []) if b > o["bic_min"]]
+    if strong:
+        ov = overlaps(prob, sigma0, base, blocks, strong[:6])
+        for a, b, val in ov:
+            if val > o["overlap_max"] and (a in sel.selected or b in sel.selected):
+                other = b if a in sel.selected else a
+                chosen = a if a in sel.selected else b
+                advice.append(
+                    f"'{chosen}' and '{other}' have nearly the same signature in these data "
+                    f"(overlap {val:.2f}): the choice rests on the smaller model. To separate "
+                    f"them: {fx.ADVICE[other]}; {fx.ADVICE[chosen]}."
+                )
+    for name, why in untestable.items():
+        advice.append(f"{name} cannot be tested: {why}. To test it: {fx.ADVICE[name]}.")
+    mismatch = bool(sel.selected) or bool(loc0["located"])
+    residual_left = bool(loc1["located"])
+    if residual_left and sel.selected:
+        advice.append(
+            "significant residuals remain after the selected effects (see 'located' after): "
+            "an effect outside the catalogue, or one the data cannot separate"
+        )
+    elif mismatch and not sel.selected:
+        advice.append(
+            "the recordings differ from the calibrated model but no catalogued effect explains "
+            "it with enough evidence; nothing is claimed. Check the located regions and "
+            + "; ".join(fx.ADVICE[n] for n in cand_names[:2])
+        )
+    if ident["n_not_identifiable"]:
+        advice.append(
+            f"{ident['n_not_identifiable']} combinations of the bench parameters are not "
+            "identifiable from these data (held at their priors): see calibration."
+            "not_identifiable"
+        )
+    fit_doc = {
+        "unit": prob.unit,
+        "rms_before": _rms(prob, fit_b.resid),
+        "rms_after": _rms(prob, fit1.resid),
+        "chi2_dof_before": _chi2_dof(fit_b.resid, sigma1, fit_b.edf),
+        "chi2_dof_after": _chi2_dof(fit1.resid, sigma1, fit1.edf),
+        "cv_rms_before": cv_b,
+        "cv_rms_after": cv_a,
+        "noise_std": [
+            float(v) for v in np.sqrt(noise_sigma(prob, fit1.resid, fit1.edf)[1]) * prob.to_display
+        ],
+        "n_obs": int(prob.n * 3),
+        "n_points": prob.n_points,
+        "n_reps": prob.n_reps,
+        "edf_before": fit_b.edf,
+        "edf_after": fit1.edf,
+        "lack_of_fit_before": loc0["lack_of_fit"],
+        "lack_of_fit_after": loc1["lack_of_fit"],
+    }
+    summary = {
+        "mismatch": mismatch,
+        "located": loc0["located"][:20],
+        "effects": eff_out,
+        "fit": fit_doc,
+        "advice": advice,
+        "located_after": loc1["located"][:20],
+        "candidates": cand_out,
+        "untestable": untestable,
+        "overlaps": [{"a": a, "b": b, "overlap": round(v, 3)} for a, b, v in ov],
+        "calibration": calib,
+        "thresholds": o,
+        "kind": prob.kind,
+        "notes": prob.notes,
+    }
+    arrays = {
+        "pos": prob.pos,
+        "point": prob.point,
+        "resid_before": fit_b.resid * prob.to_display,
+        "resid_after": fit1.resid * prob.to_display,
+        "z_before": loc0["z_row"],
+        "z_after": loc1["z_row"],
+        "zp_before": loc0["z_point"],
+        "zp_after": loc1["z_point"],
+        "sig_before": loc0["significant_point"],
+        "point_pos": loc0["point_pos"],
+        "rep": prob.rep,
+        "t_h": prob.t_h,
+    }
+    dt = time.perf_counter() - t0
+    summary["seconds"] = round(dt, 2)
+    return Diagnosis(summary=summary, arrays=arrays, seconds=dt)

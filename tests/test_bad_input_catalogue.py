@@ -1,0 +1,250 @@
+"""The bad-input catalogue of issue 6, every case through the command line.
+
+Each case must end in exit code 2, one message on stderr naming the file (and the line and
+column where there is one) and what was expected, no traceback, and no output folder.
+
+Cases already written elsewhere are referenced, not copied: the reader cases of
+`tests/test_io_bad_input.py` (``CASES``), the sweep cases of `tests/test_cli_sweep.py` and the
+bench cases of `tests/test_bench.py` (their ``parametrize`` lists) all run here through the CLI.
+
+| catalogue entry                              | where the case is written                       |
+|----------------------------------------------|-------------------------------------------------|
+| empty file, header only, truncated last line | test_io_bad_input.CASES                         |
+| text in a numeric column, NaN or inf         | test_io_bad_input.CASES                         |
+| unknown unit, mixed units                    | test_io_bad_input.CASES                         |
+| duplicate nodes, fields disagree             | test_io_bad_input.CASES, test_cli_sweep         |
+| duplicate nodes, identical (merged, warning) | here                                            |
+| collinear nodes; coplanar (a planar map)     | test_cli_sweep; here                            |
+| a single node                                | here                                            |
+| map smaller than U_p, enormous U_p           | here                                            |
+| bench: unknown keys, negative std, bad PDF   | here (and all of test_bench's list)             |
+| recordings: missing column, repeated rows    | here (``cfm-fem compare``, else the readers)    |
+| Hall map outside the reference field         | here (``cfm-fem compare``, else skipped)        |
+"""
+
+from __future__ import annotations
+
+import re
+from importlib import resources
+
+import numpy as np
+import pytest
+import test_bench
+import test_cli_sweep
+import test_io_bad_input
+
+from cfm_fem.cli import _COMMANDS, main
+from cfm_fem.errors import CfmInputError
+
+
+def _parametrized(func):
+    """The argument list of a test's ``pytest.mark.parametrize``."""
+    (mark,) = [m for m in func.pytestmark if m.name == "parametrize"]
+    return list(mark.args[1])
+
+
+def _run(argv, out, capsys):
+    """Run the CLI; return (exit code, stderr) and check the common promises of a bad input."""
+    rc = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "Traceback" not in err
+    assert err.count("cfm-fem: error:") == 1, err
+    assert not out.exists(), "an output was written for a bad input"
+    return err
+
+
+GRID = np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _map_text(points, B=None):
+    B = np.c_[0.1 * points[:, 1], 0.1 * points[:, 0], np.ones(len(points))] if B is None else B
+    rows = "".join(",".join(f"{v:.17g}" for v in r) + "\n" for r in np.c_[points, B])
+    return test_io_bad_input.CSV_HEADER + rows
+
+
+# --------------------------------------------------------------------------- field maps
+
+
+@pytest.mark.parametrize("case", list(test_io_bad_input.CASES))
+def test_reader_case_through_cli(tmp_path, capsys, case):
+    name, text, line, column, what = test_io_bad_input.CASES[case]
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--trials", 50, "--out", out], out, capsys)
+    prefix = f"{path}:{line}: " if line is not None else f"{path}: "
+    assert f"cfm-fem: error: {prefix}" in err and what in err, err
+    if column is not None:
+        assert column in err
+
+
+@pytest.mark.parametrize(
+    "name, text, message", _parametrized(test_cli_sweep.test_bad_input_exit_2_and_nothing_written)
+)
+def test_sweep_case_through_cli(tmp_path, capsys, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--trials", 50, "--out", out], out, capsys)
+    assert f"error: {path}" in err and message in err
+
+
+SWEEP_CASES = {
+    "a single node": (
+        _map_text(GRID[:1]),
+        [],
+        "the map has 1 node(s); expected at least 4 non-coplanar nodes",
+    ),
+    "two nodes": (_map_text(GRID[:2]), [], "the map has 2 node(s)"),
+    "collinear nodes": (
+        _map_text(np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]),
+        [],
+        "collinear",
+    ),
+    "map smaller than U_p": (
+        _map_text(GRID),
+        ["--up", "0:3000:1000"],
+        "U_p of 3000 um is too large for this map: 5 U_p exceeds its smallest extent of 5 mm",
+    ),
+    "enormous U_p": (_map_text(GRID), ["--up", "1e300"], "U_p of 1e+300 um is too large"),
+}
+
+
+@pytest.mark.parametrize("case", list(SWEEP_CASES))
+def test_map_case(tmp_path, capsys, case):
+    text, extra, what = SWEEP_CASES[case]
+    path = tmp_path / "map.csv"
+    path.write_text(text)
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--trials", 50, *extra, "--out", out], out, capsys)
+    assert f"error: {path}: " in err and what in err, err
+
+
+@pytest.mark.parametrize(
+    "up, what",
+    [
+        ("1e999", "--up values must be finite and >= 0 um"),
+        ("0:1e12:1", "asks for 1e+12 U_p values; expected at most 1000"),
+        ("-5", "--up values must be finite and >= 0 um"),
+        ("0:50", "--up must be START:STOP:STEP"),
+    ],
+)
+def test_impossible_up(tmp_path, capsys, up, what):
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--up", up, "--out", out], out, capsys)
+    assert what in err
+
+
+def test_identical_duplicate_nodes_are_merged_with_a_warning(tmp_path, capsys):
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(np.r_[GRID, GRID[7:9]]))
+    out = tmp_path / "out"
+    assert main(["sweep", str(path), "--up", "10", "--trials", "50", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {path}: merged 2 duplicate node(s) with identical position and field" in err
+
+
+def test_coplanar_nodes_make_a_planar_map(tmp_path, capsys):
+    """Coplanar nodes are a mid-plane export, not an error: triangulated in their plane, and the
+    outputs say that the out-of-plane part of U_p is not covered."""
+    pts = GRID[GRID[:, 2] == 0.0]
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(pts))
+    out = tmp_path / "out"
+    assert main(["sweep", str(path), "--up", "10", "--trials", "50", "--out", str(out)]) == 0
+    assert "out-of-plane component of U_p is not covered" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- bench files
+
+
+def _ref_bench_text():
+    return resources.files("cfm_fem.data").joinpath("cfm_reference_bench.toml").read_text()
+
+
+BENCH_CASES = [
+    ("unknown key", "stroke_mm = 150.0\nmount", "stroke_mm = 150.0\nstrok_mm = 3\nmount",
+     ["'axes.x.strok_mm'", "not a known key"]),
+    ("negative std", "mean = 5.5\nstd = 7.8", "mean = 5.5\nstd = -7.8",
+     ["errors.z.delta_x", "std >= 0"]),
+    ("unknown pdf", 'pdf = "uniform"\nlow = -18.5', 'pdf = "cauchy"\nlow = -18.5',
+     ["errors.x.eps_x.pdf", "one of"]),
+] + [
+    (f"test_bench: {new.splitlines()[0][:30]}", old, new, fragments)
+    for old, new, fragments in _parametrized(test_bench.test_impossible_values_name_the_key)
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("case, old, new, fragments", BENCH_CASES, ids=[c[0] for c in BENCH_CASES])
+def test_bench_case_through_cli(tmp_path, capsys, case, old, new, fragments):
+    text = _ref_bench_text()
+    if old not in text:
+        pytest.skip(f"the reference bench no longer contains {old!r}")
+    path = tmp_path / "bench.toml"
+    path.write_text(text.replace(old, new, 1))
+    out = tmp_path / "out"
+    err = _run(["kinematics", "--bench", path, "--trials", 100, "--out", out], out, capsys)
+    assert re.search(rf"error: {re.escape(str(path))}:\d+: ", err), err
+    for f in fragments:
+        assert f in err
+
+
+# --------------------------------------------------------------------------- recordings
+
+TRACKER_HEAD = "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas\n"
+RECORDING_CASES = {
+    "missing required column": (
+        "tracker",
+        "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas\n1,0,0,0,0,0,0\n",
+        1,
+        "column 'z_meas' is missing; a laser-tracker recording needs the columns",
+    ),
+    "repeated (point_id, rep)": (
+        "tracker",
+        "# comment\n" + TRACKER_HEAD + "1,0,0,0,0,0,0,0\n2,0,1,0,0,1,0,0\n1,0,0,0,0,0,0,0\n",
+        5,
+        "(point_id, rep) = (1, 0) appears twice (lines 3 and 5); expected one row per point",
+    ),
+    "hall map missing Bz": (
+        "hall",
+        "point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By\n1,0,0,0,0,0,0\n",
+        1,
+        "column 'Bz' is missing",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(RECORDING_CASES))
+def test_recording_case(tmp_path, capsys, case):
+    kind, text, line, what = RECORDING_CASES[case]
+    path = tmp_path / "rec.csv"
+    path.write_text(text)
+    out = tmp_path / "out"
+    if "compare" in _COMMANDS and kind == "tracker":
+        err = _run(["compare", "--tracker", path, "--out", out], out, capsys)
+        assert f"error: {path}:{line}: " in err and what in err, err
+        return
+    recordings = pytest.importorskip("cfm_fem.io.recordings")  # the readers directly
+    reader = recordings.read_tracker if kind == "tracker" else recordings.read_hall_map
+    with pytest.raises(CfmInputError) as info:
+        reader(path)
+    assert str(info.value).startswith(f"{path}:{line}: ") and what in str(info.value)
+
+
+def test_hall_map_outside_the_reference_field(tmp_path, capsys):
+    if "compare" not in _COMMANDS:
+        pytest.skip("no `cfm-fem compare` command in this version")
+    ref = tmp_path / "ref.csv"
+    ref.write_text(_map_text(GRID))
+    rec = tmp_path / "hall.csv"
+    rec.write_text(
+        "point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz\n"
+        "1,0,1,1,1,0.1,0.1,1\n2,0,2,2,2,0.2,0.2,1\n3,0,90,2,2,0.2,0.2,1\n"
+    )
+    out = tmp_path / "out"
+    argv = ["compare", "--hall-map", rec, "--reference", ref, "--trials", 100, "--out", out]
+    err = _run(argv, out, capsys)
+    assert f"error: {rec}:4: " in err and "outside the reference field" in err, err

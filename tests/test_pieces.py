@@ -1,0 +1,64 @@
+"""`--pieces K`: a partitioned .pvtu per U_p with exactly the numbers of the one-file output."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pyvista as pv
+
+from cfm_fem.cli import main
+
+
+def _write_map(path, n=7):
+    ax = np.arange(float(n))
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = np.c_[0.03 * pts[:, 0] ** 2, -0.02 * pts[:, 1] * pts[:, 2], 1.0 + 0.1 * pts[:, 2]]
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    return path
+
+
+def _by_position(grid):
+    """Point data of a grid with duplicate points merged, rows sorted by position."""
+    grid = grid.clean(tolerance=0.0)
+    order = np.lexsort(np.asarray(grid.points).T)
+    return grid, {k: np.asarray(grid.point_data[k])[order] for k in grid.point_data}
+
+
+def test_pieces_give_the_numbers_of_the_single_file(tmp_path):
+    path = _write_map(tmp_path / "map.csv")
+    base = ["sweep", str(path), "--up", "0:30:15", "--trials", "200", "--chunk-nodes", "40"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--pieces", "3", "--out", str(tmp_path / "pc")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    pc = json.loads((tmp_path / "pc" / "summary.json").read_text())
+    assert pc["pieces"] == 3
+    for key in set(one) - {"seconds", "provenance"}:
+        assert one[key] == pc[key], key
+    files = [d.get("file") for d in ET.parse(tmp_path / "pc" / "sweep.pvd").iter("DataSet")]
+    assert files == ["uf_up0um.pvtu", "uf_up15um.pvtu", "uf_up30um.pvtu"]
+    assert len(list((tmp_path / "pc" / "uf_up15um").glob("piece_*.vtu"))) == 3
+    assert not (tmp_path / "pc" / ".cfm_fem_chunks").exists()
+    for up in (0, 15, 30):
+        g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        g2, b = _by_position(pv.read(tmp_path / "pc" / f"uf_up{up}um.pvtu"))  # VTK's reader
+        assert g1.n_points == g2.n_points == 343 and g1.n_cells == g2.n_cells
+        assert set(a) == set(b)
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_more_pieces_than_nodes_and_bad_count(tmp_path, capsys):
+    path = _write_map(tmp_path / "map.csv", n=3)
+    out = tmp_path / "o"
+    base = ["sweep", str(path), "--up", "1", "--trials", "50"]
+    assert main([*base, "--pieces", "100", "--out", str(out)]) == 0
+    assert len(list((out / "uf_up1um").glob("piece_*.vtu"))) == 27
+    assert pv.read(out / "uf_up1um.pvtu").n_cells == pv.read(
+        out / "uf_up1um" / "piece_0000.vtu"
+    ).n_cells + sum(pv.read(p).n_cells for p in sorted((out / "uf_up1um").glob("piece_*.vtu"))[1:])
+    assert main([*base, "--pieces", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "--pieces must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

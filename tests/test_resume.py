@@ -1,0 +1,178 @@
+"""Nothing lost: a killed sweep resumes to the numbers of an uninterrupted run; provenance."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import meshio
+import numpy as np
+import pytest
+
+from cfm_fem.cli import main
+from cfm_fem.io.chunk_store import STORE_NAME
+from cfm_fem.io.sweep_out import read_provenance
+
+
+def _write_map(path, n):
+    ax = np.arange(float(n))
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = np.c_[0.03 * pts[:, 0] ** 2, -0.02 * pts[:, 1] * pts[:, 2], 1.0 + 0.1 * pts[:, 2]]
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def big_map(tmp_path_factory):
+    return _write_map(tmp_path_factory.mktemp("big") / "map.csv", 12)  # 1728 nodes
+
+
+@pytest.fixture(scope="module")
+def small_map(tmp_path_factory):
+    return _write_map(tmp_path_factory.mktemp("small") / "map.csv", 6)  # 216 nodes
+
+
+def _chunks(out):
+    store = out / STORE_NAME
+    return sorted(store.glob("chunk_*.npz")) if store.is_dir() else []
+
+
+def _same_outputs(a, b, ups):
+    sa = json.loads((a / "summary.json").read_text())
+    sb = json.loads((b / "summary.json").read_text())
+    for key in ("uf_units", "uf_nodes", "outside_fraction", "walk_failed_fraction"):
+        assert sa[key] == sb[key], key
+    assert sa["gum_disagree_fraction"] == sb["gum_disagree_fraction"]
+    for up in ups:
+        pa = meshio.read(a / f"uf_up{up}um.vtu").point_data
+        pb = meshio.read(b / f"uf_up{up}um.vtu").point_data
+        assert set(pa) == set(pb)
+        for name in pa:
+            np.testing.assert_array_equal(pa[name], pb[name], err_msg=name)
+    return sa, sb
+
+
+def test_killed_run_resumes_to_the_uninterrupted_numbers(big_map, tmp_path, capsys):
+    args = ["sweep", str(big_map), "--up", "0:40:20", "--trials", "4000", "--seed", "9",
+            "--chunk-nodes", "24"]  # fmt: skip
+    n_chunks = -(-1728 // 24)
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cfm_fem", *args, "--out", str(killed)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=dict(os.environ, NUMBA_NUM_THREADS="1"),
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(_chunks(killed)) < 4 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    done_before = len(_chunks(killed))
+    assert 4 <= done_before < n_chunks, done_before  # killed mid-way
+    assert not (killed / "summary.json").exists()
+    assert not list(killed.glob("*.vtu"))
+    assert not list((killed / STORE_NAME).glob(".*"))  # no half-written chunk file left
+
+    assert main([*args, "--out", str(killed), "--resume"]) == 0
+    err = capsys.readouterr().err
+    loaded = int(err.split("resumed: ")[1].split(" chunk")[0])
+    assert loaded >= done_before - 1  # a chunk renamed at the kill may count either way
+    assert not (killed / STORE_NAME).exists()  # removed after success
+
+    clean = tmp_path / "clean"
+    assert main([*args, "--out", str(clean)]) == 0
+    sa, sb = _same_outputs(killed, clean, (0, 20, 40))
+    assert sa["provenance"]["resumed_chunks"] == loaded
+    print(f"\nresume test: killed after {done_before}/{n_chunks} chunks, resumed {loaded}, "
+          "outputs identical to the uninterrupted run")  # fmt: skip
+
+
+def test_resume_refuses_a_store_of_another_run(small_map, tmp_path, capsys):
+    out = tmp_path / "o"
+    base = ["sweep", str(small_map), "--up", "0:20:10", "--seed", "1", "--chunk-nodes", "50"]
+    assert main([*base, "--trials", "200", "--out", str(out), "--keep-chunks"]) == 0
+    before = sorted(p.name for p in (out / STORE_NAME).iterdir())
+    (out / "summary.json").unlink()
+    capsys.readouterr()
+    assert main([*base, "--trials", "300", "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume" in err and STORE_NAME in err
+    assert "trials: 200 in the store, 300 now" in err and "Traceback" not in err
+    assert sorted(p.name for p in (out / STORE_NAME).iterdir()) == before  # untouched
+    assert not (out / "summary.json").exists()
+    # same options resume from the complete store without computing anything
+    assert main([*base, "--trials", "200", "--out", str(out), "--resume"]) == 0
+    assert "resumed: 5 chunk(s) read from" in capsys.readouterr().err
+    # without --resume a stale store is replaced, not reused
+    assert main([*base, "--trials", "300", "--out", str(out), "--keep-chunks"]) == 0
+    manifest = json.loads((out / STORE_NAME / "manifest.json").read_text())
+    assert manifest["run"]["trials"] == 300
+
+
+def test_damaged_chunk_file_is_recomputed(small_map, tmp_path, capsys):
+    base = ["sweep", str(small_map), "--up", "10", "--trials", "200", "--chunk-nodes", "50"]
+    out = tmp_path / "o"
+    assert main([*base, "--out", str(out), "--keep-chunks"]) == 0
+    chunk = _chunks(out)[2]
+    chunk.write_bytes(chunk.read_bytes()[:100])  # truncated
+    _chunks(out)[0].unlink()  # missing
+    assert main([*base, "--out", str(tmp_path / "r"), "--keep-chunks"]) == 0
+    (out / "summary.json").unlink()
+    capsys.readouterr()
+    assert main([*base, "--out", str(out), "--resume"]) == 0
+    err = capsys.readouterr().err
+    assert "3 chunk(s) read" in err and "2 computed" in err and "1 unreadable" in err
+    _same_outputs(out, tmp_path / "r", (10,))
+
+
+def test_every_output_records_what_produced_it(small_map, tmp_path):
+    out = tmp_path / "o"
+    assert main(["sweep", str(small_map), "--up", "10", "--trials", "100", "--seed", "4",
+                 "--out", str(out)]) == 0  # fmt: skip
+    prov = json.loads((out / "summary.json").read_text())["provenance"]
+    assert prov["inputs"]["field"]["sha256"] and prov["cfm_fem_version"]
+    assert prov["seed"] == 4 and prov["trials"] == 100
+    assert prov["command_line"].startswith("cfm-fem sweep") and "--seed 4" in prov["command_line"]
+    vtu = meshio.read(out / "uf_up10um.vtu")
+    assert read_provenance(vtu.field_data["provenance_utf8"]) == prov
+
+    kin = tmp_path / "k"
+    assert main(["kinematics", "--trials", "500", "--seed", "2", "--out", str(kin)]) == 0
+    kprov = json.loads((kin / "summary.json").read_text())["provenance"]
+    assert kprov["seed"] == 2 and kprov["trials"] == 500 and kprov["bench_name"]
+    assert kprov["command_line"].startswith("cfm-fem kinematics") and kprov["cfm_fem_version"]
+    csv_line = next(
+        ln for ln in (kin / "points.csv").read_text().splitlines() if ln.startswith("# provenance:")
+    )
+    assert json.loads(csv_line.removeprefix("# provenance: ")) == kprov
+    assert read_provenance(meshio.read(kin / "points.vtu").field_data["provenance_utf8"]) == kprov
+
+
+def test_ctrl_c_keeps_the_chunks_and_says_how_to_resume(big_map, tmp_path):
+    out = tmp_path / "o"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cfm_fem", "sweep", str(big_map), "--up", "20", "--trials",
+         "4000", "--chunk-nodes", "24", "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, NUMBA_NUM_THREADS="1"),
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while len(_chunks(out)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err
+    assert "run the same command with --resume to continue" in err
+    assert _chunks(out) and not (out / "summary.json").exists()
