@@ -1,0 +1,1 @@
+"""Diagnosis of simulation-vs-recording mismatches: calibrate, locate, attribute, model, advise."""
