@@ -54,9 +54,9 @@ class CompactSweep(SweepResult):
         """Nodes whose every trial stayed inside the map, shape (n, n_col), bool."""
         return self.complete_
 
-    def gum_check(self):
+    def gum_check(self, column: int | None = None):
         """(None, None, disagree): only the flags are kept, shape (n, n_col, 4), bool."""
-        return None, None, self.disagree
+        return None, None, (self.disagree if column is None else self.disagree[:, column])
 
 
 def _sigma_mm(problem):

@@ -141,10 +141,13 @@ class SweepResult:
         """Convert T to units of 1e-4 B_ref."""
         return np.asarray(x) / self.b_ref_T * 1e4
 
-    def expanded_95(self) -> np.ndarray:
-        """Symmetric 95 % expanded uncertainty max(|low|, |high|), shape (n, n_up, 4), T."""
-        lo, hi = self.stats[..., 2], self.stats[..., 3]
-        return np.maximum(np.abs(lo), np.abs(hi))
+    def expanded_95(self, column: int | None = None) -> np.ndarray:
+        """Symmetric 95 % expanded uncertainty max(|low|, |high|), T.
+
+        Shape (n, n_col, 4), or (n, 4) for one ``column`` (less memory on large maps).
+        """
+        st = self.stats if column is None else self.stats[:, column]
+        return np.maximum(np.abs(st[..., 2]), np.abs(st[..., 3]))
 
     def uf_units(self) -> np.ndarray:
         """U_f of each node: 95 % expanded uncertainty of |B| in units, shape (n, n_up)."""
@@ -156,7 +159,7 @@ class SweepResult:
             (self.n_outside == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
         )
 
-    def gum_check(self):
+    def gum_check(self, column: int | None = None):
         """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
 
         The tolerance is delta (JCGM 101 7.9.2, two significant digits of u), widened to three
@@ -165,22 +168,25 @@ class SweepResult:
 
         Returns
         -------
-        d_max : ndarray, shape (n, n_up, 4), T
-            max(d_low, d_high).
-        tol : ndarray, shape (n, n_up, 4), T
-        disagree : ndarray, shape (n, n_up, 4), bool
+        d_max : ndarray, shape (n, n_col, 4), T
+            max(d_low, d_high); shape (n, 4) for one ``column``.
+        tol : ndarray, same shape, T
+        disagree : ndarray, same shape, bool
         """
-        u_mc = self.stats[..., 1]
-        lo, hi = self.stats[..., 2], self.stats[..., 3]
-        U = Z95 * self.gum_u
+        cols = slice(None) if column is None else column
+        st = self.stats[:, cols]
+        gum_u = self.gum_u[:, cols]
+        u_mc = st[..., 1]
+        lo, hi = st[..., 2], st[..., 3]
+        U = Z95 * gum_u
         d_max = np.maximum(np.abs(-U - lo), np.abs(U - hi))
-        n = self.config.trials - self.n_outside - self.n_walk_failed
+        n = self.config.trials - self.n_outside[:, cols] - self.n_walk_failed[:, cols]
         # standard error of the 2.5 % quantile of a normal: sqrt(p(1-p)/N) / phi(z)
         se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
         tol = np.maximum(numerical_tolerance(u_mc), 3.0 * se)
         with np.errstate(invalid="ignore"):
             # where the linearisation does not exist (|B| = 0) the GUM cannot give the result
-            disagree = (d_max > tol) | (np.isnan(self.gum_u) & np.isfinite(u_mc) & (u_mc > 0))
+            disagree = (d_max > tol) | (np.isnan(gum_u) & np.isfinite(u_mc) & (u_mc > 0))
         return d_max, tol, disagree
 
 

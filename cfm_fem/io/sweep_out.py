@@ -38,8 +38,8 @@ def _point_data(res: SweepResult, k: int) -> dict:
     """Per-node arrays for U_p index ``k``; names say the quantity and the unit."""
     st = res.stats[:, k]  # (n, 4, 6)
     units = res.to_units
-    U95 = res.expanded_95()[:, k]
-    _, _, disagree = res.gum_check()
+    U95 = res.expanded_95(k)  # one column at a time: no map-sized temporaries per column
+    _, _, disagree = res.gum_check(k)
     absb = np.sqrt((res.fieldmap.B**2).sum(axis=1))
     f32 = np.float32  # Monte Carlo noise is ~1e-2 relative: float32 loses nothing, halves the files
     data = {
@@ -70,7 +70,7 @@ def _point_data(res: SweepResult, k: int) -> dict:
         }
         for key, values in per.items():
             data[f"{name}_{key}"] = values.astype(f32)
-        data[f"{name}_gum_disagree"] = disagree[:, k, c].astype(np.uint8)
+        data[f"{name}_gum_disagree"] = disagree[:, c].astype(np.uint8)
     return data
 
 

@@ -41,7 +41,8 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     for name, value in (field_data or {}).items():
         grid.field_data[name] = np.atleast_1d(np.asarray(value, dtype=np.float64))
     with atomic_path(path) as tmp:
-        grid.save(tmp, binary=True)
+        # zlib, not LZ4: LZ4 writes faster but meshio (and so cfm_fem's own reader) cannot read it
+        grid.save(tmp, binary=True, compression="zlib")
 
 
 def write_pvd(path, entries) -> None:
