@@ -1210,15 +1210,17 @@ def interpolate_points(points, start, simplices, transform, neighbors, values):
     nc = values.shape[1]
     out = np.empty((k, nc))
     cell = np.empty(k, dtype=np.int64)
-    for i in nb.prange(k):
+    block = 4096  # work space once per block of points, not per point
+    for b in nb.prange((k + block - 1) // block):
         bary = np.empty(d + 1)
-        s = locate(points[i], start[i], transform, neighbors, bary)
-        cell[i] = s
-        if s >= 0:
-            _interp_in(s, bary, simplices, values, out[i])
-        else:
-            for c in range(nc):
-                out[i, c] = np.nan
+        for i in range(b * block, min((b + 1) * block, k)):
+            s = locate(points[i], start[i], transform, neighbors, bary)
+            cell[i] = s
+            if s >= 0:
+                _interp_in(s, bary, simplices, values, out[i])
+            else:
+                for c in range(nc):
+                    out[i, c] = np.nan
     return out, cell
 
 
