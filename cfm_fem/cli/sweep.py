@@ -7,6 +7,7 @@ axis) and DIR/summary.json.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from ..distributed import dask_chunk_map, dask_client
 from ..errors import CfmInputError
@@ -323,4 +324,4 @@ def _print_summary(s, out):
         if "pieces" in s
         else (f"{len(s['up_um'])} .vtu maps")
     )
-    print(f"{s['seconds']:.1f} s; wrote {out}/sweep.pvd, {maps} and summary.json")
+    print(f"{s['seconds']:.1f} s; wrote {Path(out) / 'sweep.pvd'}, {maps} and summary.json")
