@@ -130,3 +130,24 @@ def test_top_level_help_lists_every_command(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "sweep" in out and "U_f maps (95 %)" in out
+
+
+def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch, capsys):
+    import cfm_fem.cli.kinematics as kin
+
+    def wrapped_ctrl_c(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:  # numba re-raises a Ctrl-C as a SystemError
+            raise SystemError("<numba> returned a result with an exception set") from exc
+
+    monkeypatch.setattr(kin, "run", wrapped_ctrl_c)
+    assert main(["kinematics", "--out", "unused"]) == 1
+    assert "interrupted" in capsys.readouterr().err
+
+    def real_system_error(args):
+        raise SystemError("not an interrupt")
+
+    monkeypatch.setattr(kin, "run", real_system_error)
+    with pytest.raises(SystemError, match="not an interrupt"):
+        main(["kinematics", "--out", "unused"])

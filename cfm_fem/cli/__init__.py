@@ -53,6 +53,17 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"warning: {message}", file=sys.stderr)
 
 
+def interrupted(exc) -> bool:
+    """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv=None) -> int:
     """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code.
 
@@ -76,7 +87,9 @@ def main(argv=None) -> int:
     except CfmInputError as exc:
         print(f"cfm-fem: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not interrupted(exc):
+            raise
         print(
             "cfm-fem: interrupted; completed outputs are kept, nothing half-written",
             file=sys.stderr,

@@ -18,6 +18,7 @@ from ..io.sweep_out import write_sweep, write_sweep_pieces
 from ..pieces import run_sweep_pieces
 from ..resume import ResumableRun, describe_sweep
 from ..sweep import SweepConfig, chunk_ranges, parse_up_range, run_sweep
+from . import interrupted
 from ._progress import progress_bar
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -238,7 +239,7 @@ def run(args) -> int:
                 else:
                     res = run_sweep(fm, cfg, progress=bar.update, map_chunks=mapper)
     except (KeyboardInterrupt, SystemError) as exc:
-        if not _interrupted(exc):
+        if not interrupted(exc):
             raise
         if runner.store.completed():
             print(
@@ -276,17 +277,6 @@ def run(args) -> int:
     runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out)
     return 0
-
-
-def _interrupted(exc) -> bool:
-    """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def _backend(args) -> str:
