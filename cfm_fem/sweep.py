@@ -538,7 +538,6 @@ def summarize(res: SweepResult) -> dict:
     n_col = res.stats.shape[1]
     uf = res.uf_units()
     complete = res.complete()
-    _, _, disagree = res.gum_check()
     # nodes that were simulated (htm: reachable by the bench; all: in some cell)
     processed = (res.n_outside + res.n_walk_failed > 0).any(axis=1) | np.isfinite(
         res.stats[:, :, 3, 1]
@@ -549,12 +548,13 @@ def summarize(res: SweepResult) -> dict:
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
             pct[name].append(float(np.percentile(vals, q)) if vals.size else None)
     n_samples = max(int(processed.sum()), 1) * cfg.trials
-    with np.errstate(invalid="ignore"):
-        dis_frac = [
-            {name: float(np.mean(disagree[complete[:, k], k, c])) if complete[:, k].any() else None
+    dis_frac = []
+    for k in range(n_col):  # one column at a time: no map-sized temporaries for every column
+        disagree = res.gum_check(k)[2][complete[:, k]]
+        dis_frac.append(
+            {name: float(disagree[:, c].mean()) if len(disagree) else None
              for c, name in enumerate(COMPONENTS)}
-            for k in range(n_col)
-        ]  # fmt: skip
+        )  # fmt: skip
     notes = list(res.fieldmap.notes) + list(res.mesh.notes)
     if res.mesh.dim == 2:
         notes.append(
