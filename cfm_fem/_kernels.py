@@ -1290,6 +1290,66 @@ def select_inplace(a, lo, hi, k):
             hi = j
 
 
+@nb.njit(**JIT)
+def _insertion_sort(a, src):
+    """a[:len(src)] = sorted(src); exact, fast when src is nearly sorted or short."""
+    for i in range(src.shape[0]):
+        x = src[i]
+        j = i
+        while j > 0 and a[j - 1] > x:
+            a[j] = a[j - 1]
+            j -= 1
+        a[j] = x
+
+
+@nb.njit(**JIT)
+def sort_values(a):
+    """Sort a float64 array in place (finite values).
+
+    Comparison sorts stall on mispredicted branches (numba's quicksort: ~80 ns per element for
+    500 values); here an LSD radix sort on a 24-bit key quantised over [min, max] (3 passes
+    of 8 bits, branch-free), then an insertion pass that orders values sharing a key exactly.
+    About 8 ns per element.
+    """
+    n = a.shape[0]
+    if n < 48:
+        _insertion_sort(a, a.copy())
+        return
+    lo = a[0]
+    hi = a[0]
+    for i in range(n):
+        lo = min(lo, a[i])
+        hi = max(hi, a[i])
+    if not hi > lo:
+        return
+    scale = 16777215.0 / (hi - lo)
+    src_v = a.copy()
+    dst_v = np.empty(n)
+    src_k = np.empty(n, dtype=np.uint32)
+    dst_k = np.empty(n, dtype=np.uint32)
+    for i in range(n):
+        src_k[i] = np.uint32(min((src_v[i] - lo) * scale, 16777215.0))
+    counts = np.empty(256, dtype=np.int64)
+    for sh in range(0, 24, 8):
+        counts[:] = 0
+        for i in range(n):
+            counts[(src_k[i] >> sh) & 255] += 1
+        tot = 0
+        for b in range(256):
+            c = counts[b]
+            counts[b] = tot
+            tot += c
+        for i in range(n):
+            b = (src_k[i] >> sh) & 255
+            j = counts[b]
+            counts[b] = j + 1
+            dst_v[j] = src_v[i]
+            dst_k[j] = src_k[i]
+        src_v, dst_v = dst_v, src_v
+        src_k, dst_k = dst_k, src_k
+    _insertion_sort(a, src_v)
+
+
 #: Tails beyond mean -+ TAIL_SIGMAS * std are gathered first; 1.3 holds ~10 % of a normal sample,
 #: twice the 5 % the intervals need. Fewer than needed falls back to the whole sample (exact).
 TAIL_SIGMAS = 1.3
@@ -1347,10 +1407,11 @@ def sample_stats(a, n, q, out, scratch):
         scratch[n - 1 - n_hi] = x
         n_hi += x >= t_hi
     if n_lo >= h and n_hi >= h and std > 0.0:
+        # sorting a whole gathered tail (~2h values) costs less than selecting h of them first
         lo = scratch[:n_lo]
         hi = scratch[n - n_hi : n]
-        select_inplace(lo, 0, n_lo - 1, h - 1)
-        select_inplace(hi, 0, n_hi - 1, n_hi - h)
+        sort_values(lo)
+        sort_values(hi)
         low = lo[:h]
         high = hi[n_hi - h :]
     else:
@@ -1358,8 +1419,17 @@ def sample_stats(a, n, q, out, scratch):
         select_inplace(a, h, n - 1, q)
         low = a[:h]
         high = a[q:n]
-    low.sort()
-    high.sort()  # high[j] is order statistic q + j (0-based)
+        sort_values(low)
+        sort_values(high)
+    _intervals(low, high, n, q, out)
+
+
+@nb.njit(**JIT)
+def _intervals(low, high, n, q, out):
+    """Symmetric and shortest intervals into out[2:6] from the h = n - q smallest values
+    (``low``, ascending) and the h largest (``high``, ascending: high[j] is order statistic
+    q + j, 0-based)."""
+    h = n - q
     r = (n - q) // 2 if (n - q) % 2 == 0 else (n - q + 1) // 2
     if r < 1:
         r = 1
@@ -1371,6 +1441,64 @@ def sample_stats(a, n, q, out, scratch):
             best = j
     out[4] = low[best]
     out[5] = high[best]
+
+
+@nb.njit(**JIT)
+def _merged_stats(x, n_in, shift, s1, s2, lo_tail, hi_tail, r, y, m, p, out, low, high, full,
+                  scratch):  # fmt: skip
+    """Statistics of the union of r * x[:n_in] (r > 0) and y[:m] (y sorted ascending).
+
+    ``s1``, ``s2``: sums of (x - shift) and its square over x[:n_in]; ``lo_tail``/``hi_tail``:
+    the smallest / largest values of x[:n_in], sorted ascending (scaling by r > 0 keeps the
+    order). The union's h smallest values are among the h smallest of r * x and all of y, so
+    merging two sorted lists gives the exact order statistics without touching all n values.
+    Falls back to `sample_stats` on the whole union when a tail is shorter than h.
+    ``low``, ``high``, ``full``, ``scratch``: work space (>= n_in + m).
+    """
+    n = n_in + m
+    if n < 2:
+        for j in range(6):
+            out[j] = np.nan
+        return
+    q = coverage_count(n, p)
+    h = n - q
+    n_lo = lo_tail.shape[0]
+    n_hi = hi_tail.shape[0]
+    if n_lo < h or n_hi < h:
+        for j in range(n_in):
+            full[j] = r * x[j]
+        for j in range(m):
+            full[n_in + j] = y[j]
+        sample_stats(full, n, q, out, scratch)
+        return
+    c = r * shift  # shifted sums keep the variance free of cancellation
+    t1 = r * s1
+    t2 = r * r * s2
+    for j in range(m):
+        dv = y[j] - c
+        t1 += dv
+        t2 += dv * dv
+    out[0] = c + t1 / n
+    out[1] = np.sqrt(max(t2 - t1 * t1 / n, 0.0) / (n - 1))
+    i = 0
+    j = 0
+    for k in range(h):  # the h smallest: merge ascending
+        if j < m and (i >= n_lo or y[j] < r * lo_tail[i]):
+            low[k] = y[j]
+            j += 1
+        else:
+            low[k] = r * lo_tail[i]
+            i += 1
+    i = n_hi - 1
+    j = m - 1
+    for k in range(h - 1, -1, -1):  # the h largest: merge descending
+        if j >= 0 and (i < 0 or y[j] > r * hi_tail[i]):
+            high[k] = y[j]
+            j -= 1
+        else:
+            high[k] = r * hi_tail[i]
+            i -= 1
+    _intervals(low, high, n, q, out)
 
 
 @nb.njit(**JIT)
@@ -1401,6 +1529,295 @@ def _star_contains(simplices, s, node):
     return False
 
 
+#: Largest star (cells incident to one node) handled by the star tables; larger stars (rare
+#: in FEM meshes, about 24 tetrahedra is typical) take the global walk.
+MAX_STAR = 256
+
+
+#: `star_locate`: the displacement's ray leaves the mesh through a boundary face at the node.
+LEAVES_MESH = -3
+#: Slots of the open-addressing table that maps a cell to its index in the star (2 x MAX_STAR).
+STAR_HASH = 2 * MAX_STAR
+
+
+@nb.njit(inline="always", **JIT)
+def _star_slot(htab, g, s, n):
+    """Index of cell s in the star of g being built; inserts it as index n if absent (returns
+    -1 - n then). ``htab`` (3, STAR_HASH) int64 rows: cell, index, owner node (a stale owner
+    marks a free slot, so the table needs no clearing between nodes)."""
+    h = np.int64((np.uint64(s) * GAMMA) >> np.uint64(55)) & (STAR_HASH - 1)
+    while htab[2, h] == g:
+        if htab[0, h] == s:
+            return htab[1, h]
+        h = (h + 1) & (STAR_HASH - 1)
+    htab[0, h] = s
+    htab[1, h] = n
+    htab[2, h] = g
+    return -1 - n
+
+
+@nb.njit(**JIT)
+def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat, nbr, htab):
+    """Tables of the star of node ``g``: the cells incident to it, reached from ``c0`` across
+    faces that contain ``g``.
+
+    A point ``x_g + delta`` lies in star cell i when the barycentric coordinates of the cell's
+    other vertices, ``lam = lmat[i] @ delta``, are >= 0 and ``1 - sum(lam) >= 0`` (that of g);
+    the field there is ``B_g + dmat[i] @ lam``. Working with the small displacement instead of
+    the absolute position avoids cancelling map coordinates of ~100 mm against U_p ~ 1e-2 mm.
+
+    Parameters
+    ----------
+    g, c0 : int
+        Node and a cell incident to it.
+    simplices, transform, neighbors : `SimplexMesh` arrays (d + 1 vertices per cell)
+    values : ndarray, shape (n, 3), T
+    cells : ndarray, shape (MAX_STAR,), int64
+        Output: global index of each star cell.
+    lmat : ndarray, shape (MAX_STAR, d, d), 1/mm
+        Output: row a maps delta to the barycentric coordinate of the a-th vertex other than g.
+    dmat : ndarray, shape (MAX_STAR, 3, d), T
+        Output: column a is B of that vertex minus B_g.
+    nbr : ndarray, shape (MAX_STAR, d), int64
+        Output: star index of the cell across the face opposite that vertex (the face contains
+        g); -1 across the mesh boundary.
+    htab : ndarray, shape (3, STAR_HASH), int64
+        Work space (see `_star_slot`); initialise row 2 to -1 once.
+
+    Returns
+    -------
+    int
+        Number of star cells; -1 if ``c0`` does not contain ``g`` or the star exceeds MAX_STAR.
+    """
+    d = transform.shape[2]
+    if c0 < 0 or not _star_contains(simplices, c0, g):
+        return -1
+    cells[0] = c0
+    _star_slot(htab, g, c0, 0)
+    n = 1
+    i = 0
+    while i < n:  # breadth-first across the faces that contain g, filling the tables
+        s = cells[i]
+        a = 0
+        for j in range(d + 1):
+            v = simplices[s, j]
+            if v == g:
+                continue
+            ns = neighbors[s, j]
+            if ns < 0:
+                nbr[i, a] = -1
+            else:
+                k = _star_slot(htab, g, ns, n)
+                if k < 0:
+                    if n == cells.shape[0]:
+                        return -1
+                    cells[n] = ns
+                    k = n
+                    n += 1
+                nbr[i, a] = k
+            for b in range(d):
+                if j < d:
+                    lmat[i, a, b] = transform[s, j, b]
+                else:  # the last coordinate is 1 - the others
+                    acc = 0.0
+                    for m in range(d):
+                        acc += transform[s, m, b]
+                    lmat[i, a, b] = -acc
+            for c in range(3):
+                dmat[i, c, a] = values[v, c] - values[g, c]
+            a += 1
+        i += 1
+    return n
+
+
+@nb.njit(inline="always", **JIT)
+def star_locate(start, lmat, nbr, n_star, delta, lam):
+    """Star cell containing ``x_g + delta`` by walking across faces that contain g.
+
+    Returns the star index (``lam`` then holds the barycentric coordinates of the cell's
+    vertices other than g); LEAVES_MESH if the walk crosses a boundary face of the mesh (such a
+    face contains g, so every displacement along the same ray, whatever U_p, leaves the mesh
+    there too); -1 if the point is beyond the star (past a face opposite g) or the walk does not
+    settle.
+    """
+    d = lmat.shape[2]
+    s = start
+    for _ in range(n_star + 4):
+        lmin = np.inf
+        amin = 0
+        tot = 0.0
+        for a in range(d):
+            v = 0.0
+            for b in range(d):
+                v += lmat[s, a, b] * delta[b]
+            lam[a] = v
+            tot += v
+            if v < lmin:
+                lmin = v
+                amin = a
+        if lmin >= -BARY_EPS:
+            return s if 1.0 - tot >= -BARY_EPS else -1
+        s = nbr[s, amin]
+        if s < 0:
+            return LEAVES_MESH
+    return -1
+
+
+@nb.njit(inline="always", **JIT)
+def star_locate3(start, lmat, nbr, n_star, d0, d1, d2, lam):
+    """`star_locate` written out for d = 3 (the hot loop of 3-D maps)."""
+    s = start
+    for _ in range(n_star + 4):
+        l0 = lmat[s, 0, 0] * d0 + lmat[s, 0, 1] * d1 + lmat[s, 0, 2] * d2
+        l1 = lmat[s, 1, 0] * d0 + lmat[s, 1, 1] * d1 + lmat[s, 1, 2] * d2
+        l2 = lmat[s, 2, 0] * d0 + lmat[s, 2, 1] * d1 + lmat[s, 2, 2] * d2
+        a = 0
+        m = l0
+        if l1 < m:
+            a = 1
+            m = l1
+        if l2 < m:
+            a = 2
+            m = l2
+        if m >= -BARY_EPS:
+            lam[0] = l0
+            lam[1] = l1
+            lam[2] = l2
+            return s if 1.0 - (l0 + l1 + l2) >= -BARY_EPS else -1
+        s = nbr[s, a]
+        if s < 0:
+            return LEAVES_MESH
+    return -1
+
+
+#: Levels per non-dominant axis of a direction bin (`direction_bin`).
+BIN_LEVELS = 2
+
+
+def n_direction_bins(d: int) -> int:
+    """Number of `direction_bin` values in d dimensions (96 in 3-D, 16 in 2-D)."""
+    return (1 << d) * d * BIN_LEVELS ** (d - 1)
+
+
+@nb.njit(inline="always", **JIT)
+def direction_bin(delta, d):
+    """Bin of a displacement direction: its sign pattern, its dominant axis, and for each other
+    axis the ratio |delta_a| / |delta_dominant| in BIN_LEVELS equal steps.
+
+    A walk started from the star cell of the bin's centre direction (`star_bin_starts`) ends at
+    once for about three displacements in four (a typical star has ~25 cells).
+    """
+    ax = 0
+    for a in range(1, d):
+        if abs(delta[a]) > abs(delta[ax]):
+            ax = a
+    b = 0
+    for a in range(d):
+        b = 2 * b + (1 if delta[a] < 0.0 else 0)
+    b = b * d + ax
+    big = abs(delta[ax])
+    inv = BIN_LEVELS / big if big > 0.0 else 0.0
+    for a in range(d):
+        if a != ax:
+            b = BIN_LEVELS * b + min(np.int64(abs(delta[a]) * inv), BIN_LEVELS - 1)
+    return b
+
+
+@nb.njit(**JIT)
+def _bin_centre(b, d, scale, delta):
+    """A direction inside bin b (inverse of `direction_bin`), of length ~scale."""
+    levels = np.empty(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):  # the last other axis holds the lowest digit
+        levels[a] = b % BIN_LEVELS
+        b //= BIN_LEVELS
+    ax = b % d
+    b //= d
+    k = 0
+    for a in range(d):
+        if a != ax:
+            delta[a] = (levels[k] + 0.5) / BIN_LEVELS
+            k += 1
+        else:
+            delta[a] = 1.0
+    for a in range(d - 1, -1, -1):
+        delta[a] *= -scale if b & 1 else scale
+        b >>= 1
+
+
+@nb.njit(**JIT)
+def star_bin_starts(lmat, nbr, n_star, d, scale, out):
+    """Start cell of every `direction_bin`: the star cell of the bin's centre direction (0 where
+    that walk fails)."""
+    delta = np.empty(d)
+    lam = np.empty(d)
+    for b in range(out.shape[0]):
+        _bin_centre(b, d, scale, delta)
+        s = star_locate(0, lmat, nbr, n_star, delta, lam)
+        out[b] = s if s >= 0 else 0
+
+
+@nb.njit(inline="always", **JIT)
+def _zig_fast3(key, c):
+    """Fast path of ``_three_normals`` at counter c (vectorisable): z0, z1, z2 and whether all
+    three took it; if not, ``_three_normals`` gives the exact values."""
+    h1 = _draw(key, c)
+    h2 = _draw(key, c + np.uint64(1))
+    l0 = np.int64((h2 >> np.uint64(32)) & np.uint64(255))
+    l1 = np.int64((h2 >> np.uint64(40)) & np.uint64(255))
+    l2 = np.int64((h2 >> np.uint64(48)) & np.uint64(255))
+    v0 = np.float64(np.int32(h1 & _LOW32))
+    v1 = np.float64(np.int32(h1 >> np.uint64(32)))
+    v2 = np.float64(np.int32(h2 & _LOW32))
+    ok = (abs(v0) < _KN[l0]) & (abs(v1) < _KN[l1]) & (abs(v2) < _KN[l2])
+    return v0 * _WN[l0], v1 * _WN[l1], v2 * _WN[l2], ok
+
+
+@nb.njit(**JIT)
+def normals_by_index(key, fkey, t0, n, z, ok):
+    """``_three_normals(key, fkey, t)`` for t = t0 .. t0+n-1 into z (3, >= n), same numbers.
+
+    The fast path (99 % of draws) runs as one vectorised loop; the rest is redone exactly.
+    ``ok`` (>= n,) bool is work space.
+    """
+    for k in range(n):
+        z0, z1, z2, good = _zig_fast3(key, np.uint64(t0 + k) * np.uint64(4))
+        z[0, k] = z0
+        z[1, k] = z1
+        z[2, k] = z2
+        ok[k] = good
+    for k in range(n):
+        if not ok[k]:
+            z[0, k], z[1, k], z[2, k] = _three_normals(key, fkey, t0 + k)
+
+
+@nb.njit(**JIT)
+def normals_by_key(keys, fkey, point, n, z, ok):
+    """``_three_normals(keys[k], fkey, point)`` for k < n into z (3, >= n), same numbers
+    (the kinematics layout: one key per trial, a fixed counter per point)."""
+    c = np.uint64(point) * np.uint64(4)
+    for k in range(n):
+        z0, z1, z2, good = _zig_fast3(keys[k], c)
+        z[0, k] = z0
+        z[1, k] = z1
+        z[2, k] = z2
+        ok[k] = good
+    for k in range(n):
+        if not ok[k]:
+            z[0, k], z[1, k], z[2, k] = _three_normals(keys[k], fkey, point)
+
+
+@nb.njit(inline="always", **JIT)
+def _abs_change(b0, e0, e1, e2, abs0):
+    """|b0 + e| - |b0| without cancellation: (2 b0.e + |e|^2) / (|b0 + e| + |b0|)."""
+    x0 = b0[0] + e0
+    x1 = b0[1] + e1
+    x2 = b0[2] + e2
+    den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
+    if den == 0.0:
+        return 0.0
+    return (2.0 * (b0[0] * e0 + b0[1] * e1 + b0[2] * e2) + e0 * e0 + e1 * e1 + e2 * e2) / den
+
+
 @nb.njit(**JIT)
 def _node_gauss(
     g,
@@ -1420,11 +1837,28 @@ def _node_gauss(
     comp,
     absb,
     scratch,
+    zbuf,
+    okbuf,
+    cells,
+    lmat,
+    dmat,
+    nbr,
+    htab,
+    bin_start,
+    work,
     stats,
     n_out,
     n_lost,
 ):
-    """All trials and statistics of node ``g`` (see `gauss_sweep`). Buffers are per thread."""
+    """All trials and statistics of node ``g`` (see `gauss_sweep`). Buffers are per thread.
+
+    Trials whose largest displacement stays in the node's star are located in the star tables
+    (`build_star`); the field is affine there, so their component errors at every U_p are the
+    largest U_p's scaled. They are stored once (comp[kmax]); the few trials that leave the star
+    take the global walk at each U_p and are stored per U_p (comp[k], or the back of comp[kmax]).
+    Component statistics then merge the scaled in-star tails with the sorted out-of-star values
+    (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
+    """
     d = coords.shape[1]
     n_up = scales.shape[0]
     kmax = 0
@@ -1435,54 +1869,80 @@ def _node_gauss(
     ratio = np.empty(n_up)
     for k in range(n_up):
         ratio[k] = scales[k] / smax if smax > 0 else 0.0
-    z = np.empty(3)
     disp = np.empty(d)
+    delta = np.empty(d)
+    lam = np.empty(d)
     pt = np.empty(d)
     bary = np.empty(d + 1)
     bi = np.empty(3)
     b0 = values[g]
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
     key = trial_key(skey, g)  # one sequence per node: positions 4t, 4t + 1 serve trial t
-    nvalid = np.zeros(n_up, dtype=np.int64)
-    all_star = True
+    n_abs = np.zeros(n_up, dtype=np.int64)  # |B| samples per U_p
+    m_out = np.zeros(n_up, dtype=np.int64)  # out-of-star component samples per U_p
+    n_in = 0  # in-star trials (components stored at kmax)
     for k in range(n_up):
         n_out[k] = 0
         n_lost[k] = 0
+    for k in range(n_up):
+        if scales[k] == 0.0:  # no displacement: every error is exactly zero
+            for c in range(4):
+                for j in range(6):
+                    stats[k, c, j] = 0.0
+    if smax == 0.0:
+        return False
+    n_star = build_star(
+        g, start_cells[g, 0], simplices, transform, neighbors, values, cells, lmat, dmat, nbr,
+        htab,
+    )  # fmt: skip
+    if n_star > 0:  # per direction bin, a star cell to start walks from
+        star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
+    normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
     for t in range(n_trials):
-        z[0], z[1], z[2] = _three_normals(key, fkey, t)
         # displacement direction in the mesh frame (projection for a planar map)
+        octant = 0
         for a in range(d):
             acc = 0.0
             for c in range(3):
-                acc += basis[c, a] * sigma_axes[c] * z[c]
+                acc += basis[c, a] * sigma_axes[c] * zbuf[c, t]
             disp[a] = acc
-        octant = 0
-        for a in range(d):
-            pt[a] = coords[g, a] + smax * disp[a]
-            if disp[a] < 0.0:
+            delta[a] = smax * acc
+            if acc < 0.0:
                 octant |= 1 << a
-        start = start_cells[g, octant]
-        s = locate(pt, start, transform, neighbors, bary) if smax > 0 else start
-        if smax > 0 and s >= 0 and _star_contains(simplices, s, g):
-            # Affine on a cell incident to the node: errors scale exactly with U_p.
-            _interp_in(s, bary, simplices, values, bi)
-            for k in range(n_up):
-                r = ratio[k]
-                if r == 0.0:
-                    continue  # zero U_p: statistics are set to exact zeros below
-                m2 = 0.0
-                for c in range(3):
-                    e = r * (bi[c] - b0[c])
-                    comp[k, c, nvalid[k]] = e
-                    m2 += (b0[c] + e) ** 2
-                absb[k, nvalid[k]] = np.sqrt(m2) - abs0
-                nvalid[k] += 1
+        s = -1
+        if n_star > 0:
+            bn = direction_bin(delta, d)
+            if d == 3:
+                s = star_locate3(
+                    bin_start[bn], lmat, nbr, n_star, delta[0], delta[1], delta[2], lam
+                )
+            else:
+                s = star_locate(bin_start[bn], lmat, nbr, n_star, delta, lam)
+        if s >= 0:
+            e0 = 0.0
+            e1 = 0.0
+            e2 = 0.0
+            for a in range(d):
+                e0 += dmat[s, 0, a] * lam[a]
+                e1 += dmat[s, 1, a] * lam[a]
+                e2 += dmat[s, 2, a] * lam[a]
+            comp[kmax, 0, n_in] = e0
+            comp[kmax, 1, n_in] = e1
+            comp[kmax, 2, n_in] = e2
+            n_in += 1
             continue
-        all_star = False
+        if s == LEAVES_MESH:  # outside the map at every U_p: counted, never extrapolated
+            for k in range(n_up):
+                if scales[k] > 0.0:
+                    n_out[k] += 1
+            continue
+        # left the star: the global walk at each U_p (stored after the loop's in-star trials
+        # are known, so |B| of in-star trials is filled in below)
+        start = start_cells[g, octant]
         cell = start
         for k in range(n_up):
             if scales[k] == 0.0:
-                continue  # statistics are set to exact zeros below
+                continue
             for a in range(d):
                 pt[a] = coords[g, a] + scales[k] * disp[a]
             s = locate(pt, cell if cell >= 0 else start, transform, neighbors, bary)
@@ -1494,37 +1954,87 @@ def _node_gauss(
                 continue
             cell = s
             _interp_in(s, bary, simplices, values, bi)
-            m2 = 0.0
+            mk = m_out[k]
+            col = n_trials - 1 - mk if k == kmax else mk
             for c in range(3):
-                comp[k, c, nvalid[k]] = bi[c] - b0[c]
-                m2 += bi[c] ** 2
-            absb[k, nvalid[k]] = np.sqrt(m2) - abs0
-            nvalid[k] += 1
-    # statistics
-    if all_star and smax > 0:
+                comp[k, c, col] = bi[c] - b0[c]
+            absb[k, n_trials - 1 - mk] = _abs_change(
+                b0, bi[0] - b0[0], bi[1] - b0[1], bi[2] - b0[2], abs0
+            )  # from the back: the front takes the in-star trials below
+            m_out[k] = mk + 1
+    all_star = n_star > 0
+    for k in range(n_up):
+        if m_out[k] > 0 or n_out[k] > 0 or n_lost[k] > 0:
+            all_star = False
+    # |B| per U_p: in-star trials at the front, out-of-star ones already at the back
+    for k in range(n_up):
+        if scales[k] == 0.0:
+            continue
+        r = ratio[k]
+        for j in range(n_in):
+            absb[k, j] = _abs_change(
+                b0, r * comp[kmax, 0, j], r * comp[kmax, 1, j], r * comp[kmax, 2, j], abs0
+            )
+        mk = m_out[k]
+        for j in range(mk):  # close the gap
+            absb[k, n_in + j] = absb[k, n_trials - mk + j]
+        n_abs[k] = n_in + mk
+    # components
+    if all_star:
         for c in range(3):
-            nk = nvalid[kmax]
-            sample_stats(comp[kmax, c], nk, coverage_count(nk, p), stats[kmax, c], scratch)
+            sample_stats(comp[kmax, c], n_in, coverage_count(n_in, p), stats[kmax, c], scratch)
             for k in range(n_up):
                 if k != kmax:
                     for j in range(6):
                         stats[k, c, j] = ratio[k] * stats[kmax, c, j]
     else:
-        for k in range(n_up):
-            if scales[k] == 0.0:
-                continue  # set to zero below
-            for c in range(3):
-                nk = nvalid[k]
-                sample_stats(
-                    comp[k, c], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, c], scratch
-                )
+        low = work[0]
+        high = work[1]
+        full = work[2]
+        ybuf = work[3]
+        for c in range(3):
+            x = comp[kmax, c]
+            shift = x[0] if n_in > 0 else 0.0
+            s1 = 0.0
+            s2 = 0.0
+            for j in range(n_in):
+                dv = x[j] - shift
+                s1 += dv
+                s2 += dv * dv
+            # in-star tails beyond mean -+ TAIL_SIGMAS std, sorted (kept in scratch)
+            n_lo = 0
+            n_hi = 0
+            if n_in > 1:
+                mean = shift + s1 / n_in
+                std = np.sqrt(max(s2 - s1 * s1 / n_in, 0.0) / (n_in - 1))
+                t_lo = mean - TAIL_SIGMAS * std
+                t_hi = mean + TAIL_SIGMAS * std
+                for j in range(n_in):
+                    v = x[j]
+                    scratch[n_lo] = v
+                    n_lo += v <= t_lo
+                    scratch[n_trials - 1 - n_hi] = v
+                    n_hi += v >= t_hi
+                if not std > 0.0:
+                    n_lo = 0  # degenerate: take the exact whole-sample path
+                    n_hi = 0
+            lo_tail = scratch[:n_lo]
+            hi_tail = scratch[n_trials - n_hi : n_trials]
+            sort_values(lo_tail)
+            sort_values(hi_tail)
+            for k in range(n_up):
+                if scales[k] == 0.0:
+                    continue
+                mk = m_out[k]
+                for j in range(mk):
+                    ybuf[j] = comp[k, c, n_trials - mk + j] if k == kmax else comp[k, c, j]
+                sort_values(ybuf[:mk])
+                _merged_stats(x, n_in, shift, s1, s2, lo_tail, hi_tail, ratio[k], ybuf, mk, p,
+                              stats[k, c], low, high, full, work[4])  # fmt: skip
     for k in range(n_up):
-        if scales[k] == 0.0:  # no displacement: every error is exactly zero
-            for c in range(4):
-                for j in range(6):
-                    stats[k, c, j] = 0.0
+        if scales[k] == 0.0:
             continue
-        nk = nvalid[k]
+        nk = n_abs[k]
         sample_stats(absb[k], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, 3], scratch)
     return all_star
 
@@ -1596,6 +2106,16 @@ def gauss_sweep(
         comp = np.empty((n_up, 3, n_trials))
         absb = np.empty((n_up, n_trials))
         scratch = np.empty(n_trials)
+        zbuf = np.empty((3, n_trials))
+        okbuf = np.empty(n_trials, dtype=np.bool_)
+        d = coords.shape[1]
+        cells = np.empty(MAX_STAR, dtype=np.int64)
+        lmat = np.empty((MAX_STAR, d, d))
+        dmat = np.empty((MAX_STAR, 3, d))
+        nbr = np.empty((MAX_STAR, d), dtype=np.int64)
+        htab = np.full((3, STAR_HASH), -1, dtype=np.int64)
+        work = np.empty((5, n_trials))
+        bin_start = np.zeros((1 << d) * d * BIN_LEVELS ** (d - 1), dtype=np.int64)
         for i in range(b * block, min((b + 1) * block, k_nodes)):
             g = nodes[i]
             if start_cells[g, 0] < 0:
@@ -1618,6 +2138,15 @@ def gauss_sweep(
                 comp,
                 absb,
                 scratch,
+                zbuf,
+                okbuf,
+                cells,
+                lmat,
+                dmat,
+                nbr,
+                htab,
+                bin_start,
+                work,
                 stats[i],
                 n_out[i],
                 n_lost[i],

@@ -20,6 +20,7 @@ import numpy as np
 
 from .field import FieldMap
 from .sweep import (
+    HTM_PARTS,
     SweepConfig,
     SweepResult,
     _gum_u,
@@ -45,6 +46,15 @@ class CompactSweep(SweepResult):
     uf: np.ndarray | None = None
     complete_: np.ndarray | None = None
     disagree: np.ndarray | None = None
+    #: Mode htm: U_p of each column (RMS over the reachable nodes of the 3-D probe position
+    #: error, as `SweepResult.column_up_um` computes it from the full ``positioning``), um.
+    up_columns: list[float] | None = None
+
+    def column_up_um(self) -> list[float]:
+        """U_p of each column, um (see `cfm_fem.sweep.SweepResult.column_up_um`)."""
+        if self.up_columns is not None:
+            return list(self.up_columns)
+        return super().column_up_um()
 
     def uf_units(self) -> np.ndarray:
         """U_f per node and column, units, shape (n, n_col)."""
@@ -96,7 +106,8 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     ----------
     fm : FieldMap
     cfg : SweepConfig
-        Mode ``gauss``.
+        Mode ``gauss`` or ``htm`` (then the per-node probe-error mean and standard deviation
+        are not kept, only |mean|^2 + |std|^2 per node and column, for the U_p of each column).
     mapper : callable(problem, chunks) -> iterable of ((start, stop), result)
         Must keep the full chunk results somewhere `piece_result` can read them back, e.g.
         `cfm_fem.resume.ResumableRun.mapper`.
@@ -109,7 +120,9 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     """
     t0 = time.perf_counter()
     mesh, problem, b_ref = prepare_sweep(fm, cfg)
-    n, n_col = fm.n_nodes, len(cfg.up_um)
+    n = fm.n_nodes
+    htm = cfg.mode == "htm"
+    n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
     compact = CompactSweep(
         fieldmap=fm,
         mesh=mesh,
@@ -126,8 +139,11 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         complete_=np.zeros((n, n_col), dtype=bool),
         disagree=np.zeros((n, n_col, 4), dtype=bool),
     )
-    compact.sigma_mm = _sigma_mm(problem)
+    compact.sigma_mm = None if htm else _sigma_mm(problem)
     u_abs = np.full((n, n_col), np.nan)
+    # htm: |mean|^2 + |std|^2 of the probe error per node and column, mm^2 (8 bytes per node
+    # and column, kept so that the column U_p equals SweepResult.column_up_um bit for bit)
+    e2 = np.full((n, n_col), np.nan) if htm else None
     done = np.zeros(n, dtype=bool)
     for (a, b), parts in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
         part = _part_result(compact, np.arange(a, b), parts)
@@ -138,6 +154,9 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         compact.n_outside[a:b] = part.n_outside
         compact.n_walk_failed[a:b] = part.n_walk_failed
         compact.linear_in_up[a:b] = part.linear_in_up
+        if htm:
+            pos = part.positioning  # (k, n_col, 2, 3), mm
+            e2[a:b] = (pos[:, :, 0] ** 2).sum(-1) + (pos[:, :, 1] ** 2).sum(-1)
         done[a:b] = True
         if progress is not None:
             progress(b - a)
@@ -146,6 +165,8 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     compact.stats = np.lib.stride_tricks.as_strided(
         u_abs, shape=(n, n_col, 4, 6), strides=u_abs.strides + (0, 0), writeable=False
     )
+    if htm:
+        compact.up_columns = [float(np.sqrt(np.nanmean(e2[:, k])) * 1e3) for k in range(n_col)]
     compact.seconds = time.perf_counter() - t0
     return compact
 

@@ -14,7 +14,7 @@ import numpy as np
 from . import _kernels
 from .errors import CfmInputError
 from .field import FieldMap
-from .interpolation import SimplexMesh, build_mesh
+from .interpolation import SimplexMesh, build_mesh, morton_order
 from .mc import numerical_tolerance
 
 __all__ = [
@@ -320,12 +320,17 @@ class SweepProblem:
         nodes = np.arange(start, stop, dtype=np.int64)
         if self.htm is not None:
             return self._run_htm(nodes)
+        # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
+        # each node's numbers depend on its index only, so the order changes no result
+        order = morton_order(self.coords[start:stop])
         s, o, lost, star = _kernels.gauss_sweep(
-            nodes, self.coords, self.values, self.simplices, self.transform, self.neighbors,
-            self.start_cells, self.basis, self.axis_scale, self.scales_mm, int(self.trials),
-            int(self.seed), float(self.coverage), 32,
+            nodes[order], self.coords, self.values, self.simplices, self.transform,
+            self.neighbors, self.start_cells, self.basis, self.axis_scale, self.scales_mm,
+            int(self.trials), int(self.seed), float(self.coverage), 32,
         )  # fmt: skip
-        return s, o, lost, star, np.empty((len(nodes), 0, 2, 3))
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+        return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 2, 3))
 
     def _run_htm(self, nodes):
         h = self.htm

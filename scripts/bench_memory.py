@@ -1,11 +1,18 @@
-"""Peak memory of `cfm-fem sweep` with and without ``--pieces``, on the same map, in one run.
+"""Peak memory of `cfm-fem sweep` in memory, with ``--pieces`` and with ``--slabs``, same map.
 
 Each variant runs in its own process (``cfm-fem sweep`` in-process via ``main``); the peak
 resident set size (``ru_maxrss``) of that process is printed, with a floor (read the map and
 build the interpolation mesh, nothing else) and the ratios. Not a timing benchmark.
 
-    python scripts/bench_memory.py              # 48^3 grid (110,592 nodes), 6 U_p values
-    python scripts/bench_memory.py --n 64 --pieces 32
+    python scripts/bench_memory.py              # 48 x 48 x 96 grid (221,184 nodes), 6 U_p values
+    python scripts/bench_memory.py --n 64 --pieces 32 --slabs 16
+
+The map is a plain CSV table written like an Opera export (z fastest, z the longest axis), so
+``--slabs`` streams it; every variant reads the same file.
+
+What ``--slabs`` bounds: the map, the mesh and the statistics are held one slab (plus halo) at a
+time; left O(n): the node-indexed kernel arrays (up to 112 bytes per node, see
+`cfm_fem.slabs`).
 
 What ``--pieces`` bounds: the per-node statistics and the output arrays (one piece and one
 chunk at a time). What it does not: the map, the mesh and the per-node gradients, about the
@@ -26,20 +33,23 @@ import numpy as np
 
 
 def _write_map(path: Path, n: int) -> None:
-    import meshio
-
     ax = np.linspace(-20.0, 20.0, n)
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    az = np.linspace(-40.0, 40.0, 2 * n)
+    pts = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1).reshape(-1, 3)
     g = 0.05  # T/mm, a quadrupole-like field plus a sextupole term and a solenoid part
     B = np.c_[
         g * pts[:, 1] + 1e-4 * (pts[:, 0] ** 2 - pts[:, 1] ** 2),
         g * pts[:, 0] + 2e-4 * pts[:, 0] * pts[:, 1],
         0.1 + 1e-3 * pts[:, 2],
     ]
-    meshio.write(path, meshio.Mesh(pts, [("vertex", np.arange(len(pts))[:, None])], {"B": B}))
+    with open(path, "w") as f:
+        f.write("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n")
+        for a in range(0, len(pts), 65536):
+            rows = np.c_[pts[a : a + 65536], B[a : a + 65536]].tolist()
+            f.write("".join(",".join(map(repr, r)) + "\n" for r in rows))
 
 
-def _child(mode: str, field: str, out: str, pieces: int, trials: int, chunk: int) -> None:
+def _child(mode, field, out, pieces, trials, chunk, slabs) -> None:
     from cfm_fem.cli import main
 
     if mode == "floor":
@@ -57,6 +67,8 @@ def _child(mode: str, field: str, out: str, pieces: int, trials: int, chunk: int
         args += ["--chunk-nodes", str(chunk)]
         if mode == "pieces":
             args += ["--pieces", str(pieces)]
+        if mode == "slabs":
+            args += ["--slabs", str(slabs)]
         rc = main(args)
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
     print(json.dumps({"mode": mode, "rc": rc, "peak_mib": peak_kb / 1024}))
@@ -66,34 +78,38 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--n", type=int, default=48, help="grid points per axis (default 48)")
     p.add_argument("--pieces", type=int, default=16)
+    p.add_argument("--slabs", type=int, default=8)
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--chunk-nodes", type=int, default=4096)
     p.add_argument("--child", nargs=2, metavar=("MODE", "DIR"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
         mode, tmp = a.child
-        _child(mode, str(Path(tmp) / "map.vtu"), str(Path(tmp) / mode), a.pieces, a.trials,
-               a.chunk_nodes)  # fmt: skip
+        _child(mode, str(Path(tmp) / "map.csv"), str(Path(tmp) / mode), a.pieces, a.trials,
+               a.chunk_nodes, a.slabs)  # fmt: skip
         return
     with tempfile.TemporaryDirectory() as tmp:
-        _write_map(Path(tmp) / "map.vtu", a.n)
+        _write_map(Path(tmp) / "map.csv", a.n)
         rows = {}
-        for mode in ("floor", "in-memory", "pieces"):
+        for mode in ("floor", "in-memory", "pieces", "slabs"):
             cmd = [sys.executable, __file__, "--child", mode, tmp, "--n", str(a.n),
-                   "--pieces", str(a.pieces), "--trials", str(a.trials),
+                   "--pieces", str(a.pieces), "--trials", str(a.trials), "--slabs", str(a.slabs),
                    "--chunk-nodes", str(a.chunk_nodes)]  # fmt: skip
             res = subprocess.run(cmd, capture_output=True, text=True, check=True)
             rows[mode] = json.loads(res.stdout.strip().splitlines()[-1])
             assert rows[mode]["rc"] == 0, res.stderr
-    nodes = a.n**3
-    floor, full, pc = (rows[m]["peak_mib"] for m in ("floor", "in-memory", "pieces"))
-    print(f"map: {a.n}^3 grid = {nodes:,} nodes, 6 U_p values, {a.trials} trials, "
+    nodes = 2 * a.n**3
+    floor, full, pc, sl = (rows[m]["peak_mib"] for m in ("floor", "in-memory", "pieces", "slabs"))
+    print(f"map: {a.n} x {a.n} x {2 * a.n} grid = {nodes:,} nodes (CSV), 6 U_p values, "
+          f"{a.trials} trials, "
           f"chunks of {a.chunk_nodes} nodes")  # fmt: skip
     print(f"{'variant':<34}{'peak RSS [MiB]':>16}")
     print(f"{'floor (map, mesh, gradient, VTK)':<34}{floor:16.0f}")
     print(f"{'in-memory (one .vtu per U_p)':<34}{full:16.0f}")
     print(f"{f'--pieces {a.pieces} (.pvtu)':<34}{pc:16.0f}")
+    print(f"{f'--slabs {a.slabs} (.pvtu, streamed)':<34}{sl:16.0f}")
     print(f"ratio pieces / in-memory: {pc / full:.2f}")
+    print(f"ratio slabs / in-memory: {sl / full:.2f}")
     print(
         f"above the floor: in-memory {full - floor:.0f} MiB, pieces {pc - floor:.0f} MiB "
         f"(ratio {(pc - floor) / max(full - floor, 1e-9):.2f})"

@@ -30,24 +30,27 @@ def run_tracker(effects=None, seed=0, reps=6, speeds=None):
     return diagnose(tracker_problem(rec, BENCH)).summary, truth
 
 
-def run_hall(effects=None, seed=0, reps=6):
-    rec, truth, ctx = hall_twin(seed, effects, n_reps=reps, points=P)
+def run_hall(effects=None, seed=0, reps=6, dt_s=4.0):
+    rec, truth, ctx = hall_twin(seed, effects, n_reps=reps, points=P, dt_s=dt_s)
     mp = ctx["multipole"]
     return diagnose(hall_problem(rec, mp.field, mp.b_ref, ctx["bench"])).summary, truth
 
 
-def check(summary, name, truth_params, k=3.5):
+def check(summary, name, truth_params, k=3.0):
+    """The right name first, every true value within k reported standard uncertainties, the
+    held-out error lower with the effect (a new signature must also pass the paired test)."""
     assert summary["mismatch"]
     assert summary["effects"], summary["candidates"]
     first = summary["effects"][0]
     assert first["name"] == name, summary["candidates"]
     for p, v in truth_params.items():
         est, sd = first["params"][p], first["param_std"][p]
-        assert abs(est - v) < k * sd + 1e-9, (p, est, sd, v)
+        assert abs(est - v) < k * sd, (p, est, sd, v)
     assert first["cv_rms_after"] < first["cv_rms_before"]
     f = summary["fit"]
     assert f["cv_rms_after"] < f["cv_rms_before"]
     assert f["chi2_dof_after"] < f["chi2_dof_before"]
+    return first
 
 
 @pytest.mark.parametrize("seed", [11, 12])
@@ -78,8 +81,25 @@ def test_position_dependent_geometric():
 
 
 def test_parameter_bias():
-    s, _ = run_tracker({"parameter_bias": {"alpha_xy": 300.0}})  # N(32.3, 12.8) urad in Table II
-    assert s["effects"] and s["effects"][0]["name"] == "parameter_bias"
+    # alpha_xy is N(32.3, 12.8) urad in Table II; the bench really has 200 urad
+    s, _ = run_tracker({"parameter_bias": {"alpha_xy": 200.0}})
+    e = check_release(s, "parameter_bias", {"alpha_xy": 200.0})
+    assert e["conflict_z"]["alpha_xy"] > 5
+
+
+def check_release(summary, name, truth_params, k=3.0):
+    """A prior release: found first on the prior-data conflict, truth within k u; the fit of
+    the data barely moves (the calibration already followed the data), so the held-out error
+    must not get significantly worse rather than drop."""
+    assert summary["mismatch"] and summary["effects"], summary["candidates"]
+    first = summary["effects"][0]
+    assert first["name"] == name, summary["candidates"]
+    assert first["evidence"].startswith("prior-data conflict")
+    for p, v in truth_params.items():
+        est, sd = first["params"][p], first["param_std"][p]
+        assert abs(est - v) < k * sd, (p, est, sd, v)
+    assert first["cv_z"] > -2.0  # paired held-out test: not significantly worse
+    return first
 
 
 def test_reading_delay_two_speeds():
@@ -130,13 +150,43 @@ def test_hall_offset():
 
 def test_sensor_offset_in_pure_quadrupole_is_absorbed_not_invented():
     # dB_y/dx of a quadrupole is uniform: a shifted y element reads a constant offset, the same
-    # signature as a probe or magnet offset. The tool must not claim it.
+    # signature as a magnet offset. The tool must say it is absorbed, not claim it.
     s, _ = run_hall({"sensor_offset": {"d_y_x": 150.0}})
     assert all(e["name"] != "sensor_offset" for e in s["effects"])
     cand = {c["name"]: c for c in s["candidates"]}
-    assert cand["sensor_offset"]["survival"] < 0.2
+    assert "d_y_x" in cand["sensor_offset"]["absorbed_params"]
+    assert any("d_y_x" in a and "probe flipped" in a for a in s["advice"]), s["advice"]
+
+
+def test_magnet_offset_and_roll():
+    s, truth = run_hall({"magnet_misalignment": {"magnet_dx": 300.0, "magnet_roll": 600.0}})
+    reg = truth["registration"]  # survey-sized draw + the concealed misalignment
+    check_release(
+        s,
+        "magnet_misalignment",
+        {"magnet_dx": reg["t_mm"][0] * 1e3, "magnet_roll": reg["rot_rad"][2] * 1e6},
+    )
+
+
+def test_hall_offset_and_gain():
+    # a 1 % gain error is about 6 times the S_HP prior std (0.15 %)
+    s, truth = run_hall({"hall_offset_gain": {"offset_z": 20.0, "gain_x": 1.0}})
+    # the fitted gain is the whole gain error: S_HP draw of the twin + the concealed 1 %
+    e = check(s, "hall_offset_gain", {"offset_z": 20.0, "gain_x": truth["gains_pct"][0] + 1.0})
+    assert e["evidence"] == "prior-data conflict and new signature"
+    assert e["cv_z"] > 2.0
+
+
+def test_in_plane_hall_offset_is_absorbed_with_advice():
+    # a constant B_x, B_y is what a magnet offset gives in a quadrupole: absorbed, with advice
+    s, _ = run_hall({"hall_offset_gain": {"offset_x": 20.0}})
+    assert all("offset_x" not in e["params"] for e in s["effects"])
+    cand = {c["name"]: c for c in s["candidates"]}
+    assert {"offset_x", "offset_y"} <= set(cand["hall_offset_gain"]["absorbed_params"])
+    assert any("offset_x" in a and "zero-gauss" in a for a in s["advice"]), s["advice"]
 
 
 def test_magnet_temperature():
-    s, _ = run_hall({"magnet_temperature": {"beta": -300.0}})
+    # SmCo-like -300 ppm/K over a 7 h map (30 s per point) with the twin's +-0.4 K swing
+    s, _ = run_hall({"magnet_temperature": {"beta": -300.0}}, dt_s=30.0)
     check(s, "magnet_temperature", {"beta": -300.0})

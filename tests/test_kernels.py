@@ -118,3 +118,107 @@ def test_gauss_sweep_matches_numpy_twin():
     assert n_lost.sum() == 0
     np.testing.assert_allclose(stats, ref, rtol=1e-9, atol=1e-12)
     assert n_out[:, 2].sum() > 0  # the comparison did exercise points leaving the map
+
+
+def test_block_normals_equal_scalar_generator():
+    """The vectorised ziggurat fast path plus its exact redo gives the scalar stream's numbers."""
+    key = np.uint64(twins.trial_key(twins.stream_key(3, twins.STREAM_SWEEP), 11))
+    fkey = np.uint64(twins.stream_key(3, twins.STREAM_FALLBACK))
+    n = 20_000  # ~600 samples take the slow path
+    z = np.empty((3, n))
+    _kernels.normals_by_index(key, fkey, 5, n, z, np.empty(n, dtype=np.bool_))
+    ref = _sweep_normals_from(key, fkey, 5, n)
+    np.testing.assert_array_equal(z.T, ref)
+    keys = np.array([twins.trial_key(int(key), t) for t in range(500)], dtype=np.uint64)
+    zk = np.empty((3, 500))
+    _kernels.normals_by_key(keys, fkey, 17, 500, zk, np.empty(500, dtype=np.bool_))
+    refk = np.array([_kernels._three_normals(k, fkey, 17) for k in keys])
+    np.testing.assert_array_equal(zk.T, refk)
+
+
+@numba.njit
+def _sweep_normals_from(key, fkey, t0, n):
+    out = np.empty((n, 3))
+    for t in range(n):
+        out[t, 0], out[t, 1], out[t, 2] = _kernels._three_normals(key, fkey, t0 + t)
+    return out
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_direction_bins_invert(d):
+    n_bins = _kernels.n_direction_bins(d)
+    delta = np.empty(d)
+    for b in range(n_bins):
+        _kernels._bin_centre(b, d, 0.3, delta)
+        assert _kernels.direction_bin(delta, d) == b
+
+
+def test_star_tables_locate_like_the_global_walk():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0, 10, (400, 3))
+    B = np.c_[np.sin(pts[:, 0]), pts[:, 1] ** 2, pts[:, 2]]
+    mesh = build_mesh(FieldMap.from_arrays(pts, B), "delaunay")
+    m = _kernels.MAX_STAR
+    cells, lmat = np.empty(m, np.int64), np.empty((m, 3, 3))
+    dmat, nbr = np.empty((m, 3, 3)), np.empty((m, 3), np.int64)
+    lam, bary = np.empty(3), np.empty(4)
+    htab = np.full((3, _kernels.STAR_HASH), -1, np.int64)
+    checked = 0
+    for g in range(0, 400, 7):
+        n = _kernels.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                mesh.neighbors, B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+        assert n > 0
+        # the star is exactly the set of cells incident to g
+        assert set(cells[:n]) == set(np.flatnonzero((mesh.simplices == g).any(axis=1)))
+        for _ in range(40):
+            delta = rng.normal(0, 0.05, 3)
+            s = _kernels.star_locate3(0, lmat, nbr, n, *delta, lam)
+            p = mesh.coords[g] + delta
+            sg = _kernels.locate(p, mesh.node_cell[g], mesh.transform, mesh.neighbors, bary)
+            if s < 0:  # left the star: the global walk ends in a cell not incident to g
+                assert sg < 0 or g not in mesh.simplices[sg]
+                continue
+            checked += 1
+            want = (bary[:, None] * B[mesh.simplices[sg]]).sum(0) - B[g]
+            np.testing.assert_allclose(dmat[s] @ lam, want, rtol=1e-9, atol=1e-12)
+    assert checked > 1000
+
+
+def test_sort_values_matches_numpy():
+    rng = np.random.default_rng(8)
+    extremes = np.r_[1e-300, 1e300, -1e300, rng.normal(size=100)]
+    for a in (rng.normal(size=5000) ** 3, rng.integers(0, 5, 300).astype(float),
+              rng.uniform(size=47), extremes):  # fmt: skip
+        b = a.copy()
+        _kernels.sort_values(b)
+        np.testing.assert_array_equal(b, np.sort(a))
+
+
+def test_abs_b_statistics_on_a_kinked_field():
+    """|B| at a node where the field folds (B_x = 0.1 |x|): the component samples are one-sided,
+    so their statistics take the exact whole-sample path, which reorders them; |B| must still
+    pair the components of the same trial. Checked against the closed form per trial."""
+    ax = np.linspace(-2, 2, 5)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    field = lambda p: np.c_[0.1 * np.abs(p[:, 0]), np.ones(len(p)), 0.5 + 0.1 * p[:, 1]]  # noqa: E731
+    fm = FieldMap.from_arrays(pts, field(pts))
+    mesh = build_mesh(fm, "grid")
+    g = int(np.flatnonzero((pts == 0).all(axis=1))[0])
+    up = np.array([0.01, 0.02])  # mm, far inside the 1 mm cells
+    starts = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors,
+                                   1e-7)  # fmt: skip
+    stats, n_out, _, star = _kernels.gauss_sweep(
+        np.array([g]), mesh.coords, fm.B, mesh.simplices, mesh.transform, mesh.neighbors,
+        starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95, 1,
+    )  # fmt: skip
+    assert star[0] and n_out.sum() == 0
+    z = twins.sweep_normals(2, g, 4000)
+    for k, s in enumerate(up):
+        p = pts[g] + s * z
+        err = field(p) - fm.B[g]
+        absb = np.linalg.norm(field(p), axis=1) - np.linalg.norm(fm.B[g])
+        for c in range(3):
+            np.testing.assert_allclose(stats[0, k, c], twins.sample_stats(err[:, c]),
+                                       rtol=1e-9, atol=1e-15)  # fmt: skip
+        np.testing.assert_allclose(stats[0, k, 3], twins.sample_stats(absb), rtol=1e-7,
+                                   atol=1e-15)  # fmt: skip

@@ -62,3 +62,36 @@ def test_more_pieces_than_nodes_and_bad_count(tmp_path, capsys):
     assert main([*base, "--pieces", "0", "--out", str(tmp_path / "x")]) == 2
     assert "--pieces must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_pieces_in_mode_htm_give_the_numbers_of_the_single_file(tmp_path):
+    from cfm_fem.io.provenance import read_xml_provenance
+
+    path = _write_map(tmp_path / "map.csv", n=5)
+    base = ["sweep", str(path), "--mode", "htm", "--trials", "40", "--chunk-nodes", "30"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--pieces", "2", "--out", str(tmp_path / "pc")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    pc = json.loads((tmp_path / "pc" / "summary.json").read_text())
+    for key in set(one) - {"seconds", "provenance"}:
+        assert one[key] == pc[key], key  # up_um too: the RMS probe error of each column
+    files = [d.get("file") for d in ET.parse(tmp_path / "pc" / "sweep.pvd").iter("DataSet")]
+    assert files == ["uf_htm_total.pvtu", "uf_htm_geometric.pvtu", "uf_htm_vibration_delay.pvtu"]
+    assert read_xml_provenance(tmp_path / "pc" / "sweep.pvd") == pc["provenance"]
+    assert read_xml_provenance(tmp_path / "one" / "sweep.pvd") == one["provenance"]
+    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_htm_geometric.vtu"))
+    g2, b = _by_position(pv.read(tmp_path / "pc" / "uf_htm_geometric.pvtu"))
+    assert g1.n_points == g2.n_points == 125 and g1.n_cells == g2.n_cells
+    assert "positioning_std_um" in b
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_provenance_comment_is_lossless_and_valid_xml(tmp_path):
+    from cfm_fem.io.provenance import read_xml_provenance
+    from cfm_fem.io.vtk import write_pvd
+
+    record = {"command_line": "cfm-fem sweep --up 0:50:10 ---x --", "é": "-->"}
+    write_pvd(tmp_path / "s.pvd", [(0.0, tmp_path / "a.vtu")], provenance=record)
+    ET.parse(tmp_path / "s.pvd")  # well-formed: no '--' inside the comment
+    assert read_xml_provenance(tmp_path / "s.pvd") == record

@@ -123,6 +123,8 @@ def run(args) -> int:
         f"{fit['chi2_dof_before']:.3g} -> {fit['chi2_dof_after']:.3g}; held-out RMS "
         f"{fit['cv_rms_before']:.3g} -> {fit['cv_rms_after']:.3g}"
     )
+    for c in s.get("implausible", []):
+        print(f"  implausible (not claimed): {c['name']}: {c['reason']}")
     for a in s["advice"]:
         print(f"advice: {a}")
     print(f"wrote {paths['json']}, {paths['report']}, {paths['vtu_points']}")

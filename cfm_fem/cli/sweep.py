@@ -136,6 +136,78 @@ def add_args(p):
         "map), holding one piece's statistics in memory at a time; for maps whose statistics "
         "do not fit in memory",
     )
+    add_slab_args(p)  # issue 6: maps larger than memory
+
+
+def add_slab_args(p):
+    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.slabs`."""
+    p.add_argument(
+        "--slabs",
+        type=int,
+        metavar="K",
+        help="maps larger than memory: stream the file (CSV/blank table or Opera .table) into K "
+        "slabs along the longest axis and sweep one slab (plus a halo) at a time; each U_p map "
+        "is a .pvtu of K pieces. Other formats are read whole (said so) and written as pieces",
+    )
+    p.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        help="choose the number of slabs for this memory budget (e.g. 2G, 500M)",
+    )
+
+
+def _size(text) -> float:
+    """'2G', '500M', '1.5GB', '800000000' to bytes."""
+    t = text.strip().upper().removesuffix("B").removesuffix("I")
+    mult = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}.get(t[-1:], 1)
+    try:
+        v = float(t[:-1] if t[-1:] in "KMGT" else t) * mult
+    except ValueError:
+        v = -1.0
+    if not (v > 0 and v < float("inf")):
+        raise CfmInputError(f"--max-memory must be a size such as 2G or 500M; got {text!r}")
+    return v
+
+
+def _run_slabs(args, up):
+    """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
+    from ..io.streaming import is_streamable
+    from ..slabs import run_slab_sweep
+
+    if args.slabs is not None and args.slabs < 1:
+        raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
+    budget = _size(args.max_memory) if args.max_memory else None
+    for flag, used in (("--resume", args.resume), ("--workers", args.workers),
+                       ("--scheduler", args.scheduler), ("--pieces", args.pieces),
+                       ("--mode htm", args.mode == "htm")):  # fmt: skip
+        if used:
+            raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
+    kind = is_streamable(args.field, args.fmt)
+    if kind is None:
+        print(
+            f"cfm-fem sweep: {args.field} is not a plain or Opera table: it is read whole "
+            "(not streamed) and the statistics are written as pieces",
+            file=sys.stderr,
+        )
+        return None
+    cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
+                      b_ref_T=args.b_ref, interpolation=args.interpolation,
+                      chunk_nodes=args.chunk_nodes)  # fmt: skip
+    prov = provenance({"field": args.field, "bench": None}, args.command_line)
+    prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
+    print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; U_p = "
+          f"{', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node, seed {cfg.seed}",
+          file=sys.stderr)  # fmt: skip
+    summary = run_slab_sweep(
+        args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
+        length_unit=args.length_unit, field_unit=args.field_unit, zero_rows=args.zero_rows,
+        provenance=prov, log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
+    )  # fmt: skip
+    if summary is None:
+        print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
+        return None
+    _print_summary(summary, args.out)
+    return 0
 
 
 def add_scale_out_args(p):
@@ -179,8 +251,11 @@ def run(args) -> int:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
     if args.pieces is not None and args.pieces < 1:
         raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
-    if args.pieces is not None and args.mode != "gauss":
-        raise CfmInputError("--pieces is available for --mode gauss only in this version")
+    if args.slabs is not None or args.max_memory is not None:  # issue 6: out of core
+        rc = _run_slabs(args, up)
+        if rc is not None:
+            return rc
+        args.pieces = args.pieces or args.slabs or 8  # read whole: statistics still by pieces
     bench = None
     if args.bench is not None:
         bench = read_bench(args.bench)
@@ -309,6 +384,10 @@ def _print_summary(s, out):
         print("(htm: U_p is the RMS over nodes of the 3-D probe position error of that column)")
     for note in s["notes"]:
         print(f"note: {note}")
+    if "slabs" in s:
+        print(f"slabs: {s['slabs']['count']} along {s['slabs']['axis']}, halo "
+              f"{s['slabs']['halo_mm']:.4g} mm; {s['slabs']['halo_outside_nodes']} node(s) with "
+              "trials stopped at a halo border (counted outside)")  # fmt: skip
     maps = (
         f"{len(s['up_um'])} .pvtu maps of {s['pieces']} pieces"
         if "pieces" in s

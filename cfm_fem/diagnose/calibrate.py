@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Columns", "Fit", "fit_map", "identifiability"]
+__all__ = ["Columns", "Fit", "fit_map", "identifiability", "released_in", "stack"]
 
 
 @dataclass
@@ -36,6 +36,16 @@ class Columns:
         ``inf`` for no prior.
     group : str
         Which block it is (``'bench'``, ``'registration'``, an effect name).
+    bounds : ndarray, shape (p, 2), optional
+        Physically plausible range [low, high] of each parameter (display units); an effect
+        whose fitted value lies beyond it by more than 3 standard uncertainties is reported as
+        an implausible fit, never as found. None: no bounds.
+    release : tuple of str
+        Names of baseline parameters whose priors this effect releases (``parameter_bias``,
+        ``magnet_misalignment``, the gains of ``hall_offset_gain``): their change is a
+        prior-data conflict, not a new signature.
+    release_bounds : ndarray, shape (len(release), 2), optional
+        Plausible range of the released parameters (display units).
     """
 
     J: np.ndarray
@@ -44,10 +54,29 @@ class Columns:
     prior_mean: np.ndarray
     prior_std: np.ndarray
     group: str
+    bounds: np.ndarray | None = None
+    release: tuple = ()
+    release_bounds: np.ndarray | None = None
 
     @property
     def p(self) -> int:
         return self.J.shape[-1]
+
+    def subset(self, keep) -> Columns:
+        """The block restricted to the columns ``keep`` (indices; release kept)."""
+        keep = list(keep)
+        rb = self.release_bounds
+        return Columns(
+            self.J[..., keep],
+            [self.names[k] for k in keep],
+            [self.units[k] for k in keep],
+            self.prior_mean[keep],
+            self.prior_std[keep],
+            self.group,
+            None if self.bounds is None else self.bounds[keep],
+            self.release,
+            rb,
+        )
 
     def released(self, group: str) -> Columns:
         """The same columns without priors (a 'prior release' effect)."""
@@ -61,8 +90,18 @@ class Columns:
         )
 
 
+def released_in(model: Columns, names) -> Columns:
+    """``model`` with the priors of the parameters ``names`` removed (a copy)."""
+    std = model.prior_std.copy()
+    for nm in names:
+        std[model.names.index(nm)] = np.inf
+    return Columns(
+        model.J, list(model.names), list(model.units), model.prior_mean, std, model.group
+    )
+
+
 def stack(blocks) -> Columns:
-    """Concatenate column blocks (group of the result: ``'+'``-joined)."""
+    """Concatenate column blocks (group of the result: ``'+'``-joined; bounds dropped)."""
     blocks = list(blocks)
     return Columns(
         np.concatenate([b.J for b in blocks], axis=-1),

@@ -28,8 +28,16 @@ Field (Hall map), change of the measured field in the magnet frame:
   temperature log).
 * ``fringe_field_3d``: Delta B = (a1 zeta + a2 zeta^2) B, zeta = normalised z: a z-dependence that
   a 2-D multipole cannot have (dimensionless, 1e-4).
-* ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24, um^2
-  ... reported as mm^2 x 1e-3).
+* ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
+  box of side a_j, in 1e-3 mm^2).
+
+Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
+(magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
+evidence is the conflict between the data and the stated prior, tested per parameter.
+
+Every effect states its physically plausible parameter range (:data:`PLAUSIBLE`, display units):
+a fit that needs a value beyond it (by more than 3 standard uncertainties) is reported as an
+implausible fit with the reason, never as found.
 """
 
 from __future__ import annotations
@@ -43,14 +51,103 @@ from ..kinematics import probe_errors_for_bench
 from .calibrate import Columns
 from .problem import UM, URAD, field_hessian_diag
 
-__all__ = ["EFFECTS", "POSITIONING", "FIELD", "build", "ADVICE", "DESCRIPTION"]
+__all__ = ["EFFECTS", "POSITIONING", "FIELD", "build", "ADVICE", "DESCRIPTION", "PLAUSIBLE"]
 
 WIDE = 1e6  # prior std of effect parameters (display units): effectively none, keeps cov finite
 
 
+#: Physically plausible range of each parameter, display units: effect -> [(name prefix,
+#: low, high, why)]; the first matching prefix applies. Generous on purpose: they reject fits that
+#: need an unphysical value, not unusual benches.
+PLAUSIBLE = {
+    "thermal_drift": [
+        ("drift_", -50.0, 50.0, "an axis drifting by more than 50 um/h (um/K) is not thermal"),
+        ("scale_drift_", -100.0, 100.0, "screw/frame expansion beyond 100 ppm/h (ppm/K)"),
+    ],
+    "reversal": [("backlash_", -200.0, 200.0, "backlash beyond 0.2 mm on a precision stage")],
+    "reading_delay": [
+        ("tau", 0.0, 200.0, "a reading delay is positive (read late) and below 0.2 s"),
+    ],
+    "position_dependent_geometric": [
+        ("eps", -1000.0, 1000.0, "angular error beyond 1 mrad over the stroke"),
+        ("delta", -1000.0, 1000.0, "straightness/scale error beyond 1 mm over the stroke"),
+    ],
+    "arm_deflection": [
+        ("sag_", 0.0, 500.0, "a load deflection sags downwards (gravity), below 0.5 mm"),
+    ],
+    "parameter_bias": [
+        ("delta", -500.0, 500.0, "a constant axis error beyond 0.5 mm"),
+        ("eps", -2000.0, 2000.0, "an angular error beyond 2 mrad"),
+        ("alpha", -2000.0, 2000.0, "a squareness error beyond 2 mrad"),
+    ],
+    "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
+    "sensor_offset": [("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart")],
+    "magnet_misalignment": [
+        ("magnet_d", -2000.0, 2000.0, "a magnet 2 mm off its survey"),
+        ("magnet_", -10000.0, 10000.0, "a magnet rotated 10 mrad off its survey"),
+    ],
+    "planar_hall": [("k_", -0.1, 0.1, "a planar Hall term beyond 10 % at 1 T")],
+    "hall_offset_gain": [
+        ("offset_", -1000.0, 1000.0, "a Hall offset beyond 1 mT after zeroing"),
+        ("gain_", -5.0, 5.0, "a Hall gain error beyond 5 %"),
+    ],
+    "magnet_temperature": [
+        ("beta", -2500.0, 2500.0, "a field temperature coefficient beyond ferrite's 0.2 %/K"),
+    ],
+    "fringe_field_3d": [("a", -1e4, 1e4, "a z-dependent scale beyond 100 %")],
+    "sensor_volume_averaging": [
+        ("w_", 0.0, 1042.0, "averaging weights are a^2/24 >= 0 with a sensitive size a <= 5 mm"),
+    ],
+}
+
+
+def bounds_for(effect: str, names) -> tuple[np.ndarray, list]:
+    """Plausible [low, high] (display units) and the reason of each parameter of ``effect``.
+
+    Parameters
+    ----------
+    effect : str
+    names : sequence of str
+
+    Returns
+    -------
+    bounds : ndarray, shape (len(names), 2)
+    why : list of str
+    """
+    out = np.tile([-np.inf, np.inf], (len(names), 1))
+    why = [""] * len(names)
+    for i, nm in enumerate(names):
+        for prefix, lo, hi, reason in PLAUSIBLE.get(effect, []):
+            if nm.startswith(prefix):
+                out[i] = lo, hi
+                why[i] = reason
+                break
+    return out, why
+
+
 def _cols(J, names, units, group, std=WIDE):
     p = J.shape[-1]
-    return Columns(J, names, units, np.zeros(p), np.full(p, float(std)), group)
+    bounds, _ = bounds_for(group, names)
+    return Columns(J, names, units, np.zeros(p), np.full(p, float(std)), group, bounds=bounds)
+
+
+def _release(prob, groups, effect, names=None, J=None, new_names=(), new_units=()):
+    """An effect that releases the priors of baseline parameters (of blocks ``groups``),
+    optionally with new columns ``J`` (n, 3, k)."""
+    rel = [
+        nm
+        for b in prob.baseline
+        if b.group in groups
+        for nm in b.names
+        if names is None or nm in names
+    ]
+    if not rel:
+        return None
+    J = np.zeros((prob.n, 3, 0)) if J is None else J
+    blk = _cols(J, list(new_names), list(new_units), effect)
+    blk.release = tuple(rel)
+    blk.release_bounds = bounds_for(effect, rel)[0]
+    return blk
 
 
 def _time_var(prob):
@@ -144,10 +241,9 @@ def arm_deflection(prob):
 
 
 def parameter_bias(prob):
-    base = [b for b in prob.baseline if b.group == "bench"]
-    if not base:
+    if not any(b.group == "bench" for b in prob.baseline):
         return "no bench model"
-    return base[0].released("parameter_bias")
+    return _release(prob, ("bench",), "parameter_bias")
 
 
 # ------------------------------------------------------------------ field
@@ -179,8 +275,7 @@ def sensor_offset(prob):
 
 
 def magnet_misalignment(prob):
-    reg = [b for b in prob.baseline if b.group == "registration"]
-    return reg[0].released("magnet_misalignment")
+    return _release(prob, ("registration",), "magnet_misalignment")
 
 
 def planar_hall(prob):
@@ -193,13 +288,12 @@ def planar_hall(prob):
 
 
 def hall_offset_gain(prob):
-    B = prob.ctx["B0"]
-    J = np.zeros((prob.n, 3, 6))
+    # offsets are new columns; the gains are the baseline's S_HP gains with their prior released
+    J = np.zeros((prob.n, 3, 3))
     for i in range(3):
         J[:, i, i] = 1e-6
-        J[:, i, 3 + i] = B[:, i] * 1e-2
-    names = [f"offset_{a}" for a in "xyz"] + [f"gain_{a}" for a in "xyz"]
-    return _cols(J, names, ["uT"] * 3 + ["%"] * 3, "hall_offset_gain")
+    names = [f"offset_{a}" for a in "xyz"]
+    return _release(prob, ("probe",), "hall_offset_gain", None, J, names, ["uT"] * 3)
 
 
 def magnet_temperature(prob):
@@ -255,8 +349,8 @@ FIELD = {
 }
 EFFECTS = {**POSITIONING, **FIELD}
 
-#: Effects whose model is a released prior of baseline parameters (no new signature).
-PRIOR_RELEASE = {"parameter_bias", "magnet_misalignment"}
+#: Effects whose model is (also) a released prior of baseline parameters.
+PRIOR_RELEASE = {"parameter_bias", "magnet_misalignment", "hall_offset_gain"}
 
 #: The measurement that reveals or separates each effect.
 ADVICE = {

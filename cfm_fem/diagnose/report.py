@@ -52,7 +52,7 @@ def markdown(summary: dict, source: str = "") -> str:
             f"### {e['name']}: {e['description']}\n\ndelta BIC {e['delta_bic']}, "
             f"k_eff {e['k_eff']}, Holm p {_f(e['p_holm'])}, signature surviving the baseline "
             f"{_f(e['survival'])}, held-out RMS {_f(e['cv_rms_before'])} -> "
-            f"{_f(e['cv_rms_after'])} {u}\n"
+            f"{_f(e['cv_rms_after'])} {u}; evidence: {e.get('evidence', 'new signature')}\n"
         )
         lines.append("| parameter | value | std | unit |\n|---|---|---|---|")
         for k, v in e["params"].items():
@@ -60,16 +60,22 @@ def markdown(summary: dict, source: str = "") -> str:
         if e["not_determined"]:
             lines.append(f"\nNot determined by these data: {', '.join(e['not_determined'])}.")
         lines.append("")
+    imp = s.get("implausible", [])
+    if imp:
+        lines += ["## Implausible fits (not claimed)", ""]
+        lines += [f"- {c['name']} (delta BIC {c['delta_bic']}): {c['reason']}" for c in imp]
+        lines.append("")
     lines += [
         "## All candidates",
         "",
-        "| effect | status | delta BIC | k_eff | Holm p | survival |",
-        "|---|---|---|---|---|---|",
+        "| effect | status | delta BIC | k_eff | Holm p | survival | absorbed parameters |",
+        "|---|---|---|---|---|---|---|",
     ]
     for c in s["candidates"]:
         lines.append(
             f"| {c['name']} | {c['status']} | {c['delta_bic']} | {c['k_eff']} | "
-            f"{_f(c['p_holm'])} | {_f(c['survival'])} |"
+            f"{_f(c['p_holm'])} | {_f(c['survival'])} | "
+            f"{', '.join(c.get('absorbed_params', [])) or '-'} |"
         )
     for name, why in s["untestable"].items():
         lines.append(f"| {name} | not testable: {why} | | | | |")

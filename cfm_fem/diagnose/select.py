@@ -1,22 +1,26 @@
 """Attribution: forward selection of effects by nested model comparison and held-out error.
 
 For each round, every untried candidate is added to the current model and refitted (MAP, priors of
-the baseline kept). Evidence of a candidate:
+the baseline kept). A candidate has up to two parts:
 
-* ``delta_chi2``: drop of the MAP objective (data chi2 + prior chi2), ~ chi2(k) under the null,
-  with k the gain in effective parameters (trace of the hat matrix);
-* ``delta_bic`` = delta_chi2 - k ln(n_obs);
-* ``p_value`` of the likelihood-ratio test, guarded for multiple comparisons by Holm over the
-  candidates of the round;
-* held-out RMS: K-fold over whole repetitions (every K-th repetition held out), before and after;
-* ``survival``: the fraction of the effect's fitted signature that the current model cannot
-  reproduce within its priors (penalised projection); small means absorbed.
+* new columns (a new signature): ``delta_chi2`` = drop of the MAP objective, ~ chi2(k) under the
+  null with k the gain in effective parameters (trace of the hat matrix); likelihood-ratio p;
+* released priors of baseline parameters (``parameter_bias``, ``magnet_misalignment``, Hall
+  gains): per parameter the prior-data conflict z = (theta_post - m) / sqrt(s^2 - C), exactly
+  N(0, 1) under the null in a linear-Gaussian model (theta_post, C: posterior mean and variance,
+  m, s: prior); Holm over the parameters the data determine (C < s^2 / 2); the parameters in
+  conflict are released one by one while the data still determine each of them alone.
+
+Evidence of a candidate: ``delta_bic`` = delta_chi2 - k ln(n_obs); its p-value (Bonferroni over
+its parts), guarded by Holm over the candidates of the round; held-out RMS (K-fold over whole
+repetitions) before and after; ``survival``: the fraction of the fitted new signature that the
+current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
-survival is at least ``min_survival`` (else it is reported as absorbed) and its held-out RMS
-improves significantly (paired, z > ``cv_z``; not required of released priors, whose
-evidence is the conflict between data and prior). Overlap between the signatures of two
-candidates (after removing the current model) tells which ones the data cannot separate.
+survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
+plausible (else: implausible fit, with the reason) and, for a new signature, its held-out RMS
+improves significantly (paired z > ``cv_z``). A pure prior release changes the fit only where the
+data already decide, so its held-out RMS is reported but not required to drop.
 """
 
 from __future__ import annotations
@@ -26,14 +30,24 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from .calibrate import Columns, Fit, fit_map, stack
+from .calibrate import Columns, Fit, fit_map, released_in, stack
 from .problem import Problem
 
-__all__ = ["Candidate", "Selection", "select_effects", "folds_of", "cv_rms"]
+__all__ = [
+    "Candidate",
+    "Selection",
+    "select_effects",
+    "folds_of",
+    "cv_rms",
+    "structural_absorption",
+    "implausible_reason",
+]
 
 
 @dataclass
 class Candidate:
+    """Evidence for one effect in one round (see module docstring)."""
+
     name: str
     delta_chi2: float
     k: float
@@ -48,6 +62,12 @@ class Candidate:
     cv_z: float | None = None
     status: str = "not significant"
     round: int = 0
+    trial: Columns | None = None
+    param_names: list = field(default_factory=list)
+    released: list = field(default_factory=list)
+    conflict: list = field(default_factory=list)
+    has_new: bool = True
+    reason: str = ""
 
 
 @dataclass
@@ -59,12 +79,11 @@ class Selection:
 
 
 def folds_of(prob: Problem, k: int = 5) -> np.ndarray:
-    """Fold index of each row: whole repetitions (rep rank modulo k); single-rep maps: z slabs."""
+    """Fold index of each row: whole repetitions (rep rank modulo k); single-rep maps: points."""
     reps = np.unique(prob.rep)
     if reps.size >= 2:
         rank = np.searchsorted(reps, prob.rep)
         return rank % min(k, reps.size)
-    # one repetition: interleaved blocks of points along the scan order
     return prob.point % k
 
 
@@ -93,21 +112,214 @@ def _zero_mean(c: Columns) -> Columns:
     return Columns(c.J, c.names, c.units, np.zeros(c.p), c.prior_std, c.group)
 
 
-def _overlap(prob, sigma, model: Columns, a: Columns, b: Columns) -> float:
-    """Largest canonical correlation between two effect spaces after projecting out the model."""
+def _whiten(J, sigma):
+    return (J / sigma[..., None]).reshape(-1, J.shape[-1])
 
-    def resid_basis(c):
-        w = (c.J / sigma[..., None]).reshape(-1, c.p)
-        m = (model.J / sigma[..., None]).reshape(-1, model.p)
-        q, _ = np.linalg.qr(m)
-        w = w - q @ (q.T @ w)
-        u, s, _ = np.linalg.svd(w, full_matrices=False)
-        return u[:, s > 1e-8 * max(s[0], 1e-300)]
 
-    ua, ub = resid_basis(a), resid_basis(b)
-    if ua.shape[1] == 0 or ub.shape[1] == 0:
-        return 0.0
-    return float(np.linalg.svd(ua.T @ ub, compute_uv=False)[0])
+def structural_absorption(prob, sigma, base: Columns, blk: Columns, min_survival: float = 0.05):
+    """Which new parameters of an effect the baseline absorbs, whatever the data say.
+
+    A parameter is absorbed when less than ``min_survival`` of its (whitened) signature lies
+    outside the span of the baseline columns (no priors: any value of the baseline parameters
+    reproduces it), or when it has no signature at all (below 1e-3 of the noise of the whole
+    data set even at the edge of its plausible range). Scale-free in the noise (an effect that
+    inflates the noise estimate does not hide itself); depends on the design (positions, field,
+    time, directions), never on the measured values.
+
+    Returns
+    -------
+    list of dict
+        Per invisible parameter: ``name``, ``survival`` (0..1), ``max_z`` (at the plausible
+        bound), ``absorbed_by`` (the baseline parameters that reproduce it best).
+    """
+    if blk.p == 0:
+        return []
+    A = _whiten(base.J, sigma)
+    sc = np.linalg.norm(A, axis=0)
+    sc[sc == 0] = 1.0
+    u, s, vt = np.linalg.svd(A / sc, full_matrices=False)
+    good = s > 1e-8 * s[0]
+    u, s, vt = u[:, good], s[good], vt[good]
+    W = _whiten(blk.J, sigma)
+    bnd = blk.bounds if blk.bounds is not None else np.tile([-np.inf, np.inf], (blk.p, 1))
+    out = []
+    for j in range(blk.p):
+        w = W[:, j]
+        nw = float(np.linalg.norm(w))
+        proj = u.T @ w
+        rest = float(np.sqrt(max(nw**2 - proj @ proj, 0.0)))
+        surv = rest / nw if nw > 0 else 0.0
+        big = float(np.max(np.abs(bnd[j])))
+        max_z = nw * big if np.isfinite(big) else np.inf
+        if surv < min_survival or max_z < 1e-3:
+            coef = (vt.T @ (proj / s)) / sc  # baseline parameters reproducing the column
+            contrib = np.abs(coef) * np.linalg.norm(A, axis=0)
+            top = [base.names[k] for k in np.argsort(-contrib)[:3] if contrib[k] > 0.1 * nw]
+            out.append(
+                {
+                    "name": blk.names[j],
+                    "survival": round(surv, 4),
+                    "max_z": round(max_z, 3),
+                    "absorbed_by": top,
+                }
+            )
+    return out
+
+
+def implausible_reason(names, est, sd, bounds, why, unit, k: float = 3.0) -> str:
+    """Reason why fitted parameters are physically implausible ('' when they are not).
+
+    A parameter is implausible when its whole interval est +- k sd lies outside its bounds.
+    """
+    bad = []
+    for i, nm in enumerate(names):
+        lo, hi = bounds[i]
+        if est[i] - k * sd[i] > hi or est[i] + k * sd[i] < lo:
+            bad.append(
+                f"{nm} = {est[i]:.4g} +- {sd[i]:.2g} {unit[i]} outside [{lo:g}, {hi:g}]"
+                + (f" ({why[i]})" if why[i] else "")
+            )
+    return "; ".join(bad)
+
+
+def _conflict(model: Columns, current: Fit, names, alpha):
+    """Per-parameter prior-data conflict (module docstring) with Holm over determined ones."""
+    out = []
+    for nm in names:
+        i = model.names.index(nm)
+        s2 = model.prior_std[i] ** 2
+        if not np.isfinite(s2):
+            continue  # already released
+        C = float(current.cov[i, i])
+        det = C < 0.5 * s2  # the data tell more than the prior
+        z = (current.theta[i] - model.prior_mean[i]) / np.sqrt(max(s2 - C, 1e-300))
+        out.append(
+            {
+                "name": nm,
+                "z": float(z) if det else None,
+                "p": float(2 * stats.norm.sf(abs(z))) if det else 1.0,
+                "determined": bool(det),
+            }
+        )
+    det = [c for c in out if c["determined"]]
+    m = len(det)
+    running = 0.0
+    for r, c in enumerate(sorted(det, key=lambda c: c["p"])):
+        running = max(running, min(1.0, (m - r) * c["p"]))
+        c["p_holm"] = running
+    for c in out:
+        c.setdefault("p_holm", 1.0)
+    return out
+
+
+def _release_set(prob, sigma, model, conflict, alpha):
+    """Parameters in conflict released one by one (strongest first) while the data still
+    determine each released parameter on its own (posterior variance below half its prior)."""
+    S = []
+    for c in sorted(conflict, key=lambda c: c["p"]):
+        if c["p_holm"] >= alpha:
+            break
+        trial = released_in(model, S + [c["name"]])
+        f = fit_map(prob.y, sigma, trial)
+        idx = [model.names.index(n) for n in S + [c["name"]]]
+        ok = f.rank == trial.p and all(f.cov[i, i] < 0.5 * model.prior_std[i] ** 2 for i in idx)
+        if ok:
+            S.append(c["name"])
+    return S
+
+
+def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
+    """Evidence of one candidate effect (both parts, module docstring)."""
+    parts = {}
+    if blk.p:
+        trial = stack([model, blk])
+        f = fit_map(prob.y, sigma, trial)
+        d = current.objective - f.objective
+        k = max(f.edf - current.edf, 1e-9)
+        parts["new"] = {
+            "d": d,
+            "k": k,
+            "p": float(stats.chi2.sf(max(d, 0.0), max(k, 0.5))),
+            "fit": f,
+            "surv": _survival(prob, sigma, model, blk, f.theta[model.p :]),
+        }
+    conflict = []
+    if blk.release:
+        conflict = _conflict(model, current, blk.release, alpha)
+        det = [c for c in conflict if c["determined"]]
+        if det:
+            S = _release_set(prob, sigma, model, det, alpha)
+            best = min(det, key=lambda c: c["p"])
+            shown = S or [best["name"]]
+            f = fit_map(prob.y, sigma, released_in(model, shown))
+            d = current.objective - f.objective
+            parts["release"] = {
+                "d": d,
+                "k": float(len(shown)),
+                "p": min(c["p_holm"] for c in det),
+                "S": S,
+                "shown": shown,
+            }
+    if not parts:
+        return None
+    n_parts = len(parts)
+
+    def passes(pt):
+        return pt["d"] - pt["k"] * log_n > bic_min and n_parts * pt["p"] < alpha
+
+    use = [nm for nm, pt in parts.items() if passes(pt)]
+    if not use:  # report the stronger part
+        use = [max(parts, key=lambda nm: parts[nm]["d"] - parts[nm]["k"] * log_n)]
+    rel = parts["release"]["shown"] if "release" in use else []
+    trial = released_in(model, rel)
+    if "new" in use:
+        trial = stack([trial, blk])
+    f = fit_map(prob.y, sigma, trial)
+    d = current.objective - f.objective
+    k = sum(parts[nm]["k"] for nm in use)
+    p = min(1.0, n_parts * min(parts[nm]["p"] for nm in use))
+    return Candidate(
+        name=name,
+        delta_chi2=float(d),
+        k=float(k),
+        delta_bic=float(d - k * log_n),
+        p_value=float(p),
+        survival=parts["new"]["surv"] if "new" in use else float("nan"),
+        fit=f,
+        cols=blk,
+        trial=trial,
+        param_names=list(rel) + (list(blk.names) if "new" in use else []),
+        released=list(rel),
+        conflict=conflict,
+        has_new="new" in use,
+    )
+
+
+def _plausibility(c: Candidate, model_p: int) -> str:
+    blk = c.cols
+    names, est, sd, bnd, why, unit = [], [], [], [], [], []
+    th, st = c.fit.theta, c.fit.std
+    if c.released:
+        rb = dict(zip(blk.release, blk.release_bounds, strict=True))
+        for nm in c.released:
+            i = c.trial.names.index(nm)
+            names.append(nm)
+            est.append(th[i])
+            sd.append(st[i])
+            bnd.append(rb[nm])
+            unit.append(c.trial.units[i])
+    if c.has_new:
+        for j, nm in enumerate(blk.names):
+            i = c.trial.p - blk.p + j
+            names.append(nm)
+            est.append(th[i])
+            sd.append(st[i])
+            bnd.append(blk.bounds[j])
+            unit.append(blk.units[j])
+    from .effects import bounds_for
+
+    why = bounds_for(c.name, names)[1]
+    return implausible_reason(names, np.array(est), np.array(sd), np.array(bnd), why, unit)
 
 
 def select_effects(
@@ -121,6 +333,7 @@ def select_effects(
     max_effects: int = 4,
     k_folds: int = 5,
     min_survival: float = 0.2,
+    absorbed=(),
     progress=None,
 ) -> Selection:
     """Forward selection (see module docstring).
@@ -132,8 +345,11 @@ def select_effects(
         ``sigma_fn(resid, edf) -> sigma (n, 3)``: noise model re-estimated after each accepted
         effect (effects that live in the repetitions inflate the pure error until modelled).
     blocks : dict name -> Columns
-    prior_release : set of str
-        Names whose block re-uses baseline columns without priors.
+    prior_release : iterable of str
+        Unused (kept for compatibility): a block says itself what it releases.
+    absorbed : iterable of str
+        Effects the baseline absorbs structurally (:func:`structural_absorption`): evaluated
+        and reported, never accepted.
     """
     model = stack(prob.baseline)
     fit0 = fit_map(prob.y, np.ones_like(prob.y), model)
@@ -141,43 +357,20 @@ def select_effects(
     current = fit_map(prob.y, sigma, model)
     folds = folds_of(prob, k_folds)
     log_n = np.log(current.n_obs)
-    selected, cands, rounds = [], {}, []
+    selected, cands, rounds, accepted_c = [], {}, [], []
+    absorbed = set(absorbed)
     for rnd in range(max_effects):
         round_c = []
         for name, blk in blocks.items():
             if name in selected:
                 continue
-            trial = stack([model, blk])
-            f = fit_map(prob.y, sigma, trial)
-            d = current.objective - f.objective
-            k = max(f.edf - current.edf, 1e-9)
-            if name in prior_release:
-                # freed priors: the null distribution of the prior-term drop has as many dof as
-                # the released directions the data determine (their share of the baseline edf)
-                idx = [model.names.index(nm) for nm in blk.names]
-                s0 = model.prior_std[idx]
-                k = float(np.sum(np.clip(1 - np.diag(current.cov)[idx] / s0**2, 0, 1)))
-                k = max(k, 0.5)
-            theta_e = f.theta[model.p :]
-            surv = (
-                _survival(prob, sigma, model, blk, theta_e)
-                if name not in prior_release
-                else float("nan")
-            )
-            c = Candidate(
-                name=name,
-                delta_chi2=float(d),
-                k=float(k),
-                delta_bic=float(d - k * log_n),
-                p_value=float(stats.chi2.sf(max(d, 0.0), max(k, 0.5))),
-                survival=surv,
-                fit=f,
-                cols=blk,
-                round=rnd,
-            )
-            round_c.append(c)
+            c = _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
             if progress:
                 progress(1)
+            if c is None:
+                continue
+            c.round = rnd
+            round_c.append(c)
         if not round_c:
             break
         # Holm over this round's candidates
@@ -188,28 +381,30 @@ def select_effects(
             running = max(running, min(1.0, (m - i) * c.p_value))
             c.p_holm = running
         for c in round_c:
-            prev = cands.get(c.name)
-            if prev is None or rnd == 0:
-                cands[c.name] = c
-            else:
-                c.status = prev.status
-                cands[c.name] = c
+            cands[c.name] = c
         ok = [c for c in round_c if c.delta_bic > bic_min and c.p_holm < alpha]
         for c in ok:
-            if c.name not in prior_release and c.survival < min_survival:
+            if c.name in absorbed or (c.has_new and c.survival < min_survival):
                 c.status = "absorbed"
         ok = [c for c in ok if c.status != "absorbed"]
         ok.sort(key=lambda c: -c.delta_bic)
         accepted = None
-        for c in ok[:2]:  # the best; the runner-up if the best fails the held-out test
+        n_cv = 0
+        for c in ok:
+            why = _plausibility(c, model.p)
+            if why:
+                c.status = "implausible fit"
+                c.reason = why
+                continue
+            if n_cv == 2:  # the best two plausible ones get the held-out test
+                break
+            n_cv += 1
             cvb, eb = cv_rms(prob, sigma, model, folds)
-            cva, ea = cv_rms(prob, sigma, stack([model, c.cols]), folds)
+            cva, ea = cv_rms(prob, sigma, c.trial, folds)
             diff = eb - ea
             z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
             c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            # a released prior changes the fit only where the data already decide, so its
-            # held-out error cannot improve: its evidence is the prior-data conflict alone
-            if z > cv_z or c.name in prior_release:
+            if z > cv_z or not c.has_new:
                 accepted = c
                 break
             c.status = "fails held-out test"
@@ -218,24 +413,62 @@ def select_effects(
             break
         accepted.status = "found"
         selected.append(accepted.name)
-        model = stack([model, accepted.cols])
+        accepted_c.append(accepted)
+        model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
         sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf)
         current = fit_map(prob.y, sigma, model)
+    for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
+        cands[c.name] = c
     sel = Selection(selected=selected, candidates=cands, rounds=rounds)
     sel.model = model
     sel.sigma = sigma
     sel.fit = current
     sel.folds = folds
+    sel.accepted = accepted_c
     return sel
 
 
-def overlaps(prob, sigma, model: Columns, blocks: dict, names) -> list:
+def _signature(model: Columns, cand: Candidate):
+    """Columns of a candidate's signature and the indices of the model columns it uses."""
+    idx = [model.names.index(n) for n in cand.released]
+    J = [model.J[..., idx]] if idx else []
+    if cand.has_new and cand.cols.p:
+        J.append(cand.cols.J)
+    if not J:
+        return None, idx
+    return np.concatenate(J, axis=-1), idx
+
+
+def _overlap(sigma, model: Columns, a: Candidate, b: Candidate) -> float:
+    """Largest canonical correlation between two effect signatures beyond the rest of the model
+    (released columns of either effect are not part of the rest)."""
+    Ja, ia = _signature(model, a)
+    Jb, ib = _signature(model, b)
+    if Ja is None or Jb is None:
+        return 0.0
+    rest = np.setdiff1d(np.arange(model.p), ia + ib)
+    m = _whiten(model.J[..., rest], sigma)
+    q, _ = np.linalg.qr(m)
+
+    def basis(J):
+        w = _whiten(J, sigma)
+        w = w - q @ (q.T @ w)
+        u, s, _ = np.linalg.svd(w, full_matrices=False)
+        return u[:, s > 1e-8 * max(s[0], 1e-300)] if s.size else u[:, :0]
+
+    ua, ub = basis(Ja), basis(Jb)
+    if ua.shape[1] == 0 or ub.shape[1] == 0:
+        return 0.0
+    return float(np.linalg.svd(ua.T @ ub, compute_uv=False)[0])
+
+
+def overlaps(prob, sigma, model: Columns, cands: dict, names) -> list:
     """Pairwise overlap (0..1) of candidate signatures beyond ``model``, largest first."""
     out = []
     names = list(names)
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
-            o = _overlap(prob, sigma, model, blocks[a], blocks[b])
+            o = _overlap(sigma, model, cands[a], cands[b])
             out.append((a, b, o))
     return sorted(out, key=lambda t: -t[2])

@@ -16,7 +16,7 @@ from . import effects as fx
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .locate import locate
 from .problem import Problem, noise_sigma
-from .select import cv_rms, overlaps, select_effects
+from .select import cv_rms, overlaps, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
 
@@ -38,13 +38,6 @@ def _rms(prob, resid):
 def _chi2_dof(resid, sigma, edf):
     r = resid / sigma
     return float((r**2).sum() / max(r.size - edf, 1))
-
-
-def _fmt_params(cand, model_p):
-    names, units = cand.cols.names, cand.cols.units
-    th = cand.fit.theta[model_p : model_p + len(names)]
-    sd = cand.fit.std[model_p : model_p + len(names)]
-    return names, units, th, sd
 
 
 def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
@@ -103,14 +96,28 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     loc0 = locate(prob, fit_b.resid, sigma0, q=o["fdr_q"], edf=fit_b.edf)
     # 3. attribute
     blocks, untestable = fx.build(prob)
+    absorption = {
+        name: structural_absorption(prob, sigma0, base, blk) for name, blk in blocks.items()
+    }
+    absorbed = [
+        name
+        for name, blk in blocks.items()
+        if blk.p and not blk.release and len(absorption[name]) == blk.p
+    ]
+    # invisible parameters are not fitted: their value would be set by the baseline's priors,
+    # not by the data (and would dilute the evidence of the visible ones)
+    for name, blk in list(blocks.items()):
+        gone = {a["name"] for a in absorption[name]}
+        if gone and name not in absorbed:
+            blocks[name] = blk.subset([k for k, n in enumerate(blk.names) if n not in gone])
     sel = select_effects(
         prob,
         sigma_fn,
         blocks,
-        prior_release=fx.PRIOR_RELEASE,
         bic_min=o["bic_min"],
         alpha=o["alpha"],
         cv_z=o["cv_z"],
+        absorbed=absorbed,
         progress=progress,
     )
     # 4. model: final fit with the selected effects
@@ -121,23 +128,37 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     cv_b, _ = cv_rms(prob, sigma0, base, sel.folds)
     cv_a, _ = cv_rms(prob, sigma1, model, sel.folds) if sel.selected else (cv_b, None)
     eff_out = []
-    p_at = base.p
-    for name in sel.selected:
-        c = sel.candidates[name]
-        blk = blocks[name]
-        th = fit1.theta[p_at : p_at + blk.p]
-        sd = fit1.std[p_at : p_at + blk.p]
-        p_at += blk.p
+    for c in sel.accepted:
+        idx = [model.names.index(n) for n in c.param_names]
+        th, sd = fit1.theta[idx], fit1.std[idx]
         keep = sd < 0.5 * fx.WIDE  # parameters the data determine
+        units = [model.units[i] for i in idx]
+        base_prior = dict(
+            zip(base.names, zip(base.prior_mean, base.prior_std, strict=True), strict=True)
+        )
         eff_out.append(
             {
-                "name": name,
-                "params": {n: float(v) for n, v, k in zip(blk.names, th, keep, strict=True) if k},
-                "param_std": {
-                    n: float(s) for n, s, k in zip(blk.names, sd, keep, strict=True) if k
+                "name": c.name,
+                "params": {
+                    n: float(v) for n, v, k in zip(c.param_names, th, keep, strict=True) if k
                 },
-                "units": {n: u for n, u, k in zip(blk.names, blk.units, keep, strict=True) if k},
-                "not_determined": [n for n, k in zip(blk.names, keep, strict=True) if not k],
+                "param_std": {
+                    n: float(s) for n, s, k in zip(c.param_names, sd, keep, strict=True) if k
+                },
+                "units": {n: u for n, u, k in zip(c.param_names, units, keep, strict=True) if k},
+                "not_determined": [n for n, k in zip(c.param_names, keep, strict=True) if not k],
+                "evidence": (
+                    "prior-data conflict" + (" and new signature" if c.has_new else "")
+                    if c.released
+                    else "new signature"
+                ),
+                "released_priors": {
+                    n: {"mean": float(base_prior[n][0]), "std": float(base_prior[n][1])}
+                    for n in c.released
+                },
+                "conflict_z": {
+                    d["name"]: round(d["z"], 2) for d in c.conflict if d["name"] in c.released
+                },
                 "delta_bic": round(c.delta_bic, 2),
                 "delta_chi2": round(c.delta_chi2, 2),
                 "k_eff": round(c.k, 2),
@@ -145,39 +166,43 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
                 "survival": None if not np.isfinite(c.survival) else round(c.survival, 3),
                 "cv_rms_before": c.cv_before,
                 "cv_rms_after": c.cv_after,
-                "description": fx.DESCRIPTION[name],
+                "cv_z": c.cv_z,
+                "description": fx.DESCRIPTION[c.name],
             }
         )
     # candidates table
     cand_out = []
     for name, c in sorted(sel.candidates.items(), key=lambda kv: -kv[1].delta_bic):
         status = c.status
-        if (
-            status == "not significant"
-            and np.isfinite(c.survival)
-            and c.survival < 0.3
-            and c.delta_chi2 > 0
-        ):
-            status = "absorbed or absent"
+        if status == "not significant" and name in absorbed:
+            status = "absorbed"
         cand_out.append(
             {
                 "name": name,
                 "status": status,
+                "reason": c.reason,
                 "round": c.round,
                 "delta_bic": round(c.delta_bic, 2),
                 "delta_chi2": round(c.delta_chi2, 2),
                 "k_eff": round(c.k, 2),
                 "p_holm": c.p_holm,
                 "survival": None if not np.isfinite(c.survival) else round(c.survival, 3),
+                "released": c.released,
+                "absorbed_params": [a["name"] for a in absorption.get(name, [])],
             }
         )
+    implausible = [
+        {"name": c["name"], "reason": c["reason"], "delta_bic": c["delta_bic"]}
+        for c in cand_out
+        if c["status"] == "implausible fit"
+    ]
     # 5. advise
     advice = []
     ov = []
     cand_names = list(blocks)
     strong = [nm for nm, b in (sel.rounds[0] if sel.rounds else []) if b > o["bic_min"]]
     if strong:
-        ov = overlaps(prob, sigma0, base, blocks, strong[:6])
+        ov = overlaps(prob, sigma0, base, sel.candidates, strong[:6])
         for a, b, val in ov:
             if val > o["overlap_max"] and (a in sel.selected or b in sel.selected):
                 other = b if a in sel.selected else a
@@ -187,9 +212,37 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
                     f"(overlap {val:.2f}): the choice rests on the smaller model. To separate "
                     f"them: {fx.ADVICE[other]}; {fx.ADVICE[chosen]}."
                 )
+    for c in implausible:
+        advice.append(
+            f"'{c['name']}' would fit (delta BIC {c['delta_bic']}) but only with physically "
+            f"implausible parameters, so it is not claimed: {c['reason']}."
+        )
+    for name in absorbed:
+        by = sorted({b for a in absorption[name] for b in a["absorbed_by"]})
+        advice.append(
+            f"'{name}' is absorbed: in these data its signature is reproduced by the baseline "
+            f"parameters ({', '.join(by[:4]) or 'none: no signature'}), so it cannot be revealed "
+            f"whatever its size. To reveal it: {fx.ADVICE[name]}."
+        )
+    released = {n for c in sel.accepted for n in c.released}
+    for name, lst in absorption.items():
+        lst = [a for a in lst if a["absorbed_by"]]  # parameters without any signature: silent
+        if name in absorbed or not lst:
+            continue
+        by = sorted({b for a in lst for b in a["absorbed_by"]})
+        hit = released.intersection(by)
+        txt = (
+            f"parameters {', '.join(a['name'] for a in lst)} of '{name}' are absorbed by the "
+            f"baseline ({', '.join(by[:4])}): these data cannot reveal them"
+        )
+        if hit:
+            txt += f"; the prior conflict found in {', '.join(sorted(hit))} may equally be {name}"
+        advice.append(f"{txt}. To reveal them: {fx.ADVICE[name]}.")
     for name, why in untestable.items():
         advice.append(f"{name} cannot be tested: {why}. To test it: {fx.ADVICE[name]}.")
-    mismatch = bool(sel.selected) or bool(loc0["located"])
+    # an implausible fit is still a difference between recording and model (e.g. a 50 % gain
+    # absorbed by the calibration at a huge prior cost): a mismatch, not an effect
+    mismatch = bool(sel.selected) or bool(loc0["located"]) or bool(implausible)
     residual_left = bool(loc1["located"])
     if residual_left and sel.selected:
         advice.append(
@@ -235,6 +288,7 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "advice": advice,
         "located_after": loc1["located"][:20],
         "candidates": cand_out,
+        "implausible": implausible,
         "untestable": untestable,
         "overlaps": [{"a": a, "b": b, "overlap": round(v, 3)} for a, b, v in ov],
         "calibration": calib,

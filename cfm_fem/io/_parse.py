@@ -466,7 +466,6 @@ def table_fieldmap(
         format-specific checks such as Opera's point counts.
     """
     check_zero_rows(zero_rows)
-    notes = list(notes)
     names = [c.name for c in header_columns]
     if not rows:
         raise CfmInputError(
@@ -475,38 +474,25 @@ def table_fieldmap(
             file=file,
             line=header_line,
         )
-    chosen, pick_notes = pick_columns(
-        header_columns, file=file, line=header_line, optional=optional
-    )
-    notes += pick_notes
-    present = [r for r in ROLES if chosen[r] is not None]
-    coords = [chosen[r] for r in COORDS if chosen[r] is not None]
-    fields = [chosen[r] for r in FIELDS if chosen[r] is not None]
-    mm, unit_notes = resolve_unit(
-        "length",
-        coords,
-        option=length_unit,
-        fallback=length_fallback,
+    layout = table_layout(
+        header_columns,
         file=file,
-        line=header_line,
+        header_line=header_line,
+        length_unit=length_unit,
+        field_unit=field_unit,
+        length_fallback=length_fallback,
+        optional=optional,
     )
-    notes += unit_notes
-    tesla, unit_notes = resolve_unit(
-        "field", fields, option=field_unit, fallback=None, file=file, line=header_line
-    )
-    notes += unit_notes
-    block = parse_block(
-        rows, row_lines, names, [chosen[r].index for r in present], delimiter=delimiter, file=file
-    )
-    values = np.zeros((len(rows), 6), dtype=np.float64)
-    for j, role in enumerate(present):
-        values[:, ROLES.index(role)] = block[:, j] * (mm if role in COORDS else tesla)
+    notes = list(notes) + layout.notes
+    chosen = layout.chosen
+    values = layout.values(parse_block(rows, row_lines, names, layout.usecols,
+                                       delimiter=delimiter, file=file))  # fmt: skip
     for role in ROLES:
         if chosen[role] is None:
             notes.append(f"no '{role}' column: {role} = 0 at every node")
     if check_points is not None:
         notes += check_points(values[:, :3])
-    spelled = [chosen[r].name if chosen[r] is not None else r for r in ROLES]
+    spelled = layout.spelled
     return build_fieldmap(
         values[:, :3],
         values[:, 3:],
@@ -515,6 +501,74 @@ def table_fieldmap(
         notes=notes,
         columns=spelled,
         zero_rows=zero_rows,
+    )
+
+
+# --------------------------------------------------------------------------- shared by the
+# in-memory and the streaming readers (cfm_fem.io.streaming): one place decides columns and units
+
+
+@dataclass
+class TableLayout:
+    """Which header column gives each of x, y, z, Bx, By, Bz and the unit scales (issue 6).
+
+    Attributes
+    ----------
+    chosen : dict role -> Column or None
+    usecols : list of int
+        Header indices of the present roles, in `ROLES` order (the ``usecols`` of `parse_block`).
+    present : list of str
+        Roles with a column.
+    mm, tesla : float
+        Scale of the coordinate columns to mm and of the field columns to T.
+    spelled : list of str
+        Column names as the file spells them, per role (the role where absent), for messages.
+    notes : list of str
+    """
+
+    chosen: dict
+    usecols: list
+    present: list
+    mm: float
+    tesla: float
+    spelled: list
+    notes: list
+
+    def values(self, block) -> np.ndarray:
+        """Parsed columns ``block`` (k, len(usecols)) to (k, 6) float64: x, y, z mm, B T."""
+        values = np.zeros((len(block), 6), dtype=np.float64)
+        for j, role in enumerate(self.present):
+            values[:, ROLES.index(role)] = block[:, j] * (self.mm if role in COORDS else self.tesla)
+        return values
+
+
+def table_layout(
+    header_columns,
+    *,
+    file,
+    header_line,
+    length_unit,
+    field_unit,
+    length_fallback=None,
+    optional=(),
+) -> TableLayout:
+    """Pick the columns and resolve the units of a text table (see `table_fieldmap`)."""
+    chosen, notes = pick_columns(header_columns, file=file, line=header_line, optional=optional)
+    present = [r for r in ROLES if chosen[r] is not None]
+    coords = [chosen[r] for r in COORDS if chosen[r] is not None]
+    fields = [chosen[r] for r in FIELDS if chosen[r] is not None]
+    mm, unit_notes = resolve_unit(
+        "length", coords, option=length_unit, fallback=length_fallback, file=file,
+        line=header_line,
+    )  # fmt: skip
+    notes += unit_notes
+    tesla, unit_notes = resolve_unit(
+        "field", fields, option=field_unit, fallback=None, file=file, line=header_line
+    )
+    notes += unit_notes
+    spelled = [chosen[r].name if chosen[r] is not None else r for r in ROLES]
+    return TableLayout(
+        chosen, [chosen[r].index for r in present], present, mm, tesla, spelled, notes
     )
 
 

@@ -1,12 +1,23 @@
-"""What produced an output: input hashes, version, command line."""
+"""What produced an output: input hashes, version, command line.
+
+The same record goes into ``summary.json`` (key ``provenance``), into every ``.vtu`` (field data
+``provenance_utf8``, see `cfm_fem.io.sweep_out.provenance_codes`) and, as an XML comment that
+ParaView skips, into ``sweep.pvd`` and every ``.pvtu`` index (`xml_comment`, read back with
+`read_xml_provenance`).
+"""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import platform
+import re
 from pathlib import Path
 
-__all__ = ["file_sha256", "provenance"]
+__all__ = ["file_sha256", "provenance", "xml_comment", "read_xml_provenance"]
+
+#: Start of the XML comment that carries the provenance JSON.
+XML_TAG = "cfm_fem provenance:"
 
 
 def file_sha256(path) -> str:
@@ -32,3 +43,23 @@ def provenance(inputs: dict, command_line: str | None = None) -> dict:
         "command_line": command_line,
         "inputs": files,
     }
+
+
+def xml_comment(record: dict | None) -> str:
+    """The provenance as one XML comment line, lossless.
+
+    The JSON is ASCII (``ensure_ascii``) and every ``-`` that would make ``--`` (not allowed in
+    an XML comment) is written as the JSON escape ``\\u002d``, which JSON reads back as ``-``;
+    ``--`` can only occur inside JSON strings, so the text stays valid JSON.
+    """
+    text = json.dumps(record or {}, sort_keys=True, ensure_ascii=True)
+    while "--" in text:
+        text = text.replace("--", "-\\u002d")
+    return f"<!-- {XML_TAG} {text} -->"
+
+
+def read_xml_provenance(path) -> dict | None:
+    """Provenance written by `xml_comment` into an XML file (``.pvd``, ``.pvtu``), or None."""
+    text = Path(path).read_text(encoding="utf-8")
+    m = re.search(r"<!-- " + re.escape(XML_TAG) + r" (.*?) -->", text, re.S)
+    return None if m is None else json.loads(m.group(1))

@@ -7,11 +7,12 @@ small XML index that names them and declares their point arrays. Written atomica
 from __future__ import annotations
 
 from pathlib import Path
-from xml.sax.saxutils import escape, quoteattr
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from ._atomic import write_text
+from .provenance import xml_comment
 
 __all__ = ["vtk_type", "write_pvtu"]
 
@@ -34,7 +35,9 @@ def vtk_type(dtype) -> str:
     return _VTK_TYPES[np.dtype(dtype)]
 
 
-def write_pvtu(path, pieces, point_arrays: dict, comment: str | None = None) -> None:
+def write_pvtu(
+    path, pieces, point_arrays: dict, comment: str | None = None, provenance: dict | None = None
+) -> None:
     """Write a ``.pvtu`` index of unstructured-grid pieces.
 
     Parameters
@@ -46,12 +49,19 @@ def write_pvtu(path, pieces, point_arrays: dict, comment: str | None = None) -> 
         One example array per point-data name (only dtype and components are used), in the
         pieces' order; points are float64.
     comment : str, optional
-        Text put in an XML comment at the top (e.g. the provenance of the run).
+        Text put in an XML comment at the top (``--`` is written ``- -``).
+    provenance : dict, optional
+        Provenance record, written losslessly by `cfm_fem.io.provenance.xml_comment` (read it
+        back with `cfm_fem.io.provenance.read_xml_provenance`).
     """
     path = Path(path)
     lines = ['<?xml version="1.0"?>']
     if comment:
-        lines.append(f"<!-- {escape(comment).replace('--', '- -')} -->")
+        while "--" in comment:
+            comment = comment.replace("--", "- -")
+        lines.append(f"<!-- {comment.rstrip('-')} -->")
+    if provenance is not None:
+        lines.append(xml_comment(provenance))
     lines += [
         '<VTKFile type="PUnstructuredGrid" version="1.0" byte_order="LittleEndian" '
         'header_type="UInt64">',

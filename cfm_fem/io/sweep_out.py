@@ -98,7 +98,7 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
         }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
         write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
         entries.append((up if res.config.mode == "gauss" else float(k), path))
-    write_pvd(out / "sweep.pvd", entries)
+    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])  # issue 6
     write_json(out / "summary.json", summary)
     return summary
 
@@ -140,17 +140,19 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
     summary = summarize(compact)
     summary["provenance"] = provenance or {}
     summary["pieces"] = int(n_pieces)
-    ups = list(compact.config.up_um)
+    # issue 6: columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
+    labels = compact.labels
+    ups = compact.column_up_um()
     names = {}
-    written = {k: [] for k in range(len(ups))}
+    written = {k: [] for k in range(len(labels))}
     fm = compact.fieldmap
     for p, (nodes, cells) in enumerate(partition(compact.mesh.simplices, fm.n_nodes, n_pieces)):
         res = piece_result(compact, nodes, load(nodes))
-        for k, up in enumerate(ups):
-            folder = out / pieces_name(up).removesuffix(".pvtu")
+        for k, label in enumerate(labels):
+            folder = out / vtu_name(label).removesuffix(".vtu")
             path = folder / f"piece_{p:04d}.vtu"
             fields = {
-                "U_p_um": up,
+                "U_p_um": ups[k],
                 "B_ref_T": compact.b_ref_T,
                 "trials": compact.config.trials,
                 "seed": compact.config.seed,
@@ -163,11 +165,10 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
             names[k] = {name: values[:1] for name, values in data.items()}
         del res
     entries = []
-    comment = "cfm_fem provenance: " + json.dumps(provenance or {}, sort_keys=True)
-    for k, up in enumerate(ups):
-        path = out / pieces_name(up)
-        write_pvtu(path, written[k], names[k], comment=comment)
-        entries.append((up, path))
-    write_pvd(out / "sweep.pvd", entries)
+    for k, label in enumerate(labels):
+        path = out / vtu_name(label).replace(".vtu", ".pvtu")
+        write_pvtu(path, written[k], names[k], provenance=summary["provenance"])
+        entries.append((ups[k] if compact.config.mode == "gauss" else float(k), path))
+    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_json(out / "summary.json", summary)
     return summary

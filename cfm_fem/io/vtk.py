@@ -45,7 +45,7 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         grid.save(tmp, binary=True, compression="zlib")
 
 
-def write_pvd(path, entries) -> None:
+def write_pvd(path, entries, provenance: dict | None = None) -> None:
     """Write a ParaView collection: ParaView shows ``timestep`` as the time axis.
 
     Parameters
@@ -53,7 +53,13 @@ def write_pvd(path, entries) -> None:
     path : path-like
     entries : sequence of (float, path-like)
         (timestep, dataset file); dataset paths are written relative to ``path``'s folder.
+    provenance : dict, optional
+        What produced the outputs (`cfm_fem.io.provenance.provenance`), written as an XML
+        comment after the declaration (ParaView's reader skips comments); read it back with
+        `cfm_fem.io.provenance.read_xml_provenance`.
     """
+    from .provenance import xml_comment
+
     path = Path(path)
     rows = []
     for t, f in entries:
@@ -63,7 +69,8 @@ def write_pvd(path, entries) -> None:
         )
     text = (
         '<?xml version="1.0"?>\n'
-        '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
+        + (xml_comment(provenance) + "\n" if provenance is not None else "")
+        + '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
         "  <Collection>\n" + "\n".join(rows) + "\n  </Collection>\n</VTKFile>\n"
     )
     write_text(path, text)

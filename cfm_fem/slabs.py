@@ -1,0 +1,859 @@
+"""Out-of-core sweep of maps larger than memory: spatial slabs with a halo, one .pvtu piece each.
+
+``cfm-fem sweep FIELD --slabs K`` (or ``--max-memory SIZE``, which chooses K) runs the sweep of
+`cfm_fem.sweep` without ever holding the whole map, mesh or statistics in memory:
+
+1. **Stage** (`stage`): the input is streamed once (`cfm_fem.io.streaming`, plain tables and
+   Opera tables) into a temporary float64 file of rows (x, y, z mm, Bx, By, Bz T) read back as a
+   numpy memmap, collecting on the way the bounding box, max |B|, the zero rows, the distinct
+   coordinate values per axis (for the grid test) and the scatter matrix (planar maps).
+2. **Partition**: K slabs along the longest axis, with equal node counts (histogram of that
+   coordinate); each slab file (``.npy``) holds its own rows plus those of a halo of width
+   ``h`` on both sides.
+3. **Duplicates** are merged per slab as `cfm_fem.field.FieldMap.from_arrays` does, and each kept
+   row gets the node index the in-memory reader would give it (row minus the dropped rows
+   before it), because the random numbers of a node are a function of that index.
+4. **Per slab**: the mesh is built on slab + halo (`cfm_fem.interpolation.build_mesh`, with the
+   method decided for the whole map: Kuhn grid or Delaunay), the sweep runs on the slab's own
+   nodes only, and the statistics go to disk.
+5. **Output**: every U_p value gets a ``.pvtu`` with one ``.vtu`` piece per slab (the cells
+   whose highest node the slab owns), ``sweep.pvd`` and ``summary.json``, whose figures are
+   merged exactly from per-slab counts and a per-node float64 U_f file on disk (percentiles by
+   exact order statistics, `disk_percentiles`).
+
+**Halo rule.** ``h = halo_cells * L + 6 * sigma_max``, with L the largest grid step along the
+slab axis (grid) or the mean node spacing (volume / nodes)^(1/3) (Delaunay), ``halo_cells = 4``
+by default, and sigma_max the largest U_p times the largest axis scale (mm). It is checked, not
+trusted:
+
+- every cell incident to an own node must be *certified*: for a grid, every Kuhn cell of
+  slab + halo is a cell of the whole map's triangulation; for Delaunay, a cell is certified when
+  its circumsphere stays inside the slab + halo along the slab axis (then no node outside can
+  lie in it, so it is a Delaunay cell of the whole map). Otherwise h is doubled and the slab
+  rebuilt.
+- faces through which a walk would leave the certified region (a boundary face of slab + halo
+  that is not provably on the map's own hull, or a face towards an uncertified cell) lead to a
+  sentinel cell whose field is NaN. A trial that reaches one poisons its node's statistics,
+  which are then recomputed with those faces closed (the mesh border): **such trials count as
+  outside, never silently as a value**. Their number is in ``summary.json`` (``slabs``,
+  ``halo_outside_nodes``) and in a note.
+
+**Equal to the in-memory run.** Own nodes get exactly the numbers of ``cfm-fem sweep`` without
+slabs when the triangulation of slab + halo equals the global one around them: always for a
+grid (the Kuhn triangulation is local; bit for bit, `tests/test_slabs.py`); for Delaunay, Qhull
+orders the vertices of a simplex by its insertion order, so barycentric coordinates are
+rounded differently and values agree to ~1e-15 relative, not bit for bit.
+
+**Memory.** Bounded by one slab + halo (map rows, mesh, statistics) plus, until the kernel
+takes node ids apart from array indices, three node-indexed arrays over the whole map (coords,
+values and walk-start cells, 112 bytes per node) that the kernel reads at the node index: they
+are anonymous memory mappings of which only the pages holding slab nodes become resident
+(few for a file ordered along the slab axis, all for a randomly ordered file).
+
+Limits: 3-D maps of plain or Opera tables in mode gauss; other formats, planar maps and
+``--mode htm`` are run in memory (the caller says so); no ``--resume`` or Dask backend yet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import mmap
+import shutil
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CfmInputError, CfmInputWarning
+from .field import DUPLICATE_TOL_MM, FieldMap
+from .interpolation import FLAT_TOL, build_mesh
+from .io._atomic import write_json
+from .io.pvtu import write_pvtu
+from .io.streaming import check_opera_counts, open_stream
+from .io.sweep_out import _point_data, provenance_codes, vtu_name
+from .io.vtk import write_pvd, write_vtu
+from .sweep import SweepConfig, SweepResult, _gum_u, node_gradients, prepare_sweep, summarize
+
+__all__ = ["SlabPlan", "stage", "run_slab_sweep", "disk_percentiles", "slabs_for_memory"]
+
+#: Distinct values per axis tracked while staging; more means "not a grid".
+MAX_DISTINCT = 1 << 20
+#: Rows per block when streaming or scanning the staged rows.
+BLOCK = 1 << 16
+#: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
+HALO_CELLS = 4.0
+
+
+@dataclass
+class Staged:
+    """The streamed map on disk (see `stage`).
+
+    Attributes
+    ----------
+    rows : numpy.memmap, shape (n, 6), float64
+        x, y, z (mm), Bx, By, Bz (T) of every kept row (placeholder rows already dropped if
+        asked), in file order.
+    lines : numpy.memmap, shape (n,), int64
+        1-based source line of each row.
+    lo, hi : ndarray, shape (3,), mm
+        Bounding box.
+    b_max : float, T
+        Largest |B| over the rows (the default B_ref, as `FieldMap.b_max`).
+    b_abs_max : float, T
+        Largest |B component| (the scale of the duplicate-field test of `FieldMap`).
+    distinct : list of ndarray or None
+        Sorted distinct coordinate values per axis, None if more than `MAX_DISTINCT`.
+    dim : int
+        3, or 2 / 1 for planar / collinear maps (left to the in-memory path).
+    spelled : list of str
+    notes : list of str
+    """
+
+    rows: np.ndarray
+    lines: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    b_max: float
+    b_abs_max: float
+    distinct: list
+    dim: int
+    spelled: list
+    notes: list
+
+
+def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="warn") -> Staged:
+    """Stream a table or Opera map once into ``workdir`` (see the module docstring, step 1).
+
+    Memory: one block of rows (`BLOCK`) and the distinct-value sets.
+
+    Raises
+    ------
+    CfmInputError
+        As `cfm_fem.io.read_field` for the same file (file, line, column).
+    """
+    from .io._parse import check_zero_rows
+
+    check_zero_rows(zero_rows)
+    stream = open_stream(path, fmt, length_unit=length_unit, field_unit=field_unit)
+    workdir = Path(workdir)
+    n = 0
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    b_max = b_abs = 0.0
+    distinct = [np.empty(0), np.empty(0), np.empty(0)]
+    ref = None
+    scatter = np.zeros((3, 3))
+    total = np.zeros(3)
+    n_zero, first_zero = 0, None
+    with open(workdir / "rows.f8", "wb") as fr, open(workdir / "lines.i8", "wb") as fl:
+        for values, lines in stream.blocks(BLOCK):
+            zero = np.all(values[:, 3:] == 0.0, axis=1)
+            if zero.any():
+                if first_zero is None:
+                    first_zero = int(lines[np.flatnonzero(zero)[0]])
+                n_zero += int(zero.sum())
+                if zero_rows == "drop":
+                    values, lines = values[~zero], lines[~zero]
+            if not len(values):
+                continue
+            p = values[:, :3]
+            lo, hi = np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0))
+            b_max = max(b_max, float(np.sqrt((values[:, 3:] ** 2).sum(axis=1)).max()))
+            b_abs = max(b_abs, float(np.abs(values[:, 3:]).max()))
+            for k in range(3):
+                if distinct[k] is not None:
+                    d = np.union1d(distinct[k], p[:, k])
+                    distinct[k] = d if len(d) <= MAX_DISTINCT else None
+            ref = p[0].copy() if ref is None else ref
+            q = p - ref  # shifted sums: the flatness test needs no second pass
+            scatter += q.T @ q
+            total += q.sum(axis=0)
+            fr.write(np.ascontiguousarray(values).tobytes())
+            fl.write(np.ascontiguousarray(lines, dtype=np.int64).tobytes())
+            n += len(values)
+    notes = list(stream.notes)
+    if stream.fmt == "opera":
+        notes += check_opera_counts(stream, [None if d is None else len(d) for d in distinct])
+    if n_zero:
+        what = (
+            f"{n_zero} row(s) have {', '.join(stream.spelled[3:])} exactly 0 0 0 (first at line "
+            f"{first_zero})"
+        )
+        if zero_rows == "drop":
+            notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
+        elif zero_rows == "warn":
+            msg = (
+                f"{stream.file}: {what}; kept as real 0 T values. If they are placeholders, "
+                f"drop them with zero_rows='drop'"
+            )
+            warnings.warn(msg, CfmInputWarning, stacklevel=2)
+            notes.append(msg)
+        else:
+            notes.append(f"{what}: kept (zero_rows='keep')")
+    dim = 0
+    if n >= 3:
+        cov = scatter - np.outer(total, total) / n
+        s = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[::-1], 0.0, None))
+        dim = 1 if (s[0] == 0 or s[1] <= FLAT_TOL * s[0]) else 2 if s[2] <= FLAT_TOL * s[0] else 3
+    shape = (n, 6)
+    rows = (np.memmap(workdir / "rows.f8", np.float64, "r", shape=shape) if n
+            else np.empty(shape))  # fmt: skip
+    lines = np.memmap(workdir / "lines.i8", np.int64, "r", shape=(n,)) if n else np.empty(0)
+    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes)
+
+
+def slabs_for_memory(n_nodes: int, budget_bytes: float, n_up: int) -> int:
+    """Number of slabs for a memory budget.
+
+    Per node of a slab (with its halo) about 1,300 bytes for the map, the Delaunay mesh and the
+    walk tables plus 250 bytes per U_p value of statistics and output arrays; about 350 MB of
+    interpreter, numba and VTK; and up to 112 bytes per node of the map for the node-indexed
+    kernel arrays (see the module docstring).
+    """
+    fixed = 350e6 + 112.0 * n_nodes
+    per_node = 1300.0 + 250.0 * n_up
+    room = budget_bytes - fixed
+    if room <= per_node * 2000:
+        return max(1, n_nodes // 2000)
+    # 1.3: the halo adds nodes to each slab
+    return max(1, math.ceil(1.3 * n_nodes * per_node / room))
+
+
+def _virtual(shape, dtype, fill=None):
+    """A zeroed array in an anonymous memory mapping: pages cost memory only once written."""
+    nbytes = max(int(np.prod(shape)) * np.dtype(dtype).itemsize, 1)
+    buf = mmap.mmap(-1, nbytes)
+    arr = np.frombuffer(buf, dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+    if fill is not None:
+        arr.fill(fill)
+    return arr
+
+
+@dataclass
+class SlabPlan:
+    """Geometry of the partition.
+
+    Attributes
+    ----------
+    axis : int
+        Slab axis (0, 1, 2 = x, y, z): the longest side of the bounding box.
+    edges : ndarray, shape (K + 1,), mm
+        Slab k owns nodes with edges[k] <= x_axis < edges[k + 1] (the last one includes its
+        upper edge); edges[0] and edges[K] are the map's extremes.
+    halo : float, mm
+    """
+
+    axis: int
+    edges: np.ndarray
+    halo: float
+
+    @property
+    def n_slabs(self) -> int:
+        return len(self.edges) - 1
+
+    def owner(self, x) -> np.ndarray:
+        """Slab owning each coordinate ``x`` (along the axis), shape like x."""
+        return np.clip(np.searchsorted(self.edges[1:-1], x, side="right"), 0, self.n_slabs - 1)
+
+
+def _plan(st: Staged, n_slabs: int, halo: float) -> SlabPlan:
+    axis = int(np.argmax(st.hi - st.lo))
+    lo, hi = st.lo[axis], st.hi[axis]
+    nb = 64 * n_slabs
+    edges_h = np.linspace(lo, hi, nb + 1)
+    counts = np.zeros(nb, dtype=np.int64)
+    for a in range(0, len(st.rows), BLOCK):
+        x = st.rows[a : a + BLOCK, axis]
+        counts += np.bincount(
+            np.clip(np.searchsorted(edges_h, x, side="right") - 1, 0, nb - 1), minlength=nb
+        )
+    cum = np.cumsum(counts)
+    targets = np.arange(1, n_slabs) * (cum[-1] / n_slabs)
+    inner = edges_h[np.searchsorted(cum, targets) + 1]
+    edges = np.unique(np.concatenate([[lo], inner, [hi]]))
+    if len(edges) < 2:
+        edges = np.array([lo, hi])
+    return SlabPlan(axis, edges, halo)
+
+
+def _extract(st: Staged, plan: SlabPlan, k: int, halo: float):
+    """Rows of slab k and its halo: (staged row index (m,), own mask (m,)); memory O(m)."""
+    a_lo = plan.edges[k] - halo
+    a_hi = plan.edges[k + 1] + halo
+    idx, own = [], []
+    for a in range(0, len(st.rows), BLOCK):
+        x = st.rows[a : a + BLOCK, plan.axis]
+        sel = np.flatnonzero((x >= a_lo) & (x <= a_hi))
+        idx.append(sel + a)
+        own.append(plan.owner(x[sel]) == k)
+    return np.concatenate(idx), np.concatenate(own)
+
+
+def _duplicates(st: Staged, rows, file):
+    """Rows to drop as duplicates among ``rows`` (staged indices, sorted), as `FieldMap` does.
+
+    Returns the dropped row indices; raises `CfmInputError` for two nodes at one place with
+    different fields.
+    """
+    pts = np.asarray(st.rows[rows, :3])
+    order = np.lexsort(pts.T[::-1])
+    sp = pts[order]
+    same = np.all(np.abs(np.diff(sp, axis=0)) <= DUPLICATE_TOL_MM, axis=1)
+    if not same.any():
+        return np.empty(0, dtype=np.int64)
+    rep = np.concatenate([[True], ~same])
+    group = np.cumsum(rep) - 1
+    first_of = np.empty(len(rows), dtype=np.int64)
+    first_of[order] = order[np.flatnonzero(rep)[group]]
+    dup = first_of != np.arange(len(rows))
+    B = np.asarray(st.rows[rows, 3:])
+    db = np.abs(B[dup] - B[first_of[dup]]).max(axis=1)
+    conflict = np.flatnonzero(dup)[db > 1e-9 * max(st.b_abs_max, 1e-30)]
+    if conflict.size:
+        i = int(conflict[0])
+        j = int(first_of[i])
+        raise CfmInputError(
+            f"duplicate node at {pts[i].tolist()} mm (also on line {int(st.lines[rows[j]])}) with "
+            f"a different field {B[i].tolist()} T vs {B[j].tolist()} T; expected one field per "
+            f"position",
+            file=file,
+            line=int(st.lines[rows[i]]),
+        )
+    return rows[dup]
+
+
+def _lattice_keys(points, span):
+    return np.round(points / (span * 1e-9))
+
+
+def _circum_ok(coords, simplices, boxes, spheres=False):
+    """Certified Delaunay cells: the circumsphere meets no part of the map's bounding box beyond
+    the slab + halo (``boxes``), so no node left out can lie in it.
+
+    With ``spheres``, also return the circumcentres (m, 3) and squared radii (m,), mm.
+    """
+    v = coords[simplices]  # (m, 4, 3)
+    A = 2.0 * (v[:, 1:] - v[:, :1])
+    rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
+    with np.errstate(all="ignore"):
+        c = np.linalg.solve(A, rhs[..., None])[..., 0]
+        r2 = ((c - v[:, 0]) ** 2).sum(-1) * (1.0 + 1e-9)
+    ok = np.isfinite(r2)
+    for lo, hi in boxes:
+        d2 = (np.maximum(np.maximum(lo - c, c - hi), 0.0) ** 2).sum(-1)
+        ok &= d2 >= r2
+    return (ok, c, r2) if spheres else ok
+
+
+def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2):
+    """For circumspheres that reach beyond the slab + halo: True where no staged node outside
+    a_lo..a_hi along ``axis`` lies in (or on) the sphere, so the cell is the whole map's too.
+    One scan of the staged rows; hull slivers (huge spheres bulging out of the map) pass here."""
+    import scipy.spatial
+
+    hits = np.zeros(len(centers), dtype=np.int64)
+    r = np.sqrt(r2)
+    for a in range(0, len(st.rows), BLOCK):
+        p = np.asarray(st.rows[a : a + BLOCK, :3])
+        p = p[(p[:, axis] < a_lo) | (p[:, axis] > a_hi)]
+        if len(p):
+            tree = scipy.spatial.cKDTree(p)
+            hits += np.asarray(tree.query_ball_point(centers, r, return_length=True))
+    return hits == 0
+
+
+def _hull_face_ok(coords, simplices, s, j, boxes, tol):
+    """Border faces (of cell s[i], opposite its vertex j[i]) provably on the map's own hull: no
+    part of the bounding box beyond the slab + halo (``boxes``) is on their outer side.
+
+    ``tol``: mm.
+    """
+    out = np.ones(len(s), dtype=bool)
+    if not boxes or not len(s):
+        return out
+    d = coords.shape[1]
+    cells = simplices[s]  # (f, d + 1)
+    mask = np.ones_like(cells, dtype=bool)
+    mask[np.arange(len(s)), j] = False
+    fv = coords[cells[mask].reshape(len(s), d)]  # (f, 3, 3): the face's vertices
+    opp = coords[cells[np.arange(len(s)), j]]
+    nrm = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
+    nrm[((opp - fv[:, 0]) * nrm).sum(-1) > 0] *= -1.0  # outward
+    scale = np.linalg.norm(nrm, axis=1)
+    for lo, hi in boxes:
+        corners = np.array([[(lo, hi)[(c >> a) & 1][a] for a in range(3)] for c in range(8)])
+        side = np.einsum("fck,fk->fc", corners[None] - fv[:, :1, :], nrm)
+        out &= side.max(axis=1) <= tol * scale
+    return out
+
+
+def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
+    """(lo, hi) corners of the parts of the bounding box beyond a_lo..a_hi along ``axis``."""
+    boxes = []
+    for lo_a, hi_a in ((st.lo[axis], a_lo), (a_hi, st.hi[axis])):
+        if hi_a <= lo_a:
+            continue
+        lo, hi = st.lo.copy(), st.hi.copy()
+        lo[axis], hi[axis] = lo_a, hi_a
+        boxes.append((lo, hi))
+    return boxes
+
+
+def _run_nodes(problem, ids):
+    """Chunk results of the node ids ``ids`` (sorted): one `SweepProblem.run_chunk` per run of
+    consecutive ids (the kernel takes node ranges; results do not depend on the grouping)."""
+    if hasattr(problem, "run_nodes"):  # a kernel API taking node lists, when there is one
+        return problem.run_nodes(ids)
+    breaks = np.flatnonzero(np.diff(ids) != 1) + 1
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [len(ids)]])
+    parts = [
+        problem.run_chunk(int(ids[a]), int(ids[b - 1]) + 1)
+        for a, b in zip(starts, stops, strict=True)
+    ]
+    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+
+
+class _SlabStore:
+    """Per-slab results on disk (``.npy``), read back by node id."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.ids = []
+
+    def save(self, k, **arrays):
+        d = self.root / f"slab{k:04d}"
+        d.mkdir(parents=True, exist_ok=True)
+        for name, arr in arrays.items():
+            np.save(d / f"{name}.npy", arr)
+
+    def load(self, k, name):
+        return np.load(self.root / f"slab{k:04d}" / f"{name}.npy", mmap_mode="r")
+
+    def gather(self, ids, n_slabs, names):
+        """Arrays ``names`` of the node ids ``ids`` (any slab), in the order of ``ids``."""
+        out = {}
+        found = np.zeros(len(ids), dtype=bool)
+        for k in range(n_slabs):
+            own = self.load(k, "ids")
+            pos = np.clip(np.searchsorted(own, ids), 0, max(len(own) - 1, 0))
+            hit = (own[pos] == ids) if len(own) else np.zeros(len(ids), bool)
+            if not hit.any():
+                continue
+            for name in names:
+                src = self.load(k, name)
+                if name not in out:
+                    out[name] = np.empty((len(ids),) + src.shape[1:], src.dtype)
+                out[name][hit] = src[pos[hit]]
+            found |= hit
+        if not found.all():  # pragma: no cover - every cell vertex is owned by some slab
+            raise RuntimeError(f"{int((~found).sum())} node(s) of the pieces have no results")
+        return out
+
+
+def disk_percentiles(chunks, qs, in_memory_limit: int = 1 << 22):
+    """``np.percentile(values, qs)`` (linear) of values given in chunks, bit for bit.
+
+    Parameters
+    ----------
+    chunks : callable() -> iterable of ndarray
+        Yields the values (float64, finite) chunk by chunk; called several times.
+    qs : sequence of float
+        Percentiles, 0..100.
+    in_memory_limit : int
+        Up to this many values they are gathered and numpy is called; beyond, exact order
+        statistics are found by histogram refinement, O(chunk) memory.
+
+    Returns
+    -------
+    list of float or None
+        None for every q when there are no values.
+    """
+    n = sum(len(c) for c in chunks())
+    if n == 0:
+        return [None for _ in qs]
+    if n <= in_memory_limit:
+        vals = np.concatenate(list(chunks()))
+        return [float(np.percentile(vals, q)) for q in qs]
+    out = []
+    for q in qs:
+        # numpy's linear method: virtual index (n - 1) * q / 100, then its _lerp
+        vi = np.asarray((n - 1) * np.true_divide(q, 100))
+        prev = np.floor(vi)
+        gamma = np.asarray(vi - prev)
+        i0 = int(prev)
+        i1 = min(i0 + 1, n - 1)
+        a, b = _order_stat(chunks, i0), _order_stat(chunks, i1)
+        a, b = np.float64(a), np.float64(b)
+        diff = b - a
+        res = np.add(a, diff * gamma)
+        if gamma >= 0.5:
+            res = np.subtract(b, diff * (1 - gamma))
+        out.append(float(res))
+    return out
+
+
+def _order_stat(chunks, rank, bins: int = 4096, gather: int = 1 << 20):
+    """The value of 0-based ``rank`` in sorted order, by histogram refinement."""
+    lo, hi = np.inf, -np.inf
+    for c in chunks():
+        if len(c):
+            lo, hi = min(lo, c.min()), max(hi, c.max())
+    below = 0  # values < lo
+    while True:
+        sel = [c[(c >= lo) & (c <= hi)] for c in chunks()]
+        count = sum(len(s) for s in sel)
+        if count <= gather or lo == hi:
+            vals = np.sort(np.concatenate(sel))
+            return float(vals[rank - below])
+        edges = np.linspace(lo, hi, bins + 1)
+        hist = np.zeros(bins, dtype=np.int64)
+        for s in sel:
+            hist += np.bincount(
+                np.clip(np.searchsorted(edges, s, side="right") - 1, 0, bins - 1), minlength=bins
+            )
+        cum = np.cumsum(hist)
+        j = int(np.searchsorted(cum, rank - below, side="right"))
+        below += int(cum[j - 1]) if j else 0
+        new_lo = edges[j]
+        new_hi = edges[j + 1] if j + 1 < bins else hi
+        new_hi = np.nextafter(new_hi, -np.inf) if j + 1 < bins else new_hi
+        if new_lo == lo and new_hi == hi:  # cannot split further
+            vals = np.sort(np.concatenate(sel))
+            return float(vals[rank - below])
+        lo, hi = new_lo, max(new_hi, new_lo)
+
+
+def run_slab_sweep(
+    path,
+    cfg: SweepConfig,
+    out_dir,
+    *,
+    n_slabs: int | None = None,
+    max_memory: float | None = None,
+    fmt: str = "table",
+    length_unit=None,
+    field_unit=None,
+    zero_rows="warn",
+    provenance: dict | None = None,
+    halo_cells: float = HALO_CELLS,
+    log=None,
+    progress=None,
+) -> dict | None:
+    """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
+
+    Parameters
+    ----------
+    path : path-like
+        Plain or Opera table.
+    cfg : SweepConfig
+        Mode gauss.
+    out_dir : path-like
+    n_slabs : int, optional
+        K; else from ``max_memory`` (bytes, `slabs_for_memory`).
+    fmt : {'table', 'opera'}
+    provenance : dict, optional
+    halo_cells : float
+        Cell sizes in the halo (plus 6 sigma of the largest U_p).
+    log : callable(str), optional
+        Messages for the user.
+    progress : callable(int), optional
+        Called with the number of nodes finished.
+
+    Returns
+    -------
+    dict or None
+        The summary written; None for a map that is not 3-D (the caller then runs in memory).
+    """
+    t0 = time.perf_counter()
+    log = log or (lambda s: None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
+    try:
+        st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
+                   zero_rows=zero_rows)  # fmt: skip
+        if st.dim != 3:
+            return None
+        return _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells, log,
+                    progress, t0)  # fmt: skip
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0):
+    file = str(path)
+    n_rows = len(st.rows)
+    if cfg.mode != "gauss":
+        raise CfmInputError("--slabs is available for --mode gauss only in this version")
+    b_ref = st.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
+    extent = float((st.hi - st.lo).min())
+    sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
+    if sigma * 5.0 > extent:
+        raise CfmInputError(
+            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
+            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            file=file,
+        )
+    if n_slabs is None:
+        n_slabs = slabs_for_memory(n_rows, max_memory, len(cfg.up_um))
+    n_slabs = max(1, min(int(n_slabs), n_rows // 8 or 1))
+    span = float((st.hi - st.lo).max())
+    axis = int(np.argmax(st.hi - st.lo))
+    # interpolation decided for the whole map, as build_mesh would on all nodes
+    keys = None
+    if cfg.interpolation in ("auto", "grid") and all(d is not None for d in st.distinct):
+        keys = [np.unique(_lattice_keys(d, span)) for d in st.distinct]
+    kind = cfg.interpolation
+    if kind == "native":
+        raise CfmInputError("interpolation 'native' needs tetrahedra in the export; this map has "
+                            "none", file=file)  # fmt: skip
+    grid_shape = None if keys is None else tuple(len(k) for k in keys)
+    if kind in ("auto", "grid"):
+        kind = "grid" if grid_shape is not None and min(grid_shape) >= 2 else "delaunay"
+    if kind == "grid":
+        step = float(np.diff(keys[axis]).max()) * span * 1e-9
+    else:
+        step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
+    halo = halo_cells * step + 6.0 * sigma
+    plan = _plan(st, n_slabs, halo)
+    K = plan.n_slabs
+    log(f"slabs: {K} along {'xyz'[plan.axis]}, halo {halo:.4g} mm ({halo_cells:g} cells of "
+        f"{step:.4g} mm + 6 sigma of {sigma * 1e3:.4g} um); {n_rows} rows staged")  # fmt: skip
+    # pass A: duplicates (and the grid test: one node per lattice point)
+    dropped = []
+    for k in range(K):
+        rows, _ = _extract(st, plan, k, 1e-6)  # a group split by an edge is seen by both
+        dropped.append(_duplicates(st, rows, file))
+    dropped = np.unique(np.concatenate(dropped)) if dropped else np.empty(0, np.int64)
+    n = n_rows - len(dropped)
+    notes = list(st.notes)
+    if len(dropped):
+        msg = f"{file}: merged {len(dropped)} duplicate node(s) with identical position and field"
+        warnings.warn(msg, CfmInputWarning, stacklevel=3)
+        notes.append(msg)
+    if (
+        kind == "grid"
+        and cfg.interpolation == "auto"
+        and np.prod(grid_shape, dtype=float) > 4.0 * n
+    ):
+        kind = "delaunay"
+        step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
+        halo = halo_cells * step + 6.0 * sigma
+        plan = _plan(st, n_slabs, halo)
+        K = plan.n_slabs
+    if kind == "grid":
+        missing = int(np.prod(grid_shape)) - n
+        if missing:
+            notes.append(f"nodes on a rectilinear grid with {missing} grid point(s) missing: "
+                         "cells touching a missing point are left out, not bridged")  # fmt: skip
+
+    def gid(rows):
+        return rows - np.searchsorted(dropped, rows)
+
+    n_col = len(cfg.up_um)
+    store = _SlabStore(work / "results")
+    uf_all = np.lib.format.open_memmap(work / "uf.npy", "w+", np.float64, (n, n_col))
+    ok_all = np.lib.format.open_memmap(work / "complete.npy", "w+", np.bool_, (n, n_col))
+    sums = dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64),
+                processed=0, star=0, dis=np.zeros((n_col, 4), np.int64),
+                cells=0, halo_nodes=0)  # fmt: skip
+    template = None
+    mesh_notes = []
+    for k in range(K):
+        h = halo
+        while True:
+            rows, own = _extract(st, plan, k, h)
+            keep = ~np.isin(rows, dropped)
+            rows, own = rows[keep], own[keep]
+            ids = gid(rows)
+            pts = np.array(st.rows[rows, :3])
+            B = np.array(st.rows[rows, 3:])
+            lfm = FieldMap(points=pts, B=B, source=file, lines=np.array(st.lines[rows]))
+            mesh = build_mesh(lfm, kind)
+            boxes = _beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
+            if kind == "grid":  # the Kuhn triangulation is local: every cell is the map's own
+                cert = np.ones(len(mesh.simplices), dtype=bool)
+            else:
+                cert, cen, r2 = _circum_ok(mesh.coords, mesh.simplices, boxes, spheres=True)
+                # cells away from the cut zone that the box test could not certify: test them
+                # against the nodes left out (one scan of the staged rows)
+                near = mesh.coords[mesh.simplices, plan.axis]
+                inner = (near >= plan.edges[k] - h / 2) & (near <= plan.edges[k + 1] + h / 2)
+                cand = np.flatnonzero(~cert & inner.any(axis=1))
+                if len(cand):
+                    cert[cand] = _empty_spheres(
+                        st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand]
+                    )
+            own_cells = own[mesh.simplices].any(axis=1)
+            if cert[own_cells].all() or not boxes:
+                break
+            h *= 2.0
+            log(f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)")
+        mesh_notes += [m for m in mesh.notes if m not in mesh_notes and "grid point" not in m]
+        lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
+        mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
+        # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
+        nb = mesh.neighbors
+        m, dp1 = nb.shape
+        suspect = np.zeros_like(nb, dtype=bool)
+        suspect[nb >= 0] = ~cert[nb[nb >= 0]]
+        s_idx, j_idx = np.nonzero(nb < 0)
+        hull = _hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
+        suspect[s_idx[~hull], j_idx[~hull]] = True
+        suspect[~cert] = False  # never entered
+        # node-indexed arrays over the whole map (plus a sentinel node n with a NaN field)
+        coords_g = _virtual((n + 1, 3), np.float64)
+        values_g = _virtual((n + 1, 3), np.float64)
+        start_g = _virtual((n + 1, problem.start_cells.shape[1]), np.int64)
+        coords_g[ids] = problem.coords
+        values_g[ids] = problem.values
+        start_g[ids] = problem.start_cells
+        values_g[n] = np.nan
+        simp = np.concatenate([ids[problem.simplices], np.full((1, dp1), n)]).astype(np.int64)
+        trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1))])
+        nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1, dp1), -1)])
+        nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1, dp1), -1)])
+        gp = dataclasses.replace(problem, coords=coords_g, values=values_g, simplices=simp,
+                                 transform=trans, neighbors=nb_a, start_cells=start_g)  # fmt: skip
+        own_ids = ids[own]
+        stats, n_out, n_lost, star, _ = _run_nodes(gp, own_ids)
+        lost_all = (n_out + n_lost) >= cfg.trials
+        hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1)
+        if hit.any():
+            redo = _run_nodes(dataclasses.replace(gp, neighbors=nb_b), own_ids[hit])
+            stats[hit], n_out[hit], n_lost[hit], star[hit] = redo[:4]
+            sums["halo_nodes"] += int(hit.sum())
+        del coords_g, values_g, start_g, gp
+        grad = node_gradients(mesh, lfm.B)[own]
+        sub = FieldMap(points=pts[own], B=B[own], source=file)
+        sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
+        res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
+                          n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
+                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm),
+                          seconds=0.0)  # fmt: skip
+        uf, complete = res.uf_units(), res.complete()
+        uf_all[own_ids], ok_all[own_ids] = uf, complete
+        processed = (n_out + n_lost > 0).any(axis=1) | np.isfinite(stats[:, :, 3, 1]).any(axis=1)
+        sums["processed"] += int(processed.sum())
+        sums["star"] += int(star[processed].sum())
+        sums["n_out"] += n_out.sum(axis=0)
+        sums["n_lost"] += n_lost.sum(axis=0)
+        for c in range(n_col):
+            sums["dis"][c] += res.gum_check(c)[2][complete[:, c]].sum(axis=0)
+        # cells drawn by this slab's piece: certified, highest node owned here
+        cells = mesh.simplices[cert]
+        top = cells.max(axis=1)  # local indices increase with node ids
+        cells = ids[cells[own[top]]]
+        sums["cells"] += len(cells)
+        store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
+                   n_lost=n_lost, star=star, gradient=grad, cells=cells)  # fmt: skip
+        if template is None:
+            template = summarize(res)
+        if progress is not None:
+            progress(len(own_ids))
+        del res, mesh, problem, lfm, stats
+    uf_all.flush()
+    ok_all.flush()
+    summary = _summary(template, cfg, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
+    summary["slabs"] = {
+        "count": K,
+        "axis": "xyz"[plan.axis],
+        "edges_mm": [float(e) for e in plan.edges],
+        "halo_mm": float(halo),
+        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + 6 sigma of the largest U_p "
+        f"({sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not certified",
+        "halo_outside_nodes": int(sums["halo_nodes"]),
+    }
+    if sums["halo_nodes"]:
+        summary["notes"].append(
+            f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "
+            f"slab: those trials are counted as outside (use fewer slabs or a wider halo)"
+        )
+    summary["seconds"] = time.perf_counter() - t0
+    summary["provenance"] = prov or {}
+    _write(out, store, K, cfg, b_ref, summary)
+    return summary
+
+
+def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
+    s = dict(template)
+    n_col = len(cfg.up_um)
+    step = 1 << 20
+
+    def column(k):
+        def chunks():
+            for a in range(0, n, step):
+                ok = np.asarray(ok_all[a : a + step, k])
+                yield np.asarray(uf_all[a : a + step, k])[ok]
+
+        return chunks
+
+    pct = {"p50": [], "p95": [], "p99": [], "max": []}
+    uf_nodes = []
+    for k in range(n_col):
+        vals = disk_percentiles(column(k), [50, 95, 99, 100])
+        for name, v in zip(pct, vals, strict=True):
+            pct[name].append(v)
+        uf_nodes.append(int(sum(len(c) for c in column(k)())))
+    n_samples = max(sums["processed"], 1) * cfg.trials
+    s["up_um"] = [float(u) for u in cfg.up_um]
+    s["uf_units"] = pct
+    s["uf_nodes"] = uf_nodes
+    s["nodes"] = int(n)
+    s["outside_fraction"] = [float(v / n_samples) for v in sums["n_out"]]
+    s["walk_failed_fraction"] = [float(v / n_samples) for v in sums["n_lost"]]
+    s["gum_disagree_fraction"] = [
+        {name: (float(sums["dis"][k, c] / uf_nodes[k]) if uf_nodes[k] else None)
+         for c, name in enumerate(("Bx", "By", "Bz", "absB"))}
+        for k in range(n_col)
+    ]  # fmt: skip
+    s["linear_in_up_fraction"] = (
+        float(sums["star"] / sums["processed"]) if sums["processed"] else None
+    )
+    s["interpolation"] = s["interpolation"].rsplit(";", 1)[0] + f"; {sums['cells']} simplices"
+    s["notes"] = list(notes)
+    s["source"] = file
+    return s
+
+
+def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
+    """One piece per slab and U_p value, the .pvtu indices, sweep.pvd, summary.json."""
+    prov = summary["provenance"]
+    labels = [f"up{u:g}um" for u in cfg.up_um]
+    written = {k: [] for k in range(len(labels))}
+    example = {}
+    for p in range(K):
+        ids = np.asarray(store.load(p, "ids"))
+        cells = np.asarray(store.load(p, "cells"))
+        nodes = np.union1d(ids, cells.ravel())
+        g = store.gather(nodes, K, ["points", "B", "stats", "n_out", "n_lost", "star", "gradient"])
+        sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
+        sigma_mm = (np.asarray(cfg.up_um)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
+
+        piece_cells = np.searchsorted(nodes, cells)
+        res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
+                          n_outside=g["n_out"], n_walk_failed=g["n_lost"],
+                          linear_in_up=g["star"], gradient=g["gradient"],
+                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm), seconds=0.0)  # fmt: skip
+        for k, label in enumerate(labels):
+            path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
+            data = _point_data(res, k)
+            fields = {"U_p_um": float(cfg.up_um[k]), "B_ref_T": b_ref, "trials": cfg.trials,
+                      "seed": cfg.seed, "piece": p,
+                      "provenance_utf8": provenance_codes(prov)}  # fmt: skip
+            write_vtu(path, sub.points, piece_cells, data, fields)
+            written[k].append(path)
+            example[k] = {name: v[:1] for name, v in data.items()}
+    entries = []
+    for k, label in enumerate(labels):
+        path = out / vtu_name(label).replace(".vtu", ".pvtu")
+        write_pvtu(path, written[k], example[k], provenance=prov)
+        entries.append((float(cfg.up_um[k]), path))
+    write_pvd(out / "sweep.pvd", entries, provenance=prov)
+    summary["pieces"] = K
+    write_json(out / "summary.json", summary)

@@ -1,0 +1,203 @@
+"""Out-of-core sweep (`--slabs K`): streamed input, slab + halo meshes, .pvtu pieces per slab.
+
+The numbers of the own nodes of every slab must be those of the in-memory run on the same file.
+"""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from cfm_fem.cli import main
+from cfm_fem.errors import CfmInputError
+from cfm_fem.io import read_field, streaming, write_field
+from cfm_fem.io.provenance import read_xml_provenance
+from cfm_fem.slabs import disk_percentiles, run_slab_sweep, slabs_for_memory
+from cfm_fem.sweep import SweepConfig
+
+HEADER = "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]"
+
+
+def _field(p):
+    x, y, z = p.T
+    return np.c_[0.07 * y + 1e-3 * x**2, 0.07 * x - 2e-4 * x * y, 0.1 + 1e-3 * z**2 / 30]
+
+
+def _write_csv(path, pts, extra=""):
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, _field(pts)])
+    path.write_text(HEADER + "\n" + extra + rows + "\n")
+    return path
+
+
+def _lattice(nx=7, nz=14):
+    ax = np.linspace(-10.0, 10.0, nx)
+    return np.stack(np.meshgrid(ax, ax, np.linspace(-30.0, 30.0, nz), indexing="ij"), -1).reshape(
+        -1, 3
+    )
+
+
+def _by_position(grid):
+    grid = grid.clean(tolerance=0.0)
+    order = np.lexsort(np.asarray(grid.points).T)
+    return grid, {k: np.asarray(grid.point_data[k])[order] for k in grid.point_data}
+
+
+def _same_summary(one, sl, exact=True):
+    for key in set(one) - {"seconds", "provenance"}:
+        if exact or key != "uf_units":
+            assert one[key] == sl[key], key
+        else:
+            for q in one[key]:
+                np.testing.assert_allclose(one[key][q], sl[key][q], rtol=1e-12, err_msg=q)
+
+
+def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
+    path = _write_csv(tmp_path / "g.csv", _lattice())
+    base = ["sweep", str(path), "--up", "0:40:20", "--trials", "300"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    assert sl["slabs"]["count"] == 3 and sl["slabs"]["axis"] == "z" and sl["pieces"] == 3
+    assert sl["slabs"]["halo_outside_nodes"] == 0
+    _same_summary(one, sl)
+    files = [d.get("file") for d in ET.parse(tmp_path / "sl" / "sweep.pvd").iter("DataSet")]
+    assert files == ["uf_up0um.pvtu", "uf_up20um.pvtu", "uf_up40um.pvtu"]
+    assert read_xml_provenance(tmp_path / "sl" / "sweep.pvd") == sl["provenance"]
+    assert read_xml_provenance(tmp_path / "sl" / "uf_up20um.pvtu") == sl["provenance"]
+    assert not list((tmp_path / "sl").glob(".cfm_fem_slabs*"))  # work files removed
+    for up in (20, 40):
+        g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        g2, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        assert g1.n_points == g2.n_points == 686 and g1.n_cells == g2.n_cells
+        assert set(a) == set(b)
+        for name in a:
+            if "grad" in name or "gum_U95" in name:
+                # node_gradients' einsum rounds by memory alignment (numpy's SIMD loops), not
+                # by slab: 1 ulp either way, also between two in-memory runs
+                np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
+            else:  # every Monte Carlo figure: bit for bit
+                np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-10, -10, -30], [10, 10, 30], (900, 3))
+    path = _write_csv(tmp_path / "s.csv", pts)
+    base = ["sweep", str(path), "--up", "0,30", "--trials", "200"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--slabs", "2", "--out", str(tmp_path / "sl")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    assert "Delaunay" in sl["interpolation"]
+    # Qhull's vertex order inside a simplex differs between slab and whole map: rounding only
+    _same_summary(one, sl, exact=False)
+    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_up30um.vtu"))
+    g2, b = _by_position(pv.read(tmp_path / "sl" / "uf_up30um.pvtu"))
+    assert g1.n_cells == g2.n_cells
+    np.testing.assert_array_equal(a["complete"], b["complete"])
+    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
+    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+
+
+def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
+    # halo of 6 sigma = 6 mm and no cell (halo_cells=0), grid steps of 8.6 mm along z: the
+    # nodes next to a slab edge lose cells of their star;
+    # their trials that walk into the missing cells must be counted outside, never given a value
+    path = _write_csv(tmp_path / "g.csv", _lattice(5, 8))
+    cfg = SweepConfig(up_um=[0.0, 1000.0], trials=200)
+    fm = read_field(path)
+    from cfm_fem.sweep import run_sweep
+
+    ref = run_sweep(fm, cfg)
+    s = run_slab_sweep(path, cfg, tmp_path / "sl", n_slabs=2, halo_cells=0.0)
+    assert s["slabs"]["halo_outside_nodes"] > 0
+    assert any("halo border" in n for n in s["notes"])
+    g, b = _by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
+    order = np.lexsort(fm.points.T)
+    uf_ref = ref.uf_units()[order, 1]
+    out_ref = ref.n_outside[order, 1]
+    out_sl = np.round(b["outside_fraction"].astype(np.float64) * 200).astype(int)
+    changed = out_sl != out_ref
+    assert changed.any() and (out_sl >= out_ref).all()  # only ever more trials outside
+    same = ~changed
+    np.testing.assert_array_equal(b["U_f_units"][same], uf_ref[same].astype(np.float32))
+    assert (b["complete"][changed] == 0).all()  # such nodes leave the percentiles
+    assert s["outside_fraction"][1] > ref.n_outside[:, 1].sum() / (ref.fieldmap.n_nodes * 200)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "table"])
+def test_stream_reads_what_the_in_memory_reader_reads(tmp_path, monkeypatch, fmt):
+    monkeypatch.setattr(streaming, "READ_BYTES", 97)  # blocks cut inside lines, CRLF pairs
+    fm0 = read_field(_write_csv(tmp_path / "a.csv", _lattice(4, 5)))
+    path = tmp_path / f"m.{fmt}"
+    write_field(path, fm0)
+    if fmt == "csv":  # comment lines, CRLF ends, a trailing blank line
+        text = path.read_text().splitlines()
+        text.insert(3, "# a comment")
+        path.write_bytes(("\r\n".join(text) + "\r\n\r\n").encode())
+    fm = read_field(path)
+    st = streaming.open_stream(path, "table" if fmt == "csv" else "opera")
+    blocks = list(st.blocks(rows_per_block=7))
+    v = np.concatenate([b[0] for b in blocks])
+    lines = np.concatenate([b[1] for b in blocks])
+    np.testing.assert_array_equal(v[:, :3], fm.points)
+    np.testing.assert_array_equal(v[:, 3:], fm.B)
+    np.testing.assert_array_equal(lines, fm.lines)
+    assert st.notes == fm.notes[: len(st.notes)]
+
+
+@pytest.mark.parametrize(
+    "tail, where",
+    [("1,2,abc,4,5,6\n", ":82: column 'z [mm]'"), ("1,2,3,4,5\n", ":82: the row has 5")],
+)
+def test_bad_rows_give_the_same_message_and_exit_2_with_nothing_written(
+    tmp_path, capsys, tail, where
+):
+    path = _write_csv(tmp_path / "b.csv", _lattice(4, 5))
+    path.write_text(path.read_text() + tail)
+    with pytest.raises(CfmInputError) as mem:
+        read_field(path)
+    with pytest.raises(CfmInputError) as stream:
+        list(streaming.open_stream(path, "table").blocks(16))
+    assert str(mem.value) == str(stream.value) and where in str(stream.value)
+    out = tmp_path / "o"
+    assert main(["sweep", str(path), "--slabs", "2", "--trials", "50", "--out", str(out)]) == 2
+    assert where in capsys.readouterr().err
+    assert not out.exists() or not [p for p in out.rglob("*") if p.is_file()]
+
+
+def test_disk_percentiles_are_numpys_bit_for_bit():
+    rng = np.random.default_rng(0)
+    vals = np.concatenate([rng.lognormal(size=5001), np.full(300, 1.5), rng.normal(size=77)])
+    chunks = np.array_split(vals, 13)
+    qs = [0, 50, 95, 99, 99.9, 100]
+    got = disk_percentiles(lambda: iter(chunks), qs, in_memory_limit=0)
+    assert got == [float(np.percentile(vals, q)) for q in qs]
+    assert disk_percentiles(lambda: iter([np.empty(0)]), [50]) == [None]
+
+
+def test_memory_budget_chooses_the_slabs_and_bad_sizes_exit_2(tmp_path, capsys):
+    assert slabs_for_memory(10_000_000, 4e9, 6) > slabs_for_memory(10_000_000, 16e9, 6) >= 1
+    path = _write_csv(tmp_path / "g.csv", _lattice(4, 6))
+    out = tmp_path / "o"
+    args = ["sweep", str(path), "--up", "10", "--trials", "50", "--out", str(out)]
+    assert main([*args, "--max-memory", "lots"]) == 2
+    assert "--max-memory must be a size" in capsys.readouterr().err
+    assert main([*args, "--slabs", "2", "--resume"]) == 2
+    assert main([*args, "--max-memory", "1G"]) == 0
+    assert json.loads((out / "summary.json").read_text())["slabs"]["count"] >= 1
+
+
+def test_mesh_formats_are_read_whole_and_say_so(tmp_path, capsys):
+    fm = read_field(_write_csv(tmp_path / "g.csv", _lattice(4, 6)))
+    write_field(tmp_path / "g.vtu", fm)
+    out = tmp_path / "o"
+    args = ["sweep", str(tmp_path / "g.vtu"), "--up", "10", "--trials", "50", "--slabs", "2"]
+    assert main([*args, "--out", str(out)]) == 0
+    assert "read whole" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["pieces"] == 2
