@@ -282,7 +282,11 @@ def build_mesh(fm: FieldMap, method: str = "auto") -> SimplexMesh:
         notes += extra
     # cells along a Z-order curve: a node's star then sits in a few cache lines (the sweep
     # kernels are bound by memory latency, not arithmetic)
-    order = morton_order(coords[simplices].mean(axis=1))
+    centre = coords[simplices[:, 0]].copy()  # vertex by vertex: no (m, d + 1, d) temporary
+    for j in range(1, simplices.shape[1]):
+        centre += coords[simplices[:, j]]
+    order = morton_order(centre)
+    del centre
     simplices = simplices[order]
     T, measure = barycentric_transforms(coords, simplices)
     scale = np.ptp(coords, axis=0).prod() / max(len(simplices), 1)
