@@ -1824,6 +1824,7 @@ def _abs_change(b0, e0, e1, e2, abs0):
 @nb.njit(**JIT)
 def _node_gauss(
     g,
+    gkey,
     coords,
     values,
     simplices,
@@ -1880,7 +1881,7 @@ def _node_gauss(
     bi = np.empty(3)
     b0 = values[g]
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-    key = trial_key(skey, g)  # one sequence per node: positions 4t, 4t + 1 serve trial t
+    key = trial_key(skey, gkey)  # one sequence per node: positions 4t, 4t + 1 serve trial t
     n_abs = np.zeros(n_up, dtype=np.int64)  # |B| samples per U_p
     m_out = np.zeros(n_up, dtype=np.int64)  # out-of-star component samples per U_p
     n_in = 0  # in-star trials (components stored at kmax)
@@ -2045,6 +2046,7 @@ def _node_gauss(
 @nb.njit(**PJIT)
 def gauss_sweep(
     nodes,
+    keys,
     coords,
     values,
     simplices,
@@ -2064,7 +2066,11 @@ def gauss_sweep(
     Parameters
     ----------
     nodes : ndarray, shape (k,), int64
-        Node indices to process (a chunk); results do not depend on how nodes are chunked.
+        Node indices (rows of the arrays below) to process; results do not depend on how nodes
+        are chunked.
+    keys : ndarray, shape (k,), int64
+        Random-stream id of each node (its index in the whole map): a node's numbers depend on
+        its key only, so a part of a map held in its own arrays gives the whole map's numbers.
     coords : ndarray, shape (n, d), mm, mesh frame
     values : ndarray, shape (n, 3), T
     simplices, transform, neighbors : arrays of a `SimplexMesh`
@@ -2125,6 +2131,7 @@ def gauss_sweep(
                 continue
             star[i] = _node_gauss(
                 g,
+                keys[i],
                 coords,
                 values,
                 simplices,

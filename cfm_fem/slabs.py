@@ -44,11 +44,10 @@ grid (the Kuhn triangulation is local; bit for bit, `tests/test_slabs.py`); for 
 orders the vertices of a simplex by its insertion order, so barycentric coordinates are
 rounded differently and values agree to ~1e-15 relative, not bit for bit.
 
-**Memory.** Bounded by one slab + halo (map rows, mesh, statistics) plus, until the kernel
-takes node ids apart from array indices, three node-indexed arrays over the whole map (coords,
-values and walk-start cells, 112 bytes per node) that the kernel reads at the node index: they
-are anonymous memory mappings of which only the pages holding slab nodes become resident
-(few for a file ordered along the slab axis, all for a randomly ordered file).
+**Memory.** Bounded by one slab + halo (map rows, mesh, statistics): the kernel runs on the
+slab's own arrays and takes each node's whole-map index as its random-stream key
+(`SweepProblem.run_nodes`), so the numbers are those of the whole-map run. What grows with the
+map lives on disk: the staged rows and the per-node U_f file (memory-mapped, written once).
 
 Limits: 3-D maps of plain or Opera tables in mode gauss; other formats, planar maps and
 ``--mode htm`` are run in memory (the caller says so); no ``--resume`` or Dask backend yet.
@@ -58,7 +57,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import mmap
 import shutil
 import tempfile
 import time
@@ -211,26 +209,15 @@ def slabs_for_memory(n_nodes: int, budget_bytes: float, n_up: int) -> int:
 
     Per node of a slab (with its halo) about 1,300 bytes for the map, the Delaunay mesh and the
     walk tables plus 250 bytes per U_p value of statistics and output arrays; about 350 MB of
-    interpreter, numba and VTK; and up to 112 bytes per node of the map for the node-indexed
-    kernel arrays (see the module docstring).
+    interpreter, numba and VTK.
     """
-    fixed = 350e6 + 112.0 * n_nodes
+    fixed = 350e6
     per_node = 1300.0 + 250.0 * n_up
     room = budget_bytes - fixed
     if room <= per_node * 2000:
         return max(1, n_nodes // 2000)
     # 1.3: the halo adds nodes to each slab
     return max(1, math.ceil(1.3 * n_nodes * per_node / room))
-
-
-def _virtual(shape, dtype, fill=None):
-    """A zeroed array in an anonymous memory mapping: pages cost memory only once written."""
-    nbytes = max(int(np.prod(shape)) * np.dtype(dtype).itemsize, 1)
-    buf = mmap.mmap(-1, nbytes)
-    arr = np.frombuffer(buf, dtype=dtype, count=int(np.prod(shape))).reshape(shape)
-    if fill is not None:
-        arr.fill(fill)
-    return arr
 
 
 @dataclass
@@ -401,21 +388,6 @@ def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
         lo[axis], hi[axis] = lo_a, hi_a
         boxes.append((lo, hi))
     return boxes
-
-
-def _run_nodes(problem, ids):
-    """Chunk results of the node ids ``ids`` (sorted): one `SweepProblem.run_chunk` per run of
-    consecutive ids (the kernel takes node ranges; results do not depend on the grouping)."""
-    if hasattr(problem, "run_nodes"):  # a kernel API taking node lists, when there is one
-        return problem.run_nodes(ids)
-    breaks = np.flatnonzero(np.diff(ids) != 1) + 1
-    starts = np.concatenate([[0], breaks])
-    stops = np.concatenate([breaks, [len(ids)]])
-    parts = [
-        problem.run_chunk(int(ids[a]), int(ids[b - 1]) + 1)
-        for a, b in zip(starts, stops, strict=True)
-    ]
-    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
 
 class _SlabStore:
@@ -706,29 +678,31 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         hull = _hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
         suspect[s_idx[~hull], j_idx[~hull]] = True
         suspect[~cert] = False  # never entered
-        # node-indexed arrays over the whole map (plus a sentinel node n with a NaN field)
-        coords_g = _virtual((n + 1, 3), np.float64)
-        values_g = _virtual((n + 1, 3), np.float64)
-        start_g = _virtual((n + 1, problem.start_cells.shape[1]), np.int64)
-        coords_g[ids] = problem.coords
-        values_g[ids] = problem.values
-        start_g[ids] = problem.start_cells
-        values_g[n] = np.nan
-        simp = np.concatenate([ids[problem.simplices], np.full((1, dp1), n)]).astype(np.int64)
+        # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that
+        # suspect faces lead to; nodes keep their whole-map index as random-stream key
+        nl = len(ids)
+        coords_l = np.concatenate([problem.coords, np.zeros((1, problem.coords.shape[1]))])
+        values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
+        start_l = np.concatenate([problem.start_cells,
+                                  np.full((1, problem.start_cells.shape[1]), -1)])  # fmt: skip
+        simp = np.concatenate([problem.simplices, np.full((1, dp1), nl)]).astype(np.int64)
         trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1))])
         nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1, dp1), -1)])
         nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1, dp1), -1)])
-        gp = dataclasses.replace(problem, coords=coords_g, values=values_g, simplices=simp,
-                                 transform=trans, neighbors=nb_a, start_cells=start_g)  # fmt: skip
+        gp = dataclasses.replace(problem, coords=coords_l, values=values_l, simplices=simp,
+                                 transform=trans, neighbors=nb_a, start_cells=start_l)  # fmt: skip
         own_ids = ids[own]
-        stats, n_out, n_lost, star, _ = _run_nodes(gp, own_ids)
+        own_local = np.flatnonzero(own)
+        stats, n_out, n_lost, star, _ = gp.run_nodes(own_local, keys=own_ids)
         lost_all = (n_out + n_lost) >= cfg.trials
         hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1)
         if hit.any():
-            redo = _run_nodes(dataclasses.replace(gp, neighbors=nb_b), own_ids[hit])
+            redo = dataclasses.replace(gp, neighbors=nb_b).run_nodes(
+                own_local[hit], keys=own_ids[hit]
+            )
             stats[hit], n_out[hit], n_lost[hit], star[hit] = redo[:4]
             sums["halo_nodes"] += int(hit.sum())
-        del coords_g, values_g, start_g, gp
+        del coords_l, values_l, start_l, gp
         grad = node_gradients(mesh, lfm.B)[own]
         sub = FieldMap(points=pts[own], B=B[own], source=file)
         sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]

@@ -227,16 +227,20 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
         ``[i, c, j] = dB_c/dx_j`` in the map frame (zero along the normal of a planar map).
     """
     d = mesh.dim
-    T = mesh.transform[:, :d, :]  # (m, d, d): rows are grad(lambda_j), j < d
-    grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
-    cell_grad = np.einsum("mjc,mjk->mck", B[mesh.simplices], grad_lam)  # (m, 3, d)
-    vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
     n = len(mesh.coords)
     acc = np.zeros((n, 3, d))
     wsum = np.zeros(n)
-    for j in range(d + 1):
-        np.add.at(acc, mesh.simplices[:, j], cell_grad * vol[:, None, None])
-        np.add.at(wsum, mesh.simplices[:, j], vol)
+    block = 262_144  # cells at a time: the temporaries stay ~100 MB on million-node maps
+    for a in range(0, len(mesh.simplices), block):
+        simp = mesh.simplices[a : a + block]
+        T = mesh.transform[a : a + block, :d, :]  # (m, d, d): rows are grad(lambda_j), j < d
+        grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
+        cell_grad = np.einsum("mjc,mjk->mck", B[simp], grad_lam)  # (m, 3, d)
+        vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
+        cell_grad *= vol[:, None, None]
+        for j in range(d + 1):
+            np.add.at(acc, simp[:, j], cell_grad)
+            np.add.at(wsum, simp[:, j], vol)
     with np.errstate(invalid="ignore", divide="ignore"):
         acc /= wsum[:, None, None]
     return acc @ mesh.basis.T  # local -> map frame
@@ -317,16 +321,33 @@ class SweepProblem:
         positioning : ndarray, shape (k, n_col, 2, 3), mm (htm) or shape (k, 0, 2, 3) (gauss)
             Mean and standard deviation of the probe position error per map axis.
         """
-        nodes = np.arange(start, stop, dtype=np.int64)
+        return self.run_nodes(np.arange(start, stop, dtype=np.int64))
+
+    def run_nodes(self, nodes, keys=None):
+        """Statistics of any list of nodes, in that order (see `run_chunk`).
+
+        Parameters
+        ----------
+        nodes : ndarray, shape (k,), int64
+            Rows of this problem's arrays.
+        keys : ndarray, shape (k,), int64, optional
+            Random-stream id of each node: its index in the whole map (default ``nodes``). A
+            problem built on part of a map (a slab) passes the global indices here and gets the
+            numbers of the whole-map run.
+        """
+        nodes = np.asarray(nodes, dtype=np.int64)
+        keys = nodes if keys is None else np.asarray(keys, dtype=np.int64)
         if self.htm is not None:
+            if not np.array_equal(keys, nodes):
+                raise NotImplementedError("mode htm takes node indices of the whole map")
             return self._run_htm(nodes)
         # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
-        # each node's numbers depend on its index only, so the order changes no result
-        order = morton_order(self.coords[start:stop])
+        # each node's numbers depend on its key only, so the order changes no result
+        order = morton_order(self.coords[nodes])
         s, o, lost, star = _kernels.gauss_sweep(
-            nodes[order], self.coords, self.values, self.simplices, self.transform,
-            self.neighbors, self.start_cells, self.basis, self.axis_scale, self.scales_mm,
-            int(self.trials), int(self.seed), float(self.coverage), 32,
+            nodes[order], keys[order], self.coords, self.values, self.simplices,
+            self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
+            self.scales_mm, int(self.trials), int(self.seed), float(self.coverage), 32,
         )  # fmt: skip
         back = np.empty_like(order)
         back[order] = np.arange(len(order))

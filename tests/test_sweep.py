@@ -161,3 +161,22 @@ def test_chunks_in_any_order_merge_exactly():
 
     with pytest.raises(RuntimeError, match="not computed"):
         run_sweep(fm, cfg, map_chunks=lossy_map)
+
+
+def test_node_keys_give_whole_map_numbers_from_a_renumbered_map():
+    """A node's numbers depend on its key, not on its row: the same map with its nodes stored
+    in another order, run with keys = the original indices, gives the original statistics."""
+    from cfm_fem.sweep import prepare_sweep
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-5, 5, (300, 3))
+    B = np.c_[0.06 * pts[:, 1], 0.06 * pts[:, 0], 0.01 * pts[:, 2] ** 2]
+    cfg = SweepConfig(up_um=[0.0, 30.0, 60.0], trials=400, seed=3)
+    _, problem, _ = prepare_sweep(FieldMap.from_arrays(pts, B), cfg)
+    want = problem.run_chunk(0, len(pts))
+    perm = rng.permutation(len(pts))  # row i of the new map is node perm[i] of the original
+    _, moved, _ = prepare_sweep(FieldMap.from_arrays(pts[perm], B[perm]), cfg)
+    rows = rng.permutation(len(pts))[:120]
+    got = moved.run_nodes(rows, keys=perm[rows])
+    for g, w in zip(got[:4], want[:4], strict=True):
+        np.testing.assert_allclose(g, w[perm[rows]], rtol=1e-9, atol=1e-15)
