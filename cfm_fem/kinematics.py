@@ -540,7 +540,8 @@ class _Engine:
         self.ekey, self.nkey, self.fkey = _keys(seed)
         self.block = int(block)
         self.params = np.empty((self.block, len(ERROR_NAMES)))
-        self.terms = np.empty((self.block, 21))
+        # column-major: the hot loop reads one term for consecutive trials (vectorised loads)
+        self.terms = np.empty((self.block, 21), order="F")
         self.tkeys = np.empty(self.block, dtype=np.uint64)
         self.dummy = np.zeros((1, 21))
 
@@ -590,7 +591,7 @@ class _Engine:
         big.__dict__.update(self.__dict__)
         big.block = n
         big.params = np.empty((n, len(ERROR_NAMES)))
-        big.terms = np.empty((n, 21))
+        big.terms = np.empty((n, 21), order="F")
         big.tkeys = np.empty(n, dtype=np.uint64)
         big.prepare(0, n)
         K.pass_pilot_quantiles(*big._args(0, n, q, pidx), kth, out)
