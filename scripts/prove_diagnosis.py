@@ -27,6 +27,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
+from cfm_fem.diagnose.effects import averaging_params  # noqa: E402
 from cfm_fem.diagnose.problem import hall_problem, tracker_problem  # noqa: E402
 from cfm_fem.diagnose.twin import hall_twin, tracker_twin  # noqa: E402
 from cfm_fem.diagnose.workflow import diagnose  # noqa: E402
@@ -46,6 +47,8 @@ TOTALS = {
     "magnet_dy": lambda t: _reg(t, 1, 1e3),
     "magnet_roll": lambda t: _reg(t, 5, 1e6),
     "gain_x": lambda t: t["gains_pct"][0] + t["effects"]["hall_offset_gain"].get("gain_x", 0),
+    "z_entry": lambda t: t["effects"]["fringe_field_3d"]["z_entry"] + t["registration"]["t_mm"][2],
+    "z_exit": lambda t: t["effects"]["fringe_field_3d"]["z_exit"] + t["registration"]["t_mm"][2],
     "gain_z": lambda t: t["gains_pct"][2] + t["effects"]["hall_offset_gain"].get("gain_z", 0),
 }
 
@@ -73,7 +76,7 @@ CASES = [  # (kind, effects, expected name, twin options)
     ),
     (
         "hall",
-        {"fringe_field_3d": {"half_length_mm": 250.0, "lambda_mm": 30.0}},
+        {"fringe_field_3d": {"z_entry": -250.0, "z_exit": 250.0, "lambda": 30.0}},
         "fringe_field_3d",
         {},
     ),
@@ -193,7 +196,10 @@ def main(argv=None) -> int:
         for b in base:
             if b in names:
                 e = s["effects"][names.index(b)]
-                for p, v in eff.get(b, {}).items():
+                items = eff.get(b, {})
+                if b == "sensor_volume_averaging":
+                    items = averaging_params([items.get(f"a_{c}", 0.0) for c in "xyz"])
+                for p, v in items.items():
                     v = TOTALS[p](truth) if p in TOTALS else v
                     if p in e["params"]:
                         est, u = e["params"][p], e["param_std"][p]

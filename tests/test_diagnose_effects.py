@@ -74,10 +74,28 @@ def test_arm_deflection():
     check(s, "arm_deflection", {"sag_z": 8.0, "sag_x": 0.0})
 
 
+def joint_chi2(effect, truth):
+    """(estimate - truth)' C^-1 (estimate - truth) over the determined parameters, C from the
+    reported standard uncertainties and correlations; and their number."""
+    names = list(effect["params"])
+    d = np.array([effect["params"][n] - truth.get(n, 0.0) for n in names])
+    sd = np.array([effect["param_std"][n] for n in names])
+    C = np.array(effect["param_corr"]) * np.outer(sd, sd)
+    return float(d @ np.linalg.solve(C, d)), len(names)
+
+
 def test_position_dependent_geometric():
-    s, _ = run_tracker({"position_dependent_geometric": {"eps_z(z)_u2": 200.0}})
-    assert s["effects"] and s["effects"][0]["name"] == "position_dependent_geometric"
-    assert s["fit"]["cv_rms_after"] < s["fit"]["cv_rms_before"]
+    # a roll of the Z carriage growing as u_z^2 (200 urad at full stroke)
+    from scipy import stats
+
+    truth = {"eps_z(z)_u2": 200.0}
+    s, _ = run_tracker({"position_dependent_geometric": truth})
+    e = check(s, "position_dependent_geometric", truth)
+    # every other profile the tool reports is truly zero: the whole determined vector must agree
+    # with the truth at the 3-sigma level (two-sided normal 0.27 %) of its reported covariance
+    assert len(e["params"]) > 10
+    chi2, k = joint_chi2(e, truth)
+    assert chi2 < stats.chi2.isf(2 * stats.norm.sf(3.0), k), (chi2, k)
 
 
 def test_parameter_bias():
@@ -190,3 +208,99 @@ def test_magnet_temperature():
     # SmCo-like -300 ppm/K over a 7 h map (30 s per point) with the twin's +-0.4 K swing
     s, _ = run_hall({"magnet_temperature": {"beta": -300.0}}, dt_s=30.0)
     check(s, "magnet_temperature", {"beta": -300.0})
+
+
+def _multipole(b6=None, pure=False):
+    """QFDp4 (Table III), or its pure quadrupole, or with the normal 12-pole b6 set to ``b6``
+    (fraction of B_ref at R_ref)."""
+    from dataclasses import replace
+
+    from cfm_fem.io.harmonics import read_qfdp4
+
+    mp = read_qfdp4()
+    normal, skew = mp.normal.copy(), mp.skew.copy()
+    if pure:
+        normal[:] = 0.0
+        normal[1] = mp.normal[1]
+        skew[:] = 0.0
+    if b6 is not None:
+        normal[5] = b6 * mp.b_ref
+    return replace(mp, normal=normal, skew=skew)
+
+
+def run_hall_mp(mp, effects, seed=0, reps=6):
+    rec, truth, ctx = hall_twin(seed, effects, n_reps=reps, points=P, multipole=mp)
+    return diagnose(hall_problem(rec, mp.field, mp.b_ref, ctx["bench"])).summary, truth
+
+
+def test_sensor_volume_averaging_where_the_field_is_curved():
+    # a quadrupole with a 2 % 12-pole (b6 at R_ref = 10 mm): d2B/dx2 ~ r^3 reaches 2e-3 B_ref/mm^2
+    # at the map corners; a 1.5 x 0.3 x 0.5 mm Hall plate. In a 2-D field only the anisotropy
+    # dw_xy = (a_x^2 - a_y^2) / 24 shows (no z curvature; the isotropic part never shows).
+    from cfm_fem.diagnose.effects import averaging_params
+
+    a = {"a_x": 1.5, "a_y": 0.3, "a_z": 0.5}
+    s, _ = run_hall_mp(_multipole(b6=0.02), {"sensor_volume_averaging": a})
+    truth = averaging_params([a["a_x"], a["a_y"], a["a_z"]])
+    e = check(s, "sensor_volume_averaging", {"dw_xy": truth["dw_xy"]})
+    assert "dw_z" not in e["params"]  # no z curvature in a 2-D reference: not estimated
+    cand = {c["name"]: c for c in s["candidates"]}
+    assert cand["sensor_volume_averaging"]["absorbed_params"] == ["dw_z"]
+    assert e["cv_z"] > 2.0
+
+
+def test_sensor_volume_averaging_in_a_pure_quadrupole_cannot_be_revealed():
+    # B linear in position: the box average equals the centre value whatever the box. The tool
+    # must say it cannot test it, with the measurement that would, and claim nothing.
+    from cfm_fem.diagnose import effects as fx
+
+    s, _ = run_hall_mp(_multipole(pure=True), {"sensor_volume_averaging": {"a_x": 1.5}})
+    assert s["mismatch"] is False and s["effects"] == []
+    why = s["untestable"]["sensor_volume_averaging"]
+    assert why.startswith("the reference field has no curvature at the mapped points")
+    expected = (
+        f"sensor_volume_averaging cannot be tested: {why}. To test it: "
+        f"{fx.ADVICE['sensor_volume_averaging']}."
+    )
+    assert expected in s["advice"]
+    assert "sensor_volume_averaging" not in {c["name"] for c in s["candidates"]}
+
+
+FRINGE = {"fringe_field_3d": {"z_entry": -250.0, "z_exit": 250.0, "lambda": 30.0}}
+
+
+def _fringe_truth(truth):
+    """Edges in the map frame: the body-frame edges moved by the magnet's true z offset."""
+    tz = truth["registration"]["t_mm"][2]
+    f = truth["effects"]["fringe_field_3d"]
+    return {"z_entry": f["z_entry"] + tz, "z_exit": f["z_exit"] + tz, "lambda": f["lambda"]}
+
+
+def test_fringe_field_found_with_physical_parameters():
+    # Enge/Fermi ends at +-250 mm, 30 mm fringe length, in a map over z = +-300 mm
+    s, truth = run_hall(FRINGE)
+    e = s["effects"][0]
+    assert e["name"] == "fringe_field_3d", s["candidates"]
+    assert set(e["params"]) == {"amplitude", "z_entry", "z_exit", "lambda"}
+    assert e["units"] == {"amplitude": "1", "z_entry": "mm", "z_exit": "mm", "lambda": "mm"}
+    # held-out RMS from the fringe deficit (~1e3 units) down to the noise (1 unit per component)
+    f = s["fit"]
+    assert f["cv_rms_before"] > 100 and f["cv_rms_after"] < 3.0, f
+    # the linear parameters of the fit are increments about the reported physical values
+    lin = e["linear_params"]
+    for k in ("dz_entry", "dz_exit", "dlambda"):
+        assert abs(lin["params"][k]) < 0.1 * lin["param_std"][k]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="edges biased by up to ~3.5 u at this SNR (u ~ 20 um): the bench's z errors, held at "
+    "their Table II means, move the probe through the fringe gradient and their prior "
+    "uncertainty is not propagated into the edges (see report)",
+)
+def test_fringe_field_parameters_contain_the_truth():
+    s, truth = run_hall(FRINGE)
+    e = s["effects"][0]
+    want = {**_fringe_truth(truth), "amplitude": 1.0}
+    for p, v in want.items():
+        assert abs(e["params"][p] - v) < 3 * e["param_std"][p], (p, e["params"][p], v)

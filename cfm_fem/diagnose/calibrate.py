@@ -46,6 +46,11 @@ class Columns:
         prior-data conflict, not a new signature.
     release_bounds : ndarray, shape (len(release), 2), optional
         Plausible range of the released parameters (display units).
+    physical : callable, optional
+        ``physical(names, theta, cov) -> {name: (value, std, unit)}``: the physical parameters
+        of a linearised non-linear effect (``fringe_field_3d``) from its fitted linear ones
+        (``names``: those still in the block), uncertainty propagated; None: the parameters
+        are physical already.
     """
 
     J: np.ndarray
@@ -57,6 +62,7 @@ class Columns:
     bounds: np.ndarray | None = None
     release: tuple = ()
     release_bounds: np.ndarray | None = None
+    physical: object = None
 
     @property
     def p(self) -> int:
@@ -76,6 +82,7 @@ class Columns:
             None if self.bounds is None else self.bounds[keep],
             self.release,
             rb,
+            self.physical,
         )
 
     def released(self, group: str) -> Columns:

@@ -26,10 +26,20 @@ Field (Hall map), change of the measured field in the magnet frame:
 * ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %).
 * ``magnet_temperature``: Delta B = beta (T - T_mean) B (ppm/K; ppm/h against time without a
   temperature log).
-* ``fringe_field_3d``: Delta B = (a1 zeta + a2 zeta^2) B, zeta = normalised z: a z-dependence that
-  a 2-D multipole cannot have (dimensionless, 1e-4).
+* ``fringe_field_3d``: soft magnet ends that a 2-D multipole lacks: the body field times the
+  Enge/Fermi profile g(z) of :func:`fringe_profile` (edges z_entry, z_exit and fringe length
+  lambda, mm), with the B_z = g'(z) V(x, y) the 3-D scalar potential g V implies (V the
+  potential of the 2-D field; leading order in the end curvature). Non-linear in the edges: they
+  are found by a search against the calibrated baseline, then the model is linearised there
+  (amplitude a, edge and length increments); the physical parameters reported are z_entry,
+  z_exit, lambda (mm) and a (1 for a field that vanishes outside the magnet), with propagated
+  uncertainties. An end more than 10 lambda outside the map is not estimated.
 * ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
-  box of side a_j, in 1e-3 mm^2).
+  box of side a_j). A field in free space is harmonic (sum_j d^2 B / dx_j^2 = 0), so the
+  isotropic part of w never shows (mean-value property: a cube averages to its centre value at
+  this order); the parameters are the anisotropy dw_xy = w_x - w_y and
+  dw_z = w_z - (w_x + w_y) / 2, in 1e-3 mm^2. A 2-D reference has no z curvature: only dw_xy.
+  A field linear in position (pure quadrupole) has no curvature: untestable, said so.
 
 Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
 (magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
@@ -51,8 +61,18 @@ from ..kinematics import probe_errors_for_bench
 from .calibrate import Columns
 from .problem import UM, URAD, field_hessian_diag
 
-__all__ = ["EFFECTS", "POSITIONING", "FIELD", "build", "ADVICE", "DESCRIPTION", "PLAUSIBLE"]
+__all__ = [
+    "EFFECTS",
+    "POSITIONING",
+    "FIELD",
+    "build",
+    "ADVICE",
+    "DESCRIPTION",
+    "PLAUSIBLE",
+    "averaging_params",
+]
 
+W_MAX_MM2 = 25.0 / 24.0  # a^2/24 of a 5 mm sensitive volume, mm^2
 WIDE = 1e6  # prior std of effect parameters (display units): effectively none, keeps cov finite
 
 
@@ -94,9 +114,12 @@ PLAUSIBLE = {
     "magnet_temperature": [
         ("beta", -2500.0, 2500.0, "a field temperature coefficient beyond ferrite's 0.2 %/K"),
     ],
-    "fringe_field_3d": [("a", -1e4, 1e4, "a z-dependent scale beyond 100 %")],
+    "fringe_field_3d": [
+        ("amplitude", 0.0, 2.0, "a magnet end takes the field from its body value to zero"),
+        ("d", -1e4, 1e4, "an end or fringe length moved by more than 10 m"),
+    ],
     "sensor_volume_averaging": [
-        ("w_", 0.0, 1042.0, "averaging weights are a^2/24 >= 0 with a sensitive size a <= 5 mm"),
+        ("dw_", -1042.0, 1042.0, "differences of a^2/24 with a sensitive size a <= 5 mm"),
     ],
 }
 
@@ -308,14 +331,199 @@ def magnet_temperature(prob):
     return _cols(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
 
 
+def fringe_profile(z, z_entry, z_exit, lam):
+    """Soft-edge (Enge/Fermi) profile of a magnet and its z-derivative (1/mm).
+
+    g = f((z - z_entry) / lam) f((z_exit - z) / lam), f(u) = 1 / (1 + exp(-u)): the fraction of
+    the body field at z; z_entry, z_exit are where one end alone halves the field (effective
+    edges, mm), lam the fringe length (mm; 10-90 % over 4.4 lam).
+    """
+    fi = 0.5 * (1.0 + np.tanh(0.5 * (z - z_entry) / lam))
+    fo = 0.5 * (1.0 + np.tanh(0.5 * (z_exit - z) / lam))
+    g = fi * fo
+    return g, g * ((1.0 - fi) - (1.0 - fo)) / lam
+
+
+def _scalar_potential(field_fn, pts, n: int = 8):
+    """V(x, y, z) with (B_x, B_y) = grad V of the transverse field, V = 0 on the axis (line
+    integral from (0, 0, z): exact for a curl-free 2-D field), T mm."""
+    t, w = np.polynomial.legendre.leggauss(n)
+    t, w = 0.5 * (t + 1.0), 0.5 * w
+    V = np.zeros(len(pts))
+    for tk, wk in zip(t, w, strict=True):
+        q = pts.copy()
+        q[:, :2] *= tk
+        b = field_fn(q)
+        V += wk * (pts[:, 0] * b[:, 0] + pts[:, 1] * b[:, 1])
+    return V
+
+
+class _Projector:
+    """Fast MAP objective of ``y - D`` against the baseline (D the same on every repetition of a
+    position): ||b||^2 - ||U' b||^2 of the whitened, prior-augmented system, summed per
+    position so that one evaluation costs O(positions x parameters)."""
+
+    def __init__(self, prob, sigma, base, uinv, m):
+        w = 1.0 / sigma
+        A = (base.J * w[..., None]).reshape(-1, base.p)
+        P = np.where(np.isfinite(base.prior_std), 1.0 / base.prior_std, 0.0)
+        hp = P > 0
+        sc = np.sqrt((A**2).sum(0) + P**2)
+        sc[sc == 0] = 1.0
+        Aa = np.vstack([A, np.diag(P)[hp]]) / sc
+        u, sv, _ = np.linalg.svd(Aa, full_matrices=False)
+        u = u[:, sv > 1e-10 * sv[0]]
+        nd = A.shape[0]
+        b0 = np.concatenate([(prob.y * w).reshape(-1), (base.prior_mean * P)[hp]])
+        self.bb = float(b0 @ b0)
+        self.c0 = u.T @ b0
+        ud = u[:nd].reshape(prob.n, 3, -1) * w[..., None]
+        self.M = np.zeros((m, 3, u.shape[1]))
+        np.add.at(self.M, uinv, ud)
+        self.s1 = np.zeros((m, 3))
+        np.add.at(self.s1, uinv, prob.y * w**2)
+        self.s2 = np.zeros((m, 3))
+        np.add.at(self.s2, uinv, w**2)
+
+    def __call__(self, D):
+        c = self.c0 - np.einsum("mcr,mc->r", self.M, D)
+        return self.bb - 2 * np.sum(self.s1 * D) + np.sum(self.s2 * D * D) - float(c @ c)
+
+
 def fringe_field_3d(prob):
-    z = prob.pos[:, 2]
+    from scipy.optimize import minimize
+
+    from .calibrate import fit_map, stack
+    from .problem import noise_sigma
+
+    ctx = prob.ctx
+    upts, uinv = ctx["upts"], ctx["uinv"]
+    z = upts[:, 2]
     if np.ptp(z) <= 0:
         return "a single z plane: no z-dependence to see"
-    zeta = (z - 0.5 * (z.max() + z.min())) / (0.5 * np.ptp(z))
-    B = prob.ctx["B0"]
-    J = np.stack([B * zeta[:, None] * 1e-4, B * zeta[:, None] ** 2 * 1e-4], axis=-1)
-    return _cols(J, ["a1", "a2"], ["1e-4", "1e-4"], "fringe_field_3d")
+    if "V" not in ctx:
+        ctx["V"] = _scalar_potential(ctx["field_fn"], upts)
+    B0u = ctx["field_fn"](upts)
+    Vu = ctx["V"]
+
+    Bb = [B0u]  # body field the ends scale: reference + calibrated baseline (gains, offsets)
+    Eu = [np.zeros_like(B0u)]  # calibrated probe displacement relative to the magnet, mm
+
+    def delta(th):
+        g, dg = fringe_profile(z, *th)
+        D = (g - 1.0)[:, None] * Bb[0]
+        # B_z = g' V at the displaced probe (grad V = B_perp); the ends seen from a probe
+        # displaced along z (a z error the 2-D reference cannot show)
+        D[:, 2] += dg * (Vu + np.sum(B0u[:, :2] * Eu[0][:, :2], 1))
+        D += (dg * Eu[0][:, 2])[:, None] * Bb[0]
+        return D
+
+    def displacement(theta):
+        """Probe displacement of the calibrated bench errors and magnet offset, per position."""
+        E = np.zeros((prob.n, 3))
+        k = 0
+        for b in prob.baseline:
+            if b.group == "bench" and ctx.get("bench_disp") is not None:
+                E += np.einsum("nkp,p->nk", ctx["bench_disp"], theta[k : k + b.p])
+            elif b.group == "registration":
+                E -= theta[k : k + 3] * UM  # magnet moved by +t
+            k += b.p
+        out = np.zeros_like(B0u)
+        out[uinv] = E
+        return out
+
+    base = stack(prob.baseline)
+    sigma = noise_sigma(prob, fit_map(prob.y, np.ones_like(prob.y), base).resid)[0]
+    obj = _Projector(prob, sigma, base, uinv, len(upts))
+    zmin, zmax = z.min(), z.max()
+    zc, span = 0.5 * (zmin + zmax), zmax - zmin
+    lams = np.geomspace(1.0, span / 4.0, 12)
+    far = 30.0  # edge this many fringe lengths outside the map: no signature
+    best = []
+    for side in (1.0, -1.0):  # exit end, then entry end, the other one far away
+        top = (np.inf, None)
+        for lam in lams:
+            for u in np.linspace(0.0, 1.0, 41):
+                ze = zc + side * (u * (0.5 * span + 10 * lam))
+                th = (
+                    (zmin - far * lams[-1], ze, lam)
+                    if side > 0
+                    else (ze, zmax + far * lams[-1], lam)
+                )
+                v = obj(delta(th))
+                top = min(top, (v, th), key=lambda t: t[0])
+        best.append(top[1])
+    th0 = (best[1][0], best[0][1], np.sqrt(best[0][2] * best[1][2]))
+
+    def f(x):
+        return obj(delta((x[0], x[1], np.exp(x[2]))))
+
+    res = minimize(
+        f,
+        [th0[0], th0[1], np.log(th0[2])],
+        method="Nelder-Mead",
+        options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600},
+    )
+    zi, zo, lam = res.x[0], res.x[1], float(np.exp(res.x[2]))
+    inside = [zmin - 10 * lam < zi < zmax, zmin < zo < zmax + 10 * lam]
+    if not any(inside):  # no end in or near the map: test for a soft end just outside it
+        lam = span / 20.0
+        zi, zo = zmin - 3 * lam, zmax + 3 * lam
+    th = np.array([zi, zo, lam])
+    free = [k for k in range(3) if (inside + [True])[k]] if any(inside) else []
+    names = ["amplitude"] + [["dz_entry", "dz_exit", "dlambda"][k] for k in free]
+    units = ["1"] + ["mm"] * len(free)
+
+    def block(th):
+        cols = [delta(th)]
+        for k in free:
+            e = np.zeros(3)
+            e[k] = 1e-3 * th[2]
+            cols.append((delta(th + e) - delta(th - e)) / (2 * e[k]))
+        return _cols(np.stack(cols, -1)[uinv], names, units, "fringe_field_3d")
+
+    blk = block(th)
+    for _ in range(8 if free else 0):  # Gauss-Newton with the baseline: linearise at the optimum
+        f = fit_map(prob.y, sigma, stack([base, blk]))
+        a, step = f.theta[base.p], f.theta[base.p + 1 :]
+        # the ends scale what the baseline changes too (a gain, a displaced magnet): to first
+        # order in the baseline, the body field is the reference plus the calibrated baseline
+        Bb[0] = B0u.copy()
+        Bb[0][uinv] += np.einsum("nkp,p->nk", base.J, f.theta[: base.p])
+        Eu[0] = displacement(f.theta[: base.p])
+        if not 0.2 < a < 5.0:
+            break
+        new = th.copy()
+        new[free] += step / a
+        if not new[2] > 0:
+            break
+        th = new
+        blk = block(th)
+        if np.all(np.abs(step / a) < 1e-3 * f.std[base.p + 1 :]):
+            break
+    zi, zo, lam = th
+    centre = {"dz_entry": ("z_entry", zi), "dz_exit": ("z_exit", zo), "dlambda": ("lambda", lam)}
+
+    def physical(nm, theta, cov):
+        nm = list(nm)
+        if "amplitude" not in nm:
+            return None
+        ia = nm.index("amplitude")
+        a = theta[ia]
+        out = {"amplitude": (float(a), float(np.sqrt(max(cov[ia, ia], 0.0))), "1")}
+        for k, n in enumerate(nm):
+            if n not in centre:
+                continue
+            grad = np.zeros(len(nm))
+            grad[k] = 1.0 / a
+            grad[ia] = -theta[k] / a**2
+            name, c0 = centre[n]
+            sd = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+            out[name] = (float(c0 + theta[k] / a), sd, "mm")
+        return out
+
+    blk.physical = physical
+    return blk
 
 
 def sensor_volume_averaging(prob):
@@ -325,8 +533,24 @@ def sensor_volume_averaging(prob):
     if "H" not in ctx:
         ctx["H"] = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)[ctx["uinv"]]
     H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
-    J = H * 1e-3  # w in 1e-3 mm^2
-    return _cols(J, [f"w_{a}" for a in "xyz"], ["1e-3 mm^2"] * 3, "sensor_volume_averaging")
+    # largest change the plausible sensitive volume (5 mm side, w = 1.04 mm^2) could make
+    if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx["b_ref"]:
+        return (
+            "the reference field has no curvature at the mapped points (d2B/dx^2 = 0, as in a "
+            "pure quadrupole): averaging over the sensitive volume leaves a field linear in "
+            "position unchanged, whatever the size of the volume"
+        )
+    # traceless part only: sum_j d2B/dx_j^2 = 0 (Laplace), the isotropic part of w is invisible
+    J = np.stack(
+        [0.5 * (H[..., 0] - H[..., 1]), (2 * H[..., 2] - H[..., 0] - H[..., 1]) / 3.0], axis=-1
+    )
+    return _cols(J * 1e-3, ["dw_xy", "dw_z"], ["1e-3 mm^2"] * 2, "sensor_volume_averaging")
+
+
+def averaging_params(a_mm) -> dict:
+    """Catalogue parameters (1e-3 mm^2) of a box of sides ``a_mm`` = (a_x, a_y, a_z) mm."""
+    w = np.asarray(a_mm, float) ** 2 / 24.0 * 1e3
+    return {"dw_xy": float(w[0] - w[1]), "dw_z": float(w[2] - 0.5 * (w[0] + w[1]))}
 
 
 POSITIONING = {
@@ -377,8 +601,9 @@ ADVICE = {
     "magnet_temperature": "log the magnet temperature (temp_C) during the map",
     "fringe_field_3d": "use a 3-D reference (FEM map) near the magnet ends, or map the ends "
     "separately",
-    "sensor_volume_averaging": "measure with a probe of a different sensitive volume, or where "
-    "the field curvature is largest",
+    "sensor_volume_averaging": "map where the field curvature is large (near the magnet ends, "
+    "or at a larger radius where the higher harmonics dominate), or repeat with a probe of a "
+    "different sensitive volume",
 }
 
 DESCRIPTION = {

@@ -16,8 +16,9 @@ import numpy as np
 from ..bench import ERROR_NAMES, Bench, MagnetPlacement
 from ..kinematics import draw_error_sets, probe_errors_for_bench
 from ..recordings import Recording
+from .effects import fringe_profile
 
-__all__ = ["tracker_twin", "hall_twin", "scan_order", "default_hall_points"]
+__all__ = ["tracker_twin", "hall_twin", "scan_order", "default_hall_points", "fringe_edges"]
 
 UM, URAD = 1e-3, 1e-6
 
@@ -190,6 +191,17 @@ def _potential(mp, pts):
     return F.imag
 
 
+def fringe_edges(params: dict) -> tuple[float, float, float]:
+    """(z_entry, z_exit, lambda) in mm, magnet body frame, of the twin's ``fringe_field_3d``:
+    catalogue names ``z_entry``, ``z_exit``, ``lambda`` or a centred magnet ``half_length_mm``,
+    ``lambda_mm``."""
+    lam = float(params.get("lambda", params.get("lambda_mm")))
+    if "half_length_mm" in params:
+        L = float(params["half_length_mm"])
+        return -L, L, lam
+    return float(params["z_entry"]), float(params["z_exit"]), lam
+
+
 def hall_twin(
     seed: int = 0,
     effects: dict | None = None,
@@ -211,8 +223,11 @@ def hall_twin(
         ``magnet_misalignment`` {magnet_dx, magnet_dy, magnet_dz: um, magnet_roll,
         magnet_rot_x, magnet_rot_y: urad} (on top of the survey-sized registration),
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
-        ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {half_length_mm, lambda_mm}
-        (Enge-like ends, with the B_z the 3-D potential implies), ``sensor_volume_averaging``
+        ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
+        lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
+        profile :func:`~cfm_fem.diagnose.effects.fringe_profile`, with the B_z the 3-D
+        potential implies (edges in the magnet body frame: the fitted edges also carry the
+        magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.
     noise_units : float
         Std of the Hall noise per component in units of 1e-4 B_ref.
@@ -256,16 +271,15 @@ def hall_twin(
     )
     R = rotation_zyx(*rot)
     fr = effects.get("fringe_field_3d")
+    if fr:
+        fr_edges = fringe_edges(fr)
 
     def field(x):
         """True field at magnet-frame points x (n, 3) for the displaced, rotated magnet."""
         xl = (x - tr) @ R  # R^T (x - t)
         b = mp.field(xl)
         if fr:
-            L, lam = fr["half_length_mm"], fr["lambda_mm"]
-            z = xl[:, 2]
-            g = 1.0 / (1.0 + np.exp((np.abs(z) - L) / lam))
-            dg = -np.sign(z) * g * (1 - g) / lam
+            g, dg = fringe_profile(xl[:, 2], *fr_edges)
             b = b * g[:, None]
             b[:, 2] = dg * _potential(mp, xl)
         return b @ R.T

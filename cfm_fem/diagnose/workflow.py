@@ -136,6 +136,14 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         base_prior = dict(
             zip(base.names, zip(base.prior_mean, base.prior_std, strict=True), strict=True)
         )
+        phys = None
+        if c.has_new and c.cols.physical is not None:
+            nb = c.cols.p
+            ib = [model.names.index(n) for n in c.param_names[-nb:]]
+            phys = c.cols.physical(c.param_names[-nb:], fit1.theta[ib], fit1.cov[np.ix_(ib, ib)])
+        det = [i for i, k in zip(idx, keep, strict=True) if k]
+        sd_det = np.sqrt(np.clip(np.diag(fit1.cov)[det], 1e-300, None))
+        corr = fit1.cov[np.ix_(det, det)] / np.outer(sd_det, sd_det)
         eff_out.append(
             {
                 "name": c.name,
@@ -147,6 +155,8 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
                 },
                 "units": {n: u for n, u, k in zip(c.param_names, units, keep, strict=True) if k},
                 "not_determined": [n for n, k in zip(c.param_names, keep, strict=True) if not k],
+                # posterior correlations of the determined parameters (order of ``params``)
+                "param_corr": [[float(v) for v in row] for row in corr],
                 "evidence": (
                     "prior-data conflict" + (" and new signature" if c.has_new else "")
                     if c.released
@@ -170,6 +180,13 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
                 "description": fx.DESCRIPTION[c.name],
             }
         )
+        if phys:  # a linearised non-linear effect: report its physical parameters
+            e = eff_out[-1]
+            e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
+            e["params"] = {n: v[0] for n, v in phys.items()}
+            e["param_std"] = {n: v[1] for n, v in phys.items()}
+            e["units"] = {n: v[2] for n, v in phys.items()}
+            e["param_corr"] = None
     # candidates table
     cand_out = []
     for name, c in sorted(sel.candidates.items(), key=lambda kv: -kv[1].delta_bic):
