@@ -51,6 +51,17 @@ class Columns:
         of a linearised non-linear effect (``fringe_field_3d``) from its fitted linear ones
         (``names``: those still in the block), uncertainty propagated; None: the parameters
         are physical already.
+    replaces : dict, optional
+        ``{baseline parameter name: column (n, 3)}``: how the effect changes the signature of
+        parameters already in the model (``fringe_field_3d``: the bench errors, the magnet
+        registration and the Hall gains act on the 3-D field, not on the 2-D reference).
+        :func:`stack` puts these columns in place of the same-named columns of the blocks
+        before this one, so the parameters keep their priors and are fitted jointly with the
+        effect. None: the effect only adds columns.
+    var_known : ndarray, shape (n, 3), optional
+        Variance of the observations known from the bench model (vibration through the
+        gradient) when this effect is in the model, in place of the problem's (``fringe_field_3d``:
+        through the 3-D gradient); :func:`stack` keeps the last one given. None: the problem's.
     """
 
     J: np.ndarray
@@ -63,6 +74,8 @@ class Columns:
     release: tuple = ()
     release_bounds: np.ndarray | None = None
     physical: object = None
+    replaces: dict | None = None
+    var_known: np.ndarray | None = None
 
     @property
     def p(self) -> int:
@@ -83,6 +96,8 @@ class Columns:
             self.release,
             rb,
             self.physical,
+            self.replaces,
+            self.var_known,
         )
 
     def released(self, group: str) -> Columns:
@@ -103,20 +118,40 @@ def released_in(model: Columns, names) -> Columns:
     for nm in names:
         std[model.names.index(nm)] = np.inf
     return Columns(
-        model.J, list(model.names), list(model.units), model.prior_mean, std, model.group
+        model.J,
+        list(model.names),
+        list(model.units),
+        model.prior_mean,
+        std,
+        model.group,
+        var_known=model.var_known,
     )
 
 
 def stack(blocks) -> Columns:
-    """Concatenate column blocks (group of the result: ``'+'``-joined; bounds dropped)."""
+    """Concatenate column blocks (group of the result: ``'+'``-joined; bounds dropped).
+
+    A block with ``replaces`` substitutes its columns for the same-named columns of the blocks
+    before it (the parameters stay where they are, with their priors); the last ``var_known``
+    given is kept."""
     blocks = list(blocks)
+    J = np.concatenate([b.J for b in blocks], axis=-1)
+    names = [n for b in blocks for n in b.names]
+    k0 = 0
+    for b in blocks:
+        for nm, col in (b.replaces or {}).items():
+            if nm in names[:k0]:
+                J[..., names.index(nm)] = col  # J is a new array (concatenate)
+        k0 += b.p
+    vk = [b.var_known for b in blocks if b.var_known is not None]
     return Columns(
-        np.concatenate([b.J for b in blocks], axis=-1),
-        [n for b in blocks for n in b.names],
+        J,
+        names,
         [u for b in blocks for u in b.units],
         np.concatenate([b.prior_mean for b in blocks]),
         np.concatenate([b.prior_std for b in blocks]),
         "+".join(b.group for b in blocks),
+        var_known=vk[-1] if vk else None,
     )
 
 

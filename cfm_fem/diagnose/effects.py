@@ -390,6 +390,92 @@ class _Projector:
         return self.bb - 2 * np.sum(self.s1 * D) + np.sum(self.s2 * D * D) - float(c @ c)
 
 
+def _fringe_profile_d2(z, z_entry, z_exit, lam):
+    """g, g' (1/mm) and g'' (1/mm^2) of :func:`fringe_profile`."""
+    fi = 0.5 * (1.0 + np.tanh(0.5 * (z - z_entry) / lam))
+    fo = 0.5 * (1.0 + np.tanh(0.5 * (z_exit - z) / lam))
+    g = fi * fo
+    dg = g * (fo - fi) / lam
+    d2g = dg * (fo - fi) / lam - g * (fi * (1.0 - fi) + fo * (1.0 - fo)) / lam**2
+    return g, dg, d2g
+
+
+#: Registration columns of :func:`~cfm_fem.diagnose.problem.hall_problem` that move the probe
+#: relative to the magnet (translation axis) or rotate it (rotation axis). ``magnet_dz`` moves
+#: both ends together, exactly as a common shift of the edges: it is left as it is (no
+#: signature in a 2-D reference), so the edges come out in the map frame (they carry the
+#: magnet's z offset).
+_REG_T = {"magnet_dx": 0, "magnet_dy": 1}
+_REG_R = {"magnet_rot_x": 0, "magnet_rot_y": 1, "magnet_roll": 2}
+_GAIN = {"gain_x": 0, "gain_y": 1, "gain_z": 2}
+
+
+def _baseline_3d(prob, base):
+    """``J3(a, th)``: the baseline columns seen through the 3-D field of the fringe model.
+
+    The field with soft ends is F_i = g_a B_i (i = x, y) and F_z = g_a' V, g_a = 1 + a (g - 1)
+    (a = 1: the field vanishes outside the magnet); its gradient is curl-free and symmetric,
+    dF_i/dx_j = g_a G_ij, dF_i/dz = dF_z/dx_i = g_a' B_i, dF_z/dz = g_a'' V. A baseline parameter
+    that moves the probe relative to the magnet by d (bench errors, magnet offsets and
+    rotations) changes the reading by (dF/dx) d: through the steep fringe gradient a z
+    displacement shows, which the 2-D reference cannot show; a rotation also turns F, a gain
+    scales it. Other baseline columns scale with the body field (g_a). The bench's vibration
+    is seen through the same gradient (known variance of the observations).
+
+    Returns
+    -------
+    callable
+        ``(a, th) -> (J3 (n, 3, base.p), replaced names, var_known (n, 3))``.
+    """
+    ctx = prob.ctx
+    B0, G, V = ctx["B0"], ctx["G"], ctx["V"][ctx["uinv"]]
+    z, p = prob.pos[:, 2], prob.pos
+    disp = ctx.get("bench_disp")
+    bench = ctx.get("bench")
+
+    def j3(a, th):
+        g, dg, d2g = _fringe_profile_d2(z, *th)
+        ge, dge, d2ge = 1.0 + a * (g - 1.0), a * dg, a * d2g
+        F = B0 * ge[:, None]
+        F[:, 2] += dge * V
+        G3 = G * ge[:, None, None]
+        G3[:, :, 2] += dge[:, None] * B0
+        G3[:, 2, :2] += dge[:, None] * B0[:, :2]
+        G3[:, 2, 2] += d2ge * V
+        J = base.J * ge[:, None, None]
+        done = []
+        k = 0
+        for b in prob.baseline:
+            if b.group == "bench" and disp is not None:
+                J[..., k : k + b.p] = np.einsum("nij,njp->nip", G3, disp)
+                done += b.names
+            else:
+                for j, nm in enumerate(b.names):
+                    col = None
+                    if nm in _REG_T:
+                        col = -G3[:, :, _REG_T[nm]] * UM
+                    elif nm in _REG_R:
+                        e = np.zeros(3)
+                        e[_REG_R[nm]] = URAD
+                        col = np.cross(e, F) - np.einsum("nij,nj->ni", G3, np.cross(e, p))
+                    elif nm in _GAIN:
+                        col = np.zeros_like(F)
+                        col[:, _GAIN[nm]] = F[:, _GAIN[nm]] * 1e-2
+                    elif nm == "magnet_dz":
+                        col = b.J[..., j]
+                    if col is not None:
+                        J[..., k + j] = col
+                        done.append(nm)
+            k += b.p
+        vk = prob.var_known
+        if bench is not None and disp is not None:
+            lever = np.einsum("nij,jk->nik", G3, bench.bench_to_magnet_rotation())
+            vk = np.einsum("nik,k->ni", lever**2, bench.noise_std_mm() ** 2)
+        return J, done, vk
+
+    return j3
+
+
 def fringe_field_3d(prob):
     from scipy.optimize import minimize
 
@@ -406,34 +492,17 @@ def fringe_field_3d(prob):
     B0u = ctx["field_fn"](upts)
     Vu = ctx["V"]
 
-    Bb = [B0u]  # body field the ends scale: reference + calibrated baseline (gains, offsets)
-    Eu = [np.zeros_like(B0u)]  # calibrated probe displacement relative to the magnet, mm
-
     def delta(th):
+        """Change of the reading from the 2-D reference to the field with soft ends (a = 1)."""
         g, dg = fringe_profile(z, *th)
-        D = (g - 1.0)[:, None] * Bb[0]
-        # B_z = g' V at the displaced probe (grad V = B_perp); the ends seen from a probe
-        # displaced along z (a z error the 2-D reference cannot show)
-        D[:, 2] += dg * (Vu + np.sum(B0u[:, :2] * Eu[0][:, :2], 1))
-        D += (dg * Eu[0][:, 2])[:, None] * Bb[0]
+        D = (g - 1.0)[:, None] * B0u
+        D[:, 2] += dg * Vu  # B_z = g' V (grad V = B_perp)
         return D
 
-    def displacement(theta):
-        """Probe displacement of the calibrated bench errors and magnet offset, per position."""
-        E = np.zeros((prob.n, 3))
-        k = 0
-        for b in prob.baseline:
-            if b.group == "bench" and ctx.get("bench_disp") is not None:
-                E += np.einsum("nkp,p->nk", ctx["bench_disp"], theta[k : k + b.p])
-            elif b.group == "registration":
-                E -= theta[k : k + 3] * UM  # magnet moved by +t
-            k += b.p
-        out = np.zeros_like(B0u)
-        out[uinv] = E
-        return out
-
     base = stack(prob.baseline)
-    sigma = noise_sigma(prob, fit_map(prob.y, np.ones_like(prob.y), base).resid)[0]
+    j3 = _baseline_3d(prob, base)
+    resid0 = fit_map(prob.y, np.ones_like(prob.y), base).resid  # for the pure error
+    sigma = noise_sigma(prob, resid0)[0]
     obj = _Projector(prob, sigma, base, uinv, len(upts))
     zmin, zmax = z.min(), z.max()
     zc, span = 0.5 * (zmin + zmax), zmax - zmin
@@ -474,32 +543,51 @@ def fringe_field_3d(prob):
     names = ["amplitude"] + [["dz_entry", "dz_exit", "dlambda"][k] for k in free]
     units = ["1"] + ["mm"] * len(free)
 
-    def block(th):
-        cols = [delta(th)]
+    def block(a, th, theta_b):
+        """Columns of a X(th) + J3(a, th) theta_b linearised at (a, th, theta_b): amplitude
+        (X: the change for a = 1) and edge increments a dth (derivatives of the whole model
+        per unit amplitude; J3 is affine in a, its th-dependent part is a J3(1, th)), with J3
+        in place of the baseline columns."""
+        J3, done, vk = j3(a, th)
+
+        def per_a(t):
+            m = delta(t)[uinv]
+            if theta_b is not None:
+                m = m + np.einsum("nkp,p->nk", j3(1.0, t)[0], theta_b)
+            return m
+
+        cols = [delta(th)[uinv]]
         for k in free:
             e = np.zeros(3)
             e[k] = 1e-3 * th[2]
-            cols.append((delta(th + e) - delta(th - e)) / (2 * e[k]))
-        return _cols(np.stack(cols, -1)[uinv], names, units, "fringe_field_3d")
+            cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
+        blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
+        blk.replaces = {nm: J3[..., base.names.index(nm)] for nm in done}
+        blk.var_known = vk
+        return blk
 
-    blk = block(th)
-    for _ in range(8 if free else 0):  # Gauss-Newton with the baseline: linearise at the optimum
+    # Gauss-Newton on the joint model (baseline with its priors + ends), from a = 1
+    a, theta_b = 1.0, None
+    blk = block(a, th, theta_b)
+    for _ in range(12):
+        sigma = noise_sigma(prob, resid0, var_known=blk.var_known)[0]
         f = fit_map(prob.y, sigma, stack([base, blk]))
-        a, step = f.theta[base.p], f.theta[base.p + 1 :]
-        # the ends scale what the baseline changes too (a gain, a displaced magnet): to first
-        # order in the baseline, the body field is the reference plus the calibrated baseline
-        Bb[0] = B0u.copy()
-        Bb[0][uinv] += np.einsum("nkp,p->nk", base.J, f.theta[: base.p])
-        Eu[0] = displacement(f.theta[: base.p])
-        if not 0.2 < a < 5.0:
-            break
-        new = th.copy()
-        new[free] += step / a
-        if not new[2] > 0:
-            break
-        th = new
-        blk = block(th)
-        if np.all(np.abs(step / a) < 1e-3 * f.std[base.p + 1 :]):
+        a_new, step = f.theta[base.p], f.theta[base.p + 1 :]
+        sd = f.std[base.p :]
+        theta_b = f.theta[: base.p]
+        moved = bool(free) and 0.2 < a_new < 5.0
+        if moved:
+            new = th.copy()
+            new[free] += step / a_new
+            moved = new[2] > 0
+            if moved:
+                th = new
+        done = abs(a_new - a) < 1e-3 * sd[0] and (
+            not moved or np.all(np.abs(step / a_new) < 1e-3 * sd[1:])
+        )
+        a = float(np.clip(a_new, 0.0, 2.0))  # the plausible range of the amplitude
+        blk = block(a, th, theta_b)
+        if done or (free and not moved):
             break
     zi, zo, lam = th
     centre = {"dz_entry": ("z_entry", zi), "dz_exit": ("z_exit", zo), "dlambda": ("lambda", lam)}

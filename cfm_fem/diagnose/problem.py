@@ -327,12 +327,16 @@ def hall_problem(
     )
 
 
-def noise_sigma(prob: Problem, resid, edf: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def noise_sigma(
+    prob: Problem, resid, edf: float = 0.0, var_known=None
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-observation sigma from the within-point scatter of the residuals.
 
     sigma_ic**2 = a_c + var_known_ic, a_c from the pooled within-point variance of ``resid``
     (pure error; model independent for effects that do not vary between repetitions). With one
     repetition per point, a_c comes from the residuals themselves (dof n - edf).
+    ``var_known``: in place of ``prob.var_known`` (a model whose effects change the gradient
+    the vibration is seen through, :attr:`Columns.var_known`).
 
     Returns
     -------
@@ -340,6 +344,7 @@ def noise_sigma(prob: Problem, resid, edf: float = 0.0) -> tuple[np.ndarray, np.
     a : ndarray, shape (3,)
         The estimated white-noise variance per component (y units^2).
     """
+    vk = prob.var_known if var_known is None else var_known
     cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
     a = np.zeros(3)
     if prob.n_reps >= 2:
@@ -347,15 +352,15 @@ def noise_sigma(prob: Problem, resid, edf: float = 0.0) -> tuple[np.ndarray, np.
             m = np.bincount(prob.point, resid[:, c], prob.n_points) / np.maximum(cnt, 1)
             dev = resid[:, c] - m[prob.point]
             dof = np.sum(cnt - 1)
-            known = np.sum(prob.var_known[:, c] * (cnt[prob.point] - 1) / cnt[prob.point])
+            known = np.sum(vk[:, c] * (cnt[prob.point] - 1) / cnt[prob.point])
             a[c] = (dev @ dev - known) / dof
     else:
         dof = max(prob.n - edf / 3.0, 1.0)
         for c in range(3):
-            a[c] = (resid[:, c] @ resid[:, c] - prob.var_known[:, c].sum()) / dof
+            a[c] = (resid[:, c] @ resid[:, c] - vk[:, c].sum()) / dof
     floor = 1e-6 * max(float(np.mean(np.abs(prob.y))) ** 2, 1e-30)
     a = np.maximum(a, floor)
-    return np.sqrt(a[None, :] + prob.var_known), a
+    return np.sqrt(a[None, :] + vk), a
 
 
 __all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]

@@ -342,8 +342,9 @@ def select_effects(
     ----------
     prob : Problem
     sigma_fn : callable
-        ``sigma_fn(resid, edf) -> sigma (n, 3)``: noise model re-estimated after each accepted
-        effect (effects that live in the repetitions inflate the pure error until modelled).
+        ``sigma_fn(resid, edf, var_known=None) -> sigma (n, 3)``: noise model re-estimated
+        after each accepted effect (effects that live in the repetitions inflate the pure error
+        until modelled; ``var_known``: the model's, when an effect changes it).
     blocks : dict name -> Columns
     prior_release : iterable of str
         Unused (kept for compatibility): a block says itself what it releases.
@@ -416,7 +417,7 @@ def select_effects(
         accepted_c.append(accepted)
         model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
-        sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf)
+        sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)
         current = fit_map(prob.y, sigma, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c

@@ -55,8 +55,8 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     o = {**DEFAULTS, **opts}
     base = stack(prob.baseline)
 
-    def sigma_fn(resid, edf):
-        return noise_sigma(prob, resid, edf)[0]
+    def sigma_fn(resid, edf, var_known=None):
+        return noise_sigma(prob, resid, edf, var_known)[0]
 
     # 1. calibrate what the model already contains
     fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
@@ -287,7 +287,7 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "cv_rms_before": cv_b,
         "cv_rms_after": cv_a,
         "noise_std": [
-            float(v) for v in np.sqrt(noise_sigma(prob, fit1.resid, fit1.edf)[1]) * prob.to_display
+            float(v) for v in np.sqrt(noise_sigma(prob, fit1.resid, fit1.edf, model.var_known)[1]) * prob.to_display
         ],
         "n_obs": int(prob.n * 3),
         "n_points": prob.n_points,
