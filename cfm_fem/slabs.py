@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import mmap
 import shutil
 import tempfile
 import time
@@ -84,6 +85,17 @@ MAX_DISTINCT = 1 << 20
 BLOCK = 1 << 16
 #: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
 HALO_CELLS = 4.0
+
+
+def _drop_pages(mm, start: int = 0, length: int | None = None) -> None:
+    """Drop resident pages of a file mapping from this process (Linux/macOS; no-op elsewhere).
+    Shared file pages stay in the page cache, so nothing is lost and a later access re-reads."""
+    if mm is None or not hasattr(mmap, "MADV_DONTNEED"):
+        return
+    if length is None:
+        mm.madvise(mmap.MADV_DONTNEED)
+    elif length > 0:
+        mm.madvise(mmap.MADV_DONTNEED, start, length)
 
 
 @dataclass
@@ -121,6 +133,16 @@ class Staged:
     dim: int
     spelled: list
     notes: list
+    maps: tuple = ()  # the mmap objects behind rows and lines
+
+    def release(self, a: int = 0, b: int | None = None) -> None:
+        """Drop the pages of rows a..b-1 from this process (they stay in the page cache and
+        come back on the next access): scans of the whole file then keep RSS at one block."""
+        b = len(self.rows) if b is None else min(b, len(self.rows))
+        for mm, width in zip(self.maps, (48, 8), strict=False):
+            start = (a * width // mmap.PAGESIZE) * mmap.PAGESIZE
+            stop = b * width
+            _drop_pages(mm, start, stop - start)
 
 
 def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="warn") -> Staged:
@@ -197,11 +219,17 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
         cov = scatter - np.outer(total, total) / n
         s = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[::-1], 0.0, None))
         dim = 1 if (s[0] == 0 or s[1] <= FLAT_TOL * s[0]) else 2 if s[2] <= FLAT_TOL * s[0] else 3
-    shape = (n, 6)
-    rows = (np.memmap(workdir / "rows.f8", np.float64, "r", shape=shape) if n
-            else np.empty(shape))  # fmt: skip
-    lines = np.memmap(workdir / "lines.i8", np.int64, "r", shape=(n,)) if n else np.empty(0)
-    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes)
+    if not n:
+        return Staged(np.empty((0, 6)), np.empty(0, dtype=np.int64), lo, hi, b_max, b_abs,
+                      distinct, dim, stream.spelled, notes)  # fmt: skip
+    maps = []
+    for name in ("rows.f8", "lines.i8"):  # mapped by hand: `Staged.release` needs the mmap
+        with open(workdir / name, "rb") as f:
+            maps.append(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
+    rows = np.frombuffer(maps[0], dtype=np.float64).reshape(n, 6)
+    lines = np.frombuffer(maps[1], dtype=np.int64)
+    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
+                  tuple(maps))  # fmt: skip
 
 
 def slabs_for_memory(n_nodes: int, budget_bytes: float, n_up: int) -> int:
@@ -258,6 +286,7 @@ def _plan(st: Staged, n_slabs: int, halo: float) -> SlabPlan:
         counts += np.bincount(
             np.clip(np.searchsorted(edges_h, x, side="right") - 1, 0, nb - 1), minlength=nb
         )
+        st.release(a, a + BLOCK)
     cum = np.cumsum(counts)
     targets = np.arange(1, n_slabs) * (cum[-1] / n_slabs)
     inner = edges_h[np.searchsorted(cum, targets) + 1]
@@ -277,6 +306,7 @@ def _extract(st: Staged, plan: SlabPlan, k: int, halo: float):
         sel = np.flatnonzero((x >= a_lo) & (x <= a_hi))
         idx.append(sel + a)
         own.append(plan.owner(x[sel]) == k)
+        st.release(a, a + BLOCK)
     return np.concatenate(idx), np.concatenate(own)
 
 
@@ -347,6 +377,7 @@ def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2):
     for a in range(0, len(st.rows), BLOCK):
         p = np.asarray(st.rows[a : a + BLOCK, :3])
         p = p[(p[:, axis] < a_lo) | (p[:, axis] > a_hi)]
+        st.release(a, a + BLOCK)
         if len(p):
             tree = scipy.spatial.cKDTree(p)
             hits += np.asarray(tree.query_ball_point(centers, r, return_length=True))
@@ -601,6 +632,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     for k in range(K):
         rows, _ = _extract(st, plan, k, 1e-6)  # a group split by an edge is seen by both
         dropped.append(_duplicates(st, rows, file))
+        st.release()
     dropped = np.unique(np.concatenate(dropped)) if dropped else np.empty(0, np.int64)
     n = n_rows - len(dropped)
     notes = list(st.notes)
@@ -646,6 +678,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             pts = np.array(st.rows[rows, :3])
             B = np.array(st.rows[rows, 3:])
             lfm = FieldMap(points=pts, B=B, source=file, lines=np.array(st.lines[rows]))
+            st.release()
             mesh = build_mesh(lfm, kind)
             boxes = _beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
             if kind == "grid":  # the Kuhn triangulation is local: every cell is the map's own
@@ -712,6 +745,9 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                           seconds=0.0)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all[own_ids], ok_all[own_ids] = uf, complete
+        for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
+            arr.flush()
+            _drop_pages(getattr(arr, "_mmap", None))  # numpy's memmap keeps its mmap here
         processed = (n_out + n_lost > 0).any(axis=1) | np.isfinite(stats[:, :, 3, 1]).any(axis=1)
         sums["processed"] += int(processed.sum())
         sums["star"] += int(star[processed].sum())
@@ -762,8 +798,10 @@ def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
     def column(k):
         def chunks():
             for a in range(0, n, step):
-                ok = np.asarray(ok_all[a : a + step, k])
-                yield np.asarray(uf_all[a : a + step, k])[ok]
+                ok = np.array(ok_all[a : a + step, k])
+                yield np.array(uf_all[a : a + step, k])[ok]
+                for arr in (uf_all, ok_all):  # one block resident at a time
+                    _drop_pages(getattr(arr, "_mmap", None))
 
         return chunks
 

@@ -12,8 +12,10 @@ The map is a plain CSV table written like an Opera export (z fastest, z the long
 
 What ``--slabs`` bounds: the map, the mesh, the kernel arrays and the statistics are held one
 slab (plus halo) at a time (nodes keep their whole-map index as random-stream key); what grows
-with the map is on disk. Run two sizes with the slab count scaled to keep slabs equal, e.g.
-``--n 40 --slabs 8`` and ``--n 56 --slabs 22``: the slab peak stays flat, the others grow.
+with the map is on disk. Run two lengths of the same cross-section with the slab count scaled
+to keep slab and halo equal, e.g. ``--n 40 --slabs 8`` and ``--n 40 --nz 240 --slabs 24``: the
+slab peak stays flat, the others grow. (Growing all axes at a fixed node count per slab makes
+slabs thinner, so the fixed-width halo holds more nodes.)
 
 What ``--pieces`` bounds: the per-node statistics and the output arrays (one piece and one
 chunk at a time). What it does not: the map, the mesh and the per-node gradients, about the
@@ -33,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 
-def _write_map(path: Path, n: int) -> None:
+def _write_map(path: Path, n: int, nz: int) -> None:
     ax = np.linspace(-20.0, 20.0, n)
-    az = np.linspace(-40.0, 40.0, 2 * n)
+    az = np.linspace(-40.0, 40.0, nz) * (nz / (2 * n))  # same spacing whatever nz
     pts = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1).reshape(-1, 3)
     g = 0.05  # T/mm, a quadrupole-like field plus a sextupole term and a solenoid part
     B = np.c_[
@@ -77,20 +79,22 @@ def _child(mode, field, out, pieces, trials, chunk, slabs) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--n", type=int, default=48, help="grid points per axis (default 48)")
+    p.add_argument("--n", type=int, default=48, help="grid points along x and y (default 48)")
+    p.add_argument("--nz", type=int, help="grid points along z, the slab axis (default 2 n)")
     p.add_argument("--pieces", type=int, default=16)
     p.add_argument("--slabs", type=int, default=8)
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--chunk-nodes", type=int, default=4096)
     p.add_argument("--child", nargs=2, metavar=("MODE", "DIR"), help=argparse.SUPPRESS)
     a = p.parse_args()
+    a.nz = a.nz or 2 * a.n
     if a.child:
         mode, tmp = a.child
         _child(mode, str(Path(tmp) / "map.csv"), str(Path(tmp) / mode), a.pieces, a.trials,
                a.chunk_nodes, a.slabs)  # fmt: skip
         return
     with tempfile.TemporaryDirectory() as tmp:
-        _write_map(Path(tmp) / "map.csv", a.n)
+        _write_map(Path(tmp) / "map.csv", a.n, a.nz)
         rows = {}
         for mode in ("floor", "in-memory", "pieces", "slabs"):
             cmd = [sys.executable, __file__, "--child", mode, tmp, "--n", str(a.n),
@@ -99,9 +103,9 @@ def main() -> None:
             res = subprocess.run(cmd, capture_output=True, text=True, check=True)
             rows[mode] = json.loads(res.stdout.strip().splitlines()[-1])
             assert rows[mode]["rc"] == 0, res.stderr
-    nodes = 2 * a.n**3
+    nodes = a.n**2 * a.nz
     floor, full, pc, sl = (rows[m]["peak_mib"] for m in ("floor", "in-memory", "pieces", "slabs"))
-    print(f"map: {a.n} x {a.n} x {2 * a.n} grid = {nodes:,} nodes (CSV), 6 U_p values, "
+    print(f"map: {a.n} x {a.n} x {a.nz} grid = {nodes:,} nodes (CSV), 6 U_p values, "
           f"{a.trials} trials, "
           f"chunks of {a.chunk_nodes} nodes")  # fmt: skip
     print(f"{'variant':<34}{'peak RSS [MiB]':>16}")

@@ -30,10 +30,16 @@ Field (Hall map), change of the measured field in the magnet frame:
   Enge/Fermi profile g(z) of :func:`fringe_profile` (edges z_entry, z_exit and fringe length
   lambda, mm), with the B_z = g'(z) V(x, y) the 3-D scalar potential g V implies (V the
   potential of the 2-D field; leading order in the end curvature). Non-linear in the edges: they
-  are found by a search against the calibrated baseline, then the model is linearised there
-  (amplitude a, edge and length increments); the physical parameters reported are z_entry,
-  z_exit, lambda (mm) and a (1 for a field that vanishes outside the magnet), with propagated
-  uncertainties. An end more than 10 lambda outside the map is not estimated.
+  are found by a search against the calibrated baseline, then refined by Gauss-Newton on the
+  joint model and linearised there (amplitude a, edge and length increments). In that model the
+  baseline acts on the 3-D field (``Columns.replaces``): the bench errors and the magnet
+  offsets and rotations move the probe through its gradient (a z error, invisible in the 2-D
+  reference, moves it through the steep fringe gradient; fitted with its Table II prior, its
+  uncertainty propagates into the edges), the gains scale it, the vibration is seen through it.
+  The magnet's z offset is a common shift of both ends: the edges are reported in the map frame
+  (they carry it). The physical parameters reported are z_entry, z_exit, lambda (mm) and a (1
+  for a field that vanishes outside the magnet), with propagated uncertainties. An end more
+  than 10 lambda outside the map is not estimated.
 * ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
   box of side a_j). A field in free space is harmonic (sum_j d^2 B / dx_j^2 = 0), so the
   isotropic part of w never shows (mean-value property: a cube averages to its centre value at
@@ -425,7 +431,7 @@ def _baseline_3d(prob, base):
     Returns
     -------
     callable
-        ``(a, th) -> (J3 (n, 3, base.p), replaced names, var_known (n, 3))``.
+        ``(a, th) -> (J3 (n, 3, base.p), var_known (n, 3))``.
     """
     ctx = prob.ctx
     B0, G, V = ctx["B0"], ctx["G"], ctx["V"][ctx["uinv"]]
@@ -443,12 +449,10 @@ def _baseline_3d(prob, base):
         G3[:, 2, :2] += dge[:, None] * B0[:, :2]
         G3[:, 2, 2] += d2ge * V
         J = base.J * ge[:, None, None]
-        done = []
         k = 0
         for b in prob.baseline:
             if b.group == "bench" and disp is not None:
                 J[..., k : k + b.p] = np.einsum("nij,njp->nip", G3, disp)
-                done += b.names
             else:
                 for j, nm in enumerate(b.names):
                     col = None
@@ -465,13 +469,12 @@ def _baseline_3d(prob, base):
                         col = b.J[..., j]
                     if col is not None:
                         J[..., k + j] = col
-                        done.append(nm)
             k += b.p
         vk = prob.var_known
         if bench is not None and disp is not None:
             lever = np.einsum("nij,jk->nik", G3, bench.bench_to_magnet_rotation())
             vk = np.einsum("nik,k->ni", lever**2, bench.noise_std_mm() ** 2)
-        return J, done, vk
+        return J, vk
 
     return j3
 
@@ -548,7 +551,7 @@ def fringe_field_3d(prob):
         (X: the change for a = 1) and edge increments a dth (derivatives of the whole model
         per unit amplitude; J3 is affine in a, its th-dependent part is a J3(1, th)), with J3
         in place of the baseline columns."""
-        J3, done, vk = j3(a, th)
+        J3, vk = j3(a, th)
 
         def per_a(t):
             m = delta(t)[uinv]
@@ -562,7 +565,7 @@ def fringe_field_3d(prob):
             e[k] = 1e-3 * th[2]
             cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
         blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
-        blk.replaces = {nm: J3[..., base.names.index(nm)] for nm in done}
+        blk.replaces = {nm: J3[..., i] for i, nm in enumerate(base.names)}
         blk.var_known = vk
         return blk
 

@@ -287,7 +287,9 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "cv_rms_before": cv_b,
         "cv_rms_after": cv_a,
         "noise_std": [
-            float(v) for v in np.sqrt(noise_sigma(prob, fit1.resid, fit1.edf, model.var_known)[1]) * prob.to_display
+            float(v)
+            for v in np.sqrt(noise_sigma(prob, fit1.resid, fit1.edf, model.var_known)[1])
+            * prob.to_display
         ],
         "n_obs": int(prob.n * 3),
         "n_points": prob.n_points,

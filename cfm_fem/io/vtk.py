@@ -15,7 +15,7 @@ __all__ = ["write_vtu", "write_pvd"]
 
 
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
-    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (raw appended, zlib).
+    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (binary, zlib).
 
     Parameters
     ----------
@@ -44,8 +44,9 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
 
     writer = vtkXMLUnstructuredGridWriter()
     writer.SetInputData(grid)
-    writer.SetDataModeToAppended()
-    writer.EncodeAppendedDataOff()
+    # inline base64 binary, as pyvista writes it: raw appended data can hold byte sequences
+    # that meshio's XML parsing trips over (data-dependent, hence intermittent)
+    writer.SetDataModeToBinary()
     # zlib, not LZ4: LZ4 writes faster but meshio (and so cfm_fem's own reader) cannot read it;
     # level 1: Monte Carlo statistics barely compress further, and level 5 takes 1.5x longer
     writer.SetCompressorTypeToZLib()
