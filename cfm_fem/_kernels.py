@@ -1838,23 +1838,13 @@ def _node_gauss(
     skey,
     fkey,
     p,
-    comp,
-    absb,
-    scratch,
-    zbuf,
-    okbuf,
-    cells,
-    lmat,
-    dmat,
-    nbr,
-    htab,
-    bin_start,
-    work,
+    buffers,
     stats,
     n_out,
     n_lost,
 ):
-    """All trials and statistics of node ``g`` (see `gauss_sweep`). Buffers are per thread.
+    """All trials and statistics of node ``g`` (see `gauss_sweep`). ``buffers``: the per-thread
+    work arrays of `_gauss_buffers`.
 
     Trials whose largest displacement stays in the node's star are located in the star tables
     (`build_star`); the field is affine there, so their component errors at every U_p are the
@@ -1863,6 +1853,7 @@ def _node_gauss(
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
+    comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work = buffers
     d = coords.shape[1]
     n_up = scales.shape[0]
     kmax = 0
@@ -2043,6 +2034,26 @@ def _node_gauss(
     return all_star
 
 
+@nb.njit(**JIT)
+def _gauss_buffers(n_up, n_trials, d):
+    """Per-thread work arrays of `_node_gauss`: samples (comp, absb, scratch), normals (zbuf,
+    okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start) and merge space (work)."""
+    return (
+        np.empty((n_up, 3, n_trials)),
+        np.empty((n_up, n_trials)),
+        np.empty(n_trials),
+        np.empty((3, n_trials)),
+        np.empty(n_trials, dtype=np.bool_),
+        np.empty(MAX_STAR, dtype=np.int64),
+        np.empty((MAX_STAR, d, d)),
+        np.empty((MAX_STAR, 3, d)),
+        np.empty((MAX_STAR, d), dtype=np.int64),
+        np.full((3, STAR_HASH), -1, dtype=np.int64),
+        np.zeros((1 << d) * d * BIN_LEVELS ** (d - 1), dtype=np.int64),
+        np.empty((5, n_trials)),
+    )
+
+
 @nb.njit(**PJIT)
 def gauss_sweep(
     nodes,
@@ -2112,19 +2123,7 @@ def gauss_sweep(
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     for b in nb.prange(n_blocks):
-        comp = np.empty((n_up, 3, n_trials))
-        absb = np.empty((n_up, n_trials))
-        scratch = np.empty(n_trials)
-        zbuf = np.empty((3, n_trials))
-        okbuf = np.empty(n_trials, dtype=np.bool_)
-        d = coords.shape[1]
-        cells = np.empty(MAX_STAR, dtype=np.int64)
-        lmat = np.empty((MAX_STAR, d, d))
-        dmat = np.empty((MAX_STAR, 3, d))
-        nbr = np.empty((MAX_STAR, d), dtype=np.int64)
-        htab = np.full((3, STAR_HASH), -1, dtype=np.int64)
-        work = np.empty((5, n_trials))
-        bin_start = np.zeros((1 << d) * d * BIN_LEVELS ** (d - 1), dtype=np.int64)
+        buffers = _gauss_buffers(n_up, n_trials, coords.shape[1])
         for i in range(b * block, min((b + 1) * block, k_nodes)):
             g = nodes[i]
             if start_cells[g, 0] < 0:
@@ -2145,18 +2144,7 @@ def gauss_sweep(
                 skey,
                 fkey,
                 p,
-                comp,
-                absb,
-                scratch,
-                zbuf,
-                okbuf,
-                cells,
-                lmat,
-                dmat,
-                nbr,
-                htab,
-                bin_start,
-                work,
+                buffers,
                 stats[i],
                 n_out[i],
                 n_lost[i],

@@ -155,7 +155,7 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     CfmInputError
         As `cfm_fem.io.read_field` for the same file (file, line, column).
     """
-    from .io._parse import check_zero_rows
+    from .io._parse import check_zero_rows, zero_rows_kept
 
     check_zero_rows(zero_rows)
     stream = open_stream(path, fmt, length_unit=length_unit, field_unit=field_unit)
@@ -205,15 +205,8 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
         )
         if zero_rows == "drop":
             notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
-        elif zero_rows == "warn":
-            msg = (
-                f"{stream.file}: {what}; kept as real 0 T values. If they are placeholders, "
-                f"drop them with zero_rows='drop'"
-            )
-            warnings.warn(msg, CfmInputWarning, stacklevel=2)
-            notes.append(msg)
         else:
-            notes.append(f"{what}: kept (zero_rows='keep')")
+            notes.append(zero_rows_kept(stream.file, what, zero_rows, stacklevel=2))
     dim = 0
     if n >= 3:
         cov = scatter - np.outer(total, total) / n

@@ -4,27 +4,13 @@ every effect of the catalogue."""
 from __future__ import annotations
 
 import numpy as np
+from diagnose_grids import BENCH, P, Q
 
 from cfm_fem.diagnose import effects as fx
 from cfm_fem.diagnose.problem import hall_problem, tracker_problem
 from cfm_fem.diagnose.select import implausible_reason
 from cfm_fem.diagnose.twin import hall_twin, tracker_twin
 from cfm_fem.diagnose.workflow import diagnose
-from cfm_fem.io.bench_toml import read_reference_bench
-
-BENCH = read_reference_bench()
-Q = np.stack(
-    np.meshgrid(
-        np.linspace(0, 150, 5), np.linspace(0, 150, 4), np.linspace(0, 800, 7), indexing="ij"
-    ),
-    -1,
-).reshape(-1, 3)
-P = np.stack(
-    np.meshgrid(
-        np.linspace(-6, 6, 5), np.linspace(-6, 6, 4), np.linspace(-300, 300, 7), indexing="ij"
-    ),
-    -1,
-).reshape(-1, 3)
 
 
 def _problems():

@@ -599,15 +599,8 @@ def build_fieldmap(
             notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
             if had_cells and cells is None:
                 notes.append("no cell is left without a dropped node: cells=None (Delaunay)")
-        elif zero_rows == "warn":
-            msg = (
-                f"{source}: {what}; kept as real 0 T values. If they are placeholders, drop them "
-                f"with zero_rows='drop'"
-            )
-            warnings.warn(msg, CfmInputWarning, stacklevel=3)
-            notes.append(msg)
         else:
-            notes.append(f"{what}: kept (zero_rows='keep')")
+            notes.append(zero_rows_kept(source, what, zero_rows, stacklevel=3))
     return FieldMap.from_arrays(
         points, B, cells=cells, source=source, lines=lines, notes=notes, columns=tuple(columns)
     )
@@ -659,3 +652,16 @@ def write_rows(path, header_lines, values, *, sep: str, width: int = 0) -> None:
         for start in range(0, len(values), 65536):
             chunk = np.asarray(values[start : start + 65536], dtype=np.float64).tolist()
             out.write("".join(sep.join(map(as_text, row)).rstrip() + "\n" for row in chunk))
+
+
+def zero_rows_kept(source, what: str, zero_rows: str, stacklevel: int = 2) -> str:
+    """The note for rows of exactly 0 0 0 that are kept (``zero_rows`` 'warn' or 'keep'); warns
+    (`CfmInputWarning`) for 'warn'. ``what`` counts them and names the first."""
+    if zero_rows == "warn":
+        msg = (
+            f"{source}: {what}; kept as real 0 T values. If they are placeholders, drop them "
+            f"with zero_rows='drop'"
+        )
+        warnings.warn(msg, CfmInputWarning, stacklevel=stacklevel + 1)
+        return msg
+    return f"{what}: kept (zero_rows='keep')"
