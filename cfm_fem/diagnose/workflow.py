@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import effects as fx
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
@@ -50,7 +51,18 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         Called with an increment after each candidate fit.
     **opts
         Overrides of ``DEFAULTS``.
+
+    Notes
+    -----
+    The fits are many small dense solves: BLAS runs them on one thread. A threaded BLAS gains
+    nothing at these sizes and, when other work loads the machine, its threads spin against it
+    (a tracker diagnosis took 45 s instead of 10 s next to a matrix product in another process).
     """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _diagnose(prob, progress, **opts)
+
+
+def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     t0 = time.perf_counter()
     o = {**DEFAULTS, **opts}
     base = stack(prob.baseline)
