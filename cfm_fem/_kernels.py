@@ -1667,30 +1667,25 @@ def star_locate(start, lmat, nbr, n_star, delta, lam):
 
 
 @nb.njit(inline="always", **JIT)
-def star_locate3(start, lmat, nbr, n_star, d0, d1, d2, lam):
-    """`star_locate` written out for d = 3 (the hot loop of 3-D maps)."""
+def star_locate3(start, lmat, nbr, n_star, d0, d1, d2):
+    """`star_locate` written out for d = 3 (the hot loop of 3-D maps).
+
+    Returns (cell or code as `star_locate`, lam0, lam1, lam2): values, not an output array,
+    and the face to cross chosen by selects, so the only unpredictable branch is the exit.
+    """
     s = start
     for _ in range(n_star + 4):
         l0 = lmat[s, 0, 0] * d0 + lmat[s, 0, 1] * d1 + lmat[s, 0, 2] * d2
         l1 = lmat[s, 1, 0] * d0 + lmat[s, 1, 1] * d1 + lmat[s, 1, 2] * d2
         l2 = lmat[s, 2, 0] * d0 + lmat[s, 2, 1] * d1 + lmat[s, 2, 2] * d2
-        a = 0
-        m = l0
-        if l1 < m:
-            a = 1
-            m = l1
-        if l2 < m:
-            a = 2
-            m = l2
-        if m >= -BARY_EPS:
-            lam[0] = l0
-            lam[1] = l1
-            lam[2] = l2
-            return s if 1.0 - (l0 + l1 + l2) >= -BARY_EPS else -1
+        m01 = min(l0, l1)
+        if min(m01, l2) >= -BARY_EPS:
+            return (s if 1.0 - (l0 + l1 + l2) >= -BARY_EPS else -1), l0, l1, l2
+        a = 2 if l2 < m01 else (1 if l1 < l0 else 0)  # the most negative (first on ties)
         s = nbr[s, a]
         if s < 0:
-            return LEAVES_MESH
-    return -1
+            return LEAVES_MESH, l0, l1, l2
+    return -1, 0.0, 0.0, 0.0
 
 
 #: Levels per non-dominant axis of a direction bin (`direction_bin`).
@@ -1724,6 +1719,24 @@ def direction_bin(delta, d):
         if a != ax:
             b = BIN_LEVELS * b + min(np.int64(abs(delta[a]) * inv), BIN_LEVELS - 1)
     return b
+
+
+@nb.njit(inline="always", **JIT)
+def direction_bin3(d0, d1, d2):
+    """`direction_bin` for d = 3 (BIN_LEVELS = 2) without branches: the signs and the dominant
+    axis of random displacements defeat branch prediction."""
+    a0 = abs(d0)
+    a1 = abs(d1)
+    a2 = abs(d2)
+    ax = np.int64(a1 > a0)
+    big = max(a0, a1)
+    ax = 2 if a2 > big else ax
+    big = max(big, a2)
+    sg = (np.int64(d0 < 0.0) << 2) | (np.int64(d1 < 0.0) << 1) | np.int64(d2 < 0.0)
+    o1 = a1 if ax == 0 else a0  # the other two axes, in increasing order
+    o2 = a1 if ax == 2 else a2
+    inv = BIN_LEVELS / big if big > 0.0 else 0.0  # as `direction_bin` computes the levels
+    return ((sg * 3 + ax) * 2 + np.int64(o1 * inv >= 1.0)) * 2 + np.int64(o2 * inv >= 1.0)
 
 
 @nb.njit(**JIT)
@@ -1906,12 +1919,13 @@ def _node_gauss(
                 octant |= 1 << a
         s = -1
         if n_star > 0:
-            bn = direction_bin(delta, d)
             if d == 3:
-                s = star_locate3(
-                    bin_start[bn], lmat, nbr, n_star, delta[0], delta[1], delta[2], lam
+                bn = direction_bin3(delta[0], delta[1], delta[2])
+                s, lam[0], lam[1], lam[2] = star_locate3(
+                    bin_start[bn], lmat, nbr, n_star, delta[0], delta[1], delta[2]
                 )
             else:
+                bn = direction_bin(delta, d)
                 s = star_locate(bin_start[bn], lmat, nbr, n_star, delta, lam)
         if s >= 0:
             e0 = 0.0

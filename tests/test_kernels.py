@@ -144,6 +144,15 @@ def _sweep_normals_from(key, fkey, t0, n):
     return out
 
 
+def test_direction_bin3_equals_the_generic_bin():
+    rng = np.random.default_rng(12)
+    for d in rng.normal(size=(5000, 3)) * rng.choice([1e-3, 1.0, 1e3], (5000, 1)):
+        assert _kernels.direction_bin3(*d) == _kernels.direction_bin(d, 3)
+    for d in ([0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 0.5, -0.5], [0.0, -2.0, 1.0]):
+        d = np.array(d)
+        assert _kernels.direction_bin3(*d) == _kernels.direction_bin(d, 3)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_direction_bins_invert(d):
     n_bins = _kernels.n_direction_bins(d)
@@ -172,7 +181,8 @@ def test_star_tables_locate_like_the_global_walk():
         assert set(cells[:n]) == set(np.flatnonzero((mesh.simplices == g).any(axis=1)))
         for _ in range(40):
             delta = rng.normal(0, 0.05, 3)
-            s = _kernels.star_locate3(0, lmat, nbr, n, *delta, lam)
+            s, *lam = _kernels.star_locate3(0, lmat, nbr, n, *delta)
+            lam = np.array(lam)
             p = mesh.coords[g] + delta
             sg = _kernels.locate(p, mesh.node_cell[g], mesh.transform, mesh.neighbors, bary)
             if s < 0:  # left the star: the global walk ends in a cell not incident to g
