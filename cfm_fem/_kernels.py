@@ -1742,17 +1742,14 @@ def direction_bin3(d0, d1, d2):
 @nb.njit(**JIT)
 def _bin_centre(b, d, scale, delta):
     """A direction inside bin b (inverse of `direction_bin`), of length ~scale."""
-    levels = np.empty(d, dtype=np.int64)
-    for a in range(d - 2, -1, -1):  # the last other axis holds the lowest digit
-        levels[a] = b % BIN_LEVELS
-        b //= BIN_LEVELS
+    sub = b % BIN_LEVELS ** (d - 1)  # no work array: this runs ~100 times per node
+    b //= BIN_LEVELS ** (d - 1)
     ax = b % d
     b //= d
-    k = 0
-    for a in range(d):
+    for a in range(d - 1, -1, -1):  # the last other axis holds the lowest digit
         if a != ax:
-            delta[a] = (levels[k] + 0.5) / BIN_LEVELS
-            k += 1
+            delta[a] = (sub % BIN_LEVELS + 0.5) / BIN_LEVELS
+            sub //= BIN_LEVELS
         else:
             delta[a] = 1.0
     for a in range(d - 1, -1, -1):
