@@ -99,6 +99,12 @@ for _b in range(64):
     _DEBRUIJN_INDEX[((1 << _b) * 0x03F79D71B4CB0A89 & (2**64 - 1)) >> 58] = _b
 del _b
 
+#: Index of the lowest set bit of a nonzero byte (window masks of the fused pass 1).
+_LOW_BIT_INDEX = np.zeros(256, dtype=np.int64)
+for _b in range(1, 256):
+    _LOW_BIT_INDEX[_b] = (_b & -_b).bit_length() - 1
+del _b
+
 # Module constants: numba freezes global arrays into the compiled code, so the hot loops pass
 # no array arguments for them (array arguments of helpers cost reference counting per call).
 _KN, _WN, _FN = ziggurat_tables()
@@ -1121,6 +1127,312 @@ def pass_capture(
         )
         for c in range(4):
             _keep(ev[c], n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf)
+
+
+# ------------------------------------------------------------------------------------------
+# Hot path of the kinematics passes (constant profiles, normal noise), fused per point and
+# sub-block of SUB trials: the 21 chain terms of a sub-block stay in L1 while a chunk of points
+# uses them. Loops index with unsigned integers: a signed index costs a wrap-around test that
+# stops LLVM from vectorising.
+# ------------------------------------------------------------------------------------------
+#: Trials per sub-block of the fused passes (a multiple of 64: one bitmap word per 64 trials).
+SUB = 512
+#: Points per parallel chunk; the chunking does not change any number.
+_N_CHUNKS = 64
+
+
+@nb.njit(inline="always", **JIT)
+def _chain(terms, k, q0, q1, q2, n0, n1, n2):
+    """E_x, E_y, E_z, |E| of trial row k of ``terms`` at commanded q and axis noise n (mm).
+
+    The one expression of the collapsed chain: pass 1, pass 2 and the pilot must produce the
+    same bits for the same sample (no FMA contraction: fastmath is off)."""
+    e0 = (terms[k, 0] + q0 * terms[k, 3] + q1 * terms[k, 6] + q2 * terms[k, 9]
+          + n0 * terms[k, 12] + n1 * terms[k, 15] + n2 * terms[k, 18])  # fmt: skip
+    e1 = (terms[k, 1] + q0 * terms[k, 4] + q1 * terms[k, 7] + q2 * terms[k, 10]
+          + n0 * terms[k, 13] + n1 * terms[k, 16] + n2 * terms[k, 19])  # fmt: skip
+    e2 = (terms[k, 2] + q0 * terms[k, 5] + q1 * terms[k, 8] + q2 * terms[k, 11]
+          + n0 * terms[k, 14] + n1 * terms[k, 17] + n2 * terms[k, 20])  # fmt: skip
+    return e0, e1, e2, math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+
+
+@nb.njit(**JIT)
+def _compact_false(flags, m, out):
+    """Indices j < m with flags[j] false into out; returns their number. Branch-free: a scan
+    that branches on rare, random flags pays a misprediction for most of them."""
+    c = 0
+    for j in range(m):
+        out[c] = j
+        c += not flags[j]
+    return c
+
+
+@nb.njit(**JIT)
+def _compact_nonzero(mask, m, out):
+    """Indices j < m with mask[j] != 0 into out; returns their number (branch-free)."""
+    c = 0
+    for j in range(m):
+        out[c] = j
+        c += mask[j] != 0
+    return c
+
+
+@nb.njit(**JIT)
+def _fast_values(terms, tkeys, rows, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok, bad):
+    """Hot-path values of point pi for the trial rows ``rows[:m]`` into ev (4, >= m).
+
+    One vectorised loop takes the ziggurat's fast path; the ~4 % of samples with a slow-path
+    normal are then listed (in ``bad``, >= m, int64) and redone exactly (same numbers as
+    ``fill_values``)."""
+    c = np.uint64(pi) * np.uint64(4)
+    for j in range(m):
+        k = rows[j]
+        z0, z1, z2, good = _zig_fast3(tkeys[k], c)
+        e0, e1, e2, en = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
+        ev[0, j] = e0
+        ev[1, j] = e1
+        ev[2, j] = e2
+        ev[3, j] = en
+        ok[j] = good
+    nbad = _compact_false(ok, m, bad)
+    for b in range(nbad):
+        j = bad[b]
+        k = rows[j]
+        z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
+        ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(
+            terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2
+        )
+
+
+@nb.njit(**JIT)
+def _fast_values_run(terms, tkeys, k0, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok, bad):
+    """``_fast_values`` for the consecutive rows k0 .. k0+m-1 (contiguous loads, no gather)."""
+    c = np.uint64(pi) * np.uint64(4)
+    for j in range(m):
+        k = np.uint64(k0) + np.uint64(j)
+        z0, z1, z2, good = _zig_fast3(tkeys[k], c)
+        e0, e1, e2, en = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
+        ev[0, j] = e0
+        ev[1, j] = e1
+        ev[2, j] = e2
+        ev[3, j] = en
+        ok[j] = good
+    nbad = _compact_false(ok, m, bad)
+    for b in range(nbad):
+        j = bad[b]
+        k = k0 + j
+        z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
+        ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(
+            terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2
+        )
+
+
+@nb.njit(**_RJIT)
+def _reduce_sub(ev, m, sh, lo, top, out, mask):
+    """Sums, counts below each window and window-hit masks of ev[:, :m] (one vectorised loop).
+
+    sh (4,): shifts; lo, top (4, 2): window low edges and the value above which a window
+    cannot be hit. out (4, 4): per quantity sum (v - sh), sum (v - sh)^2, #(v < lo[c, 0]),
+    #(v < lo[c, 1]) are added. mask[j] gets bit 2c + e when ev[c, j] may be in window (c, e).
+    """
+    a0 = a1 = a2 = a3 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    c00 = c01 = c10 = c11 = c20 = c21 = c30 = c31 = 0
+    h0, h1, h2, h3 = sh[0], sh[1], sh[2], sh[3]
+    l00, l01, l10, l11 = lo[0, 0], lo[0, 1], lo[1, 0], lo[1, 1]
+    l20, l21, l30, l31 = lo[2, 0], lo[2, 1], lo[3, 0], lo[3, 1]
+    t00, t01, t10, t11 = top[0, 0], top[0, 1], top[1, 0], top[1, 1]
+    t20, t21, t30, t31 = top[2, 0], top[2, 1], top[3, 0], top[3, 1]
+    for j in range(m):
+        x0 = ev[0, j]
+        x1 = ev[1, j]
+        x2 = ev[2, j]
+        x3 = ev[3, j]
+        d0 = x0 - h0
+        d1 = x1 - h1
+        d2 = x2 - h2
+        d3 = x3 - h3
+        a0 += d0
+        a1 += d1
+        a2 += d2
+        a3 += d3
+        b0 += d0 * d0
+        b1 += d1 * d1
+        b2 += d2 * d2
+        b3 += d3 * d3
+        c00 += x0 < l00
+        c01 += x0 < l01
+        c10 += x1 < l10
+        c11 += x1 < l11
+        c20 += x2 < l20
+        c21 += x2 < l21
+        c30 += x3 < l30
+        c31 += x3 < l31
+        mask[j] = (
+            np.uint8((x0 >= l00) & (x0 < t00))
+            | np.uint8((x0 >= l01) & (x0 < t01)) << np.uint8(1)
+            | np.uint8((x1 >= l10) & (x1 < t10)) << np.uint8(2)
+            | np.uint8((x1 >= l11) & (x1 < t11)) << np.uint8(3)
+            | np.uint8((x2 >= l20) & (x2 < t20)) << np.uint8(4)
+            | np.uint8((x2 >= l21) & (x2 < t21)) << np.uint8(5)
+            | np.uint8((x3 >= l30) & (x3 < t30)) << np.uint8(6)
+            | np.uint8((x3 >= l31) & (x3 < t31)) << np.uint8(7)
+        )
+    out[0, 0] += a0
+    out[1, 0] += a1
+    out[2, 0] += a2
+    out[3, 0] += a3
+    out[0, 1] += b0
+    out[1, 1] += b1
+    out[2, 1] += b2
+    out[3, 1] += b3
+    out[0, 2] += c00
+    out[0, 3] += c01
+    out[1, 2] += c10
+    out[1, 3] += c11
+    out[2, 2] += c20
+    out[2, 3] += c21
+    out[3, 2] += c30
+    out[3, 3] += c31
+
+
+@nb.njit(**JIT)
+def _fused_window_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, shift, wlo, winv,
+                        top, red, acc, below, whist, bits, ev, ok, mask, idx):  # fmt: skip
+    """Pass 1 of point i over the block rows k0 .. k0+m-1 (bitmap words from word0)."""
+    _fast_values_run(terms, tkeys, k0, m, q[i, 0], q[i, 1], q[i, 2], sig[0], sig[1], sig[2],
+                     fkey, pi, ev, ok, idx)  # fmt: skip
+    red[:] = 0.0
+    _reduce_sub(ev, m, shift[i], wlo[i], top[i], red, mask)
+    for c in range(4):
+        acc[i, c, 0] += red[c, 0]
+        acc[i, c, 1] += red[c, 1]
+        below[i, c, 0] += np.int64(red[c, 2])
+        below[i, c, 1] += np.int64(red[c, 3])
+    nw = whist.shape[3]
+    if bits.shape[1] > 0:
+        for w in range((m + 63) // 64):
+            bits[i, word0 + w] = 0
+    nhit = _compact_nonzero(mask, m, idx)
+    for h in range(nhit):
+        j = idx[h]
+        mk = np.int64(mask[j])
+        hit = False
+        while mk != 0:
+            b = _LOW_BIT_INDEX[mk & -mk]
+            mk &= mk - 1
+            c = b >> 1
+            e = b & 1
+            y = _slot(ev[c, j], wlo[i, c, e], winv[i, c, e])
+            if y >= 0.0 and y < nw:
+                whist[i, c, e, np.int64(y)] += 1
+                hit = True
+        if hit and bits.shape[1] > 0:
+            bits[i, word0 + (j >> 6)] |= np.uint64(1) << np.uint64(j & 63)
+
+
+@nb.njit(**PJIT)
+def pass_window_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, shift, wlo, winv, top, acc,
+                     below, whist, bits):  # fmt: skip
+    """Pass 1 on the hot path: same counts and bitmap as ``pass_window`` (sums to rounding).
+
+    Arguments as ``pass_window``; top (npts, 4, 2): values at and above which window (c, e)
+    cannot be hit (its upper edge plus one slot). t0 must be a multiple of 64.
+    """
+    npts = q.shape[0]
+    nchunk = min(npts, _N_CHUNKS)
+    per = (npts + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        ev = np.empty((4, SUB))
+        ok = np.empty(SUB, dtype=np.bool_)
+        mask = np.empty(SUB, dtype=np.uint8)
+        idx = np.empty(SUB, dtype=np.int64)
+        red = np.empty((4, 4))
+        for k0 in range(0, n, SUB):
+            m = min(SUB, n - k0)
+            for i in range(ch * per, min(npts, (ch + 1) * per)):
+                _fused_window_point(terms, tkeys, fkey, sig, q, i, pidx[i], k0, m,
+                                    (t0 + k0) // 64, shift, wlo, winv, top, red, acc, below,
+                                    whist, bits, ev, ok, mask, idx)  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _in_ranges(ev, m, lo, hi, mask):
+    """mask[j] bit 2c + e set when lo[c, e] <= ev[c, j] <= hi[c, e] (one vectorised loop)."""
+    l00, l01, l10, l11 = lo[0, 0], lo[0, 1], lo[1, 0], lo[1, 1]
+    l20, l21, l30, l31 = lo[2, 0], lo[2, 1], lo[3, 0], lo[3, 1]
+    u00, u01, u10, u11 = hi[0, 0], hi[0, 1], hi[1, 0], hi[1, 1]
+    u20, u21, u30, u31 = hi[2, 0], hi[2, 1], hi[3, 0], hi[3, 1]
+    for j in range(m):
+        x0 = ev[0, j]
+        x1 = ev[1, j]
+        x2 = ev[2, j]
+        x3 = ev[3, j]
+        mask[j] = (
+            np.uint8((x0 >= l00) & (x0 <= u00))
+            | np.uint8((x0 >= l01) & (x0 <= u01)) << np.uint8(1)
+            | np.uint8((x1 >= l10) & (x1 <= u10)) << np.uint8(2)
+            | np.uint8((x1 >= l11) & (x1 <= u11)) << np.uint8(3)
+            | np.uint8((x2 >= l20) & (x2 <= u20)) << np.uint8(4)
+            | np.uint8((x2 >= l21) & (x2 <= u21)) << np.uint8(5)
+            | np.uint8((x3 >= l30) & (x3 <= u30)) << np.uint8(6)
+            | np.uint8((x3 >= l31) & (x3 <= u31)) << np.uint8(7)
+        )
+
+
+@nb.njit(**JIT)
+def _capture_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, bits, wlo, winv, target,
+                   vlo, vhi, offset, fill, buf, rows, ev, ok, mask, idx):  # fmt: skip
+    """Pass 2 of point i over block rows k0 .. k0+m-1: the flagged trials only."""
+    nr = 0
+    for w in range((m + 63) // 64):
+        word = bits[i, word0 + w]
+        while word != 0:
+            low = word & (~word + np.uint64(1))  # lowest set bit
+            word ^= low
+            b = _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))]
+            rows[nr] = np.uint64(k0 + 64 * w + b)
+            nr += 1
+    _fast_values(terms, tkeys, rows, nr, q[i, 0], q[i, 1], q[i, 2], sig[0], sig[1], sig[2],
+                 fkey, pi, ev, ok, idx)  # fmt: skip
+    _in_ranges(ev, nr, vlo[i], vhi[i], mask)
+    nhit = _compact_nonzero(mask, nr, idx)
+    for h in range(nhit):
+        j = idx[h]
+        mk = np.int64(mask[j])
+        while mk != 0:
+            b = _LOW_BIT_INDEX[mk & -mk]
+            mk &= mk - 1
+            c = b >> 1
+            e = b & 1
+            x = ev[c, j]
+            y = _slot(x, wlo[i, c, e], winv[i, c, e])
+            if y >= 0.0 and np.int64(y) == target[i, c, e]:
+                buf[offset[i, c, e] + fill[i, c, e]] = x
+                fill[i, c, e] += 1
+
+
+@nb.njit(**PJIT)
+def pass_capture_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, bits, wlo, winv, target, vlo,
+                      vhi, offset, fill, buf):  # fmt: skip
+    """Pass 2 on the hot path: regenerate the trials flagged in ``bits`` (gathered, then one
+    vectorised loop) and keep the values in the target slots. Arguments as
+    ``pass_capture_candidates``; sub-blocks of SUB trials as in ``pass_window_fast``."""
+    npts = q.shape[0]
+    nchunk = min(npts, _N_CHUNKS)
+    per = (npts + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        rows = np.empty(SUB, dtype=np.uint64)
+        ev = np.empty((4, SUB))
+        ok = np.empty(SUB, dtype=np.bool_)
+        mask = np.empty(SUB, dtype=np.uint8)
+        idx = np.empty(SUB, dtype=np.int64)
+        for k0 in range(0, n, SUB):
+            m = min(SUB, n - k0)
+            for i in range(ch * per, min(npts, (ch + 1) * per)):
+                _capture_point(terms, tkeys, fkey, sig, q, i, pidx[i], k0, m, (t0 + k0) // 64,
+                               bits, wlo, winv, target, vlo, vhi, offset, fill, buf, rows, ev,
+                               ok, mask, idx)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------

@@ -412,3 +412,60 @@ def test_budget_share_equals_variance_removed_by_fixing_the_error(bench):
     # each u^2 has a relative MC std of about sqrt(2 / M); the two runs share no draws of eps_y(z)
     assert share == pytest.approx(removed, abs=5 * 2 * np.sqrt(2 / m))
     assert share > 0.3
+
+
+def test_fused_passes_match_the_plain_passes(bench):
+    """The fused hot-path kernels (sub-blocks, vectorised reductions, compacted rare work) give
+    the plain kernels' counts, bitmap and captured values; sums agree to rounding."""
+    q = np.ascontiguousarray(bench.grid_points()[::41])
+    npts, n, slots = len(q), 3000, 16
+    pidx = np.arange(npts) * 41
+    eng = kin._Engine(bench, 11, 4096)
+    assert eng.fast
+    n = eng.prepare(0, n)
+    vals = np.empty((npts, 4, n))
+    eng.pilot(0, n, q, pidx, vals)
+    # windows around the 2.5 % and 97.5 % points, wide enough that every slot sees values
+    lo_q, hi_q = np.quantile(vals, [0.01, 0.04], axis=-1), np.quantile(vals, [0.96, 0.99], axis=-1)
+    wlo = np.ascontiguousarray(np.stack([lo_q[0], hi_q[0]], -1))
+    winv = np.ascontiguousarray(slots / np.stack([lo_q[1] - lo_q[0], hi_q[1] - hi_q[0]], -1))
+    shift = np.ascontiguousarray(vals[..., :50].mean(-1))
+    words = (n + 63) // 64
+    out = {}
+    for name in ("plain", "fused"):
+        acc = np.zeros((npts, 4, 2))
+        below = np.zeros((npts, 4, 2), np.int64)
+        whist = np.zeros((npts, 4, 2, slots), np.int64)
+        bits = np.zeros((npts, words), np.uint64)
+        args = (0, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
+        if name == "plain":
+            K.pass_window(*eng._args(*args[:4]), *args[4:])
+        else:
+            eng.window(*args)
+        out[name] = (acc, below, whist, bits)
+    (a0, b0, h0, t0), (a1, b1, h1, t1) = out["plain"], out["fused"]
+    np.testing.assert_array_equal(b1, b0)
+    np.testing.assert_array_equal(h1, h0)
+    np.testing.assert_array_equal(t1, t0)
+    assert 0 < h1.sum() < vals.size and np.unique(t1).size > 2
+    np.testing.assert_allclose(a1, a0, rtol=1e-11, atol=1e-15)
+    # the counts are those of the values themselves
+    np.testing.assert_array_equal(b1[..., 0], (vals < wlo[..., :1]).sum(-1))
+    # pass 2: the fused capture keeps the same values of slot 3 of every window
+    target = np.full((npts, 4, 2), 3, np.int64)
+    width = 1.0 / winv
+    vlo, vhi = wlo + 3 * width - 1e-12, wlo + 4 * width + 1e-12
+    count = h1[..., 3]
+    offset = np.zeros_like(count)
+    offset.ravel()[1:] = np.cumsum(count.ravel())[:-1]
+    kept = []
+    for kernel in (K.pass_capture_candidates, K.pass_capture_fast):
+        buf, fill = np.zeros(int(count.sum())), np.zeros_like(count)
+        kernel(eng.terms, 0, n, q, pidx, eng.g.sig, eng.tkeys, eng.fkey, t1, wlo, winv, target,
+               vlo, vhi, offset, fill, buf)  # fmt: skip
+        np.testing.assert_array_equal(fill, count)
+        kept.append(
+            [np.sort(buf[o : o + c]) for o, c in zip(offset.ravel(), count.ravel(), strict=True)]
+        )
+    for x, y in zip(*kept, strict=True):
+        np.testing.assert_array_equal(x, y)
