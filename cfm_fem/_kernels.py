@@ -604,10 +604,7 @@ def _sample(
         q0 = q[i, 0]
         q1 = q[i, 1]
         q2 = q[i, 2]
-        r = terms[tt]
-        e[0] = r[0] + q0 * r[3] + q1 * r[6] + q2 * r[9] + n0 * r[12] + n1 * r[15] + n2 * r[18]
-        e[1] = r[1] + q0 * r[4] + q1 * r[7] + q2 * r[10] + n0 * r[13] + n1 * r[16] + n2 * r[19]
-        e[2] = r[2] + q0 * r[5] + q1 * r[8] + q2 * r[11] + n0 * r[14] + n1 * r[17] + n2 * r[20]
+        e[0], e[1], e[2], _ = _chain(terms, tt, q0, q1, q2, n0, n1, n2)
     else:
         probe_error_mm(params[tt], q[i], dq, stack, mounts, tool, strokes, profiles, e)
 
@@ -654,19 +651,9 @@ def fill_values(
         z = np.empty((3, n))
         normals_by_key(tkeys, fkey, pi, n, z, np.empty(n, dtype=np.bool_))
         for k in range(n):
-            n0 = s0 * z[0, k]
-            n1 = s1 * z[1, k]
-            n2 = s2 * z[2, k]
-            e0 = (terms[k, 0] + q0 * terms[k, 3] + q1 * terms[k, 6] + q2 * terms[k, 9]
-                  + n0 * terms[k, 12] + n1 * terms[k, 15] + n2 * terms[k, 18])  # fmt: skip
-            e1 = (terms[k, 1] + q0 * terms[k, 4] + q1 * terms[k, 7] + q2 * terms[k, 10]
-                  + n0 * terms[k, 13] + n1 * terms[k, 16] + n2 * terms[k, 19])  # fmt: skip
-            e2 = (terms[k, 2] + q0 * terms[k, 5] + q1 * terms[k, 8] + q2 * terms[k, 11]
-                  + n0 * terms[k, 14] + n1 * terms[k, 17] + n2 * terms[k, 20])  # fmt: skip
-            ev[0, k] = e0
-            ev[1, k] = e1
-            ev[2, k] = e2
-            ev[3, k] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            ev[0, k], ev[1, k], ev[2, k], ev[3, k] = _chain(
+                terms, k, q0, q1, q2, s0 * z[0, k], s1 * z[1, k], s2 * z[2, k]
+            )
     else:
         e = np.empty(3)
         dq = np.zeros(3)
@@ -1001,71 +988,6 @@ def _keep(v, n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf):
 
 
 @nb.njit(**PJIT)
-def pass_capture_candidates(
-    terms,
-    t0,
-    n,
-    q,
-    pidx,
-    sig,
-    tkeys,
-    fkey,
-    bits,
-    wlo,
-    winv,
-    target,
-    vlo,
-    vhi,
-    offset,
-    fill,
-    buf,
-):
-    """Pass 2 of the hot path (constant profiles, normal noise) for the points listed in
-    ``q``/``pidx``: regenerate only the trials flagged in ``bits`` (those that reached a window
-    in pass 1; the others cannot hold a target) and keep the values of the target slots.
-    Arguments as ``pass_capture``; ``bits`` as ``pass_window``, rows matching ``q``.
-    """
-    s0 = sig[0]
-    s1 = sig[1]
-    s2 = sig[2]
-    for i in nb.prange(q.shape[0]):
-        pi = pidx[i]
-        q0 = q[i, 0]
-        q1 = q[i, 1]
-        q2 = q[i, 2]
-        ev = np.empty(4)
-        w0 = t0 // 64
-        for w in range((n + 63) // 64):
-            word = bits[i, w0 + w]
-            while word != 0:
-                low = word & (~word + np.uint64(1))  # lowest set bit
-                word ^= low
-                k = 64 * w + _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))]
-                z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
-                n0 = s0 * z0
-                n1 = s1 * z1
-                n2 = s2 * z2
-                e0 = (terms[k, 0] + q0 * terms[k, 3] + q1 * terms[k, 6] + q2 * terms[k, 9]
-                      + n0 * terms[k, 12] + n1 * terms[k, 15] + n2 * terms[k, 18])  # fmt: skip
-                e1 = (terms[k, 1] + q0 * terms[k, 4] + q1 * terms[k, 7] + q2 * terms[k, 10]
-                      + n0 * terms[k, 13] + n1 * terms[k, 16] + n2 * terms[k, 19])  # fmt: skip
-                e2 = (terms[k, 2] + q0 * terms[k, 5] + q1 * terms[k, 8] + q2 * terms[k, 11]
-                      + n0 * terms[k, 14] + n1 * terms[k, 17] + n2 * terms[k, 20])  # fmt: skip
-                ev[0] = e0
-                ev[1] = e1
-                ev[2] = e2
-                ev[3] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-                for c in range(4):
-                    x = ev[c]
-                    for e in range(2):
-                        if x >= vlo[i, c, e] and x <= vhi[i, c, e]:
-                            y = _slot(x, wlo[i, c, e], winv[i, c, e])
-                            if y >= 0.0 and np.int64(y) == target[i, c, e]:
-                                buf[offset[i, c, e] + fill[i, c, e]] = x
-                                fill[i, c, e] += 1
-
-
-@nb.njit(**PJIT)
 def pass_capture(
     linear,
     terms,
@@ -1178,6 +1100,13 @@ def _compact_nonzero(mask, m, out):
 
 
 @nb.njit(**JIT)
+def _redo_sample(terms, tkeys, k, q0, q1, q2, s0, s1, s2, fkey, pi, ev, j):
+    """Exact values (slow-path normals included) of trial row k of point pi into ev[:, j]."""
+    z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
+    ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
+
+
+@nb.njit(**JIT)
 def _fast_values(terms, tkeys, rows, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok, bad):
     """Hot-path values of point pi for the trial rows ``rows[:m]`` into ev (4, >= m).
 
@@ -1194,14 +1123,8 @@ def _fast_values(terms, tkeys, rows, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok
         ev[2, j] = e2
         ev[3, j] = en
         ok[j] = good
-    nbad = _compact_false(ok, m, bad)
-    for b in range(nbad):
-        j = bad[b]
-        k = rows[j]
-        z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
-        ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(
-            terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2
-        )
+    for b in range(_compact_false(ok, m, bad)):
+        _redo_sample(terms, tkeys, rows[bad[b]], q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b])
 
 
 @nb.njit(**JIT)
@@ -1217,14 +1140,8 @@ def _fast_values_run(terms, tkeys, k0, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, 
         ev[2, j] = e2
         ev[3, j] = en
         ok[j] = good
-    nbad = _compact_false(ok, m, bad)
-    for b in range(nbad):
-        j = bad[b]
-        k = k0 + j
-        z0, z1, z2 = _three_normals(tkeys[k], fkey, pi)
-        ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(
-            terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2
-        )
+    for b in range(_compact_false(ok, m, bad)):
+        _redo_sample(terms, tkeys, k0 + bad[b], q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b])
 
 
 @nb.njit(**_RJIT)
@@ -1358,7 +1275,8 @@ def pass_window_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, shift, wlo, winv, 
 
 @nb.njit(**JIT)
 def _in_ranges(ev, m, lo, hi, mask):
-    """mask[j] bit 2c + e set when lo[c, e] <= ev[c, j] <= hi[c, e] (one vectorised loop)."""
+    """mask[j] bit 2c + e set when lo[c, e] <= ev[c, j] <= hi[c, e] (one vectorised loop; pass
+    1 computes its masks inside `_reduce_sub`, with the sums, to read ev once)."""
     l00, l01, l10, l11 = lo[0, 0], lo[0, 1], lo[1, 0], lo[1, 1]
     l20, l21, l30, l31 = lo[2, 0], lo[2, 1], lo[3, 0], lo[3, 1]
     u00, u01, u10, u11 = hi[0, 0], hi[0, 1], hi[1, 0], hi[1, 1]
@@ -1415,9 +1333,11 @@ def _capture_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, bits, wlo, w
 @nb.njit(**PJIT)
 def pass_capture_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, bits, wlo, winv, target, vlo,
                       vhi, offset, fill, buf):  # fmt: skip
-    """Pass 2 on the hot path: regenerate the trials flagged in ``bits`` (gathered, then one
-    vectorised loop) and keep the values in the target slots. Arguments as
-    ``pass_capture_candidates``; sub-blocks of SUB trials as in ``pass_window_fast``."""
+    """Pass 2 on the hot path: regenerate only the trials flagged in ``bits`` (those that
+    reached a window in pass 1; the others cannot hold a target) and keep the values of the
+    target slots. Arguments as ``pass_capture`` (the generic pass 2), with ``bits`` as
+    ``pass_window`` (rows matching ``q``); sub-blocks of SUB trials as in ``pass_window_fast``.
+    """
     npts = q.shape[0]
     nchunk = min(npts, _N_CHUNKS)
     per = (npts + nchunk - 1) // nchunk
