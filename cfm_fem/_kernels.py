@@ -572,73 +572,30 @@ _RJIT = dict(JIT, fastmath={"reassoc"})
 
 
 @nb.njit(**JIT)
-def _sample(
-    linear,
-    terms,
-    params,
-    tt,
-    t,
-    i,
-    pi,
-    q,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    dq,
-    e,
-):
-    """E of row i of q (point index pi) in trial t into e (3,); tt: row of t in terms/params."""
+def _sample(model, tt, t, i, pi, q, dq, e):
+    """E of row i of q (point index pi) in trial t into e (3,); tt: row of t in terms/params.
+
+    model: the tuple of ``_Engine.model`` (linear, terms, params, sig, speed, tau_code, tau_par,
+    nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles).
+    """
+    linear, terms, params, sig, speed, tau_code, tau_par, nkey, _tkeys, fkey = model[:10]
+    stack, mounts, tool, strokes, profiles = model[10:]
     axis_noise_mm(nkey, fkey, t, pi, sig, speed, tau_code, tau_par, dq)
     if linear:
-        n0 = dq[0]
-        n1 = dq[1]
-        n2 = dq[2]
-        q0 = q[i, 0]
-        q1 = q[i, 1]
-        q2 = q[i, 2]
-        e[0], e[1], e[2], _ = _chain(terms, tt, q0, q1, q2, n0, n1, n2)
+        e[0], e[1], e[2], _norm = _chain(terms, tt, q[i, 0], q[i, 1], q[i, 2], dq[0], dq[1], dq[2])
     else:
         probe_error_mm(params[tt], q[i], dq, stack, mounts, tool, strokes, profiles, e)
 
 
 @nb.njit(**JIT)
-def fill_values(
-    linear,
-    terms,
-    params,
-    t0,
-    n,
-    q,
-    i,
-    pi,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    tkeys,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    ev,
-):
+def fill_values(model, t0, n, q, i, pi, ev):
     """Values of point i (index pi) for trials t0..t0+n-1 into ev (4, >= n): E_x, E_y, E_z, |E|.
 
-    ``linear`` with ``tau_code < 0`` is the hot path (collapsed chain, three normals, written
-    out); otherwise ``probe_error_mm`` / the collapsed chain with ``axis_noise_mm``. Both give
-    the same numbers for the same (seed, trial, point).
+    ``model`` as `_sample`. ``linear`` with ``tau_code < 0`` is the hot path (collapsed chain,
+    three normals); otherwise ``probe_error_mm`` / the collapsed chain with ``axis_noise_mm``.
+    Both give the same numbers for the same (seed, trial, point).
     """
+    linear, terms, _, sig, _, tau_code, _, _, tkeys, fkey = model[:10]
     if linear and tau_code < 0:
         s0 = sig[0]
         s1 = sig[1]
@@ -658,29 +615,7 @@ def fill_values(
         e = np.empty(3)
         dq = np.zeros(3)
         for k in range(n):
-            _sample(
-                linear,
-                terms,
-                params,
-                k,
-                t0 + k,
-                i,
-                pi,
-                q,
-                sig,
-                speed,
-                tau_code,
-                tau_par,
-                nkey,
-                fkey,
-                stack,
-                mounts,
-                tool,
-                strokes,
-                profiles,
-                dq,
-                e,
-            )
+            _sample(model, k, t0 + k, i, pi, q, dq, e)
             ev[0, k] = e[0]
             ev[1, k] = e[1]
             ev[2, k] = e[2]
@@ -740,99 +675,30 @@ def _count_windows(v, n, lo0, inv0, lo1, inv1, wh0, wh1, flag):
 
 
 @nb.njit(**PJIT)
-def pass_pilot(
-    linear,
-    terms,
-    params,
-    t0,
-    n,
-    q,
-    pidx,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    tkeys,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    out,
-):
-    """Values of trials t0..t0+n-1 into out (npts, 4, n)."""
+def pass_pilot(model, t0, n, q, pidx, out):
+    """Values of trials t0..t0+n-1 into out (npts, 4, n); ``model`` as `_sample`."""
     for i in nb.prange(q.shape[0]):
-        fill_values(
-            linear,
-            terms,
-            params,
-            t0,
-            n,
-            q,
-            i,
-            pidx[i],
-            sig,
-            speed,
-            tau_code,
-            tau_par,
-            nkey,
-            tkeys,
-            fkey,
-            stack,
-            mounts,
-            tool,
-            strokes,
-            profiles,
-            out[i],
-        )
+        fill_values(model, t0, n, q, i, pidx[i], out[i])
 
 
 @nb.njit(**PJIT)
-def pass_pilot_quantiles(
-    linear,
-    terms,
-    params,
-    t0,
-    n,
-    q,
-    pidx,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    tkeys,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    kth,
-    out,
-):
+def pass_pilot_quantiles(model, t0, n, q, pidx, kth, out):
     """Order statistics ``kth`` (0-based, sorted) of trials t0..t0+n-1 per point and quantity,
     into out (npts, 4, len(kth)), plus the mean in out[..., -1] (one point's values at a time,
-    so a large pilot needs no trials x points memory)."""
+    so a large pilot needs no trials x points memory); ``model`` as `_sample`."""
     npts = q.shape[0]
     nchunk = min(npts, 64)  # one scratch array per chunk of points, not per point
     per = (npts + nchunk - 1) // nchunk
     for ch in nb.prange(nchunk):
         ev = np.empty((4, n))
         for i in range(ch * per, min(npts, (ch + 1) * per)):
-            _pilot_point(linear, terms, params, t0, n, q, i, pidx[i], sig, speed, tau_code,
-                         tau_par, nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles,
-                         kth, out, ev)  # fmt: skip
+            _pilot_point(model, t0, n, q, i, pidx[i], kth, out, ev)
 
 
 @nb.njit(**JIT)
-def _pilot_point(linear, terms, params, t0, n, q, i, pi, sig, speed, tau_code, tau_par, nkey,
-                 tkeys, fkey, stack, mounts, tool, strokes, profiles, kth, out, ev):  # fmt: skip
+def _pilot_point(model, t0, n, q, i, pi, kth, out, ev):
     """Pilot order statistics and mean of point i (scratch ev (4, n) reused across points)."""
-    fill_values(linear, terms, params, t0, n, q, i, pi, sig, speed, tau_code, tau_par, nkey,
-                tkeys, fkey, stack, mounts, tool, strokes, profiles, ev)  # fmt: skip
+    fill_values(model, t0, n, q, i, pi, ev)
     # kth = (low end: lower, upper bracket; high end: lower, upper; 0; n - 1). The brackets only
     # place windows, so a histogram of the pilot with conservative bin edges is enough (a
     # selection per bracket costs several times more).
@@ -867,69 +733,20 @@ def _pilot_point(linear, terms, params, t0, n, q, i, pi, sig, speed, tau_code, t
 
 
 @nb.njit(**PJIT)
-def pass_window(
-    linear,
-    terms,
-    params,
-    t0,
-    n,
-    q,
-    pidx,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    tkeys,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    shift,
-    wlo,
-    winv,
-    acc,
-    below,
-    whist,
-    bits,
-):
+def pass_window(model, t0, n, q, pidx, shift, wlo, winv, acc, below, whist, bits):
     """Pass 1: shifted sums, and counts around each interval end, over trials t0..t0+n-1.
 
     acc (npts, 4, 2): sum of (v - shift) and of (v - shift)**2 per quantity (shift: a pilot
     mean, which keeps the variance free of cancellation). For each point, quantity c and
     interval end s, a window of W slots [wlo, wlo + W / winv): below[i, c, s] counts values under
-    it, whist[i, c, s, k] values in slot k (floor((v - wlo) * winv) == k).
+    it, whist[i, c, s, k] values in slot k (floor((v - wlo) * winv) == k). ``model`` as `_sample`.
     bits (npts, words) uint64: bit t of point i set when trial t put some value in a window (t0
     must be a multiple of 64); pass 2 regenerates only those trials. A (npts, 0) array skips it.
     """
     for i in nb.prange(q.shape[0]):
         ev = np.empty((4, n))
         flag = np.zeros(n, np.uint8)
-        fill_values(
-            linear,
-            terms,
-            params,
-            t0,
-            n,
-            q,
-            i,
-            pidx[i],
-            sig,
-            speed,
-            tau_code,
-            tau_par,
-            nkey,
-            tkeys,
-            fkey,
-            stack,
-            mounts,
-            tool,
-            strokes,
-            profiles,
-            ev,
-        )
+        fill_values(model, t0, n, q, i, pidx[i], ev)
         for c in range(4):
             a, b, c0, c1 = _sums_below(ev[c], n, shift[i, c], wlo[i, c, 0], wlo[i, c, 1])
             acc[i, c, 0] += a
@@ -988,65 +805,16 @@ def _keep(v, n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf):
 
 
 @nb.njit(**PJIT)
-def pass_capture(
-    linear,
-    terms,
-    params,
-    t0,
-    n,
-    q,
-    pidx,
-    sig,
-    speed,
-    tau_code,
-    tau_par,
-    nkey,
-    tkeys,
-    fkey,
-    stack,
-    mounts,
-    tool,
-    strokes,
-    profiles,
-    wlo,
-    winv,
-    target,
-    vlo,
-    vhi,
-    offset,
-    fill,
-    buf,
-):
+def pass_capture(model, t0, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
     """Pass 2: keep the values in window slot target[i, c, s] (exact order statistics).
 
     vlo, vhi (npts, 4, 2): that slot's value range widened by a few ulps (pre-test);
-    offset (npts, 4, 2): start of each capture in buf; fill: values stored so far.
+    offset (npts, 4, 2): start of each capture in buf; fill: values stored so far. ``model`` as
+    `_sample`.
     """
     for i in nb.prange(q.shape[0]):
         ev = np.empty((4, n))
-        fill_values(
-            linear,
-            terms,
-            params,
-            t0,
-            n,
-            q,
-            i,
-            pidx[i],
-            sig,
-            speed,
-            tau_code,
-            tau_par,
-            nkey,
-            tkeys,
-            fkey,
-            stack,
-            mounts,
-            tool,
-            strokes,
-            profiles,
-            ev,
-        )
+        fill_values(model, t0, n, q, i, pidx[i], ev)
         for c in range(4):
             _keep(ev[c], n, i, c, vlo, vhi, wlo, winv, target, offset, fill, buf)
 

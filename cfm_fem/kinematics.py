@@ -590,16 +590,14 @@ class _Engine:
             K.trial_keys(self.nkey, a, n, self.tkeys)
         return n
 
-    def _args(self, a, n, q, pidx):
+    @property
+    def model(self):
+        """The tuple the generic kernels take (`_kernels._sample`)."""
         g = self.g
         return (
             g.linear,
             self.terms if g.linear else self.dummy,
             self.params,
-            a,
-            n,
-            q,
-            pidx,
             g.sig,
             g.speed,
             g.tau_code,
@@ -625,10 +623,10 @@ class _Engine:
         big.kept = {}
         big.tkeys = np.empty(n, dtype=np.uint64)
         big.prepare(0, n)
-        K.pass_pilot_quantiles(*big._args(0, n, q, pidx), kth, out)
+        K.pass_pilot_quantiles(big.model, 0, n, q, pidx, kth, out)
 
     def pilot(self, a, n, q, pidx, out):
-        K.pass_pilot(*self._args(a, n, q, pidx), out)
+        K.pass_pilot(self.model, a, n, q, pidx, out)
 
     def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits=None):
         if bits is None:
@@ -639,7 +637,7 @@ class _Engine:
             K.pass_window_fast(self.terms, a, n, q, pidx, g.sig, self.tkeys, self.fkey, shift,
                                wlo, winv, top, acc, below, whist, bits)  # fmt: skip
         else:
-            K.pass_window(*self._args(a, n, q, pidx), shift, wlo, winv, acc, below, whist, bits)
+            K.pass_window(self.model, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
 
     def capture_candidates(
         self, a, n, q, pidx, bits, wlo, winv, target, vlo, vhi, offset, fill, buf
@@ -665,7 +663,7 @@ class _Engine:
         )
 
     def capture(self, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
-        K.pass_capture(*self._args(a, n, q, pidx), wlo, winv, target, vlo, vhi, offset, fill, buf)
+        K.pass_capture(self.model, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf)
 
 
 def _locate(ranks, below, whist):

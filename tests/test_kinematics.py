@@ -439,7 +439,7 @@ def test_fused_passes_match_the_plain_passes(bench):
         bits = np.zeros((npts, words), np.uint64)
         args = (0, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
         if name == "plain":
-            K.pass_window(*eng._args(*args[:4]), *args[4:])
+            K.pass_window(eng.model, *args)
         else:
             eng.window(*args)
         out[name] = (acc, below, whist, bits)
