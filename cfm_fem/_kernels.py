@@ -916,9 +916,10 @@ def _fast_values_run(terms, tkeys, k0, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, 
 def _reduce_sub(ev, m, sh, lo, top, out, mask):
     """Sums, counts below each window and window-hit masks of ev[:, :m] (one vectorised loop).
 
-    sh (4,): shifts; lo, top (4, 2): window low edges and the value above which a window
-    cannot be hit. out (4, 4): per quantity sum (v - sh), sum (v - sh)^2, #(v < lo[c, 0]),
-    #(v < lo[c, 1]) are added. mask[j] gets bit 2c + e when ev[c, j] may be in window (c, e).
+    sh (4,): shifts; lo, top (4, 2): window low edges and a value above which a window cannot
+    be hit (an inclusive test: a value equal to it is sorted out by the exact slot test).
+    out (4, 4): per quantity sum (v - sh), sum (v - sh)^2, #(v < lo[c, 0]), #(v < lo[c, 1])
+    are added. mask[j]: `_mask8` of sample j against (lo, top).
     """
     a0 = a1 = a2 = a3 = 0.0
     b0 = b1 = b2 = b3 = 0.0
@@ -926,8 +927,6 @@ def _reduce_sub(ev, m, sh, lo, top, out, mask):
     h0, h1, h2, h3 = sh[0], sh[1], sh[2], sh[3]
     l00, l01, l10, l11 = lo[0, 0], lo[0, 1], lo[1, 0], lo[1, 1]
     l20, l21, l30, l31 = lo[2, 0], lo[2, 1], lo[3, 0], lo[3, 1]
-    t00, t01, t10, t11 = top[0, 0], top[0, 1], top[1, 0], top[1, 1]
-    t20, t21, t30, t31 = top[2, 0], top[2, 1], top[3, 0], top[3, 1]
     for j in range(m):
         x0 = ev[0, j]
         x1 = ev[1, j]
@@ -953,16 +952,7 @@ def _reduce_sub(ev, m, sh, lo, top, out, mask):
         c21 += x2 < l21
         c30 += x3 < l30
         c31 += x3 < l31
-        mask[j] = (
-            np.uint8((x0 >= l00) & (x0 < t00))
-            | np.uint8((x0 >= l01) & (x0 < t01)) << np.uint8(1)
-            | np.uint8((x1 >= l10) & (x1 < t10)) << np.uint8(2)
-            | np.uint8((x1 >= l11) & (x1 < t11)) << np.uint8(3)
-            | np.uint8((x2 >= l20) & (x2 < t20)) << np.uint8(4)
-            | np.uint8((x2 >= l21) & (x2 < t21)) << np.uint8(5)
-            | np.uint8((x3 >= l30) & (x3 < t30)) << np.uint8(6)
-            | np.uint8((x3 >= l31) & (x3 < t31)) << np.uint8(7)
-        )
+        mask[j] = _mask8(x0, x1, x2, x3, lo, top)
     out[0, 0] += a0
     out[1, 0] += a1
     out[2, 0] += a2
@@ -1041,29 +1031,26 @@ def pass_window_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, shift, wlo, winv, 
                                     whist, bits, ev, ok, mask, idx)  # fmt: skip
 
 
+@nb.njit(inline="always", **JIT)
+def _mask8(x0, x1, x2, x3, lo, hi):
+    """Bit 2c + e set when lo[c, e] <= x_c <= hi[c, e]: the windows (c, e) a sample may be in."""
+    return (
+        np.uint8((x0 >= lo[0, 0]) & (x0 <= hi[0, 0]))
+        | np.uint8((x0 >= lo[0, 1]) & (x0 <= hi[0, 1])) << np.uint8(1)
+        | np.uint8((x1 >= lo[1, 0]) & (x1 <= hi[1, 0])) << np.uint8(2)
+        | np.uint8((x1 >= lo[1, 1]) & (x1 <= hi[1, 1])) << np.uint8(3)
+        | np.uint8((x2 >= lo[2, 0]) & (x2 <= hi[2, 0])) << np.uint8(4)
+        | np.uint8((x2 >= lo[2, 1]) & (x2 <= hi[2, 1])) << np.uint8(5)
+        | np.uint8((x3 >= lo[3, 0]) & (x3 <= hi[3, 0])) << np.uint8(6)
+        | np.uint8((x3 >= lo[3, 1]) & (x3 <= hi[3, 1])) << np.uint8(7)
+    )
+
+
 @nb.njit(**JIT)
 def _in_ranges(ev, m, lo, hi, mask):
-    """mask[j] bit 2c + e set when lo[c, e] <= ev[c, j] <= hi[c, e] (one vectorised loop; pass
-    1 computes its masks inside `_reduce_sub`, with the sums, to read ev once)."""
-    l00, l01, l10, l11 = lo[0, 0], lo[0, 1], lo[1, 0], lo[1, 1]
-    l20, l21, l30, l31 = lo[2, 0], lo[2, 1], lo[3, 0], lo[3, 1]
-    u00, u01, u10, u11 = hi[0, 0], hi[0, 1], hi[1, 0], hi[1, 1]
-    u20, u21, u30, u31 = hi[2, 0], hi[2, 1], hi[3, 0], hi[3, 1]
+    """mask[j] = `_mask8` of sample j of ev (one vectorised loop)."""
     for j in range(m):
-        x0 = ev[0, j]
-        x1 = ev[1, j]
-        x2 = ev[2, j]
-        x3 = ev[3, j]
-        mask[j] = (
-            np.uint8((x0 >= l00) & (x0 <= u00))
-            | np.uint8((x0 >= l01) & (x0 <= u01)) << np.uint8(1)
-            | np.uint8((x1 >= l10) & (x1 <= u10)) << np.uint8(2)
-            | np.uint8((x1 >= l11) & (x1 <= u11)) << np.uint8(3)
-            | np.uint8((x2 >= l20) & (x2 <= u20)) << np.uint8(4)
-            | np.uint8((x2 >= l21) & (x2 <= u21)) << np.uint8(5)
-            | np.uint8((x3 >= l30) & (x3 <= u30)) << np.uint8(6)
-            | np.uint8((x3 >= l31) & (x3 <= u31)) << np.uint8(7)
-        )
+        mask[j] = _mask8(ev[0, j], ev[1, j], ev[2, j], ev[3, j], lo, hi)
 
 
 @nb.njit(**JIT)
