@@ -13,7 +13,8 @@ GAMMA = 0x9E3779B97F4A7C15
 STREAM_SWEEP = 0x53574550
 STREAM_FALLBACK = 0x46414C4C
 KN, WN, FN = _kernels.ziggurat_tables()
-ZIG_R = 3.6541528853610088
+LAYER_MASK = _kernels.ZIG_LAYERS - 1
+ZIG_R = _kernels._ZIG_R
 
 
 def mix64(z: int) -> int:
@@ -62,7 +63,7 @@ def zig_fallback(hz: float, iz: int, fkey: int) -> float:
             return x
         c += 1
         h = draw(fkey, c)
-        hz, iz = int32(h), (h >> 32) & 255
+        hz, iz = int32(h), (h >> 32) & (_kernels.ZIG_LAYERS - 1)
         if abs(hz) < KN[iz]:
             return hz * WN[iz]
 
@@ -80,9 +81,9 @@ def three_normals(tkey: int, fkey: int, index: int):
     h1, h2 = draw(tkey, c), draw(tkey, c + 1)
     fb = tkey + c * GAMMA
     return (
-        normal_from_bits(h1 & 0xFFFFFFFF, (h2 >> 32) & 255, fkey, fb),
-        normal_from_bits(h1 >> 32, (h2 >> 40) & 255, fkey, fb + 1),
-        normal_from_bits(h2 & 0xFFFFFFFF, (h2 >> 48) & 255, fkey, fb + 2),
+        normal_from_bits(h1 & 0xFFFFFFFF, (h2 >> 32) & LAYER_MASK, fkey, fb),
+        normal_from_bits(h1 >> 32, (h2 >> 42) & LAYER_MASK, fkey, fb + 1),
+        normal_from_bits(h2 & 0xFFFFFFFF, (h2 >> 52) & LAYER_MASK, fkey, fb + 2),
     )
 
 
