@@ -47,7 +47,12 @@ def numpy_reference_run(bench, trials, seed=0, batch=50):
     return vals.mean(0), vals.std(0, ddof=1), lo, hi
 
 
-@numba.njit(**K.JIT)
+#: The script's own loops are not cached: numba checks only this file's date, so a cached loop
+#: would keep the generator inlined from an older `_kernels.py`.
+_JIT = dict(K.JIT, cache=False)
+
+
+@numba.njit(**_JIT)
 def _normals_loop(nkey, fkey, n, point):
     s = 0.0
     for t in range(n):
@@ -56,7 +61,7 @@ def _normals_loop(nkey, fkey, n, point):
     return s
 
 
-@numba.njit(**K.JIT)
+@numba.njit(**_JIT)
 def _flop_loop(x, y, reps):
     # independent elements in L1: vectorised multiplies and adds (11 flops per element)
     for _ in range(reps):
@@ -65,7 +70,7 @@ def _flop_loop(x, y, reps):
             y[i] = ((((v * 1.0001 + 0.5) * v + 0.25) * v + 0.125) * v + 0.0625) * v + y[i] * 0.5
 
 
-@numba.njit(**K.JIT)
+@numba.njit(**_JIT)
 def _block_normals_loop(keys, fkey, reps, point):
     n = keys.shape[0]
     z = np.empty((3, n))
