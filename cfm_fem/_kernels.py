@@ -886,23 +886,26 @@ def _redo_sample(terms, tkeys, k, q0, q1, q2, s0, s1, s2, fkey, pi, ev, j):
     ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
 
 
+@nb.njit(inline="always", **JIT)
+def _fast_sample(terms, tkeys, k, c, q0, q1, q2, s0, s1, s2, ev, j):
+    """Values of trial row k into ev[:, j] by the ziggurat's fast path (counter c); returns
+    whether all three normals took it (inlined: the callers' loops stay vectorised)."""
+    z0, z1, z2, good = _zig_fast3(tkeys[k], c)
+    ev[0, j], ev[1, j], ev[2, j], ev[3, j] = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
+    return good
+
+
 @nb.njit(**JIT)
 def _fast_values(terms, tkeys, rows, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok, bad):
     """Hot-path values of point pi for the trial rows ``rows[:m]`` into ev (4, >= m).
 
-    One vectorised loop takes the ziggurat's fast path; the ~4 % of samples with a slow-path
+    One vectorised loop takes the ziggurat's fast path; the ~1.3 % of samples with a slow-path
     normal are then listed (in ``bad``, >= m, int64) and redone exactly (same numbers as
     ``fill_values``)."""
     c = np.uint64(pi) * np.uint64(4)
     for j in range(m):
         k = rows[j]
-        z0, z1, z2, good = _zig_fast3(tkeys[k], c)
-        e0, e1, e2, en = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
-        ev[0, j] = e0
-        ev[1, j] = e1
-        ev[2, j] = e2
-        ev[3, j] = en
-        ok[j] = good
+        ok[j] = _fast_sample(terms, tkeys, k, c, q0, q1, q2, s0, s1, s2, ev, j)
     for b in range(_compact_false(ok, m, bad)):
         _redo_sample(terms, tkeys, rows[bad[b]], q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b])
 
@@ -913,13 +916,7 @@ def _fast_values_run(terms, tkeys, k0, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, 
     c = np.uint64(pi) * np.uint64(4)
     for j in range(m):
         k = np.uint64(k0) + np.uint64(j)
-        z0, z1, z2, good = _zig_fast3(tkeys[k], c)
-        e0, e1, e2, en = _chain(terms, k, q0, q1, q2, s0 * z0, s1 * z1, s2 * z2)
-        ev[0, j] = e0
-        ev[1, j] = e1
-        ev[2, j] = e2
-        ev[3, j] = en
-        ok[j] = good
+        ok[j] = _fast_sample(terms, tkeys, k, c, q0, q1, q2, s0, s1, s2, ev, j)
     for b in range(_compact_false(ok, m, bad)):
         _redo_sample(terms, tkeys, k0 + bad[b], q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b])
 
