@@ -1684,85 +1684,87 @@ def star_locate3(start, lmat, nbr, n_star, d0, d1, d2):
     return -1, 0.0, 0.0, 0.0
 
 
-#: Levels per non-dominant axis of a direction bin (`direction_bin`).
-BIN_LEVELS = 2
+#: Levels per axis of an octahedral direction bin (`direction_bin`).
+BIN_LEVELS = 4
 
 
 def n_direction_bins(d: int) -> int:
-    """Number of `direction_bin` values in d dimensions (96 in 3-D, 16 in 2-D)."""
-    return (1 << d) * d * BIN_LEVELS ** (d - 1)
+    """Number of `direction_bin` values in d dimensions (128 in 3-D, 16 in 2-D)."""
+    return (1 << d) * BIN_LEVELS ** (d - 1)
 
 
 @nb.njit(inline="always", **JIT)
 def direction_bin(delta, d):
-    """Bin of a displacement direction: its sign pattern, its dominant axis, and for each other
-    axis the ratio |delta_a| / |delta_dominant| in BIN_LEVELS equal steps.
+    """Octahedral bin of a displacement direction: its sign pattern and, for each axis but the
+    last, the share |delta_a| / sum_b |delta_b| in BIN_LEVELS equal steps.
 
-    A walk started from the star cell of the bin's centre direction (`star_bin_starts`) ends at
-    once for about three displacements in four (a typical star has ~25 cells).
+    The bins are cells of a square grid on the faces of the octahedron |x| + |y| + |z| = 1, so
+    every bin is a convex cone of directions. A walk started from the star cell of the bin's
+    centre direction (`star_bin_starts`) ends after at most one step for ~94 % of the
+    displacements of a typical 3-D Delaunay star (~27 cells).
     """
-    ax = 0
-    for a in range(1, d):
-        if abs(delta[a]) > abs(delta[ax]):
-            ax = a
+    tot = 0.0
     b = 0
     for a in range(d):
+        tot += abs(delta[a])
         b = 2 * b + (1 if delta[a] < 0.0 else 0)
-    b = b * d + ax
-    big = abs(delta[ax])
-    inv = BIN_LEVELS / big if big > 0.0 else 0.0
-    for a in range(d):
-        if a != ax:
-            b = BIN_LEVELS * b + min(np.int64(abs(delta[a]) * inv), BIN_LEVELS - 1)
+    inv = BIN_LEVELS / tot if tot > 0.0 else 0.0
+    for a in range(d - 1):
+        b = BIN_LEVELS * b + min(np.int64(abs(delta[a]) * inv), BIN_LEVELS - 1)
     return b
 
 
 @nb.njit(inline="always", **JIT)
 def direction_bin3(d0, d1, d2):
-    """`direction_bin` for d = 3 (BIN_LEVELS = 2) without branches: the signs and the dominant
-    axis of random displacements defeat branch prediction."""
+    """`direction_bin` for d = 3, branch-free (vectorises over a block of displacements)."""
     a0 = abs(d0)
     a1 = abs(d1)
-    a2 = abs(d2)
-    ax = np.int64(a1 > a0)
-    big = max(a0, a1)
-    ax = 2 if a2 > big else ax
-    big = max(big, a2)
+    tot = a0 + a1 + abs(d2)
+    inv = BIN_LEVELS / tot if tot > 0.0 else 0.0
+    iu = min(np.int64(a0 * inv), BIN_LEVELS - 1)
+    iv = min(np.int64(a1 * inv), BIN_LEVELS - 1)
     sg = (np.int64(d0 < 0.0) << 2) | (np.int64(d1 < 0.0) << 1) | np.int64(d2 < 0.0)
-    o1 = a1 if ax == 0 else a0  # the other two axes, in increasing order
-    o2 = a1 if ax == 2 else a2
-    inv = BIN_LEVELS / big if big > 0.0 else 0.0  # as `direction_bin` computes the levels
-    return ((sg * 3 + ax) * 2 + np.int64(o1 * inv >= 1.0)) * 2 + np.int64(o2 * inv >= 1.0)
+    return (sg * BIN_LEVELS + iu) * BIN_LEVELS + iv
 
 
 @nb.njit(**JIT)
 def _bin_centre(b, d, scale, delta):
-    """A direction inside bin b (inverse of `direction_bin`), of length ~scale."""
-    sub = b % BIN_LEVELS ** (d - 1)  # no work array: this runs ~100 times per node
-    b //= BIN_LEVELS ** (d - 1)
-    ax = b % d
-    b //= d
-    for a in range(d - 1, -1, -1):  # the last other axis holds the lowest digit
-        if a != ax:
-            delta[a] = (sub % BIN_LEVELS + 0.5) / BIN_LEVELS
-            sub //= BIN_LEVELS
-        else:
-            delta[a] = 1.0
+    """A direction inside bin b (inverse of `direction_bin`) of 1-norm ``scale``; False for the
+    bins that no direction reaches (level sum >= BIN_LEVELS)."""
+    rest = b
+    lsum = 0
+    for a in range(d - 2, -1, -1):  # the last level is the lowest digit
+        delta[a] = rest % BIN_LEVELS
+        lsum += rest % BIN_LEVELS
+        rest //= BIN_LEVELS
+    if lsum >= BIN_LEVELS:
+        return False
+    # the square's centre, or the centroid of its feasible corner where the face's edge cuts it
+    off = 0.5 if lsum + 0.5 * (d - 1) < BIN_LEVELS else 1.0 / d
+    tot = 0.0
+    for a in range(d - 1):
+        delta[a] = (delta[a] + off) / BIN_LEVELS
+        tot += delta[a]
+    delta[d - 1] = 1.0 - tot
     for a in range(d - 1, -1, -1):
-        delta[a] *= -scale if b & 1 else scale
-        b >>= 1
+        delta[a] *= -scale if rest & 1 else scale
+        rest >>= 1
+    return True
 
 
 @nb.njit(**JIT)
 def star_bin_starts(lmat, nbr, n_star, d, scale, out):
-    """Start cell of every `direction_bin`: the star cell of the bin's centre direction (0 where
-    that walk fails)."""
+    """Start cell of every `direction_bin`: the star cell of the bin's centre direction. Each
+    walk starts where the previous bin's ended (neighbouring bins, short walks)."""
     delta = np.empty(d)
     lam = np.empty(d)
+    s = 0
     for b in range(out.shape[0]):
-        _bin_centre(b, d, scale, delta)
-        s = star_locate(0, lmat, nbr, n_star, delta, lam)
-        out[b] = s if s >= 0 else 0
+        if _bin_centre(b, d, scale, delta):
+            r = star_locate(s, lmat, nbr, n_star, delta, lam)
+            if r >= 0:
+                s = r
+        out[b] = s
 
 
 @nb.njit(inline="always", **JIT)
@@ -1816,6 +1818,98 @@ def normals_by_key(keys, fkey, point, n, z, ok):
 
 
 @nb.njit(inline="always", **JIT)
+def _lam3(lmat, s, d0, d1, d2):
+    """Barycentric coordinates of the star cell s's vertices other than g at displacement d."""
+    return (
+        lmat[s, 0, 0] * d0 + lmat[s, 0, 1] * d1 + lmat[s, 0, 2] * d2,
+        lmat[s, 1, 0] * d0 + lmat[s, 1, 1] * d1 + lmat[s, 1, 2] * d2,
+        lmat[s, 2, 0] * d0 + lmat[s, 2, 1] * d1 + lmat[s, 2, 2] * d2,
+    )
+
+
+@nb.njit(**JIT)
+def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibuf, rest, code):
+    """Field errors of n trials located in the star tables of a 3-D node, in blocks.
+
+    Trial t moves the probe by ``delta = smax * (w.T @ z[:, t])``. The displacements and their
+    `direction_bin` are computed in vectorised loops; one branch-free loop then tries the bin's
+    start cell and the neighbour across its most violated face (~94 % of trials end there) and
+    writes the error; the rest walk the star (`star_locate3`). Same cells, so the same errors,
+    as walking every trial from its bin's start.
+
+    Parameters
+    ----------
+    z : ndarray, shape (3, >= n)
+        Standard normals per trial.
+    w : ndarray, shape (3, 3)
+        Row c: the mesh-frame displacement per unit normal c (basis[c] * sigma_axes[c]).
+    smax : float, mm
+    lmat, dmat, nbr, n_star : star tables (`build_star`); bin_start : `star_bin_starts`.
+    err : ndarray, shape (3, >= n), T
+        Output: B(x + delta) - B(x) of each trial found in the star (others left as they are).
+    dl : ndarray, shape (3, >= n); ibuf : ndarray, shape (2, >= n), int64
+        Work space.
+    rest, code : ndarray, shape (>= n,), int64
+        Output: the trials not in the star, in increasing order, and why: LEAVES_MESH, or -1
+        (beyond the star).
+
+    Returns
+    -------
+    int
+        Number of trials in ``rest``.
+    """
+    for t in range(n):  # same operation order as the scalar path: identical displacements
+        z0 = z[0, t]
+        z1 = z[1, t]
+        z2 = z[2, t]
+        dl[0, t] = smax * (0.0 + w[0, 0] * z0 + w[1, 0] * z1 + w[2, 0] * z2)
+        dl[1, t] = smax * (0.0 + w[0, 1] * z0 + w[1, 1] * z1 + w[2, 1] * z2)
+        dl[2, t] = smax * (0.0 + w[0, 2] * z0 + w[1, 2] * z1 + w[2, 2] * z2)
+    d0s = dl[0]
+    d1s = dl[1]
+    d2s = dl[2]
+    bins = ibuf[0]
+    cell = ibuf[1]
+    for t in range(n):
+        bins[t] = direction_bin3(d0s[t], d1s[t], d2s[t])
+    nf = 0
+    for t in range(n):
+        d0 = d0s[t]
+        d1 = d1s[t]
+        d2 = d2s[t]
+        s = bin_start[bins[t]]
+        l0, l1, l2 = _lam3(lmat, s, d0, d1, d2)
+        m01 = min(l0, l1)
+        a = 2 if l2 < m01 else (1 if l1 < l0 else 0)  # as star_locate3 chooses the face
+        nx = nbr[s, a]
+        s = s if min(m01, l2) >= -BARY_EPS else (nx if nx >= 0 else s)
+        l0, l1, l2 = _lam3(lmat, s, d0, d1, d2)
+        inside = min(min(l0, l1), min(l2, 1.0 - (l0 + l1 + l2))) >= -BARY_EPS
+        err[0, t] = 0.0 + dmat[s, 0, 0] * l0 + dmat[s, 0, 1] * l1 + dmat[s, 0, 2] * l2
+        err[1, t] = 0.0 + dmat[s, 1, 0] * l0 + dmat[s, 1, 1] * l1 + dmat[s, 1, 2] * l2
+        err[2, t] = 0.0 + dmat[s, 2, 0] * l0 + dmat[s, 2, 1] * l1 + dmat[s, 2, 2] * l2
+        cell[t] = s
+        rest[nf] = t  # branch-free compaction of the trials still to place
+        nf += not inside
+    n_rest = 0
+    for f in range(nf):
+        t = rest[f]
+        d0 = d0s[t]
+        d1 = d1s[t]
+        d2 = d2s[t]
+        s, l0, l1, l2 = star_locate3(cell[t], lmat, nbr, n_star, d0, d1, d2)
+        if s >= 0:
+            err[0, t] = 0.0 + dmat[s, 0, 0] * l0 + dmat[s, 0, 1] * l1 + dmat[s, 0, 2] * l2
+            err[1, t] = 0.0 + dmat[s, 1, 0] * l0 + dmat[s, 1, 1] * l1 + dmat[s, 1, 2] * l2
+            err[2, t] = 0.0 + dmat[s, 2, 0] * l0 + dmat[s, 2, 1] * l1 + dmat[s, 2, 2] * l2
+        else:
+            rest[n_rest] = t  # n_rest <= f: overwrites only entries already read
+            code[n_rest] = s
+            n_rest += 1
+    return n_rest
+
+
+@nb.njit(inline="always", **JIT)
 def _abs_change(b0, e0, e1, e2, abs0):
     """|b0 + e| - |b0| without cancellation: (2 b0.e + |e|^2) / (|b0 + e| + |b0|)."""
     x0 = b0[0] + e0
@@ -1853,13 +1947,31 @@ def _node_gauss(
     work arrays of `_gauss_buffers`.
 
     Trials whose largest displacement stays in the node's star are located in the star tables
-    (`build_star`); the field is affine there, so their component errors at every U_p are the
+    (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their component errors at every U_p are the
     largest U_p's scaled. They are stored once (comp[kmax]); the few trials that leave the star
     take the global walk at each U_p and are stored per U_p (comp[k], or the back of comp[kmax]).
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
-    comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work = buffers
+    (
+        comp,
+        absb,
+        scratch,
+        zbuf,
+        okbuf,
+        cells,
+        lmat,
+        dmat,
+        nbr,
+        htab,
+        bin_start,
+        work,
+        dl,
+        ibuf,
+        rest,
+        code,
+        wmat,
+    ) = buffers
     d = coords.shape[1]
     n_up = scales.shape[0]
     kmax = 0
@@ -1899,47 +2011,63 @@ def _node_gauss(
     if n_star > 0:  # per direction bin, a star cell to start walks from
         star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
     normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
-    for t in range(n_trials):
-        # displacement direction in the mesh frame (projection for a planar map)
+    # place every trial in the star at the largest U_p; the others are listed in ``rest``
+    if d == 3 and n_star > 0:
+        for c in range(3):
+            for a in range(3):
+                wmat[c, a] = basis[c, a] * sigma_axes[c]
+        n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, bin_start,
+                              comp[kmax], dl, ibuf, rest, code)  # fmt: skip
+        if n_rest > 0:  # in-star errors to the front, in trial order
+            r = 0
+            for t in range(n_trials):
+                if r < n_rest and rest[r] == t:
+                    r += 1
+                    continue
+                for c in range(3):
+                    comp[kmax, c, n_in] = comp[kmax, c, t]
+                n_in += 1
+        else:
+            n_in = n_trials
+    else:
+        n_rest = 0
+        for t in range(n_trials):
+            for a in range(d):
+                acc = 0.0
+                for c in range(3):
+                    acc += basis[c, a] * sigma_axes[c] * zbuf[c, t]
+                delta[a] = smax * acc
+            s = -1
+            if n_star > 0:
+                s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
+            if s >= 0:
+                for c in range(3):
+                    e = 0.0
+                    for a in range(d):
+                        e += dmat[s, c, a] * lam[a]
+                    comp[kmax, c, n_in] = e
+                n_in += 1
+            else:
+                rest[n_rest] = t
+                code[n_rest] = s
+                n_rest += 1
+    for r in range(n_rest):
+        t = rest[r]
+        if code[r] == LEAVES_MESH:  # outside the map at every U_p: counted, never extrapolated
+            for k in range(n_up):
+                if scales[k] > 0.0:
+                    n_out[k] += 1
+            continue
+        # left the star: the global walk at each U_p (stored from the back of comp[kmax], so
+        # |B| of in-star trials is filled in below)
         octant = 0
         for a in range(d):
             acc = 0.0
             for c in range(3):
                 acc += basis[c, a] * sigma_axes[c] * zbuf[c, t]
             disp[a] = acc
-            delta[a] = smax * acc
             if acc < 0.0:
                 octant |= 1 << a
-        s = -1
-        if n_star > 0:
-            if d == 3:
-                bn = direction_bin3(delta[0], delta[1], delta[2])
-                s, lam[0], lam[1], lam[2] = star_locate3(
-                    bin_start[bn], lmat, nbr, n_star, delta[0], delta[1], delta[2]
-                )
-            else:
-                bn = direction_bin(delta, d)
-                s = star_locate(bin_start[bn], lmat, nbr, n_star, delta, lam)
-        if s >= 0:
-            e0 = 0.0
-            e1 = 0.0
-            e2 = 0.0
-            for a in range(d):
-                e0 += dmat[s, 0, a] * lam[a]
-                e1 += dmat[s, 1, a] * lam[a]
-                e2 += dmat[s, 2, a] * lam[a]
-            comp[kmax, 0, n_in] = e0
-            comp[kmax, 1, n_in] = e1
-            comp[kmax, 2, n_in] = e2
-            n_in += 1
-            continue
-        if s == LEAVES_MESH:  # outside the map at every U_p: counted, never extrapolated
-            for k in range(n_up):
-                if scales[k] > 0.0:
-                    n_out[k] += 1
-            continue
-        # left the star: the global walk at each U_p (stored after the loop's in-star trials
-        # are known, so |B| of in-star trials is filled in below)
         start = start_cells[g, octant]
         cell = start
         for k in range(n_up):
@@ -2044,7 +2172,8 @@ def _node_gauss(
 @nb.njit(**JIT)
 def _gauss_buffers(n_up, n_trials, d):
     """Per-thread work arrays of `_node_gauss`: samples (comp, absb, scratch), normals (zbuf,
-    okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start) and merge space (work)."""
+    okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start), merge space (work) and the
+    star pass's work space (dl, ibuf, rest, code, wmat; `star_errors3`)."""
     return (
         np.empty((n_up, 3, n_trials)),
         np.empty((n_up, n_trials)),
@@ -2056,8 +2185,13 @@ def _gauss_buffers(n_up, n_trials, d):
         np.empty((MAX_STAR, 3, d)),
         np.empty((MAX_STAR, d), dtype=np.int64),
         np.full((3, STAR_HASH), -1, dtype=np.int64),
-        np.zeros((1 << d) * d * BIN_LEVELS ** (d - 1), dtype=np.int64),
+        np.zeros((1 << d) * BIN_LEVELS ** (d - 1), dtype=np.int64),
         np.empty((5, n_trials)),
+        np.empty((3, n_trials)),
+        np.empty((2, n_trials), dtype=np.int64),
+        np.empty(n_trials, dtype=np.int64),
+        np.empty(n_trials, dtype=np.int64),
+        np.empty((3, 3)),
     )
 
 

@@ -157,9 +157,19 @@ def test_direction_bin3_equals_the_generic_bin():
 def test_direction_bins_invert(d):
     n_bins = _kernels.n_direction_bins(d)
     delta = np.empty(d)
+    feasible = 0
     for b in range(n_bins):
-        _kernels._bin_centre(b, d, 0.3, delta)
-        assert _kernels.direction_bin(delta, d) == b
+        if _kernels._bin_centre(b, d, 0.3, delta):
+            assert abs(np.abs(delta).sum() - 0.3) < 1e-12
+            assert _kernels.direction_bin(delta, d) == b
+            feasible += 1
+    # 3-D: the bins (i, j) with i + j < levels on each of the 8 faces; 2-D: all of them
+    k = _kernels.BIN_LEVELS
+    assert feasible == (8 * k * (k + 1) // 2 if d == 3 else n_bins)
+    # every random direction falls in a feasible bin
+    rng = np.random.default_rng(d)
+    for v in rng.normal(size=(2000, d)):
+        assert _kernels._bin_centre(_kernels.direction_bin(v, d), d, 1.0, delta)
 
 
 def test_star_tables_locate_like_the_global_walk():
@@ -192,6 +202,50 @@ def test_star_tables_locate_like_the_global_walk():
             want = (bary[:, None] * B[mesh.simplices[sg]]).sum(0) - B[g]
             np.testing.assert_allclose(dmat[s] @ lam, want, rtol=1e-9, atol=1e-12)
     assert checked > 1000
+
+
+def test_star_block_pass_places_trials_like_the_walk():
+    """`star_errors3` (bins, two branch-free tries, then walks) gives, bit for bit, the errors
+    of walking each trial from its bin's start cell, and lists exactly the other trials."""
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(0, 10, (300, 3))  # many nodes on the hull: rays that leave the mesh
+    B = np.c_[np.sin(pts[:, 0]), pts[:, 1] ** 2, pts[:, 2]]
+    mesh = build_mesh(FieldMap.from_arrays(pts, B), "delaunay")
+    m, n = _kernels.MAX_STAR, 400
+    cells, lmat = np.empty(m, np.int64), np.empty((m, 3, 3))
+    dmat, nbr = np.empty((m, 3, 3)), np.empty((m, 3), np.int64)
+    htab = np.full((3, _kernels.STAR_HASH), -1, np.int64)
+    starts = np.empty(_kernels.n_direction_bins(3), np.int64)
+    err, dl, ibuf = np.full((3, n), np.nan), np.empty((3, n)), np.empty((2, n), np.int64)
+    rest, code = np.empty(n, np.int64), np.empty(n, np.int64)
+    w = np.diag([1.0, 0.5, 2.0])
+    counts = {"in": 0, _kernels.LEAVES_MESH: 0, -1: 0}
+    for g in range(0, 300, 3):
+        k = _kernels.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                mesh.neighbors, B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+        smax = rng.choice([0.05, 0.5])  # 0.5: many trials beyond the star
+        _kernels.star_bin_starts(lmat, nbr, k, 3, smax, starts)
+        z = rng.normal(size=(3, n))
+        n_rest = _kernels.star_errors3(z, n, w, smax, lmat, dmat, nbr, k, starts, err, dl,
+                                       ibuf, rest, code)  # fmt: skip
+        listed = dict(zip(rest[:n_rest].tolist(), code[:n_rest].tolist(), strict=True))
+        assert list(listed) == sorted(listed)
+        for t in range(n):
+            z0, z1, z2 = z[:, t]  # the kernel's operation order, scalar by scalar
+            delta = [smax * (0.0 + w[0, a] * z0 + w[1, a] * z1 + w[2, a] * z2) for a in range(3)]
+            b = _kernels.direction_bin3(*delta)
+            s, *lam = _kernels.star_locate3(starts[b], lmat, nbr, k, *delta)
+            if s < 0:
+                assert listed.pop(t) == s
+                counts[s] += 1
+                continue
+            assert t not in listed
+            want = [0.0 + dmat[s, c, 0] * lam[0] + dmat[s, c, 1] * lam[1] + dmat[s, c, 2] * lam[2]
+                    for c in range(3)]  # fmt: skip
+            assert np.array_equal(err[:, t], want)
+            counts["in"] += 1
+        assert not listed
+    assert min(counts.values()) > 100, counts
 
 
 def test_sort_values_matches_numpy():
