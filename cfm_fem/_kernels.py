@@ -1947,9 +1947,10 @@ def _node_gauss(
     work arrays of `_gauss_buffers`.
 
     Trials whose largest displacement stays in the node's star are located in the star tables
-    (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their component errors at every U_p are the
-    largest U_p's scaled. They are stored once (comp[kmax]); the few trials that leave the star
-    take the global walk at each U_p and are stored per U_p (comp[k], or the back of comp[kmax]).
+    (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their
+    component errors at every U_p are the largest U_p's scaled. They are stored once
+    (comp[kmax]); the few trials that leave the star take the global walk at each U_p and are
+    stored per U_p (comp[k], or the back of comp[kmax]).
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
@@ -2195,7 +2196,7 @@ def _gauss_buffers(n_up, n_trials, d):
     )
 
 
-@nb.njit(**PJIT)
+@nb.njit(**JIT)
 def gauss_sweep(
     nodes,
     keys,
@@ -2211,9 +2212,11 @@ def gauss_sweep(
     n_trials,
     seed,
     p,
-    block,
 ):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node, statistics streamed per node.
+
+    One thread: callers run blocks of nodes on several threads (`cfm_fem.threads`). A numba
+    parallel loop here would recompile the whole kernel tree twice more on first use (~7 s).
 
     Parameters
     ----------
@@ -2239,8 +2242,6 @@ def gauss_sweep(
     seed : int
     p : float
         Coverage probability (0.95).
-    block : int
-        Nodes per parallel task (buffers are allocated once per task).
 
     Returns
     -------
@@ -2260,36 +2261,16 @@ def gauss_sweep(
     n_out = np.zeros((k_nodes, n_up), dtype=np.int64)
     n_lost = np.zeros((k_nodes, n_up), dtype=np.int64)
     star = np.zeros(k_nodes, dtype=np.bool_)
-    n_blocks = (k_nodes + block - 1) // block
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
-    for b in nb.prange(n_blocks):
-        buffers = _gauss_buffers(n_up, n_trials, coords.shape[1])
-        for i in range(b * block, min((b + 1) * block, k_nodes)):
-            g = nodes[i]
-            if start_cells[g, 0] < 0:
-                continue
-            star[i] = _node_gauss(
-                g,
-                keys[i],
-                coords,
-                values,
-                simplices,
-                transform,
-                neighbors,
-                start_cells,
-                basis,
-                sigma_axes,
-                scales,
-                n_trials,
-                skey,
-                fkey,
-                p,
-                buffers,
-                stats[i],
-                n_out[i],
-                n_lost[i],
-            )
+    buffers = _gauss_buffers(n_up, n_trials, coords.shape[1])
+    for i in range(k_nodes):
+        g = nodes[i]
+        if start_cells[g, 0] < 0:
+            continue
+        star[i] = _node_gauss(g, keys[i], coords, values, simplices, transform, neighbors,
+                              start_cells, basis, sigma_axes, scales, n_trials, skey, fkey, p,
+                              buffers, stats[i], n_out[i], n_lost[i])  # fmt: skip
     return stats, n_out, n_lost, star
 
 
@@ -2340,11 +2321,11 @@ def coupled_probe_errors(
 # ---------------------------------------------------------------------------------------------
 # Bench-model sweep (mode htm): probe errors from the 21-error HTM chain plus vibration/delay.
 # ---------------------------------------------------------------------------------------------
-@nb.njit(**PJIT)
+@nb.njit(**JIT)
 def htm_sweep(
     nodes, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
     params, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack, mounts,
-    tool, strokes, profiles, p, block,
+    tool, strokes, profiles, p,
 ):  # fmt: skip
     """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
 
@@ -2371,7 +2352,6 @@ def htm_sweep(
         Bench geometry, as in `probe_error_mm`.
     p : float
         Coverage probability.
-    block : int
 
     Returns
     -------
@@ -2387,66 +2367,64 @@ def htm_sweep(
     n_out = np.zeros((k_nodes, 1), dtype=np.int64)
     n_lost = np.zeros((k_nodes, 1), dtype=np.int64)
     pos = np.full((k_nodes, 2, 3), np.nan)
-    n_blocks = (k_nodes + block - 1) // block
     zero = np.zeros(params.shape[1])
-    for b in nb.prange(n_blocks):
-        comp = np.empty((3, n_trials))
-        absb = np.empty(n_trials)
-        scratch = np.empty(n_trials)
-        dq = np.zeros(3)
-        e = np.empty(3)
-        dm = np.empty(3)
-        pt = np.empty(d)
-        bary = np.empty(d + 1)
-        bi = np.empty(3)
-        for i in range(b * block, min((b + 1) * block, k_nodes)):
-            g = nodes[i]
-            if start_cells[g, 0] < 0:
-                continue
-            b0 = values[g]
-            abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-            nv = 0
-            s1 = np.zeros(3)
-            s2 = np.zeros(3)
-            for t in range(n_trials):
-                if use_noise:
-                    axis_noise_mm(nkey, fkey, t, g, sig, speed, tau_code, tau_par, dq)
-                prm = params[t] if use_geometric else zero
-                probe_error_mm(prm, q_nodes[g], dq, stack, mounts, tool, strokes, profiles, e)
-                octant = 0
-                for a in range(3):
-                    dm[a] = rot[a, 0] * e[0] + rot[a, 1] * e[1] + rot[a, 2] * e[2]
-                    s1[a] += dm[a]
-                    s2[a] += dm[a] * dm[a]
-                for a in range(d):
-                    acc = 0.0
-                    for c in range(3):
-                        acc += basis[c, a] * dm[c]
-                    pt[a] = coords[g, a] + acc
-                    if acc < 0.0:
-                        octant |= 1 << a
-                s = locate(pt, start_cells[g, octant], transform, neighbors, bary)
-                if s == OUTSIDE:
-                    n_out[i, 0] += 1
-                    continue
-                if s == WALK_FAILED:
-                    n_lost[i, 0] += 1
-                    continue
-                _interp_in(s, bary, simplices, values, bi)
-                m2 = 0.0
-                for c in range(3):
-                    comp[c, nv] = bi[c] - b0[c]
-                    m2 += bi[c] * bi[c]
-                absb[nv] = np.sqrt(m2) - abs0
-                nv += 1
+    comp = np.empty((3, n_trials))
+    absb = np.empty(n_trials)
+    scratch = np.empty(n_trials)
+    dq = np.zeros(3)
+    e = np.empty(3)
+    dm = np.empty(3)
+    pt = np.empty(d)
+    bary = np.empty(d + 1)
+    bi = np.empty(3)
+    for i in range(k_nodes):
+        g = nodes[i]
+        if start_cells[g, 0] < 0:
+            continue
+        b0 = values[g]
+        abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+        nv = 0
+        s1 = np.zeros(3)
+        s2 = np.zeros(3)
+        for t in range(n_trials):
+            if use_noise:
+                axis_noise_mm(nkey, fkey, t, g, sig, speed, tau_code, tau_par, dq)
+            prm = params[t] if use_geometric else zero
+            probe_error_mm(prm, q_nodes[g], dq, stack, mounts, tool, strokes, profiles, e)
+            octant = 0
             for a in range(3):
-                mean = s1[a] / n_trials
-                pos[i, 0, a] = mean
-                pos[i, 1, a] = np.sqrt(
-                    max(s2[a] / n_trials - mean * mean, 0.0) * n_trials / max(n_trials - 1, 1)
-                )
-            q = coverage_count(nv, p) if nv > 1 else 1
+                dm[a] = rot[a, 0] * e[0] + rot[a, 1] * e[1] + rot[a, 2] * e[2]
+                s1[a] += dm[a]
+                s2[a] += dm[a] * dm[a]
+            for a in range(d):
+                acc = 0.0
+                for c in range(3):
+                    acc += basis[c, a] * dm[c]
+                pt[a] = coords[g, a] + acc
+                if acc < 0.0:
+                    octant |= 1 << a
+            s = locate(pt, start_cells[g, octant], transform, neighbors, bary)
+            if s == OUTSIDE:
+                n_out[i, 0] += 1
+                continue
+            if s == WALK_FAILED:
+                n_lost[i, 0] += 1
+                continue
+            _interp_in(s, bary, simplices, values, bi)
+            m2 = 0.0
             for c in range(3):
-                sample_stats(comp[c], nv, q, stats[i, 0, c], scratch)
-            sample_stats(absb, nv, q, stats[i, 0, 3], scratch)
+                comp[c, nv] = bi[c] - b0[c]
+                m2 += bi[c] * bi[c]
+            absb[nv] = np.sqrt(m2) - abs0
+            nv += 1
+        for a in range(3):
+            mean = s1[a] / n_trials
+            pos[i, 0, a] = mean
+            pos[i, 1, a] = np.sqrt(
+                max(s2[a] / n_trials - mean * mean, 0.0) * n_trials / max(n_trials - 1, 1)
+            )
+        q = coverage_count(nv, p) if nv > 1 else 1
+        for c in range(3):
+            sample_stats(comp[c], nv, q, stats[i, 0, c], scratch)
+        sample_stats(absb, nv, q, stats[i, 0, 3], scratch)
     return stats, n_out, n_lost, pos

@@ -16,6 +16,7 @@ from .errors import CfmInputError
 from .field import FieldMap
 from .interpolation import SimplexMesh, build_mesh, morton_order
 from .mc import numerical_tolerance
+from .threads import map_blocks
 
 __all__ = [
     "SweepProblem",
@@ -344,11 +345,17 @@ class SweepProblem:
         # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
         # each node's numbers depend on its key only, so the order changes no result
         order = morton_order(self.coords[nodes])
-        s, o, lost, star = _kernels.gauss_sweep(
-            nodes[order], keys[order], self.coords, self.values, self.simplices,
-            self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
-            self.scales_mm, int(self.trials), int(self.seed), float(self.coverage), 32,
-        )  # fmt: skip
+        nodes, keys = nodes[order], keys[order]
+
+        def block(i0, i1):
+            return _kernels.gauss_sweep(
+                nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
+                self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
+                self.scales_mm, int(self.trials), int(self.seed), float(self.coverage),
+            )  # fmt: skip
+
+        parts = map_blocks(block, len(nodes), 32)
+        s, o, lost, star = (np.concatenate([q[j] for q in parts]) for j in range(4))
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
         return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 2, 3))
@@ -357,36 +364,18 @@ class SweepProblem:
         h = self.htm
         parts = []
         for geo, noise in HTM_PARTS.values():
-            parts.append(
-                _kernels.htm_sweep(
-                    nodes,
-                    self.coords,
-                    self.values,
-                    self.simplices,
-                    self.transform,
-                    self.neighbors,
-                    self.start_cells,
-                    self.basis,
-                    h["rot"],
-                    h["q_nodes"],
-                    h["params"],
-                    geo,
-                    noise,
-                    h["nkey"],
-                    h["fkey"],
-                    h["sig"],
-                    h["speed"],
-                    h["tau_code"],
-                    h["tau_par"],
-                    h["stack"],
-                    h["mounts"],
-                    h["tool"],
-                    h["strokes"],
-                    h["profiles"],
-                    float(self.coverage),
-                    16,
+
+            def block(i0, i1, geo=geo, noise=noise):
+                return _kernels.htm_sweep(
+                    nodes[i0:i1], self.coords, self.values, self.simplices, self.transform,
+                    self.neighbors, self.start_cells, self.basis, h["rot"], h["q_nodes"],
+                    h["params"], geo, noise, h["nkey"], h["fkey"], h["sig"], h["speed"],
+                    h["tau_code"], h["tau_par"], h["stack"], h["mounts"], h["tool"],
+                    h["strokes"], h["profiles"], float(self.coverage),
                 )  # fmt: skip
-            )
+
+            blocks = map_blocks(block, len(nodes), 16)
+            parts.append(tuple(np.concatenate([b[j] for b in blocks]) for j in range(4)))
         stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
         pos = pos.reshape(len(nodes), len(HTM_PARTS), 2, 3)
         return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos

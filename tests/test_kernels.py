@@ -111,7 +111,7 @@ def test_gauss_sweep_matches_numpy_twin():
     )
     stats, n_out, n_lost, _ = _kernels.gauss_sweep(
         np.arange(len(pts)), np.arange(len(pts)), mesh.coords, B, mesh.simplices,
-        mesh.transform, mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95, 4,
+        mesh.transform, mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95,
     )  # fmt: skip
     ref, ref_out = twins.gauss_sweep(pts, B, up, 150, 9)
     np.testing.assert_array_equal(n_out, ref_out)
@@ -273,7 +273,7 @@ def test_abs_b_statistics_on_a_kinked_field():
                                    1e-7)  # fmt: skip
     stats, n_out, _, star = _kernels.gauss_sweep(
         np.array([g]), np.array([g]), mesh.coords, fm.B, mesh.simplices, mesh.transform,
-        mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95, 1,
+        mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95,
     )  # fmt: skip
     assert star[0] and n_out.sum() == 0
     z = twins.sweep_normals(2, g, 4000)
