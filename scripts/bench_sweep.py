@@ -4,12 +4,16 @@
                                                      # (50 per node, then 1,000 per node)
     python scripts/bench_sweep.py big                # 1,000,000 nodes, 10,000 trials, 6 U_p
     python scripts/bench_sweep.py big --nodes 200000 --trials 2000   # smaller, same code path
+    python scripts/bench_sweep.py trial              # CPU ns per trial, one thread, bundled map
 
 ``ratio``: perturbed-interpolation samples per second of the numba walk kernel against
 ``scipy.interpolate.LinearNDInterpolator`` on the same map and the same perturbed points, handed
 to scipy grouped by node (its fastest order, consecutive queries share a simplex), in one run.
 Also prints the throughput of the full sweep kernel (random numbers and per-node statistics
 included), which is what a user gets.
+
+``trial``: CPU time per trial of the sweep kernel on one thread (8,000 random nodes of the
+bundled map, 2,000 trials, 6 U_p values, each trial serving all of them), three repeats.
 
 ``big``: the whole sweep as the CLI runs it (mesh, kernel, statistics, VTU/PVD/JSON output) on
 an FEM-like map with native tetrahedra; prints wall time and peak resident memory.
@@ -166,11 +170,31 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None):
     )
 
 
+def bench_trial(n_nodes: int, trials: int):
+    from pathlib import Path
+
+    from cfm_fem.io import read_field
+    from cfm_fem.sweep import prepare_sweep
+
+    numba.set_num_threads(1)
+    fm = read_field(Path(__file__).resolve().parents[1] / "meshes" / "quadrupole.vtu")
+    cfg = SweepConfig(up_um=[0, 10, 20, 30, 40, 50], trials=trials, seed=3)
+    _, prob, _ = prepare_sweep(fm, cfg)
+    nodes = np.sort(np.random.default_rng(0).choice(len(prob.coords), n_nodes, replace=False))
+    prob.run_nodes(nodes[:50])  # compile outside the timing
+    for _ in range(3):
+        t = time.process_time()
+        prob.run_nodes(nodes)
+        dt = time.process_time() - t
+        print(f"{n_nodes} nodes x {trials} trials, 6 U_p, 1 thread: {dt:.2f} s CPU = "
+              f"{dt / (n_nodes * trials) * 1e9:.1f} ns per trial")  # fmt: skip
+
+
 def main():
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("what", choices=["ratio", "big"])
+    ap.add_argument("what", choices=["ratio", "big", "trial"])
     ap.add_argument("--nodes", type=int)
     ap.add_argument("--trials", type=int)
     ap.add_argument(
@@ -180,6 +204,8 @@ def main():
     if a.what == "ratio":
         per_node = a.trials or 1000
         bench_ratio(a.nodes or 100_000, [(a.nodes or 100_000, 50), (5000, per_node)], 20.0)
+    elif a.what == "trial":
+        bench_trial(a.nodes or 8000, a.trials or 2000)
     else:
         bench_big(
             a.nodes or 1_000_000, a.trials or 10_000, [0.0, 10.0, 20.0, 30.0, 40.0, 50.0], a.out
