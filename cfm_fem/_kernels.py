@@ -1827,6 +1827,16 @@ def _lam3(lmat, s, d0, d1, d2):
     )
 
 
+@nb.njit(inline="always", **JIT)
+def _err3(dmat, s, l0, l1, l2):
+    """B - B_g in star cell s at barycentric coordinates lam (the scalar path's order)."""
+    return (
+        0.0 + dmat[s, 0, 0] * l0 + dmat[s, 0, 1] * l1 + dmat[s, 0, 2] * l2,
+        0.0 + dmat[s, 1, 0] * l0 + dmat[s, 1, 1] * l1 + dmat[s, 1, 2] * l2,
+        0.0 + dmat[s, 2, 0] * l0 + dmat[s, 2, 1] * l1 + dmat[s, 2, 2] * l2,
+    )
+
+
 @nb.njit(**JIT)
 def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibuf, rest, code):
     """Field errors of n trials located in the star tables of a 3-D node, in blocks.
@@ -1885,9 +1895,7 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
         s = s if min(m01, l2) >= -BARY_EPS else (nx if nx >= 0 else s)
         l0, l1, l2 = _lam3(lmat, s, d0, d1, d2)
         inside = min(min(l0, l1), min(l2, 1.0 - (l0 + l1 + l2))) >= -BARY_EPS
-        err[0, t] = 0.0 + dmat[s, 0, 0] * l0 + dmat[s, 0, 1] * l1 + dmat[s, 0, 2] * l2
-        err[1, t] = 0.0 + dmat[s, 1, 0] * l0 + dmat[s, 1, 1] * l1 + dmat[s, 1, 2] * l2
-        err[2, t] = 0.0 + dmat[s, 2, 0] * l0 + dmat[s, 2, 1] * l1 + dmat[s, 2, 2] * l2
+        err[0, t], err[1, t], err[2, t] = _err3(dmat, s, l0, l1, l2)
         cell[t] = s
         rest[nf] = t  # branch-free compaction of the trials still to place
         nf += not inside
@@ -1899,9 +1907,7 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
         d2 = d2s[t]
         s, l0, l1, l2 = star_locate3(cell[t], lmat, nbr, n_star, d0, d1, d2)
         if s >= 0:
-            err[0, t] = 0.0 + dmat[s, 0, 0] * l0 + dmat[s, 0, 1] * l1 + dmat[s, 0, 2] * l2
-            err[1, t] = 0.0 + dmat[s, 1, 0] * l0 + dmat[s, 1, 1] * l1 + dmat[s, 1, 2] * l2
-            err[2, t] = 0.0 + dmat[s, 2, 0] * l0 + dmat[s, 2, 1] * l1 + dmat[s, 2, 2] * l2
+            err[0, t], err[1, t], err[2, t] = _err3(dmat, s, l0, l1, l2)
         else:
             rest[n_rest] = t  # n_rest <= f: overwrites only entries already read
             code[n_rest] = s
