@@ -1837,6 +1837,13 @@ def _err3(dmat, s, l0, l1, l2):
     )
 
 
+@nb.njit(inline="always", **JIT)
+def _unit_disp(w, z, t, a):
+    """Component a of trial t's displacement per unit U_p: sum_c w[c, a] z[c, t], summed in the
+    order `star_errors3` uses (the same bits on every path)."""
+    return 0.0 + w[0, a] * z[0, t] + w[1, a] * z[1, t] + w[2, a] * z[2, t]
+
+
 @nb.njit(**JIT)
 def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibuf, rest, code):
     """Field errors of n trials located in the star tables of a 3-D node, in blocks.
@@ -1852,7 +1859,8 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
     z : ndarray, shape (3, >= n)
         Standard normals per trial.
     w : ndarray, shape (3, 3)
-        Row c: the mesh-frame displacement per unit normal c (basis[c] * sigma_axes[c]).
+        Row c: the mesh-frame displacement per unit normal c (basis[c] * sigma_axes[c]);
+        components summed as in `_unit_disp`.
     smax : float, mm
     lmat, dmat, nbr, n_star : star tables (`build_star`); bin_start : `star_bin_starts`.
     err : ndarray, shape (3, >= n), T
@@ -1868,13 +1876,10 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
     int
         Number of trials in ``rest``.
     """
-    for t in range(n):  # same operation order as the scalar path: identical displacements
-        z0 = z[0, t]
-        z1 = z[1, t]
-        z2 = z[2, t]
-        dl[0, t] = smax * (0.0 + w[0, 0] * z0 + w[1, 0] * z1 + w[2, 0] * z2)
-        dl[1, t] = smax * (0.0 + w[0, 1] * z0 + w[1, 1] * z1 + w[2, 1] * z2)
-        dl[2, t] = smax * (0.0 + w[0, 2] * z0 + w[1, 2] * z1 + w[2, 2] * z2)
+    for t in range(n):
+        dl[0, t] = smax * _unit_disp(w, z, t, 0)
+        dl[1, t] = smax * _unit_disp(w, z, t, 1)
+        dl[2, t] = smax * _unit_disp(w, z, t, 2)
     d0s = dl[0]
     d1s = dl[1]
     d2s = dl[2]
@@ -1960,25 +1965,8 @@ def _node_gauss(
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
-    (
-        comp,
-        absb,
-        scratch,
-        zbuf,
-        okbuf,
-        cells,
-        lmat,
-        dmat,
-        nbr,
-        htab,
-        bin_start,
-        work,
-        dl,
-        ibuf,
-        rest,
-        code,
-        wmat,
-    ) = buffers
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, ibuf,
+     rest, code, wmat) = buffers  # fmt: skip
     d = coords.shape[1]
     n_up = scales.shape[0]
     kmax = 0
@@ -2019,10 +2007,10 @@ def _node_gauss(
         star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
     normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
     # place every trial in the star at the largest U_p; the others are listed in ``rest``
+    for c in range(3):  # mesh-frame displacement per unit normal (projected for planar maps)
+        for a in range(d):
+            wmat[c, a] = basis[c, a] * sigma_axes[c]
     if d == 3 and n_star > 0:
-        for c in range(3):
-            for a in range(3):
-                wmat[c, a] = basis[c, a] * sigma_axes[c]
         n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, bin_start,
                               comp[kmax], dl, ibuf, rest, code)  # fmt: skip
         if n_rest > 0:  # in-star errors to the front, in trial order
@@ -2040,10 +2028,7 @@ def _node_gauss(
         n_rest = 0
         for t in range(n_trials):
             for a in range(d):
-                acc = 0.0
-                for c in range(3):
-                    acc += basis[c, a] * sigma_axes[c] * zbuf[c, t]
-                delta[a] = smax * acc
+                delta[a] = smax * _unit_disp(wmat, zbuf, t, a)
             s = -1
             if n_star > 0:
                 s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
@@ -2069,11 +2054,8 @@ def _node_gauss(
         # |B| of in-star trials is filled in below)
         octant = 0
         for a in range(d):
-            acc = 0.0
-            for c in range(3):
-                acc += basis[c, a] * sigma_axes[c] * zbuf[c, t]
-            disp[a] = acc
-            if acc < 0.0:
+            disp[a] = _unit_disp(wmat, zbuf, t, a)
+            if disp[a] < 0.0:
                 octant |= 1 << a
         start = start_cells[g, octant]
         cell = start
@@ -2198,7 +2180,7 @@ def _gauss_buffers(n_up, n_trials, d):
         np.empty((2, n_trials), dtype=np.int64),
         np.empty(n_trials, dtype=np.int64),
         np.empty(n_trials, dtype=np.int64),
-        np.empty((3, 3)),
+        np.empty((3, d)),
     )
 
 

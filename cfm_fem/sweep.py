@@ -354,8 +354,7 @@ class SweepProblem:
                 self.scales_mm, int(self.trials), int(self.seed), float(self.coverage),
             )  # fmt: skip
 
-        parts = map_blocks(block, len(nodes), 32)
-        s, o, lost, star = (np.concatenate([q[j] for q in parts]) for j in range(4))
+        s, o, lost, star = map_blocks(block, len(nodes), 32)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
         return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 2, 3))
@@ -374,8 +373,7 @@ class SweepProblem:
                     h["strokes"], h["profiles"], float(self.coverage),
                 )  # fmt: skip
 
-            blocks = map_blocks(block, len(nodes), 16)
-            parts.append(tuple(np.concatenate([b[j] for b in blocks]) for j in range(4)))
+            parts.append(map_blocks(block, len(nodes), 16))
         stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
         pos = pos.reshape(len(nodes), len(HTM_PARTS), 2, 3)
         return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos

@@ -5,10 +5,12 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
+import numpy as np
 
 
-def map_blocks(work, n: int, block: int) -> list:
-    """``[work(i0, i1) for each block [i0, i1) of range(n)]``, in block order.
+def map_blocks(work, n: int, block: int) -> tuple:
+    """``work(i0, i1)`` for each block [i0, i1) of range(n); each returns a tuple of arrays,
+    and the blocks' arrays are concatenated in block order (axis 0).
 
     The blocks run on ``numba.get_num_threads()`` threads; ``work`` must release the GIL
     (a ``nogil`` kernel) for them to run at once. A numba ``prange`` would do the same, but a
@@ -17,7 +19,7 @@ def map_blocks(work, n: int, block: int) -> list:
 
     Parameters
     ----------
-    work : callable (int, int) -> object
+    work : callable (int, int) -> tuple of ndarray
     n : int
         Number of items.
     block : int
@@ -27,6 +29,8 @@ def map_blocks(work, n: int, block: int) -> list:
     # empty call, so the caller still gets results of the right shapes
     threads = min(numba.get_num_threads(), len(bounds))
     if threads <= 1:
-        return [work(i0, i1) for i0, i1 in bounds]
-    with ThreadPoolExecutor(threads) as pool:
-        return list(pool.map(lambda b: work(*b), bounds))
+        parts = [work(i0, i1) for i0, i1 in bounds]
+    else:
+        with ThreadPoolExecutor(threads) as pool:
+            parts = list(pool.map(lambda b: work(*b), bounds))
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
