@@ -1352,6 +1352,64 @@ def sort_values(a):
 #: Tails beyond mean -+ TAIL_SIGMAS * std are gathered first; 1.3 holds ~10 % of a normal sample,
 #: twice the 5 % the intervals need. Fewer than needed falls back to the whole sample (exact).
 TAIL_SIGMAS = 1.3
+#: Leading values whose mean and std place the tail thresholds (`sums_and_tails`).
+TAIL_PILOT = 512
+
+
+@nb.njit(**JIT)
+def sums_and_tails(x, n, scratch, end):
+    """Shifted sums of x[:n] and its two tails, in one pass.
+
+    Parameters
+    ----------
+    x : ndarray, shape (>= n,)
+    n : int
+    scratch : ndarray, shape (>= end,)
+        Receives the low tail at scratch[:n_lo] and the high tail at scratch[end - n_hi:end]
+        (unsorted); end >= n.
+    end : int
+
+    Returns
+    -------
+    shift, s1, s2 : float
+        shift = x[0]; s1, s2: sums of (x - shift) and its square, in index order.
+    n_lo, n_hi : int
+        Sizes of the tails: values <= t_lo and >= t_hi, t = mean -+ TAIL_SIGMAS std of the first
+        TAIL_PILOT values (no tails if those are constant). The thresholds only decide how much
+        is gathered, never a result: a caller needing the h extreme values takes the tail path
+        only when n_lo, n_hi >= h. t_lo < t_hi, so n_lo + n_hi <= n.
+    """
+    if n == 0:
+        return 0.0, 0.0, 0.0, 0, 0
+    shift = x[0]
+    m = min(n, TAIL_PILOT)
+    pm = 0.0
+    for i in range(m):
+        pm += x[i]
+    pm /= m
+    pv = 0.0
+    for i in range(m):
+        pv += (x[i] - pm) ** 2
+    ps = np.sqrt(pv / max(m - 1, 1))
+    t_lo = pm - TAIL_SIGMAS * ps
+    t_hi = pm + TAIL_SIGMAS * ps
+    if not t_lo < t_hi:  # constant pilot: no tails (the caller's whole-sample path), and never
+        t_lo = -np.inf  # a value in both tails, which would overlap in scratch
+        t_hi = np.inf
+    s1 = 0.0
+    s2 = 0.0
+    n_lo = 0
+    n_hi = 0
+    for i in range(n):  # branch-free gather, fused with the sums (one read of x)
+        v = x[i]
+        dv = v - shift
+        s1 += dv
+        s2 += dv * dv
+        scratch[n_lo] = v
+        n_lo += v <= t_lo
+        scratch[end - 1 - n_hi] = v
+        n_hi += v >= t_hi
+    return shift, s1, s2, n_lo, n_hi
 
 
 @nb.njit(**JIT)
@@ -1375,36 +1433,20 @@ def sample_stats(a, n, q, out, scratch):
     Notes
     -----
     Every order statistic the two intervals need lies among the h = n - q smallest or the h
-    largest values. Those are found by selection inside the tails beyond mean -+ 1.3 std (or in
-    the whole sample if a tail is too thin) and then sorted: O(n) instead of a full sort.
+    largest values. Those are taken from the tails beyond mean -+ 1.3 std (`sums_and_tails`;
+    selection in the whole sample if a tail is too thin) and then sorted: O(n), not a full sort.
     """
     if n < 2:
         for j in range(6):
             out[j] = np.nan
         return
     # one pass, shifted by the first value so the variance keeps its precision
-    shift = a[0]
-    s1 = 0.0
-    s2 = 0.0
-    for i in range(n):
-        x = a[i] - shift
-        s1 += x
-        s2 += x * x
+    shift, s1, s2, n_lo, n_hi = sums_and_tails(a, n, scratch, n)
     mean = shift + s1 / n
     std = np.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1))
     out[0] = mean
     out[1] = std
     h = n - q
-    t_lo = mean - TAIL_SIGMAS * std
-    t_hi = mean + TAIL_SIGMAS * std
-    n_lo = 0
-    n_hi = 0
-    for i in range(n):  # branch-free: low tail at the front of scratch, high tail at the back
-        x = a[i]
-        scratch[n_lo] = x
-        n_lo += x <= t_lo
-        scratch[n - 1 - n_hi] = x
-        n_hi += x >= t_hi
     if n_lo >= h and n_hi >= h and std > 0.0:
         # sorting a whole gathered tail (~2h values) costs less than selecting h of them first
         lo = scratch[:n_lo]
@@ -2113,30 +2155,11 @@ def _node_gauss(
         ybuf = work[3]
         for c in range(3):
             x = comp[kmax, c]
-            shift = x[0] if n_in > 0 else 0.0
-            s1 = 0.0
-            s2 = 0.0
-            for j in range(n_in):
-                dv = x[j] - shift
-                s1 += dv
-                s2 += dv * dv
-            # in-star tails beyond mean -+ TAIL_SIGMAS std, sorted (kept in scratch)
-            n_lo = 0
-            n_hi = 0
-            if n_in > 1:
-                mean = shift + s1 / n_in
-                std = np.sqrt(max(s2 - s1 * s1 / n_in, 0.0) / (n_in - 1))
-                t_lo = mean - TAIL_SIGMAS * std
-                t_hi = mean + TAIL_SIGMAS * std
-                for j in range(n_in):
-                    v = x[j]
-                    scratch[n_lo] = v
-                    n_lo += v <= t_lo
-                    scratch[n_trials - 1 - n_hi] = v
-                    n_hi += v >= t_hi
-                if not std > 0.0:
-                    n_lo = 0  # degenerate: take the exact whole-sample path
-                    n_hi = 0
+            # in-star sums and tails (the tails sorted, kept in scratch)
+            shift, s1, s2, n_lo, n_hi = sums_and_tails(x, n_in, scratch, n_trials)
+            if n_in < 2 or not s2 - s1 * s1 / n_in > 0.0:
+                n_lo = 0  # degenerate: take the exact whole-sample path
+                n_hi = 0
             lo_tail = scratch[:n_lo]
             hi_tail = scratch[n_trials - n_hi : n_trials]
             sort_values(lo_tail)

@@ -54,6 +54,10 @@ def test_sweep_normals_match_twin_and_are_standard_normal():
         np.random.default_rng(2).integers(0, 3, 1001).astype(float),  # ties
         np.random.default_rng(3).uniform(size=37),
         np.array([1.0, -1.0]),
+        # tail thresholds come from the first values: unrepresentative leading values must
+        # only change the path taken, never the result
+        np.sort(np.random.default_rng(4).normal(size=3000)),
+        np.r_[np.full(600, 0.5), np.random.default_rng(5).normal(size=2400)],
     ],
 )
 def test_sample_stats_matches_full_sort(sample):
@@ -61,6 +65,23 @@ def test_sample_stats_matches_full_sort(sample):
     out = np.empty(6)
     _kernels.sample_stats(a, len(a), _kernels.coverage_count(len(a), 0.95), out, np.empty(len(a)))
     np.testing.assert_allclose(out, twins.sample_stats(sample), rtol=1e-12, atol=1e-14)
+
+
+def test_sums_and_tails_one_pass():
+    x = np.random.default_rng(6).normal(3.0, 0.2, 4000)
+    scratch = np.full(5000, np.nan)
+    shift, s1, s2, n_lo, n_hi = _kernels.sums_and_tails(x, len(x), scratch, 5000)
+    d = x - x[0]
+    assert shift == x[0]
+    np.testing.assert_allclose([s1, s2], [d.sum(), (d * d).sum()], rtol=1e-12, atol=1e-12)
+    pilot = x[: _kernels.TAIL_PILOT]
+    t = pilot.mean() + np.array([-1, 1]) * _kernels.TAIL_SIGMAS * pilot.std(ddof=1)
+    # the tails are exactly the values beyond the pilot thresholds, in sample order
+    np.testing.assert_array_equal(scratch[:n_lo], x[x <= t[0]])
+    np.testing.assert_array_equal(scratch[5000 - n_hi :][::-1], x[x >= t[1]])
+    # ~9.7 % of a normal sample each side, within 5 binomial sigmas
+    assert abs(n_lo / len(x) - 0.0968) < 5 * np.sqrt(0.0968 * 0.9032 / len(x)) + 0.01
+    assert _kernels.sums_and_tails(x, 0, scratch, 0) == (0.0, 0.0, 0.0, 0, 0)
 
 
 def test_coverage_count_twin():
