@@ -1253,6 +1253,56 @@ def octant_cells(coords, node_cell, transform, neighbors, eps):
     return out
 
 
+@nb.njit(**JIT)
+def cell_gradient_sums(simplices, transform, values, n_nodes):
+    """Measure-weighted sums of the cell gradients of a piecewise-linear field, per node.
+
+    Parameters
+    ----------
+    simplices : ndarray, shape (m, d + 1), int
+    transform : ndarray, shape (m, d + 1, d)
+        scipy-layout barycentric transforms: rows j < d are grad(lambda_j), 1/mm.
+    values : ndarray, shape (n_nodes, 3), T
+    n_nodes : int
+
+    Returns
+    -------
+    acc : ndarray, shape (n_nodes, 3, d), T/mm x (1/|det T|)
+        Sum over the cells incident to each node of |1/det T| (proportional to the cell's
+        measure) times the cell's gradient [c, a] = dB_c/dx_a, in local coordinates.
+    wsum : ndarray, shape (n_nodes,)
+        Sum of those weights. A degenerate cell (NaN transform) makes its nodes' sums NaN.
+    """
+    m, k = simplices.shape
+    d = k - 1
+    acc = np.zeros((n_nodes, 3, d))
+    wsum = np.zeros(n_nodes)
+    cg = np.empty((3, d))
+    for s in range(m):
+        t = transform[s]
+        if d == 3:
+            det = (t[0, 0] * (t[1, 1] * t[2, 2] - t[1, 2] * t[2, 1])
+                   - t[0, 1] * (t[1, 0] * t[2, 2] - t[1, 2] * t[2, 0])
+                   + t[0, 2] * (t[1, 0] * t[2, 1] - t[1, 1] * t[2, 0]))  # fmt: skip
+        else:
+            det = t[0, 0] * t[1, 1] - t[0, 1] * t[1, 0]
+        w = abs(1.0 / det)
+        for c in range(3):
+            last = values[simplices[s, d], c]
+            for a in range(d):
+                g = 0.0
+                for j in range(d):  # grad(lambda_d) = -sum_j grad(lambda_j)
+                    g += (values[simplices[s, j], c] - last) * t[j, a]
+                cg[c, a] = g * w
+        for j in range(k):
+            v = simplices[s, j]
+            wsum[v] += w
+            for c in range(3):
+                for a in range(d):
+                    acc[v, c, a] += cg[c, a]
+    return acc, wsum
+
+
 # ---------------------------------------------------------------------------------------------
 # Order statistics without a full sort (O(n) per node instead of O(n log n)).
 # ---------------------------------------------------------------------------------------------

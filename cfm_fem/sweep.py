@@ -227,21 +227,9 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     ndarray, shape (n, 3, 3), T/mm
         ``[i, c, j] = dB_c/dx_j`` in the map frame (zero along the normal of a planar map).
     """
-    d = mesh.dim
-    n = len(mesh.coords)
-    acc = np.zeros((n, 3, d))
-    wsum = np.zeros(n)
-    block = 262_144  # cells at a time: the temporaries stay ~100 MB on million-node maps
-    for a in range(0, len(mesh.simplices), block):
-        simp = mesh.simplices[a : a + block]
-        T = mesh.transform[a : a + block, :d, :]  # (m, d, d): rows are grad(lambda_j), j < d
-        grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
-        cell_grad = np.einsum("mjc,mjk->mck", B[simp], grad_lam)  # (m, 3, d)
-        vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
-        cell_grad *= vol[:, None, None]
-        for j in range(d + 1):
-            np.add.at(acc, simp[:, j], cell_grad)
-            np.add.at(wsum, simp[:, j], vol)
+    acc, wsum = _kernels.cell_gradient_sums(
+        mesh.simplices, mesh.transform, np.ascontiguousarray(B, dtype=np.float64), len(mesh.coords)
+    )
     with np.errstate(invalid="ignore", divide="ignore"):
         acc /= wsum[:, None, None]
     return acc @ mesh.basis.T  # local -> map frame

@@ -307,3 +307,26 @@ def test_abs_b_statistics_on_a_kinked_field():
                                        rtol=1e-9, atol=1e-15)  # fmt: skip
         np.testing.assert_allclose(stats[0, k, 3], twins.sample_stats(absb), rtol=1e-7,
                                    atol=1e-15)  # fmt: skip
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_node_gradients_match_twin_and_are_exact_on_a_linear_field(planar):
+    from cfm_fem.sweep import node_gradients
+
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(-5, 5, (400, 3))
+    if planar:  # a tilted plane: gradients come back in the map frame, none along the normal
+        pts = np.c_[pts[:, :2], 0.3 * pts[:, 0] - 0.2 * pts[:, 1]]
+    G = np.array([[0.02, -0.01, 0.03], [0.005, 0.04, -0.02], [-0.03, 0.01, 0.015]])  # T/mm
+    for B in (pts @ G.T + [0.1, -0.2, 0.3], np.sin(pts) * 0.1):
+        mesh = build_mesh(FieldMap.from_arrays(pts, B), "delaunay")
+        got = node_gradients(mesh, B)
+        want = twins.node_gradients(mesh, B)
+        # the kernel differences vertex values, the twin sums them: rounding only
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    B = pts @ G.T
+    got = node_gradients(build_mesh(FieldMap.from_arrays(pts, B), "delaunay"), B)
+    if planar:  # the in-plane part of G: G projected on the plane
+        nrm = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+        G = G @ (np.eye(3) - np.outer(nrm, nrm))
+    np.testing.assert_allclose(got, np.broadcast_to(G, got.shape), rtol=1e-9, atol=1e-13)

@@ -131,3 +131,19 @@ def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95):
 
 def coverage_q(n, p=0.95):
     return coverage_count(n, p)
+
+
+def node_gradients(mesh, B):
+    """Twin of `cfm_fem.sweep.node_gradients` (numpy: einsum over cells, np.add.at per node)."""
+    d = mesh.dim
+    n = len(mesh.coords)
+    T = mesh.transform[:, :d, :]  # rows are grad(lambda_j), j < d
+    grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
+    cell_grad = np.einsum("mjc,mjk->mck", B[mesh.simplices], grad_lam)  # (m, 3, d)
+    vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
+    acc = np.zeros((n, 3, d))
+    wsum = np.zeros(n)
+    for j in range(d + 1):
+        np.add.at(acc, mesh.simplices[:, j], cell_grad * vol[:, None, None])
+        np.add.at(wsum, mesh.simplices[:, j], vol)
+    return (acc / wsum[:, None, None]) @ mesh.basis.T
