@@ -26,7 +26,6 @@ from ..io.recordings import read_hall_map, read_tracker
 from ..io.reference_field import read_reference
 from ..kinematics import uncertainty_budget
 from ..probe import HallProbe
-from ..report.runs import hall_report, tracker_report
 from ._progress import progress_bar
 from .coupled import add_common, check_common, load_bench
 
@@ -94,6 +93,8 @@ def _tracker(args, bench, bench_note) -> int:
     summary = tracker_summary(
         comp, bench, budget=uncertainty_budget(bench, comp.cmd), extra={"provenance": prov}
     )
+    from ..report.runs import tracker_report  # matplotlib: loaded only when used
+
     rep = tracker_report(comp, summary, args.command_line)
     files = {"compare.json": summary, "points.csv": tracker_points_csv(comp)}
     files.update(rep.images)
@@ -143,6 +144,8 @@ def _hall(args, bench, bench_note) -> int:
         args.command_line,
     )
     summary = hall_summary(comp, bench, field_budget=fb, extra={"provenance": prov})
+    from ..report.runs import hall_report
+
     rep = hall_report(comp, summary, args.command_line)
     files = {"compare.json": summary, "points.csv": hall_points_csv(comp)}
     files.update(rep.images)

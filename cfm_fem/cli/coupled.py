@@ -27,7 +27,6 @@ from ..io.provenance import provenance
 from ..io.reference_field import read_reference
 from ..kinematics import uncertainty_budget
 from ..probe import HallProbe
-from ..report.runs import coupled_report
 from ._progress import progress_bar
 
 NAME = "coupled"
@@ -210,6 +209,8 @@ def run(args) -> int:
         bench_budget=uncertainty_budget(bench, res.q_cmd),
         extra={"provenance": prov},
     )
+    from ..report.runs import coupled_report  # matplotlib: loaded only when used
+
     rep = coupled_report(res, summary, args.command_line)
     files = {"summary.json": summary, "points.csv": coupled_points_csv(res)}
     files.update(rep.images)

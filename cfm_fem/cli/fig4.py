@@ -14,7 +14,6 @@ from ..fig4 import fig4_summary, plane_nodes, run_fig4
 from ..io import read_field
 from ..io.compare_out import write_run
 from ..io.provenance import provenance
-from ..report.runs import fig4_report
 from ..sweep import parse_up_range
 from ._progress import progress_bar
 
@@ -59,6 +58,8 @@ def run(args) -> int:
     summary = fig4_summary(res)
     summary["provenance"] = provenance({"field": args.field}, args.command_line)
     pts, uf = plane_nodes(res)
+    from ..report.runs import fig4_report  # matplotlib: loaded only when used
+
     rep = fig4_report(summary, pts, uf, args.command_line)
     rows = ["U_p_um,nodes,p50_units,p95_units,max_units,analytic_units,paper_units"]
     for r in summary["table"]:
