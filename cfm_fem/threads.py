@@ -1,4 +1,4 @@
-"""Run a nogil numba kernel over blocks of items on a pool of threads."""
+"""Run GIL-releasing work (nogil numba kernels, VTK writers) on a pool of threads."""
 
 from __future__ import annotations
 
@@ -27,10 +27,17 @@ def map_blocks(work, n: int, block: int) -> tuple:
     """
     bounds = [(i, min(i + block, n)) for i in range(0, n, block)] or [(0, 0)]  # n = 0: one
     # empty call, so the caller still gets results of the right shapes
-    threads = min(numba.get_num_threads(), len(bounds))
-    if threads <= 1:
-        parts = [work(i0, i1) for i0, i1 in bounds]
-    else:
-        with ThreadPoolExecutor(threads) as pool:
-            parts = list(pool.map(lambda b: work(*b), bounds))
+    parts = map_threads(lambda b: work(*b), bounds)
     return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+
+
+def map_threads(func, items, threads: int | None = None) -> list:
+    """``[func(x) for x in items]``, on up to ``threads`` threads (default
+    ``numba.get_num_threads()``); results in the order of ``items``. The first exception
+    raised by ``func`` propagates once the running calls have ended."""
+    items = list(items)
+    threads = min(numba.get_num_threads() if threads is None else threads, len(items))
+    if threads <= 1:
+        return [func(x) for x in items]
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(func, items))
