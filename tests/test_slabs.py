@@ -77,8 +77,8 @@ def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         assert set(a) == set(b)
         for name in a:
             if "grad" in name or "gum_U95" in name:
-                # node_gradients' einsum rounds by memory alignment (numpy's SIMD loops), not
-                # by slab: 1 ulp either way, also between two in-memory runs
+                # node gradients sum a node's cells in mesh order, and a slab's mesh orders
+                # them differently from the whole map's: rounding only
                 np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
             else:  # every Monte Carlo figure: bit for bit
                 np.testing.assert_array_equal(a[name], b[name], err_msg=name)
