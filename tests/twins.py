@@ -141,9 +141,10 @@ def node_gradients(mesh, B):
     grad_lam = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)  # (m, d+1, d)
     cell_grad = np.einsum("mjc,mjk->mck", B[mesh.simplices], grad_lam)  # (m, 3, d)
     vol = np.abs(1.0 / np.linalg.det(T))  # proportional to the simplex measure
+    cell_grad *= vol[:, None, None]
     acc = np.zeros((n, 3, d))
     wsum = np.zeros(n)
     for j in range(d + 1):
-        np.add.at(acc, mesh.simplices[:, j], cell_grad * vol[:, None, None])
+        np.add.at(acc, mesh.simplices[:, j], cell_grad)
         np.add.at(wsum, mesh.simplices[:, j], vol)
     return (acc / wsum[:, None, None]) @ mesh.basis.T

@@ -92,16 +92,16 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
     summary = summarize(res)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
+    common = {
+        "B_ref_T": res.b_ref_T,
+        "trials": res.config.trials,
+        "seed": res.config.seed,
+        "provenance_utf8": provenance_codes(summary["provenance"]),
+    }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
 
     def write_map(k):
         path = out / vtu_name(res.labels[k])
-        fields = {
-            "U_p_um": ups[k],
-            "B_ref_T": res.b_ref_T,
-            "trials": res.config.trials,
-            "seed": res.config.seed,
-            "provenance_utf8": provenance_codes(summary["provenance"]),
-        }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
+        fields = {"U_p_um": ups[k], **common}
         write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
         return (ups[k] if res.config.mode == "gauss" else float(k), path)
 
