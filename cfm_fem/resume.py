@@ -187,7 +187,9 @@ class ResumableRun:
         def run(problem, chunks):
             chunks = [(int(a), int(b)) for a, b in chunks]
             present = set(self.check())
-            if not self.resume:
+            if self.resume:
+                self.store.remove_partial()  # a write cut short by the kill
+            else:
                 self.store.remove()
             self.store.write_manifest({"key": self.key, "run": self.description})
             todo = []

@@ -5,9 +5,10 @@ Layout of ``DIR/.cfm_fem_chunks/``::
     manifest.json              the run key and what it was computed from (written first)
     chunk_<start>_<stop>.npz   arrays of nodes start .. stop-1 and the run key
 
-Every file is written under a temporary name and renamed, so a killed run leaves only complete
-chunk files. What the arrays mean and when a store may be reused is decided by
-:mod:`cfm_fem.resume`; this module only reads and writes files.
+Every file is written under a hidden temporary name and renamed, so a chunk file is always
+complete. A run killed (SIGKILL) during a write cannot delete its temporary file; the next run
+that uses the store removes it (`ChunkStore.remove_partial`). What the arrays mean and when a
+store may be reused is decided by :mod:`cfm_fem.resume`; this module only reads and writes files.
 """
 
 from __future__ import annotations
@@ -77,6 +78,17 @@ class ChunkStore:
             if m:
                 found.append((int(m[1]), int(m[2])))
         return sorted(found)
+
+    def remove_partial(self) -> int:
+        """Delete temporary files left by a writer that was killed; return how many."""
+        if not self.exists():
+            return 0
+        removed = 0
+        for p in self.path.glob(".*"):
+            if p.is_file():
+                p.unlink(missing_ok=True)
+                removed += 1
+        return removed
 
     def save(self, start: int, stop: int, arrays: dict) -> None:
         """Write the arrays of one chunk atomically (uncompressed ``.npz``)."""
