@@ -982,7 +982,7 @@ def _reduce_sub(ev, m, sh, lo, top, out, mask):
 
 @nb.njit(**JIT)
 def _fused_window_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, shift, wlo, winv,
-                        top, red, acc, below, whist, bits, ev, ok, mask, idx):  # fmt: skip
+                        top, red, acc, below, whist, mark, bits, ev, ok, mask, idx):  # fmt: skip
     """Pass 1 of point i over the block rows k0 .. k0+m-1 (bitmap words from word0)."""
     _fast_values_run(terms, tkeys, k0, m, q[i, 0], q[i, 1], q[i, 2], sig[0], sig[1], sig[2],
                      fkey, pi, ev, ok, idx)  # fmt: skip
@@ -1009,19 +1009,22 @@ def _fused_window_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, shift, 
             e = b & 1
             y = _slot(ev[c, j], wlo[i, c, e], winv[i, c, e])
             if y >= 0.0 and y < nw:
-                whist[i, c, e, np.int64(y)] += 1
-                hit = True
-        if hit and bits.shape[1] > 0:
-            bits[i, word0 + (j >> 6)] |= np.uint64(1) << np.uint64(j & 63)
+                b = np.int64(y)
+                whist[i, c, e, b] += 1
+                hit |= (b >= mark[i, c, e, 0]) & (b <= mark[i, c, e, 1])
+        if bits.shape[1] > 0:  # branch-free: with marks, ``hit`` is a coin toss
+            bits[i, word0 + (j >> 6)] |= np.uint64(hit) << np.uint64(j & 63)
 
 
 @nb.njit(**PJIT)
 def pass_window_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, shift, wlo, winv, top, acc,
-                     below, whist, bits):  # fmt: skip
-    """Pass 1 on the hot path: same counts and bitmap as ``pass_window`` (sums to rounding).
+                     below, whist, mark, bits):  # fmt: skip
+    """Pass 1 on the hot path: same counts as ``pass_window`` (sums to rounding).
 
     Arguments as ``pass_window``; top (npts, 4, 2): values at and above which window (c, e)
-    cannot be hit (its upper edge plus one slot). t0 must be a multiple of 64.
+    cannot be hit (its upper edge plus one slot); mark (npts, 4, 2, 2) int64: the first and
+    last slot of window (c, e) whose hits mark the trial in ``bits`` (0, slots - 1: all, as
+    ``pass_window``). t0 must be a multiple of 64.
     """
     npts = q.shape[0]
     nchunk = min(npts, _N_CHUNKS)
@@ -1037,7 +1040,7 @@ def pass_window_fast(terms, t0, n, q, pidx, sig, tkeys, fkey, shift, wlo, winv, 
             for i in range(ch * per, min(npts, (ch + 1) * per)):
                 _fused_window_point(terms, tkeys, fkey, sig, q, i, pidx[i], k0, m,
                                     (t0 + k0) // 64, shift, wlo, winv, top, red, acc, below,
-                                    whist, bits, ev, ok, mask, idx)  # fmt: skip
+                                    whist, mark, bits, ev, ok, mask, idx)  # fmt: skip
 
 
 @nb.njit(inline="always", **JIT)

@@ -536,6 +536,13 @@ PILOT_SIGMAS = 4.0
 #: pass 1: 256 slots cost 17.6 ns per sample and core, 32 slots 13.0; pass 2 then keeps ~350
 #: values per end instead of ~45, which is nothing.
 WINDOW_SLOTS = 32
+#: Pass 1 marks every window hit of its first MARK_AFTER of the trials for pass 2; later hits
+#: only in the slots that hold the interval end with near certainty given those trials
+#: (`_likely_slots`, MARK_SIGMAS wide). A point whose end falls outside them is regenerated
+#: whole in pass 2 (~1/936 of a pass on the reference grid); at 5 sigma that almost never
+#: happens, and pass 2 regenerates about half the trials it would otherwise.
+MARK_AFTER = 0.25
+MARK_SIGMAS = 5.0
 
 
 def _terms_array(n):
@@ -628,14 +635,18 @@ class _Engine:
     def pilot(self, a, n, q, pidx, out):
         K.pass_pilot(self.model, a, n, q, pidx, out)
 
-    def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits=None):
+    def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits=None, mark=None):
+        """Pass 1 over trials a .. a+n-1. mark (npts, 4, 2, 2): slots whose hits set ``bits``
+        (default all; the hot path only)."""
         if bits is None:
             bits = np.zeros((q.shape[0], 0), dtype=np.uint64)
         if self.fast:
+            if mark is None:
+                mark = _all_slots(whist)
             top = wlo + (whist.shape[-1] + 1) / winv  # one slot of slack above each window
             g = self.g
             K.pass_window_fast(self.terms, a, n, q, pidx, g.sig, self.tkeys, self.fkey, shift,
-                               wlo, winv, top, acc, below, whist, bits)  # fmt: skip
+                               wlo, winv, top, acc, below, whist, mark, bits)  # fmt: skip
         else:
             K.pass_window(self.model, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
 
@@ -664,6 +675,34 @@ class _Engine:
 
     def capture(self, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
         K.pass_capture(self.model, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf)
+
+
+def _all_slots(whist):
+    """Mark range of every slot of every window (npts, 4, 2, 2)."""
+    mark = np.zeros(whist.shape[:3] + (2,), dtype=np.int64)
+    mark[..., 1] = whist.shape[-1] - 1
+    return mark
+
+
+def _likely_slots(ranks, total, seen, below, whist):
+    """Slots that hold each final order statistic with near certainty, from the counts of the
+    first ``seen`` of ``total`` trials (npts, 4, 2, 2: first and last slot).
+
+    The number of the first ``seen`` values at or below the final order statistic of rank r is
+    hypergeometric, mean seen r / total; the range spans MARK_SIGMAS of its standard deviation
+    plus one value either side, and one slot either side."""
+    r = np.asarray(ranks, dtype=np.float64)[None, None, :]
+    f = seen / total
+    sd = np.sqrt(seen * (r / total) * (1 - r / total) * (1 - f))
+    lo = np.maximum(r * f - MARK_SIGMAS * sd - 1, 0.0)
+    hi = r * f + MARK_SIGMAS * sd + 1
+    cum = below[..., None] + np.cumsum(whist, axis=-1)  # values at or below each slot's top
+    w = whist.shape[-1]
+    mark = np.empty(whist.shape[:3] + (2,), dtype=np.int64)
+    # first slot whose top holds >= lo values; last slot whose bottom holds < hi values
+    mark[..., 0] = np.sum(cum < lo[..., None], axis=-1) - 1
+    mark[..., 1] = np.sum((cum - whist) < hi[..., None], axis=-1)
+    return np.clip(mark, 0, w - 1)
 
 
 def _locate(ranks, below, whist):
@@ -718,7 +757,8 @@ def run_kinematics(
        p_end -+ PILOT_SIGMAS binomial standard deviations, read conservatively from a histogram
        of the pilot); pass 1 counts, over all trials, the values below each window and those in each
        of its ``window_slots`` slots, and marks (one bit per point and trial) the trials that
-       put a value in some window;
+       put a value in some window (after the first ``MARK_AFTER`` of the trials, only in the
+       slots that then hold the end with near certainty, `_likely_slots`);
     2. the counts give the slot holding each order statistic and its rank in the slot; pass 2
        regenerates the marked trials only (counter-based RNG: the same numbers; an unmarked
        trial cannot fall in a slot) and keeps the values of the target slots, which are then
@@ -793,11 +833,14 @@ def run_kinematics(
     bits = np.zeros((npts, words if use_bits else 0), dtype=np.uint64)
     # keep each block's terms and keys for pass 2 when they fit (about 180 MB per 1e6 trials)
     eng.keep_blocks = exact and adaptive_digits is None and int(trials) * 176 <= KEPT_BYTES
+    mark = None  # all slots mark, until the first MARK_AFTER of the trials have been seen
     if adaptive_digits is None:
         total = int(trials)
         for a, b in _blocks(0, total, block):
+            if use_bits and mark is None and a >= MARK_AFTER * total:
+                mark = _likely_slots(symmetric_ranks(total, p), total, a, below, whist)
             n = eng.prepare(a, b)
-            eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
+            eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits, mark)
             if progress is not None:
                 progress(n)
     else:
@@ -812,6 +855,14 @@ def run_kinematics(
     ranks = symmetric_ranks(total, p)
     slot, within = _locate(ranks, below, whist)
     bit_rows = np.full(npts, use_bits)  # points whose bitmap still covers their windows
+    if mark is not None:  # an end outside its marked slots: that point is regenerated whole
+        outside = np.any((slot < mark[..., 0]) | (slot > mark[..., 1]), axis=(1, 2))
+        if np.any(outside & bit_rows):
+            notes.append(
+                f"{int(np.count_nonzero(outside & bit_rows))} point(s) whose interval end fell "
+                "outside the slots marked in pass 1 were regenerated whole in pass 2"
+            )
+        bit_rows &= ~outside
     widened = 0
     while np.any(slot < 0):  # a window missed its order statistic: widen, re-count those points
         sel = np.unique(np.nonzero(slot < 0)[0])

@@ -280,6 +280,28 @@ def test_streaming_statistics_are_exact(bench):
         np.testing.assert_allclose(v[:, :3, t], ref, atol=1e-12)
 
 
+def test_pass_two_marks_only_the_likely_slots_and_stays_exact(bench, monkeypatch):
+    q = bench.grid_points()[::37]
+    seen = []
+
+    def spy(*args):
+        mark = likely(*args)
+        seen.append(mark)
+        return mark
+
+    likely = kin._likely_slots
+    monkeypatch.setattr(kin, "_likely_slots", spy)
+    # a pilot much smaller than the trials seen when marking starts (8192), as in a full run
+    _check_against_brute_force(bench, q, 5 * 4096, seed=3, pilot=1024)
+    (mark,) = seen
+    width = mark[..., 1] - mark[..., 0] + 1
+    assert np.all(width >= 3) and np.mean(width) < 0.6 * kin.WINDOW_SLOTS, np.mean(width)
+    # marks that cannot hold the ends: every point is regenerated whole, still exact
+    monkeypatch.setattr(kin, "MARK_SIGMAS", -1e9)
+    res, _ = _check_against_brute_force(bench, q, 5 * 4096, seed=3, pilot=1024)
+    assert f"{len(q)} point(s) whose interval end fell outside" in " ".join(res.notes)
+
+
 def test_windows_missed_by_a_tiny_pilot_are_recounted(bench):
     q = bench.grid_points()[::101]
     res, _ = _check_against_brute_force(bench, q, 2000, seed=9, pilot=3, window_slots=8)
