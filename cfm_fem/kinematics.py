@@ -833,12 +833,14 @@ def run_kinematics(
     bits = np.zeros((npts, words if use_bits else 0), dtype=np.uint64)
     # keep each block's terms and keys for pass 2 when they fit (about 180 MB per 1e6 trials)
     eng.keep_blocks = exact and adaptive_digits is None and int(trials) * 176 <= KEPT_BYTES
-    mark = None  # all slots mark, until the first MARK_AFTER of the trials have been seen
+    mark = _all_slots(whist)  # until the first MARK_AFTER of the trials have been seen
+    narrowed = False
     if adaptive_digits is None:
         total = int(trials)
         for a, b in _blocks(0, total, block):
-            if use_bits and mark is None and a >= MARK_AFTER * total:
+            if use_bits and not narrowed and a >= MARK_AFTER * total:
                 mark = _likely_slots(symmetric_ranks(total, p), total, a, below, whist)
+                narrowed = True
             n = eng.prepare(a, b)
             eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits, mark)
             if progress is not None:
@@ -855,7 +857,7 @@ def run_kinematics(
     ranks = symmetric_ranks(total, p)
     slot, within = _locate(ranks, below, whist)
     bit_rows = np.full(npts, use_bits)  # points whose bitmap still covers their windows
-    if mark is not None:  # an end outside its marked slots: that point is regenerated whole
+    if narrowed:  # an end outside its marked slots: that point is regenerated whole
         outside = np.any((slot < mark[..., 0]) | (slot > mark[..., 1]), axis=(1, 2))
         if np.any(outside & bit_rows):
             notes.append(
