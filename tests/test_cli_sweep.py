@@ -132,6 +132,21 @@ def test_top_level_help_lists_every_command(capsys):
     assert "sweep" in out and "U_f maps (95 %)" in out
 
 
+def test_help_does_not_import_the_numerics():
+    """``--help`` and option errors build the parser only: numba, scipy and pyvista are imported
+    by the command that runs (fresh interpreter: this one has imported them already)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from cfm_fem.cli import build_parser; build_parser(); "
+        "print(' '.join(m for m in ('numba', 'scipy', 'pyvista', 'meshio', 'dask') "
+        "if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == ""
+
+
 def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch, capsys):
     import cfm_fem.cli.kinematics as kin
 

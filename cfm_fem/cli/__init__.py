@@ -3,7 +3,9 @@
 Parsing, progress, messages and exit codes live here only.
 
 Each subcommand is a module in this package with ``NAME``, ``HELP``, ``add_args(parser)`` and
-``run(args) -> int``; add it to ``_COMMANDS`` below.
+``run(args) -> int``; add it to ``_COMMANDS`` below. A command module imports the numerics
+(numba, scipy, pyvista, ...) inside the functions that run, not at the top: ``--help`` and
+option errors then answer in ~0.2 s instead of ~1 s.
 """
 
 from __future__ import annotations

@@ -11,21 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from ..compare import compare_hall, compare_tracker
-from ..coupled import field_budget
 from ..errors import CfmInputError
-from ..io.compare_out import (
-    hall_points_csv,
-    hall_summary,
-    tracker_points_csv,
-    tracker_summary,
-    write_run,
-)
-from ..io.provenance import provenance
-from ..io.recordings import read_hall_map, read_tracker
-from ..io.reference_field import read_reference
-from ..kinematics import uncertainty_budget
-from ..probe import HallProbe
 from ._progress import progress_bar
 from .coupled import add_common, check_common, load_bench
 
@@ -73,6 +59,12 @@ def run(args) -> int:
 
 
 def _tracker(args, bench, bench_note) -> int:
+    from ..compare import compare_tracker
+    from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
+    from ..io.provenance import provenance
+    from ..io.recordings import read_tracker
+    from ..kinematics import uncertainty_budget
+
     rec = read_tracker(args.tracker)
     print(
         f"cfm-fem compare: {args.tracker}: {len(rec)} readings; {args.trials} trials",
@@ -106,6 +98,14 @@ def _tracker(args, bench, bench_note) -> int:
 
 
 def _hall(args, bench, bench_note) -> int:
+    from ..compare import compare_hall
+    from ..coupled import field_budget
+    from ..io.compare_out import hall_points_csv, hall_summary, write_run
+    from ..io.provenance import provenance
+    from ..io.recordings import read_hall_map
+    from ..io.reference_field import read_reference
+    from ..probe import HallProbe
+
     rec = read_hall_map(args.hall_map)
     ref = read_reference(args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
     probe = HallProbe(model=args.probe)

@@ -8,26 +8,15 @@ DIR/points.csv (per point and component), DIR/report.html and its PNG figures.
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..coupled import (
-    PAPER_TABLE_V,
-    FieldModel,
-    centred_on_travel,
-    default_region,
-    field_budget,
-    run_coupled,
-)
 from ..errors import CfmInputError
-from ..io.bench_toml import read_bench, read_reference_bench
-from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
-from ..io.harmonics import qfdp4_path, read_qfdp4
-from ..io.provenance import provenance
-from ..io.reference_field import read_reference
-from ..kinematics import uncertainty_budget
-from ..probe import HallProbe
 from ._progress import progress_bar
+
+if TYPE_CHECKING:
+    from ..coupled import FieldModel
 
 NAME = "coupled"
 HELP = "field error E_f from positioning and probe together (eq. 12-14): Table V"
@@ -123,6 +112,9 @@ def check_common(args):
 
 def load_bench(args):
     """The bench (reference bench by default), centred when ``--centre-magnet``; and a note."""
+    from ..coupled import centred_on_travel
+    from ..io.bench_toml import read_bench, read_reference_bench
+
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.centre_magnet:
         return centred_on_travel(bench), "magnet moved to mid-travel of X and Y (--centre-magnet)"
@@ -137,6 +129,8 @@ def _parse_z(text):
 
 
 def _region(args, fm: FieldModel):
+    from ..coupled import default_region
+
     z = None if args.z is None else _parse_z(args.z)
     if fm.multipole is not None:
         r = fm.multipole.r_ref if args.radius is None else args.radius
@@ -161,6 +155,14 @@ def _region(args, fm: FieldModel):
 
 
 def run(args) -> int:
+    from ..coupled import FieldModel, field_budget, run_coupled
+    from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
+    from ..io.harmonics import qfdp4_path, read_qfdp4
+    from ..io.provenance import provenance
+    from ..io.reference_field import read_reference
+    from ..kinematics import uncertainty_budget
+    from ..probe import HallProbe
+
     check_common(args)
     bench, bench_note = load_bench(args)
     if args.field is None:
@@ -223,6 +225,8 @@ def run(args) -> int:
 
 def print_table_v(s: dict) -> None:
     """Table V of this run beside the paper's, with B_ref, R_ref and the region."""
+    from ..coupled import PAPER_TABLE_V
+
     t = s["table_v"]["simulated"]
     print(f"E_f [units of 1e-4 B_ref], B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']})")
     print(f"region: {s['region']}; {s['trials']} trials, seed {s['seed']}, align {s['align']}")

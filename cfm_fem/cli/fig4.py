@@ -10,11 +10,6 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
-from ..fig4 import fig4_summary, plane_nodes, run_fig4
-from ..io import read_field
-from ..io.compare_out import write_run
-from ..io.provenance import provenance
-from ..sweep import parse_up_range
 from ._progress import progress_bar
 
 NAME = "fig4"
@@ -42,6 +37,12 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..fig4 import fig4_summary, plane_nodes, run_fig4
+    from ..io import read_field
+    from ..io.compare_out import write_run
+    from ..io.provenance import provenance
+    from ..sweep import parse_up_range
+
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)

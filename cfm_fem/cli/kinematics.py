@@ -10,12 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from ..distributed import dask_client, run_kinematics_dask
 from ..errors import CfmInputError
-from ..io.bench_toml import read_bench, read_reference_bench
-from ..io.kinematics_out import PAPER_TABLE_IV, kinematics_summary, write_kinematics
-from ..io.provenance import provenance
-from ..kinematics import gum_check, run_kinematics, uncertainty_budget
 from ._progress import progress_bar
 from .sweep import add_scale_out_args
 
@@ -52,6 +47,12 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..distributed import dask_client, run_kinematics_dask
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.kinematics_out import kinematics_summary, write_kinematics
+    from ..io.provenance import provenance
+    from ..kinematics import gum_check, run_kinematics, uncertainty_budget
+
     if args.adaptive is None and args.trials < 2:
         raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
     if args.adaptive is not None and not 1 <= args.adaptive <= 4:
@@ -119,6 +120,8 @@ def run(args) -> int:
 
 def print_table_iv(s: dict) -> None:
     """Print the pooled result beside the paper's Table IV, then the assumptions."""
+    from ..io.kinematics_out import PAPER_TABLE_IV
+
     sim = PAPER_TABLE_IV["simulation"]
     exp = PAPER_TABLE_IV["experiment"]
     print(

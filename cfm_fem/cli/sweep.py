@@ -9,15 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..distributed import dask_chunk_map, dask_client
 from ..errors import CfmInputError
-from ..io import read_field
-from ..io.bench_toml import read_bench, read_reference_bench
-from ..io.provenance import file_sha256, provenance
-from ..io.sweep_out import write_sweep, write_sweep_pieces
-from ..pieces import run_sweep_pieces
-from ..resume import ResumableRun, describe_sweep
-from ..sweep import SweepConfig, chunk_ranges, parse_up_range, run_sweep
 from . import interrupted
 from ._progress import progress_bar
 
@@ -171,8 +163,10 @@ def _size(text) -> float:
 
 def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
+    from ..io.provenance import provenance
     from ..io.streaming import is_streamable
     from ..slabs import run_slab_sweep
+    from ..sweep import SweepConfig
 
     if args.slabs is not None and args.slabs < 1:
         raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
@@ -243,6 +237,15 @@ def _check_up_count(text):
 
 
 def run(args) -> int:
+    from ..distributed import dask_chunk_map, dask_client
+    from ..io import read_field
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.provenance import file_sha256, provenance
+    from ..io.sweep_out import write_sweep, write_sweep_pieces
+    from ..pieces import run_sweep_pieces
+    from ..resume import ResumableRun, describe_sweep
+    from ..sweep import SweepConfig, chunk_ranges, parse_up_range, run_sweep
+
     _check_up_count(args.up)
     up = parse_up_range(args.up)
     if len(up) > MAX_UP_VALUES:

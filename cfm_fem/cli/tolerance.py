@@ -12,10 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CfmInputError
-from ..io._atomic import write_json
-from ..io.bench_toml import read_bench, read_reference_bench, write_bench
-from ..io.kinematics_out import bench_description
-from ..kinematics import design_tolerances, run_kinematics
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
@@ -58,6 +54,11 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..io._atomic import write_json
+    from ..io.bench_toml import read_bench, read_reference_bench, write_bench
+    from ..io.kinematics_out import bench_description
+    from ..kinematics import design_tolerances, run_kinematics
+
     if args.check < 0 or args.check == 1:
         raise CfmInputError(f"--check must be 0 or >= 2 trials; got {args.check}")
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
