@@ -28,7 +28,6 @@ __all__ = [
     "run_sweep",
     "summarize",
     "node_gradients",
-    "parse_up_range",
 ]
 
 COMPONENTS = _kernels.COMPONENTS
@@ -189,29 +188,6 @@ class SweepResult:
             # where the linearisation does not exist (|B| = 0) the GUM cannot give the result
             disagree = (d_max > tol) | (np.isnan(gum_u) & np.isfinite(u_mc) & (u_mc > 0))
         return d_max, tol, disagree
-
-
-def parse_up_range(text: str) -> list[float]:
-    """Parse ``START:STOP:STEP`` (STOP included) or a comma list of U_p values in um."""
-    try:
-        if ":" in text:
-            parts = [float(v) for v in text.split(":")]
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, step = parts
-            if step <= 0 or stop < start:
-                raise ValueError
-            n = int(np.floor((stop - start) / step + 1e-9)) + 1
-            values = [start + i * step for i in range(n)]
-        else:
-            values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise CfmInputError(
-            f"--up must be START:STOP:STEP with STEP > 0 or a comma list of um; got {text!r}"
-        ) from None
-    if not values or any(not np.isfinite(v) or v < 0 for v in values):
-        raise CfmInputError(f"--up values must be finite and >= 0 um; got {text!r}")
-    return values
 
 
 def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:

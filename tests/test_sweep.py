@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from cfm_fem import CfmInputError, FieldMap
-from cfm_fem.sweep import SweepConfig, parse_up_range, run_sweep, summarize
+from cfm_fem.cli.sweep import parse_up_range
+from cfm_fem.sweep import SweepConfig, run_sweep, summarize
 
 Z = 1.959963984540054
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm

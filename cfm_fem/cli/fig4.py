@@ -11,6 +11,7 @@ import sys
 
 from ..errors import CfmInputError
 from ._progress import progress_bar
+from .sweep import parse_up_range
 
 NAME = "fig4"
 HELP = "Fig. 4 analogue: U_f (95 %%) against U_p on an FEM map, table and plots"
@@ -41,7 +42,6 @@ def run(args) -> int:
     from ..io import read_field
     from ..io.compare_out import write_run
     from ..io.provenance import provenance
-    from ..sweep import parse_up_range
 
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")

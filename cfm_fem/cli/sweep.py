@@ -6,6 +6,7 @@ axis) and DIR/summary.json.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -220,6 +221,29 @@ def add_scale_out_args(p):
     )
 
 
+def parse_up_range(text: str) -> list[float]:
+    """Parse ``START:STOP:STEP`` (STOP included) or a comma list of U_p values in um."""
+    try:
+        if ":" in text:
+            parts = [float(v) for v in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, step = parts
+            if step <= 0 or stop < start:
+                raise ValueError
+            n = int(math.floor((stop - start) / step + 1e-9)) + 1
+            values = [start + i * step for i in range(n)]
+        else:
+            values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise CfmInputError(
+            f"--up must be START:STOP:STEP with STEP > 0 or a comma list of um; got {text!r}"
+        ) from None
+    if not values or any(not math.isfinite(v) or v < 0 for v in values):
+        raise CfmInputError(f"--up values must be finite and >= 0 um; got {text!r}")
+    return values
+
+
 def _check_up_count(text):
     """Refuse START:STOP:STEP ranges with more than MAX_UP_VALUES values before expanding them."""
     parts = text.split(":")
@@ -237,15 +261,6 @@ def _check_up_count(text):
 
 
 def run(args) -> int:
-    from ..distributed import dask_chunk_map, dask_client
-    from ..io import read_field
-    from ..io.bench_toml import read_bench, read_reference_bench
-    from ..io.provenance import file_sha256, provenance
-    from ..io.sweep_out import write_sweep, write_sweep_pieces
-    from ..pieces import run_sweep_pieces
-    from ..resume import ResumableRun, describe_sweep
-    from ..sweep import SweepConfig, chunk_ranges, parse_up_range, run_sweep
-
     _check_up_count(args.up)
     up = parse_up_range(args.up)
     if len(up) > MAX_UP_VALUES:
@@ -254,6 +269,16 @@ def run(args) -> int:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
     if args.pieces is not None and args.pieces < 1:
         raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
+    # the options are checked before the numerics are imported: a typo is answered at once
+    from ..distributed import dask_chunk_map, dask_client
+    from ..io import read_field
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.provenance import file_sha256, provenance
+    from ..io.sweep_out import write_sweep, write_sweep_pieces
+    from ..pieces import run_sweep_pieces
+    from ..resume import ResumableRun, describe_sweep
+    from ..sweep import SweepConfig, chunk_ranges, run_sweep
+
     if args.slabs is not None or args.max_memory is not None:  # issue 6: out of core
         rc = _run_slabs(args, up)
         if rc is not None:
