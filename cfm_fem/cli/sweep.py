@@ -222,49 +222,40 @@ def add_scale_out_args(p):
 
 
 def parse_up_range(text: str) -> list[float]:
-    """Parse ``START:STOP:STEP`` (STOP included) or a comma list of U_p values in um."""
+    """Parse ``START:STOP:STEP`` (STOP included) or a comma list of U_p values in um; at most
+    MAX_UP_VALUES of them (a range is counted before it is expanded: a typo such as 0:50:1e-9
+    must not exhaust the memory)."""
+    bad = CfmInputError(
+        f"--up must be START:STOP:STEP with STEP > 0 or a comma list of um; got {text!r}"
+    )
     try:
-        if ":" in text:
-            parts = [float(v) for v in text.split(":")]
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, step = parts
-            if step <= 0 or stop < start:
-                raise ValueError
-            n = int(math.floor((stop - start) / step + 1e-9)) + 1
-            values = [start + i * step for i in range(n)]
-        else:
-            values = [float(v) for v in text.split(",")]
+        parts = [float(v) for v in text.split(":" if ":" in text else ",")]
     except ValueError:
-        raise CfmInputError(
-            f"--up must be START:STOP:STEP with STEP > 0 or a comma list of um; got {text!r}"
-        ) from None
+        raise bad from None
+    if ":" in text:
+        if len(parts) != 3 or not (parts[2] > 0 and parts[1] >= parts[0]):
+            raise bad
+        start, stop, step = parts
+        count = (stop - start) / step + 1
+        if count > MAX_UP_VALUES:
+            raise CfmInputError(
+                f"--up {text} asks for {count:.3g} U_p values; expected at most "
+                f"{MAX_UP_VALUES} (is STEP in um?)"
+            )
+        values = [start + i * step for i in range(int(math.floor(count - 1 + 1e-9)) + 1)]
+    else:
+        values = parts
     if not values or any(not math.isfinite(v) or v < 0 for v in values):
         raise CfmInputError(f"--up values must be finite and >= 0 um; got {text!r}")
+    if len(values) > MAX_UP_VALUES:
+        raise CfmInputError(
+            f"--up gives {len(values)} U_p values; expected at most {MAX_UP_VALUES}"
+        )
     return values
 
 
-def _check_up_count(text):
-    """Refuse START:STOP:STEP ranges with more than MAX_UP_VALUES values before expanding them."""
-    parts = text.split(":")
-    if len(parts) != 3:
-        return
-    try:
-        start, stop, step = (float(v) for v in parts)
-    except ValueError:
-        return  # parse_up_range gives the message
-    if step > 0 and stop >= start and (stop - start) / step + 1 > MAX_UP_VALUES:
-        raise CfmInputError(
-            f"--up {text} asks for {(stop - start) / step + 1:.3g} U_p values; expected at most "
-            f"{MAX_UP_VALUES} (is STEP in um?)"
-        )
-
-
 def run(args) -> int:
-    _check_up_count(args.up)
     up = parse_up_range(args.up)
-    if len(up) > MAX_UP_VALUES:
-        raise CfmInputError(f"--up gives {len(up)} U_p values; expected at most {MAX_UP_VALUES}")
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
     if args.pieces is not None and args.pieces < 1:
