@@ -96,6 +96,22 @@ def test_border_nodes_lose_about_half_their_trials_and_are_reported():
     assert 0 < s["outside_fraction"][0] < 0.5
 
 
+def test_the_printed_summary_says_where_outside_trials_come_from(capsys):
+    """The CLI's line on 'outside' names the nodes that lost trials and their mean loss, from
+    the summary alone; checked against the per-node counts of the run."""
+    from cfm_fem.cli.sweep import _explain_outside
+
+    fm = grid_map(5)
+    res = run_sweep(fm, SweepConfig(up_um=[0.0, 20.0, 50.0], trials=1000, seed=4))
+    lost = res.n_outside[:, 2] > 0
+    want_share = res.n_outside[lost, 2].sum() / (lost.sum() * 1000)
+    _explain_outside(summarize(res))
+    line = " ".join(capsys.readouterr().out.split())  # the message is wrapped at 100 columns
+    assert f"At U_p = 50 um they come from the {lost.sum()} nodes without a U_f figure" in line
+    assert f"lost {100 * want_share:.0f} % of their trials" in line
+    assert lost.sum() == 98  # the surface of a 5 x 5 x 5 grid, and no other node
+
+
 def test_planar_map_covers_in_plane_displacements_only():
     uv = np.stack(np.meshgrid(np.arange(9.0), np.arange(9.0), indexing="ij"), -1).reshape(-1, 2)
     pts = np.c_[uv[:, 0], np.full(len(uv), 3.0), uv[:, 1]]  # plane y = 3

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+import textwrap
 from pathlib import Path
 
 from ..errors import CfmInputError
@@ -381,6 +382,22 @@ def _backend(args) -> str:
     return "this process (numba threads)"
 
 
+def _explain_outside(s):
+    """Why 'outside' barely moves with U_p: say where the lost trials come from (largest U_p)."""
+    k = max(range(len(s["up_um"])), key=lambda j: s["up_um"][j])
+    losing = s["nodes"] - s["uf_nodes"][k]
+    if s["outside_fraction"][k] <= 0 or losing <= 0 or any(s["walk_failed_fraction"]):
+        return
+    share = s["outside_fraction"][k] * s["nodes"] / losing
+    text = (
+        f"outside: perturbed points that left the map (never extrapolated). At U_p = "
+        f"{s['up_um'][k]:g} um they come from the {losing} nodes without a U_f figure, which "
+        f"lost {100 * share:.0f} % of their trials on average: nodes on the map's surface lose "
+        "about half of them whatever U_p is, so this fraction hardly grows with U_p"
+    )
+    print(textwrap.fill(text, width=100, subsequent_indent="  "))
+
+
 def _print_summary(s, out):
     print(f"interpolation: {s['interpolation']}")
     print(
@@ -401,6 +418,8 @@ def _print_summary(s, out):
         )
     if s["mode"] == "htm":
         print("(htm: U_p is the RMS over nodes of the 3-D probe position error of that column)")
+    else:
+        _explain_outside(s)
     for note in s["notes"]:
         print(f"note: {note}")
     if "slabs" in s:
