@@ -1157,6 +1157,8 @@ def locate(p, start, transform, neighbors, bary):
     s = start
     if s < 0:
         return OUTSIDE
+    if d == 3:
+        return _locate3(p[0], p[1], p[2], s, transform, neighbors, bary)
     for _ in range(MAX_WALK):
         last = 1.0
         for j in range(d):
@@ -1171,6 +1173,39 @@ def locate(p, start, transform, neighbors, bary):
             if bary[j] < bary[jmin]:
                 jmin = j
         if bary[jmin] >= -BARY_EPS:
+            return s
+        s = neighbors[s, jmin]
+        if s < 0:
+            return OUTSIDE
+    return WALK_FAILED
+
+
+@nb.njit(inline="always", **JIT)
+def _locate3(p0, p1, p2, s, transform, neighbors, bary):
+    """`locate` written out for d = 3, start s >= 0: the same sums in the same order and the
+    same face (the first most negative coordinate), chosen by selects instead of branches
+    whose outcome is a coin toss at every step."""
+    for _ in range(MAX_WALK):
+        b0 = 0.0 + transform[s, 0, 0] * (p0 - transform[s, 3, 0])
+        b0 += transform[s, 0, 1] * (p1 - transform[s, 3, 1])
+        b0 += transform[s, 0, 2] * (p2 - transform[s, 3, 2])
+        b1 = 0.0 + transform[s, 1, 0] * (p0 - transform[s, 3, 0])
+        b1 += transform[s, 1, 1] * (p1 - transform[s, 3, 1])
+        b1 += transform[s, 1, 2] * (p2 - transform[s, 3, 2])
+        b2 = 0.0 + transform[s, 2, 0] * (p0 - transform[s, 3, 0])
+        b2 += transform[s, 2, 1] * (p1 - transform[s, 3, 1])
+        b2 += transform[s, 2, 2] * (p2 - transform[s, 3, 2])
+        b3 = 1.0 - b0 - b1 - b2
+        m01 = min(b0, b1)
+        m23 = min(b2, b3)
+        j01 = 1 if b1 < b0 else 0
+        j23 = 3 if b3 < b2 else 2
+        jmin = j23 if m23 < m01 else j01
+        if min(m01, m23) >= -BARY_EPS:
+            bary[0] = b0
+            bary[1] = b1
+            bary[2] = b2
+            bary[3] = b3
             return s
         s = neighbors[s, jmin]
         if s < 0:
