@@ -1186,15 +1186,12 @@ def _locate3(p0, p1, p2, s, transform, neighbors, bary):
     same face (the first most negative coordinate), chosen by selects instead of branches
     whose outcome is a coin toss at every step."""
     for _ in range(MAX_WALK):
-        b0 = 0.0 + transform[s, 0, 0] * (p0 - transform[s, 3, 0])
-        b0 += transform[s, 0, 1] * (p1 - transform[s, 3, 1])
-        b0 += transform[s, 0, 2] * (p2 - transform[s, 3, 2])
-        b1 = 0.0 + transform[s, 1, 0] * (p0 - transform[s, 3, 0])
-        b1 += transform[s, 1, 1] * (p1 - transform[s, 3, 1])
-        b1 += transform[s, 1, 2] * (p2 - transform[s, 3, 2])
-        b2 = 0.0 + transform[s, 2, 0] * (p0 - transform[s, 3, 0])
-        b2 += transform[s, 2, 1] * (p1 - transform[s, 3, 1])
-        b2 += transform[s, 2, 2] * (p2 - transform[s, 3, 2])
+        x0 = p0 - transform[s, 3, 0]
+        x1 = p1 - transform[s, 3, 1]
+        x2 = p2 - transform[s, 3, 2]
+        b0 = 0.0 + transform[s, 0, 0] * x0 + transform[s, 0, 1] * x1 + transform[s, 0, 2] * x2
+        b1 = 0.0 + transform[s, 1, 0] * x0 + transform[s, 1, 1] * x1 + transform[s, 1, 2] * x2
+        b2 = 0.0 + transform[s, 2, 0] * x0 + transform[s, 2, 1] * x1 + transform[s, 2, 2] * x2
         b3 = 1.0 - b0 - b1 - b2
         m01 = min(b0, b1)
         m23 = min(b2, b3)
