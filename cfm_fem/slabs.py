@@ -810,6 +810,7 @@ def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
     s["uf_units"] = pct
     s["uf_nodes"] = uf_nodes
     s["nodes"] = int(n)
+    s["processed_nodes"] = int(sums["processed"])
     s["outside_fraction"] = [float(v / n_samples) for v in sums["n_out"]]
     s["walk_failed_fraction"] = [float(v / n_samples) for v in sums["n_lost"]]
     s["gum_disagree_fraction"] = [

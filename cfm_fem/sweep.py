@@ -548,6 +548,7 @@ def summarize(res: SweepResult) -> dict:
         "uf_units": pct,
         "uf_nodes": [int(complete[:, k].sum()) for k in range(n_col)],
         "nodes": int(res.fieldmap.n_nodes),
+        "processed_nodes": int(processed.sum()),  # in some cell (gauss) / reachable (htm)
         "outside_fraction": [float(res.n_outside[:, k].sum() / n_samples) for k in range(n_col)],
         "walk_failed_fraction": [
             float(res.n_walk_failed[:, k].sum() / n_samples) for k in range(n_col)

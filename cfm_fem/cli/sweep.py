@@ -385,10 +385,11 @@ def _backend(args) -> str:
 def _explain_outside(s):
     """Why 'outside' barely moves with U_p: say where the lost trials come from (largest U_p)."""
     k = max(range(len(s["up_um"])), key=lambda j: s["up_um"][j])
-    losing = s["nodes"] - s["uf_nodes"][k]
+    # the fractions are over the simulated nodes; nodes in no cell have no figure either
+    losing = s["processed_nodes"] - s["uf_nodes"][k]
     if s["outside_fraction"][k] <= 0 or losing <= 0 or any(s["walk_failed_fraction"]):
         return
-    share = s["outside_fraction"][k] * s["nodes"] / losing
+    share = s["outside_fraction"][k] * s["processed_nodes"] / losing
     text = (
         f"outside: perturbed points that left the map (never extrapolated). At U_p = "
         f"{s['up_um'][k]:g} um they come from the {losing} nodes without a U_f figure, which "
