@@ -391,6 +391,37 @@ def _delaunay(coords, source):
     return tri.simplices.astype(np.int64), "delaunay", coords, notes
 
 
+def interpolate_points(mesh: SimplexMesh, values, points, start):
+    """Piecewise-linear values at points of the mesh frame, walking from given simplices.
+
+    Parameters
+    ----------
+    mesh : SimplexMesh
+    values : ndarray, shape (n, c)
+        Values at the mesh nodes (T for a field).
+    points : ndarray, shape (k, d), mm, in the mesh frame (`SimplexMesh.to_local`)
+    start : ndarray, shape (k,), int64
+        Simplex each walk starts from: one near the point saves steps (see
+        `cfm_fem._kernels.octant_cells` for points drawn around nodes).
+
+    Returns
+    -------
+    out : ndarray, shape (k, c)
+        NaN where the point is outside the mesh (never extrapolated).
+    cell : ndarray, shape (k,), int64
+        Containing simplex, or -1 (outside) / -2 (walk failed).
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    out = np.empty((len(points), values.shape[1]))  # numpy's allocation: see the kernel
+    cell = np.empty(len(points), dtype=np.int64)
+    _kernels.interpolate_points(
+        points, np.ascontiguousarray(start, dtype=np.int64), mesh.simplices, mesh.transform,
+        mesh.neighbors, values, out, cell,
+    )  # fmt: skip
+    return out, cell
+
+
 class LinearInterpolator:
     """Evaluate the piecewise-linear field of a map at arbitrary points.
 
@@ -431,22 +462,14 @@ class LinearInterpolator:
         _, nearest = self._tree.query(local, k=k)
         nearest = nearest.reshape(len(local), k)
         m = self.mesh
-        B, cell = _kernels.interpolate_points(
-            local,
-            m.node_cell[nearest[:, 0]],
-            m.simplices,
-            m.transform,
-            m.neighbors,
-            self.fieldmap.B,
-        )
+        B, cell = interpolate_points(m, self.fieldmap.B, local, m.node_cell[nearest[:, 0]])
         # A walk can be blocked by a hole of a non-convex mesh: retry from the next nearest nodes.
         for j in range(1, k):
             redo = np.flatnonzero(cell < 0)
             if redo.size == 0:
                 break
-            b2, c2 = _kernels.interpolate_points(
-                local[redo], m.node_cell[nearest[redo, j]], m.simplices, m.transform,
-                m.neighbors, self.fieldmap.B,
-            )  # fmt: skip
+            b2, c2 = interpolate_points(
+                m, self.fieldmap.B, local[redo], m.node_cell[nearest[redo, j]]
+            )
             B[redo], cell[redo] = b2, c2
         return B, cell >= 0

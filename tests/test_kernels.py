@@ -7,7 +7,7 @@ import scipy.spatial
 import twins
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import build_mesh
+from cfm_fem.interpolation import build_mesh, interpolate_points
 from cfm_fem.mc import coverage_count
 
 
@@ -109,15 +109,79 @@ def test_locate_and_interpolate_match_scipy():
 
     q = rng.uniform(-6, 6, (2000, 3))
     start = mesh.node_cell[rng.integers(0, len(pts), len(q))]
-    got, cell = _kernels.interpolate_points(
-        q, start, mesh.simplices, mesh.transform, mesh.neighbors, B
-    )
+    got, cell = interpolate_points(mesh, B, q, start)
     inside = tri.find_simplex(q) >= 0
     np.testing.assert_array_equal(cell >= 0, inside)
     np.testing.assert_allclose(
         got[inside], LinearNDInterpolator(tri, B)(q[inside]), rtol=1e-10, atol=1e-12
     )
     assert np.all(np.isnan(got[~inside]))
+
+
+def _walk_one_by_one(mesh, q, start):
+    """The point-by-point walk (`locate`) the batched one must reproduce."""
+    cell = np.empty(len(q), dtype=np.int64)
+    bary = np.empty((len(q), 4))
+    for i in range(len(q)):
+        cell[i] = _kernels.locate(q[i], start[i], mesh.transform, mesh.neighbors, bary[i])
+    return cell, bary
+
+
+def test_batched_walk_takes_the_steps_of_the_point_by_point_walk():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-5, 5, (300, 3))
+    mesh = build_mesh(FieldMap.from_arrays(pts, np.zeros((300, 3))))
+    # points near nodes, far across the map and outside it; some walks start nowhere
+    q = np.r_[pts[rng.integers(0, 300, 1500)] + rng.normal(0, 0.05, (1500, 3)),
+              rng.uniform(-7, 7, (1500, 3))]  # fmt: skip
+    start = mesh.node_cell[rng.integers(0, 300, len(q))]
+    start[::97] = _kernels.OUTSIDE
+    n = len(q)
+    cur = np.empty(n, dtype=np.int64)
+    bary = np.empty((n, 4))
+    _kernels.walk_block3(q, 0, n, start, mesh.transform, mesh.neighbors, cur,
+                         np.empty(n, dtype=np.int64), bary)  # fmt: skip
+    ref_cell, ref_bary = _walk_one_by_one(mesh, q, start)
+    np.testing.assert_array_equal(cur, ref_cell)
+    assert 0 < (cur == _kernels.OUTSIDE).sum() < n // 2
+    inside = cur >= 0
+    np.testing.assert_array_equal(bary[inside], ref_bary[inside])  # same sums, same order
+    # and a block in the middle of the array reads its own points
+    part = np.empty(700, dtype=np.int64)
+    _kernels.walk_block3(q, 1000, 700, start[1000:1700], mesh.transform, mesh.neighbors,
+                         part, np.empty(700, dtype=np.int64), np.empty((700, 4)))  # fmt: skip
+    np.testing.assert_array_equal(part, ref_cell[1000:1700])
+
+
+def test_octant_cells_contain_their_corner_and_start_walks_nearby():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-5, 5, (2000, 3))
+    B = np.c_[pts[:, 1], pts[:, 0], 0.1 * pts[:, 2]]
+    mesh = build_mesh(FieldMap.from_arrays(pts, B))
+    eps = 1e-3
+    table = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps)
+    signs = np.array([[-1.0 if (o >> a) & 1 else 1.0 for a in range(3)] for o in range(8)])
+    corners = (mesh.coords[:, None, :] + eps * signs).reshape(-1, 3)
+    found = scipy.spatial.Delaunay(mesh.coords).find_simplex(corners).reshape(-1, 8)
+    ref, _ = _walk_one_by_one(mesh, corners, np.repeat(mesh.node_cell, 8))
+    want = np.where(ref.reshape(-1, 8) >= 0, ref.reshape(-1, 8), mesh.node_cell[:, None])
+    np.testing.assert_array_equal(table, want)
+    # every corner inside the map lies in its table cell (barycentric coordinates >= 0)
+    ok = found >= 0
+    t = mesh.transform[table[ok]]
+    lam = np.einsum("kij,kj->ki", t[:, :3], corners.reshape(-1, 8, 3)[ok] - t[:, 3])
+    lam = np.c_[lam, 1 - lam.sum(1)]
+    assert lam.min() > -1e-9
+    # octant_starts picks the row entry of each point's side of its node (numpy twin)
+    node = rng.integers(0, len(pts), 5000)
+    q = pts[node] + rng.normal(0, 0.01, (5000, 3))
+    octant = ((q < pts[node]) * [1, 2, 4]).sum(1)
+    start = _kernels.octant_starts(q, node, mesh.coords, table)
+    np.testing.assert_array_equal(start, table[node, octant])
+    got, cell = interpolate_points(mesh, B, q, start)
+    far, far_cell = interpolate_points(mesh, B, q, mesh.node_cell[node])
+    np.testing.assert_array_equal(cell, far_cell)  # same cell from either start here
+    np.testing.assert_array_equal(got, far)
 
 
 def test_gauss_sweep_matches_numpy_twin():
