@@ -2612,8 +2612,8 @@ def coupled_probe_errors(
 @nb.njit(**JIT)
 def htm_sweep(
     nodes, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
-    params, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack, mounts,
-    tool, strokes, profiles, p,
+    params, terms, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack,
+    mounts, tool, strokes, profiles, p,
 ):  # fmt: skip
     """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
 
@@ -2632,6 +2632,11 @@ def htm_sweep(
         Commanded axis positions that bring the probe to each node.
     params : ndarray, shape (T, 21)
         Error amplitudes per trial (`cfm_fem.kinematics.draw_error_sets`).
+    terms : ndarray, shape (T, 21) or (1, 21) or (0, 21)
+        When the bench's error profiles are constant: `trial_terms` of ``params`` (or of one
+        row of zeros when ``use_geometric`` is False), and each sample costs the 18
+        multiply-adds of the collapsed chain (`_chain`) instead of the 18 sines and cosines of
+        `probe_error_mm`: the same probe error up to rounding. Empty: `probe_error_mm`.
     use_geometric, use_noise : bool
         Include the 21 geometric errors / the vibration and delay (to split the two parts).
     nkey, fkey, sig, speed, tau_code, tau_par :
@@ -2662,23 +2667,46 @@ def htm_sweep(
     dq = np.zeros(3)
     e = np.empty(3)
     dm = np.empty(3)
-    pt = np.empty(d)
-    bary = np.empty(d + 1)
     bi = np.empty(3)
+    # per node, all trials at once: the noise by the block generator (`axis_noise_mm`'s
+    # numbers), then the probe points, then their walks (`walk_block3` in 3-D)
+    tkeys = np.empty(n_trials, dtype=np.uint64)
+    for t in range(n_trials):
+        tkeys[t] = trial_key(nkey, t)
+    z = np.zeros((3, n_trials))
+    ok = np.empty(n_trials, dtype=np.bool_)
+    pts = np.empty((n_trials, d))
+    starts = np.empty(n_trials, dtype=np.int64)
+    cells = np.empty(n_trials, dtype=np.int64)
+    act = np.empty(n_trials, dtype=np.int64)
+    bary = np.empty((n_trials, d + 1))
     for i in range(k_nodes):
         g = nodes[i]
         if start_cells[g, 0] < 0:
             continue
         b0 = values[g]
         abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-        nv = 0
+        if use_noise:
+            normals_by_key(tkeys, fkey, g, n_trials, z, ok)
         s1 = np.zeros(3)
         s2 = np.zeros(3)
+        qg = q_nodes[g]
         for t in range(n_trials):
-            if use_noise:
-                axis_noise_mm(nkey, fkey, t, g, sig, speed, tau_code, tau_par, dq)
-            prm = params[t] if use_geometric else zero
-            probe_error_mm(prm, q_nodes[g], dq, stack, mounts, tool, strokes, profiles, e)
+            for a in range(3):
+                dq[a] = sig[a] * z[a, t]
+            if use_noise and tau_code >= 0:  # eq. 9 delay, as in axis_noise_mm
+                c = np.uint64(g) * np.uint64(4) + np.uint64(2)
+                tau = pdf_ppf(tau_code, tau_par, uniform53(_draw(tkeys[t], c)))
+                for a in range(3):
+                    dq[a] += speed[a] * tau
+            if terms.shape[0] > 0:
+                tt = t if use_geometric else 0
+                e[0], e[1], e[2], _norm = _chain(
+                    terms, tt, qg[0], qg[1], qg[2], dq[0], dq[1], dq[2]
+                )
+            else:
+                prm = params[t] if use_geometric else zero
+                probe_error_mm(prm, qg, dq, stack, mounts, tool, strokes, profiles, e)
             octant = 0
             for a in range(3):
                 dm[a] = rot[a, 0] * e[0] + rot[a, 1] * e[1] + rot[a, 2] * e[2]
@@ -2688,17 +2716,25 @@ def htm_sweep(
                 acc = 0.0
                 for c in range(3):
                     acc += basis[c, a] * dm[c]
-                pt[a] = coords[g, a] + acc
+                pts[t, a] = coords[g, a] + acc
                 if acc < 0.0:
                     octant |= 1 << a
-            s = locate(pt, start_cells[g, octant], transform, neighbors, bary)
+            starts[t] = start_cells[g, octant]
+        if d == 3:
+            walk_block3(pts, 0, n_trials, starts, transform, neighbors, cells, act, bary)
+        else:
+            for t in range(n_trials):
+                cells[t] = locate(pts[t], starts[t], transform, neighbors, bary[t])
+        nv = 0
+        for t in range(n_trials):
+            s = cells[t]
             if s == OUTSIDE:
                 n_out[i, 0] += 1
                 continue
             if s == WALK_FAILED:
                 n_lost[i, 0] += 1
                 continue
-            _interp_in(s, bary, simplices, values, bi)
+            _interp_in(s, bary[t], simplices, values, bi)
             m2 = 0.0
             for c in range(3):
                 comp[c, nv] = bi[c] - b0[c]

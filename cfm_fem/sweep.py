@@ -332,7 +332,8 @@ class SweepProblem:
                 return _kernels.htm_sweep(
                     nodes[i0:i1], self.coords, self.values, self.simplices, self.transform,
                     self.neighbors, self.start_cells, self.basis, h["rot"], h["q_nodes"],
-                    h["params"], geo, noise, h["nkey"], h["fkey"], h["sig"], h["speed"],
+                    h["params"], h["terms" if geo else "terms_zero"], geo, noise, h["nkey"],
+                    h["fkey"], h["sig"], h["speed"],
                     h["tau_code"], h["tau_par"], h["stack"], h["mounts"], h["tool"],
                     h["strokes"], h["profiles"], float(self.coverage),
                 )  # fmt: skip
@@ -417,10 +418,18 @@ def _htm_arrays(cfg: SweepConfig, fm: FieldMap):
     q = np.ascontiguousarray(bench.axis_positions_for(fm.points))
     g = kernel_geometry(bench)
     nkey, fkey = noise_keys(cfg.seed)
+    params = np.ascontiguousarray(draw_error_sets(bench, cfg.trials, cfg.seed))
+    # constant error profiles: the chain collapses exactly to 21 numbers per trial
+    n_terms = (len(params), 1) if g.linear else (0, 0)
+    terms, terms_zero = np.empty((n_terms[0], 21)), np.empty((n_terms[1], 21))
+    _kernels.trial_terms(params[: n_terms[0]], g.stack, g.mounts, g.tool, terms)
+    _kernels.trial_terms(np.zeros((n_terms[1], 21)), g.stack, g.mounts, g.tool, terms_zero)
     arrays = dict(
         rot=np.ascontiguousarray(bench.bench_to_magnet_rotation()),
         q_nodes=q,
-        params=np.ascontiguousarray(draw_error_sets(bench, cfg.trials, cfg.seed)),
+        params=params,
+        terms=terms,
+        terms_zero=terms_zero,
         nkey=nkey,
         fkey=fkey,
         sig=g.sig,

@@ -4,10 +4,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import twins
 
 from cfm_fem import FieldMap
-from cfm_fem.bench import ERROR_NAMES, ReadingDelay
+from cfm_fem.bench import ERROR_NAMES, ReadingDelay, error_index
 from cfm_fem.io.bench_toml import read_reference_bench
+from cfm_fem.kinematics import draw_error_sets, point_noise, probe_errors_for_bench
 from cfm_fem.mc import Pdf
 from cfm_fem.sweep import HTM_PARTS, SweepConfig, run_sweep, summarize
 
@@ -97,3 +99,55 @@ def test_nodes_out_of_the_bench_strokes_get_no_statistics():
         res.stats[~unreachable & np.all(np.abs(fm.points) < 2.5, axis=1), 0, 3, 1]
     ).all()
     assert any("outside the strokes" in n for n in summarize(res)["notes"])
+
+
+def _position_dependent_speed_tau(bench):
+    """The reference bench with a position-dependent error (full chain, no collapsed terms),
+    the eq. 9 delay speed x tau and the magnet turned in the bench."""
+    errors = list(bench.errors)
+    k = error_index("delta_z(z)")
+    errors[k] = replace(errors[k], profile=(0.2, 1.0, -0.5))
+    delay = ReadingDelay("speed_tau", np.zeros(3), np.array([0.0, 0.0, 20.0]), Pdf.uniform(0, 2e-4))
+    magnet = replace(bench.magnet, rotation_rad=np.radians([30.0, 10.0, -20.0]))
+    return replace(bench, errors=tuple(errors), delay=delay, magnet=magnet)
+
+
+@pytest.mark.parametrize("variant", ["reference", "position-dependent, speed x tau"])
+def test_htm_kernel_matches_a_numpy_twin(variant):
+    """Every column of mode htm against the numpy HTM chain, the scalar noise generator and
+    the exact field of a linear map, sample for sample."""
+    fm = grid_map(5)
+    bench = read_reference_bench()
+    if variant != "reference":
+        bench = _position_dependent_speed_tau(bench)
+    n, seed = 60, 5
+    res = run_sweep(fm, SweepConfig(trials=n, seed=seed, mode="htm", bench=bench))
+    q = bench.axis_positions_for(fm.points)
+    params = draw_error_sets(bench, n, seed)
+    dq = np.stack([point_noise(bench, t, range(len(q)), seed) for t in range(n)])  # (n, k, 3)
+    rot = bench.bench_to_magnet_rotation()
+    lo, hi = fm.points.min(0), fm.points.max(0)
+    b0 = fm.B
+    interior = np.all(np.abs(fm.points) < 1.5, axis=1)
+    parts = {
+        "htm_total": (params, dq),
+        "htm_geometric": (params, 0.0 * dq),
+        "htm_vibration_delay": (0.0 * params, dq),
+    }
+    for j, name in enumerate(HTM_PARTS):
+        prm, noise = parts[name]
+        dm = probe_errors_for_bench(bench, prm, q, noise) @ rot.T  # (n, k, 3) mm, map frame
+        p = fm.points + dm
+        inside = np.all((p >= lo) & (p <= hi), axis=-1)
+        np.testing.assert_array_equal(res.n_outside[:, j], (~inside).sum(0))
+        np.testing.assert_allclose(res.positioning[:, j, 0], dm.mean(0), atol=1e-12)
+        np.testing.assert_allclose(res.positioning[:, j, 1], dm.std(0, ddof=1), atol=1e-12)
+        db = dm @ G.T  # the map is linear: B(x + d) - B(x) = G d exactly
+        dabs = np.linalg.norm(b0 + db, axis=-1) - np.linalg.norm(b0, axis=-1)
+        assert inside[:, interior].all()
+        for g in np.flatnonzero(interior):
+            for c in range(4):
+                x = db[:, g, c] if c < 3 else dabs[:, g]
+                np.testing.assert_allclose(
+                    res.stats[g, j, c], twins.sample_stats(x), rtol=1e-9, atol=1e-12
+                )
