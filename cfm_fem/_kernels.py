@@ -344,11 +344,18 @@ def axis_noise_mm(nkey, fkey, trial, point, sig, speed, tau_code, tau_par, out):
     out[1] = sig[1] * z1
     out[2] = sig[2] * z2
     if tau_code >= 0:
-        c = np.uint64(point) * np.uint64(4) + np.uint64(2)
-        tau = pdf_ppf(tau_code, tau_par, uniform53(_draw(tkey, c)))
+        tau = _delay_tau(tkey, point, tau_code, tau_par)
         out[0] += speed[0] * tau
         out[1] += speed[1] * tau
         out[2] += speed[2] * tau
+
+
+@nb.njit(inline="always", **JIT)
+def _delay_tau(tkey, point, tau_code, tau_par):
+    """tau (s) of the eq. 9 reading delay of one (trial, point): position 4 * point + 2 of the
+    trial's sequence (``tkey = trial_key(nkey, trial)``), the normals taking 4 * point + 0, 1."""
+    c = np.uint64(point) * np.uint64(4) + np.uint64(2)
+    return pdf_ppf(tau_code, tau_par, uniform53(_draw(tkey, c)))
 
 
 @nb.njit(inline="always", **JIT)
@@ -1218,7 +1225,7 @@ def _locate3(p0, p1, p2, s, transform, neighbors, bary):
     return WALK_FAILED
 
 
-@nb.njit(**JIT)
+@nb.njit(inline="always", **JIT)
 def _interp_in(s, bary, simplices, values, out):
     """out = sum_j bary[j] * values[simplices[s, j]]."""
     for c in range(out.shape[0]):
@@ -1324,32 +1331,22 @@ def interpolate_points(points, start, simplices, transform, neighbors, values, o
     for b in nb.prange((k + block - 1) // block):
         i0 = b * block
         n = min(block, k - i0)
+        cur = np.empty(block, dtype=np.int64)
+        bary = np.empty((block, d + 1))
         if d == 3:
-            cur = np.empty(block, dtype=np.int64)
             act = np.empty(block, dtype=np.int64)
-            bary = np.empty((block, 4))
             walk_block3(points, i0, n, start[i0 : i0 + n], transform, neighbors, cur, act, bary)
+        else:
             for j in range(n):
-                s = cur[j]
-                cell[i0 + j] = s
-                for c in range(nc):
-                    out[i0 + j, c] = 0.0 if s >= 0 else np.nan
-                if s >= 0:
-                    for a in range(4):  # the sums of _interp_in, in its order
-                        w = bary[j, a]
-                        v = simplices[s, a]
-                        for c in range(nc):
-                            out[i0 + j, c] += w * values[v, c]
-            continue
-        bary = np.empty(d + 1)
-        for i in range(i0, i0 + n):
-            s = locate(points[i], start[i], transform, neighbors, bary)
-            cell[i] = s
+                cur[j] = locate(points[i0 + j], start[i0 + j], transform, neighbors, bary[j])
+        for j in range(n):
+            s = cur[j]
+            cell[i0 + j] = s
             if s >= 0:
-                _interp_in(s, bary, simplices, values, out[i])
+                _interp_in(s, bary[j], simplices, values, out[i0 + j])
             else:
                 for c in range(nc):
-                    out[i, c] = np.nan
+                    out[i0 + j, c] = np.nan
 
 
 @nb.njit(**PJIT)
@@ -2695,8 +2692,7 @@ def htm_sweep(
             for a in range(3):
                 dq[a] = sig[a] * z[a, t]
             if use_noise and tau_code >= 0:  # eq. 9 delay, as in axis_noise_mm
-                c = np.uint64(g) * np.uint64(4) + np.uint64(2)
-                tau = pdf_ppf(tau_code, tau_par, uniform53(_draw(tkeys[t], c)))
+                tau = _delay_tau(tkeys[t], g, tau_code, tau_par)
                 for a in range(3):
                     dq[a] += speed[a] * tau
             if terms.shape[0] > 0:
