@@ -465,7 +465,7 @@ def _horner(profiles, k, u):
     return p
 
 
-@nb.njit(**JIT)
+@nb.njit(inline="always", **JIT)
 def probe_error_mm(params, q_cmd, dq, stack, mounts, tool, strokes, profiles, out):
     """Probe position error of one (point, trial): exact HTM chain (eq. 4, 5, 8, 10), bench frame.
 
