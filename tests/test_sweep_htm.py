@@ -2,6 +2,7 @@
 
 from dataclasses import replace
 
+import numba
 import numpy as np
 import pytest
 import twins
@@ -151,3 +152,19 @@ def test_htm_kernel_matches_a_numpy_twin(variant):
                 np.testing.assert_allclose(
                     res.stats[g, j, c], twins.sample_stats(x), rtol=1e-9, atol=1e-12
                 )
+
+
+def test_htm_same_seed_same_numbers_whatever_threads_and_chunks():
+    fm = grid_map(5)
+    cfg = dict(trials=200, seed=3, mode="htm")
+    numba.set_num_threads(1)
+    try:
+        a = run_sweep(fm, SweepConfig(**cfg, chunk_nodes=1000))
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    b = run_sweep(fm, SweepConfig(**cfg, chunk_nodes=9))
+    np.testing.assert_array_equal(a.stats, b.stats)
+    np.testing.assert_array_equal(a.n_outside, b.n_outside)
+    np.testing.assert_array_equal(a.positioning, b.positioning)
+    c = run_sweep(fm, SweepConfig(**{**cfg, "seed": 4}))
+    assert not np.array_equal(a.stats[:, 0], c.stats[:, 0])
