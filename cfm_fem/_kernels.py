@@ -1164,8 +1164,6 @@ def locate(p, start, transform, neighbors, bary):
     s = start
     if s < 0:
         return OUTSIDE
-    if d == 3:
-        return _locate3(p[0], p[1], p[2], s, transform, neighbors, bary)
     for _ in range(MAX_WALK):
         last = 1.0
         for j in range(d):
@@ -1208,24 +1206,6 @@ def _walk_step3(p0, p1, p2, s, transform):
 
 
 @nb.njit(inline="always", **JIT)
-def _locate3(p0, p1, p2, s, transform, neighbors, bary):
-    """`locate` written out for d = 3, start s >= 0: the same sums in the same order and the
-    same face (`_walk_step3`)."""
-    for _ in range(MAX_WALK):
-        b0, b1, b2, b3, jmin, inside = _walk_step3(p0, p1, p2, s, transform)
-        if inside:
-            bary[0] = b0
-            bary[1] = b1
-            bary[2] = b2
-            bary[3] = b3
-            return s
-        s = neighbors[s, jmin]
-        if s < 0:
-            return OUTSIDE
-    return WALK_FAILED
-
-
-@nb.njit(inline="always", **JIT)
 def _interp_in(s, bary, simplices, values, out):
     """out = sum_j bary[j] * values[simplices[s, j]]."""
     for c in range(out.shape[0]):
@@ -1248,7 +1228,7 @@ def walk_block3(points, i0, n, start, transform, neighbors, cur, act, bary):
     Each round tests the current cell of every walk still going, in a loop without branches
     that depend on the data: a point-by-point walk ends with a mispredicted branch at a
     random step, and the CPU throws away the work it had in flight for the next points. Same
-    cells, same sums and the same face crossed at every step as `_locate3`, so the same results.
+    cells, same sums and the same face crossed at every step as `locate`, so the same results.
 
     Parameters
     ----------
