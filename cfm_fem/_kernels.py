@@ -2711,11 +2711,9 @@ def htm_sweep(
                 n_lost[i, 0] += 1
                 continue
             _interp_in(s, bary[t], simplices, values, bi)
-            m2 = 0.0
             for c in range(3):
                 comp[c, nv] = bi[c] - b0[c]
-                m2 += bi[c] * bi[c]
-            absb[nv] = np.sqrt(m2) - abs0
+            absb[nv] = _abs_change(b0, comp[0, nv], comp[1, nv], comp[2, nv], abs0)
             nv += 1
         for a in range(3):
             mean = s1[a] / n_trials
