@@ -2217,6 +2217,12 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
 
 
 @nb.njit(inline="always", **JIT)
+def _taylor(grad, g, c, d0, d1, d2):
+    """Component c of grad[g] . delta (d = 3): the first-order change of B at node g."""
+    return 0.0 + grad[g, c, 0] * d0 + grad[g, c, 1] * d1 + grad[g, c, 2] * d2
+
+
+@nb.njit(inline="always", **JIT)
 def _abs_change(b0, e0, e1, e2, abs0):
     """|b0 + e| - |b0| without cancellation: (2 b0.e + |e|^2) / (|b0 + e| + |b0|)."""
     x0 = b0[0] + e0
@@ -2245,6 +2251,7 @@ def _node_gauss(
     skey,
     fkey,
     p,
+    exit_grad,
     buffers,
     stats,
     n_out,
@@ -2252,6 +2259,11 @@ def _node_gauss(
 ):
     """All trials and statistics of node ``g`` (see `gauss_sweep`). ``buffers``: the per-thread
     work arrays of `_gauss_buffers`.
+
+    With node gradients in ``exit_grad`` (see `gauss_sweep`), a trial that leaves the map takes
+    the node's first-order Taylor expansion B_g + grad B_g . delta (counted in ``n_out`` all the
+    same); one that leaves through a boundary face at the node is then linear in U_p and joins
+    the in-star trials.
 
     Trials whose largest displacement stays in the node's star are located in the star tables
     (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their
@@ -2279,12 +2291,15 @@ def _node_gauss(
     pt = np.empty(d)
     bary = np.empty(d + 1)
     bi = np.empty(3)
+    err = np.empty(3)
     b0 = values[g]
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
     key = trial_key(skey, gkey)  # one sequence per node: positions 4t, 4t + 1 serve trial t
     n_abs = np.zeros(n_up, dtype=np.int64)  # |B| samples per U_p
     m_out = np.zeros(n_up, dtype=np.int64)  # out-of-star component samples per U_p
     n_in = 0  # in-star trials (components stored at kmax)
+    n_exit = 0  # of which extrapolated (left the map through a boundary face at the node)
+    extrapolate = exit_grad.shape[0] > 0
     for k in range(n_up):
         n_out[k] = 0
         n_lost[k] = 0
@@ -2309,6 +2324,19 @@ def _node_gauss(
     if d == 3 and n_star > 0:
         n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, bin_start,
                               comp[kmax], dl, ibuf, rest, code)  # fmt: skip
+        if extrapolate:  # exits at the node: the Taylor expansion, linear in U_p (in-star)
+            kept = 0
+            for r in range(n_rest):
+                t = rest[r]
+                if code[r] == LEAVES_MESH:
+                    for c in range(3):
+                        comp[kmax, c, t] = _taylor(exit_grad, g, c, dl[0, t], dl[1, t], dl[2, t])
+                    n_exit += 1
+                else:
+                    rest[kept] = t  # kept <= r: overwrites only entries already read
+                    code[kept] = code[r]
+                    kept += 1
+            n_rest = kept
         if n_rest > 0:  # in-star errors to the front, in trial order
             r = 0
             for t in range(n_trials):
@@ -2328,20 +2356,23 @@ def _node_gauss(
             s = -1
             if n_star > 0:
                 s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
-            if s >= 0:
+            taylor = extrapolate and s == LEAVES_MESH  # linear in U_p, as an in-star trial
+            if s >= 0 or taylor:
+                mat, row, vec = (exit_grad, g, delta) if taylor else (dmat, s, lam)
                 for c in range(3):
                     e = 0.0
                     for a in range(d):
-                        e += dmat[s, c, a] * lam[a]
+                        e += mat[row, c, a] * vec[a]
                     comp[kmax, c, n_in] = e
                 n_in += 1
+                n_exit += taylor
             else:
                 rest[n_rest] = t
                 code[n_rest] = s
                 n_rest += 1
     for r in range(n_rest):
         t = rest[r]
-        if code[r] == LEAVES_MESH:  # outside the map at every U_p: counted, never extrapolated
+        if code[r] == LEAVES_MESH:  # outside the map at every U_p: counted, left out
             for k in range(n_up):
                 if scales[k] > 0.0:
                     n_out[k] += 1
@@ -2363,23 +2394,35 @@ def _node_gauss(
             s = locate(pt, cell if cell >= 0 else start, transform, neighbors, bary)
             if s == OUTSIDE:
                 n_out[k] += 1
-                continue
-            if s == WALK_FAILED:
+                if not extrapolate:
+                    continue
+                for c in range(3):  # the Taylor expansion at the node
+                    e = 0.0
+                    for a in range(d):
+                        e += exit_grad[g, c, a] * (scales[k] * disp[a])
+                    err[c] = e
+            elif s == WALK_FAILED:
                 n_lost[k] += 1
                 continue
-            cell = s
-            _interp_in(s, bary, simplices, values, bi)
+            else:
+                cell = s
+                _interp_in(s, bary, simplices, values, bi)
+                for c in range(3):
+                    err[c] = bi[c] - b0[c]
             mk = m_out[k]
             col = n_trials - 1 - mk if k == kmax else mk
             for c in range(3):
-                comp[k, c, col] = bi[c] - b0[c]
+                comp[k, c, col] = err[c]
             absb[k, n_trials - 1 - mk] = _abs_change(
-                b0, bi[0] - b0[0], bi[1] - b0[1], bi[2] - b0[2], abs0
+                b0, err[0], err[1], err[2], abs0
             )  # from the back: the front takes the in-star trials below
             m_out[k] = mk + 1
     all_star = n_star > 0
     for k in range(n_up):
-        if m_out[k] > 0 or n_out[k] > 0 or n_lost[k] > 0:
+        if scales[k] > 0.0:
+            n_out[k] += n_exit
+        # with extrapolation every trial has a value: exits are in-star or in m_out
+        if m_out[k] > 0 or (n_out[k] > 0 and not extrapolate) or n_lost[k] > 0:
             all_star = False
     # |B| per U_p: in-star trials at the front, out-of-star ones already at the back
     for k in range(n_up):
@@ -2477,6 +2520,7 @@ def gauss_sweep(
     n_trials,
     seed,
     p,
+    exit_grad,
 ):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node, statistics streamed per node.
 
@@ -2507,14 +2551,19 @@ def gauss_sweep(
     seed : int
     p : float
         Coverage probability (0.95).
+    exit_grad : ndarray, shape (n, 3, d) or (0, 3, d), T/mm, mesh frame
+        Empty: trials that leave the mesh are left out of the statistics. Else the node
+        gradients (`cfm_fem.sweep.node_gradients` in the mesh frame): a trial that leaves takes
+        the node's first-order Taylor expansion B_g + grad B_g . delta.
 
     Returns
     -------
     stats : ndarray, shape (k, n_up, 4, 6), T
         Per node, U_p value, component (Bx, By, Bz, |B|) and statistic (`STAT_NAMES`) of the
-        error B_meas - B_nom over the trials that stayed inside the mesh.
+        error B_meas - B_nom over the trials that stayed inside the mesh (all trials with
+        ``exit_grad``).
     n_out : ndarray, shape (k, n_up), int64
-        Trials whose perturbed point left the mesh (not extrapolated, not in the statistics).
+        Trials whose perturbed point left the mesh (left out, or extrapolated).
     n_lost : ndarray, shape (k, n_up), int64
         Trials whose walk did not terminate (cyclic native meshes only).
     star : ndarray, shape (k,), bool
@@ -2535,7 +2584,7 @@ def gauss_sweep(
             continue
         star[i] = _node_gauss(g, keys[i], coords, values, simplices, transform, neighbors,
                               start_cells, basis, sigma_axes, scales, n_trials, skey, fkey, p,
-                              buffers, stats[i], n_out[i], n_lost[i])  # fmt: skip
+                              exit_grad, buffers, stats[i], n_out[i], n_lost[i])  # fmt: skip
     return stats, n_out, n_lost, star
 
 
@@ -2590,7 +2639,7 @@ def coupled_probe_errors(
 def htm_sweep(
     nodes, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
     params, terms, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack,
-    mounts, tool, strokes, profiles, p,
+    mounts, tool, strokes, profiles, p, exit_grad,
 ):  # fmt: skip
     """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
 
@@ -2622,6 +2671,9 @@ def htm_sweep(
         Bench geometry, as in `probe_error_mm`.
     p : float
         Coverage probability.
+    exit_grad : ndarray, shape (n, 3, d) or (0, 3, d), T/mm
+        As in `gauss_sweep`: trials that leave the mesh left out (empty) or given the node's
+        first-order Taylor expansion; counted in ``n_out`` either way.
 
     Returns
     -------
@@ -2706,13 +2758,20 @@ def htm_sweep(
             s = cells[t]
             if s == OUTSIDE:
                 n_out[i, 0] += 1
-                continue
-            if s == WALK_FAILED:
+                if exit_grad.shape[0] == 0:
+                    continue
+                for c in range(3):  # the Taylor expansion at the node
+                    e0 = 0.0
+                    for a in range(d):
+                        e0 += exit_grad[g, c, a] * (pts[t, a] - coords[g, a])
+                    comp[c, nv] = e0
+            elif s == WALK_FAILED:
                 n_lost[i, 0] += 1
                 continue
-            _interp_in(s, bary[t], simplices, values, bi)
-            for c in range(3):
-                comp[c, nv] = bi[c] - b0[c]
+            else:
+                _interp_in(s, bary[t], simplices, values, bi)
+                for c in range(3):
+                    comp[c, nv] = bi[c] - b0[c]
             absb[nv] = _abs_change(b0, comp[0, nv], comp[1, nv], comp[2, nv], abs0)
             nv += 1
         for a in range(3):

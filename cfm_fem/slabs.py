@@ -547,7 +547,7 @@ def run_slab_sweep(
     path : path-like
         Plain or Opera table.
     cfg : SweepConfig
-        Mode gauss.
+        Mode gauss, ``outside="exclude"``.
     out_dir : path-like
     n_slabs : int, optional
         K; else from ``max_memory`` (bytes, `slabs_for_memory`).
@@ -566,6 +566,11 @@ def run_slab_sweep(
         The summary written; None for a map that is not 3-D (the caller then runs in memory).
     """
     t0 = time.perf_counter()
+    if cfg.outside != "exclude":  # a slab's mesh ends at its halo, not at the map's surface
+        raise CfmInputError(
+            f"the out-of-core sweep leaves out trials that leave the map; got outside="
+            f"{cfg.outside!r}"
+        )
     log = log or (lambda s: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

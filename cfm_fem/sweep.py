@@ -28,6 +28,7 @@ __all__ = [
     "run_sweep",
     "summarize",
     "node_gradients",
+    "edge_fit_gradients",
 ]
 
 COMPONENTS = _kernels.COMPONENTS
@@ -37,6 +38,14 @@ HTM_PARTS = {
     "htm_total": (True, True),
     "htm_geometric": (True, False),
     "htm_vibration_delay": (False, True),
+}
+#: What happens to a trial whose perturbed position leaves the map (`SweepConfig.outside`).
+OUTSIDE_RULES = {
+    "exclude": "left out of the node's statistics (counted in outside_fraction); the node is "
+    "incomplete and not in the U_f percentiles",
+    "extrapolate": "given the node's first-order Taylor expansion B + grad B . delta (grad B: a "
+    "least-squares fit over the nodes joined to it by an edge, weighted by 1/distance^2; "
+    "counted in outside_fraction); the node keeps all its trials",
 }
 #: 97.5 % quantile of the standard normal: the GUM 95 % half-width is Z95 * u.
 Z95 = 1.959963984540054
@@ -65,6 +74,10 @@ class SweepConfig:
         Bench model for mode ``htm`` (`cfm_fem.bench.Bench`); None means the reference bench.
     chunk_nodes : int
         Nodes per chunk (progress granularity and memory; results do not depend on it).
+    outside : {"exclude", "extrapolate"}
+        Trials whose perturbed position leaves the map: left out of the node's statistics
+        (the node is then incomplete), or given the node's first-order Taylor expansion
+        B + grad B . delta (`edge_fit_gradients`). Counted in ``n_outside`` either way.
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -77,6 +90,7 @@ class SweepConfig:
     mode: str = "gauss"
     bench: object | None = None
     chunk_nodes: int = 20000
+    outside: str = "exclude"
 
 
 @dataclass
@@ -154,10 +168,10 @@ class SweepResult:
         return self.to_units(self.expanded_95()[..., 3])
 
     def complete(self) -> np.ndarray:
-        """Nodes whose every trial stayed inside the map, shape (n, n_up), bool."""
-        return (
-            (self.n_outside == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
-        )
+        """Nodes whose every trial has a value (stayed inside the map, or was extrapolated with
+        ``outside="extrapolate"``), shape (n, n_up), bool."""
+        ok = (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
+        return ok if self.config.outside == "extrapolate" else ok & (self.n_outside == 0)
 
     def gum_check(self, column: int | None = None):
         """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
@@ -180,7 +194,9 @@ class SweepResult:
         lo, hi = st[..., 2], st[..., 3]
         U = Z95 * gum_u
         d_max = np.maximum(np.abs(-U - lo), np.abs(U - hi))
-        n = self.config.trials - self.n_outside[:, cols] - self.n_walk_failed[:, cols]
+        n = self.config.trials - self.n_walk_failed[:, cols]
+        if self.config.outside != "extrapolate":
+            n = n - self.n_outside[:, cols]
         # standard error of the 2.5 % quantile of a normal: sqrt(p(1-p)/N) / phi(z)
         se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
         tol = np.maximum(numerical_tolerance(u_mc), 3.0 * se)
@@ -211,6 +227,44 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     return acc @ mesh.basis.T  # local -> map frame
 
 
+def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
+    """Gradient at each node by a least-squares fit of B_j - B_i = G (x_j - x_i) over the nodes
+    joined to it by a mesh edge, weighted by 1/|x_j - x_i|^2; mesh frame.
+
+    Exact for a linear field. Unlike the cell average of `node_gradients` it does not lean on
+    the shape of the cells: a flat cell (the Delaunay hull of scattered nodes has many) has a
+    gradient far off the field's, but its edges still sample the field.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, d), T/mm
+        NaN at nodes whose neighbours do not span d dimensions (nodes in no cell).
+    """
+    d, n = mesh.dim, len(mesh.coords)
+    simp = mesh.simplices
+    i, j = np.triu_indices(d + 1, 1)
+    a, b = np.sort(np.stack([simp[:, i].ravel(), simp[:, j].ravel()]), axis=0).astype(np.int64)
+    key = np.unique(a * n + b)  # each edge once
+    a, b = key // n, key % n
+    dx = mesh.coords[b] - mesh.coords[a]  # (m, d)
+    df = np.asarray(B, dtype=np.float64)[b] - np.asarray(B, dtype=np.float64)[a]  # (m, 3)
+    w = 1.0 / np.einsum("mk,mk->m", dx, dx)
+    normal = np.empty((n, d, d))
+    rhs = np.empty((n, d, 3))
+    for k in range(d):  # both ends: (x_j - x_i) and (B_j - B_i) flip sign together
+        for m in range(d):
+            v = w * dx[:, k] * dx[:, m]
+            normal[:, k, m] = np.bincount(a, v, n) + np.bincount(b, v, n)
+        for c in range(3):
+            v = w * dx[:, k] * df[:, c]
+            rhs[:, k, c] = np.bincount(a, v, n) + np.bincount(b, v, n)
+    scale = np.trace(normal, axis1=1, axis2=2)
+    ok = np.abs(np.linalg.det(normal)) > 1e-12 * np.maximum(scale, 1e-300) ** d
+    grad = np.full((n, 3, d), np.nan)
+    grad[ok] = np.linalg.solve(normal[ok], rhs[ok]).transpose(0, 2, 1)
+    return grad
+
+
 def _gum_u(gradient, B, sigma_mm):
     """Linearised standard uncertainty per node, column and component; shape (n, n_col, 4).
 
@@ -239,6 +293,8 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {cfg.axis_scale}")
     if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
         raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
+    if cfg.outside not in ("exclude", "extrapolate"):
+        raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
     if cfg.mode == "htm":
         return
     extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
@@ -273,6 +329,8 @@ class SweepProblem:
     seed: int
     coverage: float
     htm: dict | None = None  # mode htm: bench arrays (see `_htm_arrays`)
+    # outside="extrapolate": `edge_fit_gradients` (n, 3, d), mesh frame; else (0, 3, d)
+    exit_grad: np.ndarray | None = None
 
     def run_chunk(self, start: int, stop: int):
         """Statistics of nodes ``start .. stop-1``.
@@ -316,6 +374,7 @@ class SweepProblem:
                 nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
                 self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
                 self.scales_mm, int(self.trials), int(self.seed), float(self.coverage),
+                self.exit_grad,
             )  # fmt: skip
 
         s, o, lost, star = map_blocks(block, len(nodes), 32)
@@ -335,7 +394,7 @@ class SweepProblem:
                     h["params"], h["terms" if geo else "terms_zero"], geo, noise, h["nkey"],
                     h["fkey"], h["sig"], h["speed"],
                     h["tau_code"], h["tau_par"], h["stack"], h["mounts"], h["tool"],
-                    h["strokes"], h["profiles"], float(self.coverage),
+                    h["strokes"], h["profiles"], float(self.coverage), self.exit_grad,
                 )  # fmt: skip
 
             parts.append(map_blocks(block, len(nodes), 16))
@@ -405,6 +464,11 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
         seed=int(cfg.seed),
         coverage=float(cfg.coverage),
         htm=htm,
+        exit_grad=(
+            np.ascontiguousarray(edge_fit_gradients(mesh, fm.B))
+            if cfg.outside == "extrapolate"
+            else np.empty((0, 3, mesh.dim))
+        ),
     )
     return mesh, problem, b_ref
 
@@ -516,9 +580,11 @@ def run_sweep(
 def summarize(res: SweepResult) -> dict:
     """The ``summary.json`` content (DESIGN.md 4.1) plus the context a reader needs.
 
-    U_f percentiles are taken over the nodes whose every trial stayed inside the map
-    (``uf_nodes`` counts them); nodes near the map's border lose trials and are reported through
-    ``outside_fraction`` instead of being summarised from a truncated sample.
+    U_f percentiles are taken over the nodes whose every trial has a value (``uf_nodes`` counts
+    them): by default those whose every trial stayed inside the map, as nodes near the map's
+    border lose trials and are reported through ``outside_fraction`` instead of being summarised
+    from a truncated sample; with ``outside="extrapolate"`` every node, the trials that left the
+    map taking the node's first-order Taylor expansion.
     """
     cfg = res.config
     n_col = res.stats.shape[1]
@@ -559,6 +625,8 @@ def summarize(res: SweepResult) -> dict:
         "nodes": int(res.fieldmap.n_nodes),
         "processed_nodes": int(processed.sum()),  # in some cell (gauss) / reachable (htm)
         "outside_fraction": [float(res.n_outside[:, k].sum() / n_samples) for k in range(n_col)],
+        "outside": cfg.outside,
+        "outside_rule": OUTSIDE_RULES[cfg.outside],
         "walk_failed_fraction": [
             float(res.n_walk_failed[:, k].sum() / n_samples) for k in range(n_col)
         ],

@@ -68,6 +68,29 @@ def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
     assert "U_f p50" in printed and "Kuhn" in printed
 
 
+def test_outside_extrapolate_gives_surface_nodes_a_figure_and_says_so(csv_map, tmp_path, capsys):
+    base = ["sweep", str(csv_map), "--up", "0,30", "--trials", "1000", "--seed", "1"]
+    assert main([*base, "--outside", "extrapolate", "--out", str(tmp_path / "x")]) == 0
+    s = json.loads((tmp_path / "x" / "summary.json").read_text())
+    assert s["outside"] == "extrapolate" and s["uf_nodes"] == [216, 216]
+    assert s["outside_fraction"][1] > 0.1  # the 152 surface nodes of 216 lost trials
+    m = meshio.read(tmp_path / "x" / "uf_up30um.vtu")
+    assert (m.point_data["complete"] == 1).all()
+    # a linear map: U_f / (linear GUM figure) at the surface as inside, within the Monte Carlo
+    # tolerance of the two means (both carry the upward bias of max(|low|, |high|), ~+5 %);
+    # the default's half-space samples of surface nodes are ~12 % high, beyond it
+    ratio = m.point_data["U_f_units"] / m.point_data["absB_gum_U95_units"]
+    surface = m.point_data["outside_fraction"] > 0
+    assert surface.sum() == 152  # 216 - 4 ** 3
+    tol = 4 * s["uf_relative_mc_std"] * np.sqrt(1 / 152 + 1 / 64)
+    assert abs(ratio[surface].mean() - ratio[~surface].mean()) < tol
+    assert "Taylor expansion" in capsys.readouterr().out
+    # out of core a slab's border is not the map's surface: refused before any work
+    rc = main([*base, "--outside", "extrapolate", "--slabs", "2", "--out", str(tmp_path / "s")])
+    assert rc == 2 and not (tmp_path / "s").exists()
+    assert "--outside extrapolate" in capsys.readouterr().err
+
+
 def test_help_exits_zero(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["sweep", "--help"])

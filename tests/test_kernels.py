@@ -184,7 +184,11 @@ def test_octant_cells_contain_their_corner_and_start_walks_nearby():
     np.testing.assert_array_equal(got, far)
 
 
-def test_gauss_sweep_matches_numpy_twin():
+@pytest.mark.parametrize("outside", ["exclude", "extrapolate"])
+def test_gauss_sweep_matches_numpy_twin(outside):
+    """Against scipy's interpolant and full sorting; with extrapolation the trials that leave
+    the map take the twin node gradient's Taylor expansion (a scattered map: its Delaunay hull
+    has flat cells, whose own linear field would extrapolate wildly)."""
     rng = np.random.default_rng(11)
     pts = rng.uniform(0, 4, (60, 3))
     B = np.c_[np.sin(pts[:, 0]) * pts[:, 1], np.cos(pts[:, 2]), pts[:, 0] * 0.3 + 1]
@@ -194,11 +198,14 @@ def test_gauss_sweep_matches_numpy_twin():
     starts = _kernels.octant_cells(
         mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, 1e-7
     )
+    grad = twins.node_gradients(mesh, B) if outside == "extrapolate" else None
+    exit_grad = np.empty((0, 3, 3)) if grad is None else grad  # 3-D: mesh frame = map frame
     stats, n_out, n_lost, _ = _kernels.gauss_sweep(
         np.arange(len(pts)), np.arange(len(pts)), mesh.coords, B, mesh.simplices,
         mesh.transform, mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95,
+        exit_grad,
     )  # fmt: skip
-    ref, ref_out = twins.gauss_sweep(pts, B, up, 150, 9)
+    ref, ref_out = twins.gauss_sweep(pts, B, up, 150, 9, grad=grad)
     np.testing.assert_array_equal(n_out, ref_out)
     assert n_lost.sum() == 0
     np.testing.assert_allclose(stats, ref, rtol=1e-9, atol=1e-12)
@@ -358,7 +365,7 @@ def test_abs_b_statistics_on_a_kinked_field():
                                    1e-7)  # fmt: skip
     stats, n_out, _, star = _kernels.gauss_sweep(
         np.array([g]), np.array([g]), mesh.coords, fm.B, mesh.simplices, mesh.transform,
-        mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95,
+        mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95, np.empty((0, 3, 3)),
     )  # fmt: skip
     assert star[0] and n_out.sum() == 0
     z = twins.sweep_normals(2, g, 4000)

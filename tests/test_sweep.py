@@ -197,3 +197,100 @@ def test_node_keys_give_whole_map_numbers_from_a_renumbered_map():
     got = moved.run_nodes(rows, keys=perm[rows])
     for g, w in zip(got[:4], want[:4], strict=True):
         np.testing.assert_allclose(g, w[perm[rows]], rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_extrapolation_gives_every_node_the_linear_field_sample_for_sample(planar):
+    """``outside="extrapolate"``: a trial that leaves the map takes the node's first-order
+    Taylor expansion, which on a linear map is the field itself; every node, surface, edges
+    and corners included, then has the statistics of B0 + G (x + s z) over all its trials (the
+    twin's normals). 0.4 mm on 1 mm cells also leaves the stars and takes the global walk."""
+    import twins
+
+    fm = grid_map(5)
+    if planar:  # the z = 2 mid-plane: a 2-D triangulation, displacements projected into it
+        mid = fm.points[:, 2] == 2.0
+        fm = FieldMap.from_arrays(fm.points[mid], fm.B[mid])
+    up = [0.0, 100.0, 400.0]
+    cfg = SweepConfig(up_um=up, trials=300, seed=6, outside="extrapolate")
+    res = run_sweep(fm, cfg)
+    keep = np.array([1.0, 1.0, 0.0 if planar else 1.0])  # the out-of-plane part is not covered
+    surface = (
+        ~interior(fm, 0.5)
+        if not planar
+        else ~np.all((fm.points[:, :2] > 0.5) & (fm.points[:, :2] < 3.5), axis=1)
+    )
+    assert (res.n_outside[surface, 1:] > 0).all()  # every surface node lost trials ...
+    assert res.complete()[:, 1:].all()  # ... and keeps a figure
+    assert (res.n_outside[~surface, 1] == 0).all()  # 0.1 mm: only surface nodes lose trials
+    assert res.n_outside[~surface, 2].sum() > 0  # 0.4 mm: the next layer too (global walk)
+    for g in range(fm.n_nodes):
+        z = twins.sweep_normals(6, g, 300) * keep
+        for k, s in enumerate(up):
+            if s == 0.0:
+                continue
+            db = (s * 1e-3 * z) @ G.T
+            dabs = np.linalg.norm(fm.B[g] + db, axis=1) - np.linalg.norm(fm.B[g])
+            for c in range(3):
+                np.testing.assert_allclose(res.stats[g, k, c], twins.sample_stats(db[:, c]),
+                                           rtol=1e-9, atol=1e-12)  # fmt: skip
+            np.testing.assert_allclose(res.stats[g, k, 3], twins.sample_stats(dabs), rtol=1e-7,
+                                       atol=1e-12)  # fmt: skip
+    s = summarize(res)
+    assert s["outside"] == "extrapolate" and "Taylor" in s["outside_rule"]
+    assert s["uf_nodes"][1:] == [fm.n_nodes] * 2
+    # the default leaves those trials out: same counts, surface nodes without a figure
+    ref = run_sweep(fm, SweepConfig(up_um=up, trials=300, seed=6))
+    np.testing.assert_array_equal(ref.n_outside, res.n_outside)
+    assert not ref.complete()[surface, 1:].any()
+    none = (ref.n_outside == 0).all(axis=1)  # nodes that lost no trial: bit-identical
+    assert none.sum() > 0
+    np.testing.assert_array_equal(ref.stats[none], res.stats[none])
+
+
+def test_bad_outside_rule():
+    with pytest.raises(CfmInputError, match="exclude or extrapolate"):
+        run_sweep(grid_map(3), SweepConfig(up_um=[10.0], trials=50, outside="nearest"))
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_edge_fit_gradients_exact_on_a_linear_field_and_robust_on_a_scattered_hull(planar):
+    """The gradient of the Taylor extrapolation: exact for a linear field (a scattered map, its
+    mid-plane for the planar case), and on a curved field within a few % at the nodes of the
+    Delaunay hull, where the cell average of `node_gradients` is far off (flat hull cells)."""
+    from cfm_fem.interpolation import build_mesh
+    from cfm_fem.sweep import edge_fit_gradients, node_gradients
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(0, 6, (3000, 3))
+    if planar:
+        pts[:, 2] = 2.0
+    fm = FieldMap.from_arrays(pts, pts @ G.T + B0)
+    mesh = build_mesh(fm, "delaunay")
+    want = G if not planar else G * [1, 1, 0]  # map frame; nothing known along the normal
+    np.testing.assert_allclose(edge_fit_gradients(mesh, fm.B) @ mesh.basis.T,
+                               np.broadcast_to(want, (3000, 3, 3)), atol=1e-9)  # fmt: skip
+    if planar:
+        return
+    x, z = pts[:, 0], pts[:, 2]
+    B = np.c_[0.2 * pts[:, 1] + 0.01 * x**2, 0.2 * x, 1 + 0.05 * np.sin(z)]
+    true = np.zeros((3000, 3, 3))
+    true[:, 0, 0], true[:, 0, 1], true[:, 1, 0], true[:, 2, 2] = (
+        0.02 * x,
+        0.2,
+        0.2,
+        0.05 * np.cos(z),
+    )
+    hull = np.unique(
+        np.concatenate(
+            [
+                np.delete(mesh.simplices[mesh.neighbors[:, c] < 0], c, axis=1).ravel()
+                for c in range(4)
+            ]
+        )  # fmt: skip
+    )
+    rel = {}
+    for name, g in (("fit", edge_fit_gradients(mesh, B)), ("cells", node_gradients(mesh, B))):
+        rel[name] = np.linalg.norm(g - true, axis=(1, 2)) / np.linalg.norm(true, axis=(1, 2))
+    assert rel["fit"][hull].max() < 0.5 and np.median(rel["fit"]) < 0.05
+    assert rel["cells"][hull].max() > 2.0  # the reason for the fit

@@ -168,3 +168,31 @@ def test_htm_same_seed_same_numbers_whatever_threads_and_chunks():
     np.testing.assert_array_equal(a.positioning, b.positioning)
     c = run_sweep(fm, SweepConfig(**{**cfg, "seed": 4}))
     assert not np.array_equal(a.stats[:, 0], c.stats[:, 0])
+
+
+def test_htm_extrapolation_gives_surface_nodes_the_linear_field():
+    """Mode htm with ``outside="extrapolate"``: every node, surface included, gets the
+    statistics of G d over all trials on a linear map (the same numpy twin as above)."""
+    fm = grid_map(5)
+    bench = read_reference_bench()
+    n, seed = 60, 5
+    res = run_sweep(
+        fm, SweepConfig(trials=n, seed=seed, mode="htm", bench=bench, outside="extrapolate")
+    )
+    q = bench.axis_positions_for(fm.points)
+    params = draw_error_sets(bench, n, seed)
+    dq = np.stack([point_noise(bench, t, range(len(q)), seed) for t in range(n)])
+    dm = probe_errors_for_bench(bench, params, q, dq) @ bench.bench_to_magnet_rotation().T
+    lo, hi = fm.points.min(0), fm.points.max(0)
+    p = fm.points + dm
+    outside = ~np.all((p >= lo) & (p <= hi), axis=-1)
+    np.testing.assert_array_equal(res.n_outside[:, 0], outside.sum(0))
+    assert outside.sum() > 100 and res.complete()[:, 0].all()
+    db = dm @ G.T
+    dabs = np.linalg.norm(fm.B + db, axis=-1) - np.linalg.norm(fm.B, axis=-1)
+    for g in np.flatnonzero(outside.any(0)):
+        for c in range(4):
+            x = db[:, g, c] if c < 3 else dabs[:, g]
+            np.testing.assert_allclose(
+                res.stats[g, 0, c], twins.sample_stats(x), rtol=1e-9, atol=1e-12
+            )

@@ -102,9 +102,10 @@ def sample_stats(a, p=0.95):
     return np.array([a.mean(), a.std(ddof=1), lo, hi, slo, shi])
 
 
-def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95):
+def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95, grad=None):
     """Twin of `cfm_fem._kernels.gauss_sweep` for a 3-D scattered map, using scipy's
-    LinearNDInterpolator (Delaunay) and full sorting. Returns stats (n, n_up, 4, 6), n_out."""
+    LinearNDInterpolator (Delaunay) and full sorting. Returns stats (n, n_up, 4, 6), n_out.
+    ``grad`` (n, 3, 3), T/mm: points outside take B_g + grad_g . delta (else left out)."""
     interp = scipy.spatial.Delaunay(points)
     from scipy.interpolate import LinearNDInterpolator
 
@@ -120,6 +121,9 @@ def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95):
             Bm = f(pts)
             ok = np.isfinite(Bm[:, 0])
             n_out[g, k] = int((~ok).sum())
+            if grad is not None:
+                Bm[~ok] = B[g] + (pts[~ok] - points[g]) @ grad[g].T
+                ok[:] = True
             err = Bm[ok] - B[g]
             absb = np.linalg.norm(Bm[ok], axis=1) - abs0[g]
             if ok.sum() >= 2:

@@ -104,6 +104,15 @@ def add_args(p):
         help="rows with B exactly 0 0 0 (placeholders of measured maps): warn and keep, drop, keep",
     )
     p.add_argument(
+        "--outside",
+        choices=["exclude", "extrapolate"],
+        default="exclude",
+        help="trials whose perturbed position leaves the map: exclude them from the node's "
+        "statistics (the node gets no U_f figure; default), or give them the node's first-order "
+        "Taylor expansion B + grad B . delta (surface nodes keep every trial); counted in "
+        "outside_fraction either way",
+    )
+    p.add_argument(
         "--chunk-nodes",
         type=int,
         default=20000,
@@ -178,6 +187,11 @@ def _run_slabs(args, up):
                        ("--mode htm", args.mode == "htm")):  # fmt: skip
         if used:
             raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
+    if args.outside == "extrapolate":  # a slab's mesh ends at its halo, not at the map's surface
+        raise CfmInputError(
+            "--slabs/--max-memory cannot be combined with --outside extrapolate: a walk that "
+            "stops at a slab's halo border has not left the map"
+        )
     kind = is_streamable(args.field, args.fmt)
     if kind is None:
         print(
@@ -298,6 +312,7 @@ def run(args) -> int:
         mode=args.mode,
         bench=bench,
         chunk_nodes=args.chunk_nodes,
+        outside=args.outside,
     )
     what = (
         f"U_p = {', '.join(f'{u:g}' for u in up)} um"
@@ -419,7 +434,11 @@ def _print_summary(s, out):
         )
     if s["mode"] == "htm":
         print("(htm: U_p is the RMS over nodes of the 3-D probe position error of that column)")
-    else:
+    if s.get("outside") == "extrapolate":
+        if any(s["outside_fraction"]):
+            text = f"outside: perturbed points that left the map, each {s['outside_rule']}"
+            print(textwrap.fill(text, width=100, subsequent_indent="  "))
+    elif s["mode"] != "htm":
         _explain_outside(s)
     for note in s["notes"]:
         print(f"note: {note}")
