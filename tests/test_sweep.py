@@ -256,8 +256,9 @@ def test_bad_outside_rule():
 @pytest.mark.parametrize("planar", [False, True])
 def test_edge_fit_gradients_exact_on_a_linear_field_and_robust_on_a_scattered_hull(planar):
     """The gradient of the Taylor extrapolation: exact for a linear field (a scattered map, its
-    mid-plane for the planar case), and on a curved field within a few % at the nodes of the
-    Delaunay hull, where the cell average of `node_gradients` is far off (flat hull cells)."""
+    mid-plane for the planar case), and on a curved field within 30 % at the nodes of the
+    Delaunay hull (measured: 14 %), where the cell average of `node_gradients` is off by up to
+    4.7x (flat hull cells)."""
     from cfm_fem.interpolation import build_mesh
     from cfm_fem.sweep import edge_fit_gradients, node_gradients
 
@@ -292,5 +293,5 @@ def test_edge_fit_gradients_exact_on_a_linear_field_and_robust_on_a_scattered_hu
     rel = {}
     for name, g in (("fit", edge_fit_gradients(mesh, B)), ("cells", node_gradients(mesh, B))):
         rel[name] = np.linalg.norm(g - true, axis=(1, 2)) / np.linalg.norm(true, axis=(1, 2))
-    assert rel["fit"][hull].max() < 0.5 and np.median(rel["fit"]) < 0.05
+    assert rel["fit"][hull].max() < 0.3 and np.median(rel["fit"]) < 0.05
     assert rel["cells"][hull].max() > 2.0  # the reason for the fit
