@@ -547,7 +547,9 @@ def run_slab_sweep(
     path : path-like
         Plain or Opera table.
     cfg : SweepConfig
-        Mode gauss, ``outside="exclude"``.
+        Mode gauss. With ``outside="extrapolate"``, a node whose walks reached the halo border
+        of its slab is run again without extrapolation: its trials that left (the map or the
+        slab) are left out, and the node has no U_f figure (as by default).
     out_dir : path-like
     n_slabs : int, optional
         K; else from ``max_memory`` (bytes, `slabs_for_memory`).
@@ -566,11 +568,6 @@ def run_slab_sweep(
         The summary written; None for a map that is not 3-D (the caller then runs in memory).
     """
     t0 = time.perf_counter()
-    if cfg.outside != "exclude":  # a slab's mesh ends at its halo, not at the map's surface
-        raise CfmInputError(
-            f"the out-of-core sweep leaves out trials that leave the map; got outside="
-            f"{cfg.outside!r}"
-        )
     log = log or (lambda s: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -727,11 +724,14 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         stats, n_out, n_lost, star, _ = gp.run_nodes(own_local, keys=own_ids)
         lost_all = (n_out + n_lost) >= cfg.trials
         hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1)
-        if hit.any():
-            redo = dataclasses.replace(gp, neighbors=nb_b).run_nodes(
+        n_left = n_out.copy() if cfg.outside == "exclude" else np.zeros_like(n_out)
+        if hit.any():  # a halo border is not the map's surface: never extrapolated across
+            no_exit = np.empty((0,) + gp.exit_grad.shape[1:])
+            redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit).run_nodes(
                 own_local[hit], keys=own_ids[hit]
             )
             stats[hit], n_out[hit], n_lost[hit], star[hit] = redo[:4]
+            n_left[hit] = n_out[hit]
             sums["halo_nodes"] += int(hit.sum())
         del coords_l, values_l, start_l, gp
         grad = node_gradients(mesh, lfm.B)[own]
@@ -740,7 +740,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
                           gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm),
-                          seconds=0.0)  # fmt: skip
+                          seconds=0.0, n_left_out=n_left)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all[own_ids], ok_all[own_ids] = uf, complete
         for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
@@ -759,7 +759,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         cells = ids[cells[own[top]]]
         sums["cells"] += len(cells)
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
-                   n_lost=n_lost, star=star, gradient=grad, cells=cells)  # fmt: skip
+                   n_lost=n_lost, n_left=n_left, star=star, gradient=grad,
+                   cells=cells)  # fmt: skip
         if template is None:
             template = summarize(res)
         if progress is not None:
@@ -780,7 +781,9 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     if sums["halo_nodes"]:
         summary["notes"].append(
             f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "
-            f"slab: those trials are counted as outside (use fewer slabs or a wider halo)"
+            f"slab: those trials are counted as outside"
+            + (" and left out (not extrapolated)" if cfg.outside == "extrapolate" else "")
+            + " (use fewer slabs or a wider halo)"
         )
     summary["seconds"] = time.perf_counter() - t0
     summary["provenance"] = prov or {}
@@ -842,7 +845,9 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
         ids = np.asarray(store.load(p, "ids"))
         cells = np.asarray(store.load(p, "cells"))
         nodes = np.union1d(ids, cells.ravel())
-        g = store.gather(nodes, K, ["points", "B", "stats", "n_out", "n_lost", "star", "gradient"])
+        g = store.gather(
+            nodes, K, ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient"]
+        )
         sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
         sigma_mm = (np.asarray(cfg.up_um)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
 
@@ -850,7 +855,8 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
         res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
                           n_outside=g["n_out"], n_walk_failed=g["n_lost"],
                           linear_in_up=g["star"], gradient=g["gradient"],
-                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm), seconds=0.0)  # fmt: skip
+                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm), seconds=0.0,
+                          n_left_out=g["n_left"])  # fmt: skip
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = _point_data(res, k)

@@ -120,6 +120,10 @@ class SweepResult:
     positioning : ndarray, shape (n, 3, 2, 3), mm, or None
         Mode htm: mean and standard deviation of the probe position error per map axis, for
         each column (total, geometric, vibration and delay).
+    n_left_out : ndarray, shape (n, n_up), int64, or None
+        Trials whose position left the map and that are not in the statistics. None: all of
+        ``n_outside`` with ``outside="exclude"``, none with ``"extrapolate"`` (the out-of-core
+        run leaves out, also then, the trials of nodes whose walks reached a slab's halo).
     """
 
     fieldmap: FieldMap
@@ -134,6 +138,15 @@ class SweepResult:
     gum_u: np.ndarray
     seconds: float
     positioning: np.ndarray | None = None
+    n_left_out: np.ndarray | None = None
+
+    def left_out(self, cols=slice(None)) -> np.ndarray:
+        """`n_left_out` (or its default) for the columns ``cols``, shape (n, ...)."""
+        if self.n_left_out is not None:
+            return self.n_left_out[:, cols]
+        if self.config.outside == "extrapolate":
+            return np.zeros_like(self.n_outside[:, cols])
+        return self.n_outside[:, cols]
 
     @property
     def labels(self) -> list[str]:
@@ -170,8 +183,9 @@ class SweepResult:
     def complete(self) -> np.ndarray:
         """Nodes whose every trial has a value (stayed inside the map, or was extrapolated with
         ``outside="extrapolate"``), shape (n, n_up), bool."""
-        ok = (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
-        return ok if self.config.outside == "extrapolate" else ok & (self.n_outside == 0)
+        return (
+            (self.left_out() == 0) & (self.n_walk_failed == 0) & np.isfinite(self.stats[..., 3, 1])
+        )
 
     def gum_check(self, column: int | None = None):
         """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
@@ -194,9 +208,7 @@ class SweepResult:
         lo, hi = st[..., 2], st[..., 3]
         U = Z95 * gum_u
         d_max = np.maximum(np.abs(-U - lo), np.abs(U - hi))
-        n = self.config.trials - self.n_walk_failed[:, cols]
-        if self.config.outside != "extrapolate":
-            n = n - self.n_outside[:, cols]
+        n = self.config.trials - self.left_out(cols) - self.n_walk_failed[:, cols]
         # standard error of the 2.5 % quantile of a normal: sqrt(p(1-p)/N) / phi(z)
         se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
         tol = np.maximum(numerical_tolerance(u_mc), 3.0 * se)

@@ -130,6 +130,45 @@ def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
     assert s["outside_fraction"][1] > ref.n_outside[:, 1].sum() / (ref.fieldmap.n_nodes * 200)
 
 
+def test_extrapolating_slabs_agree_with_the_in_memory_run(tmp_path):
+    """``--outside extrapolate`` out of core: the same figures as in memory (the Taylor
+    gradient sums a node's cells in another order: rounding only), every node complete."""
+    path = _write_csv(tmp_path / "g.csv", _lattice())
+    base = ["sweep", str(path), "--up", "0:40:20", "--trials", "300", "--outside", "extrapolate"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    assert sl["slabs"]["halo_outside_nodes"] == 0 and sl["outside"] == "extrapolate"
+    assert sl["uf_nodes"] == one["uf_nodes"] == [686] * 3
+    _same_summary(one, sl, exact=False)
+    for up in (20, 40):
+        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        assert (a["outside_fraction"] > 0).sum() > 200  # the surface nodes
+        for name in a:
+            np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
+
+
+def test_nodes_that_reach_the_halo_are_not_extrapolated(tmp_path):
+    """As `test_trials_that_reach_the_halo_border_count_as_outside`, extrapolating: a node whose
+    walks reached a slab's halo border has its leaving trials left out, and no figure."""
+    path = _write_csv(tmp_path / "g.csv", _lattice(5, 8))
+    cfg = SweepConfig(up_um=[0.0, 1000.0], trials=200, outside="extrapolate")
+    s = run_slab_sweep(path, cfg, tmp_path / "sl", n_slabs=2, halo_cells=0.0)
+    halo = s["slabs"]["halo_outside_nodes"]
+    assert halo > 0 and any("not extrapolated" in n for n in s["notes"])
+    _, b = _by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
+    assert (b["complete"] == 0).sum() == halo == 200 - s["uf_nodes"][1]
+    assert (b["outside_fraction"][b["complete"] == 0] > 0).all()
+    # those nodes: the statistics of the default run (their leaving trials left out)
+    ref = SweepConfig(up_um=[0.0, 1000.0], trials=200)
+    run_slab_sweep(path, ref, tmp_path / "ex", n_slabs=2, halo_cells=0.0)
+    _, a = _by_position(pv.read(tmp_path / "ex" / "uf_up1000um.pvtu"))
+    cut = b["complete"] == 0
+    np.testing.assert_array_equal(a["absB_U95_units"][cut], b["absB_U95_units"][cut])
+
+
 @pytest.mark.parametrize("fmt", ["csv", "table"])
 def test_stream_reads_what_the_in_memory_reader_reads(tmp_path, monkeypatch, fmt):
     monkeypatch.setattr(streaming, "READ_BYTES", 97)  # blocks cut inside lines, CRLF pairs

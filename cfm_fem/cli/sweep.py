@@ -187,11 +187,6 @@ def _run_slabs(args, up):
                        ("--mode htm", args.mode == "htm")):  # fmt: skip
         if used:
             raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
-    if args.outside == "extrapolate":  # a slab's mesh ends at its halo, not at the map's surface
-        raise CfmInputError(
-            "--slabs/--max-memory cannot be combined with --outside extrapolate: a walk that "
-            "stops at a slab's halo border has not left the map"
-        )
     kind = is_streamable(args.field, args.fmt)
     if kind is None:
         print(
@@ -202,7 +197,7 @@ def _run_slabs(args, up):
         return None
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
                       b_ref_T=args.b_ref, interpolation=args.interpolation,
-                      chunk_nodes=args.chunk_nodes)  # fmt: skip
+                      chunk_nodes=args.chunk_nodes, outside=args.outside)  # fmt: skip
     prov = provenance({"field": args.field, "bench": None}, args.command_line)
     prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; U_p = "
