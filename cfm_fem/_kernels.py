@@ -2637,7 +2637,7 @@ def coupled_probe_errors(
 # ---------------------------------------------------------------------------------------------
 @nb.njit(**JIT)
 def htm_sweep(
-    nodes, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
+    nodes, keys, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
     params, terms, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack,
     mounts, tool, strokes, profiles, p, exit_grad,
 ):  # fmt: skip
@@ -2645,11 +2645,14 @@ def htm_sweep(
 
     Trial t uses error amplitudes ``params[t]`` for every node (a real bench has one set of
     geometric errors per scan) and the per-(trial, node) vibration and delay of
-    `axis_noise_mm` (node index as the point index), so maps are reproducible from the seed.
+    `axis_noise_mm` (the node's key as the point index), so maps are reproducible from the seed.
 
     Parameters
     ----------
     nodes : ndarray, shape (k,), int64
+    keys : ndarray, shape (k,), int64
+        Noise-stream id (point index) of each node: its index in the whole map, as in
+        `gauss_sweep`.
     coords, values, simplices, transform, neighbors, start_cells, basis :
         As in `gauss_sweep`.
     rot : ndarray, shape (3, 3)
@@ -2715,8 +2718,9 @@ def htm_sweep(
             continue
         b0 = values[g]
         abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+        gk = keys[i]
         if use_noise:
-            normals_by_key(tkeys, fkey, g, n_trials, z, ok)
+            normals_by_key(tkeys, fkey, gk, n_trials, z, ok)
         s1 = np.zeros(3)
         s2 = np.zeros(3)
         qg = q_nodes[g]
@@ -2724,7 +2728,7 @@ def htm_sweep(
             for a in range(3):
                 dq[a] = sig[a] * z[a, t]
             if use_noise and tau_code >= 0:  # eq. 9 delay, as in axis_noise_mm
-                tau = _delay_tau(tkeys[t], g, tau_code, tau_par)
+                tau = _delay_tau(tkeys[t], gk, tau_code, tau_par)
                 for a in range(3):
                     dq[a] += speed[a] * tau
             if terms.shape[0] > 0:

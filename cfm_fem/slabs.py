@@ -75,7 +75,15 @@ from .io.pvtu import write_pvtu
 from .io.streaming import check_opera_counts, open_stream
 from .io.sweep_out import _point_data, provenance_codes, vtu_name
 from .io.vtk import write_pvd, write_vtu
-from .sweep import SweepConfig, SweepResult, _gum_u, node_gradients, prepare_sweep, summarize
+from .sweep import (
+    HTM_PARTS,
+    SweepConfig,
+    SweepResult,
+    _gum_u,
+    node_gradients,
+    prepare_sweep,
+    summarize,
+)
 
 __all__ = ["SlabPlan", "stage", "run_slab_sweep", "disk_percentiles", "slabs_for_memory"]
 
@@ -85,6 +93,26 @@ MAX_DISTINCT = 1 << 20
 BLOCK = 1 << 16
 #: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
 HALO_CELLS = 4.0
+
+
+def htm_reach_mm(bench, trials: int, seed: int, lo, hi) -> float:
+    """Largest probe position error of a mode-htm sweep near a map, mm (for the slab halo).
+
+    The geometric part at the corners and the centre of the map's box (magnet frame) for every
+    trial of the run, plus 1.5 times the largest of 4,000 draws of the vibration and delay.
+    A trial that still reaches the halo border is detected and counted, so this only sizes
+    the halo.
+    """
+    from .kinematics import draw_error_sets, point_noise, probe_errors_for_bench
+
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    corners = np.array([[(lo, hi)[(k >> a) & 1][a] for a in range(3)] for k in range(8)])
+    q = bench.axis_positions_for(np.vstack([corners, (lo + hi) / 2]))
+    q = np.clip(q, 0.0, bench.strokes_mm)
+    params = draw_error_sets(bench, trials, seed)
+    geo = np.linalg.norm(probe_errors_for_bench(bench, params, q, 0.0), axis=-1).max()
+    noise = np.stack([point_noise(bench, t, range(200), seed) for t in range(20)])
+    return float(geo + 1.5 * np.linalg.norm(noise, axis=-1).max())
 
 
 def _drop_pages(mm, start: int = 0, length: int | None = None) -> None:
@@ -586,19 +614,26 @@ def run_slab_sweep(
 def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0):
     file = str(path)
     n_rows = len(st.rows)
-    if cfg.mode != "gauss":
-        raise CfmInputError("--slabs is available for --mode gauss only in this version")
+    htm = cfg.mode == "htm"
     b_ref = st.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
     extent = float((st.hi - st.lo).min())
-    sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
-    if sigma * 5.0 > extent:
+    if htm:  # the halo takes "6 sigma" = the bench's largest probe error near the map
+        from .io.bench_toml import read_reference_bench
+
+        if cfg.bench is None:
+            cfg = dataclasses.replace(cfg, bench=read_reference_bench())
+        sigma = htm_reach_mm(cfg.bench, cfg.trials, cfg.seed, st.lo, st.hi) / 6.0
+    else:
+        sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
+    if not htm and sigma * 5.0 > extent:
         raise CfmInputError(
             f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
             f"extent of {extent:g} mm, so most perturbed points would leave the map",
             file=file,
         )
+    n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
     if n_slabs is None:
-        n_slabs = slabs_for_memory(n_rows, max_memory, len(cfg.up_um))
+        n_slabs = slabs_for_memory(n_rows, max_memory, n_col)
     n_slabs = max(1, min(int(n_slabs), n_rows // 8 or 1))
     span = float((st.hi - st.lo).max())
     axis = int(np.argmax(st.hi - st.lo))
@@ -620,8 +655,9 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     halo = halo_cells * step + 6.0 * sigma
     plan = _plan(st, n_slabs, halo)
     K = plan.n_slabs
+    reach = "the bench's largest probe error" if htm else "6 sigma of the largest U_p"
     log(f"slabs: {K} along {'xyz'[plan.axis]}, halo {halo:.4g} mm ({halo_cells:g} cells of "
-        f"{step:.4g} mm + 6 sigma of {sigma * 1e3:.4g} um); {n_rows} rows staged")  # fmt: skip
+        f"{step:.4g} mm + {reach}, {6 * sigma * 1e3:.4g} um); {n_rows} rows staged")  # fmt: skip
     # pass A: duplicates (and the grid test: one node per lattice point)
     dropped = []
     for k in range(K):
@@ -654,13 +690,16 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     def gid(rows):
         return rows - np.searchsorted(dropped, rows)
 
-    n_col = len(cfg.up_um)
     store = _SlabStore(work / "results")
     uf_all = np.lib.format.open_memmap(work / "uf.npy", "w+", np.float64, (n, n_col))
     ok_all = np.lib.format.open_memmap(work / "complete.npy", "w+", np.bool_, (n, n_col))
+    # htm: |mean|^2 + |std|^2 of the probe error per node and column (the columns' U_p)
+    e2_all = (
+        np.lib.format.open_memmap(work / "e2.npy", "w+", np.float64, (n, n_col)) if htm else None
+    )
     sums = dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64),
                 processed=0, star=0, dis=np.zeros((n_col, 4), np.int64),
-                cells=0, halo_nodes=0)  # fmt: skip
+                cells=0, halo_nodes=0, unreachable=0)  # fmt: skip
     template = None
     mesh_notes = []
     for k in range(K):
@@ -694,7 +733,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                 break
             h *= 2.0
             log(f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)")
-        mesh_notes += [m for m in mesh.notes if m not in mesh_notes and "grid point" not in m]
+        mesh_notes += [m for m in mesh.notes if m not in mesh_notes and "grid point" not in m
+                       and "outside the strokes" not in m]  # fmt: skip
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
         # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
@@ -721,26 +761,33 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                                  transform=trans, neighbors=nb_a, start_cells=start_l)  # fmt: skip
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
-        stats, n_out, n_lost, star, _ = gp.run_nodes(own_local, keys=own_ids)
+        stats, n_out, n_lost, star, pos = gp.run_nodes(own_local, keys=own_ids)
         lost_all = (n_out + n_lost) >= cfg.trials
-        hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1)
+        skipped = start_l[own_local, 0] < 0  # in no cell, or out of the bench's strokes: NaN
+        hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1) & ~skipped
         n_left = n_out.copy() if cfg.outside == "exclude" else np.zeros_like(n_out)
         if hit.any():  # a halo border is not the map's surface: never extrapolated across
             no_exit = np.empty((0,) + gp.exit_grad.shape[1:])
             redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit).run_nodes(
                 own_local[hit], keys=own_ids[hit]
             )
-            stats[hit], n_out[hit], n_lost[hit], star[hit] = redo[:4]
+            stats[hit], n_out[hit], n_lost[hit], star[hit], pos[hit] = redo
             n_left[hit] = n_out[hit]
             sums["halo_nodes"] += int(hit.sum())
         del coords_l, values_l, start_l, gp
         grad = node_gradients(mesh, lfm.B)[own]
         sub = FieldMap(points=pts[own], B=B[own], source=file)
-        sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
+        if htm:
+            sigma_mm = pos[:, :, 1]  # per-node std of the probe error, (k, 3, 3)
+            q_own = cfg.bench.axis_positions_for(pts[own])
+            sums["unreachable"] += int(cfg.bench.outside_stroke(q_own).sum())
+            e2_all[own_ids] = (pos[:, :, 0] ** 2).sum(-1) + (pos[:, :, 1] ** 2).sum(-1)
+        else:
+            sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
-                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm),
-                          seconds=0.0, n_left_out=n_left)  # fmt: skip
+                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm), seconds=0.0,
+                          positioning=pos if htm else None, n_left_out=n_left)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all[own_ids], ok_all[own_ids] = uf, complete
         for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
@@ -759,7 +806,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         cells = ids[cells[own[top]]]
         sums["cells"] += len(cells)
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
-                   n_lost=n_lost, n_left=n_left, star=star, gradient=grad,
+                   n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
                    cells=cells)  # fmt: skip
         if template is None:
             template = summarize(res)
@@ -768,14 +815,22 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         del res, mesh, problem, lfm, stats
     uf_all.flush()
     ok_all.flush()
-    summary = _summary(template, cfg, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
+    if htm:  # as SweepResult.column_up_um, over the whole map
+        ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
+        if sums["unreachable"]:
+            notes.append(f"{sums['unreachable']} node(s) lie outside the strokes of the bench's "
+                         "axes: no statistics (NaN)")  # fmt: skip
+    else:
+        ups = [float(u) for u in cfg.up_um]
+    summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
     summary["slabs"] = {
         "count": K,
         "axis": "xyz"[plan.axis],
         "edges_mm": [float(e) for e in plan.edges],
         "halo_mm": float(halo),
-        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + 6 sigma of the largest U_p "
-        f"({sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not certified",
+        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + {reach} "
+        f"({6 * sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not "
+        "certified",
         "halo_outside_nodes": int(sums["halo_nodes"]),
     }
     if sums["halo_nodes"]:
@@ -791,9 +846,9 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     return summary
 
 
-def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
+def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
     s = dict(template)
-    n_col = len(cfg.up_um)
+    n_col = len(ups)
     step = 1 << 20
 
     def column(k):
@@ -813,8 +868,8 @@ def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
         for name, v in zip(pct, vals, strict=True):
             pct[name].append(v)
         uf_nodes.append(int(sum(len(c) for c in column(k)())))
-    n_samples = max(sums["processed"], 1) * cfg.trials
-    s["up_um"] = [float(u) for u in cfg.up_um]
+    n_samples = max(sums["processed"], 1) * s["trials"]
+    s["up_um"] = list(ups)
     s["uf_units"] = pct
     s["uf_nodes"] = uf_nodes
     s["nodes"] = int(n)
@@ -838,29 +893,34 @@ def _summary(template, cfg, n, uf_all, ok_all, sums, notes, kind, file):
 def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
     """One piece per slab and U_p value, the .pvtu indices, sweep.pvd, summary.json."""
     prov = summary["provenance"]
-    labels = [f"up{u:g}um" for u in cfg.up_um]
+    htm = cfg.mode == "htm"
+    labels = summary["columns"]
+    ups = summary["up_um"]
     written = {k: [] for k in range(len(labels))}
     example = {}
     for p in range(K):
         ids = np.asarray(store.load(p, "ids"))
         cells = np.asarray(store.load(p, "cells"))
         nodes = np.union1d(ids, cells.ravel())
-        g = store.gather(
-            nodes, K, ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient"]
-        )
+        names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos"]
+        g = store.gather(nodes, K, names)
         sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
-        sigma_mm = (np.asarray(cfg.up_um)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
+        if htm:
+            sigma_mm = g["pos"][:, :, 1]
+        else:
+            sigma_mm = (np.asarray(ups)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
 
         piece_cells = np.searchsorted(nodes, cells)
         res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
                           n_outside=g["n_out"], n_walk_failed=g["n_lost"],
                           linear_in_up=g["star"], gradient=g["gradient"],
                           gum_u=_gum_u(g["gradient"], g["B"], sigma_mm), seconds=0.0,
+                          positioning=g["pos"] if htm else None,
                           n_left_out=g["n_left"])  # fmt: skip
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = _point_data(res, k)
-            fields = {"U_p_um": float(cfg.up_um[k]), "B_ref_T": b_ref, "trials": cfg.trials,
+            fields = {"U_p_um": float(ups[k]), "B_ref_T": b_ref, "trials": cfg.trials,
                       "seed": cfg.seed, "piece": p,
                       "provenance_utf8": provenance_codes(prov)}  # fmt: skip
             write_vtu(path, sub.points, piece_cells, data, fields)
@@ -870,7 +930,7 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
     for k, label in enumerate(labels):
         path = out / vtu_name(label).replace(".vtu", ".pvtu")
         write_pvtu(path, written[k], example[k], provenance=prov)
-        entries.append((float(cfg.up_um[k]), path))
+        entries.append((float(k) if htm else float(ups[k]), path))
     write_pvd(out / "sweep.pvd", entries, provenance=prov)
     summary["pieces"] = K
     write_json(out / "summary.json", summary)

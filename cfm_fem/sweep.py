@@ -374,9 +374,7 @@ class SweepProblem:
         nodes = np.asarray(nodes, dtype=np.int64)
         keys = nodes if keys is None else np.asarray(keys, dtype=np.int64)
         if self.htm is not None:
-            if not np.array_equal(keys, nodes):
-                raise NotImplementedError("mode htm takes node indices of the whole map")
-            return self._run_htm(nodes)
+            return self._run_htm(nodes, keys)
         # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
         # each node's numbers depend on its key only, so the order changes no result
         order = morton_order(self.coords[nodes])
@@ -395,15 +393,16 @@ class SweepProblem:
         back[order] = np.arange(len(order))
         return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 2, 3))
 
-    def _run_htm(self, nodes):
+    def _run_htm(self, nodes, keys):
         h = self.htm
         parts = []
         for geo, noise in HTM_PARTS.values():
 
             def block(i0, i1, geo=geo, noise=noise):
                 return _kernels.htm_sweep(
-                    nodes[i0:i1], self.coords, self.values, self.simplices, self.transform,
-                    self.neighbors, self.start_cells, self.basis, h["rot"], h["q_nodes"],
+                    nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
+                    self.transform, self.neighbors, self.start_cells, self.basis, h["rot"],
+                    h["q_nodes"],
                     h["params"], h["terms" if geo else "terms_zero"], geo, noise, h["nkey"],
                     h["fkey"], h["sig"], h["speed"],
                     h["tau_code"], h["tau_par"], h["stack"], h["mounts"], h["tool"],

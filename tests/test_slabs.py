@@ -169,6 +169,36 @@ def test_nodes_that_reach_the_halo_are_not_extrapolated(tmp_path):
     np.testing.assert_array_equal(a["absB_U95_units"][cut], b["absB_U95_units"][cut])
 
 
+def test_htm_slabs_equal_the_in_memory_run(tmp_path):
+    """``--mode htm --slabs``: nodes keep their whole-map index as noise stream, so the three
+    maps (total, geometric, vibration and delay) are those of the in-memory run; the columns'
+    U_p (RMS of the probe error over the map) too."""
+    pts = _lattice() + [70.0, 0.0, 0.0]  # x = 60..80 mm: the nodes beyond 75 mm are out of
+    # the reference bench's X stroke (magnet axis at mid-stroke, 150 mm)
+    path = _write_csv(tmp_path / "g.csv", pts)
+    base = ["sweep", str(path), "--mode", "htm", "--trials", "200"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
+    one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    assert sl["slabs"]["count"] == 3 and sl["slabs"]["halo_outside_nodes"] == 0
+    assert any("outside the strokes" in n for n in sl["notes"])
+    assert 0 < sl["processed_nodes"] < 686
+    assert sl["columns"] == one["columns"] == ["htm_total", "htm_geometric", "htm_vibration_delay"]
+    np.testing.assert_allclose(sl["up_um"], one["up_um"], rtol=1e-12)
+    _same_summary({k: v for k, v in one.items() if k != "up_um"},
+                  {k: v for k, v in sl.items() if k != "up_um"})  # fmt: skip
+    for label in one["columns"]:
+        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_{label}.vtu"))
+        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_{label}.pvtu"))
+        assert set(a) == set(b) and "positioning_std_um" in a
+        for name in a:
+            if "grad" in name or "gum" in name:  # node gradients: rounding only (cell order)
+                np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
+            else:
+                np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 @pytest.mark.parametrize("fmt", ["csv", "table"])
 def test_stream_reads_what_the_in_memory_reader_reads(tmp_path, monkeypatch, fmt):
     monkeypatch.setattr(streaming, "READ_BYTES", 97)  # blocks cut inside lines, CRLF pairs

@@ -183,8 +183,7 @@ def _run_slabs(args, up):
         raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
     budget = _size(args.max_memory) if args.max_memory else None
     for flag, used in (("--resume", args.resume), ("--workers", args.workers),
-                       ("--scheduler", args.scheduler), ("--pieces", args.pieces),
-                       ("--mode htm", args.mode == "htm")):  # fmt: skip
+                       ("--scheduler", args.scheduler), ("--pieces", args.pieces)):  # fmt: skip
         if used:
             raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
     kind = is_streamable(args.field, args.fmt)
@@ -195,14 +194,20 @@ def _run_slabs(args, up):
             file=sys.stderr,
         )
         return None
+    bench = None
+    if args.mode == "htm":
+        from ..io.bench_toml import read_bench, read_reference_bench
+
+        bench = read_bench(args.bench) if args.bench else read_reference_bench()
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
-                      b_ref_T=args.b_ref, interpolation=args.interpolation,
-                      chunk_nodes=args.chunk_nodes, outside=args.outside)  # fmt: skip
-    prov = provenance({"field": args.field, "bench": None}, args.command_line)
+                      b_ref_T=args.b_ref, interpolation=args.interpolation, mode=args.mode,
+                      bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside)  # fmt: skip
+    prov = provenance({"field": args.field, "bench": args.bench}, args.command_line)
     prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
-    print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; U_p = "
-          f"{', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node, seed {cfg.seed}",
-          file=sys.stderr)  # fmt: skip
+    what = (f"U_p = {', '.join(f'{u:g}' for u in up)} um" if cfg.mode == "gauss" else
+            f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
+    print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
+          f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
     summary = run_slab_sweep(
         args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
         length_unit=args.length_unit, field_unit=args.field_unit, zero_rows=args.zero_rows,
