@@ -56,6 +56,7 @@ Limits: 3-D maps of plain or Opera tables in mode gauss; other formats, planar m
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import mmap
 import shutil
@@ -455,6 +456,19 @@ class _SlabStore:
         for name, arr in arrays.items():
             np.save(d / f"{name}.npy", arr)
 
+    def mark_done(self, k, record: dict) -> None:
+        """Slab k is complete: its arrays are saved and ``record`` holds what the merge needs
+        (written last and atomically, so a present record means a usable slab)."""
+        write_json(self.root / f"slab{k:04d}" / "done.json", record)
+
+    def done(self, k) -> dict | None:
+        """The record of a completed slab k, or None."""
+        f = self.root / f"slab{k:04d}" / "done.json"
+        try:
+            return json.loads(f.read_text())
+        except (OSError, ValueError):
+            return None
+
     def load(self, k, name):
         return np.load(self.root / f"slab{k:04d}" / f"{name}.npy", mmap_mode="r")
 
@@ -567,6 +581,9 @@ def run_slab_sweep(
     halo_cells: float = HALO_CELLS,
     log=None,
     progress=None,
+    description: dict | None = None,
+    resume: bool = False,
+    keep: bool = False,
 ) -> dict | None:
     """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
 
@@ -575,9 +592,9 @@ def run_slab_sweep(
     path : path-like
         Plain or Opera table.
     cfg : SweepConfig
-        Mode gauss. With ``outside="extrapolate"``, a node whose walks reached the halo border
-        of its slab is run again without extrapolation: its trials that left (the map or the
-        slab) are left out, and the node has no U_f figure (as by default).
+        Mode gauss or htm. With ``outside="extrapolate"``, a node whose walks reached the halo
+        border of its slab is run again without extrapolation: its trials that left (the map or
+        the slab) are left out, and the node has no U_f figure (as by default).
     out_dir : path-like
     n_slabs : int, optional
         K; else from ``max_memory`` (bytes, `slabs_for_memory`).
@@ -589,6 +606,15 @@ def run_slab_sweep(
         Messages for the user.
     progress : callable(int), optional
         Called with the number of nodes finished.
+    description : dict, optional
+        Everything that determines the numbers (`cfm_fem.resume.describe_sweep` plus the slab
+        options). Given, the work files live in ``out_dir/.cfm_fem_slabs`` under that run's key
+        and survive an interruption (not a bad input); else in a temporary folder.
+    resume : bool
+        Reuse the slabs finished by an interrupted run with the same description; refused,
+        naming what differs, for another run.
+    keep : bool
+        Keep ``out_dir/.cfm_fem_slabs`` after a successful run.
 
     Returns
     -------
@@ -598,20 +624,80 @@ def run_slab_sweep(
     t0 = time.perf_counter()
     log = log or (lambda s: None)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
+    if description is None:
+        out.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
+        resume = keep = False
+    else:
+        work = _slab_work_dir(out, description, resume)
+        resume = resume and any(work.glob("results/slab*/done.json"))
+    finished = False
     try:
         st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
                    zero_rows=zero_rows)  # fmt: skip
         if st.dim != 3:
+            finished = True
             return None
-        return _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells, log,
-                    progress, t0)  # fmt: skip
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+        summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
+                       log, progress, t0, resume)  # fmt: skip
+        finished = True
+        return summary
+    except CfmInputError:
+        finished = True  # bad input: nothing kept
+        raise
+    finally:  # an interrupted run keeps its finished slabs for --resume
+        if finished and not keep:
+            shutil.rmtree(work, ignore_errors=True)
+        elif description is None:
+            shutil.rmtree(work, ignore_errors=True)
 
 
-def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0):
+#: Work folder of a resumable out-of-core run (staged rows, per-slab results, manifest).
+SLAB_WORK = ".cfm_fem_slabs"
+
+
+def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
+    """``out/.cfm_fem_slabs`` for this run: the one an interrupted identical run left (resume),
+    or a fresh one (an earlier store is replaced). Refuses, naming what differs, to resume a
+    store made by another run."""
+    from .resume import _differences, run_key
+
+    work = out / SLAB_WORK
+    key = run_key(description)
+    manifest = work / "manifest.json"
+    if resume and work.exists():
+        try:
+            made = json.loads(manifest.read_text())
+        except (OSError, ValueError):
+            made = None
+        if made is not None and made.get("key") != key:
+            raise CfmInputError(
+                "cannot resume: the slab store was made by a different run ("
+                + _differences(made.get("run", {}), description)
+                + "); use the same input and options, or run without --resume to start again",
+                file=work,
+            )
+        if made is not None:
+            return work
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    write_json(manifest, {"key": key, "run": description})
+    return work
+
+
+def _per_node_file(path: Path, dtype, shape, resume: bool):
+    """A per-node array on disk: reopened as it is when resuming (the finished slabs' rows are
+    in it), else created."""
+    if resume and path.exists():
+        arr = np.lib.format.open_memmap(path, "r+")
+        if arr.shape == shape and arr.dtype == dtype:
+            return arr
+        del arr
+    return np.lib.format.open_memmap(path, "w+", dtype, shape)
+
+
+def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
+         resume=False):  # fmt: skip
     file = str(path)
     n_rows = len(st.rows)
     htm = cfg.mode == "htm"
@@ -691,18 +777,29 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         return rows - np.searchsorted(dropped, rows)
 
     store = _SlabStore(work / "results")
-    uf_all = np.lib.format.open_memmap(work / "uf.npy", "w+", np.float64, (n, n_col))
-    ok_all = np.lib.format.open_memmap(work / "complete.npy", "w+", np.bool_, (n, n_col))
+    uf_all = _per_node_file(work / "uf.npy", np.float64, (n, n_col), resume)
+    ok_all = _per_node_file(work / "complete.npy", np.bool_, (n, n_col), resume)
     # htm: |mean|^2 + |std|^2 of the probe error per node and column (the columns' U_p)
-    e2_all = (
-        np.lib.format.open_memmap(work / "e2.npy", "w+", np.float64, (n, n_col)) if htm else None
-    )
+    e2_all = _per_node_file(work / "e2.npy", np.float64, (n, n_col), resume) if htm else None
     sums = dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64),
                 processed=0, star=0, dis=np.zeros((n_col, 4), np.int64),
                 cells=0, halo_nodes=0, unreachable=0)  # fmt: skip
     template = None
     mesh_notes = []
+    reused = 0
     for k in range(K):
+        record = store.done(k) if resume else None
+        if record is not None:  # finished by an interrupted run with the same key
+            for key, v in record["sums"].items():
+                sums[key] = sums[key] + (np.asarray(v, dtype=np.int64) if np.ndim(v) else v)
+            mesh_notes += [m for m in record["mesh_notes"] if m not in mesh_notes]
+            template = template or record["template"]
+            reused += 1
+            if progress is not None:
+                progress(record["nodes"])
+            continue
+        before = {key: np.copy(v) for key, v in sums.items()}
+        notes_before = len(mesh_notes)
         h = halo
         while True:
             rows, own = _extract(st, plan, k, h)
@@ -808,8 +905,12 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
                    n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
                    cells=cells)  # fmt: skip
-        if template is None:
-            template = summarize(res)
+        slab_template = summarize(res)
+        template = template or slab_template
+        store.mark_done(k, {
+            "sums": {key: (np.asarray(v) - before[key]).tolist() for key, v in sums.items()},
+            "mesh_notes": mesh_notes[notes_before:], "template": slab_template,
+            "nodes": len(own_ids)})  # fmt: skip
         if progress is not None:
             progress(len(own_ids))
         del res, mesh, problem, lfm, stats
@@ -833,6 +934,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         "certified",
         "halo_outside_nodes": int(sums["halo_nodes"]),
     }
+    if reused:
+        summary["notes"].append(f"resumed: {reused} of {K} slabs taken from the interrupted run")
     if sums["halo_nodes"]:
         summary["notes"].append(
             f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "

@@ -199,6 +199,43 @@ def test_htm_slabs_equal_the_in_memory_run(tmp_path):
                 np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
 
+def test_an_interrupted_slab_run_resumes_to_the_same_numbers(tmp_path):
+    """Killed after two of four slabs, the run keeps them in DIR/.cfm_fem_slabs; ``--resume``
+    computes the other two and writes the outputs of an uninterrupted run (bit for bit); a
+    resume with other options is refused, naming them."""
+    from cfm_fem.resume import describe_sweep
+
+    path = _write_csv(tmp_path / "g.csv", _lattice())
+    cfg = SweepConfig(up_um=[0.0, 30.0], trials=200, seed=4)
+    desc = describe_sweep(cfg, "sha", {}, None)
+    run_slab_sweep(path, cfg, tmp_path / "ref", n_slabs=4)
+    seen = []
+
+    def kill_after_two(n):
+        seen.append(n)
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slab_sweep(path, cfg, tmp_path / "cut", n_slabs=4, description=desc,
+                       progress=kill_after_two)  # fmt: skip
+    store = tmp_path / "cut" / ".cfm_fem_slabs"
+    assert len(list(store.glob("results/slab*/done.json"))) == 2
+    other = describe_sweep(SweepConfig(up_um=[0.0, 30.0], trials=200, seed=5), "sha", {}, None)
+    with pytest.raises(CfmInputError, match="seed: 4 in the store, 5 now"):
+        run_slab_sweep(path, cfg, tmp_path / "cut", n_slabs=4, description=other, resume=True)
+    s = run_slab_sweep(path, cfg, tmp_path / "cut", n_slabs=4, description=desc, resume=True)
+    assert any("resumed: 2 of 4 slabs" in n for n in s["notes"]) and not store.exists()
+    ref = json.loads((tmp_path / "ref" / "summary.json").read_text())
+    got = json.loads((tmp_path / "cut" / "summary.json").read_text())
+    got["notes"] = [n for n in got["notes"] if not n.startswith("resumed")]
+    _same_summary(ref, got)
+    _, a = _by_position(pv.read(tmp_path / "ref" / "uf_up30um.pvtu"))
+    _, b = _by_position(pv.read(tmp_path / "cut" / "uf_up30um.pvtu"))
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 @pytest.mark.parametrize("fmt", ["csv", "table"])
 def test_stream_reads_what_the_in_memory_reader_reads(tmp_path, monkeypatch, fmt):
     monkeypatch.setattr(streaming, "READ_BYTES", 97)  # blocks cut inside lines, CRLF pairs
@@ -257,7 +294,7 @@ def test_memory_budget_chooses_the_slabs_and_bad_sizes_exit_2(tmp_path, capsys):
     args = ["sweep", str(path), "--up", "10", "--trials", "50", "--out", str(out)]
     assert main([*args, "--max-memory", "lots"]) == 2
     assert "--max-memory must be a size" in capsys.readouterr().err
-    assert main([*args, "--slabs", "2", "--resume"]) == 2
+    assert main([*args, "--slabs", "2", "--workers", "2"]) == 2
     assert main([*args, "--max-memory", "1G"]) == 0
     assert json.loads((out / "summary.json").read_text())["slabs"]["count"] >= 1
 

@@ -124,12 +124,14 @@ def add_args(p):
         "--resume",
         action="store_true",
         help="reuse the finished chunks of an interrupted run with the same input and options "
-        "(kept in DIR/.cfm_fem_chunks); refused, naming what differs, if they do not match",
+        "(kept in DIR/.cfm_fem_chunks, or DIR/.cfm_fem_slabs with --slabs); refused, naming "
+        "what differs, if they do not match",
     )
     p.add_argument(
         "--keep-chunks",
         action="store_true",
-        help="keep DIR/.cfm_fem_chunks after a successful run (deleted by default)",
+        help="keep DIR/.cfm_fem_chunks (DIR/.cfm_fem_slabs) after a successful run (deleted by "
+        "default)",
     )
     p.add_argument(
         "--pieces",
@@ -176,14 +178,14 @@ def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
     from ..io.provenance import provenance
     from ..io.streaming import is_streamable
-    from ..slabs import run_slab_sweep
+    from ..slabs import SLAB_WORK, run_slab_sweep
     from ..sweep import SweepConfig
 
     if args.slabs is not None and args.slabs < 1:
         raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
     budget = _size(args.max_memory) if args.max_memory else None
-    for flag, used in (("--resume", args.resume), ("--workers", args.workers),
-                       ("--scheduler", args.scheduler), ("--pieces", args.pieces)):  # fmt: skip
+    for flag, used in (("--workers", args.workers), ("--scheduler", args.scheduler),
+                       ("--pieces", args.pieces)):  # fmt: skip
         if used:
             raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
     kind = is_streamable(args.field, args.fmt)
@@ -208,11 +210,30 @@ def _run_slabs(args, up):
             f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
-    summary = run_slab_sweep(
-        args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
-        length_unit=args.length_unit, field_unit=args.field_unit, zero_rows=args.zero_rows,
-        provenance=prov, log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
-    )  # fmt: skip
+    from ..io.provenance import file_sha256
+    from ..resume import describe_sweep
+
+    read_options = {"fmt": args.fmt, "length_unit": args.length_unit,
+                    "field_unit": args.field_unit, "zero_rows": args.zero_rows}  # fmt: skip
+    description = describe_sweep(cfg, file_sha256(args.field), read_options,
+                                 file_sha256(args.bench) if args.bench else None)  # fmt: skip
+    description.update(slabs=args.slabs, max_memory=args.max_memory)
+    try:
+        summary = run_slab_sweep(
+            args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
+            length_unit=args.length_unit, field_unit=args.field_unit, zero_rows=args.zero_rows,
+            provenance=prov, log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
+            description=description, resume=args.resume, keep=args.keep_chunks,
+        )  # fmt: skip
+    except (KeyboardInterrupt, SystemError) as exc:
+        if not interrupted(exc):
+            raise
+        store = Path(args.out) / SLAB_WORK
+        done = len(list(store.glob("results/slab*/done.json")))
+        if done:
+            print(f"cfm-fem sweep: {done} finished slab(s) kept in {store}; run the same "
+                  "command with --resume to continue", file=sys.stderr)  # fmt: skip
+        raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
     if summary is None:
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
         return None
