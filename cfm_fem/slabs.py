@@ -83,6 +83,7 @@ from .sweep import (
     _gum_u,
     node_gradients,
     prepare_sweep,
+    serial_map,
     summarize,
 )
 
@@ -163,6 +164,19 @@ class Staged:
     spelled: list
     notes: list
     maps: tuple = ()  # the mmap objects behind rows and lines
+    workdir: Path | None = None  # where rows.f8 and lines.i8 are (None: rows held in memory)
+
+    def __getstate__(self):
+        """Pickled as the files' folder: a worker maps the rows itself (never a copy)."""
+        state = dict(self.__dict__)
+        if self.workdir is not None:
+            state.update(rows=None, lines=None, maps=())
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self.workdir is not None:
+            self.rows, self.lines, self.maps = _map_rows(self.workdir)
 
     def release(self, a: int = 0, b: int | None = None) -> None:
         """Drop the pages of rows a..b-1 from this process (they stay in the page cache and
@@ -244,14 +258,20 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     if not n:
         return Staged(np.empty((0, 6)), np.empty(0, dtype=np.int64), lo, hi, b_max, b_abs,
                       distinct, dim, stream.spelled, notes)  # fmt: skip
+    rows, lines, maps = _map_rows(workdir)
+    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
+                  maps, workdir)  # fmt: skip
+
+
+def _map_rows(workdir: Path):
+    """The staged rows (n, 6) and lines (n,) of ``workdir``, read-only, and their mmaps."""
     maps = []
     for name in ("rows.f8", "lines.i8"):  # mapped by hand: `Staged.release` needs the mmap
         with open(workdir / name, "rb") as f:
             maps.append(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
-    rows = np.frombuffer(maps[0], dtype=np.float64).reshape(n, 6)
+    rows = np.frombuffer(maps[0], dtype=np.float64).reshape(-1, 6)
     lines = np.frombuffer(maps[1], dtype=np.int64)
-    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
-                  tuple(maps))  # fmt: skip
+    return rows, lines, tuple(maps)
 
 
 def slabs_for_memory(n_nodes: int, budget_bytes: float, n_up: int) -> int:
@@ -584,6 +604,7 @@ def run_slab_sweep(
     description: dict | None = None,
     resume: bool = False,
     keep: bool = False,
+    map_chunks=None,
 ) -> dict | None:
     """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
 
@@ -615,6 +636,10 @@ def run_slab_sweep(
         naming what differs, for another run.
     keep : bool
         Keep ``out_dir/.cfm_fem_slabs`` after a successful run.
+    map_chunks : callable(job, chunks) -> iterable of ((k, k + 1), record), optional
+        Runs the slabs (default `cfm_fem.sweep.serial_map`, one after the other here; e.g.
+        `cfm_fem.distributed.dask_chunk_map` on workers that share ``out_dir``). The outputs do
+        not depend on it.
 
     Returns
     -------
@@ -639,7 +664,7 @@ def run_slab_sweep(
             finished = True
             return None
         summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
-                       log, progress, t0, resume)  # fmt: skip
+                       log, progress, t0, resume, map_chunks)  # fmt: skip
         finished = True
         return summary
     except CfmInputError:
@@ -685,6 +710,13 @@ def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
     return work
 
 
+def _zero_sums(n_col: int) -> dict:
+    """The counts a slab adds to the run's summary (`_summary`)."""
+    return dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64), processed=0,
+                star=0, dis=np.zeros((n_col, 4), np.int64), cells=0, halo_nodes=0,
+                unreachable=0)  # fmt: skip
+
+
 def _per_node_file(path: Path, dtype, shape, resume: bool):
     """A per-node array on disk: reopened as it is when resuming (the finished slabs' rows are
     in it), else created."""
@@ -697,7 +729,7 @@ def _per_node_file(path: Path, dtype, shape, resume: bool):
 
 
 def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
-         resume=False):  # fmt: skip
+         resume=False, map_chunks=None):  # fmt: skip
     file = str(path)
     n_rows = len(st.rows)
     htm = cfg.mode == "htm"
@@ -773,39 +805,108 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             notes.append(f"nodes on a rectilinear grid with {missing} grid point(s) missing: "
                          "cells touching a missing point are left out, not bridged")  # fmt: skip
 
-    def gid(rows):
-        return rows - np.searchsorted(dropped, rows)
-
     store = _SlabStore(work / "results")
-    uf_all = _per_node_file(work / "uf.npy", np.float64, (n, n_col), resume)
-    ok_all = _per_node_file(work / "complete.npy", np.bool_, (n, n_col), resume)
-    # htm: |mean|^2 + |std|^2 of the probe error per node and column (the columns' U_p)
-    e2_all = _per_node_file(work / "e2.npy", np.float64, (n, n_col), resume) if htm else None
-    sums = dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64),
-                processed=0, star=0, dis=np.zeros((n_col, 4), np.int64),
-                cells=0, halo_nodes=0, unreachable=0)  # fmt: skip
-    template = None
-    mesh_notes = []
-    reused = 0
+    for name, dtype in (("uf", np.float64), ("complete", np.bool_), ("e2", np.float64)):
+        if name != "e2" or htm:  # created here, or reopened as they are when resuming
+            _per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
+    job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
+                   b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work)  # fmt: skip
+    records = {}
     for k in range(K):
         record = store.done(k) if resume else None
         if record is not None:  # finished by an interrupted run with the same key
-            for key, v in record["sums"].items():
-                sums[key] = sums[key] + (np.asarray(v, dtype=np.int64) if np.ndim(v) else v)
-            mesh_notes += [m for m in record["mesh_notes"] if m not in mesh_notes]
-            template = template or record["template"]
-            reused += 1
+            records[k] = record
             if progress is not None:
                 progress(record["nodes"])
-            continue
-        before = {key: np.copy(v) for key, v in sums.items()}
-        notes_before = len(mesh_notes)
+    reused = len(records)
+    todo = [(k, k + 1) for k in range(K) if k not in records]
+    for (k, _), record in (map_chunks or serial_map)(job, todo):
+        for m in record["log"]:
+            log(m)
+        records[k] = record
+        if progress is not None:
+            progress(record["nodes"])
+    sums, template, mesh_notes = _zero_sums(n_col), None, []
+    for k in range(K):  # merged in slab order: the same summary however the slabs ran
+        record = records[k]
+        for key, v in record["sums"].items():
+            sums[key] = sums[key] + (np.asarray(v, dtype=np.int64) if np.ndim(v) else v)
+        mesh_notes += [m for m in record["mesh_notes"] if m not in mesh_notes]
+        template = template or record["template"]
+    e2_all = np.lib.format.open_memmap(work / "e2.npy", "r") if htm else None
+    uf_all = np.lib.format.open_memmap(work / "uf.npy", "r")
+    ok_all = np.lib.format.open_memmap(work / "complete.npy", "r")
+    if htm:  # as SweepResult.column_up_um, over the whole map
+        ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
+        if sums["unreachable"]:
+            notes.append(f"{sums['unreachable']} node(s) lie outside the strokes of the bench's "
+                         "axes: no statistics (NaN)")  # fmt: skip
+    else:
+        ups = [float(u) for u in cfg.up_um]
+    summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
+    summary["slabs"] = {
+        "count": K,
+        "axis": "xyz"[plan.axis],
+        "edges_mm": [float(e) for e in plan.edges],
+        "halo_mm": float(halo),
+        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + {reach} "
+        f"({6 * sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not "
+        "certified",
+        "halo_outside_nodes": int(sums["halo_nodes"]),
+    }
+    if reused:
+        summary["notes"].append(f"resumed: {reused} of {K} slabs taken from the interrupted run")
+    if sums["halo_nodes"]:
+        summary["notes"].append(
+            f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "
+            f"slab: those trials are counted as outside"
+            + (" and left out (not extrapolated)" if cfg.outside == "extrapolate" else "")
+            + " (use fewer slabs or a wider halo)"
+        )
+    summary["seconds"] = time.perf_counter() - t0
+    summary["provenance"] = prov or {}
+    _write(out, store, K, cfg, b_ref, summary)
+    return summary
+
+
+@dataclass
+class _SlabJob:
+    """One out-of-core run's slabs as chunks: picklable (the staged rows travel as their file
+    paths), so slabs run in this process or on Dask workers that share the work folder."""
+
+    st: Staged
+    plan: SlabPlan
+    dropped: np.ndarray
+    cfg: SweepConfig
+    file: str
+    kind: str
+    halo: float
+    b_ref: float
+    n_col: int
+    htm: bool
+    span: float
+    work: Path
+
+    def per_node(self, name: str):
+        """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
+        return np.lib.format.open_memmap(self.work / f"{name}.npy", "r+")
+
+    def run_chunk(self, a: int, b: int) -> dict:
+        """Sweep slab a (b = a + 1: the chunk interface of `cfm_fem.sweep.serial_map` and
+        `cfm_fem.distributed.dask_chunk_map`), store its arrays and done record, return it."""
+        k = int(a)
+        st, plan, dropped, cfg, file = self.st, self.plan, self.dropped, self.cfg, self.file
+        kind, halo, b_ref, n_col, htm, span = (self.kind, self.halo, self.b_ref, self.n_col,
+                                                self.htm, self.span)  # fmt: skip
+        store = _SlabStore(self.work / "results")
+        sums = _zero_sums(n_col)
+        messages = []
         h = halo
         while True:
             rows, own = _extract(st, plan, k, h)
             keep = ~np.isin(rows, dropped)
             rows, own = rows[keep], own[keep]
-            ids = gid(rows)
+            ids = rows - np.searchsorted(dropped, rows)
             pts = np.array(st.rows[rows, :3])
             B = np.array(st.rows[rows, 3:])
             lfm = FieldMap(points=pts, B=B, source=file, lines=np.array(st.lines[rows]))
@@ -829,9 +930,11 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             if cert[own_cells].all() or not boxes:
                 break
             h *= 2.0
-            log(f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)")
-        mesh_notes += [m for m in mesh.notes if m not in mesh_notes and "grid point" not in m
-                       and "outside the strokes" not in m]  # fmt: skip
+            messages.append(
+                f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)"
+            )
+        mesh_notes = [m for m in mesh.notes if "grid point" not in m
+                      and "outside the strokes" not in m]  # fmt: skip
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
         # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
@@ -878,7 +981,10 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             sigma_mm = pos[:, :, 1]  # per-node std of the probe error, (k, 3, 3)
             q_own = cfg.bench.axis_positions_for(pts[own])
             sums["unreachable"] += int(cfg.bench.outside_stroke(q_own).sum())
+            e2_all = self.per_node("e2")
             e2_all[own_ids] = (pos[:, :, 0] ** 2).sum(-1) + (pos[:, :, 1] ** 2).sum(-1)
+            e2_all.flush()
+            del e2_all
         else:
             sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
@@ -886,6 +992,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                           gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm), seconds=0.0,
                           positioning=pos if htm else None, n_left_out=n_left)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
+        uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
         uf_all[own_ids], ok_all[own_ids] = uf, complete
         for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
             arr.flush()
@@ -905,48 +1012,11 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
                    n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
                    cells=cells)  # fmt: skip
-        slab_template = summarize(res)
-        template = template or slab_template
-        store.mark_done(k, {
-            "sums": {key: (np.asarray(v) - before[key]).tolist() for key, v in sums.items()},
-            "mesh_notes": mesh_notes[notes_before:], "template": slab_template,
-            "nodes": len(own_ids)})  # fmt: skip
-        if progress is not None:
-            progress(len(own_ids))
-        del res, mesh, problem, lfm, stats
-    uf_all.flush()
-    ok_all.flush()
-    if htm:  # as SweepResult.column_up_um, over the whole map
-        ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
-        if sums["unreachable"]:
-            notes.append(f"{sums['unreachable']} node(s) lie outside the strokes of the bench's "
-                         "axes: no statistics (NaN)")  # fmt: skip
-    else:
-        ups = [float(u) for u in cfg.up_um]
-    summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
-    summary["slabs"] = {
-        "count": K,
-        "axis": "xyz"[plan.axis],
-        "edges_mm": [float(e) for e in plan.edges],
-        "halo_mm": float(halo),
-        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + {reach} "
-        f"({6 * sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not "
-        "certified",
-        "halo_outside_nodes": int(sums["halo_nodes"]),
-    }
-    if reused:
-        summary["notes"].append(f"resumed: {reused} of {K} slabs taken from the interrupted run")
-    if sums["halo_nodes"]:
-        summary["notes"].append(
-            f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "
-            f"slab: those trials are counted as outside"
-            + (" and left out (not extrapolated)" if cfg.outside == "extrapolate" else "")
-            + " (use fewer slabs or a wider halo)"
-        )
-    summary["seconds"] = time.perf_counter() - t0
-    summary["provenance"] = prov or {}
-    _write(out, store, K, cfg, b_ref, summary)
-    return summary
+        record = {"sums": {key: np.asarray(v).tolist() for key, v in sums.items()},
+                  "mesh_notes": mesh_notes, "template": summarize(res), "nodes": len(own_ids),
+                  "log": messages}  # fmt: skip
+        store.mark_done(k, record)
+        return record
 
 
 def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):

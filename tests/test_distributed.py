@@ -169,3 +169,32 @@ def test_workers_with_other_code_are_refused(cluster, monkeypatch):
     monkeypatch.setattr("cfm_fem.resume.code_fingerprint", lambda: "not-the-workers-code")
     with pytest.raises(Exception, match="run other cfm_fem code than this process"):
         check_workers(client)
+
+
+def test_slabs_on_workers_equal_the_serial_slabs(cluster, tmp_path):
+    """``--slabs`` with the slabs run on the cluster's workers (they map the staged rows in the
+    output folder): every output field and the summary bit for bit as one process."""
+    import pyvista as pv
+
+    from cfm_fem.distributed import dask_chunk_map
+    from cfm_fem.io.provenance import file_sha256
+    from cfm_fem.resume import describe_sweep
+    from cfm_fem.slabs import run_slab_sweep
+
+    pts, B = _map(9)
+    path = tmp_path / "m.csv"
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    cfg = SweepConfig(up_um=[0.0, 40.0], trials=150, seed=8)
+    desc = describe_sweep(cfg, file_sha256(path), {}, None)
+    one = run_slab_sweep(path, cfg, tmp_path / "one", n_slabs=3)
+    _, client = cluster
+    dist = run_slab_sweep(path, cfg, tmp_path / "w", n_slabs=3, description=desc,
+                          map_chunks=dask_chunk_map(client))  # fmt: skip
+    for key in set(one) - {"seconds", "provenance"}:
+        assert one[key] == dist[key], key
+    a, b = pv.read(tmp_path / "one" / "uf_up40um.pvtu"), pv.read(tmp_path / "w" / "uf_up40um.pvtu")
+    assert a.n_points == b.n_points > 0
+    for name in a.point_data:
+        np.testing.assert_array_equal(a.point_data[name], b.point_data[name], err_msg=name)
+    assert not (tmp_path / "w" / ".cfm_fem_slabs").exists()

@@ -294,7 +294,7 @@ def test_memory_budget_chooses_the_slabs_and_bad_sizes_exit_2(tmp_path, capsys):
     args = ["sweep", str(path), "--up", "10", "--trials", "50", "--out", str(out)]
     assert main([*args, "--max-memory", "lots"]) == 2
     assert "--max-memory must be a size" in capsys.readouterr().err
-    assert main([*args, "--slabs", "2", "--workers", "2"]) == 2
+    assert main([*args, "--slabs", "2", "--pieces", "2"]) == 2
     assert main([*args, "--max-memory", "1G"]) == 0
     assert json.loads((out / "summary.json").read_text())["slabs"]["count"] >= 1
 

@@ -184,10 +184,9 @@ def _run_slabs(args, up):
     if args.slabs is not None and args.slabs < 1:
         raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
     budget = _size(args.max_memory) if args.max_memory else None
-    for flag, used in (("--workers", args.workers), ("--scheduler", args.scheduler),
-                       ("--pieces", args.pieces)):  # fmt: skip
-        if used:
-            raise CfmInputError(f"--slabs/--max-memory cannot be combined with {flag} yet")
+    if args.pieces:
+        raise CfmInputError("--slabs/--max-memory cannot be combined with --pieces (slabs are "
+                            "written as pieces already)")  # fmt: skip
     kind = is_streamable(args.field, args.fmt)
     if kind is None:
         print(
@@ -218,13 +217,20 @@ def _run_slabs(args, up):
     description = describe_sweep(cfg, file_sha256(args.field), read_options,
                                  file_sha256(args.bench) if args.bench else None)  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
+    from ..distributed import dask_chunk_map, dask_client
+
     try:
-        summary = run_slab_sweep(
-            args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
-            length_unit=args.length_unit, field_unit=args.field_unit, zero_rows=args.zero_rows,
-            provenance=prov, log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
-            description=description, resume=args.resume, keep=args.keep_chunks,
-        )  # fmt: skip
+        with dask_client(args.scheduler, args.workers) as client:
+            if client is not None:  # the workers map the staged rows in DIR: a shared folder
+                prov["backend"] = _backend(args) + ", slabs (out of core)"
+            summary = run_slab_sweep(
+                args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
+                length_unit=args.length_unit, field_unit=args.field_unit,
+                zero_rows=args.zero_rows, provenance=prov,
+                log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
+                description=description, resume=args.resume, keep=args.keep_chunks,
+                map_chunks=None if client is None else dask_chunk_map(client),
+            )  # fmt: skip
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
             raise
