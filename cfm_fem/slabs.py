@@ -670,10 +670,8 @@ def run_slab_sweep(
     except CfmInputError:
         finished = True  # bad input: nothing kept
         raise
-    finally:  # an interrupted run keeps its finished slabs for --resume
-        if finished and not keep:
-            shutil.rmtree(work, ignore_errors=True)
-        elif description is None:
+    finally:  # an interrupted resumable run keeps its finished slabs for --resume
+        if description is None or (finished and not keep):
             shutil.rmtree(work, ignore_errors=True)
 
 
@@ -717,15 +715,15 @@ def _zero_sums(n_col: int) -> dict:
                 unreachable=0)  # fmt: skip
 
 
-def _per_node_file(path: Path, dtype, shape, resume: bool):
-    """A per-node array on disk: reopened as it is when resuming (the finished slabs' rows are
-    in it), else created."""
+def _make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
+    """Create a per-node array file (`_SlabJob.per_node`), or keep it when resuming: the
+    finished slabs' rows are in it."""
     if resume and path.exists():
-        arr = np.lib.format.open_memmap(path, "r+")
+        arr = np.lib.format.open_memmap(path, "r")
         if arr.shape == shape and arr.dtype == dtype:
-            return arr
+            return
         del arr
-    return np.lib.format.open_memmap(path, "w+", dtype, shape)
+    np.lib.format.open_memmap(path, "w+", dtype, shape).flush()
 
 
 def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
@@ -808,7 +806,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     store = _SlabStore(work / "results")
     for name, dtype in (("uf", np.float64), ("complete", np.bool_), ("e2", np.float64)):
         if name != "e2" or htm:  # created here, or reopened as they are when resuming
-            _per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
+            _make_per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work)  # fmt: skip
     records = {}

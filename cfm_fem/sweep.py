@@ -306,7 +306,7 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {cfg.axis_scale}")
     if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
         raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
-    if cfg.outside not in ("exclude", "extrapolate"):
+    if cfg.outside not in OUTSIDE_RULES:
         raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
     if cfg.mode == "htm":
         return
@@ -402,10 +402,9 @@ class SweepProblem:
                 return _kernels.htm_sweep(
                     nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
                     self.transform, self.neighbors, self.start_cells, self.basis, h["rot"],
-                    h["q_nodes"],
-                    h["params"], h["terms" if geo else "terms_zero"], geo, noise, h["nkey"],
-                    h["fkey"], h["sig"], h["speed"],
-                    h["tau_code"], h["tau_par"], h["stack"], h["mounts"], h["tool"],
+                    h["q_nodes"], h["params"], h["terms" if geo else "terms_zero"], geo, noise,
+                    h["nkey"], h["fkey"], h["sig"], h["speed"], h["tau_code"], h["tau_par"],
+                    h["stack"], h["mounts"], h["tool"],
                     h["strokes"], h["profiles"], float(self.coverage), self.exit_grad,
                 )  # fmt: skip
 

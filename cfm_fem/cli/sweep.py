@@ -174,10 +174,18 @@ def _size(text) -> float:
     return v
 
 
+def _read_options(args) -> dict:
+    """The reader options that decide how the file is read (part of a resumable run's key)."""
+    return {"fmt": args.fmt, "length_unit": args.length_unit, "field_unit": args.field_unit,
+            "zero_rows": args.zero_rows}  # fmt: skip
+
+
 def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
-    from ..io.provenance import provenance
+    from ..distributed import dask_chunk_map, dask_client
+    from ..io.provenance import file_sha256, provenance
     from ..io.streaming import is_streamable
+    from ..resume import describe_sweep
     from ..slabs import SLAB_WORK, run_slab_sweep
     from ..sweep import SweepConfig
 
@@ -209,16 +217,9 @@ def _run_slabs(args, up):
             f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
-    from ..io.provenance import file_sha256
-    from ..resume import describe_sweep
-
-    read_options = {"fmt": args.fmt, "length_unit": args.length_unit,
-                    "field_unit": args.field_unit, "zero_rows": args.zero_rows}  # fmt: skip
-    description = describe_sweep(cfg, file_sha256(args.field), read_options,
+    description = describe_sweep(cfg, file_sha256(args.field), _read_options(args),
                                  file_sha256(args.bench) if args.bench else None)  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
-    from ..distributed import dask_chunk_map, dask_client
-
     try:
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
@@ -351,12 +352,7 @@ def run(args) -> int:
         f"{cfg.trials} trials per node, seed {cfg.seed}",
         file=sys.stderr,
     )
-    read_options = {
-        "fmt": args.fmt,
-        "length_unit": args.length_unit,
-        "field_unit": args.field_unit,
-        "zero_rows": args.zero_rows,
-    }
+    read_options = _read_options(args)
     bench_sha = file_sha256(args.bench) if args.bench else None
     description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
     runner = ResumableRun(args.out, description, resume=args.resume)
