@@ -23,8 +23,8 @@
 
 **Halo rule.** ``h = halo_cells * L + 6 * sigma_max``, with L the largest grid step along the
 slab axis (grid) or the mean node spacing (volume / nodes)^(1/3) (Delaunay), ``halo_cells = 4``
-by default, and sigma_max the largest U_p times the largest axis scale (mm). It is checked, not
-trusted:
+by default, and sigma_max the largest U_p times the largest axis scale (mm; mode htm below). It
+is checked, not trusted:
 
 - every cell incident to an own node must be *certified*: for a grid, every Kuhn cell of
   slab + halo is a cell of the whole map's triangulation; for Delaunay, a cell is certified when
@@ -49,8 +49,18 @@ slab's own arrays and takes each node's whole-map index as its random-stream key
 (`SweepProblem.run_nodes`), so the numbers are those of the whole-map run. What grows with the
 map lives on disk: the staged rows and the per-node U_f file (memory-mapped, written once).
 
-Limits: 3-D maps of plain or Opera tables in mode gauss; other formats, planar maps and
-``--mode htm`` are run in memory (the caller says so); no ``--resume`` or Dask backend yet.
+**Mode htm.** The halo takes, in place of 6 sigma_max, the bench's largest probe error near
+the map (`htm_reach_mm`); nodes key their noise streams by their whole-map index as above.
+
+**Resume and workers.** Each slab is a chunk of a `_SlabJob` (`cfm_fem.sweep.serial_map`, or
+`cfm_fem.distributed.dask_chunk_map` on workers that see the work folder: the staged rows are
+pickled as their folder). A finished slab writes its arrays, then a done record; a resumable run
+(``description`` given) keeps them in ``DIR/.cfm_fem_slabs`` under its key, so an interrupted
+run continues from its finished slabs. Records are merged in slab order: the outputs do not
+depend on where or in which order the slabs ran.
+
+Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run in memory
+(the caller says so).
 """
 
 from __future__ import annotations

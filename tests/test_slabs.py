@@ -55,13 +55,28 @@ def _same_summary(one, sl, exact=True):
                 np.testing.assert_allclose(one[key][q], sl[key][q], rtol=1e-12, err_msg=q)
 
 
+def _in_memory_and_slabs(tmp_path, base, k):
+    """Run ``base`` in memory (DIR one) and with ``--slabs k`` (DIR sl); both summaries."""
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--slabs", str(k), "--out", str(tmp_path / "sl")]) == 0
+    return tuple(json.loads((tmp_path / d / "summary.json").read_text()) for d in ("one", "sl"))
+
+
+def _same_fields(a, b, gradients):
+    """Every point field equal bit for bit, except those whose name holds one of
+    ``gradients``: node gradients sum a node's cells in mesh order, and a slab's mesh orders
+    them differently from the whole map's (rounding only)."""
+    for name in a:
+        if any(g in name for g in gradients):
+            np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
+        else:  # every Monte Carlo figure
+            np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
     path = _write_csv(tmp_path / "g.csv", _lattice())
     base = ["sweep", str(path), "--up", "0:40:20", "--trials", "300"]
-    assert main([*base, "--out", str(tmp_path / "one")]) == 0
-    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
-    one = json.loads((tmp_path / "one" / "summary.json").read_text())
-    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    one, sl = _in_memory_and_slabs(tmp_path, base, 3)
     assert sl["slabs"]["count"] == 3 and sl["slabs"]["axis"] == "z" and sl["pieces"] == 3
     assert sl["slabs"]["halo_outside_nodes"] == 0
     _same_summary(one, sl)
@@ -75,13 +90,7 @@ def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         g2, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         assert g1.n_points == g2.n_points == 686 and g1.n_cells == g2.n_cells
         assert set(a) == set(b)
-        for name in a:
-            if "grad" in name or "gum_U95" in name:
-                # node gradients sum a node's cells in mesh order, and a slab's mesh orders
-                # them differently from the whole map's: rounding only
-                np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
-            else:  # every Monte Carlo figure: bit for bit
-                np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+        _same_fields(a, b, gradients=("grad", "gum_U95"))
 
 
 def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
@@ -89,10 +98,7 @@ def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
     pts = rng.uniform([-10, -10, -30], [10, 10, 30], (900, 3))
     path = _write_csv(tmp_path / "s.csv", pts)
     base = ["sweep", str(path), "--up", "0,30", "--trials", "200"]
-    assert main([*base, "--out", str(tmp_path / "one")]) == 0
-    assert main([*base, "--slabs", "2", "--out", str(tmp_path / "sl")]) == 0
-    one = json.loads((tmp_path / "one" / "summary.json").read_text())
-    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    one, sl = _in_memory_and_slabs(tmp_path, base, 2)
     assert "Delaunay" in sl["interpolation"]
     # Qhull's vertex order inside a simplex differs between slab and whole map: rounding only
     _same_summary(one, sl, exact=False)
@@ -135,10 +141,7 @@ def test_extrapolating_slabs_agree_with_the_in_memory_run(tmp_path):
     gradient sums a node's cells in another order: rounding only), every node complete."""
     path = _write_csv(tmp_path / "g.csv", _lattice())
     base = ["sweep", str(path), "--up", "0:40:20", "--trials", "300", "--outside", "extrapolate"]
-    assert main([*base, "--out", str(tmp_path / "one")]) == 0
-    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
-    one = json.loads((tmp_path / "one" / "summary.json").read_text())
-    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    one, sl = _in_memory_and_slabs(tmp_path, base, 3)
     assert sl["slabs"]["halo_outside_nodes"] == 0 and sl["outside"] == "extrapolate"
     assert sl["uf_nodes"] == one["uf_nodes"] == [686] * 3
     _same_summary(one, sl, exact=False)
@@ -177,10 +180,7 @@ def test_htm_slabs_equal_the_in_memory_run(tmp_path):
     # the reference bench's X stroke (magnet axis at mid-stroke, 150 mm)
     path = _write_csv(tmp_path / "g.csv", pts)
     base = ["sweep", str(path), "--mode", "htm", "--trials", "200"]
-    assert main([*base, "--out", str(tmp_path / "one")]) == 0
-    assert main([*base, "--slabs", "3", "--out", str(tmp_path / "sl")]) == 0
-    one = json.loads((tmp_path / "one" / "summary.json").read_text())
-    sl = json.loads((tmp_path / "sl" / "summary.json").read_text())
+    one, sl = _in_memory_and_slabs(tmp_path, base, 3)
     assert sl["slabs"]["count"] == 3 and sl["slabs"]["halo_outside_nodes"] == 0
     assert any("outside the strokes" in n for n in sl["notes"])
     assert 0 < sl["processed_nodes"] < 686
@@ -192,11 +192,7 @@ def test_htm_slabs_equal_the_in_memory_run(tmp_path):
         _, a = _by_position(pv.read(tmp_path / "one" / f"uf_{label}.vtu"))
         _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_{label}.pvtu"))
         assert set(a) == set(b) and "positioning_std_um" in a
-        for name in a:
-            if "grad" in name or "gum" in name:  # node gradients: rounding only (cell order)
-                np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
-            else:
-                np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+        _same_fields(a, b, gradients=("grad", "gum"))
 
 
 def test_an_interrupted_slab_run_resumes_to_the_same_numbers(tmp_path):
