@@ -43,6 +43,7 @@ PJIT = dict(JIT, parallel=True)
 # Random numbers and bench kinematics
 # ---------------------------------------------------------------------------------------------
 GAMMA = np.uint64(0x9E3779B97F4A7C15)
+_BELOW_ONE = 1.0 - 2.0**-53  # the largest double below 1
 #: Ziggurat layers, base-strip edge r and layer area v (Marsaglia & Tsang's construction; r and
 #: v solved so that the layers close at x = 0, which gives their published 256-layer values).
 ZIG_LAYERS = 1024
@@ -144,8 +145,9 @@ def _draw(key, counter):
 
 @nb.njit(inline="always", **JIT)
 def uniform53(h):
-    """Uniform in (0, 1) from the top 53 bits: (k + 1/2) / 2**53, never 0 or 1."""
-    return (np.float64(h >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
+    """Uniform in (0, 1) from the top 53 bits: (k + 1/2) / 2**53, never 0 or 1 (k + 1/2 rounds
+    to 2**53 for k = 2**53 - 1 alone, which takes the largest double below 1 instead)."""
+    return min((np.float64(h >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0), _BELOW_ONE)
 
 
 @nb.njit(**JIT)

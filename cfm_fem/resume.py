@@ -94,6 +94,7 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
         "coverage": float(cfg.coverage),
         "mode": cfg.mode,
         "outside": cfg.outside,
+        "hull_slivers": cfg.hull_slivers,
         "chunk_nodes": int(cfg.chunk_nodes),
         "cfm_fem_version": __version__,
         "code_sha256": code_fingerprint(),

@@ -78,6 +78,9 @@ class SweepConfig:
         Trials whose perturbed position leaves the map: left out of the node's statistics
         (the node is then incomplete), or given the node's first-order Taylor expansion
         B + grad B . delta (`edge_fit_gradients`). Counted in ``n_outside`` either way.
+    hull_slivers : {"keep", "remove"}
+        Delaunay maps: keep the flat cells of the convex hull or remove them
+        (`cfm_fem.interpolation.hull_sliver_cells`); trials in a removed cell are outside.
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -91,6 +94,7 @@ class SweepConfig:
     bench: object | None = None
     chunk_nodes: int = 20000
     outside: str = "exclude"
+    hull_slivers: str = "keep"
 
 
 @dataclass
@@ -434,7 +438,7 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     problem : SweepProblem
     b_ref : float, T
     """
-    mesh = build_mesh(fm, cfg.interpolation) if mesh is None else mesh
+    mesh = build_mesh(fm, cfg.interpolation, cfg.hull_slivers) if mesh is None else mesh
     _check_config(cfg, fm, mesh)
     b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
     if b_ref <= 0:

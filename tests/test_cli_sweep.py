@@ -192,3 +192,23 @@ def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch,
     monkeypatch.setattr(kin, "run", real_system_error)
     with pytest.raises(SystemError, match="not an interrupt"):
         main(["kinematics", "--out", "unused"])
+
+
+def test_hull_slivers_option(tmp_path, capsys):
+    """--hull-slivers remove: said in the summary's notes; refused with --slabs (exit 2, nothing
+    written)."""
+    pts = np.random.default_rng(4).uniform(0, 6, (400, 3))
+    path = tmp_path / "s.csv"
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, pts @ G.T + [0, 0, 1]])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    base = ["sweep", str(path), "--up", "0,20", "--trials", "100"]
+    assert main([*base, "--out", str(tmp_path / "a"), "--hull-slivers", "remove"]) == 0
+    notes = json.loads((tmp_path / "a" / "summary.json").read_text())["notes"]
+    assert any("flat cell(s) on the Delaunay hull removed" in n for n in notes)
+    assert main([*base, "--out", str(tmp_path / "b")]) == 0
+    notes = json.loads((tmp_path / "b" / "summary.json").read_text())["notes"]
+    assert not any("Delaunay hull removed" in n for n in notes)
+    capsys.readouterr()
+    out = tmp_path / "c"
+    assert main([*base, "--out", str(out), "--hull-slivers", "remove", "--slabs", "2"]) == 2
+    assert "--hull-slivers remove" in capsys.readouterr().err and not out.exists()

@@ -29,7 +29,13 @@ def test_linear_field_interpolated_exactly(kind):
     pts = grid() if kind == "grid" else np.random.default_rng(1).uniform(0, 5, (300, 3))
     interp = LinearInterpolator(FieldMap.from_arrays(pts, linear(pts)), method=kind)
     assert interp.mesh.kind == kind
-    q = query_inside(pts) if kind == "grid" else pts[:50] * 0.9 + 0.25
+    if kind == "grid":
+        q = query_inside(pts)
+    else:  # random points of random cells (hull slivers are gone: the hull is not the domain)
+        rng = np.random.default_rng(2)
+        cells = interp.mesh.simplices[rng.integers(0, len(interp.mesh.simplices), 200)]
+        w = rng.dirichlet(np.ones(4), 200)
+        q = np.einsum("qk,qkd->qd", w, pts[cells])
     B, inside = interp.field_at(q)
     assert inside.all()
     np.testing.assert_allclose(B, linear(q), rtol=1e-12, atol=1e-12)
@@ -156,3 +162,52 @@ def test_cospherical_scattered_nodes_get_proper_simplices():
     assert inside.all()
     # linear fields stay exact up to the jitter (1e-5 of the map size) times the gradient
     np.testing.assert_allclose(B, linear(q), atol=1e-5 * 5 * np.abs(G).sum())
+
+
+def _random_cube_map(n=3000, seed=1):
+    pts = np.random.default_rng(seed).uniform(0, 6, (n, 3))
+    return pts, FieldMap.from_arrays(pts, linear(pts))
+
+
+def test_hull_slivers_removed_only_on_request_and_only_flat_cells_at_the_hull():
+    import scipy.spatial
+
+    from cfm_fem.interpolation import SLIVER_RATIO
+
+    pts, fm = _random_cube_map()
+    kept = build_mesh(fm, "delaunay")
+    assert len(kept.hull_slivers) == 0
+    mesh = build_mesh(fm, "delaunay", "remove")
+    gone = mesh.hull_slivers
+    assert len(gone) > 0 and len(gone) + len(mesh.simplices) == len(kept.simplices)
+    assert any("flat cell(s) on the Delaunay hull removed" in n for n in mesh.notes)
+    # every removed cell: circumradius > SLIVER_RATIO x shortest edge, centre outside the hull
+    v = pts[gone]
+    A = 2.0 * (v[:, 1:] - v[:, :1])
+    centre = np.linalg.solve(A, ((v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1))[..., None])
+    centre = centre[..., 0]
+    r = np.linalg.norm(centre - v[:, 0], axis=1)
+    edges = [np.linalg.norm(v[:, a] - v[:, b], axis=1) for a in range(4) for b in range(a + 1, 4)]
+    assert (r > SLIVER_RATIO * np.min(edges, axis=0)).all()
+    hull = scipy.spatial.Delaunay(pts[scipy.spatial.ConvexHull(pts).vertices])
+    assert (hull.find_simplex(centre) < 0).all()
+    assert (mesh.node_cell >= 0).all()  # no node left without a cell
+    # a removed cell is at the hull: it touches the kept mesh's border or the hull itself
+    assert np.isin(gone, np.unique(mesh.simplices[(mesh.neighbors < 0).any(axis=1)])).all()
+
+
+def test_points_next_to_removed_hull_cells_are_found():
+    """Removing hull cells makes the border non-convex, and walks from the nearest nodes can be
+    blocked by a notch; the cells around the point are then searched (they were not found by
+    the walks alone: 2 of 200 points here)."""
+    pts, fm = _random_cube_map(300)
+    interp = LinearInterpolator(fm, "delaunay", "remove")
+    rng = np.random.default_rng(2)
+    cells = interp.mesh.simplices[rng.integers(0, len(interp.mesh.simplices), 200)]
+    q = np.einsum("qk,qkd->qd", rng.dirichlet(np.ones(4), 200), pts[cells])
+    B, inside = interp.field_at(q)
+    assert inside.all()
+    np.testing.assert_allclose(B, linear(q), rtol=1e-12, atol=1e-12)
+    gone = interp.mesh.hull_slivers
+    centre = pts[gone].mean(axis=1)  # inside a removed cell only
+    assert not interp.field_at(centre)[1].any()

@@ -401,3 +401,12 @@ def test_node_gradients_match_twin_and_are_exact_on_a_linear_field(planar):
         nrm = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
         G = G @ (np.eye(3) - np.outer(nrm, nrm))
     np.testing.assert_allclose(got, np.broadcast_to(G, got.shape), rtol=1e-9, atol=1e-13)
+
+
+def test_uniform53_is_never_0_or_1():
+    """(k + 1/2) / 2**53 rounds to 1 for the top k alone: the kernel and its twin give the
+    largest double below 1 there, and the exact value elsewhere."""
+    for h in (0, 1 << 11, 2**64 - 1, 2**64 - 2**11, 2**63, 0x9E3779B97F4A7C15):
+        u = _kernels.uniform53(np.uint64(h))
+        assert 0.0 < u < 1.0 and u == twins.uniform53(h)
+    assert _kernels.uniform53(np.uint64(2**64 - 1)) == np.nextafter(1.0, 0.0)

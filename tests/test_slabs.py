@@ -47,6 +47,9 @@ def _by_position(grid):
 
 
 def _same_summary(one, sl, exact=True):
+    # the in-memory run's count of flat cells lining the Delaunay hull (kept) has no slab
+    # equivalent (each slab + halo has a hull of its own): the one note slabs leave out
+    one = dict(one, notes=[n for n in one["notes"] if "line the Delaunay hull" not in n])
     for key in set(one) - {"seconds", "provenance"}:
         if exact or key != "uf_units":
             assert one[key] == sl[key], key

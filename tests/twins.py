@@ -37,7 +37,7 @@ def draw(key: int, counter: int) -> int:
 
 
 def uniform53(h: int) -> float:
-    return ((h >> 11) + 0.5) / 9007199254740992.0
+    return min(((h >> 11) + 0.5) / 9007199254740992.0, 1.0 - 2.0**-53)
 
 
 def int32(v: int) -> float:

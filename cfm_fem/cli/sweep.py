@@ -113,6 +113,14 @@ def add_args(p):
         "outside_fraction either way",
     )
     p.add_argument(
+        "--hull-slivers",
+        choices=["keep", "remove"],
+        default="keep",
+        help="scattered maps (Delaunay): keep the flat cells that line the convex hull (default), "
+        "or remove them: their interpolant is far off the field, and U_f of nodes on the hull "
+        "then follows the field (trials in a removed cell count as outside)",
+    )
+    p.add_argument(
         "--chunk-nodes",
         type=int,
         default=20000,
@@ -210,7 +218,8 @@ def _run_slabs(args, up):
         bench = read_bench(args.bench) if args.bench else read_reference_bench()
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
                       b_ref_T=args.b_ref, interpolation=args.interpolation, mode=args.mode,
-                      bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside)  # fmt: skip
+                      bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside,
+                      hull_slivers=args.hull_slivers)  # fmt: skip
     prov = provenance({"field": args.field, "bench": args.bench}, args.command_line)
     prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
     what = (f"U_p = {', '.join(f'{u:g}' for u in up)} um" if cfg.mode == "gauss" else
@@ -341,6 +350,7 @@ def run(args) -> int:
         bench=bench,
         chunk_nodes=args.chunk_nodes,
         outside=args.outside,
+        hull_slivers=args.hull_slivers,
     )
     what = (
         f"U_p = {', '.join(f'{u:g}' for u in up)} um"
