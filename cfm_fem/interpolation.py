@@ -64,8 +64,9 @@ class SimplexMesh:
     kind : str
         ``"native"``, ``"grid"`` or ``"delaunay"``.
     notes : list of str
-    hull_slivers : ndarray, shape (k, dim + 1), int64
-        Delaunay cells removed as hull slivers (`hull_sliver_cells`), as node indices.
+    hull_slivers : ndarray, shape (k, dim + 1), int64, or None
+        Delaunay cells removed as hull slivers (`hull_sliver_cells`), as node indices (empty
+        when none were; None for a mesh not made by `build_mesh`).
     """
 
     dim: int
@@ -78,7 +79,7 @@ class SimplexMesh:
     basis: np.ndarray
     kind: str
     notes: list[str] = field(default_factory=list)
-    hull_slivers: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    hull_slivers: np.ndarray | None = None
 
     @property
     def description(self) -> str:
@@ -88,6 +89,8 @@ class SimplexMesh:
             "delaunay": "linear interpolation on the Delaunay triangulation (scipy/Qhull) of the "
             "nodes; it fills the convex hull and bridges gaps the FEM domain may not contain",
         }[self.kind]
+        if self.hull_slivers is not None and len(self.hull_slivers):
+            what = what.replace("it fills the convex hull and", "its hull's flat cells removed; it")
         plane = (
             " in the plane of the map (out-of-plane displacement not covered)"
             if self.dim == 2
@@ -310,7 +313,11 @@ def build_mesh(fm: FieldMap, method: str = "auto", hull_slivers: str = "keep") -
         slivers = simplices[sliver]
         if sliver.any():
             simplices = simplices[~sliver]
-            notes.append(sliver_note(len(slivers)))
+            notes.append(
+                f"{len(slivers)} flat cell(s) on the Delaunay hull removed (circumradius > "
+                f"{SLIVER_RATIO:g} x shortest edge, centred outside the nodes' convex hull): the "
+                "map ends at its nodes' surface, and trials beyond it count as outside"
+            )
     # cells along a Z-order curve: a node's star then sits in a few cache lines (the sweep
     # kernels are bound by memory latency, not arithmetic)
     centre = coords[simplices[:, 0]].copy()  # vertex by vertex: no (m, d + 1, d) temporary
@@ -438,15 +445,6 @@ def hull_sliver_cells(coords, simplices, cells_per_block: int = 1 << 18) -> np.n
     orphan &= left == 0
     out &= ~orphan[simplices].any(axis=1)
     return out
-
-
-def sliver_note(count: int) -> str:
-    """The note that says ``count`` hull slivers were removed (`hull_sliver_cells`)."""
-    return (
-        f"{count} flat cell(s) on the Delaunay hull removed (circumradius > {SLIVER_RATIO:g} x "
-        "shortest edge, centred outside the nodes' convex hull): the map ends at its nodes' "
-        "surface, and trials beyond it count as outside"
-    )
 
 
 def _delaunay(coords, source):

@@ -114,7 +114,7 @@ def add_args(p):
     )
     p.add_argument(
         "--hull-slivers",
-        choices=["keep", "remove"],
+        choices=["keep", "remove"],  # interpolation.HULL_SLIVERS; not imported: --help stays fast
         default="keep",
         help="scattered maps (Delaunay): keep the flat cells that line the convex hull (default), "
         "or remove them: their interpolant is far off the field, and U_f of nodes on the hull "
