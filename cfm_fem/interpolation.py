@@ -245,7 +245,9 @@ def barycentric_transforms(coords, simplices):
     return T, det / (2.0 if d == 2 else 6.0)
 
 
-def build_mesh(fm: FieldMap, method: str = "auto", hull_slivers: str = "keep") -> SimplexMesh:
+def build_mesh(
+    fm: FieldMap, method: str = "auto", hull_slivers: str = "keep", hull_points=None
+) -> SimplexMesh:
     """Choose and build the simplicial mesh that interpolates ``fm``.
 
     Parameters
@@ -257,6 +259,9 @@ def build_mesh(fm: FieldMap, method: str = "auto", hull_slivers: str = "keep") -
     hull_slivers : {"keep", "remove"}
         Delaunay only: keep the flat cells of the convex hull, or remove them
         (`hull_sliver_cells`; said in the mesh's notes).
+    hull_points : ndarray, shape (k, dim), optional
+        Points whose convex hull is the whole map's (`hull_sliver_cells`); the out-of-core
+        sweep triangulates a part of the map and passes the whole map's hull.
 
     Raises
     ------
@@ -300,7 +305,7 @@ def build_mesh(fm: FieldMap, method: str = "auto", hull_slivers: str = "keep") -
     if simplices is None:
         simplices, kind, coords, extra = _delaunay(coords, src)
         notes += extra
-        sliver = hull_sliver_cells(coords, simplices)
+        sliver = hull_sliver_cells(coords, simplices, hull_points)
         if hull_slivers == "keep":
             if sliver.any():
                 notes.append(
@@ -313,11 +318,7 @@ def build_mesh(fm: FieldMap, method: str = "auto", hull_slivers: str = "keep") -
         slivers = simplices[sliver]
         if sliver.any():
             simplices = simplices[~sliver]
-            notes.append(
-                f"{len(slivers)} flat cell(s) on the Delaunay hull removed (circumradius > "
-                f"{SLIVER_RATIO:g} x shortest edge, centred outside the nodes' convex hull): the "
-                "map ends at its nodes' surface, and trials beyond it count as outside"
-            )
+            notes.append(sliver_note(len(slivers)))
     # cells along a Z-order curve: a node's star then sits in a few cache lines (the sweep
     # kernels are bound by memory latency, not arithmetic)
     centre = coords[simplices[:, 0]].copy()  # vertex by vertex: no (m, d + 1, d) temporary
@@ -395,7 +396,19 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def hull_sliver_cells(coords, simplices, cells_per_block: int = 1 << 18) -> np.ndarray:
+def convex_hull_points(points) -> np.ndarray:
+    """The vertices of the convex hull of ``points`` (n, d), as rows of ``points`` in their order.
+
+    Raises
+    ------
+    scipy.spatial.QhullError
+        For points that span fewer than d dimensions.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    return points[np.sort(scipy.spatial.ConvexHull(points).vertices)]
+
+
+def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int = 1 << 18):
     """Flat cells on the hull of a Delaunay triangulation.
 
     A Delaunay cell has an empty circumsphere, so one whose circumcentre lies outside the convex
@@ -405,11 +418,15 @@ def hull_sliver_cells(coords, simplices, cells_per_block: int = 1 << 18) -> np.n
     surface and their gradient is far off the field's, so the interpolant is wrong inside them
     (on 3,000 random nodes, U_f reached 10x the analytic figure at hull nodes before removal,
     1.4x after). A cell is kept when removing it would leave one of its nodes in no cell.
+    Given the hull, the test is local to the cell: a part of the map gives its cells the answer
+    the whole map gives them (the out-of-core sweep relies on that).
 
     Parameters
     ----------
     coords : ndarray, shape (n, d), mm
     simplices : ndarray, shape (m, d + 1), int
+    hull_points : ndarray, shape (k, d), optional
+        Points whose convex hull is the map's; default ``coords``.
     cells_per_block : int
         Cells per block of the computation: memory O(nodes + block).
 
@@ -436,7 +453,9 @@ def hull_sliver_cells(coords, simplices, cells_per_block: int = 1 << 18) -> np.n
     cand = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
     if not len(cand):
         return out
-    hull = scipy.spatial.Delaunay(coords[scipy.spatial.ConvexHull(coords).vertices])
+    hull = scipy.spatial.Delaunay(
+        convex_hull_points(coords if hull_points is None else hull_points)
+    )
     out[cand] = hull.find_simplex(np.concatenate(centres)) < 0
     # a node whose every cell would go keeps them all
     left = np.bincount(simplices[~out].ravel(), minlength=len(coords))
@@ -445,6 +464,15 @@ def hull_sliver_cells(coords, simplices, cells_per_block: int = 1 << 18) -> np.n
     orphan &= left == 0
     out &= ~orphan[simplices].any(axis=1)
     return out
+
+
+def sliver_note(count: int) -> str:
+    """The note that says ``count`` hull slivers were removed (in memory and out of core)."""
+    return (
+        f"{count} flat cell(s) on the Delaunay hull removed (circumradius > {SLIVER_RATIO:g} x "
+        "shortest edge, centred outside the nodes' convex hull): the map ends at its nodes' "
+        "surface, and trials beyond it count as outside"
+    )
 
 
 def _delaunay(coords, source):

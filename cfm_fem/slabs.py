@@ -31,6 +31,10 @@ is checked, not trusted:
   its circumsphere stays inside the slab + halo along the slab axis (then no node outside can
   lie in it, so it is a Delaunay cell of the whole map). Otherwise h is doubled and the slab
   rebuilt.
+- with ``hull_slivers="remove"``, every slab tests its cells against the whole map's convex
+  hull (`_hull_points`, so a cell is removed in a slab when the whole map removes it), and the
+  removed cells within two rings of cells of an own node must be certified too; the faces they
+  leave are the map's border.
 - faces through which a walk would leave the certified region (a boundary face of slab + halo
   that is not provably on the map's own hull, or a face towards an uncertified cell) lead to a
   sentinel cell whose field is NaN. A trial that reaches one poisons its node's statistics,
@@ -60,10 +64,7 @@ run continues from its finished slabs. Records are merged in slab order: the out
 depend on where or in which order the slabs ran.
 
 Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run in memory
-(the caller says so). ``hull_slivers="remove"`` is refused: whether a Delaunay hull cell is
-removed is local to the cell, but the hull layer of slab + halo is triangulated differently
-from the whole map's near its own nodes, and its cells cannot be certified by the halo test
-(their circumspheres are huge).
+(the caller says so).
 """
 
 from __future__ import annotations
@@ -80,10 +81,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.spatial
 
 from .errors import CfmInputError, CfmInputWarning
 from .field import DUPLICATE_TOL_MM, FieldMap
-from .interpolation import FLAT_TOL, build_mesh
+from .interpolation import FLAT_TOL, build_mesh, convex_hull_points, sliver_note
 from .io._atomic import write_json
 from .io.pvtu import write_pvtu
 from .io.streaming import check_opera_counts, open_stream
@@ -425,8 +427,6 @@ def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2):
     """For circumspheres that reach beyond the slab + halo: True where no staged node outside
     a_lo..a_hi along ``axis`` lies in (or on) the sphere, so the cell is the whole map's too.
     One scan of the staged rows; hull slivers (huge spheres bulging out of the map) pass here."""
-    import scipy.spatial
-
     hits = np.zeros(len(centers), dtype=np.int64)
     r = np.sqrt(r2)
     for a in range(0, len(st.rows), BLOCK):
@@ -462,6 +462,50 @@ def _hull_face_ok(coords, simplices, s, j, boxes, tol):
         side = np.einsum("fck,fk->fc", corners[None] - fv[:, :1, :], nrm)
         out &= side.max(axis=1) <= tol * scale
     return out
+
+
+def _certify(st: Staged, plan, k, h, coords, simplices, boxes):
+    """Cells of slab k + halo h (m,) that are provably cells of the whole map's Delaunay
+    triangulation: by the box test (`_circum_ok`), and for cells away from the cut zone that it
+    could not certify, against the nodes left out (`_empty_spheres`, one scan of the rows)."""
+    cert, cen, r2 = _circum_ok(coords, simplices, boxes, spheres=True)
+    near = coords[simplices, plan.axis]
+    inner = (near >= plan.edges[k] - h / 2) & (near <= plan.edges[k + 1] + h / 2)
+    cand = np.flatnonzero(~cert & inner.any(axis=1))
+    if len(cand):
+        cert[cand] = _empty_spheres(
+            st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand]
+        )
+    return cert
+
+
+def _faces_of(simplices, s, j, cells):
+    """Whether the face of simplices[s[i]] opposite its vertex j[i] is a face of one of
+    ``cells`` (k, d + 1), as a bool array like ``s``."""
+    out = np.zeros(len(s), dtype=bool)
+    if not len(s) or not len(cells):
+        return out
+    dp1 = simplices.shape[1]
+    keep = np.ones((len(s), dp1), dtype=bool)
+    keep[np.arange(len(s)), j] = False
+    border = np.sort(simplices[s][keep].reshape(len(s), dp1 - 1), axis=1)
+    faces = np.sort(np.concatenate([np.delete(cells, c, axis=1) for c in range(dp1)]), axis=1)
+    known = {tuple(f) for f in faces.tolist()}
+    return np.fromiter((tuple(f) in known for f in border.tolist()), dtype=bool, count=len(s))
+
+
+def _hull_points(st: Staged) -> np.ndarray:
+    """Vertices of the convex hull of all staged nodes (k, 3), mm, block by block (the hull of
+    a union is the hull of its parts' hull vertices)."""
+    keep = np.empty((0, 3))
+    for a in range(0, len(st.rows), BLOCK):
+        p = np.concatenate([keep, np.asarray(st.rows[a : a + BLOCK, :3])])
+        st.release(a, a + BLOCK)
+        try:
+            keep = convex_hull_points(p)
+        except scipy.spatial.QhullError:  # a flat block (one plane of nodes): kept whole
+            keep = p
+    return convex_hull_points(keep)
 
 
 def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
@@ -659,10 +703,6 @@ def run_slab_sweep(
     dict or None
         The summary written; None for a map that is not 3-D (the caller then runs in memory).
     """
-    if cfg.hull_slivers != "keep":
-        raise CfmInputError("--slabs/--max-memory cannot be combined with --hull-slivers remove "
-                            "yet (a slab cannot prove which hull cells the whole map removes); "
-                            "run in memory or with --pieces")  # fmt: skip
     t0 = time.perf_counter()
     log = log or (lambda s: None)
     out = Path(out_dir)
@@ -729,7 +769,7 @@ def _zero_sums(n_col: int) -> dict:
     """The counts a slab adds to the run's summary (`_summary`)."""
     return dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64), processed=0,
                 star=0, dis=np.zeros((n_col, 4), np.int64), cells=0, halo_nodes=0,
-                unreachable=0)  # fmt: skip
+                unreachable=0, slivers=0)  # fmt: skip
 
 
 def _make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
@@ -820,12 +860,15 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             notes.append(f"nodes on a rectilinear grid with {missing} grid point(s) missing: "
                          "cells touching a missing point are left out, not bridged")  # fmt: skip
 
+    # the whole map's hull: a slab removes the hull slivers the whole map removes
+    hull = _hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
     store = _SlabStore(work / "results")
     for name, dtype in (("uf", np.float64), ("complete", np.bool_), ("e2", np.float64)):
         if name != "e2" or htm:  # created here, or reopened as they are when resuming
             _make_per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
-                   b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work)  # fmt: skip
+                   b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
+                   hull=hull)  # fmt: skip
     records = {}
     for k in range(K):
         record = store.done(k) if resume else None
@@ -858,6 +901,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                          "axes: no statistics (NaN)")  # fmt: skip
     else:
         ups = [float(u) for u in cfg.up_um]
+    if sums["slivers"]:
+        mesh_notes.append(sliver_note(int(sums["slivers"])))
     summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
     summary["slabs"] = {
         "count": K,
@@ -901,6 +946,7 @@ class _SlabJob:
     htm: bool
     span: float
     work: Path
+    hull: np.ndarray | None = None  # hull slivers removed: the whole map's hull vertices (k, 3)
 
     def per_node(self, name: str):
         """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
@@ -926,35 +972,30 @@ class _SlabJob:
             B = np.array(st.rows[rows, 3:])
             lfm = FieldMap(points=pts, B=B, source=file, lines=np.array(st.lines[rows]))
             st.release()
-            mesh = build_mesh(lfm, kind)
+            mesh = build_mesh(lfm, kind, cfg.hull_slivers, self.hull)
+            gone = mesh.hull_slivers
             boxes = _beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
             if kind == "grid":  # the Kuhn triangulation is local: every cell is the map's own
                 cert = np.ones(len(mesh.simplices), dtype=bool)
-            else:
-                cert, cen, r2 = _circum_ok(mesh.coords, mesh.simplices, boxes, spheres=True)
-                # cells away from the cut zone that the box test could not certify: test them
-                # against the nodes left out (one scan of the staged rows)
-                near = mesh.coords[mesh.simplices, plan.axis]
-                inner = (near >= plan.edges[k] - h / 2) & (near <= plan.edges[k + 1] + h / 2)
-                cand = np.flatnonzero(~cert & inner.any(axis=1))
-                if len(cand):
-                    cert[cand] = _empty_spheres(
-                        st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand]
-                    )
+                cert_gone = np.ones(0, dtype=bool)
+            else:  # the removed hull slivers too: where the map ends around own nodes
+                both = np.concatenate([mesh.simplices, gone])
+                cert, cert_gone = np.split(_certify(st, plan, k, h, mesh.coords, both, boxes),
+                                           [len(mesh.simplices)])  # fmt: skip
             own_cells = own[mesh.simplices].any(axis=1)
-            if cert[own_cells].all() or not boxes:
+            # removed cells a walk from an own node can meet: two rings of cells around it
+            near = own.copy()
+            for _ in range(2):
+                near[mesh.simplices[near[mesh.simplices].any(axis=1)]] = True
+            if (cert[own_cells].all() and cert_gone[near[gone].any(axis=1)].all()) or not boxes:
                 break
             h *= 2.0
             messages.append(
                 f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)"
             )
-        mesh_notes = [
-            m
-            for m in mesh.notes
-            if "grid point" not in m
-            and "outside the strokes" not in m
-            and "line the Delaunay hull" not in m
-        ]  # per-slab counts: left out
+        # per-slab notes left out: grid gaps, strokes and hull slivers are counted over slabs
+        mesh_notes = [m for m in mesh.notes if "grid point" not in m
+                      and "outside the strokes" not in m and "Delaunay hull" not in m]  # fmt: skip
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
         # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
@@ -964,6 +1005,7 @@ class _SlabJob:
         suspect[nb >= 0] = ~cert[nb[nb >= 0]]
         s_idx, j_idx = np.nonzero(nb < 0)
         hull = _hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
+        hull |= _faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
         suspect[s_idx[~hull], j_idx[~hull]] = True
         suspect[~cert] = False  # never entered
         # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that
@@ -991,9 +1033,12 @@ class _SlabJob:
             redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit).run_nodes(
                 own_local[hit], keys=own_ids[hit]
             )
+            first_out = n_out[hit]
             stats[hit], n_out[hit], n_lost[hit], star[hit], pos[hit] = redo
             n_left[hit] = n_out[hit]
-            sums["halo_nodes"] += int(hit.sum())
+            # a node with one trial left has NaN statistics too: it reached the halo only if
+            # the closed faces turned trials into outside ones
+            sums["halo_nodes"] += int((n_out[hit] > first_out).any(axis=1).sum())
         del coords_l, values_l, start_l, gp
         grad = node_gradients(mesh, lfm.B)[own]
         sub = FieldMap(points=pts[own], B=B[own], source=file)
@@ -1029,6 +1074,8 @@ class _SlabJob:
         top = cells.max(axis=1)  # local indices increase with node ids
         cells = ids[cells[own[top]]]
         sums["cells"] += len(cells)
+        if len(gone):  # counted, like the piece's cells, by their highest node
+            sums["slivers"] += int(own[gone[cert_gone].max(axis=1)].sum())
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
                    n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
                    cells=cells)  # fmt: skip

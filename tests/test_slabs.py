@@ -113,6 +113,38 @@ def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
     np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
 
 
+def _cylinder_nodes(n=3000, seed=5):
+    """Nodes of a scattered FEM-like export of a cylinder (r 3 mm, 30 mm long): a third on
+    its mantle, so its Delaunay hull is lined with flat cells (local ones: they span
+    neighbouring mantle nodes)."""
+    rng = np.random.default_rng(seed)
+    m = n // 3
+    r, t = 3 * np.sqrt(rng.uniform(0, 1, n - m)), rng.uniform(0, 2 * np.pi, n - m)
+    inner = np.c_[r * np.cos(t), r * np.sin(t), rng.uniform(0, 30, n - m)]
+    t = rng.uniform(0, 2 * np.pi, m)
+    return np.r_[inner, np.c_[3 * np.cos(t), 3 * np.sin(t), rng.uniform(0, 30, m)]]
+
+
+@pytest.mark.parametrize("outside", ["exclude", "extrapolate"])
+def test_hull_slivers_removed_by_slabs_as_by_the_whole_map(tmp_path, outside):
+    """--hull-slivers remove with --slabs: every slab removes, from the cells around its own
+    nodes, the cells the whole map removes (given the whole map's hull, the test is local), and
+    the border faces that removal leaves are the map's border, not a halo border."""
+    path = _write_csv(tmp_path / "c.csv", _cylinder_nodes())
+    base = ["sweep", str(path), "--up", "0,40", "--trials", "200", "--hull-slivers", "remove",
+            "--outside", outside]  # fmt: skip
+    one, sl = _in_memory_and_slabs(tmp_path, base, 3)
+    assert "flat cell(s) on the Delaunay hull removed" in " ".join(one["notes"])
+    _same_summary(one, sl, exact=False)
+    assert sl["slabs"]["halo_outside_nodes"] == 0
+    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_up40um.vtu"))
+    g2, b = _by_position(pv.read(tmp_path / "sl" / "uf_up40um.pvtu"))
+    assert g1.n_cells == g2.n_cells
+    np.testing.assert_array_equal(a["complete"], b["complete"])
+    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
+    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+
+
 def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
     # halo of 6 sigma = 6 mm and no cell (halo_cells=0), grid steps of 8.6 mm along z: the
     # nodes next to a slab edge lose cells of their star;
