@@ -96,6 +96,17 @@ def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         _same_fields(a, b, gradients=("grad", "gum_U95"))
 
 
+def _same_scattered_maps(tmp_path, column):
+    """The in-memory (DIR one) and slab (DIR sl) maps of a Delaunay run: same cells, same
+    complete nodes and outside fractions, U_f to rounding (Qhull's vertex order)."""
+    g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_{column}.vtu"))
+    g2, b = _by_position(pv.read(tmp_path / "sl" / f"uf_{column}.pvtu"))
+    assert g1.n_cells == g2.n_cells
+    np.testing.assert_array_equal(a["complete"], b["complete"])
+    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
+    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+
+
 def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
     rng = np.random.default_rng(3)
     pts = rng.uniform([-10, -10, -30], [10, 10, 30], (900, 3))
@@ -105,12 +116,7 @@ def test_scattered_map_slabs_agree_with_the_in_memory_run(tmp_path):
     assert "Delaunay" in sl["interpolation"]
     # Qhull's vertex order inside a simplex differs between slab and whole map: rounding only
     _same_summary(one, sl, exact=False)
-    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_up30um.vtu"))
-    g2, b = _by_position(pv.read(tmp_path / "sl" / "uf_up30um.pvtu"))
-    assert g1.n_cells == g2.n_cells
-    np.testing.assert_array_equal(a["complete"], b["complete"])
-    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
-    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+    _same_scattered_maps(tmp_path, "up30um")
 
 
 def _cylinder_nodes(n=3000, seed=5):
@@ -137,12 +143,7 @@ def test_hull_slivers_removed_by_slabs_as_by_the_whole_map(tmp_path, outside):
     assert "flat cell(s) on the Delaunay hull removed" in " ".join(one["notes"])
     _same_summary(one, sl, exact=False)
     assert sl["slabs"]["halo_outside_nodes"] == 0
-    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_up40um.vtu"))
-    g2, b = _by_position(pv.read(tmp_path / "sl" / "uf_up40um.pvtu"))
-    assert g1.n_cells == g2.n_cells
-    np.testing.assert_array_equal(a["complete"], b["complete"])
-    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
-    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+    _same_scattered_maps(tmp_path, "up40um")
 
 
 def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
