@@ -306,19 +306,17 @@ def build_mesh(
         simplices, kind, coords, extra = _delaunay(coords, src)
         notes += extra
         sliver = hull_sliver_cells(coords, simplices, hull_points)
-        if hull_slivers == "keep":
-            if sliver.any():
-                notes.append(
-                    f"{int(sliver.sum())} flat cell(s) line the Delaunay hull (circumradius > "
-                    f"{SLIVER_RATIO:g} x shortest edge, centred outside the nodes' convex hull); "
-                    "kept: U_f and the GUM figure of nodes on the hull can be far off the field "
-                    "there (--hull-slivers remove takes them out)"
-                )
-            sliver[:] = False
-        slivers = simplices[sliver]
-        if sliver.any():
-            simplices = simplices[~sliver]
-            notes.append(sliver_note(len(slivers)))
+        if hull_slivers == "remove":
+            slivers, simplices = simplices[sliver], simplices[~sliver]
+            if len(slivers):
+                notes.append(sliver_note(len(slivers)))
+        elif sliver.any():
+            notes.append(
+                f"{int(sliver.sum())} flat cell(s) line the Delaunay hull (circumradius > "
+                f"{SLIVER_RATIO:g} x shortest edge, centred outside the nodes' convex hull); "
+                "kept: U_f and the GUM figure of nodes on the hull can be far off the field "
+                "there (--hull-slivers remove takes them out)"
+            )
     # cells along a Z-order curve: a node's star then sits in a few cache lines (the sweep
     # kernels are bound by memory latency, not arithmetic)
     centre = coords[simplices[:, 0]].copy()  # vertex by vertex: no (m, d + 1, d) temporary
@@ -396,6 +394,17 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def circumspheres(coords, simplices):
+    """Circumcentres (m, d) and squared circumradii (m,) of simplices (m, d + 1), in the units
+    of ``coords`` (n, d); NaN or inf for a flat simplex."""
+    v = coords[simplices]  # (m, d + 1, d)
+    A = 2.0 * (v[:, 1:] - v[:, :1])
+    rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
+    with np.errstate(all="ignore"):
+        c = np.linalg.solve(A, rhs[..., None])[..., 0]
+        return c, ((c - v[:, 0]) ** 2).sum(-1)
+
+
 def convex_hull_points(points) -> np.ndarray:
     """The vertices of the convex hull of ``points`` (n, d), as rows of ``points`` in their order.
 
@@ -440,14 +449,12 @@ def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int 
     i, j = np.triu_indices(dp1, 1)
     cand, centres = [], []
     for c0 in range(0, m, cells_per_block):
-        v = coords[simplices[c0 : c0 + cells_per_block]]  # (b, d + 1, d)
-        A = 2.0 * (v[:, 1:] - v[:, :1])
-        rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
-        with np.errstate(all="ignore"):
-            centre = np.linalg.solve(A, rhs[..., None])[..., 0]
-        r2 = ((centre - v[:, 0]) ** 2).sum(-1)
+        block = simplices[c0 : c0 + cells_per_block]
+        centre, r2 = circumspheres(coords, block)
+        v = coords[block]  # (b, d + 1, d)
         e2 = ((v[:, i] - v[:, j]) ** 2).sum(-1).min(axis=1)
-        flat = np.flatnonzero(r2 > SLIVER_RATIO**2 * e2)
+        with np.errstate(invalid="ignore"):
+            flat = np.flatnonzero(r2 > SLIVER_RATIO**2 * e2)
         cand.append(c0 + flat)
         centres.append(centre[flat])
     cand = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
@@ -597,11 +604,10 @@ class LinearInterpolator:
         redo = np.flatnonzero(cell < 0)
         if redo.size:  # walks blocked by a notch of the border: search the cells around
             c2 = self._cells_around(local[redo])
-            hit = c2 >= 0
-            cell[redo[hit]] = c2[hit]
-            B[redo[hit]] = interpolate_points(m, self.fieldmap.B, local[redo[hit]], c2[hit])[
-                0
-            ]  # a walk from the containing cell: zero steps
+            found = redo[c2 >= 0]
+            cell[found] = c2[c2 >= 0]
+            # a walk that starts in the containing cell takes no step
+            B[found] = interpolate_points(m, self.fieldmap.B, local[found], cell[found])[0]
         return B, cell >= 0
 
     def _cells_around(self, local):

@@ -85,7 +85,13 @@ import scipy.spatial
 
 from .errors import CfmInputError, CfmInputWarning
 from .field import DUPLICATE_TOL_MM, FieldMap
-from .interpolation import FLAT_TOL, build_mesh, convex_hull_points, sliver_note
+from .interpolation import (
+    FLAT_TOL,
+    build_mesh,
+    circumspheres,
+    convex_hull_points,
+    sliver_note,
+)
 from .io._atomic import write_json
 from .io.pvtu import write_pvtu
 from .io.streaming import check_opera_counts, open_stream
@@ -410,12 +416,9 @@ def _circum_ok(coords, simplices, boxes, spheres=False):
 
     With ``spheres``, also return the circumcentres (m, 3) and squared radii (m,), mm.
     """
-    v = coords[simplices]  # (m, 4, 3)
-    A = 2.0 * (v[:, 1:] - v[:, :1])
-    rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
-    with np.errstate(all="ignore"):
-        c = np.linalg.solve(A, rhs[..., None])[..., 0]
-        r2 = ((c - v[:, 0]) ** 2).sum(-1) * (1.0 + 1e-9)
+    c, r2 = circumspheres(coords, simplices)
+    with np.errstate(invalid="ignore", over="ignore"):
+        r2 = r2 * (1.0 + 1e-9)
     ok = np.isfinite(r2)
     for lo, hi in boxes:
         d2 = (np.maximum(np.maximum(lo - c, c - hi), 0.0) ** 2).sum(-1)
@@ -490,8 +493,9 @@ def _faces_of(simplices, s, j, cells):
     keep[np.arange(len(s)), j] = False
     border = np.sort(simplices[s][keep].reshape(len(s), dp1 - 1), axis=1)
     faces = np.sort(np.concatenate([np.delete(cells, c, axis=1) for c in range(dp1)]), axis=1)
-    known = {tuple(f) for f in faces.tolist()}
-    return np.fromiter((tuple(f) in known for f in border.tolist()), dtype=bool, count=len(s))
+    _, ids = np.unique(np.concatenate([border, faces]), axis=0, return_inverse=True)
+    ids = ids.ravel()
+    return np.isin(ids[: len(s)], ids[len(s) :])
 
 
 def _hull_points(st: Staged) -> np.ndarray:
