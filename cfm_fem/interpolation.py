@@ -315,7 +315,7 @@ def build_mesh(
                 f"{int(sliver.sum())} flat cell(s) line the Delaunay hull (circumradius > "
                 f"{SLIVER_RATIO:g} x shortest edge, centred outside the nodes' convex hull); "
                 "kept: U_f and the GUM figure of nodes on the hull can be far off the field "
-                "there (--hull-slivers remove takes them out)"
+                "there (--hull-slivers remove, the sweep's default, takes them out)"
             )
     # cells along a Z-order curve: a node's star then sits in a few cache lines (the sweep
     # kernels are bound by memory latency, not arithmetic)

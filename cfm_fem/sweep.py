@@ -78,9 +78,10 @@ class SweepConfig:
         Trials whose perturbed position leaves the map: left out of the node's statistics
         (the node is then incomplete), or given the node's first-order Taylor expansion
         B + grad B . delta (`edge_fit_gradients`). Counted in ``n_outside`` either way.
-    hull_slivers : {"keep", "remove"}
-        Delaunay maps: keep the flat cells of the convex hull or remove them
-        (`cfm_fem.interpolation.hull_sliver_cells`); trials in a removed cell are outside.
+    hull_slivers : {"remove", "keep"}
+        Delaunay maps: remove the flat cells of the convex hull (default) or keep them
+        (`cfm_fem.interpolation.hull_sliver_cells`); trials in a removed cell are outside. Kept,
+        they put U_f and the gradient (so the GUM figure) of the nodes on the hull far off.
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -94,7 +95,7 @@ class SweepConfig:
     bench: object | None = None
     chunk_nodes: int = 20000
     outside: str = "exclude"
-    hull_slivers: str = "keep"
+    hull_slivers: str = "remove"
 
 
 @dataclass

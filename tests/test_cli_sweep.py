@@ -195,17 +195,18 @@ def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch,
 
 
 def test_hull_slivers_option(tmp_path):
-    """--hull-slivers remove: said in the summary's notes (with --slabs: tests/test_slabs.py);
-    by default the flat cells are kept and counted in a note."""
+    """The hull's flat cells are removed by default and the summary's notes say so (with
+    --slabs: tests/test_slabs.py); --hull-slivers keep keeps them and counts them in a note."""
     pts = np.random.default_rng(4).uniform(0, 6, (400, 3))
     path = tmp_path / "s.csv"
     rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, pts @ G.T + [0, 0, 1]])
     path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
     base = ["sweep", str(path), "--up", "0,20", "--trials", "100"]
-    assert main([*base, "--out", str(tmp_path / "a"), "--hull-slivers", "remove"]) == 0
+    assert main([*base, "--out", str(tmp_path / "a")]) == 0
     notes = json.loads((tmp_path / "a" / "summary.json").read_text())["notes"]
     assert any("flat cell(s) on the Delaunay hull removed" in n for n in notes)
-    assert main([*base, "--out", str(tmp_path / "b")]) == 0
+    assert not any("flat cell(s) line the Delaunay hull" in n for n in notes)
+    assert main([*base, "--out", str(tmp_path / "b"), "--hull-slivers", "keep"]) == 0
     notes = json.loads((tmp_path / "b" / "summary.json").read_text())["notes"]
     assert not any("Delaunay hull removed" in n for n in notes)
     assert any("flat cell(s) line the Delaunay hull" in n for n in notes)

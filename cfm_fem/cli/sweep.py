@@ -115,10 +115,10 @@ def add_args(p):
     p.add_argument(
         "--hull-slivers",
         choices=["keep", "remove"],  # interpolation.HULL_SLIVERS; not imported: --help stays fast
-        default="keep",
-        help="scattered maps (Delaunay): keep the flat cells that line the convex hull (default), "
-        "or remove them: their interpolant is far off the field, and U_f of nodes on the hull "
-        "then follows the field (trials in a removed cell count as outside)",
+        default="remove",
+        help="scattered maps (Delaunay): remove the flat cells that line the convex hull "
+        "(default; trials in a removed cell count as outside), or keep them: their interpolant "
+        "is far off the field, and so are U_f and the gradient of the nodes on the hull",
     )
     p.add_argument(
         "--chunk-nodes",
