@@ -615,6 +615,10 @@ class LinearInterpolator:
         bounding sphere (centroid, farthest vertex) holds it: cells are grouped by radius in
         powers of two, one KD-tree of centroids per group. Exact, for the few points whose
         walks a non-convex border blocked."""
+        block = 4096  # points at a time: their candidate pairs stay a few MB
+        if len(local) > block:
+            parts = [self._cells_around(local[k : k + block]) for k in range(0, len(local), block)]
+            return np.concatenate(parts)
         m = self.mesh
         if self._spheres is None:
             v = m.coords[m.simplices]
@@ -630,14 +634,17 @@ class LinearInterpolator:
         best = np.full(len(local), np.iinfo(np.int64).max)
         d = m.dim
         for idx, tree, rmax in groups:
-            for i, near in enumerate(tree.query_ball_point(local, rmax)):
-                if not near:
-                    continue
-                c = idx[np.asarray(near)]
-                c = c[((centre[c] - local[i]) ** 2).sum(-1) <= radius[c] ** 2]
-                T = m.transform[c]
-                lam = np.einsum("cjk,ck->cj", T[:, :d], local[i] - T[:, d])
-                ok = (lam >= -_kernels.BARY_EPS).all(1) & (1 - lam.sum(1) >= -_kernels.BARY_EPS)
-                if ok.any():
-                    best[i] = min(best[i], int(c[ok].min()))
+            near = tree.query_ball_point(local, rmax)
+            count = np.fromiter(map(len, near), dtype=np.int64, count=len(near))
+            if not count.any():
+                continue
+            # every (point, candidate cell) pair at once: no Python loop over the points
+            i = np.repeat(np.arange(len(local)), count)
+            c = idx[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))]
+            hit = ((centre[c] - local[i]) ** 2).sum(-1) <= radius[c] ** 2
+            i, c = i[hit], c[hit]
+            T = m.transform[c]
+            lam = np.einsum("cjk,ck->cj", T[:, :d], local[i] - T[:, d])
+            ok = (lam >= -_kernels.BARY_EPS).all(1) & (1 - lam.sum(1) >= -_kernels.BARY_EPS)
+            np.minimum.at(best, i[ok], c[ok])
         return np.where(best == np.iinfo(np.int64).max, -1, best)
