@@ -1252,9 +1252,6 @@ def walk_block3(points, i0, n, start, transform, neighbors, cur, act, bary):
         cur[j] = s if s >= 0 else OUTSIDE
         act[m] = j
         m += s >= 0
-    # The cell a walk goes on with, chosen through memory: LLVM turns a select here into a
-    # branch, whose outcome (inside or not) is a coin toss.
-    pick = np.empty(2, dtype=np.int64)
     for _ in range(MAX_WALK):
         if m == 0:
             return
@@ -1270,12 +1267,14 @@ def walk_block3(points, i0, n, start, transform, neighbors, cur, act, bary):
             bary[j, 1] = b1
             bary[j, 2] = b2
             bary[j, 3] = b3
-            nxt = neighbors[s, jmin]
-            pick[0] = nxt  # OUTSIDE when the walk leaves the mesh
-            pick[1] = np.int64(s)
-            cur[j] = pick[np.int64(inside)]
+            nxt = neighbors[s, jmin]  # OUTSIDE when the walk leaves the mesh
+            # the cell a walk goes on with, by arithmetic: LLVM turns a select here into a
+            # branch, whose outcome (inside or not) is a coin toss (a two-slot array, as before,
+            # was 4-6 % slower)
+            ins = np.int64(inside)
+            cur[j] = nxt + (np.int64(s) - nxt) * ins
             act[m_next] = j  # branch-free compaction of the walks still going
-            m_next += np.int64(not inside) & np.int64(nxt >= 0)
+            m_next += (1 - ins) & np.int64(nxt >= 0)
         m = m_next
     for t in range(m):
         cur[act[t]] = WALK_FAILED
