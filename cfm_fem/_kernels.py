@@ -2700,8 +2700,11 @@ def htm_sweep(
     -------
     stats : ndarray, shape (k, 1, 4, 6), T
     n_out, n_lost : ndarray, shape (k, 1), int64
-    pos : ndarray, shape (k, 2, 3), mm
-        Mean and standard deviation of the probe error per map axis, over all trials.
+    pos : ndarray, shape (k, 3, 3)
+        Over all trials, per map axis: mean (row 0, mm) and standard deviation (row 1, mm) of
+        the probe error, and (row 2) its correlation coefficients xy, xz, yz (0 where an
+        axis does not vary): the linearised (GUM) figure needs the covariance, as the
+        geometric errors move the probe along several axes at once.
     """
     k_nodes = nodes.shape[0]
     n_trials = params.shape[0]
@@ -2709,7 +2712,7 @@ def htm_sweep(
     stats = np.full((k_nodes, 1, 4, 6), np.nan)
     n_out = np.zeros((k_nodes, 1), dtype=np.int64)
     n_lost = np.zeros((k_nodes, 1), dtype=np.int64)
-    pos = np.full((k_nodes, 2, 3), np.nan)
+    pos = np.full((k_nodes, 3, 3), np.nan)
     zero = np.zeros(params.shape[1])
     comp = np.empty((3, n_trials))
     absb = np.empty(n_trials)
@@ -2741,6 +2744,7 @@ def htm_sweep(
             normals_by_key(tkeys, fkey, gk, n_trials, z, ok)
         s1 = np.zeros(3)
         s2 = np.zeros(3)
+        sx = np.zeros(3)  # cross sums xy, xz, yz
         qg = q_nodes[g]
         for t in range(n_trials):
             for a in range(3):
@@ -2762,6 +2766,9 @@ def htm_sweep(
                 dm[a] = rot[a, 0] * e[0] + rot[a, 1] * e[1] + rot[a, 2] * e[2]
                 s1[a] += dm[a]
                 s2[a] += dm[a] * dm[a]
+            sx[0] += dm[0] * dm[1]
+            sx[1] += dm[0] * dm[2]
+            sx[2] += dm[1] * dm[2]
             for a in range(d):
                 acc = 0.0
                 for c in range(3):
@@ -2796,12 +2803,16 @@ def htm_sweep(
                     comp[c, nv] = bi[c] - b0[c]
             absb[nv] = _abs_change(b0, comp[0, nv], comp[1, nv], comp[2, nv], abs0)
             nv += 1
+        bessel = n_trials / max(n_trials - 1, 1)
         for a in range(3):
             mean = s1[a] / n_trials
             pos[i, 0, a] = mean
-            pos[i, 1, a] = np.sqrt(
-                max(s2[a] / n_trials - mean * mean, 0.0) * n_trials / max(n_trials - 1, 1)
-            )
+            pos[i, 1, a] = np.sqrt(max(s2[a] / n_trials - mean * mean, 0.0) * bessel)
+        for j in range(3):
+            a, b = (0, 0, 1)[j], (1, 2, 2)[j]
+            sd = pos[i, 1, a] * pos[i, 1, b]
+            cov = (sx[j] / n_trials - pos[i, 0, a] * pos[i, 0, b]) * bessel
+            pos[i, 2, j] = min(max(cov / sd, -1.0), 1.0) if sd > 0.0 else 0.0
         q = coverage_count(nv, p) if nv > 1 else 1
         for c in range(3):
             sample_stats(comp[c], nv, q, stats[i, 0, c], scratch)

@@ -82,6 +82,7 @@ def _part_result(compact, nodes, parts) -> SweepResult:
     sub = FieldMap(points=fm.points[nodes], B=fm.B[nodes], source=fm.source)
     grad = compact.gradient[nodes]
     sigma = compact.sigma_mm if positioning is None else positioning[:, :, 1]
+    corr = None if positioning is None else positioning[:, :, 2]
     extra = {} if positioning is None else {"positioning": positioning}
     return SweepResult(
         fieldmap=sub,
@@ -93,7 +94,7 @@ def _part_result(compact, nodes, parts) -> SweepResult:
         n_walk_failed=n_lost,
         linear_in_up=star,
         gradient=grad,
-        gum_u=_gum_u(grad, sub.B, sigma),
+        gum_u=_gum_u(grad, sub.B, sigma, corr),
         seconds=0.0,
         **extra,
     )
@@ -155,7 +156,7 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         compact.n_walk_failed[a:b] = part.n_walk_failed
         compact.linear_in_up[a:b] = part.linear_in_up
         if htm:
-            pos = part.positioning  # (k, n_col, 2, 3), mm
+            pos = part.positioning  # (k, n_col, 3, 3): mean, std (mm), correlations
             e2[a:b] = (pos[:, :, 0] ** 2).sum(-1) + (pos[:, :, 1] ** 2).sum(-1)
         done[a:b] = True
         if progress is not None:

@@ -1047,7 +1047,7 @@ class _SlabJob:
         grad = node_gradients(mesh, lfm.B)[own]
         sub = FieldMap(points=pts[own], B=B[own], source=file)
         if htm:
-            sigma_mm = pos[:, :, 1]  # per-node std of the probe error, (k, 3, 3)
+            sigma_mm, corr = pos[:, :, 1], pos[:, :, 2]  # per-node std and correlations
             q_own = cfg.bench.axis_positions_for(pts[own])
             sums["unreachable"] += int(cfg.bench.outside_stroke(q_own).sum())
             e2_all = self.per_node("e2")
@@ -1055,10 +1055,10 @@ class _SlabJob:
             e2_all.flush()
             del e2_all
         else:
-            sigma_mm = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
+            sigma_mm, corr = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None], None
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
-                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm), seconds=0.0,
+                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm, corr), seconds=0.0,
                           positioning=pos if htm else None, n_left_out=n_left)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
@@ -1150,15 +1150,16 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
         g = store.gather(nodes, K, names)
         sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
         if htm:
-            sigma_mm = g["pos"][:, :, 1]
+            sigma_mm, corr = g["pos"][:, :, 1], g["pos"][:, :, 2]
         else:
+            corr = None
             sigma_mm = (np.asarray(ups)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
 
         piece_cells = np.searchsorted(nodes, cells)
         res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
                           n_outside=g["n_out"], n_walk_failed=g["n_lost"],
                           linear_in_up=g["star"], gradient=g["gradient"],
-                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm), seconds=0.0,
+                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm, corr), seconds=0.0,
                           positioning=g["pos"] if htm else None,
                           n_left_out=g["n_left"])  # fmt: skip
         for k, label in enumerate(labels):

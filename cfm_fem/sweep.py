@@ -118,13 +118,14 @@ class SweepResult:
     gradient : ndarray, shape (n, 3, 3), T/mm
         ``gradient[i, c, j] = dB_c/dx_j`` at node i (volume-weighted over incident cells).
     gum_u : ndarray, shape (n, n_up, 4), T
-        Linearised (GUM) standard uncertainty sqrt(sum_j (U_p,j dB_c/dx_j)^2); in mode htm
-        U_p,j is the node's standard deviation of the probe error along map axis j
-        (correlations between axes and the systematic part left out).
+        Linearised (GUM) standard uncertainty sqrt(g^T Sigma g), g the gradient of the
+        component: Sigma = diag(U_p,j^2) in mode gauss; in mode htm the covariance of the
+        node's probe error (its geometric part moves the probe along several axes at once).
     seconds : float
-    positioning : ndarray, shape (n, 3, 2, 3), mm, or None
-        Mode htm: mean and standard deviation of the probe position error per map axis, for
-        each column (total, geometric, vibration and delay).
+    positioning : ndarray, shape (n, 3, 3, 3), or None
+        Mode htm, per column (total, geometric, vibration and delay) and map axis: mean (mm),
+        standard deviation (mm) and correlation coefficients xy, xz, yz of the probe position
+        error (rows 0, 1, 2).
     n_left_out : ndarray, shape (n, n_up), int64, or None
         Trials whose position left the map and that are not in the statistics. None: all of
         ``n_outside`` with ``outside="exclude"``, none with ``"extrapolate"`` (the out-of-core
@@ -144,6 +145,15 @@ class SweepResult:
     seconds: float
     positioning: np.ndarray | None = None
     n_left_out: np.ndarray | None = None
+
+    @property
+    def gum_mean(self) -> np.ndarray:
+        """Linearised (GUM) systematic error g . E[E_p] per node, column and component,
+        shape (n, n_col, 4), T: zero in mode gauss, the gradient times the node's mean probe
+        error in mode htm."""
+        if self.positioning is None:
+            return np.zeros(self.gum_u.shape)
+        return _gum_mean(self.gradient, self.fieldmap.B, self.positioning[:, :, 0])
 
     def left_out(self, cols=slice(None)) -> np.ndarray:
         """`n_left_out` (or its default) for the columns ``cols``, shape (n, ...)."""
@@ -193,7 +203,8 @@ class SweepResult:
         )
 
     def gum_check(self, column: int | None = None):
-        """GUM-S1 section 8 comparison of the GUM interval 0 +- Z95*u_GUM with Monte Carlo.
+        """GUM-S1 section 8 comparison of the GUM interval y +- Z95*u_GUM with Monte Carlo
+        (y = `gum_mean`: 0 in mode gauss).
 
         The tolerance is delta (JCGM 101 7.9.2, two significant digits of u), widened to three
         times the Monte Carlo standard error of a 2.5 % quantile where that is larger (fixed
@@ -212,7 +223,8 @@ class SweepResult:
         u_mc = st[..., 1]
         lo, hi = st[..., 2], st[..., 3]
         U = Z95 * gum_u
-        d_max = np.maximum(np.abs(-U - lo), np.abs(U - hi))
+        y = self.gum_mean[:, cols]
+        d_max = np.maximum(np.abs(y - U - lo), np.abs(y + U - hi))
         n = self.config.trials - self.left_out(cols) - self.n_walk_failed[:, cols]
         # standard error of the 2.5 % quantile of a normal: sqrt(p(1-p)/N) / phi(z)
         se = np.sqrt(0.025 * 0.975 / np.maximum(n, 1))[..., None] / 0.05844 * u_mc
@@ -283,21 +295,36 @@ def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 
     return grad
 
 
-def _gum_u(gradient, B, sigma_mm):
-    """Linearised standard uncertainty per node, column and component; shape (n, n_col, 4).
-
-    ``sigma_mm`` (1 or n, n_col, 3): standard deviation of the probe position per map axis.
-    """
+def _gradients4(gradient, B):
+    """Gradients of Bx, By, Bz and |B| per node, shape (n, 4, 3), T/mm (|B|'s NaN where
+    |B| = 0: not differentiable there)."""
     absb = np.sqrt((B**2).sum(axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
         grad_abs = np.einsum("nc,ncj->nj", B, gradient) / absb[:, None]
-    grad_abs[absb < 1e-12 * max(absb.max(), 1e-300)] = np.nan  # |B| not differentiable at 0
-    g4 = np.concatenate([gradient, grad_abs[:, None, :]], axis=1)  # (n, 4, 3)
-    return np.sqrt(
-        np.einsum(
-            "ncj,nkj->nkc", g4**2, np.broadcast_to(sigma_mm**2, (len(B), *sigma_mm.shape[1:]))
-        )
-    )
+    grad_abs[absb < 1e-12 * max(absb.max(), 1e-300)] = np.nan
+    return np.concatenate([gradient, grad_abs[:, None, :]], axis=1)
+
+
+def _gum_u(gradient, B, sigma_mm, corr=None):
+    """Linearised standard uncertainty per node, column and component; shape (n, n_col, 4).
+
+    ``sigma_mm`` (1 or n, n_col, 3): standard deviation of the probe position per map axis;
+    ``corr`` (n, n_col, 3), optional: its correlation coefficients xy, xz, yz (mode htm).
+    """
+    g4 = _gradients4(gradient, B)
+    sig = np.broadcast_to(sigma_mm, (len(B), *sigma_mm.shape[1:]))
+    var = np.einsum("ncj,nkj->nkc", g4**2, sig**2)
+    if corr is not None:  # + 2 sum_{a<b} g_a g_b rho_ab sigma_a sigma_b
+        for j, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
+            w = corr[:, :, j] * sig[:, :, a] * sig[:, :, b]  # (n, n_col)
+            var = var + 2.0 * (g4[:, None, :, a] * g4[:, None, :, b]) * w[:, :, None]
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def _gum_mean(gradient, B, mean_mm):
+    """Linearised systematic error g . mean per node, column and component, shape
+    (n, n_col, 4), T; ``mean_mm`` (n, n_col, 3): mean probe position error per map axis."""
+    return np.einsum("ncj,nkj->nkc", _gradients4(gradient, B), mean_mm)
 
 
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
@@ -359,8 +386,9 @@ class SweepProblem:
             n_col = number of U_p values (gauss) or 3 (htm: total, geometric, vibration+delay).
         n_outside, n_walk_failed : ndarray, shape (k, n_col), int64
         linear_in_up : ndarray, shape (k,), bool
-        positioning : ndarray, shape (k, n_col, 2, 3), mm (htm) or shape (k, 0, 2, 3) (gauss)
-            Mean and standard deviation of the probe position error per map axis.
+        positioning : ndarray, shape (k, n_col, 3, 3) (htm) or (k, 0, 3, 3) (gauss)
+            Mean (mm), standard deviation (mm) and correlations xy, xz, yz of the probe
+            position error per map axis (`SweepResult.positioning`).
         """
         return self.run_nodes(np.arange(start, stop, dtype=np.int64))
 
@@ -396,7 +424,7 @@ class SweepProblem:
         s, o, lost, star = map_blocks(block, len(nodes), 32)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
-        return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 2, 3))
+        return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 3, 3))
 
     def _run_htm(self, nodes, keys):
         h = self.htm
@@ -415,7 +443,7 @@ class SweepProblem:
 
             parts.append(map_blocks(block, len(nodes), 16))
         stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
-        pos = pos.reshape(len(nodes), len(HTM_PARTS), 2, 3)
+        pos = pos.reshape(len(nodes), len(HTM_PARTS), 3, 3)
         return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos
 
 
@@ -559,7 +587,7 @@ def run_sweep(
     n_out = np.zeros((n, n_col), dtype=np.int64)
     n_lost = np.zeros((n, n_col), dtype=np.int64)
     star = np.zeros(n, dtype=bool)
-    positioning = np.full((n, n_col, 2, 3), np.nan) if cfg.mode == "htm" else None
+    positioning = np.full((n, n_col, 3, 3), np.nan) if cfg.mode == "htm" else None
     done = np.zeros(n, dtype=bool)
     mapper = serial_map if map_chunks is None else map_chunks
     for (a, b), (s, o, lost, st, pos) in mapper(problem, chunk_ranges(n, cfg.chunk_nodes)):
@@ -576,7 +604,7 @@ def run_sweep(
         sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]  # (n_up, 3)
         gum_u = _gum_u(gradient, fm.B, sigma_mm[None])
     else:
-        gum_u = _gum_u(gradient, fm.B, positioning[:, :, 1])  # per-node std, (n, 3, 3)
+        gum_u = _gum_u(gradient, fm.B, positioning[:, :, 1], positioning[:, :, 2])
     return SweepResult(
         fieldmap=fm,
         mesh=mesh,
@@ -658,8 +686,10 @@ def summarize(res: SweepResult) -> dict:
             "1e-4 B_ref",
             "uf_relative_mc_std": "normal-theory relative standard error of one node's U_f from "
             "the finite trial count: sqrt(p(1-p)/N) / (phi(z) z), p = 0.025",
-            "gum_disagree": "GUM-S1 section 8: |+-1.96 u_GUM - MC interval end| > max(delta, 3 "
-            "MC standard errors), u_GUM = sqrt(sum_j (U_p,j dB/dx_j)^2)",
+            "gum_disagree": "GUM-S1 section 8: |y_GUM +- 1.96 u_GUM - MC interval end| > "
+            "max(delta, 3 MC standard errors), u_GUM = sqrt(g^T Sigma g) with g the gradient and "
+            "Sigma the covariance of the probe position error (diag(U_p,j^2) in mode gauss); "
+            "y_GUM = g . mean probe error (0 in mode gauss)",
         },
         "mode": cfg.mode,
         "axis_scale": list(cfg.axis_scale),

@@ -143,6 +143,11 @@ def test_htm_kernel_matches_a_numpy_twin(variant):
         np.testing.assert_array_equal(res.n_outside[:, j], (~inside).sum(0))
         np.testing.assert_allclose(res.positioning[:, j, 0], dm.mean(0), atol=1e-12)
         np.testing.assert_allclose(res.positioning[:, j, 1], dm.std(0, ddof=1), atol=1e-12)
+        if name != "htm_vibration_delay" or variant == "reference":
+            pairs = ((0, 1), (0, 2), (1, 2))
+            corr = [[np.corrcoef(dm[:, g, a], dm[:, g, b])[0, 1] for a, b in pairs]
+                    for g in range(len(q))]  # fmt: skip
+            np.testing.assert_allclose(res.positioning[:, j, 2], corr, atol=1e-9)
         db = dm @ G.T  # the map is linear: B(x + d) - B(x) = G d exactly
         dabs = np.linalg.norm(b0 + db, axis=-1) - np.linalg.norm(b0, axis=-1)
         assert inside[:, interior].all()
@@ -152,6 +157,32 @@ def test_htm_kernel_matches_a_numpy_twin(variant):
                 np.testing.assert_allclose(
                     res.stats[g, j, c], twins.sample_stats(x), rtol=1e-9, atol=1e-12
                 )
+
+
+def test_gum_check_of_htm_on_a_linear_map_uses_the_mean_and_the_covariance():
+    """On a linear map the linearised result is exact: y = G . E[E_p], u^2 = g^T Cov g. The
+    geometric errors give the probe error a mean and correlated axes, so the GUM-S1 section 8
+    check fails only if either is left out (it did: 100 % of the nodes flagged)."""
+    fm = grid_map(5)
+    n = 4000
+    bench = read_reference_bench()
+    res = run_sweep(fm, SweepConfig(trials=n, seed=9, mode="htm", bench=bench))
+    inner = np.all(np.abs(fm.points) < 1.5, axis=1)
+    pos = res.positioning[inner]
+    assert np.abs(pos[:, 0, 0]).max() > 3 * pos[:, 0, 1].max() / np.sqrt(n)  # a real mean
+    assert np.abs(pos[:, 0, 2]).max() > 4 / np.sqrt(n)  # and correlated axes (beyond noise)
+    # the GUM systematic and u against the Monte Carlo mean and std of each component
+    y, u = res.gum_mean[inner], res.gum_u[inner]
+    st = res.stats[inner]
+    for c in range(3):
+        se = st[:, :, c, 1] / np.sqrt(n)
+        assert np.all(np.abs(y[:, :, c] - st[:, :, c, 0]) < 4.5 * se + 1e-15)
+        np.testing.assert_allclose(u[:, :, c], st[:, :, c, 1], rtol=4.5 / np.sqrt(2 * n))
+    disagree = res.gum_check()[2][inner][:, :, :3]
+    assert disagree.mean() < 0.05, disagree.mean(axis=(0, 1))
+    # the check still fails where it should: a GUM interval centred on 0 is far off
+    with_zero = res.stats[inner][:, 0, :3]
+    assert (np.abs(with_zero[..., 0]) > 3 * with_zero[..., 1] / np.sqrt(n)).mean() > 0.5
 
 
 def test_htm_same_seed_same_numbers_whatever_threads_and_chunks():

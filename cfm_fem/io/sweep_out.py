@@ -56,6 +56,8 @@ def _point_data(res: SweepResult, k: int) -> dict:
     if res.positioning is not None:
         data["positioning_mean_um"] = (res.positioning[:, k, 0] * 1e3).astype(f32)
         data["positioning_std_um"] = (res.positioning[:, k, 1] * 1e3).astype(f32)
+        data["positioning_corr_xy_xz_yz"] = res.positioning[:, k, 2].astype(f32)
+        gum_mean = res.gum_mean[:, k]
     for c, name in enumerate(COMPONENTS):
         per = {
             "systematic_units": units(st[:, c, 0]),
@@ -69,6 +71,8 @@ def _point_data(res: SweepResult, k: int) -> dict:
             "Uk2_T": 2.0 * st[:, c, 1],
             "gum_U95_units": units(1.959963984540054 * res.gum_u[:, k, c]),
         }
+        if res.positioning is not None:  # GUM interval: systematic +- gum_U95
+            per["gum_systematic_units"] = units(gum_mean[:, c])
         for key, values in per.items():
             data[f"{name}_{key}"] = values.astype(f32)
         data[f"{name}_gum_disagree"] = disagree[:, c].astype(np.uint8)
