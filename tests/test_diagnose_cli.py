@@ -56,3 +56,66 @@ def test_cli_bad_column(tmp_path):
     f.write_text("point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas\n0,0,1,2,3,4,5\n")
     assert main(["diagnose", "--tracker", str(f), "--out", str(tmp_path / "o")]) == 2
     assert not (tmp_path / "o" / "diagnosis.json").exists()
+
+
+HALL_HEAD = "point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz\n"
+
+
+def _hall(tmp_path, rows):
+    f = tmp_path / "hall.csv"
+    f.write_text(HALL_HEAD + "".join(rows))
+    return f
+
+
+def _err(argv, out, capsys):
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and not out.exists(), err
+    return err
+
+
+def test_broken_harmonics_reference_reports_its_own_error(tmp_path, capsys):
+    from importlib import resources
+
+    text = (resources.files("cfm_fem") / "data" / "qfdp4_harmonics.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    i = next(k for k, s in enumerate(lines) if s.startswith("3,"))
+    lines[i] = "3,abc,0\n"
+    ref = tmp_path / "h.csv"
+    ref.write_text("".join(lines))
+    rec = _hall(tmp_path, ["1,0,0,0,0,0,0,0\n", "1,1,0,0,0,0,0,0\n"])
+    out = tmp_path / "o"
+    err = _err(["diagnose", "--hall-map", rec, "--reference", ref, "--out", out], out, capsys)
+    assert f"{ref}:{i + 1}: column 'Bn' must be a number; found 'abc'" in err, err
+
+
+def test_hall_map_outside_reference_names_line_and_point(tmp_path, capsys):
+    grid = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    ref = tmp_path / "ref.csv"
+    ref.write_text(
+        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+        + "".join(f"{x},{y},{z},0,0,1\n" for x, y, z in grid)
+    )
+    rows = [f"{p},{r},{x},1,1,0,0,1\n" for p, x in enumerate([1, 2, 9]) for r in range(3)]
+    rec = _hall(tmp_path, rows)
+    out = tmp_path / "o"
+    err = _err(["diagnose", "--hall-map", rec, "--reference", ref, "--out", out], out, capsys)
+    assert f"{rec}:8: commanded point [9.0, 1.0, 1.0] mm is outside" in err, err
+    assert "(1 of 3 points outside, 3 of 9 rows)" in err, err
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_too_few_tracker_rows_are_refused(tmp_path, capsys, n):
+    f = tmp_path / "rec.csv"
+    rows = "".join(f"{i},1,0,0,{i},0,-60,{500 + i}\n" for i in range(n))
+    f.write_text("point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas\n" + rows)
+    out = tmp_path / "o"
+    err = _err(["diagnose", "--tracker", f, "--out", out], out, capsys)
+    assert f"error: {f}: no point has two or more repetitions" in err, err
+    assert "warning" not in err
+
+
+def test_b_ref_with_tracker_is_refused(tmp_path, capsys):
+    out = tmp_path / "o"
+    err = _err(["diagnose", "--tracker", "x.csv", "--b-ref", "1", "--out", out], out, capsys)
+    assert "--b-ref is for --hall-map only" in err, err

@@ -29,6 +29,26 @@ def add_args(p):
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
 
 
+#: Without repeated points the noise comes from the residual scatter of single readings; fewer
+#: points than this leave too few degrees of freedom for it (and for the held-out folds).
+MIN_POINTS_SINGLE = 10
+
+
+def _check_enough(rec):
+    """Refuse a recording too small to diagnose, in the words compare uses."""
+    import numpy as np
+
+    _, index = rec.point_index()
+    count = np.bincount(index)
+    if count.max() < 2 and count.size < MIN_POINTS_SINGLE:
+        raise CfmInputError(
+            f"no point has two or more repetitions and only {count.size} point(s) were read; "
+            f"the noise estimate needs repetitions (or at least {MIN_POINTS_SINGLE} points "
+            "read once)",
+            file=rec.source,
+        )
+
+
 def _reference(spec, rec):
     """(field function, b_ref, smooth, description)."""
     from pathlib import Path
@@ -51,14 +71,15 @@ def _reference(spec, rec):
     path = Path(spec)
     if not path.exists():
         raise CfmInputError(f"--reference: no such file '{spec}'")
-    if path.suffix.lower() == ".csv":
+    from ..io.reference_field import is_harmonics_file
+
+    # choose the reader by the header, so a broken harmonics file reports its own error
+    # (as compare and coupled do) instead of a field-map "missing column" one
+    if is_harmonics_file(path):
         from ..io.harmonics import read_harmonics
 
-        try:
-            mp = read_harmonics(path)
-            return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
-        except CfmInputError:
-            pass
+        mp = read_harmonics(path)
+        return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
     from ..interpolation import LinearInterpolator
     from ..io import read_field
 
@@ -71,9 +92,16 @@ def _reference(spec, rec):
 
     b, inside = interp.field_at(rec.cmd)
     if not inside.all():
+        # name the first row and point, like compare; count rows and distinct points apart
+        out = ~inside
+        i = int(np.argmax(out))
+        n_out = len(np.unique(np.round(rec.cmd[out], 9), axis=0))
+        n_all = len(np.unique(np.round(rec.cmd, 9), axis=0))
         raise CfmInputError(
-            f"{rec.source}: {int((~inside).sum())} map points lie outside the reference "
-            f"field '{spec}'"
+            f"commanded point {rec.cmd[i].tolist()} mm is outside the reference field map "
+            f"'{spec}' ({n_out} of {n_all} points outside, {int(out.sum())} of {len(rec)} rows)",
+            file=rec.source,
+            line=int(rec.lines[i]) or None,
         )
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), False, f"FEM map {path.name}"
 
@@ -90,13 +118,17 @@ def run(args) -> int:
     if args.tracker:
         if args.reference:
             raise CfmInputError("--reference is for --hall-map only")
+        if args.b_ref is not None:  # tracker residuals are in um: B_ref has no use there
+            raise CfmInputError("--b-ref is for --hall-map only")
         rec = read_tracker(args.tracker)
+        _check_enough(rec)
         prob = tracker_problem(rec, bench)
         src = args.tracker
     else:
         if not args.reference:
             raise CfmInputError("--hall-map needs --reference FIELD")
         rec = read_hall_map(args.hall_map)
+        _check_enough(rec)
         fn, b_ref, smooth, desc = _reference(args.reference, rec)
         if args.b_ref is not None:
             if not args.b_ref > 0:

@@ -67,7 +67,10 @@ def _groups(prob: Problem):
         edges = np.quantile(prob.t_h, np.linspace(0, 1, 6))
         b = np.clip(np.searchsorted(edges, prob.t_h, side="right") - 1, 0, 4)
         for k in range(5):
-            out.append((f"time block {k + 1}/5 (t {edges[k]:.2f}-{edges[k + 1]:.2f} h)", b == k))
+            if np.any(b == k):  # tied times leave a block empty (0/0 in its mean)
+                out.append(
+                    (f"time block {k + 1}/5 (t {edges[k]:.2f}-{edges[k + 1]:.2f} h)", b == k)
+                )
     if prob.dir is not None:
         for a in range(3):
             for s in (-1, 1):
