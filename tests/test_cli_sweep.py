@@ -150,6 +150,20 @@ def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
     assert "error" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["tolerance", "--target", "5,5"], "--target: must be one or three positive numbers"),
+        (["sweep", "map.csv", "--axis-scale", "1,2", "--out", "o"], "--axis-scale: must be one"),
+    ],
+)
+def test_option_type_errors_keep_their_message(capsys, argv, message):
+    # argparse replaces a ValueError from type= by "invalid _target value"
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "invalid" not in err, err
+
+
 def test_top_level_help_lists_every_command(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--help"])

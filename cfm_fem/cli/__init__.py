@@ -36,6 +36,24 @@ class _Parser(argparse.ArgumentParser):
         raise CfmInputError(f"{self.prog}: {message}")
 
 
+def option_type(func, option: str):
+    """``func`` as an argparse ``type=``, keeping the message of its `CfmInputError`.
+
+    argparse turns a ValueError (CfmInputError is one) from ``type=`` into its own "invalid
+    <func> value"; only ArgumentTypeError keeps the text. argparse prefixes "argument
+    <option>: ", so a leading "<option> " of the message is dropped."""
+
+    def convert(text):
+        try:
+            return func(text)
+        except CfmInputError as exc:
+            msg = str(exc)
+            raise argparse.ArgumentTypeError(msg.removeprefix(option + " ")) from None
+
+    convert.__name__ = func.__name__
+    return convert
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="cfm-fem",

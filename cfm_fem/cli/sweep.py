@@ -12,7 +12,7 @@ import textwrap
 from pathlib import Path
 
 from ..errors import CfmInputError
-from . import interrupted
+from . import interrupted, option_type
 from ._progress import progress_bar
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -73,7 +73,7 @@ def add_args(p):
     )
     p.add_argument(
         "--axis-scale",
-        type=_triplet,
+        type=option_type(_triplet, "--axis-scale"),
         default=(1.0, 1.0, 1.0),
         metavar="SX,SY,SZ",
         help="per-axis multiplier of U_p (default 1,1,1: isotropic)",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CfmInputError
+from . import option_type
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
@@ -35,7 +36,7 @@ def add_args(p):
     p.add_argument(
         "--target",
         required=True,
-        type=_target,
+        type=option_type(_target, "--target"),
         metavar="UX[,UY,UZ]",
         help="target U_p per axis in um (one value for all axes, or X,Y,Z)",
     )
