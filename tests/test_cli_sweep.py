@@ -155,9 +155,11 @@ def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
     [
         (["tolerance", "--target", "5,5"], "--target: must be one or three positive numbers"),
         (["sweep", "map.csv", "--axis-scale", "1,2", "--out", "o"], "--axis-scale: must be one"),
+        # C9: a bench in mode gauss was ignored without a word
+        (["sweep", "map.csv", "--bench", "b.toml", "--out", "o"], "--bench is used by --mode htm"),
     ],
 )
-def test_option_type_errors_keep_their_message(capsys, argv, message):
+def test_option_errors_give_their_own_message(capsys, argv, message):
     # argparse replaces a ValueError from type= by "invalid _target value"
     assert main(argv) == 2
     err = capsys.readouterr().err

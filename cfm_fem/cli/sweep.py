@@ -307,6 +307,11 @@ def parse_up_range(text: str) -> list[float]:
 
 
 def run(args) -> int:
+    if args.bench is not None and args.mode != "htm":  # gauss draws N(0, U_p): no bench in it
+        raise CfmInputError(
+            "--bench is used by --mode htm only (mode gauss has no bench model); "
+            "add --mode htm or leave out --bench"
+        )
     up = parse_up_range(args.up)
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
