@@ -227,6 +227,19 @@ def test_unknown_unit_option(tmp_path):
         read_field(path, length_unit="parsec")
 
 
+def test_comsol_length_unit_contradicting_the_columns_warns(tmp_path):
+    from cfm_fem.errors import CfmInputWarning
+
+    path = tmp_path / "c.txt"
+    rows = "".join(f"{i} {j} {k} 0 0 1\n" for i in (0, 1) for j in (0, 1) for k in (0, 1))
+    path.write_text(
+        "% Length unit: m\n% X (mm) Y (mm) Z (mm) mf.Bx (T) mf.By (T) mf.Bz (T)\n" + rows
+    )
+    with pytest.warns(CfmInputWarning, match=r"column names say 'mm' but the file states 'm'"):
+        fm = read_field(path)
+    assert fm.points.max() == 1.0  # the column unit is used
+
+
 def test_error_deep_in_a_large_file_names_its_line(tmp_path):
     rows = [f"{i} 0 0 0.1 0.2 0.3" for i in range(20000)]
     rows[17321] = "17321 0 0 0.1 0.2 O.3"  # letter O for zero

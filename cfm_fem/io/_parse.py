@@ -394,6 +394,14 @@ def resolve_unit(
         unstated = [c.name for c in columns if c.unit is None]
         extra = f" (applied also to {', '.join(repr(n) for n in unstated)})" if unstated else ""
         notes.append(f"{kind} unit '{unit}' from the column names{extra}")
+        if fallback is not None and _scale_or_none(kind, fallback[0]) != scales[stated[0].name]:
+            # the file contradicts itself (a factor of 1000 for m vs mm): say which one is used
+            msg = (
+                f"{file}: the column names say '{unit}' but the file states '{fallback[0]}' "
+                f"({fallback[1]}); using '{unit}' (pass {kind}_unit to choose)"
+            )
+            warnings.warn(msg, CfmInputWarning, stacklevel=4)
+            notes.append(msg)
         return scales[stated[0].name], notes
     if fallback is not None:
         unit, where, fb_line = fallback
