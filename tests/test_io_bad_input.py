@@ -19,6 +19,7 @@ CASES = {
     "empty file": ("m.csv", "", None, None, "the file is empty; expected a field map"),
     "blank file": ("m.txt", "\n  \n\t\n", None, None, "the file is empty"),
     "only comments": ("m.csv", "# nothing\n# here\n", None, None, "only comment lines"),
+    "NUL bytes": ("m.csv", CSV_HEADER + GOOD_ROW + "1,2,4\x00\x00\n", 3, None, "NUL bytes in"),
     "header only": (
         "m.csv",
         CSV_HEADER,
@@ -225,6 +226,24 @@ def test_unknown_unit_option(tmp_path):
     path.write_text("x,y,z,Bx [T],By [T],Bz [T]\n" + GOOD_ROW, encoding="utf-8")
     with pytest.raises(CfmInputError, match=r"unknown length unit 'parsec'"):
         read_field(path, length_unit="parsec")
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-le", "utf-32"])
+@pytest.mark.parametrize("name", ["m.csv", "m.table", "h.csv", "stream.csv"])
+def test_utf16_file_is_refused_in_words(tmp_path, encoding, name):
+    # read as UTF-8 the message quoted column names full of NUL bytes
+    from cfm_fem.io.harmonics import read_harmonics
+    from cfm_fem.io.streaming import open_stream
+
+    text = {"m.table": OPERA_HEAD + "0.001 0.002 0.003 0.1 0.2 0.3\n", "h.csv": "n,Bn,An\n2,1,0\n"}
+    path = tmp_path / name
+    path.write_text(text.get(name, CSV_HEADER + GOOD_ROW), encoding=encoding)
+    reader = {"h.csv": read_harmonics, "stream.csv": lambda p: open_stream(p, "table")}
+    with pytest.raises(CfmInputError) as info:
+        reader.get(name, read_field)(path)
+    kind = "UTF-32" if encoding == "utf-32" else "UTF-16"
+    assert str(info.value).startswith(f"{path}: the file is {kind}"), str(info.value)
+    assert "save it as UTF-8" in str(info.value) and "\x00" not in str(info.value)
 
 
 def test_comsol_length_unit_contradicting_the_columns_warns(tmp_path):

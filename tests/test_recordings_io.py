@@ -137,12 +137,14 @@ BAD = {
         "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas,speed\n1,1,0,0,0,0,0,0,-3\n",
         2,
         "speed",
-        ">= 0",
+        "must be a speed >= 0 mm/s; found -3\n",
     ),
     "truncated row": (TRACKER_HEAD + "1,1,0,0,0,0,0\n", 2, "z_meas", "is missing (truncated"),
     "too many fields": (TRACKER_HEAD + "1,1,0,0,0,0,0,0,9\n", 2, None, "header names only 8"),
     "header only": (TRACKER_HEAD, 1, None, "no data rows"),
     "only comments": ("# a\n# b\n", None, None, "no header row"),
+    "empty file": ("", None, None, "the file is empty; expected a recording"),
+    "NUL bytes": (TRACKER_HEAD + "1,1,0,0,0,0,0,0\x00\x00\n", 2, None, "NUL bytes in the text"),
 }
 
 
@@ -154,12 +156,22 @@ def test_bad_input_names_file_line_column(tmp_path, case):
     with pytest.raises(CfmInputError) as info:
         read_tracker(p)
     err = info.value
-    assert what in str(err)
+    assert what in str(err) + "\n", str(err)
     assert str(p) in str(err)
     assert err.line == line
     assert err.column == column
     if line is not None:
         assert f"{p}:{line}:" in str(err)
+
+
+@pytest.mark.parametrize("encoding, kind", [("utf-16", "UTF-16"), ("utf-32", "UTF-32")])
+def test_utf16_recording_is_refused_in_words(tmp_path, encoding, kind):
+    # read as UTF-8 the message quoted column names full of NUL bytes
+    p = tmp_path / "rec.csv"
+    p.write_text(TRACKER_HEAD + "1,1,0,0,0,0,0,0\n", encoding=encoding)
+    with pytest.raises(CfmInputError) as info:
+        read_tracker(p)
+    assert str(info.value) == f"{p}: the file is {kind} text; save it as UTF-8 and read it again"
 
 
 def test_hall_map_requires_field_columns(tmp_path):

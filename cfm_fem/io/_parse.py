@@ -26,18 +26,50 @@ ZERO_ROWS_CHOICES = ("warn", "drop", "keep")
 # --------------------------------------------------------------------------- text
 
 
-def read_lines(path, max_bytes: int | None = None) -> list[str]:
+def check_utf16(raw: bytes, path) -> None:
+    """Refuse UTF-16/UTF-32 text (Windows "Unicode text", PowerShell's default).
+
+    Read as UTF-8 or Latin-1 it gives column names full of NUL bytes and mojibake; the readers
+    (also the streaming one, which cuts blocks at line-end bytes) work on UTF-8 bytes, so ask
+    for UTF-8 rather than decode it here. ``raw``: the start of the file."""
+    if raw.startswith((b"\xff\xfe\x00\x00", b"\x00\x00\xfe\xff")):
+        kind = "UTF-32"
+    elif raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        kind = "UTF-16"
+    else:
+        head = raw[:64]  # UTF-16 without a BOM: every other byte of ASCII text is 0
+        if len(head) < 8 or max(head[0::2].count(0), head[1::2].count(0)) < len(head) // 4:
+            return
+        kind = "UTF-16 (no BOM)"
+    raise CfmInputError(f"the file is {kind} text; save it as UTF-8 and read it again", file=path)
+
+
+def check_nul(lines, path, first_line: int = 1) -> None:
+    """Refuse NUL bytes in text (a binary file, or one cut short by a crash): messages would
+    quote them raw onto the terminal. ``lines[i]`` is line ``first_line + i``."""
+    for i, s in enumerate(lines):
+        if "\x00" in s:
+            raise CfmInputError(
+                "NUL bytes in the text; expected a text file (binary, or damaged by a crash?)",
+                file=path,
+                line=first_line + i,
+            )
+
+
+def read_lines(path, max_bytes: int | None = None, what: str = "a field map") -> list[str]:
     """Lines of a text file without line ends; ``lines[i]`` is line ``i + 1``.
 
     UTF-8 (with or without BOM), falling back to Latin-1; CR, LF and CRLF ends all accepted.
     Only these three count as line ends, so line numbers match what an editor shows.
-    ``max_bytes`` reads only the start of the file (to guess its format).
+    ``max_bytes`` reads only the start of the file (to guess its format). ``what`` the file
+    should hold, for the message on an empty file. UTF-16/32 text and NUL bytes are refused.
     """
     try:
         with open(path, "rb") as stream:
             raw = stream.read(-1 if max_bytes is None else max_bytes)
     except OSError as exc:
         raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
+    check_utf16(raw, path)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -45,8 +77,11 @@ def read_lines(path, max_bytes: int | None = None) -> list[str]:
         cut = max_bytes is not None and exc.start >= len(raw) - 3
         text = raw[: exc.start].decode("utf-8-sig") if cut else raw.decode("latin-1")
     if not text.strip():
-        raise CfmInputError("the file is empty; expected a field map", file=path)
-    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+        raise CfmInputError(f"the file is empty; expected {what}", file=path)
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    if "\x00" in text:
+        check_nul(lines, path)
+    return lines
 
 
 def data_rows(lines, start: int, comment_chars: str = "#%"):

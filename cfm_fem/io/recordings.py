@@ -100,7 +100,7 @@ def read_hall_map(path) -> Recording:
 
 def read_recording(path) -> Recording:
     """Read either kind, chosen from the header (``x_meas`` -> tracker, ``Bx`` -> Hall map)."""
-    lines = read_lines(path)
+    lines = read_lines(path, what="a recording")
     hline, names = _header(lines, path, "a recording")
     low = {n.lower() for n in names}
     if "bx" in low and "x_meas" not in low:
@@ -129,7 +129,7 @@ def _header(lines, path, what):
 
 def _read(path, kind, lines=None) -> Recording:
     source = str(path)
-    lines = read_lines(path) if lines is None else lines
+    lines = read_lines(path, what="a recording") if lines is None else lines
     hidx, names = _header(lines, path, _WHAT[kind])
     hline = hidx + 1
     index = _column_index(names, kind, path, hline)
@@ -182,8 +182,9 @@ def _read(path, kind, lines=None) -> Recording:
     speed = opt("speed")
     if speed is not None and np.any(speed < 0):
         i = int(np.argmax(speed < 0))
+        found = table[index["speed"]][i].strip()  # as written: not "np.float64(-1.0)"
         raise CfmInputError(
-            f"column '{names[index['speed']]}' must be a speed >= 0 mm/s; found {speed[i]!r}",
+            f"column '{names[index['speed']]}' must be a speed >= 0 mm/s; found {found}",
             file=path,
             line=int(row_lines[i]),
             column=names[index["speed"]],

@@ -39,6 +39,8 @@ def iter_lines(path, start_line: int = 1):
     numbers are those of `cfm_fem.io._parse.read_lines`. Blocks are cut after a line end, so
     neither a multi-byte character nor a CRLF pair is ever split.
     """
+    from ._parse import check_nul, check_utf16
+
     try:
         stream = open(path, "rb")  # noqa: SIM115 - closed below, also on early exit
     except OSError as exc:
@@ -59,12 +61,16 @@ def iter_lines(path, start_line: int = 1):
                 block, carry = data[:cut], data[cut:]
             else:
                 block, carry = data, b""
+            if first:
+                check_utf16(block, path)
             try:
                 text = block.decode("utf-8-sig" if first else "utf-8")
             except UnicodeDecodeError:
                 text = block.decode("latin-1")
             first = False
             parts = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+            if "\x00" in text:
+                check_nul(parts, path, line)
             if raw:
                 parts.pop()  # the block ends with a line end: the last part is empty
             for s in parts:
