@@ -118,6 +118,19 @@ def test_not_toml_and_not_a_file(tmp_path):
         read_bench(tmp_path / "nope.toml")
 
 
+def test_bench_with_a_utf8_bom_is_read(tmp_path, ref_text, ref):
+    path = tmp_path / "bom.toml"
+    path.write_text(ref_text, encoding="utf-8-sig")  # what Windows Notepad writes
+    assert read_bench(path).strokes_mm.tolist() == ref.strokes_mm.tolist()
+
+
+def test_truncated_bench_names_its_last_line(tmp_path, ref_text):
+    lines = ref_text.splitlines()
+    i = next(k for k, s in enumerate(lines) if s.startswith("pdf ") and k > 20)
+    err = _bad(tmp_path, "\n".join(lines[:i] + ["pdf "]), "not valid TOML", "end of document")
+    assert err.line == i + 1
+
+
 def test_speed_tau_delay_and_profiles_read(tmp_path, ref_text):
     text = ref_text.replace(
         'model = "normal"\nstd_um = 1.0',

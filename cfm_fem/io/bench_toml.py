@@ -231,7 +231,7 @@ def read_bench(path) -> Bench:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # Windows Notepad writes a BOM
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the bench file: {exc.strerror or exc}", file=path
@@ -255,9 +255,10 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         m = re.search(r"line (\d+)", str(exc))
-        raise CfmInputError(
-            f"not valid TOML: {exc}", file=source, line=int(m.group(1)) if m else None
-        ) from None
+        line = int(m.group(1)) if m else None
+        if line is None and "end of document" in str(exc):  # a file cut short: its last line
+            line = max(len(text.rstrip().splitlines()), 1)
+        raise CfmInputError(f"not valid TOML: {exc}", file=source, line=line) from None
     top = {
         "format",
         "version",
