@@ -80,6 +80,27 @@ def test_reader_case_through_cli(tmp_path, capsys, case):
 
 
 @pytest.mark.parametrize(
+    "last, what",
+    [
+        ("5,5,5,nan,0,1", "must be a finite number; found nan"),
+        ("5,5,5", "is missing (truncated line?)"),
+        ("5,5,5,abc,0,1", "must be a number; found 'abc'"),
+        ("0,1,0,0.9,0.9,0.9", "duplicate node at [0.0, 1.0, 0.0] mm"),
+    ],
+)
+def test_slabs_bad_input_leaves_no_folder(tmp_path, capsys, last, what):
+    # the streaming path made --out before it found the bad row
+    lines = _map_text(GRID).splitlines()
+    lines[-1] = last
+    path = tmp_path / "m.csv"
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    argv = ["sweep", path, "--up", "0:10:10", "--trials", 20, "--slabs", 2, "--out", out]
+    err = _run(argv, out, capsys)
+    assert what in err, err
+
+
+@pytest.mark.parametrize(
     "name, text, message", _parametrized(test_cli_sweep.test_bad_input_exit_2_and_nothing_written)
 )
 def test_sweep_case_through_cli(tmp_path, capsys, name, text, message):

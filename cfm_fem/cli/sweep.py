@@ -188,6 +188,15 @@ def _read_options(args) -> dict:
             "zero_rows": args.zero_rows}  # fmt: skip
 
 
+def _remove_if_made_and_empty(out, made: bool) -> None:
+    """Remove ``out`` when this run created it and nothing is in it (never a user's files)."""
+    if made:
+        try:
+            Path(out).rmdir()
+        except OSError:
+            pass  # not empty (work kept for --resume) or never created
+
+
 def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
     from ..distributed import dask_chunk_map, dask_client
@@ -229,6 +238,7 @@ def _run_slabs(args, up):
     description = describe_sweep(cfg, file_sha256(args.field), _read_options(args),
                                  file_sha256(args.bench) if args.bench else None)  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
+    made = not Path(args.out).exists()  # bad input must not leave a folder this run made
     try:
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
@@ -250,8 +260,12 @@ def _run_slabs(args, up):
             print(f"cfm-fem sweep: {done} finished slab(s) kept in {store}; run the same "
                   "command with --resume to continue", file=sys.stderr)  # fmt: skip
         raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
+    except CfmInputError:
+        _remove_if_made_and_empty(args.out, made)
+        raise
     if summary is None:
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
+        _remove_if_made_and_empty(args.out, made)  # the in-memory run makes it when it writes
         return None
     _print_summary(summary, args.out)
     return 0
