@@ -152,8 +152,10 @@ def _merge_duplicates(points, B, cells, lines, source, notes):
         j = int(first_of[i])
         li = None if lines is None else int(lines[i])
         lj = None if lines is None else int(lines[j])
+        # a mesh file has no lines: name the nodes (0-based, as the NaN-in-point-data message)
+        also = f"also on line {lj}" if lj is not None else f"nodes {j} and {i}, 0-based"
         raise CfmInputError(
-            f"duplicate node at {points[i].tolist()} mm (also on line {lj}) with a different field "
+            f"duplicate node at {points[i].tolist()} mm ({also}) with a different field "
             f"{B[i].tolist()} T vs {B[j].tolist()} T; expected one field per position",
             file=source,
             line=li,

@@ -214,6 +214,36 @@ def test_corrupt_mesh_file(tmp_path):
         read_field(path)
 
 
+def test_empty_or_cut_mesh_file_says_why(tmp_path):
+    # meshio's ReadError() has no text: the message ended at "mesh file: "
+    good = tmp_path / "good.vtu"
+    meshio.write(
+        good, meshio.Mesh(np.eye(4, 3), [("tetra", [[0, 1, 2, 3]])], {"B": np.ones((4, 3))})
+    )
+    cut = tmp_path / "cut.vtu"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    empty = tmp_path / "empty.vtu"
+    empty.write_bytes(b"")
+    with pytest.raises(
+        CfmInputError, match=r"empty.vtu: cannot read as a 'vtu' mesh file: the file is empty$"
+    ):
+        read_field(empty)
+    with pytest.raises(CfmInputError, match=r"cut.vtu: cannot read as a 'vtu' mesh file: \S"):
+        read_field(cut)
+
+
+def test_conflicting_duplicate_in_a_mesh_names_both_nodes(tmp_path):
+    # a mesh file has no line numbers: the message said "also on line None"
+    pts = np.r_[np.eye(4, 3), [[0.0, 0.0, 0.0]]]
+    B = np.r_[np.ones((4, 3)), [[9.0, 9.0, 9.0]]]
+    path = tmp_path / "m.vtu"
+    meshio.write(path, meshio.Mesh(pts, [("tetra", [[0, 1, 2, 3]])], {"B": B}))
+    with pytest.raises(CfmInputError) as info:
+        read_field(path)
+    assert "(nodes 3 and 4, 0-based) with a different field" in str(info.value), str(info.value)
+    assert "None" not in str(info.value)
+
+
 def test_unknown_extension(tmp_path):
     path = tmp_path / "map.xyz123"
     path.write_text(CSV_HEADER + GOOD_ROW, encoding="utf-8")

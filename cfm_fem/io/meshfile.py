@@ -77,7 +77,15 @@ def read_meshfile(
     try:
         mesh = _meshio_read(path, fmt)
     except Exception as exc:  # meshio raises many types (ReadError, KeyError, struct.error, ...)
-        raise CfmInputError(f"cannot read as a '{fmt}' mesh file: {exc}", file=file) from None
+        why = str(exc).strip()
+        if not why:  # meshio's ReadError() on an empty or cut-off file says nothing
+            why = (
+                "the file is empty"
+                if Path(path).stat().st_size == 0
+                else f"{type(exc).__name__} with no reason given; is the file complete "
+                "(not cut short) and of this format?"
+            )
+        raise CfmInputError(f"cannot read as a '{fmt}' mesh file: {why}", file=file) from None
     notes: list[str] = []
     points = np.asarray(mesh.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] not in (2, 3) or len(points) == 0:
