@@ -19,6 +19,13 @@ CASES = {
     "empty file": ("m.csv", "", None, None, "the file is empty; expected a field map"),
     "blank file": ("m.txt", "\n  \n\t\n", None, None, "the file is empty"),
     "only comments": ("m.csv", "# nothing\n# here\n", None, None, "only comment lines"),
+    "data not split like the header": (
+        "m.csv",
+        CSV_HEADER + "1;2;3;0.1;0.2;0.3\n",
+        1,
+        None,
+        "a column name holds ',': the delimiter looks wrong",
+    ),
     "NUL bytes": ("m.csv", CSV_HEADER + GOOD_ROW + "1,2,4\x00\x00\n", 3, None, "NUL bytes in"),
     "header only": (
         "m.csv",

@@ -143,6 +143,12 @@ BAD = {
     "too many fields": (TRACKER_HEAD + "1,1,0,0,0,0,0,0,9\n", 2, None, "header names only 8"),
     "header only": (TRACKER_HEAD, 1, None, "no data rows"),
     "only comments": ("# a\n# b\n", None, None, "no header row"),
+    "semicolons": (
+        TRACKER_HEAD.replace(",", ";") + "1;1;0;0;0;0;0;0\n",
+        1,
+        "point_id",
+        "one field holding ';': recordings are comma-separated",
+    ),
     "empty file": ("", None, None, "the file is empty; expected a recording"),
     "NUL bytes": (TRACKER_HEAD + "1,1,0,0,0,0,0,0\x00\x00\n", 2, None, "NUL bytes in the text"),
 }

@@ -368,10 +368,18 @@ def pick_columns(columns, *, file, line, optional=()) -> tuple[dict, list[str]]:
     missing = [r for r in ROLES if chosen[r] is None and r not in optional]
     if missing:
         found = ", ".join(f"'{c.name}'" for c in columns) or "none"
+        # a name holding a delimiter: the header and the data rows are split differently
+        held = sorted({d for c in columns for d in (",", ";", "\t") if d in c.name})
+        hint = (
+            f"; a column name holds {' and '.join(repr(d) for d in held)}: the delimiter looks "
+            "wrong (header and data rows must use the same one: ',', ';', tab or blanks)"
+            if held
+            else ""
+        )
         raise CfmInputError(
             f"missing column(s) {', '.join(repr(r) for r in missing)}: expected coordinates "
             f"x, y, z and field Bx, By, Bz (any order, names like 'x [mm]' or 'Bx [T]'); "
-            f"found {found}",
+            f"found {found}{hint}",
             file=file,
             line=line,
             column=missing[0],

@@ -235,9 +235,16 @@ def _column_index(names, kind, path, hline) -> dict:
             index[canon[key]] = j
     missing = [c for c in _REQUIRED[kind] if c not in index]
     if missing:
+        held = [d for d in (";", "\t") if len(names) == 1 and d in names[0]]
+        hint = (  # one field holding ';' or tabs: a Excel/locale export, not a missing column
+            f" (one field holding {held[0]!r}: recordings are comma-separated; save the file "
+            "with ',' as the delimiter)"
+            if held
+            else ""
+        )
         raise CfmInputError(
             f"column '{missing[0]}' is missing; {_WHAT[kind]} needs the columns "
-            f"{','.join(_REQUIRED[kind])}; the header names {','.join(names)}",
+            f"{','.join(_REQUIRED[kind])}; the header names {','.join(names)}{hint}",
             file=path,
             line=hline,
             column=missing[0],
