@@ -176,6 +176,23 @@ def test_bad_inputs(bench):
         run_coupled(quad(), bench, PTS, trials=5)
 
 
+def test_cli_default_region_outside_an_off_axis_map_names_the_file(tmp_path, capsys):
+    # a map from 0 to 5 mm: the default region (centred on the axis) leaves it
+    from cfm_fem.cli import main
+
+    g = np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    f = tmp_path / "m.csv"
+    f.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+                 + "".join(f"{x},{y},{z},{0.1 * y},{0.1 * x},1\n" for x, y, z in g))  # fmt: skip
+    out = tmp_path / "o"
+    argv = ["coupled", "--field", str(f), "--trials", "20", "--no-budget", "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"error: {f}: scan point" in err and "spans x 0..5, y 0..5, z 0..5 mm" in err, err
+    assert "the default region is centred on the z axis: set --radius and --z" in err, err
+    assert not out.exists()
+
+
 def test_field_budget_variances_add(bench):
     m = 2000
     fb = field_budget(quad(), bench, PTS[1:], trials=m, seed=9)

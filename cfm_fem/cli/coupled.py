@@ -154,6 +154,27 @@ def _region(args, fm: FieldModel):
     return pts, desc
 
 
+def _check_region_inside(args, fm, points, field_path) -> None:
+    """Name the map and the options when the scan region leaves a field map (the default region
+    is centred on the z axis, which a map need not be)."""
+    if fm.multipole is not None:
+        return
+    _, inside = fm.field(points)
+    if inside.all():
+        return
+    i = int(np.argmax(~inside))
+    pts = fm.interpolator.fieldmap.points
+    span = ", ".join(
+        f"{a} {lo:g}..{hi:g}" for a, lo, hi in zip("xyz", pts.min(0), pts.max(0), strict=True)
+    )
+    why = "the default region is centred on the z axis: " if args.radius is None else ""
+    raise CfmInputError(
+        f"scan point {points[i].tolist()} mm is outside the field map, which spans {span} mm; "
+        f"{why}set --radius and --z to a region inside the map",
+        file=field_path,
+    )
+
+
 def run(args) -> int:
     from ..coupled import FieldModel, field_budget, run_coupled
     from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
@@ -172,6 +193,7 @@ def run(args) -> int:
         fm = read_reference(args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
         field_path = args.field
     points, region = _region(args, fm)
+    _check_region_inside(args, fm, points, field_path)
     probe = HallProbe(model=args.probe)
     print(
         f"cfm-fem coupled: {fm.describe()}; {region}; {args.trials} trials, seed {args.seed}, "
