@@ -83,6 +83,14 @@ CASES = {
         "Bx [T]",
         "column 'Bx [T]' must be a finite number; found inf",
     ),
+    "decimal comma": (  # read as 1000x the values before: "0,125" was taken for 125
+        "m.csv",
+        CSV_HEADER + '"1,000","0,000","2,000","0,100","0,200","0,300"\n',
+        2,
+        "y [mm]",
+        "column 'y [mm]' must be a number with '.' as decimal point; found '0,000', which has "
+        "a decimal comma",
+    ),
     "unknown length unit": (
         "m.csv",
         "x [furlong],y [furlong],z [furlong],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,

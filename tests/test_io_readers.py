@@ -457,3 +457,11 @@ def test_read_field_rejects_bad_zero_rows_value(tmp_path):
     path = _write(tmp_path, "m.txt", COMSOL_3D)
     with pytest.raises(CfmInputError, match=r"zero_rows must be one of warn, drop, keep"):
         read_field(path, zero_rows="remove")
+
+
+def test_thousands_separator_without_decimal_point_warns(tmp_path):
+    """ "1,250" is 1250 or 1.25 depending on the writer's locale: read as 1250, with a warning."""
+    text = 'x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"1,250",2,3,0.1,0.2,0.3\n'
+    with pytest.warns(CfmInputWarning, match=r":2: column 'x \[mm\]': 1,250 read with ','"):
+        fm = read_table(_write(tmp_path, "t.csv", text))
+    assert fm.points[0, 0] == 1250.0
