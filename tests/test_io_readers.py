@@ -465,3 +465,23 @@ def test_thousands_separator_without_decimal_point_warns(tmp_path):
     with pytest.warns(CfmInputWarning, match=r":2: column 'x \[mm\]': 1,250 read with ','"):
         fm = read_table(_write(tmp_path, "t.csv", text))
     assert fm.points[0, 0] == 1250.0
+
+
+def test_opera_cut_short_in_its_last_plane_is_reported(tmp_path):
+    """A file cut inside its last x plane still holds every distinct x, y, z value: only the row
+    count shows the cut (in the in-memory and the streaming reader)."""
+    text = OPERA + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
+    text = text[: text.rindex(" 5 10 -1")]  # the last two rows cut off
+    path = _write(tmp_path, "f.table", text)
+    what = r"point counts \[2, 3, 2\] do not match the 10 data rows: they make 12 rows \(2 "
+    with pytest.warns(CfmInputWarning, match=what + "missing"):
+        fm = read_opera(path)
+    assert fm.n_nodes == 10 and any("cut short" in n for n in fm.notes)
+
+    from cfm_fem.io.streaming import check_opera_counts, open_stream
+
+    stream = open_stream(path, "opera")
+    blocks = list(stream.blocks(rows_per_block=4))
+    distinct = [len(np.unique(np.concatenate([v[:, k] for v, _ in blocks]))) for k in range(3)]
+    with pytest.warns(CfmInputWarning, match=what):
+        assert check_opera_counts(stream, distinct)
