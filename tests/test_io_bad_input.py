@@ -187,6 +187,13 @@ CASES = {
         None,
         "duplicate node at [1.0, 2.0, 3.0] mm (also on line 2) with a different field",
     ),
+    "near-duplicate node with another field": (  # twins 1e-12 mm apart, not neighbours in sort
+        "m.csv",
+        CSV_HEADER + "0,1,0,0.1,0,0.5\n0,2,0,0.2,0,0.5\n1e-12,1,0,0.9,0.9,0.9\n",
+        4,
+        None,
+        "duplicate node at [1e-12, 1.0, 0.0] mm (also on line 2) with a different field",
+    ),
 }
 
 
