@@ -248,3 +248,83 @@ def test_hall_map_outside_the_reference_field(tmp_path, capsys):
     argv = ["compare", "--hall-map", rec, "--reference", ref, "--trials", 100, "--out", out]
     err = _run(argv, out, capsys)
     assert f"error: {rec}:4: " in err and "outside the reference field" in err, err
+
+
+def _hall_text(factor):
+    """A Hall map of GRID points 1..3 (two readings each) recording `_map_text`'s field x factor."""
+    rows = ["point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz"]
+    for pid, p in enumerate(GRID[[43, 86, 129]]):
+        B = factor * np.array([0.1 * p[1], 0.1 * p[0], 1.0])
+        rows += [f"{pid},{rep}," + ",".join(f"{v:g}" for v in (*p, *B)) for rep in (0, 1)]
+    return "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize("command", ["compare", "diagnose"])
+def test_hall_map_in_gauss_is_refused(tmp_path, capsys, command):
+    """A Hall map written in gauss was compared as tesla: 'systematic error 5e7 units', exit 0."""
+    if command not in _COMMANDS:
+        pytest.skip(f"no `cfm-fem {command}` command in this version")
+    ref = tmp_path / "ref.csv"
+    ref.write_text(_map_text(GRID))
+    rec = tmp_path / "hall.csv"
+    rec.write_text(_hall_text(1e4))
+    out = tmp_path / "out"
+    argv = [command, "--hall-map", rec, "--reference", ref, "--out", out]
+    err = _run(argv + (["--trials", 100] if command == "compare" else []), out, capsys)
+    assert f"error: {rec}: the recorded |B| is 1e+04 times the reference |B|" in err, err
+    assert "look like G (gauss), not T" in err
+
+
+def test_hall_scale_check():
+    from cfm_fem.recordings import check_hall_scale
+
+    ref = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.0], [0.0, 1e-6, 0.0]])
+    assert check_hall_scale(ref * 1.01, ref, source="h.csv") == []
+    for factor, what in [(1e3, "look like mT"), (10, "look like kG"), (1e-4, "1e4 times too")]:
+        with pytest.raises(CfmInputError, match=what):
+            check_hall_scale(ref * factor, ref, source="h.csv")
+    with pytest.warns(match=r"h.csv: the recorded \|B\| is 3 times"):
+        (note,) = check_hall_scale(ref * 3, ref, source="h.csv")
+    assert "check the units" in note
+
+
+# --------------------------------------------------------------------------- options
+
+OUT_FILE_COMMANDS = {
+    "sweep": ["sweep", "{map}", "--trials", 20],
+    "kinematics": ["kinematics", "--trials", 20],
+    "tolerance": ["tolerance", "--target", 5],
+    "fig4": ["fig4", "{map}", "--trials", 20, "--up", "0:1:1"],
+    "diagnose": ["diagnose", "--tracker", "{map}"],
+    "compare": ["compare", "--tracker", "{map}", "--trials", 20],
+    "coupled": ["coupled", "--trials", 20, "--no-budget"],
+}
+
+
+@pytest.mark.parametrize("command", list(OUT_FILE_COMMANDS))
+def test_out_is_an_existing_file(tmp_path, capsys, command):
+    """--out naming a file gave a FileExistsError traceback after the whole computation."""
+    if command not in _COMMANDS:
+        pytest.skip(f"no `cfm-fem {command}` command in this version")
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "afile"
+    out.write_text("keep me")
+    argv = [str(a).replace("{map}", str(path)) for a in OUT_FILE_COMMANDS[command]]
+    rc = main([*argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    assert f"error: --out '{out}' is an existing file; expected a folder" in err
+    assert out.read_text() == "keep me"
+
+
+@pytest.mark.parametrize("command", ["sweep", "fig4"])
+@pytest.mark.parametrize("seed", [2**63, -1])
+def test_seed_out_of_range(tmp_path, capsys, command, seed):
+    """A seed >= 2**63 ended in numba's TypingError and left sweep's chunk manifest behind."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    argv = [command, path, "--up", "0:10:10", "--trials", 20, "--seed", seed, "--out", out]
+    err = _run(argv, out, capsys)
+    assert f"error: --seed must be in [0, 2**63); got {seed}" in err

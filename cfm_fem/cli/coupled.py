@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 
 if TYPE_CHECKING:
@@ -106,8 +107,7 @@ def add_args(p):
 def check_common(args):
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
-    if not 0 <= args.seed < 2**63:
-        raise CfmInputError(f"--seed must be in [0, 2**63); got {args.seed}")
+    check_seed(args.seed)
 
 
 def load_bench(args):
@@ -163,6 +163,7 @@ def run(args) -> int:
     from ..kinematics import uncertainty_budget
     from ..probe import HallProbe
 
+    check_out_dir(args.out)
     check_common(args)
     bench, bench_note = load_bench(args)
     if args.field is None:

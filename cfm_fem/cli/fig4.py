@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 from .sweep import parse_up_range
 
@@ -43,6 +44,8 @@ def run(args) -> int:
     from ..io.compare_out import write_run
     from ..io.provenance import provenance
 
+    check_out_dir(args.out)
+    check_seed(args.seed)
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..errors import CfmInputError
 from . import interrupted
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -307,6 +308,8 @@ def parse_up_range(text: str) -> list[float]:
 
 
 def run(args) -> int:
+    check_out_dir(args.out)
+    check_seed(args.seed)
     up = parse_up_range(args.up)
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
@@ -59,6 +60,9 @@ def run(args) -> int:
     from ..io.kinematics_out import bench_description
     from ..kinematics import design_tolerances, run_kinematics
 
+    if args.out:
+        check_out_dir(args.out)
+    check_seed(args.seed)
     if args.check < 0 or args.check == 1:
         raise CfmInputError(f"--check must be 0 or >= 2 trials; got {args.check}")
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
