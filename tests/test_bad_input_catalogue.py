@@ -24,6 +24,7 @@ bench cases of `tests/test_bench.py` (their ``parametrize`` lists) all run here 
 
 from __future__ import annotations
 
+import json
 import re
 from importlib import resources
 
@@ -328,3 +329,55 @@ def test_seed_out_of_range(tmp_path, capsys, command, seed):
     argv = [command, path, "--up", "0:10:10", "--trials", 20, "--seed", seed, "--out", out]
     err = _run(argv, out, capsys)
     assert f"error: --seed must be in [0, 2**63); got {seed}" in err
+
+
+def _zero_bench_text():
+    """The reference bench with every error N(0, 0) and no vibration or reading delay."""
+    lines = []
+    for line in _ref_bench_text().splitlines():
+        key = line.split("=")[0].strip()
+        if key == "pdf":
+            lines += ['pdf = "normal"', "mean = 0.0", "std = 0.0"]
+        elif key in ("low", "high", "mean", "std", "mode", "beta", "value"):
+            continue
+        else:
+            lines.append("std_um = 0.0" if key == "std_um" else line)
+    return "\n".join(lines) + "\n"
+
+
+def test_bench_without_errors(tmp_path, capsys):
+    """Shares 0/0 = NaN ended kinematics in a JSON traceback after points.csv/.vtu were written
+    (and tolerance likewise, on infinite factors)."""
+    bench = tmp_path / "zero.toml"
+    bench.write_text(_zero_bench_text())
+    out = tmp_path / "k"
+    assert main(["kinematics", "--bench", str(bench), "--trials", "20", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["axes"]["x"]["U_p_um"] == 0.0
+    assert "U_p = 0 on axis x" in summary["budget"]["notes"][0]
+    assert sorted(p.name for p in out.iterdir()) == ["points.csv", "points.vtu", "summary.json"]
+    out = tmp_path / "t"
+    assert main(["tolerance", "--target", "5", "--bench", str(bench), "--out", str(out)]) == 0
+    assert json.loads((out / "tolerance.json").read_text())["common_factor"] == "inf"
+    capsys.readouterr()
+
+
+def test_kinematics_outputs_all_or_none(tmp_path, monkeypatch):
+    """A failing summary.json leaves no points.csv / points.vtu behind."""
+    from cfm_fem.io import kinematics_out
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(kinematics_out, "write_points_vtu", fail)
+    out = tmp_path / "k"
+    with pytest.raises(RuntimeError, match="disk full"):
+        main(["kinematics", "--trials", "20", "--out", str(out)])
+    assert not out.exists() or not list(out.iterdir())
+
+
+@pytest.mark.parametrize("target", ["inf", "1e300", "5,5,2e6"])
+def test_tolerance_target_too_large(tmp_path, capsys, target):
+    out = tmp_path / "out"
+    err = _run(["tolerance", "--target", target, "--out", out], out, capsys)
+    assert "--target must be at most 1e+06 um (1 m) per axis" in err
