@@ -381,3 +381,15 @@ def test_tolerance_target_too_large(tmp_path, capsys, target):
     out = tmp_path / "out"
     err = _run(["tolerance", "--target", target, "--out", out], out, capsys)
     assert "--target must be at most 1e+06 um (1 m) per axis" in err
+
+
+def test_fig4_on_a_uniform_field(tmp_path, capsys):
+    """G = 0: r_eff = B_ref / G ended fig4 in a ZeroDivisionError after the whole sweep."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID, np.tile([0.1, 0.2, 0.3], (len(GRID), 1))))
+    out = tmp_path / "out"
+    argv = ["fig4", path, "--trials", 20, "--up", "0:10:10", "--out", out]
+    assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+    doc = json.loads((out / "fig4.json").read_text())
+    assert doc["r_eff_mm"] is None and doc["g_med_T_per_mm"] == 0.0
+    assert "r_eff is undefined" in doc["explanation"]
