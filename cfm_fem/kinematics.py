@@ -543,6 +543,10 @@ WINDOW_SLOTS = 32
 #: happens, and pass 2 regenerates about half the trials it would otherwise.
 MARK_AFTER = 0.25
 MARK_SIGMAS = 5.0
+#: Most widening rounds of a missed interval window. Each round widens a window at least 5-fold,
+#: so 200 rounds span any finite range; only NaN or infinite positions (a bench whose errors
+#: overflow) could miss for ever, and they are refused before the loop.
+MAX_WIDEN_ROUNDS = 200
 
 
 def _terms_array(n):
@@ -854,6 +858,12 @@ def run_kinematics(
     m = float(total)
     mean = shift + acc[..., 0] / m
     std = np.sqrt(np.maximum(acc[..., 1] - acc[..., 0] ** 2 / m, 0.0) / (m - 1.0))
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
+        raise CfmInputError(
+            "the bench's errors give infinite or NaN probe positions (an overflow): check the "
+            "sizes of its error PDFs and profiles",
+            file=bench.source,
+        )
     ranks = symmetric_ranks(total, p)
     slot, within = _locate(ranks, below, whist)
     bit_rows = np.full(npts, use_bits)  # points whose bitmap still covers their windows
@@ -866,7 +876,15 @@ def run_kinematics(
             )
         bit_rows &= ~outside
     widened = 0
-    while np.any(slot < 0):  # a window missed its order statistic: widen, re-count those points
+    for _round in range(MAX_WIDEN_ROUNDS + 1):
+        if not np.any(slot < 0):
+            break
+        if _round == MAX_WIDEN_ROUNDS:
+            raise RuntimeError(
+                f"interval windows still miss their order statistic after {MAX_WIDEN_ROUNDS} "
+                "widenings"
+            )
+        # a window missed its order statistic: widen, re-count those points
         sel = np.unique(np.nonzero(slot < 0)[0])
         widened += int(np.count_nonzero(slot < 0))
         width = window_slots / winv[sel]

@@ -173,6 +173,21 @@ BENCH_CASES = [
      ["errors.z.delta_x", "std >= 0"]),
     ("unknown pdf", 'pdf = "uniform"\nlow = -18.5', 'pdf = "cauchy"\nlow = -18.5',
      ["errors.x.eps_x.pdf", "one of"]),
+    # integers too large for a float (TypeError in numpy's isfinite before)
+    ("400-digit stroke", "stroke_mm = 800.0", "stroke_mm = " + "9" * 400,
+     ["axes.z.stroke_mm", "must be a finite number", "(400 characters)"]),
+    ("400-digit tool offset", "tool_offset_mm = [0.0, -60.0, 500.0]",
+     "tool_offset_mm = [0.0, -60.0, " + "9" * 400 + "]",
+     ["frame.tool_offset_mm", "must be a list of 3 finite numbers"]),
+    # sizes without a limit (MemoryError or an endless run before)
+    ("huge grid num", "stop = 800.0, num = 13", "stop = 800.0, num = 100000000",
+     ["grid.z_mm.num", "must be >= 1 and <= 100,000"]),
+    ("huge grid", "stop = 800.0, num = 13", "stop = 800.0, num = 90000",
+     ["'grid' has 6,480,000 points; expected at most 100,000"]),
+    ("huge std", "mean = 51.4\nstd = 11.0", "mean = 51.4\nstd = 1e300",
+     ["describes errors up to", "expected at most 1 "]),
+    ("huge vibration", "std_um = 2.5", "std_um = 1e300",
+     ["vibration.std_um", "must be <= 1e+06 um"]),
 ] + [
     (f"test_bench: {new.splitlines()[0][:30]}", old, new, fragments)
     for old, new, fragments in _parametrized(test_bench.test_impossible_values_name_the_key)
@@ -393,3 +408,20 @@ def test_fig4_on_a_uniform_field(tmp_path, capsys):
     doc = json.loads((out / "fig4.json").read_text())
     assert doc["r_eff_mm"] is None and doc["g_med_T_per_mm"] == 0.0
     assert "r_eff is undefined" in doc["explanation"]
+
+
+def test_kinematics_refuses_non_finite_positions():
+    """std = 1e300 um (past the reader's limits here) kept `while np.any(slot < 0)` going for ever
+    on NaN positions; now a clear error after the first pass."""
+    import dataclasses
+
+    from cfm_fem.io.bench_toml import read_reference_bench
+    from cfm_fem.kinematics import run_kinematics
+    from cfm_fem.mc import Pdf
+
+    bench = read_reference_bench()
+    errors = list(bench.errors)
+    errors[0] = dataclasses.replace(errors[0], pdf=Pdf.from_params("normal", mean=0.0, std=1e300))
+    bench = dataclasses.replace(bench, errors=tuple(errors))
+    with pytest.raises(CfmInputError, match="infinite or NaN probe positions"):
+        run_kinematics(bench, trials=50, seed=0)
