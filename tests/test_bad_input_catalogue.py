@@ -425,3 +425,24 @@ def test_kinematics_refuses_non_finite_positions():
     bench = dataclasses.replace(bench, errors=tuple(errors))
     with pytest.raises(CfmInputError, match="infinite or NaN probe positions"):
         run_kinematics(bench, trials=50, seed=0)
+
+
+def test_coupled_step_in_metres(tmp_path, capsys):
+    """--step 0.002 (metres typed as mm) asked for 78.5 million points: MemoryError."""
+    out = tmp_path / "out"
+    err = _run(
+        ["coupled", "--step", 0.002, "--trials", 20, "--no-budget", "--out", out], out, capsys
+    )
+    assert "asks for about 3.93e+08 scan points; expected at most 100,000" in err
+
+
+def test_harmonic_order_too_high(tmp_path, capsys):
+    """n = 1e8 in a harmonics file made coupled run for more than 5 minutes."""
+    rows = "".join(f"{n},{1.0 if n == 2 else 1e-3},0\n" for n in range(1, 5))
+    path = tmp_path / "h.csv"
+    path.write_text(f"# r_ref_mm: 10\n# convention: tesla\nn,Bn,An\n{rows}100000000,1e-3,0\n")
+    out = tmp_path / "out"
+    err = _run(
+        ["coupled", "--field", path, "--trials", 20, "--no-budget", "--out", out], out, capsys
+    )
+    assert f"error: {path}:8: column 'n' must be an order <= 1000; found '100000000'" in err
