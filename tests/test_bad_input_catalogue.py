@@ -410,6 +410,7 @@ def test_fig4_on_a_uniform_field(tmp_path, capsys):
     assert "r_eff is undefined" in doc["explanation"]
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's overflow on the way there
 def test_kinematics_refuses_non_finite_positions():
     """std = 1e300 um (past the reader's limits here) kept `while np.any(slot < 0)` going for ever
     on NaN positions; now a clear error after the first pass."""

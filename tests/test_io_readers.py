@@ -249,7 +249,8 @@ def test_table_columns_by_name_with_extra_text_column(tmp_path):
 
 def test_table_quoted_thousands_separators(tmp_path):
     text = 'X [inch],Y [inch],Z [inch],Bx [T],By [T],Bz [T]\n"1,066.67",-2,"-1,000",0.1,0.2,0.3\n'
-    fm = read_table(_write(tmp_path, "t.csv", text))
+    with pytest.warns(CfmInputWarning, match="-1,000 read with ','"):  # 1000 or -1.0?
+        fm = read_table(_write(tmp_path, "t.csv", text))
     np.testing.assert_allclose(fm.points[0], [1066.67 * 25.4, -50.8, -25400.0])
 
 
