@@ -34,7 +34,7 @@ from .iso230 import evaluate_records
 from .kinematics import KinematicsResult, pool_table_iv, run_kinematics
 from .multipole import UNIT
 from .probe import HallProbe
-from .recordings import Recording
+from .recordings import Recording, check_hall_scale
 
 __all__ = [
     "TrackerComparison",
@@ -408,6 +408,9 @@ def compare_hall(
             file=rec.source,
             line=int(rec.lines[i]) or None,
         )
+    scale_notes = check_hall_scale(
+        rec.B, ref_B, source=rec.source, reference=f"'{reference.source}'"
+    )
     scale = 1.0 / (UNIT * reference.b_ref_T)
     err = np.column_stack(
         [
@@ -423,7 +426,7 @@ def compare_hall(
             "no point has two or more repetitions; the experimental uncertainty needs them",
             file=rec.source,
         )
-    notes = []
+    notes = list(scale_notes)
     if not rep_pts.all():
         notes.append(
             f"{int((~rep_pts).sum())} point(s) with a single reading: left out of the pooled std"

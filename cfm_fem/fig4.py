@@ -61,7 +61,9 @@ def fig4_summary(res: SweepResult, body_half_length_mm: float = BODY_HALF_LENGTH
     uf = res.uf_units()
     complete = res.complete()
     grad = _grad_abs_b(res)
-    g_med = float(np.nanmedian(grad[body]))
+    g_med = float(np.nanmedian(grad[body])) if np.isfinite(grad[body]).any() else float("nan")
+    # a uniform field (G = 0) or no body node with a gradient: no r_eff and no analytic line
+    g_ok = g_med > 0
     b_ref = res.b_ref_T
     rows = []
     for k, up in enumerate(res.config.up_um):
@@ -74,7 +76,9 @@ def fig4_summary(res: SweepResult, body_half_length_mm: float = BODY_HALF_LENGTH
                 "p50": float(np.percentile(v, 50)) if v.size else None,
                 "p95": float(np.percentile(v, 95)) if v.size else None,
                 "max": float(v.max()) if v.size else None,
-                "analytic": float(Z95 * up * 1e-3 * g_med / b_ref * 1e4),
+                "analytic": (
+                    float(Z95 * up * 1e-3 * g_med / b_ref * 1e4) if np.isfinite(g_med) else None
+                ),
                 "paper": PAPER_FIG4.get(float(up)),
             }
         )
@@ -82,22 +86,30 @@ def fig4_summary(res: SweepResult, body_half_length_mm: float = BODY_HALF_LENGTH
     p50 = np.array([np.nan if r["p50"] is None else r["p50"] for r in rows])
     ok = np.isfinite(p50)
     slope = float(np.sum(ups[ok] * p50[ok]) / np.sum(ups[ok] ** 2)) if (ups[ok] > 0).any() else None
-    r_eff = b_ref / g_med
+    r_eff = b_ref / g_med if g_ok else None
     paper_slope = 25.0 / 50.0
+    if g_ok:
+        law = (
+            f"Here G (median over body nodes) = {g_med * 1e3:.4g} T/m, B_ref = {b_ref:.4g} T, "
+            f"r_eff = {r_eff:.3g} mm: {Z95 * 10 / r_eff:.3g} units per um predicted"
+        )
+    else:
+        law = (
+            f"Here G (median over body nodes) = {g_med * 1e3:.4g} T/m: the field is uniform (or no "
+            f"body node has a gradient), so this law predicts U_f = 0 and r_eff is undefined"
+        )
     doc.update(
         table=rows,
         body_half_length_mm=body_half_length_mm,
-        g_med_T_per_mm=g_med,
-        r_eff_mm=float(r_eff),
+        g_med_T_per_mm=g_med if np.isfinite(g_med) else None,
+        r_eff_mm=r_eff,
         units_per_um=slope,
         paper=PAPER_FIG4,
         paper_units_per_um=paper_slope,
         paper_r_eff_mm=float(Z95 * 1e4 * 1e-3 / paper_slope),
         explanation=(
             f"U_f = 1.96 U_p |grad|B|| / B_ref: in a quadrupole |grad|B|| = G everywhere in the "
-            f"body and B_ref = G r_eff, so U_f = 1.96e4 U_p / r_eff, linear in U_p. Here G (median "
-            f"over body nodes) = {g_med * 1e3:.4g} T/m, B_ref = {b_ref:.4g} T, r_eff = "
-            f"{r_eff:.3g} mm: {Z95 * 10 / r_eff:.3g} units per um predicted, "
+            f"body and B_ref = G r_eff, so U_f = 1.96e4 U_p / r_eff, linear in U_p. {law}, "
             f"{slope if slope is None else round(slope, 3)} measured (p50 fit through 0). "
             "The paper "
             f"reports 10 units at 20 um and 25 at 50 um: linear too, 0.5 units per um, which "

@@ -543,6 +543,10 @@ WINDOW_SLOTS = 32
 #: happens, and pass 2 regenerates about half the trials it would otherwise.
 MARK_AFTER = 0.25
 MARK_SIGMAS = 5.0
+#: Most widening rounds of a missed interval window. Each round widens a window at least 5-fold,
+#: so 200 rounds span any finite range; only NaN or infinite positions (a bench whose errors
+#: overflow) could miss for ever, and they are refused before the loop.
+MAX_WIDEN_ROUNDS = 200
 
 
 def _terms_array(n):
@@ -854,6 +858,12 @@ def run_kinematics(
     m = float(total)
     mean = shift + acc[..., 0] / m
     std = np.sqrt(np.maximum(acc[..., 1] - acc[..., 0] ** 2 / m, 0.0) / (m - 1.0))
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
+        raise CfmInputError(
+            "the bench's errors give infinite or NaN probe positions (an overflow): check the "
+            "sizes of its error PDFs and profiles",
+            file=bench.source,
+        )
     ranks = symmetric_ranks(total, p)
     slot, within = _locate(ranks, below, whist)
     bit_rows = np.full(npts, use_bits)  # points whose bitmap still covers their windows
@@ -866,7 +876,15 @@ def run_kinematics(
             )
         bit_rows &= ~outside
     widened = 0
-    while np.any(slot < 0):  # a window missed its order statistic: widen, re-count those points
+    for _round in range(MAX_WIDEN_ROUNDS + 1):
+        if not np.any(slot < 0):
+            break
+        if _round == MAX_WIDEN_ROUNDS:
+            raise RuntimeError(
+                f"interval windows still miss their order statistic after {MAX_WIDEN_ROUNDS} "
+                "widenings"
+            )
+        # a window missed its order statistic: widen, re-count those points
         sel = np.unique(np.nonzero(slot < 0)[0])
         widened += int(np.count_nonzero(slot < 0))
         width = window_slots / winv[sel]
@@ -1131,9 +1149,18 @@ class LinearModel:
         u2 = var_k.sum(-1) + var_n
         sys_k = np.mean(self.b * mean[..., None], axis=0)  # (3, 21)
         up2 = np.mean(mean**2, axis=0) + u2
-        var_share = np.concatenate([var_k, var_n[:, None]], axis=1) / u2[:, None]
-        up_share = np.concatenate([sys_k + var_k, var_n[:, None]], axis=1) / up2[:, None]
+        # an axis with u = 0 (a bench with no error at all) has no shares to split: 0/0 is
+        # reported as 0 (`uncertainty_budget` says so in a note) instead of NaN, which JSON refuses
+        var_share = _share(np.concatenate([var_k, var_n[:, None]], axis=1), u2)
+        up_share = _share(np.concatenate([sys_k + var_k, var_n[:, None]], axis=1), up2)
         return var_share, up_share
+
+
+def _share(parts, total):
+    """``parts / total[:, None]``, 0 where ``total`` is 0."""
+    out = np.zeros_like(parts)
+    np.divide(parts, total[:, None], out=out, where=total[:, None] > 0)
+    return out
 
 
 def linear_model(bench: Bench, q_cmd=None) -> LinearModel:
@@ -1194,12 +1221,19 @@ def uncertainty_budget(bench: Bench, q_cmd=None) -> dict:
             "up_share": {a: float(up_share[j, -1]) for j, a in enumerate("xyz")},
         }
     )
+    notes = []
+    for j, a in enumerate("xyz"):
+        if not up[j] > 0:
+            notes.append(f"U_p = 0 on axis {a}: no error contributes; its shares are written as 0")
+        elif not u[j] > 0:
+            notes.append(f"u = 0 on axis {a}: no random error; its var_share is written as 0")
     return {
         "estimator": (
             "linearised model with exact sensitivities (central differences of the HTM chain at "
             "zero error); var_share = share of u^2 (first-order Sobol index of the linear "
             "model); up_share = (1/2) d ln U_p^2 / d ln s_k, sums to 1"
         ),
+        "notes": notes,
         "rows": rows,
         "predicted": {
             a: {"systematic_um": 1e3 * sys[j], "std_um": 1e3 * u[j], "U_p_um": 1e3 * up[j]}
@@ -1263,7 +1297,8 @@ def design_tolerances(bench: Bench, target_up_mm, q_cmd=None) -> dict:
         f_axes = np.sqrt(np.maximum(t2 - noise, 0.0) / err2)
     f_axes = np.where(t2 <= noise, 0.0, f_axes)
     common = float(np.min(f_axes))
-    up_common = (1e3 * lm.pooled(np.full(nerr, common))[2]).tolist()
+    # common = inf when no error matters (a bench without errors): any factor leaves U_p as is
+    up_common = (1e3 * lm.pooled(np.full(nerr, common if np.isfinite(common) else 1.0))[2]).tolist()
     # greedy plan: tighten the largest contributors to a violated axis, one at a time
     s = np.ones(nerr)
     plan = []

@@ -8,13 +8,14 @@ positions and either the measured probe position (``kind="tracker"``) or the mea
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import CfmInputError
+from .errors import CfmInputError, CfmInputWarning
 
-__all__ = ["KINDS", "Recording"]
+__all__ = ["KINDS", "Recording", "check_hall_scale"]
 
 KINDS = ("tracker", "hall")
 
@@ -173,3 +174,74 @@ class Recording:
             source=self.source,
             lines=self.lines[idx],
         )
+
+
+#: Powers of ten of (recorded |B|) / (reference |B|) that a unit slip produces, and the slip.
+_UNIT_SLIPS = {
+    1: "kG (kilogauss)",
+    3: "mT",
+    4: "G (gauss)",
+    6: "uT",
+}
+
+
+def check_hall_scale(B_meas, B_ref, *, source, reference: str | None = None) -> list:
+    """Refuse a Hall map whose field is a power of ten off the reference field (a unit slip).
+
+    The median of |B_meas| / |B_ref| over the readings where the reference field is not small
+    (|B_ref| > 1 % of its largest value) is compared with the ratios a unit slip produces:
+    1e4 for gauss, 1e3 for mT, 10 for kG, 1e6 for uT (and their inverses for a reference in the
+    wrong unit). Within 12 % of one of them it is an error: no magnet or bench effect scales the
+    whole map by a power of ten, and every number downstream (millions of units) would be
+    meaningless. Any other median ratio outside [0.5, 2] gives a warning and a note: a gross
+    mismatch, but one that a wrong excitation current or the wrong reference could explain.
+
+    Parameters
+    ----------
+    B_meas, B_ref : ndarray, shape (n, 3), T
+        Recorded field of each reading and the reference field at its commanded point.
+    source : str
+        The recording, for messages.
+    reference : str, optional
+        How to name the reference field in messages.
+
+    Returns
+    -------
+    list of str
+        Notes (empty when the scales agree).
+
+    Raises
+    ------
+    CfmInputError
+        The ratio is a unit slip; the message names the likely unit.
+    """
+    bm = np.linalg.norm(np.asarray(B_meas, dtype=float), axis=1)
+    br = np.linalg.norm(np.asarray(B_ref, dtype=float), axis=1)
+    use = br > 0.01 * br.max() if br.size and br.max() > 0 else np.zeros(br.shape, bool)
+    if not use.any():
+        return []
+    ratio = float(np.median(bm[use] / br[use]))
+    if 0.5 <= ratio <= 2.0:
+        return []
+    k = round(np.log10(ratio)) if ratio > 0 else 0
+    what = (
+        f"the recorded |B| is {ratio:.4g} times the reference |B|"
+        f"{f' ({reference})' if reference else ''} at the same points (median over "
+        f"{int(use.sum())} reading(s))"
+    )
+    if ratio > 0 and abs(np.log10(ratio) - k) < 0.05 and abs(k) in _UNIT_SLIPS:
+        unit = _UNIT_SLIPS[abs(k)]
+        if k > 0:
+            hint = (
+                f"the Bx, By, Bz columns look like {unit}, not T; a Hall map is in T "
+                f"(DESIGN.md 4.2): divide them by {10.0**k:g}"
+            )
+        else:
+            hint = (
+                f"the reference looks 1e{-k} times too large: check the unit of its field "
+                f"columns (a file in {unit} read as T?)"
+            )
+        raise CfmInputError(f"{what}; {hint}", file=source)
+    msg = f"{source}: {what}; check the units and that the reference is the right field"
+    warnings.warn(msg, CfmInputWarning, stacklevel=3)
+    return [msg]

@@ -24,6 +24,7 @@ bench cases of `tests/test_bench.py` (their ``parametrize`` lists) all run here 
 
 from __future__ import annotations
 
+import json
 import re
 from importlib import resources
 
@@ -193,6 +194,21 @@ BENCH_CASES = [
      ["errors.z.delta_x", "std >= 0"]),
     ("unknown pdf", 'pdf = "uniform"\nlow = -18.5', 'pdf = "cauchy"\nlow = -18.5',
      ["errors.x.eps_x.pdf", "one of"]),
+    # integers too large for a float (TypeError in numpy's isfinite before)
+    ("400-digit stroke", "stroke_mm = 800.0", "stroke_mm = " + "9" * 400,
+     ["axes.z.stroke_mm", "must be a finite number", "(400 characters)"]),
+    ("400-digit tool offset", "tool_offset_mm = [0.0, -60.0, 500.0]",
+     "tool_offset_mm = [0.0, -60.0, " + "9" * 400 + "]",
+     ["frame.tool_offset_mm", "must be a list of 3 finite numbers"]),
+    # sizes without a limit (MemoryError or an endless run before)
+    ("huge grid num", "stop = 800.0, num = 13", "stop = 800.0, num = 100000000",
+     ["grid.z_mm.num", "must be >= 1 and <= 100,000"]),
+    ("huge grid", "stop = 800.0, num = 13", "stop = 800.0, num = 90000",
+     ["'grid' has 6,480,000 points; expected at most 100,000"]),
+    ("huge std", "mean = 51.4\nstd = 11.0", "mean = 51.4\nstd = 1e300",
+     ["describes errors up to", "expected at most 1 "]),
+    ("huge vibration", "std_um = 2.5", "std_um = 1e300",
+     ["vibration.std_um", "must be <= 1e+06 um"]),
 ] + [
     (f"test_bench: {new.splitlines()[0][:30]}", old, new, fragments)
     for old, new, fragments in _parametrized(test_bench.test_impossible_values_name_the_key)
@@ -269,3 +285,186 @@ def test_hall_map_outside_the_reference_field(tmp_path, capsys):
     argv = ["compare", "--hall-map", rec, "--reference", ref, "--trials", 100, "--out", out]
     err = _run(argv, out, capsys)
     assert f"error: {rec}:4: " in err and "outside the reference field" in err, err
+
+
+def _hall_text(factor):
+    """A Hall map of GRID points 1..3 (two readings each) recording `_map_text`'s field x factor."""
+    rows = ["point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz"]
+    for pid, p in enumerate(GRID[[43, 86, 129]]):
+        B = factor * np.array([0.1 * p[1], 0.1 * p[0], 1.0])
+        rows += [f"{pid},{rep}," + ",".join(f"{v:g}" for v in (*p, *B)) for rep in (0, 1)]
+    return "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize("command", ["compare", "diagnose"])
+def test_hall_map_in_gauss_is_refused(tmp_path, capsys, command):
+    """A Hall map written in gauss was compared as tesla: 'systematic error 5e7 units', exit 0."""
+    if command not in _COMMANDS:
+        pytest.skip(f"no `cfm-fem {command}` command in this version")
+    ref = tmp_path / "ref.csv"
+    ref.write_text(_map_text(GRID))
+    rec = tmp_path / "hall.csv"
+    rec.write_text(_hall_text(1e4))
+    out = tmp_path / "out"
+    argv = [command, "--hall-map", rec, "--reference", ref, "--out", out]
+    err = _run(argv + (["--trials", 100] if command == "compare" else []), out, capsys)
+    assert f"error: {rec}: the recorded |B| is 1e+04 times the reference |B|" in err, err
+    assert "look like G (gauss), not T" in err
+
+
+def test_hall_scale_check():
+    from cfm_fem.recordings import check_hall_scale
+
+    ref = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.0], [0.0, 1e-6, 0.0]])
+    assert check_hall_scale(ref * 1.01, ref, source="h.csv") == []
+    for factor, what in [(1e3, "look like mT"), (10, "look like kG"), (1e-4, "1e4 times too")]:
+        with pytest.raises(CfmInputError, match=what):
+            check_hall_scale(ref * factor, ref, source="h.csv")
+    with pytest.warns(match=r"h.csv: the recorded \|B\| is 3 times"):
+        (note,) = check_hall_scale(ref * 3, ref, source="h.csv")
+    assert "check the units" in note
+
+
+# --------------------------------------------------------------------------- options
+
+OUT_FILE_COMMANDS = {
+    "sweep": ["sweep", "{map}", "--trials", 20],
+    "kinematics": ["kinematics", "--trials", 20],
+    "tolerance": ["tolerance", "--target", 5],
+    "fig4": ["fig4", "{map}", "--trials", 20, "--up", "0:1:1"],
+    "diagnose": ["diagnose", "--tracker", "{map}"],
+    "compare": ["compare", "--tracker", "{map}", "--trials", 20],
+    "coupled": ["coupled", "--trials", 20, "--no-budget"],
+}
+
+
+@pytest.mark.parametrize("command", list(OUT_FILE_COMMANDS))
+def test_out_is_an_existing_file(tmp_path, capsys, command):
+    """--out naming a file gave a FileExistsError traceback after the whole computation."""
+    if command not in _COMMANDS:
+        pytest.skip(f"no `cfm-fem {command}` command in this version")
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "afile"
+    out.write_text("keep me")
+    argv = [str(a).replace("{map}", str(path)) for a in OUT_FILE_COMMANDS[command]]
+    rc = main([*argv, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err, err
+    assert f"error: --out '{out}' is an existing file; expected a folder" in err
+    assert out.read_text() == "keep me"
+
+
+@pytest.mark.parametrize("command", ["sweep", "fig4"])
+@pytest.mark.parametrize("seed", [2**63, -1])
+def test_seed_out_of_range(tmp_path, capsys, command, seed):
+    """A seed >= 2**63 ended in numba's TypingError and left sweep's chunk manifest behind."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    argv = [command, path, "--up", "0:10:10", "--trials", 20, "--seed", seed, "--out", out]
+    err = _run(argv, out, capsys)
+    assert f"error: --seed must be in [0, 2**63); got {seed}" in err
+
+
+def _zero_bench_text():
+    """The reference bench with every error N(0, 0) and no vibration or reading delay."""
+    lines = []
+    for line in _ref_bench_text().splitlines():
+        key = line.split("=")[0].strip()
+        if key == "pdf":
+            lines += ['pdf = "normal"', "mean = 0.0", "std = 0.0"]
+        elif key in ("low", "high", "mean", "std", "mode", "beta", "value"):
+            continue
+        else:
+            lines.append("std_um = 0.0" if key == "std_um" else line)
+    return "\n".join(lines) + "\n"
+
+
+def test_bench_without_errors(tmp_path, capsys):
+    """Shares 0/0 = NaN ended kinematics in a JSON traceback after points.csv/.vtu were written
+    (and tolerance likewise, on infinite factors)."""
+    bench = tmp_path / "zero.toml"
+    bench.write_text(_zero_bench_text())
+    out = tmp_path / "k"
+    assert main(["kinematics", "--bench", str(bench), "--trials", "20", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["axes"]["x"]["U_p_um"] == 0.0
+    assert "U_p = 0 on axis x" in summary["budget"]["notes"][0]
+    assert sorted(p.name for p in out.iterdir()) == ["points.csv", "points.vtu", "summary.json"]
+    out = tmp_path / "t"
+    assert main(["tolerance", "--target", "5", "--bench", str(bench), "--out", str(out)]) == 0
+    assert json.loads((out / "tolerance.json").read_text())["common_factor"] == "inf"
+    capsys.readouterr()
+
+
+def test_kinematics_outputs_all_or_none(tmp_path, monkeypatch):
+    """A failing summary.json leaves no points.csv / points.vtu behind."""
+    from cfm_fem.io import kinematics_out
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(kinematics_out, "write_points_vtu", fail)
+    out = tmp_path / "k"
+    with pytest.raises(RuntimeError, match="disk full"):
+        main(["kinematics", "--trials", "20", "--out", str(out)])
+    assert not out.exists() or not list(out.iterdir())
+
+
+@pytest.mark.parametrize("target", ["inf", "1e300", "5,5,2e6"])
+def test_tolerance_target_too_large(tmp_path, capsys, target):
+    out = tmp_path / "out"
+    err = _run(["tolerance", "--target", target, "--out", out], out, capsys)
+    assert "--target must be at most 1e+06 um (1 m) per axis" in err
+
+
+def test_fig4_on_a_uniform_field(tmp_path, capsys):
+    """G = 0: r_eff = B_ref / G ended fig4 in a ZeroDivisionError after the whole sweep."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID, np.tile([0.1, 0.2, 0.3], (len(GRID), 1))))
+    out = tmp_path / "out"
+    argv = ["fig4", path, "--trials", 20, "--up", "0:10:10", "--out", out]
+    assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+    doc = json.loads((out / "fig4.json").read_text())
+    assert doc["r_eff_mm"] is None and doc["g_med_T_per_mm"] == 0.0
+    assert "r_eff is undefined" in doc["explanation"]
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's overflow on the way there
+def test_kinematics_refuses_non_finite_positions():
+    """std = 1e300 um (past the reader's limits here) kept `while np.any(slot < 0)` going for ever
+    on NaN positions; now a clear error after the first pass."""
+    import dataclasses
+
+    from cfm_fem.io.bench_toml import read_reference_bench
+    from cfm_fem.kinematics import run_kinematics
+    from cfm_fem.mc import Pdf
+
+    bench = read_reference_bench()
+    errors = list(bench.errors)
+    errors[0] = dataclasses.replace(errors[0], pdf=Pdf.from_params("normal", mean=0.0, std=1e300))
+    bench = dataclasses.replace(bench, errors=tuple(errors))
+    with pytest.raises(CfmInputError, match="infinite or NaN probe positions"):
+        run_kinematics(bench, trials=50, seed=0)
+
+
+def test_coupled_step_in_metres(tmp_path, capsys):
+    """--step 0.002 (metres typed as mm) asked for 78.5 million points: MemoryError."""
+    out = tmp_path / "out"
+    err = _run(
+        ["coupled", "--step", 0.002, "--trials", 20, "--no-budget", "--out", out], out, capsys
+    )
+    assert "asks for about 3.93e+08 scan points; expected at most 100,000" in err
+
+
+def test_harmonic_order_too_high(tmp_path, capsys):
+    """n = 1e8 in a harmonics file made coupled run for more than 5 minutes."""
+    rows = "".join(f"{n},{1.0 if n == 2 else 1e-3},0\n" for n in range(1, 5))
+    path = tmp_path / "h.csv"
+    path.write_text(f"# r_ref_mm: 10\n# convention: tesla\nn,Bn,An\n{rows}100000000,1e-3,0\n")
+    out = tmp_path / "out"
+    err = _run(
+        ["coupled", "--field", path, "--trials", 20, "--no-budget", "--out", out], out, capsys
+    )
+    assert f"error: {path}:8: column 'n' must be an order <= 1000; found '100000000'" in err

@@ -91,6 +91,14 @@ CASES = {
         "Bx [T]",
         "column 'Bx [T]' must be a finite number; found inf",
     ),
+    "decimal comma": (  # read as 1000x the values before: "0,125" was taken for 125
+        "m.csv",
+        CSV_HEADER + '"1,000","0,000","2,000","0,100","0,200","0,300"\n',
+        2,
+        "y [mm]",
+        "column 'y [mm]' must be a number with '.' as decimal point; found '0,000', which has "
+        "a decimal comma",
+    ),
     "unknown length unit": (
         "m.csv",
         "x [furlong],y [furlong],z [furlong],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,
@@ -186,6 +194,13 @@ CASES = {
         3,
         None,
         "duplicate node at [1.0, 2.0, 3.0] mm (also on line 2) with a different field",
+    ),
+    "near-duplicate node with another field": (  # twins 1e-12 mm apart, not neighbours in sort
+        "m.csv",
+        CSV_HEADER + "0,1,0,0.1,0,0.5\n0,2,0,0.2,0,0.5\n1e-12,1,0,0.9,0.9,0.9\n",
+        4,
+        None,
+        "duplicate node at [1e-12, 1.0, 0.0] mm (also on line 2) with a different field",
     ),
 }
 

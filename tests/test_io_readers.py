@@ -249,7 +249,8 @@ def test_table_columns_by_name_with_extra_text_column(tmp_path):
 
 def test_table_quoted_thousands_separators(tmp_path):
     text = 'X [inch],Y [inch],Z [inch],Bx [T],By [T],Bz [T]\n"1,066.67",-2,"-1,000",0.1,0.2,0.3\n'
-    fm = read_table(_write(tmp_path, "t.csv", text))
+    with pytest.warns(CfmInputWarning, match="-1,000 read with ','"):  # 1000 or -1.0?
+        fm = read_table(_write(tmp_path, "t.csv", text))
     np.testing.assert_allclose(fm.points[0], [1066.67 * 25.4, -50.8, -25400.0])
 
 
@@ -457,3 +458,31 @@ def test_read_field_rejects_bad_zero_rows_value(tmp_path):
     path = _write(tmp_path, "m.txt", COMSOL_3D)
     with pytest.raises(CfmInputError, match=r"zero_rows must be one of warn, drop, keep"):
         read_field(path, zero_rows="remove")
+
+
+def test_thousands_separator_without_decimal_point_warns(tmp_path):
+    """ "1,250" is 1250 or 1.25 depending on the writer's locale: read as 1250, with a warning."""
+    text = 'x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"1,250",2,3,0.1,0.2,0.3\n'
+    with pytest.warns(CfmInputWarning, match=r":2: column 'x \[mm\]': 1,250 read with ','"):
+        fm = read_table(_write(tmp_path, "t.csv", text))
+    assert fm.points[0, 0] == 1250.0
+
+
+def test_opera_cut_short_in_its_last_plane_is_reported(tmp_path):
+    """A file cut inside its last x plane still holds every distinct x, y, z value: only the row
+    count shows the cut (in the in-memory and the streaming reader)."""
+    text = OPERA + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
+    text = text[: text.rindex(" 5 10 -1")]  # the last two rows cut off
+    path = _write(tmp_path, "f.table", text)
+    what = r"point counts \[2, 3, 2\] do not match the 10 data rows: they make 12 rows \(2 "
+    with pytest.warns(CfmInputWarning, match=what + "missing"):
+        fm = read_opera(path)
+    assert fm.n_nodes == 10 and any("cut short" in n for n in fm.notes)
+
+    from cfm_fem.io.streaming import check_opera_counts, open_stream
+
+    stream = open_stream(path, "opera")
+    blocks = list(stream.blocks(rows_per_block=4))
+    distinct = [len(np.unique(np.concatenate([v[:, k] for v, _ in blocks]))) for k in range(3)]
+    with pytest.warns(CfmInputWarning, match=what):
+        assert check_opera_counts(stream, distinct)

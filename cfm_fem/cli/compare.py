@@ -12,6 +12,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir
 from ._progress import progress_bar
 from .coupled import add_common, check_common, load_bench
 
@@ -45,6 +46,7 @@ def add_args(p):
 
 
 def run(args) -> int:
+    check_out_dir(args.out)
     check_common(args)
     if args.hall_map and not args.reference:
         raise CfmInputError("--hall-map needs --reference FIELD (harmonics .csv or FEM export)")

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 
 if TYPE_CHECKING:
@@ -106,8 +107,7 @@ def add_args(p):
 def check_common(args):
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
-    if not 0 <= args.seed < 2**63:
-        raise CfmInputError(f"--seed must be in [0, 2**63); got {args.seed}")
+    check_seed(args.seed)
 
 
 def load_bench(args):
@@ -128,6 +128,12 @@ def _parse_z(text):
         raise CfmInputError(f"--z must be comma-separated numbers in mm; got {text!r}") from None
 
 
+#: Most scan points of --radius/--step: each point is a full Monte Carlo of --trials (default
+#: 1e5) probe positions, so 100,000 points are already hours; --step 0.002 (metres typed as mm)
+#: asked for 78.5 million points and a 1.2 GB array before the run.
+MAX_REGION_POINTS = 100_000
+
+
 def _region(args, fm: FieldModel):
     from ..coupled import default_region
 
@@ -146,6 +152,13 @@ def _region(args, fm: FieldModel):
         what = "0.8 x the map's transverse extent" if args.radius is None else "--radius"
     if not (r > 0 and args.step > 0):
         raise CfmInputError("--radius and --step must be > 0 mm")
+    n_est = np.pi * (r / args.step) ** 2 * len(z)  # grid points inside the circle, all planes
+    if not n_est <= MAX_REGION_POINTS:
+        raise CfmInputError(
+            f"--step {args.step:g} mm inside r <= {r:g} mm on {len(z)} plane(s) asks for about "
+            f"{n_est:.3g} scan points; expected at most {MAX_REGION_POINTS:,} (the step is in mm: "
+            f"{r * np.sqrt(np.pi * len(z) / MAX_REGION_POINTS):.2g} mm or more here)"
+        )
     pts = default_region(r, args.step, z)
     desc = (
         f"transverse grid step {args.step:g} mm inside r <= {r:g} mm ({what}), "
@@ -184,6 +197,7 @@ def run(args) -> int:
     from ..kinematics import uncertainty_budget
     from ..probe import HallProbe
 
+    check_out_dir(args.out)
     check_common(args)
     bench, bench_note = load_bench(args)
     if args.field is None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir
 from ._progress import progress_bar
 
 NAME = "diagnose"
@@ -114,6 +115,7 @@ def run(args) -> int:
     from ..io.diagnosis_out import write_diagnosis
     from ..io.recordings import read_hall_map, read_tracker
 
+    check_out_dir(args.out)
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:
         if args.reference:

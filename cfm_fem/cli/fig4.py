@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 from .sweep import parse_up_range
 
@@ -43,6 +44,8 @@ def run(args) -> int:
     from ..io.compare_out import write_run
     from ..io.provenance import provenance
 
+    check_out_dir(args.out)
+    check_seed(args.seed)
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)
@@ -82,10 +85,11 @@ def run(args) -> int:
     print(f"{'U_p [um]':>9}{'p50':>8}{'p95':>8}{'max':>8}{'law':>8}{'paper':>7}")
     for r in summary["table"]:
         paper = "" if r["paper"] is None else f"{r['paper']:g}"
-        print(
-            f"{r['up_um']:9g}{r['p50']:8.1f}{r['p95']:8.1f}{r['max']:8.1f}{r['analytic']:8.1f}"
-            f"{paper:>7}"
-        )
+        cells = "".join(
+            f"{'-':>8}" if r[k] is None else f"{r[k]:8.1f}"
+            for k in ("p50", "p95", "max", "analytic")
+        )  # None: no complete body node, or no gradient for the law
+        print(f"{r['up_um']:9g}{cells}{paper:>7}")
     print(summary["explanation"])
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0

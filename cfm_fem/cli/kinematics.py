@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 from .sweep import add_scale_out_args
 
@@ -53,12 +54,12 @@ def run(args) -> int:
     from ..io.provenance import provenance
     from ..kinematics import gum_check, run_kinematics, uncertainty_budget
 
+    check_out_dir(args.out)
     if args.adaptive is None and args.trials < 2:
         raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
     if args.adaptive is not None and not 1 <= args.adaptive <= 4:
         raise CfmInputError(f"--adaptive must be 1..4 significant digits; got {args.adaptive}")
-    if not 0 <= args.seed < 2**63:
-        raise CfmInputError(f"--seed must be in [0, 2**63); got {args.seed}")
+    check_seed(args.seed)
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     npts = len(bench.grid_points())
     passes = 1 if args.fast_intervals else 2

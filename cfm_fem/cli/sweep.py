@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..errors import CfmInputError
 from . import interrupted, option_type
+from ._checks import check_out_dir, check_seed
 from ._progress import progress_bar
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -326,6 +327,8 @@ def run(args) -> int:
             "--bench is used by --mode htm only (mode gauss has no bench model); "
             "add --mode htm or leave out --bench"
         )
+    check_out_dir(args.out)
+    check_seed(args.seed)
     up = parse_up_range(args.up)
     if args.chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")

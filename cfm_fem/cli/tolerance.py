@@ -9,13 +9,20 @@ first. ``--check N`` verifies the plan's U_p with an N-trial Monte Carlo of the 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..errors import CfmInputError
 from . import option_type
+from ._checks import check_out_dir, check_seed
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
+
+
+#: Largest --target (um): 1 m, far beyond any bench stroke; larger values only overflow U_p^2.
+MAX_TARGET_UM = 1e6
 
 
 def _target(text):
@@ -30,6 +37,16 @@ def _target(text):
     if len(v) != 3 or any(not (x > 0) for x in v):
         raise CfmInputError(f"--target must be one or three positive numbers in um; got {text!r}")
     return v
+
+
+def _check_target(v):
+    # here, not in `_target`: argparse replaces a type function's message with its own
+    if any(not x <= MAX_TARGET_UM for x in v):
+        shown = ",".join(f"{x:g}" for x in v)
+        raise CfmInputError(
+            f"--target must be at most {MAX_TARGET_UM:g} um (1 m) per axis; got {shown} "
+            "(larger values only overflow U_p^2)"
+        )
 
 
 def add_args(p):
@@ -55,11 +72,15 @@ def add_args(p):
 
 
 def run(args) -> int:
-    from ..io._atomic import write_json
+    from ..io._atomic import atomic_paths, json_text, write_text
     from ..io.bench_toml import read_bench, read_reference_bench, write_bench
     from ..io.kinematics_out import bench_description
     from ..kinematics import design_tolerances, run_kinematics
 
+    if args.out:
+        check_out_dir(args.out)
+    check_seed(args.seed)
+    _check_target(args.target)
     if args.check < 0 or args.check == 1:
         raise CfmInputError(f"--check must be 0 or >= 2 trials; got {args.check}")
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
@@ -72,10 +93,25 @@ def run(args) -> int:
     _print(d)
     if args.out:
         d["bench"] = bench_description(bench)
-        write_json(f"{args.out}/tolerance.json", d)
-        write_bench(f"{args.out}/bench_plan.toml", plan_bench)
+        text = json_text(_inf_as_text(d))
+        out = Path(args.out)
+        with atomic_paths([out / "tolerance.json", out / "bench_plan.toml"]) as (tj, tb):
+            write_text(tj, text)
+            write_bench(tb, plan_bench)
         print(f"wrote {args.out}/tolerance.json and {args.out}/bench_plan.toml")
     return 0
+
+
+def _inf_as_text(obj):
+    """``obj`` with every infinite float as the string ``"inf"`` (JSON has no infinity): a factor
+    is infinite when its error does not matter, which a bench without errors makes of all."""
+    if isinstance(obj, dict):
+        return {k: _inf_as_text(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_inf_as_text(v) for v in obj]
+    if isinstance(obj, float | np.floating) and np.isinf(obj):
+        return "inf" if obj > 0 else "-inf"
+    return obj
 
 
 def _plan_factors(bench, plan):

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..bench import AXES, ERROR_NAMES, Bench
 from ..kinematics import sensitivities
+from ..recordings import check_hall_scale
 from .calibrate import Columns
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]
@@ -231,9 +232,10 @@ def hall_problem(
     B0u = field_fn(upts)
     Gu = field_jacobian(field_fn, upts, h)
     B0, G = B0u[uinv], Gu[uinv]
+    scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
     y = rec.B - B0
     n = len(rec)
-    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T"]
+    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
     q = np.zeros_like(p)

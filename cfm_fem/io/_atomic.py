@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "write_json", "write_text"]
+__all__ = ["atomic_path", "atomic_paths", "json_text", "write_json", "write_text"]
 
 
 @contextlib.contextmanager
@@ -35,6 +35,41 @@ def atomic_path(path, suffix: str | None = None):
         raise
 
 
+@contextlib.contextmanager
+def atomic_paths(paths):
+    """`atomic_path` for several files that belong together: yield one temporary path beside each
+    of ``paths`` and rename them all only once the whole block succeeded.
+
+    A writer that fails on its third file then leaves none of the three (a ``summary.json``
+    missing beside ``points.csv`` looked like a finished run).
+    """
+    paths = [Path(p) for p in paths]
+    tmps = []
+    try:
+        with contextlib.ExitStack() as stack:
+            for p in paths:
+                tmps.append(stack.enter_context(_kept_temp(p)))
+            yield tmps
+            for tmp, p in zip(tmps, paths, strict=True):
+                os.replace(tmp, p)
+    finally:
+        for tmp in tmps:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def _kept_temp(path):
+    """A temporary file beside ``path`` with the umask's permissions (the caller renames it)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    yield Path(tmp)
+
+
 def write_text(path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (UTF-8)."""
     with atomic_path(path) as tmp:
@@ -53,6 +88,17 @@ def _jsonable(obj):
     raise TypeError(f"not JSON serialisable: {type(obj)}")
 
 
+def json_text(data) -> str:
+    """``data`` as indented JSON; numpy arrays and scalars become plain JSON.
+
+    Raises
+    ------
+    ValueError
+        NaN or infinity in ``data`` (not JSON).
+    """
+    return json.dumps(data, indent=2, default=_jsonable, allow_nan=False) + "\n"
+
+
 def write_json(path, data) -> None:
     """Write ``data`` as indented JSON atomically; numpy arrays and scalars become plain JSON."""
-    write_text(path, json.dumps(data, indent=2, default=_jsonable, allow_nan=False) + "\n")
+    write_text(path, json_text(data))

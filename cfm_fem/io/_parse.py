@@ -155,6 +155,11 @@ def _has_unit(name: str) -> bool:
 # --------------------------------------------------------------------------- numbers
 
 _THOUSANDS = re.compile(r"[+-]?\d{1,3}(?:,\d{3})+(?:\.\d*)?(?:[eE][+-]?\d+)?")
+# "0,125" or "-0,500": a first group of 0 is never written before a thousands separator, so the
+# comma is a decimal comma. Reading it as 125 made a whole decimal-comma map 1000x too large; we
+# refuse instead of reading it as 0.125 because the same file then also holds "1,250", which is
+# 1250 or 1.25 depending on the writer's locale, and guessing per value would mix both readings.
+_DECIMAL_COMMA = re.compile(r"[+-]?0,\d+(?:[eE][+-]?\d+)?")
 
 
 def parse_number(token: str, *, column: str, file, line, was_quoted: bool = False) -> float:
@@ -162,6 +167,7 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
 
     Thousands separators are accepted only where they cannot be a decimal comma: in a quoted
     field (``was_quoted``, or quotes still on ``token``) or when a decimal point follows them.
+    A decimal comma that cannot be a thousands separator (``"0,125"``) is refused.
 
     Raises
     ------
@@ -175,6 +181,15 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
         return float(s)
     except ValueError:
         pass
+    if _DECIMAL_COMMA.fullmatch(s):
+        raise CfmInputError(
+            f"column '{column}' must be a number with '.' as decimal point; found '{s}', which "
+            "has a decimal comma (a thousands group never starts with 0); export the file with "
+            "'.' as decimal separator",
+            file=file,
+            line=line,
+            column=column,
+        )
     if _THOUSANDS.fullmatch(s) and (was_quoted or "." in s):
         return float(s.replace(",", ""))
     found = "an empty field" if not s else f"'{s}'"
@@ -223,6 +238,7 @@ def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarra
         if delimiter is None
         else csv.reader(rows, delimiter=delimiter)
     )
+    ambiguous = None  # (line, column, token) of the first thousands separator without a "."
     for i, fields in enumerate(reader):
         line = int(row_lines[i])
         n = len(fields)
@@ -247,6 +263,20 @@ def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarra
             out[i, j] = parse_number(
                 fields[c], column=names[c], file=file, line=line, was_quoted=comma_quoted
             )
+            if ambiguous is None and "," in fields[c] and "." not in fields[c]:
+                ambiguous = (line, names[c], fields[c].strip())
+    if ambiguous is not None:
+        # "1,250" with no decimal point is 1250 to an English writer and 1.25 to a decimal-comma
+        # one; it is read as 1250 (a decimal-comma file is refused at its first "0,..." value),
+        # but say so in case the file has no value below 1 to give it away.
+        line, column, token = ambiguous
+        warnings.warn(
+            f"{file}:{line}: column '{column}': {token} read with ',' as thousands separator "
+            f"({parse_number(token, column=column, file=file, line=line, was_quoted=True):g}); "
+            "if the file uses a decimal comma, its values are 1000x too large",
+            CfmInputWarning,
+            stacklevel=2,
+        )
     return out
 
 

@@ -34,6 +34,17 @@ __all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench",
 #: Name of the shipped reference bench inside the package data.
 REFERENCE_BENCH = "cfm_reference_bench.toml"
 
+#: Most scan points of a bench grid: kinematics needs about 30 kB per point (100,800 points
+#: with 1,000 trials: 3.1 GB, 40 s), so 100,000 is a few GB; num = 1e8 asked for 54 GB at once.
+MAX_GRID_POINTS = 100_000
+#: Largest stroke, and largest error a bench may describe (|mean| + 10 std, times the largest
+#: profile value): 1e5 mm and 1e3 mm (1 m) for a translation, 1 rad for an angle, 1e6 um for
+#: vibration and reading delay. Larger values are typos or overflow: std = 1e300 um made the
+#: kinematics Monte Carlo loop for ever on NaN positions.
+MAX_STROKE_MM = 1e5
+MAX_ERROR = {"length": 1e3, "angle": 1.0}
+MAX_NOISE_UM = 1e6
+
 _LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "nm": 1e-6}
 _ANGLE_UNITS = {
     "rad": 1.0,
@@ -101,6 +112,21 @@ def _check_keys(doc: _Doc, table: dict, allowed, prefix: str):
             )
 
 
+def _float(v) -> float:
+    """``float(v)``, or inf for an integer too large for a float (TOML integers are unbounded;
+    numpy's isfinite refused a 400-digit one with a TypeError)."""
+    try:
+        return float(v)
+    except OverflowError:
+        return float("inf")
+
+
+def _shown(v) -> str:
+    """``repr(v)`` cut to 60 characters (a 400-digit integer in a message helps no one)."""
+    text = repr(v)
+    return text if len(text) <= 60 else f"{text[:40]}...{text[-10:]} ({len(text)} characters)"
+
+
 def _get(doc, table, key, prefix, kind, default=None, required=False):
     full = f"{prefix}.{key}" if prefix else key
     if key not in table:
@@ -113,8 +139,8 @@ def _get(doc, table, key, prefix, kind, default=None, required=False):
         return default
     v = table[key]
     if kind == "number":
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise doc.error(full, f"must be a finite number; found {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(_float(v)):
+            raise doc.error(full, f"must be a finite number; found {_shown(v)}")
         return float(v)
     if kind == "integer":
         if isinstance(v, bool) or not isinstance(v, int):
@@ -127,14 +153,14 @@ def _get(doc, table, key, prefix, kind, default=None, required=False):
     if kind == "vector3":
         ok = isinstance(v, list) and len(v) == 3
         ok = ok and all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in v)
-        if not ok or not np.all(np.isfinite(v)):
-            raise doc.error(full, f"must be a list of 3 finite numbers; found {v!r}")
+        if not ok or not all(np.isfinite(_float(x)) for x in v):
+            raise doc.error(full, f"must be a list of 3 finite numbers; found {_shown(v)}")
         return np.array(v, dtype=np.float64)
     if kind == "numbers":
         ok = isinstance(v, list) and len(v) > 0
         ok = ok and all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in v)
-        if not ok or not np.all(np.isfinite(v)):
-            raise doc.error(full, f"must be a non-empty list of finite numbers; found {v!r}")
+        if not ok or not all(np.isfinite(_float(x)) for x in v):
+            raise doc.error(full, f"must be a non-empty list of finite numbers; found {_shown(v)}")
         return tuple(float(x) for x in v)
     if kind == "table":
         if not isinstance(v, dict):
@@ -155,6 +181,8 @@ def _std_or_vector(doc, table, key, prefix, default):
         vec = np.full(3, _get(doc, table, key, prefix, "number"))
     if np.any(vec < 0):
         raise doc.error(full, f"must be >= 0 (a standard deviation); found {v!r}")
+    if np.any(vec > MAX_NOISE_UM):
+        raise doc.error(full, f"must be <= {MAX_NOISE_UM:g} um (1 m); found {_shown(v)}")
     return vec * 1e-3
 
 
@@ -208,6 +236,17 @@ def _read_error(doc, table, group, key):
     profile = _get(doc, table, "profile", prefix, "numbers", default=(1.0,))
     if group == "squareness" and any(c != 0 for c in profile[1:]):
         raise doc.error(f"{prefix}.profile", "is not allowed: squareness is position independent")
+    kind = "angle" if is_angle else "length"
+    with np.errstate(over="ignore", invalid="ignore"):
+        # sum |c_k| bounds the profile on u in [0, 1]
+        size = (abs(pdf.mean) + 10.0 * pdf.std) * float(np.sum(np.abs(profile)))
+    if not size <= MAX_ERROR[kind]:
+        limit = "1 m" if kind == "length" else "1 rad"
+        raise doc.error(
+            prefix,
+            f"describes errors up to {size:.3g} {'mm' if kind == 'length' else 'rad'} (|mean| + "
+            f"10 std, times the profile); expected at most {limit}: check the values and the unit",
+        )
     note = _get(doc, table, "note", prefix, "string", default="")
     return ErrorSpec(name=name, pdf=pdf, profile=profile, unit=unit, note=note)
 
@@ -295,8 +334,10 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
         t = _get(doc, axes_t, a, "axes", "table", required=True)
         _check_keys(doc, t, {"stroke_mm", "mount_offset_mm"}, f"axes.{a}")
         stroke = _get(doc, t, "stroke_mm", f"axes.{a}", "number", required=True)
-        if stroke <= 0:
-            raise doc.error(f"axes.{a}.stroke_mm", f"must be > 0 (mm); found {stroke:g}")
+        if not 0 < stroke <= MAX_STROKE_MM:
+            raise doc.error(
+                f"axes.{a}.stroke_mm", f"must be > 0 and <= {MAX_STROKE_MM:g} mm; found {stroke:g}"
+            )
         mount = _get(doc, t, "mount_offset_mm", f"axes.{a}", "vector3", default=np.zeros(3))
         axes[a] = Axis(a, stroke, mount)
 
@@ -313,8 +354,10 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
         start = _get(doc, g, "start", f"grid.{key}", "number", required=True)
         stop = _get(doc, g, "stop", f"grid.{key}", "number", required=True)
         num = _get(doc, g, "num", f"grid.{key}", "integer", required=True)
-        if num < 1:
-            raise doc.error(f"grid.{key}.num", f"must be >= 1; found {num}")
+        if not 1 <= num <= MAX_GRID_POINTS:
+            raise doc.error(
+                f"grid.{key}.num", f"must be >= 1 and <= {MAX_GRID_POINTS:,}; found {_shown(num)}"
+            )
         if min(start, stop) < 0 or max(start, stop) > axes[a].stroke_mm + 1e-9:
             raise doc.error(
                 f"grid.{key}",
@@ -322,6 +365,13 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
                 f"found start={start:g}, stop={stop:g}",
             )
         grid_args[a] = (start, stop, num)
+    n_grid = int(np.prod([int(g[2]) for g in grid_args.values()], dtype=object))
+    if n_grid > MAX_GRID_POINTS:
+        raise doc.error(
+            "grid",
+            f"has {n_grid:,} points; expected at most {MAX_GRID_POINTS:,} (about 30 kB "
+            "of memory per point in kinematics)",
+        )
 
     err_t = _get(doc, data, "errors", "", "table", required=True)
     _check_keys(doc, err_t, set(_ERROR_GROUPS), "errors")

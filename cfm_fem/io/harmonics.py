@@ -35,6 +35,10 @@ from ._parse import check_nul, check_utf16
 __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "read_qfdp4"]
 
 CONVENTIONS = ("tesla", "paper_units")
+#: Highest harmonic order read. Rotating coils give n <= ~30 and FEM harmonic analyses rarely go
+#: past 100; every order up to the highest is stored and summed at each point, so n = 1e8 ran for
+#: more than 5 minutes before any output.
+MAX_ORDER = 1000
 _REQUIRED = ("n", "bn", "an")
 _SPELLING = {"n": "n", "bn": "Bn", "an": "An"}
 _KEYS = ("r_ref_mm", "r_ref", "convention", "main")
@@ -174,6 +178,14 @@ def _parse(text: str, source: str):
         if n_val != int(n_val) or n_val < 1:
             raise CfmInputError(
                 f"column '{names['n']}' must be an integer order >= 1; found {fields[cols['n']]!r}",
+                file=source,
+                line=lineno,
+                column=names["n"],
+            )
+        if n_val > MAX_ORDER:
+            raise CfmInputError(
+                f"column '{names['n']}' must be an order <= {MAX_ORDER}; found "
+                f"{fields[cols['n']]!r} (every order up to the highest is evaluated at each point)",
                 file=source,
                 line=lineno,
                 column=names["n"],

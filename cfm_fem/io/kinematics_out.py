@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import write_json, write_text
+from ._atomic import atomic_paths, json_text, write_text
 from .vtk import write_vtu
 
 __all__ = [
@@ -169,7 +169,8 @@ def write_points_vtu(path, result, bench, provenance: dict | None = None) -> Non
 
 
 def write_kinematics(out_dir, result, bench, summary: dict) -> dict:
-    """Write ``summary.json``, ``points.csv`` and ``points.vtu`` into ``out_dir``.
+    """Write ``summary.json``, ``points.csv`` and ``points.vtu`` into ``out_dir``: all three
+    or, if any fails, none.
 
     Returns
     -------
@@ -181,7 +182,9 @@ def write_kinematics(out_dir, result, bench, summary: dict) -> dict:
         "csv": out / "points.csv",
         "vtu": out / "points.vtu",
     }
-    write_points_csv(paths["csv"], result, bench, summary.get("provenance"))
-    write_points_vtu(paths["vtu"], result, bench, summary.get("provenance"))
-    write_json(paths["summary"], summary)
+    text = json_text(summary)  # a summary JSON refuses fails here, before any file is written
+    with atomic_paths(paths.values()) as (summary_tmp, csv_tmp, vtu_tmp):
+        write_points_csv(csv_tmp, result, bench, summary.get("provenance"))
+        write_points_vtu(vtu_tmp, result, bench, summary.get("provenance"))
+        write_text(summary_tmp, text)
     return paths

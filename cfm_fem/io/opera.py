@@ -143,15 +143,48 @@ def _definition(text, expected_index, file, line):
 
 def _check_counts(counts, points, file, line) -> list[str]:
     distinct = [int(np.unique(points[:, k]).size) for k in range(3)]
-    if sorted(c for c in counts if c != 1) == sorted(c for c in distinct if c != 1):
+    msg = count_mismatch(counts, distinct, len(points), file, line)
+    if msg is None:
         return []
-    msg = (
-        f"{file}:{line}: the point counts {counts} do not match the data, which hold "
-        f"{distinct[0]} x {distinct[1]} x {distinct[2]} distinct x, y, z values; the data are "
-        f"used as they are"
-    )
     warnings.warn(msg, CfmInputWarning, stacklevel=4)
     return [msg]
+
+
+def count_mismatch(counts, distinct, n_rows, file, line) -> str | None:
+    """The message for point counts on line 1 that the data do not match, or None.
+
+    Both the numbers of distinct x, y, z values and the number of rows are compared: a file cut
+    short in its last plane still has every distinct value, so only the row count shows the cut.
+    Like COMSOL's ``% Nodes`` check this is a warning, not an error (the rows present are
+    valid nodes, and maps with missing grid points are used elsewhere too), but it says plainly
+    that rows are missing.
+
+    Parameters
+    ----------
+    counts : list of int
+        Point counts of line 1.
+    distinct : sequence of 3 (int or None)
+        Numbers of distinct x, y, z values (None: too many to count).
+    n_rows : int
+        Number of data rows.
+    """
+    expected = int(np.prod(counts, dtype=object))
+    if n_rows != expected:
+        cut = "the file looks cut short; " if n_rows < expected else ""
+        return (
+            f"{file}:{line}: the point counts {counts} do not match the {n_rows} data rows: "
+            f"they make {expected} rows ({abs(expected - n_rows)} "
+            f"{'missing' if n_rows < expected else 'too many'}); {cut}the {n_rows} rows are used"
+        )
+    if all(d is not None for d in distinct) and sorted(c for c in counts if c != 1) == sorted(
+        c for c in distinct if c != 1
+    ):
+        return None
+    shown = " x ".join("many" if d is None else str(d) for d in distinct)
+    return (
+        f"{file}:{line}: the point counts {counts} do not match the data, which hold "
+        f"{shown} distinct x, y, z values; the data are used as they are"
+    )
 
 
 def write_opera(path, fieldmap: FieldMap) -> None:

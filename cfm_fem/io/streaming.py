@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import CfmInputError, CfmInputWarning
 from ._parse import _check_finite, describe_column, detect_delimiter, header_names, parse_block
 from ._parse import table_layout as _layout
+from .opera import count_mismatch
 
 __all__ = ["TableStream", "open_stream", "iter_lines", "check_opera_counts", "STREAMABLE"]
 
@@ -114,6 +115,8 @@ class TableStream:
     layout: object
     counts: list | None = None
     notes: list = field(default_factory=list)
+    #: Data rows read so far by `blocks` (all of them once it has run to the end).
+    n_rows: int = 0
 
     @property
     def spelled(self) -> list:
@@ -137,7 +140,7 @@ class TableStream:
             or no data row at all.
         """
         rows, lines = [], []
-        n = 0
+        n = self.n_rows = 0
         for number, text in iter_lines(self.file, self.data_line):
             s = text.lstrip()
             if not s or s[0] in "#%":
@@ -146,10 +149,12 @@ class TableStream:
             lines.append(number)
             if len(rows) >= rows_per_block:
                 n += len(rows)
+                self.n_rows = n
                 yield self._parse(rows, lines)
                 rows, lines = [], []
         if rows:
             n += len(rows)
+            self.n_rows = n
             yield self._parse(rows, lines)
         if n == 0:
             raise CfmInputError(
@@ -288,6 +293,8 @@ def _open_opera(file, length_unit, field_unit) -> TableStream:
 def check_opera_counts(stream: TableStream, distinct) -> list[str]:
     """Opera's point-count check (`cfm_fem.io.opera.read_opera`) from distinct-value counts.
 
+    Call it once `TableStream.blocks` has run out: the row count it read is compared too.
+
     Parameters
     ----------
     stream : TableStream
@@ -297,16 +304,11 @@ def check_opera_counts(stream: TableStream, distinct) -> list[str]:
     """
     if stream.counts is None:
         return []
-    counts = stream.counts
-    if all(d is not None for d in distinct) and sorted(c for c in counts if c != 1) == sorted(
-        c for c in distinct if c != 1
-    ):
-        return []
-    shown = " x ".join("many" if d is None else str(d) for d in distinct)
-    msg = (
-        f"{stream.file}:{_first_line(stream.file)}: the point counts {counts} do not match the "
-        f"data, which hold {shown} distinct x, y, z values; the data are used as they are"
+    msg = count_mismatch(
+        stream.counts, distinct, stream.n_rows, stream.file, _first_line(stream.file)
     )
+    if msg is None:
+        return []
     warnings.warn(msg, CfmInputWarning, stacklevel=3)
     return [msg]
 
