@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-__all__ = ["CfmInputError", "CfmInputWarning", "location"]
+__all__ = ["CfmInputError", "CfmInputWarning", "location", "MAX_SEED"]
+
+#: Seeds go to numpy's SeedSequence and to numba kernels as int64: [0, MAX_SEED).
+MAX_SEED = 2**63
 
 
 def location(file=None, line=None) -> str:

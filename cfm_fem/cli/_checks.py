@@ -10,12 +10,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import CfmInputError
+from ..errors import MAX_SEED, CfmInputError
 
 __all__ = ["check_out_dir", "check_seed", "MAX_SEED"]
-
-#: Seeds go to numpy's SeedSequence and to numba kernels as int64: [0, 2**63).
-MAX_SEED = 2**63
 
 
 def check_out_dir(path, option: str = "--out") -> None:
