@@ -1522,7 +1522,7 @@ def _insertion_sort(a, src):
 
 @nb.njit(**JIT)
 def sort_values(a):
-    """Sort a float64 array in place (finite values).
+    """Sort a float64 array in place (NaN last, as `numpy.sort`).
 
     Comparison sorts stall on mispredicted branches (numba's quicksort: ~80 ns per element for
     500 values). Here the values are first ordered by a key quantised over [min, max], then an
@@ -1539,9 +1539,14 @@ def sort_values(a):
         return
     lo = a[0]
     hi = a[0]
+    nan = False
     for i in range(n):
         lo = min(lo, a[i])
         hi = max(hi, a[i])
+        nan |= a[i] != a[i]
+    if nan:  # a trial that met a slab's halo sentinel (NaN field): its key would index
+        a[:] = np.sort(a)  # out of the counting arrays; the node's statistics are NaN anyway
+        return
     if not hi > lo:
         return
     if n <= 4096:
@@ -1886,7 +1891,8 @@ def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat
     Returns
     -------
     int
-        Number of star cells; -1 if ``c0`` does not contain ``g`` or the star exceeds MAX_STAR.
+        Number of star cells; -1 if ``c0`` does not contain ``g``, the star exceeds MAX_STAR or
+        a face with g leads to a cell without it.
     """
     d = transform.shape[2]
     if c0 < 0 or not _star_contains(simplices, c0, g):
@@ -1908,7 +1914,9 @@ def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat
             else:
                 k = _star_slot(htab, g, ns, n)
                 if k < 0:
-                    if n == cells.shape[0]:
+                    # too large; or a cell without g across a face with g: not a conforming
+                    # star (the sentinel cell a slab's halo border leads to, `cfm_fem.slabs`)
+                    if n == cells.shape[0] or not _star_contains(simplices, ns, g):
                         return -1
                     cells[n] = ns
                     k = n

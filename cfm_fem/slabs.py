@@ -482,6 +482,25 @@ def _certify(st: Staged, plan, k, h, coords, simplices, boxes):
     return cert
 
 
+def _at_cut(coords, simplices, s, j, axis, map_lo, map_hi, tol):
+    """Border faces (of cell s[i], opposite its vertex j[i]) of a slab + halo's Kuhn grid that
+    may be cuts: with a vertex on its first or last lattice plane along ``axis`` where the map
+    goes on beyond. A Kuhn cell spans one lattice step, so the map's cell across any other
+    border face would have all its nodes in slab + halo, and be there: the face is the map's
+    own border (a notch, a gap of the grid), not a halo border. ``tol``: mm."""
+    a = coords[:, axis]
+    lo, hi = a.min(), a.max()
+    keep = np.ones((len(s), simplices.shape[1]), dtype=bool)
+    keep[np.arange(len(s)), j] = False
+    fa = a[simplices[s][keep].reshape(len(s), -1)]
+    cut = np.zeros(len(s), dtype=bool)
+    if lo > map_lo + tol:
+        cut |= (fa <= lo + tol).any(axis=1)
+    if hi < map_hi - tol:
+        cut |= (fa >= hi - tol).any(axis=1)
+    return cut
+
+
 def _faces_of(simplices, s, j, cells):
     """Whether the face of simplices[s[i]] opposite its vertex j[i] is a face of one of
     ``cells`` (k, d + 1), as a bool array like ``s``."""
@@ -1010,6 +1029,9 @@ class _SlabJob:
         s_idx, j_idx = np.nonzero(nb < 0)
         hull = _hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
         hull |= _faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
+        if kind == "grid":  # a notch or a gap of the grid: border faces off the cut planes
+            hull |= ~_at_cut(mesh.coords, mesh.simplices, s_idx, j_idx, plan.axis,
+                             st.lo[plan.axis], st.hi[plan.axis], 1e-9 * span)  # fmt: skip
         suspect[s_idx[~hull], j_idx[~hull]] = True
         suspect[~cert] = False  # never entered
         # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that

@@ -226,17 +226,3 @@ def test_hull_slivers_option(tmp_path):
     notes = json.loads((tmp_path / "b" / "summary.json").read_text())["notes"]
     assert not any("Delaunay hull removed" in n for n in notes)
     assert any("flat cell(s) line the Delaunay hull" in n for n in notes)
-
-
-def test_slabs_refuse_hull_slivers_keep(tmp_path):
-    """--slabs with --hull-slivers keep crashed on scattered maps (session-14 audit): refused
-    with exit 2 before anything is written."""
-    rng = np.random.default_rng(1)
-    pts = rng.uniform(-3, 3, (400, 3))
-    src = tmp_path / "m.csv"
-    rows = "\n".join(",".join(f"{v:.6f}" for v in (*p, *(0.1 * p))) for p in pts)
-    src.write_text("x,y,z,Bx,By,Bz\n" + rows + "\n")
-    out = tmp_path / "out"
-    args = ["sweep", str(src), "--up", "10", "--trials", "50", "--slabs", "2"]
-    assert main([*args, "--hull-slivers", "keep", "--out", str(out)]) == 2
-    assert not out.exists()

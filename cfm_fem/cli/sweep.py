@@ -221,13 +221,6 @@ def _run_slabs(args, up):
             file=sys.stderr,
         )
         return None
-    if args.hull_slivers == "keep":
-        # Known defect (session 14): on scattered maps the slab kernel can crash (segfault)
-        # when the hull's flat cells are kept; refused until fixed, before anything is written
-        raise CfmInputError(
-            "--slabs/--max-memory with --hull-slivers keep is not supported (it can crash on "
-            "scattered maps); use the default --hull-slivers remove, or run without --slabs"
-        )
     bench = None
     if args.mode == "htm":
         from ..io.bench_toml import read_bench, read_reference_bench
