@@ -240,3 +240,26 @@ def test_slabs_refuse_hull_slivers_keep(tmp_path):
     args = ["sweep", str(src), "--up", "10", "--trials", "50", "--slabs", "2"]
     assert main([*args, "--hull-slivers", "keep", "--out", str(out)]) == 2
     assert not out.exists()
+
+
+def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monkeypatch):
+    """--slabs streams the file in blocks; the "1,250 read with ',' as thousands separator"
+    warning was printed once per block. Once per file now."""
+    import cfm_fem.slabs
+
+    monkeypatch.setattr(cfm_fem.slabs, "BLOCK", 50)  # 216 rows: 5 blocks
+    ax = np.arange(6.0)
+    pts = np.stack(np.meshgrid(ax + 1000.0, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
+    rows = "".join(
+        f'"1,{p[0] - 1000:03.0f}",{p[1]:g},{p[2]:g},' + ",".join(f"{v:.17g}" for v in b) + "\n"
+        for p, b in zip(pts, B, strict=True)
+    )
+    path = tmp_path / "thousands.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows)
+    argv = ["sweep", str(path), "--up", "10", "--trials", "50", "--slabs", "2"]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["nodes"] == 216
