@@ -263,3 +263,39 @@ def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monk
     assert err.count("read with ',' as thousands separator") == 1, err
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert s["nodes"] == 216
+
+
+class _Bars:
+    """Stands in for `cfm_fem.cli._progress.progress_bar`: records each bar's total and updates."""
+
+    def __init__(self):
+        self.bars = []
+
+    def __call__(self, total, unit):
+        import contextlib
+
+        bar = {"total": total, "unit": unit, "done": 0}
+        self.bars.append(bar)
+
+        class _Bar:
+            def update(self, n=1):
+                bar["done"] += n
+
+            def write(self, text, file=None):
+                print(text, file=file)
+
+        return contextlib.nullcontext(_Bar())
+
+
+@pytest.mark.parametrize("option", [["--slabs", "2"], ["--max-memory", "1G"]])
+def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, option):
+    """--slabs/--max-memory ran without a progress bar (the in-memory path has one): the bar
+    now counts the nodes as the slabs finish (no total: it is known after staging only)."""
+    import cfm_fem.cli.sweep
+
+    bars = _Bars()
+    monkeypatch.setattr(cfm_fem.cli.sweep, "progress_bar", bars)
+    argv = ["sweep", str(csv_map), "--up", "10", "--trials", "50", *option]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 0
+    assert [b["unit"] for b in bars.bars] == ["nodes"]
+    assert bars.bars[0]["done"] == 216

@@ -251,14 +251,19 @@ def _run_slabs(args, up):
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
                 prov["backend"] = _backend(args) + ", slabs (out of core)"
-            summary = run_slab_sweep(
-                args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
-                length_unit=args.length_unit, field_unit=args.field_unit,
-                zero_rows=args.zero_rows, provenance=prov,
-                log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
-                description=description, resume=args.resume, keep=args.keep_chunks,
-                map_chunks=None if client is None else dask_chunk_map(client),
-            )  # fmt: skip
+            # the node count is known only once the file is staged (inside run_slab_sweep):
+            # the bar counts the finished nodes, slab by slab, without a total; messages go
+            # above it (tqdm's write), not into its line
+            with progress_bar(None, "nodes") as bar:
+                summary = run_slab_sweep(
+                    args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
+                    length_unit=args.length_unit, field_unit=args.field_unit,
+                    zero_rows=args.zero_rows, provenance=prov,
+                    log=lambda m: bar.write(f"cfm-fem sweep: {m}", file=sys.stderr),
+                    progress=bar.update, description=description, resume=args.resume,
+                    keep=args.keep_chunks,
+                    map_chunks=None if client is None else dask_chunk_map(client),
+                )  # fmt: skip
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
             raise
