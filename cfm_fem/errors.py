@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["CfmInputError", "CfmInputWarning", "location", "MAX_SEED"]
+__all__ = ["CfmInputError", "CfmInputWarning", "location", "MAX_SEED", "check_seed"]
 
 #: Seeds go to numpy's SeedSequence and to numba kernels as int64: [0, MAX_SEED).
 MAX_SEED = 2**63
@@ -44,3 +44,28 @@ class CfmInputError(ValueError):
 
 class CfmInputWarning(UserWarning):
     """Input that is usable but suspicious (wrong node count in a header, placeholder rows, ...)."""
+
+
+def check_seed(seed, option: str = "--seed") -> None:
+    """Check that ``seed`` is an integer in [0, MAX_SEED) (numba kernels take it as int64).
+
+    The one seed rule of the command line (`cfm_fem.cli._checks`) and of the Python API
+    (`cfm_fem.sweep`): both give the same message.
+
+    Parameters
+    ----------
+    seed : int
+    option : str
+        The option (or parameter) that gave the seed, for the message.
+
+    Raises
+    ------
+    CfmInputError
+        The seed is not an integer (a bool, a float, a string), is negative or is too large.
+    """
+    import numbers
+
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise CfmInputError(f"{option} must be an integer in [0, 2**63); got {seed!r}")
+    if not 0 <= int(seed) < MAX_SEED:
+        raise CfmInputError(f"{option} must be in [0, 2**63); got {seed}")

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _kernels
-from .errors import CfmInputError
+from .errors import CfmInputError, check_seed
 from .field import FieldMap
 from .interpolation import SimplexMesh, build_mesh, morton_order
 from .mc import numerical_tolerance
@@ -340,6 +340,7 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
     if cfg.outside not in OUTSIDE_RULES:
         raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
+    check_seed(cfg.seed)  # the CLI's rule and message (numba takes the seed as int64)
     if cfg.mode == "htm":
         return
     extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm

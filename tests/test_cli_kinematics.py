@@ -67,3 +67,27 @@ def test_tolerance_design_in_reverse(tmp_path, capsys):
     assert (out / "bench_plan.toml").exists()
     assert "factor" in capsys.readouterr().out
     assert main(["tolerance", "--target", "-3", "--out", str(out)]) == 2
+
+
+def test_tolerance_check_shows_progress_over_the_trials(tmp_path, monkeypatch):
+    """tolerance --check N ran its Monte Carlo without a progress bar (kinematics has one)."""
+    import contextlib
+
+    import cfm_fem.cli.tolerance
+
+    seen = []
+
+    @contextlib.contextmanager
+    def bar(total, unit):
+        done = []
+
+        class _Bar:
+            def update(self, n=1):
+                done.append(n)
+
+        yield _Bar()
+        seen.append((total, unit, sum(done)))
+
+    monkeypatch.setattr(cfm_fem.cli.tolerance, "progress_bar", bar, raising=False)
+    assert main(["tolerance", "--target", "18,13,14", "--check", "500"]) == 0
+    assert seen == [(500, "trials", 500)]

@@ -226,3 +226,134 @@ def test_hull_slivers_option(tmp_path):
     notes = json.loads((tmp_path / "b" / "summary.json").read_text())["notes"]
     assert not any("Delaunay hull removed" in n for n in notes)
     assert any("flat cell(s) line the Delaunay hull" in n for n in notes)
+
+
+def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monkeypatch):
+    """--slabs streams the file in blocks; the "1,250 read with ',' as thousands separator"
+    warning was printed once per block. Once per file now."""
+    import cfm_fem.slabs
+
+    monkeypatch.setattr(cfm_fem.slabs, "BLOCK", 50)  # 216 rows: 5 blocks
+    ax = np.arange(6.0)
+    pts = np.stack(np.meshgrid(ax + 1000.0, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
+    rows = "".join(
+        f'"1,{p[0] - 1000:03.0f}",{p[1]:g},{p[2]:g},' + ",".join(f"{v:.17g}" for v in b) + "\n"
+        for p, b in zip(pts, B, strict=True)
+    )
+    path = tmp_path / "thousands.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows)
+    argv = ["sweep", str(path), "--up", "10", "--trials", "50", "--slabs", "2"]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["nodes"] == 216
+
+
+class _Bars:
+    """Stands in for `cfm_fem.cli._progress.progress_bar`: records each bar's total and updates."""
+
+    def __init__(self):
+        self.bars = []
+
+    def __call__(self, total, unit):
+        import contextlib
+
+        bar = {"total": total, "unit": unit, "done": 0}
+        self.bars.append(bar)
+
+        class _Bar:
+            def update(self, n=1):
+                bar["done"] += n
+
+            def write(self, text, file=None):
+                print(text, file=file)
+
+        return contextlib.nullcontext(_Bar())
+
+
+@pytest.mark.parametrize("option", [["--slabs", "2"], ["--max-memory", "1G"]])
+def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, option):
+    """--slabs/--max-memory ran without a progress bar (the in-memory path has one): the bar
+    now counts the nodes as the slabs finish (no total: it is known after staging only)."""
+    import cfm_fem.cli.sweep
+
+    bars = _Bars()
+    monkeypatch.setattr(cfm_fem.cli.sweep, "progress_bar", bars)
+    argv = ["sweep", str(csv_map), "--up", "10", "--trials", "50", *option]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 0
+    assert [b["unit"] for b in bars.bars] == ["nodes"]
+    assert bars.bars[0]["done"] == 216
+
+
+def _maps_named(out):
+    """The files sweep.pvd names, with the pieces of its .pvtu indices (relative, posix)."""
+    names = set()
+    for ds in ET.parse(out / "sweep.pvd").getroot().iter("DataSet"):
+        names.add(ds.get("file"))
+        if ds.get("file").endswith(".pvtu"):
+            for piece in ET.parse(out / ds.get("file")).getroot().iter("Piece"):
+                names.add(piece.get("Source"))
+    return names
+
+
+def _maps_present(out):
+    return {
+        p.relative_to(out).as_posix()
+        for p in out.rglob("*")
+        if p.is_file() and p.suffix in (".vtu", ".pvtu") and p.name.startswith(("uf_", "piece_"))
+    }
+
+
+def test_rerun_into_the_same_out_removes_the_earlier_runs_stale_maps_only(
+    csv_map, tmp_path, capsys
+):
+    """A re-run with fewer U_p values (or with pieces instead of one file, or fewer pieces)
+    into the same --out left the earlier maps beside the new sweep.pvd: ParaView users opened
+    stale figures. Once the new outputs are written, the maps a sweep wrote that the new
+    sweep.pvd does not name are removed (and named on stderr); other files are left."""
+    out = tmp_path / "res"
+    base = ["sweep", str(csv_map), "--trials", "50", "--out", str(out)]
+    assert main([*base, "--up", "0:20:10"]) == 0
+    assert _maps_present(out) == {"uf_up0um.vtu", "uf_up10um.vtu", "uf_up20um.vtu"}
+    # the user's own files, some named like maps, are never deleted
+    (out / "notes.txt").write_text("mine\n")
+    (out / "uf_custom.vtu").write_text("<VTKFile>my own map</VTKFile>\n")
+    (out / "uf_mine").mkdir()
+    (out / "uf_mine" / "piece_0000.vtu").write_text("not a sweep's\n")
+    capsys.readouterr()
+
+    assert main([*base, "--up", "10"]) == 0  # fewer U_p values
+    err = capsys.readouterr().err
+    assert "removed 2 map file(s) of an earlier run" in err
+    assert "uf_up0um.vtu" in err and "uf_up20um.vtu" in err
+    assert "left in" in err and "uf_custom.vtu" in err
+    assert _maps_present(out) - {"uf_custom.vtu", "uf_mine/piece_0000.vtu"} == {"uf_up10um.vtu"}
+    assert (out / "notes.txt").exists() and (out / "uf_custom.vtu").exists()
+    assert (out / "uf_mine" / "piece_0000.vtu").exists()
+
+    assert main([*base, "--up", "10", "--pieces", "3"]) == 0  # pieces instead of one file
+    assert "uf_up10um.vtu" in capsys.readouterr().err
+    assert not (out / "uf_up10um.vtu").exists()
+    assert main([*base, "--up", "10", "--slabs", "2"]) == 0  # fewer pieces (out of core)
+    assert "uf_up10um/ (1 piece(s))" in capsys.readouterr().err
+    mine = {"uf_custom.vtu", "uf_mine/piece_0000.vtu"}
+    assert (
+        _maps_present(out) - mine
+        == _maps_named(out)
+        == {
+            "uf_up10um.pvtu",
+            "uf_up10um/piece_0000.vtu",
+            "uf_up10um/piece_0001.vtu",
+        }
+    )
+    assert main([*base, "--up", "10,20"]) == 0  # back to one file per U_p value
+    assert "uf_up10um/ (2 piece(s), folder removed)" in capsys.readouterr().err
+    assert _maps_present(out) - mine == _maps_named(out) == {"uf_up10um.vtu", "uf_up20um.vtu"}
+    assert not (out / "uf_up10um").exists() and (out / "notes.txt").exists()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["up_um"] == [10, 20]
+    # a run that fails writes nothing and removes nothing
+    assert main([*base, "--up", "5e5"]) == 2
+    assert _maps_present(out) - mine == {"uf_up10um.vtu", "uf_up20um.vtu"}

@@ -468,6 +468,23 @@ def test_thousands_separator_without_decimal_point_warns(tmp_path):
     assert fm.points[0, 0] == 1250.0
 
 
+def test_thousands_separator_warning_once_per_file_when_streamed_in_blocks(tmp_path):
+    """The streaming reader (--slabs) parses a file block by block: the ambiguity warning came
+    once per block holding a "1,250"; it is said once per file, naming the first."""
+    from cfm_fem.io.streaming import open_stream
+
+    rows = "".join(f'"1,25{i}",{i},3,0.1,0.2,0.3\n' for i in range(10))
+    path = _write(tmp_path, "t.csv", "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows)
+    stream = open_stream(path, "table")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")  # as the CLI does: every warning shown
+        blocks = list(stream.blocks(rows_per_block=3))
+    assert len(blocks) == 4
+    said = [str(w.message) for w in caught if "thousands separator" in str(w.message)]
+    assert len(said) == 1 and ":2: column 'x [mm]': 1,250 read with ','" in said[0]
+    assert np.concatenate([v[:, 0] for v, _ in blocks]).tolist() == [1250.0 + i for i in range(10)]
+
+
 def test_opera_cut_short_in_its_last_plane_is_reported(tmp_path):
     """A file cut inside its last x plane still holds every distinct x, y, z value: only the row
     count shows the cut (in the in-memory and the streaming reader)."""

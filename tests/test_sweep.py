@@ -253,6 +253,30 @@ def test_bad_outside_rule():
         run_sweep(grid_map(3), SweepConfig(up_um=[10.0], trials=50, outside="nearest"))
 
 
+@pytest.mark.parametrize(
+    "seed, message",
+    [
+        (-1, "--seed must be in [0, 2**63); got -1"),
+        (2**63, "--seed must be in [0, 2**63); got 9223372036854775808"),
+        (1.5, "--seed must be an integer in [0, 2**63); got 1.5"),
+        ("3", "--seed must be an integer in [0, 2**63); got '3'"),
+        (True, "--seed must be an integer in [0, 2**63); got True"),
+    ],
+)
+@pytest.mark.parametrize("mode", ["gauss", "htm"])
+def test_bad_seed_refused_by_the_api_as_by_the_cli(seed, message, mode):
+    """The API checked trials, mode, coverage but not the seed: a float was truncated, a
+    negative or too large one reached numba. Now the CLI's rule and message (one function)."""
+    from cfm_fem.cli._checks import check_seed as cli_check_seed
+
+    with pytest.raises(CfmInputError) as api:
+        run_sweep(grid_map(3), SweepConfig(up_um=[10.0], trials=50, seed=seed, mode=mode))
+    assert str(api.value) == message
+    with pytest.raises(CfmInputError) as cli:
+        cli_check_seed(seed)
+    assert str(cli.value) == message
+
+
 @pytest.mark.parametrize("planar", [False, True])
 def test_edge_fit_gradients_exact_on_a_linear_field_and_robust_on_a_scattered_hull(planar):
     """The gradient of the Taylor extrapolation: exact for a linear field (a scattered map, its

@@ -70,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
-    print(f"warning: {message}", file=sys.stderr)
+    from tqdm import tqdm  # above a progress bar that is running, not into its line
+
+    tqdm.write(f"warning: {message}", file=sys.stderr)
 
 
 def interrupted(exc) -> bool:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import MAX_SEED, CfmInputError
+from ..errors import MAX_SEED, CfmInputError, check_seed
 
 __all__ = ["check_out_dir", "check_seed", "MAX_SEED"]
 
@@ -47,15 +47,3 @@ def check_out_dir(path, option: str = "--out") -> None:
         )
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CfmInputError(f"{option} {str(path)!r}: no permission to write in {str(parent)!r}")
-
-
-def check_seed(seed, option: str = "--seed") -> None:
-    """Check that ``seed`` is in [0, 2**63) (numba kernels take it as int64).
-
-    Raises
-    ------
-    CfmInputError
-        The seed is negative or too large.
-    """
-    if not 0 <= seed < MAX_SEED:
-        raise CfmInputError(f"{option} must be in [0, 2**63); got {seed}")

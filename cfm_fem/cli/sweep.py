@@ -1,7 +1,9 @@
 """Per-node field uncertainty U_f of an FEM map for a sweep of positioning uncertainties U_p.
 
 Writes DIR/uf_up<U_p>um.vtu per U_p value, DIR/sweep.pvd (open it in ParaView; U_p is the time
-axis) and DIR/summary.json.
+axis) and DIR/summary.json. Maps an earlier sweep left in DIR that this run does not write (other
+U_p values, pieces instead of one file or the reverse) are removed once the new outputs are
+complete, and named on stderr; files a sweep did not write are never deleted.
 """
 
 from __future__ import annotations
@@ -198,6 +200,32 @@ def _remove_if_made_and_empty(out, made: bool) -> None:
             pass  # not empty (work kept for --resume) or never created
 
 
+def _remove_stale_maps(out) -> None:
+    """After a successful run: remove the maps of an earlier run in ``out`` that this run does
+    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and say so."""
+    from ..io.sweep_out import remove_stale_maps
+
+    removed, kept = remove_stale_maps(out)
+    if removed:
+        pieces, items = {}, []
+        for r in removed:
+            top, _, rest = r.partition("/")
+            if not rest and not r.endswith("/"):
+                items.append(top)
+            elif rest:
+                pieces[top] = pieces.get(top, 0) + 1
+        for top, n in pieces.items():
+            gone = f"{top}/" in removed
+            items.append(f"{top}/ ({n} piece(s){', folder removed' if gone else ''})")
+        n_files = sum(not r.endswith("/") for r in removed)
+        print(f"cfm-fem sweep: removed {n_files} map file(s) of an earlier run from {out} that "
+              f"are not part of this run (sweep.pvd does not name them): "
+              f"{', '.join(items)}", file=sys.stderr)  # fmt: skip
+    if kept:
+        print(f"cfm-fem sweep: note: left in {out}: {', '.join(kept)}: named like a map, but "
+              "not part of this run and not written by cfm-fem sweep", file=sys.stderr)  # fmt: skip
+
+
 def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
     from ..distributed import dask_chunk_map, dask_client
@@ -244,14 +272,19 @@ def _run_slabs(args, up):
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
                 prov["backend"] = _backend(args) + ", slabs (out of core)"
-            summary = run_slab_sweep(
-                args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
-                length_unit=args.length_unit, field_unit=args.field_unit,
-                zero_rows=args.zero_rows, provenance=prov,
-                log=lambda m: print(f"cfm-fem sweep: {m}", file=sys.stderr),
-                description=description, resume=args.resume, keep=args.keep_chunks,
-                map_chunks=None if client is None else dask_chunk_map(client),
-            )  # fmt: skip
+            # the node count is known only once the file is staged (inside run_slab_sweep):
+            # the bar counts the finished nodes, slab by slab, without a total; messages go
+            # above it (tqdm's write), not into its line
+            with progress_bar(None, "nodes") as bar:
+                summary = run_slab_sweep(
+                    args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
+                    length_unit=args.length_unit, field_unit=args.field_unit,
+                    zero_rows=args.zero_rows, provenance=prov,
+                    log=lambda m: bar.write(f"cfm-fem sweep: {m}", file=sys.stderr),
+                    progress=bar.update, description=description, resume=args.resume,
+                    keep=args.keep_chunks,
+                    map_chunks=None if client is None else dask_chunk_map(client),
+                )  # fmt: skip
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
             raise
@@ -268,6 +301,7 @@ def _run_slabs(args, up):
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
         _remove_if_made_and_empty(args.out, made)  # the in-memory run makes it when it writes
         return None
+    _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _print_summary(summary, args.out)
     return 0
 
@@ -440,6 +474,7 @@ def run(args) -> int:
     else:
         summary = write_sweep(args.out, res, prov)
     runner.finish(keep=args.keep_chunks)
+    _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _print_summary(summary, args.out)
     return 0
 

@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import CfmInputError
 from . import option_type
 from ._checks import check_out_dir, check_seed
+from ._progress import progress_bar
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
@@ -87,7 +88,10 @@ def run(args) -> int:
     d = design_tolerances(bench, np.asarray(args.target) * 1e-3)
     plan_bench = bench.scaled_errors(_plan_factors(bench, d["plan"]))
     if args.check:
-        res = run_kinematics(plan_bench, trials=args.check, seed=args.seed, exact=False)
+        with progress_bar(args.check, "trials") as bar:  # exact=False: one pass over the trials
+            res = run_kinematics(
+                plan_bench, trials=args.check, seed=args.seed, exact=False, progress=bar.update
+            )
         d["plan_check_mc"] = {a: res.pooled[a] for a in "xyz"}
         d["plan_check_mc"]["trials"] = res.trials
     _print(d)

@@ -198,7 +198,7 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
     )
 
 
-def parse_block(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarray:
+def parse_block(rows, row_lines, names, usecols, *, delimiter, file, warned=None) -> np.ndarray:
     """Numbers of the columns ``usecols`` of the data rows.
 
     Fast path: numpy parses the whole block at once. Only if that fails (a bad field, quoted
@@ -214,6 +214,10 @@ def parse_block(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarr
         All column names of the header, as the file spells them.
     usecols : sequence of int
         Indices (into ``names``) of the columns to return.
+    warned : set of str, optional
+        The warnings already given for this file, shared by the blocks of one file read in
+        blocks (`cfm_fem.io.streaming.TableStream`): each is then given once per file, not once
+        per block; updated in place.
 
     Returns
     -------
@@ -225,10 +229,11 @@ def parse_block(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarr
         block = None
     if block is not None and block.shape[1] == len(names):
         return block[:, list(usecols)]
-    return _scan_rows(rows, row_lines, names, usecols, delimiter=delimiter, file=file)
+    return _scan_rows(rows, row_lines, names, usecols, delimiter=delimiter, file=file,
+                      warned=warned)  # fmt: skip
 
 
-def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarray:
+def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file, warned=None) -> np.ndarray:
     """Exact line-by-line parse (the slow path of `parse_block`)."""
     n_names = len(names)
     comma_quoted = delimiter == ","  # a comma inside a field of a CSV row was quoted
@@ -265,7 +270,9 @@ def _scan_rows(rows, row_lines, names, usecols, *, delimiter, file) -> np.ndarra
             )
             if ambiguous is None and "," in fields[c] and "." not in fields[c]:
                 ambiguous = (line, names[c], fields[c].strip())
-    if ambiguous is not None:
+    warned = set() if warned is None else warned
+    if ambiguous is not None and "thousands" not in warned:
+        warned.add("thousands")  # once per file, however many blocks it is read in
         # "1,250" with no decimal point is 1250 to an English writer and 1.25 to a decimal-comma
         # one; it is read as 1250 (a decimal-comma file is refused at its first "0,..." value),
         # but say so in case the file has no value below 1 to give it away.

@@ -117,6 +117,8 @@ class TableStream:
     notes: list = field(default_factory=list)
     #: Data rows read so far by `blocks` (all of them once it has run to the end).
     n_rows: int = 0
+    #: Warnings given for this file so far (`parse_block`): each once, not once per block.
+    warned: set = field(default_factory=set)
 
     @property
     def spelled(self) -> list:
@@ -168,7 +170,7 @@ class TableStream:
         row_lines = np.asarray(lines, dtype=np.int64)
         block = parse_block(
             rows, row_lines, self.names, self.layout.usecols, delimiter=self.delimiter,
-            file=self.file,
+            file=self.file, warned=self.warned,
         )  # fmt: skip
         values = self.layout.values(block)
         _check_finite(values[:, :3], values[:, 3:], self.spelled, row_lines, self.file)

@@ -14,7 +14,14 @@ from ._atomic import write_json
 from .pvtu import write_pvtu
 from .vtk import write_pvd, write_vtu
 
-__all__ = ["write_sweep", "write_sweep_pieces", "vtu_name", "provenance_codes", "read_provenance"]
+__all__ = [
+    "write_sweep",
+    "write_sweep_pieces",
+    "vtu_name",
+    "provenance_codes",
+    "read_provenance",
+    "remove_stale_maps",
+]
 
 
 def vtu_name(label: str) -> str:
@@ -187,3 +194,91 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_json(out / "summary.json", summary)
     return summary
+
+
+#: Bytes read from the head of a file to tell whether a sweep wrote it (`_written_by_sweep`).
+_HEAD_BYTES = 1 << 20
+
+
+def _written_by_sweep(path: Path) -> bool:
+    """True for a map a sweep writes (`write_sweep`, `write_sweep_pieces`, `cfm_fem.slabs`),
+    told by its contents, not only by its name: a ``.vtu`` whose field data (written before the
+    points) hold ``U_p_um`` and ``provenance_utf8``, or a ``.pvtu`` index of ``U_f_units``."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_HEAD_BYTES)
+    except OSError:
+        return False
+    if path.suffix == ".pvtu":
+        return b'<VTKFile type="PUnstructuredGrid"' in head and b'Name="U_f_units"' in head
+    return (
+        b'<VTKFile type="UnstructuredGrid"' in head
+        and b'Name="U_p_um"' in head
+        and b'Name="provenance_utf8"' in head
+    )
+
+
+def _current_maps(out: Path) -> set[Path] | None:
+    """The files named by ``out/sweep.pvd`` and the pieces of its ``.pvtu`` indices (resolved);
+    None when the collection cannot be read (then nothing is stale)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        files = set()
+        for ds in ET.parse(out / "sweep.pvd").getroot().iter("DataSet"):
+            f = (out / ds.get("file")).resolve()
+            files.add(f)
+            if f.suffix == ".pvtu":
+                for piece in ET.parse(f).getroot().iter("Piece"):
+                    files.add((f.parent / piece.get("Source")).resolve())
+    except (OSError, ET.ParseError, TypeError):
+        return None
+    return files
+
+
+def remove_stale_maps(out_dir) -> tuple[list[str], list[str]]:
+    """Remove the maps an earlier sweep left in ``out_dir`` that the sweep just written there
+    does not use; call it after the new outputs are written (they are then complete).
+
+    A map is stale when its name is one a sweep gives (``uf_*.vtu``, ``uf_*.pvtu`` and
+    ``uf_*/piece_*.vtu``), ``sweep.pvd`` (and its ``.pvtu`` indices) do not name it, and its
+    contents show that a sweep wrote it (`_written_by_sweep`): e.g. ``uf_up50um.vtu`` after a
+    re-run without 50 um, ``uf_up20um.vtu`` after a re-run with pieces, piece files beyond the
+    new piece count. A piece folder left empty is removed. Anything else (symbolic links, other
+    files, a folder with other files in it) is never deleted.
+
+    Returns
+    -------
+    removed : list of str
+        Paths relative to ``out_dir`` of the files (and emptied piece folders, ending in ``/``)
+        removed.
+    kept : list of str
+        Files with a map's name that are neither this run's nor recognised as a sweep's: left.
+    """
+    out = Path(out_dir)
+    current = _current_maps(out)
+    removed, kept = [], []
+    if current is None:
+        return removed, kept
+
+    def visit(f: Path):
+        if f.resolve() in current:
+            return
+        rel = f.relative_to(out).as_posix()
+        if f.is_file() and not f.is_symlink() and _written_by_sweep(f):
+            f.unlink()
+            removed.append(rel)
+        else:
+            kept.append(rel)
+
+    for entry in sorted(out.glob("uf_*")):
+        if entry.suffix in (".vtu", ".pvtu") and not entry.is_dir():
+            visit(entry)
+        elif entry.is_dir() and not entry.is_symlink():
+            n = len(removed)
+            for piece in sorted(entry.glob("piece_*.vtu")):
+                visit(piece)
+            if len(removed) > n and not any(entry.iterdir()):
+                entry.rmdir()
+                removed.append(entry.relative_to(out).as_posix() + "/")
+    return removed, kept
