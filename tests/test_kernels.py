@@ -7,7 +7,14 @@ import scipy.spatial
 import twins
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import build_mesh, interpolate_points
+from cfm_fem.interpolation import (
+    build_mesh,
+    cell_buckets,
+    exact_search,
+    face_excess,
+    interpolate_points,
+    star_height,
+)
 from cfm_fem.mc import coverage_count
 
 
@@ -203,7 +210,7 @@ def test_gauss_sweep_matches_numpy_twin(outside):
     stats, n_out, n_lost, _ = _kernels.gauss_sweep(
         np.arange(len(pts)), np.arange(len(pts)), mesh.coords, B, mesh.simplices,
         mesh.transform, mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95,
-        exit_grad,
+        exit_grad, exact_search(mesh),
     )  # fmt: skip
     ref, ref_out = twins.gauss_sweep(pts, B, up, 150, 9, grad=grad)
     np.testing.assert_array_equal(n_out, ref_out)
@@ -366,6 +373,7 @@ def test_abs_b_statistics_on_a_kinked_field():
     stats, n_out, _, star = _kernels.gauss_sweep(
         np.array([g]), np.array([g]), mesh.coords, fm.B, mesh.simplices, mesh.transform,
         mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95, np.empty((0, 3, 3)),
+        exact_search(mesh),
     )  # fmt: skip
     assert star[0] and n_out.sum() == 0
     z = twins.sweep_normals(2, g, 4000)
@@ -410,3 +418,135 @@ def test_uniform53_is_never_0_or_1():
         u = _kernels.uniform53(np.uint64(h))
         assert 0.0 < u < 1.0 and u == twins.uniform53(h)
     assert _kernels.uniform53(np.uint64(2**64 - 1)) == np.nextafter(1.0, 0.0)
+
+
+def _l_shape(n=9, h=0.5, seed=None):
+    """A grid map with the quadrant x > 0, y > 0 removed (a re-entrant edge along z), linear
+    field; with ``seed``, a scattered node set of the same shape (Delaunay, slivers removed)."""
+    ax = (np.arange(n) - n // 2) * h
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    if seed is not None:
+        pts = pts + np.random.default_rng(seed).uniform(-0.2, 0.2, pts.shape) * h
+    pts = pts[~((pts[:, 0] > 1e-9) & (pts[:, 1] > 1e-9))]
+    B = pts @ np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]]).T
+    kind = "grid" if seed is None else "delaunay"
+    return build_mesh(FieldMap.from_arrays(pts, B + 0.1), kind, "remove"), B + 0.1
+
+
+@pytest.mark.parametrize("seed", [None, 3])
+def test_face_excess_matches_brute_force_over_all_nodes(seed):
+    mesh, _ = _l_shape(seed=seed)
+    got = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
+    want = twins.face_excess(mesh)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert (got[mesh.neighbors >= 0] == 0).all()
+    if seed is None:  # the notch's faces: the nodes reach 2 mm (4 heights) beyond them
+        assert (got > 0).sum() == 2 * 2 * 4 * 8 and got.max() == pytest.approx(4.0)
+    ext = np.ptp(mesh.coords, axis=0)
+    convex = build_mesh(FieldMap.from_arrays(np.random.default_rng(1).uniform(0, ext, (300, 3)),
+                                             np.zeros((300, 3))), "delaunay", "keep")  # fmt: skip
+    assert len(exact_search(convex)[0]) == 0  # a convex mesh: nothing to search
+
+
+@pytest.mark.parametrize("seed", [None, 3])
+def test_exact_search_finds_the_cell_brute_force_finds(seed):
+    """`find_cell` (bucket lists) against every cell; `locate_exact` from a walk blocked by the
+    notch gives the brute-force verdict too, where `locate` says outside."""
+    mesh, _ = _l_shape(seed=seed)
+    search = exact_search(mesh)
+    excess, reach, box, dims, bstart, bcells = search
+    rng = np.random.default_rng(7)
+    q = rng.uniform(mesh.coords.min(0) - 0.3, mesh.coords.max(0) + 0.3, (3000, 3))
+    bary = np.empty(4)
+    blocked = 0
+    for p in q:
+        want = twins.find_cell(mesh, p)
+        got = _kernels.find_cell(p, mesh.transform, box, dims, bstart, bcells, bary)
+        assert got == want
+        if got >= 0:
+            np.testing.assert_allclose(bary, twins.barycentric_all(mesh, p)[got], atol=1e-12)
+        # walks from a node across the notch (x < 0, y > 0 -> x > 0, y < 0)
+        start = mesh.node_cell[np.argmin(((mesh.coords - [-1.5, 1.5, p[2]]) ** 2).sum(1))]
+        cell = _kernels.locate_exact(p, start, mesh.transform, mesh.neighbors, bary, search)
+        assert (cell >= 0) == (want >= 0)
+        if cell >= 0:
+            assert twins.barycentric_all(mesh, p)[cell].min() >= -_kernels.BARY_EPS
+        plain = _kernels.locate(p, start, mesh.transform, mesh.neighbors, bary)
+        blocked += plain < 0 <= want
+    # the plain walk was blocked by the notch that often (Delaunay fills the notch: only the
+    # faces the removed hull slivers leave are not supporting planes there)
+    assert blocked > 50 if seed is None else (excess > 0).any()
+
+
+def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
+    mesh, _ = _l_shape(seed=3)
+    search = exact_search(mesh)
+    nodes = np.flatnonzero(search[1] > 0)
+    assert len(nodes) > 50
+    cap = star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes]
+    v = mesh.coords[mesh.simplices]
+    boxes = np.stack([v.min(1), v.max(1)], axis=1)
+    got = _kernels.node_reach(mesh.coords, mesh.simplices, mesh.transform, boxes, *search[2:],
+                              nodes, cap)  # fmt: skip
+    np.testing.assert_allclose(got, twins.node_reach(mesh, nodes, cap), rtol=1e-12)
+    np.testing.assert_array_equal(got, search[1][nodes])
+    assert (got > 0).all() and (got <= cap).all()
+    # points nearer to the node than its reach lie in its own cells or in none
+    rng = np.random.default_rng(2)
+    for g, r in zip(nodes[::10], got[::10], strict=True):
+        d = rng.normal(size=(100, 3))
+        p = mesh.coords[g] + d / np.linalg.norm(d, axis=1)[:, None] * r * rng.uniform(
+            0, 1, (100, 1)
+        )
+        for x in p:
+            c = twins.find_cell(mesh, x)
+            assert c < 0 or g in mesh.simplices[c]
+
+
+def test_convex_faces_take_the_old_path_bit_for_bit():
+    """Search arrays whose excess is all 0 (every border face a supporting plane, as on a
+    convex map) give the numbers of the empty search, which is the kernels' old path."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0, 3, (150, 3))
+    B = np.c_[np.sin(pts[:, 0]) * pts[:, 1], np.cos(pts[:, 2]), pts[:, 0] * 0.3 + 1]
+    mesh = build_mesh(FieldMap.from_arrays(pts, B), "delaunay")
+    starts = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors,
+                                   1e-7)  # fmt: skip
+    empty = exact_search(mesh)
+    assert len(empty[0]) == 0
+    zero = (np.zeros_like(mesh.neighbors, dtype=float), np.zeros(len(pts)),
+            *cell_buckets(mesh.coords, mesh.simplices))  # fmt: skip
+    runs = [
+        _kernels.gauss_sweep(
+            np.arange(len(pts)),
+            np.arange(len(pts)),
+            mesh.coords,
+            B,
+            mesh.simplices,
+            mesh.transform,
+            mesh.neighbors,
+            starts,
+            np.eye(3),
+            np.ones(3),
+            np.array([0.0, 0.05, 0.4]),
+            200,
+            4,
+            0.95,
+            np.empty((0, 3, 3)),
+            search,
+        )  # fmt: skip
+        for search in (empty, zero)
+    ]
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[0][1][:, 2].sum() > 0  # trials did leave the map
+
+
+@pytest.mark.parametrize("n", [100, 3000, 6000])
+def test_sort_values_with_nan_is_numpys(n):
+    """A NaN (a trial that met a slab's halo sentinel) must not index the counting arrays."""
+    a = np.random.default_rng(n).normal(size=n)
+    a[:: n // 10] = np.nan
+    b = a.copy()
+    _kernels.sort_values(b)
+    np.testing.assert_array_equal(b, np.sort(a))
