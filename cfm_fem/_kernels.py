@@ -1396,6 +1396,53 @@ def node_reach(coords, simplices, transform, boxes, box, dims, bstart, bcells, n
 
 
 @nb.njit(**JIT)
+def star_sizes(nodes, start, simplices, neighbors):
+    """Per node g, the cells reached from ``start[g]`` across faces that contain g (its star,
+    as `build_star` builds it), counted up to MAX_STAR + 1.
+
+    Fewer than the cells incident to g: the node's cells form several face-connected parts
+    (a node where removed hull slivers or a pinched mesh leave two wedges meeting at an edge or
+    a point); the star then misses incident cells, and `node_reach` is no proof there.
+
+    Parameters
+    ----------
+    nodes : ndarray, shape (k,), int64
+    start : ndarray, shape (n,), int64
+        A cell incident to each node (-1: none).
+    simplices, neighbors : ndarray, shape (m, d + 1), int64
+
+    Returns
+    -------
+    ndarray, shape (k,), int64
+    """
+    dp1 = simplices.shape[1]
+    out = np.zeros(nodes.shape[0], dtype=np.int64)
+    seen = np.empty(MAX_STAR + 1, dtype=np.int64)
+    for i in range(nodes.shape[0]):
+        g = nodes[i]
+        if start[g] < 0:
+            continue
+        seen[0] = start[g]
+        n = 1
+        k = 0
+        while k < n:  # breadth-first across the faces that contain g
+            s = seen[k]
+            k += 1
+            for j in range(dp1):
+                ns = neighbors[s, j]
+                if simplices[s, j] == g or ns < 0:
+                    continue
+                new = True
+                for q in range(n):
+                    new &= seen[q] != ns
+                if new and n <= MAX_STAR:
+                    seen[n] = ns
+                    n += 1
+        out[i] = n
+    return out
+
+
+@nb.njit(**JIT)
 def hull_max(points, adj_start, adj, start, grad, shift):
     """max over the vertices v of a convex hull of ``grad[f] . points[v] + shift[f]``, per f.
 
@@ -2319,12 +2366,16 @@ def star_find(p, g, coords, transform, cells, n_star, lmat, delta, bary):
 
 
 @nb.njit(**JIT)
-def star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand):
+def star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free):
     """The star cells of g that reach beyond the plane of a border face of the star (such a
-    face contains g): those with a vertex strictly beyond it.
+    face contains g): those with a vertex strictly beyond it; and the border faces no star
+    cell reaches beyond.
 
     A displacement the star walk finds beyond a border face's plane (LEAVES_MESH) can lie only
-    in the cone of one of these; none (a star convex at g): in no star cell.
+    in the cone of one of the cells; none (a star convex at g): in no star cell. Beyond the
+    plane of a free face, it is in no star cell either (every star cell lies on its inner
+    side): on a faceted curved surface, where few stars are convex at g, most exits are proven
+    so, at the cost of one face test (`star_exit`).
 
     Parameters
     ----------
@@ -2334,49 +2385,64 @@ def star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand):
     simplices : ndarray, shape (m, d + 1), int64
     cand : ndarray, shape (>= n_star,), int64
         Output: star indices of those cells.
+    free : ndarray, shape (2, >= n_star * d), int64
+        Output: the free border faces, as columns (i, a): star cell i, face opposite its a-th
+        vertex other than g (see `build_star`).
 
     Returns
     -------
-    int
-        How many.
+    n_cand, n_free : int
+        How many of each.
     """
     d = lmat.shape[2]
-    n_cand = 0
-    for i2 in range(n_star):
-        s = cells[i2]
-        behind = False
-        for i in range(n_star):
-            for a in range(d):
-                if nbr[i, a] >= 0:
-                    continue
+    hit = np.zeros(n_star, dtype=np.bool_)
+    n_free = 0
+    for i in range(n_star):
+        for a in range(d):
+            if nbr[i, a] >= 0:
+                continue
+            face_free = True
+            for i2 in range(n_star):
+                s = cells[i2]
                 for j in range(simplices.shape[1]):
                     v = simplices[s, j]
                     lam = 0.0
                     for b in range(d):
                         lam += lmat[i, a, b] * (coords[v, b] - coords[g, b])
-                    behind |= lam < -1e-12  # beyond the plane (rounding: ~1e-16)
+                    if lam < -1e-12:  # beyond the plane (rounding: ~1e-16)
+                        hit[i2] = True
+                        face_free = False
+            free[0, n_free] = i
+            free[1, n_free] = a
+            n_free += face_free
+    n_cand = 0
+    for i2 in range(n_star):
         cand[n_cand] = i2
-        n_cand += behind
-    return n_cand
+        n_cand += hit[i2]
+    return n_cand, n_free
 
 
-@nb.njit(**JIT)
-def star_exit(g, cells, n_star, lmat, nbr, simplices, excess, reach, cand, n_cand, delta, lam):
+#: `star_exit`: the point is not nearer to g than every other cell; `star_recheck` places it.
+BEYOND_REACH = -4
+
+
+@nb.njit(inline="always", **JIT)
+def star_exit(lmat, reach, cand, n_cand, free, n_free, delta, lam):
     """Place ``x_g + delta`` whose star walk crossed a border face (LEAVES_MESH), at a node
     where that proves nothing (`star_exact` False).
 
     Nearer to g than any other cell (``|delta| < reach``, `node_reach`), the point is in a
-    star cell or outside: only the cells of `star_behind` can hold it. Farther, every star cell
-    is tested (`star_recheck`).
+    star cell or outside: beyond the plane of a free face it is outside; else only the cells of
+    `star_behind` can hold it. Farther, the caller tests every star cell (`star_recheck`; not
+    called from here: a call that may happen makes numba count references to its array
+    arguments on every call, ~100 ns).
 
     Parameters
     ----------
-    g : int
-    cells, n_star, lmat, nbr : star tables (`build_star`)
-    simplices, excess : as in `star_recheck`
+    lmat : star table (`build_star`)
     reach : float, mm
         `node_reach` of g.
-    cand, n_cand : `star_behind` of g
+    cand, n_cand, free, n_free : `star_behind` of g
     delta : ndarray, shape (d,), mm
     lam : ndarray, shape (d,)
         Output: barycentric coordinates in the star cell found.
@@ -2385,7 +2451,7 @@ def star_exit(g, cells, n_star, lmat, nbr, simplices, excess, reach, cand, n_can
     -------
     cell : int
         Star index of the cell holding the point; LEAVES_MESH: outside at every fraction
-        r <= 1 of ``delta``; -1: the global walk, with
+        r <= 1 of ``delta``; -1: the global walk; BEYOND_REACH: `star_recheck`, with
     r_in, r_out : float
         ``x_g + r delta`` proven outside for r < r_in and r > r_out.
     """
@@ -2394,20 +2460,30 @@ def star_exit(g, cells, n_star, lmat, nbr, simplices, excess, reach, cand, n_can
     for a in range(d):
         n2 += delta[a] * delta[a]
     if n2 >= reach * reach:
-        return star_recheck(g, cells, n_star, lmat, nbr, simplices, excess, reach, delta, lam)
+        return BEYOND_REACH, 0.0, np.inf
+    for f in range(n_free):  # beyond a plane through g that every star cell stays behind
+        i = free[0, f]
+        a = free[1, f]
+        v = 0.0
+        for b in range(d):
+            v += lmat[i, a, b] * delta[b]
+        if v < -BARY_EPS:
+            return LEAVES_MESH, 0.0, np.inf
     cone = False
     for c in range(n_cand):
         i = cand[c]
         tot = 0.0
-        lmin = np.inf
+        in_cone = True
         for a in range(d):
             v = 0.0
             for b in range(d):
                 v += lmat[i, a, b] * delta[b]
+            if v < -BARY_EPS:  # not in this cell's cone: the other rows are not needed
+                in_cone = False
+                break
             lam[a] = v
             tot += v
-            lmin = min(lmin, v)
-        if lmin >= -BARY_EPS:
+        if in_cone:
             if 1.0 - tot >= -BARY_EPS:
                 return i, 0.0, np.inf
             cone = True  # inside for small r, beyond the cell at r = 1: the global walk
@@ -2790,7 +2866,7 @@ def _node_gauss(
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
     (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, ibuf,
-     rest, code, wmat, r_in, r_out, cand) = buffers  # fmt: skip
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
     excess, reach = search[0], search[1]
     d = coords.shape[1]
     n_up = scales.shape[0]
@@ -2834,7 +2910,10 @@ def _node_gauss(
     if n_star > 0:  # per direction bin, a star cell to start walks from
         star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
     exact = star_exact(g, cells, n_star, simplices, excess)  # LEAVES_MESH is proven
-    n_cand = 0 if exact else star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand)
+    n_cand = 0
+    n_free = 0
+    if not exact:
+        n_cand, n_free = star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free)
     normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
     # place every trial in the star at the largest U_p; the others are listed in ``rest``
     for c in range(3):  # mesh-frame displacement per unit normal (projected for planar maps)
@@ -2851,10 +2930,12 @@ def _node_gauss(
             if code[r] == LEAVES_MESH and not exact:  # no proof by itself at this node
                 for a in range(3):
                     delta[a] = dl[a, t]
-                s, r_in[kept], r_out[kept] = star_exit(
-                    g, cells, n_star, lmat, nbr, simplices, excess, reach[g], cand, n_cand,
-                    delta, lam,
-                )  # fmt: skip
+                s, r_in[kept], r_out[kept] = star_exit(lmat, reach[g], cand, n_cand, free,
+                                                       n_free, delta, lam)  # fmt: skip
+                if s == BEYOND_REACH:
+                    s, r_in[kept], r_out[kept] = star_recheck(
+                        g, cells, n_star, lmat, nbr, simplices, excess, reach[g], delta, lam
+                    )
                 if s >= 0:  # an in-star trial after all
                     comp[kmax, 0, t], comp[kmax, 1, t], comp[kmax, 2, t] = _err3(
                         dmat, s, lam[0], lam[1], lam[2]
@@ -2902,8 +2983,11 @@ def _node_gauss(
             if n_star > 0:
                 s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
                 if s == LEAVES_MESH and not exact:  # no proof by itself at this node
-                    s, r_lo, r_hi = star_exit(g, cells, n_star, lmat, nbr, simplices, excess,
-                                              reach[g], cand, n_cand, delta, lam)  # fmt: skip
+                    s, r_lo, r_hi = star_exit(lmat, reach[g], cand, n_cand, free, n_free,
+                                              delta, lam)  # fmt: skip
+                    if s == BEYOND_REACH:
+                        s, r_lo, r_hi = star_recheck(g, cells, n_star, lmat, nbr, simplices,
+                                                     excess, reach[g], delta, lam)  # fmt: skip
             taylor = extrapolate and s == LEAVES_MESH  # linear in U_p, as an in-star trial
             if s >= 0 or taylor:
                 mat, row, vec = (exit_grad, g, delta) if taylor else (dmat, s, lam)
@@ -3038,7 +3122,7 @@ def _gauss_buffers(n_up, n_trials, d):
     okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start), merge space (work) and the
     star pass's work space (dl, ibuf, rest, code, wmat; `star_errors3`) and, per trial in
     ``rest``, the fractions of its largest displacement where it is proven outside (r_in,
-    r_out; `star_recheck`), and the star cells of `star_behind` (cand)."""
+    r_out; `star_recheck`), and the star cells and free faces of `star_behind` (cand, free)."""
     return (
         np.empty((n_up, 3, n_trials)),
         np.empty((n_up, n_trials)),
@@ -3060,6 +3144,7 @@ def _gauss_buffers(n_up, n_trials, d):
         np.empty(n_trials),
         np.empty(n_trials),
         np.empty(MAX_STAR, dtype=np.int64),
+        np.empty((2, MAX_STAR * d), dtype=np.int64),
     )
 
 

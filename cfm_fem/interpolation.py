@@ -670,7 +670,8 @@ def exact_search(mesh: SimplexMesh) -> tuple:
     -------
     tuple
         ``(excess, reach, box, dims, bstart, bcells)``: `face_excess`, the
-        `cfm_fem._kernels.node_reach` of the nodes of faces with an excess (0 elsewhere) and
+        `cfm_fem._kernels.node_reach` of the nodes of faces with an excess (0 elsewhere, and
+        at nodes whose cells are not all face-connected, `cfm_fem._kernels.star_sizes`) and
         `cell_buckets` (`cfm_fem._kernels.locate_exact`, `cfm_fem._kernels.star_recheck`);
         `no_search` when every border face is a supporting plane of the mesh (convex: nothing
         to search, the kernels' old path).
@@ -691,6 +692,11 @@ def exact_search(mesh: SimplexMesh) -> tuple:
         mesh.coords, mesh.simplices, mesh.transform, boxes, *buckets, nodes,
         star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes],
     )  # fmt: skip
+    # a node whose cells are not all face-connected: its star (`build_star`) misses some of
+    # them, which come nearer than any reach proves (0: no proof, the global search decides)
+    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))
+    split = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
+    reach[nodes[split != incident[nodes]]] = 0.0
     return (excess, reach, *buckets)
 
 

@@ -481,7 +481,9 @@ def test_exact_search_finds_the_cell_brute_force_finds(seed):
 def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
     mesh, _ = _l_shape(seed=3)
     search = exact_search(mesh)
-    nodes = np.flatnonzero(search[1] > 0)
+    s_idx, j_idx = np.nonzero(search[0] > 0)  # the nodes of the faces with an excess
+    on_face = np.arange(4)[None, :] != j_idx[:, None]
+    nodes = np.unique(mesh.simplices[s_idx][on_face])
     assert len(nodes) > 50
     cap = star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes]
     v = mesh.coords[mesh.simplices]
@@ -489,7 +491,10 @@ def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
     got = _kernels.node_reach(mesh.coords, mesh.simplices, mesh.transform, boxes, *search[2:],
                               nodes, cap)  # fmt: skip
     np.testing.assert_allclose(got, twins.node_reach(mesh, nodes, cap), rtol=1e-12)
-    np.testing.assert_array_equal(got, search[1][nodes])
+    # the search keeps it where the node's cells are face-connected (its star holds them all)
+    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))[nodes]
+    whole = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
+    np.testing.assert_array_equal(np.where(whole == incident, got, 0.0), search[1][nodes])
     assert (got > 0).all() and (got <= cap).all()
     # points nearer to the node than its reach lie in its own cells or in none
     rng = np.random.default_rng(2)
@@ -550,3 +555,66 @@ def test_sort_values_with_nan_is_numpys(n):
     b = a.copy()
     _kernels.sort_values(b)
     np.testing.assert_array_equal(b, np.sort(a))
+
+
+def _faceted_cylinder(n=700, seed=5):
+    """Scattered nodes of a cylinder (r 3 mm, 12 mm long), a third on its mantle: the flat
+    hull cells removed, the mantle is a faceted surface that is not convex at most of its
+    nodes (few stars are; most have free faces and cells reaching beyond other faces)."""
+    rng = np.random.default_rng(seed)
+    m = n // 3
+    r, t = 3 * np.sqrt(rng.uniform(0, 1, n - m)), rng.uniform(0, 2 * np.pi, n - m)
+    inner = np.c_[r * np.cos(t), r * np.sin(t), rng.uniform(0, 12, n - m)]
+    t = rng.uniform(0, 2 * np.pi, m)
+    pts = np.r_[inner, np.c_[3 * np.cos(t), 3 * np.sin(t), rng.uniform(0, 12, m)]]
+    B = np.c_[pts[:, 1], pts[:, 0], 0 * pts[:, 2]]
+    return build_mesh(FieldMap.from_arrays(pts, B), "delaunay", "remove"), B
+
+
+@pytest.mark.parametrize("which", ["l_shape", "cylinder"])
+def test_star_exit_verdicts_match_brute_force(which):
+    """Trials the star walk finds leaving the star at a node whose border faces are no proof
+    (`star_exact` False), within the node's reach: `star_exit` says outside (LEAVES_MESH) only
+    where no cell of the mesh holds x_g + r delta for any r in (0, 1]; a star cell only where
+    that cell holds x_g + delta. Exercises both proofs: the free faces (no star cell beyond
+    their plane) and the cones of the cells that reach beyond a border plane."""
+    mesh, B = _l_shape(seed=3) if which == "l_shape" else _faceted_cylinder()
+    excess, reach = exact_search(mesh)[:2]
+    d, ms = 3, _kernels.MAX_STAR
+    cells, lmat = np.empty(ms, np.int64), np.empty((ms, d, d))
+    dmat, nbr = np.empty((ms, 3, d)), np.empty((ms, d), np.int64)
+    htab = np.full((3, _kernels.STAR_HASH), -1, np.int64)
+    cand, free = np.empty(ms, np.int64), np.empty((2, ms * d), np.int64)
+    lam = np.empty(d)
+    rng = np.random.default_rng(7)
+    seen = dict(free_face=0, cone_cells=0, outside=0, in_star=0, walk=0)
+    for g in np.flatnonzero(reach > 0)[:60]:
+        n_star = _kernels.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                     mesh.neighbors, B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+        if n_star <= 0 or _kernels.star_exact(g, cells, n_star, mesh.simplices, excess):
+            continue
+        n_cand, n_free = _kernels.star_behind(g, mesh.coords, cells, n_star, lmat, nbr,
+                                              mesh.simplices, cand, free)  # fmt: skip
+        seen["free_face"] += n_free > 0
+        seen["cone_cells"] += n_cand > 0
+        u = rng.normal(size=(60, 3))
+        deltas = u / np.linalg.norm(u, axis=1)[:, None] * reach[g] * rng.uniform(0.05, 1, (60, 1))
+        for delta in deltas:
+            s = _kernels.star_locate3(0, lmat, nbr, n_star, *delta)[0]
+            if s != _kernels.LEAVES_MESH:
+                continue
+            got = _kernels.star_exit(lmat, reach[g], cand, n_cand, free, n_free, delta, lam)[0]
+            if got == _kernels.LEAVES_MESH:
+                seen["outside"] += 1
+                for r in (0.05, 0.3, 1.0):
+                    assert twins.find_cell(mesh, mesh.coords[g] + r * delta) < 0
+            elif got >= 0:
+                seen["in_star"] += 1
+                bary = twins.barycentric_all(mesh, mesh.coords[g] + delta)[cells[got]]
+                assert bary.min() >= -_kernels.BARY_EPS
+            else:
+                assert got == -1  # in a cell's cone, beyond it: the global walk decides
+                seen["walk"] += 1
+    assert seen["free_face"] > 5 and seen["outside"] > 100, seen
+    if which == "l_shape":  # the re-entrant edge: stars whose other arm holds trials
+        assert seen["cone_cells"] > 5 and seen["in_star"] + seen["walk"] > 0, seen
