@@ -1142,6 +1142,35 @@ OUTSIDE = -1
 WALK_FAILED = -2
 
 
+@nb.njit(inline="always", **JIT)
+def _walk(p, start, transform, neighbors, bary):
+    """The walk of `locate`: (simplex or code, last simplex, face left by or -1)."""
+    d = p.shape[0]
+    s = start
+    if s < 0:
+        return OUTSIDE, s, -1
+    for _ in range(MAX_WALK):
+        last = 1.0
+        for j in range(d):
+            c = 0.0
+            for k in range(d):
+                c += transform[s, j, k] * (p[k] - transform[s, d, k])
+            bary[j] = c
+            last -= c
+        bary[d] = last
+        jmin = 0
+        for j in range(1, d + 1):
+            if bary[j] < bary[jmin]:
+                jmin = j
+        if bary[jmin] >= -BARY_EPS:
+            return s, s, -1
+        nxt = neighbors[s, jmin]
+        if nxt < 0:
+            return OUTSIDE, s, jmin
+        s = nxt
+    return WALK_FAILED, s, -1
+
+
 @nb.njit(**JIT)
 def locate(p, start, transform, neighbors, bary):
     """Simplex containing ``p``, walking from ``start`` across the most violated face.
@@ -1160,31 +1189,305 @@ def locate(p, start, transform, neighbors, bary):
     -------
     int
         The simplex, ``OUTSIDE`` (-1) if the walk leaves the mesh, ``WALK_FAILED`` (-2) after
-        ``MAX_WALK`` steps.
+        ``MAX_WALK`` steps. On a non-convex mesh a walk can leave through a border face
+        although ``p`` is inside (behind a notch): `locate_exact` settles those.
+    """
+    return _walk(p, start, transform, neighbors, bary)[0]
+
+
+#: `face_excess` values up to this (in heights of the cell above the face) count as 0: the face
+#: is a supporting plane of the mesh, within the rounding of the barycentric coordinates.
+EXCESS_TOL = 1e-9
+#: Relative margin on a face excess before a point beyond it is declared outside.
+EXCESS_MARGIN = 1e-9
+
+
+@nb.njit(**JIT)
+def find_cell(p, transform, box, dims, bstart, bcells, bary):
+    """Simplex containing ``p`` by testing every simplex listed in its bucket (exact search).
+
+    Of the simplices that contain ``p`` (all barycentric coordinates >= -BARY_EPS), the one
+    where ``p`` lies deepest (largest smallest coordinate; the first listed on ties): the
+    answer does not depend on the order of the list.
+
+    Parameters
+    ----------
+    p : ndarray, shape (d,), mm
+    transform : ndarray, shape (m, d + 1, d)
+    box : ndarray, shape (2, d)
+        Lower corner of the bucket grid (mm) and buckets per mm along each axis.
+    dims : ndarray, shape (d,), int64
+        Buckets along each axis (C order of the flat bucket index).
+    bstart, bcells : ndarray, int64
+        CSR lists: the simplices whose (padded) bounding box meets bucket b are
+        ``bcells[bstart[b]:bstart[b + 1]]`` (`cfm_fem.interpolation.cell_buckets`).
+    bary : ndarray, shape (d + 1,)
+        Output: barycentric coordinates in the returned simplex (as `locate` computes them).
+
+    Returns
+    -------
+    int
+        The simplex, or ``OUTSIDE``.
     """
     d = p.shape[0]
-    s = start
-    if s < 0:
-        return OUTSIDE
-    for _ in range(MAX_WALK):
+    b = 0
+    for a in range(d):
+        x = (p[a] - box[0, a]) * box[1, a]
+        if not (x >= 0.0 and x < dims[a]):  # beyond every cell's box (NaN too)
+            return OUTSIDE
+        b = b * dims[a] + np.int64(x)
+    best = OUTSIDE
+    best_min = 0.0
+    for i in range(bstart[b], bstart[b + 1]):
+        s = bcells[i]
         last = 1.0
+        lmin = np.inf
         for j in range(d):
             c = 0.0
             for k in range(d):
                 c += transform[s, j, k] * (p[k] - transform[s, d, k])
-            bary[j] = c
             last -= c
-        bary[d] = last
-        jmin = 0
-        for j in range(1, d + 1):
-            if bary[j] < bary[jmin]:
-                jmin = j
-        if bary[jmin] >= -BARY_EPS:
-            return s
-        s = neighbors[s, jmin]
-        if s < 0:
-            return OUTSIDE
-    return WALK_FAILED
+            lmin = min(lmin, c)
+        lmin = min(lmin, last)
+        if lmin >= -BARY_EPS and (best < 0 or lmin > best_min):
+            best = s
+            best_min = lmin
+    if best >= 0:
+        _bary_in(p, best, transform, bary)
+    return best
+
+
+@nb.njit(inline="always", **JIT)
+def _bary_in(p, s, transform, bary):
+    """Barycentric coordinates of p in simplex s, as `locate` computes them."""
+    d = p.shape[0]
+    last = 1.0
+    for j in range(d):
+        c = 0.0
+        for k in range(d):
+            c += transform[s, j, k] * (p[k] - transform[s, d, k])
+        bary[j] = c
+        last -= c
+    bary[d] = last
+
+
+@nb.njit(**JIT)
+def locate_exact(p, start, transform, neighbors, bary, search):
+    """`locate`, exact on non-convex meshes too.
+
+    A walk that leaves the mesh through a border face proves ``p`` outside only when ``p`` lies
+    beyond that face's plane by more than any node of the mesh does (its `face_excess`): then
+    no cell can hold it. Otherwise (behind a notch, or a face left by removed hull slivers) the
+    cells of ``p``'s bucket are tested (`find_cell`). On a convex mesh (empty excess table)
+    this is `locate`, step for step.
+
+    Parameters
+    ----------
+    p, start, transform, neighbors, bary :
+        As in `locate`.
+    search : tuple
+        ``(excess, reach, box, dims, bstart, bcells)`` (`cfm_fem.interpolation.exact_search`):
+        excess, shape (m, d + 1) or (0, d + 1), the `face_excess` of each border face in
+        heights of its cell (0 elsewhere); reach, shape (n,) or (0,), `node_reach` (mm); the
+        rest, the bucket lists of `find_cell`.
+
+    Returns
+    -------
+    int
+        As `locate`.
+    """
+    excess, _reach, box, dims, bstart, bcells = search
+    s, last, face = _walk(p, start, transform, neighbors, bary)
+    if s != OUTSIDE or face < 0 or excess.shape[0] == 0:
+        return s
+    if -bary[face] > excess[last, face] * (1.0 + EXCESS_MARGIN) + BARY_EPS:
+        return OUTSIDE  # beyond the plane by more than every node of the mesh
+    return find_cell(p, transform, box, dims, bstart, bcells, bary)
+
+
+@nb.njit(**JIT)
+def node_reach(coords, simplices, transform, boxes, box, dims, bstart, bcells, nodes, cap):
+    """Per node g, a distance within which the only cells are g's own (its star).
+
+    A lower bound on the distance from g to the cells not incident to g: per cell, the larger
+    of the distance to its bounding box and the largest distance of g beyond one of its face
+    planes (``-lam_j(g) / |grad lam_j|``), for the cells whose bounding box comes within
+    ``cap`` of g (the others are farther than that). A point nearer to g than this is in the
+    mesh if and only if it is in a star cell, however the mesh folds further away:
+    `star_exit` proves trials outside with it.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+    simplices, transform : mesh arrays
+    boxes : ndarray, shape (m, 2, d), mm
+        Lower and upper corner of each cell's bounding box.
+    box, dims, bstart, bcells : bucket lists of the cells (`find_cell`)
+    nodes : ndarray, shape (k,), int64
+    cap : ndarray, shape (k,), mm
+        Search radius per node (`cfm_fem.interpolation.star_height`).
+
+    Returns
+    -------
+    ndarray, shape (k,), mm
+        At most ``cap``; 0 where a cell not incident to g touches it (a non-conforming mesh).
+    """
+    d = coords.shape[1]
+    dp1 = d + 1
+    out = np.empty(nodes.shape[0])
+    lo = np.empty(d, dtype=np.int64)
+    hi = np.empty(d, dtype=np.int64)
+    idx = np.empty(d, dtype=np.int64)
+    gsum = np.empty(d)
+    for i in range(nodes.shape[0]):
+        g = nodes[i]
+        r = cap[i]
+        n_b = 1
+        for a in range(d):
+            x0 = np.floor((coords[g, a] - r - box[0, a]) * box[1, a])
+            x1 = np.floor((coords[g, a] + r - box[0, a]) * box[1, a])
+            lo[a] = np.int64(max(x0, 0.0))
+            hi[a] = np.int64(min(x1, dims[a] - 1.0))
+            n_b *= max(hi[a] - lo[a] + 1, 0)
+        for k in range(n_b):  # every bucket of the box around g
+            rest = k
+            b = 0
+            for a in range(d - 1, -1, -1):
+                w = hi[a] - lo[a] + 1
+                idx[a] = lo[a] + rest % w
+                rest //= w
+            for a in range(d):
+                b = b * dims[a] + idx[a]
+            for e in range(bstart[b], bstart[b + 1]):
+                c = bcells[e]
+                gap = 0.0  # squared distance from g to the cell's bounding box
+                for a in range(d):
+                    x = coords[g, a]
+                    gap += max(boxes[c, 0, a] - x, 0.0, x - boxes[c, 1, a]) ** 2
+                if gap > cap[i] * cap[i]:
+                    continue
+                own = False
+                for j in range(dp1):
+                    own |= simplices[c, j] == g
+                if own:
+                    continue
+                lb = 0.0
+                lsum = 0.0
+                for a in range(d):
+                    gsum[a] = 0.0
+                for j in range(d):
+                    lam = 0.0
+                    gn = 0.0
+                    for a in range(d):
+                        lam += transform[c, j, a] * (coords[g, a] - transform[c, d, a])
+                        gn += transform[c, j, a] ** 2
+                        gsum[a] += transform[c, j, a]
+                    lsum += lam
+                    if lam < 0.0:
+                        lb = max(lb, -lam / math.sqrt(gn))
+                gn = 0.0
+                for a in range(d):
+                    gn += gsum[a] ** 2
+                if 1.0 - lsum < 0.0:
+                    lb = max(lb, -(1.0 - lsum) / math.sqrt(gn))
+                r = min(r, max(lb, math.sqrt(gap)))  # both bound the distance from below
+        out[i] = r
+    return out
+
+
+@nb.njit(**JIT)
+def star_sizes(nodes, start, simplices, neighbors):
+    """Per node g, the cells reached from ``start[g]`` across faces that contain g (its star,
+    as `build_star` builds it), counted up to MAX_STAR + 1.
+
+    Fewer than the cells incident to g: the node's cells form several face-connected parts
+    (a node where removed hull slivers or a pinched mesh leave two wedges meeting at an edge or
+    a point); the star then misses incident cells, and `node_reach` is no proof there.
+
+    Parameters
+    ----------
+    nodes : ndarray, shape (k,), int64
+    start : ndarray, shape (n,), int64
+        A cell incident to each node (-1: none).
+    simplices, neighbors : ndarray, shape (m, d + 1), int64
+
+    Returns
+    -------
+    ndarray, shape (k,), int64
+    """
+    dp1 = simplices.shape[1]
+    out = np.zeros(nodes.shape[0], dtype=np.int64)
+    seen = np.empty(MAX_STAR + 1, dtype=np.int64)
+    for i in range(nodes.shape[0]):
+        g = nodes[i]
+        if start[g] < 0:
+            continue
+        seen[0] = start[g]
+        n = 1
+        k = 0
+        while k < n:  # breadth-first across the faces that contain g
+            s = seen[k]
+            k += 1
+            for j in range(dp1):
+                ns = neighbors[s, j]
+                if simplices[s, j] == g or ns < 0:
+                    continue
+                new = True
+                for q in range(n):
+                    new &= seen[q] != ns
+                if new and n <= MAX_STAR:
+                    seen[n] = ns
+                    n += 1
+        out[i] = n
+    return out
+
+
+@nb.njit(**JIT)
+def hull_max(points, adj_start, adj, start, grad, shift):
+    """max over the vertices v of a convex hull of ``grad[f] . points[v] + shift[f]``, per f.
+
+    Climbs the hull's edge graph from ``start[f]`` to a neighbour with a larger value while
+    there is one: on a convex polytope a vertex no edge improves is a maximum (the simplex
+    method's argument), so the answer is the brute-force maximum over all vertices
+    (`cfm_fem.interpolation.face_excess`: tens of steps per face instead of every vertex).
+
+    Parameters
+    ----------
+    points : ndarray, shape (h, d), mm
+        The hull's vertices.
+    adj_start, adj : ndarray, int64
+        CSR lists of the hull's edges: the neighbours of vertex v are
+        ``adj[adj_start[v]:adj_start[v + 1]]``.
+    start : ndarray, shape (f,), int64
+        Vertex to climb from (one near the maximum saves steps).
+    grad : ndarray, shape (f, d); shift : ndarray, shape (f,)
+
+    Returns
+    -------
+    ndarray, shape (f,)
+    """
+    nf, d = grad.shape
+    out = np.empty(nf)
+    for f in range(nf):
+        v = start[f]
+        best = shift[f]
+        for a in range(d):
+            best += grad[f, a] * points[v, a]
+        while True:
+            nxt = -1
+            for i in range(adj_start[v], adj_start[v + 1]):
+                w = adj[i]
+                val = shift[f]
+                for a in range(d):
+                    val += grad[f, a] * points[w, a]
+                if val > best:
+                    best = val
+                    nxt = w
+            if nxt < 0:
+                break
+            v = nxt
+        out[f] = best
+    return out
 
 
 @nb.njit(inline="always", **JIT)
@@ -1992,6 +2295,264 @@ def star_locate3(start, lmat, nbr, n_star, d0, d1, d2):
     return -1, 0.0, 0.0, 0.0
 
 
+@nb.njit(**JIT)
+def star_exact(g, cells, n_star, simplices, excess):
+    """Whether LEAVES_MESH is a proven verdict at node g: every border face of its star (they
+    all contain g) is a supporting plane of the whole mesh (zero `face_excess`).
+
+    A displacement beyond such a face's plane leaves the mesh at every U_p. Behind a face
+    with an excess (a re-entrant edge or corner at g, a notch facing it, a face left by
+    removed hull slivers), the point may lie in another star cell or in a cell further away:
+    `star_recheck` places those trials.
+
+    Parameters
+    ----------
+    g : int
+    cells : ndarray, shape (>= n_star,), int64
+        The star's cells (`build_star`).
+    simplices : ndarray, shape (m, d + 1), int64
+    excess : ndarray, shape (m, d + 1) or (0, d + 1)
+        Empty for a convex mesh (every verdict proven; nothing is read).
+    """
+    if excess.shape[0] == 0:
+        return True
+    for i in range(n_star):
+        s = cells[i]
+        for j in range(simplices.shape[1]):
+            if simplices[s, j] != g and excess[s, j] > 0.0:
+                return False
+    return True
+
+
+@nb.njit(**JIT)
+def star_find(p, g, coords, transform, cells, n_star, lmat, delta, bary):
+    """The cell of the star of g that holds ``p``, testing them all, or OUTSIDE.
+
+    Exact for a point nearer to g than any other cell (`node_reach`): it is then in a star
+    cell or outside the mesh.
+
+    Parameters
+    ----------
+    p : ndarray, shape (d,), mm
+    g : int
+    coords, transform : mesh arrays
+    cells, n_star, lmat : star tables (`build_star`)
+    delta : ndarray, shape (d,)
+        Work space.
+    bary : ndarray, shape (d + 1,)
+        Output: barycentric coordinates in the cell found (as `locate` computes them).
+
+    Returns
+    -------
+    int
+        The cell (mesh index), or OUTSIDE.
+    """
+    d = lmat.shape[2]
+    for a in range(d):
+        delta[a] = p[a] - coords[g, a]
+    for i in range(n_star):
+        tot = 0.0
+        lmin = np.inf
+        for a in range(d):
+            v = 0.0
+            for b in range(d):
+                v += lmat[i, a, b] * delta[b]
+            tot += v
+            lmin = min(lmin, v)
+        if lmin >= -BARY_EPS and 1.0 - tot >= -BARY_EPS:
+            _bary_in(p, cells[i], transform, bary)
+            return cells[i]
+    return OUTSIDE
+
+
+@nb.njit(**JIT)
+def star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free):
+    """The star cells of g that reach beyond the plane of a border face of the star (such a
+    face contains g): those with a vertex strictly beyond it; and the border faces no star
+    cell reaches beyond.
+
+    A displacement the star walk finds beyond a border face's plane (LEAVES_MESH) can lie only
+    in the cone of one of the cells; none (a star convex at g): in no star cell. Beyond the
+    plane of a free face, it is in no star cell either (every star cell lies on its inner
+    side): on a faceted curved surface, where few stars are convex at g, most exits are proven
+    so, at the cost of one face test (`star_exit`).
+
+    Parameters
+    ----------
+    g : int
+    coords : ndarray, shape (n, d), mm
+    cells, n_star, lmat, nbr : star tables (`build_star`)
+    simplices : ndarray, shape (m, d + 1), int64
+    cand : ndarray, shape (>= n_star,), int64
+        Output: star indices of those cells.
+    free : ndarray, shape (2, >= n_star * d), int64
+        Output: the free border faces, as columns (i, a): star cell i, face opposite its a-th
+        vertex other than g (see `build_star`).
+
+    Returns
+    -------
+    n_cand, n_free : int
+        How many of each.
+    """
+    d = lmat.shape[2]
+    hit = np.zeros(n_star, dtype=np.bool_)
+    n_free = 0
+    for i in range(n_star):
+        for a in range(d):
+            if nbr[i, a] >= 0:
+                continue
+            face_free = True
+            for i2 in range(n_star):
+                s = cells[i2]
+                for j in range(simplices.shape[1]):
+                    v = simplices[s, j]
+                    lam = 0.0
+                    for b in range(d):
+                        lam += lmat[i, a, b] * (coords[v, b] - coords[g, b])
+                    if lam < -1e-12:  # beyond the plane (rounding: ~1e-16)
+                        hit[i2] = True
+                        face_free = False
+            free[0, n_free] = i
+            free[1, n_free] = a
+            n_free += face_free
+    n_cand = 0
+    for i2 in range(n_star):
+        cand[n_cand] = i2
+        n_cand += hit[i2]
+    return n_cand, n_free
+
+
+#: `star_exit`: the point is not nearer to g than every other cell; `star_recheck` places it.
+BEYOND_REACH = -4
+
+
+@nb.njit(inline="always", **JIT)
+def star_exit(lmat, reach, cand, n_cand, free, n_free, delta, lam):
+    """Place ``x_g + delta`` whose star walk crossed a border face (LEAVES_MESH), at a node
+    where that proves nothing (`star_exact` False).
+
+    Nearer to g than any other cell (``|delta| < reach``, `node_reach`), the point is in a
+    star cell or outside: beyond the plane of a free face it is outside; else only the cells of
+    `star_behind` can hold it. Farther, the caller tests every star cell (`star_recheck`; not
+    called from here: a call that may happen makes numba count references to its array
+    arguments on every call, ~100 ns).
+
+    Parameters
+    ----------
+    lmat : star table (`build_star`)
+    reach : float, mm
+        `node_reach` of g.
+    cand, n_cand, free, n_free : `star_behind` of g
+    delta : ndarray, shape (d,), mm
+    lam : ndarray, shape (d,)
+        Output: barycentric coordinates in the star cell found.
+
+    Returns
+    -------
+    cell : int
+        Star index of the cell holding the point; LEAVES_MESH: outside at every fraction
+        r <= 1 of ``delta``; -1: the global walk; BEYOND_REACH: `star_recheck`, with
+    r_in, r_out : float
+        ``x_g + r delta`` proven outside for r < r_in and r > r_out.
+    """
+    d = lmat.shape[2]
+    n2 = 0.0
+    for a in range(d):
+        n2 += delta[a] * delta[a]
+    if n2 >= reach * reach:
+        return BEYOND_REACH, 0.0, np.inf
+    for f in range(n_free):  # beyond a plane through g that every star cell stays behind
+        i = free[0, f]
+        a = free[1, f]
+        v = 0.0
+        for b in range(d):
+            v += lmat[i, a, b] * delta[b]
+        if v < -BARY_EPS:
+            return LEAVES_MESH, 0.0, np.inf
+    cone = False
+    for c in range(n_cand):
+        i = cand[c]
+        tot = 0.0
+        in_cone = True
+        for a in range(d):
+            v = 0.0
+            for b in range(d):
+                v += lmat[i, a, b] * delta[b]
+            if v < -BARY_EPS:  # not in this cell's cone: the other rows are not needed
+                in_cone = False
+                break
+            lam[a] = v
+            tot += v
+        if in_cone:
+            if 1.0 - tot >= -BARY_EPS:
+                return i, 0.0, np.inf
+            cone = True  # inside for small r, beyond the cell at r = 1: the global walk
+    return (-1 if cone else LEAVES_MESH), 0.0, np.inf
+
+
+@nb.njit(**JIT)
+def star_recheck(g, cells, n_star, lmat, nbr, simplices, excess, reach, delta, lam):
+    """Place ``x_g + delta`` whose star walk crossed a border face, at a node where that is no
+    proof of leaving the mesh (`star_exact` False).
+
+    Every star cell is tested. Else the point is beyond the star, and ``x_g + r delta`` is
+    proven outside for the fractions r where it either lies beyond a border face of the star
+    by more than every node of the mesh (``-r lam_a > excess``), or, if ``delta`` is in no star
+    cell's cone, is nearer to g than any other cell (``r |delta| < reach``, `node_reach`).
+
+    Parameters
+    ----------
+    g : int
+    cells, n_star, lmat, nbr : star tables (`build_star`)
+    simplices : ndarray, shape (m, d + 1), int64
+    excess : ndarray, shape (m, d + 1)
+        `face_excess` in heights of the cell above the face.
+    reach : float, mm
+        `node_reach` of g.
+    delta : ndarray, shape (d,), mm
+    lam : ndarray, shape (d,)
+        Output: barycentric coordinates in the star cell found.
+
+    Returns
+    -------
+    cell : int
+        Star index of the cell holding the point, or -1 (beyond the star).
+    r_in, r_out : float
+        With cell -1: the point ``x_g + r delta`` is outside the mesh for every r < r_in and
+        every r > r_out (0 and inf where nothing proves it).
+    """
+    d = lmat.shape[2]
+    r_out = np.inf
+    cone = False  # delta in some star cell's cone: x_g + r delta is inside for small r
+    norm = 0.0
+    for a in range(d):
+        norm += delta[a] * delta[a]
+    for i in range(n_star):
+        tot = 0.0
+        lmin = np.inf
+        for a in range(d):
+            v = 0.0
+            for b in range(d):
+                v += lmat[i, a, b] * delta[b]
+            lam[a] = v
+            tot += v
+            lmin = min(lmin, v)
+        if lmin >= -BARY_EPS:
+            if 1.0 - tot >= -BARY_EPS:
+                return i, 0.0, np.inf
+            cone = True
+        s = cells[i]
+        a = 0
+        for j in range(d + 1):
+            if simplices[s, j] == g:
+                continue
+            if nbr[i, a] < 0 and lam[a] < -BARY_EPS:  # beyond this border face's plane
+                r_out = min(r_out, (excess[s, j] * (1.0 + EXCESS_MARGIN) + BARY_EPS) / -lam[a])
+            a += 1
+    r_in = 0.0 if cone else reach / math.sqrt(norm)
+    return -1, r_in, r_out
+
+
 #: Levels per axis of an octahedral direction bin (`direction_bin`).
 BIN_LEVELS = 4
 
@@ -2278,6 +2839,7 @@ def _node_gauss(
     fkey,
     p,
     exit_grad,
+    search,
     buffers,
     stats,
     n_out,
@@ -2296,11 +2858,16 @@ def _node_gauss(
     component errors at every U_p are the largest U_p's scaled. They are stored once
     (comp[kmax]); the few trials that leave the star take the global walk at each U_p and are
     stored per U_p (comp[k], or the back of comp[kmax]).
+    A trial whose star walk crosses a border face at g is outside at every U_p when that face
+    is a supporting plane of the mesh (`star_exact`); on a non-convex mesh, where it may not
+    be, `star_exit` places it: in a star cell, outside at every U_p (nearer to g than any other
+    cell), or the global walk (`locate_exact`) at the U_p values where nothing proves it.
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
     (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, ibuf,
-     rest, code, wmat) = buffers  # fmt: skip
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
+    excess, reach = search[0], search[1]
     d = coords.shape[1]
     n_up = scales.shape[0]
     kmax = 0
@@ -2342,6 +2909,11 @@ def _node_gauss(
     )  # fmt: skip
     if n_star > 0:  # per direction bin, a star cell to start walks from
         star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
+    exact = star_exact(g, cells, n_star, simplices, excess)  # LEAVES_MESH is proven
+    n_cand = 0
+    n_free = 0
+    if not exact:
+        n_cand, n_free = star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free)
     normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
     # place every trial in the star at the largest U_p; the others are listed in ``rest``
     for c in range(3):  # mesh-frame displacement per unit normal (projected for planar maps)
@@ -2350,6 +2922,30 @@ def _node_gauss(
     if d == 3 and n_star > 0:
         n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, bin_start,
                               comp[kmax], dl, ibuf, rest, code)  # fmt: skip
+        kept = 0
+        for r in range(n_rest):
+            t = rest[r]
+            r_in[kept] = 0.0
+            r_out[kept] = np.inf
+            if code[r] == LEAVES_MESH and not exact:  # no proof by itself at this node
+                for a in range(3):
+                    delta[a] = dl[a, t]
+                s, r_in[kept], r_out[kept] = star_exit(lmat, reach[g], cand, n_cand, free,
+                                                       n_free, delta, lam)  # fmt: skip
+                if s == BEYOND_REACH:
+                    s, r_in[kept], r_out[kept] = star_recheck(
+                        g, cells, n_star, lmat, nbr, simplices, excess, reach[g], delta, lam
+                    )
+                if s >= 0:  # an in-star trial after all
+                    comp[kmax, 0, t], comp[kmax, 1, t], comp[kmax, 2, t] = _err3(
+                        dmat, s, lam[0], lam[1], lam[2]
+                    )
+                    continue
+                code[r] = s
+            rest[kept] = t  # kept <= r: overwrites only entries already read
+            code[kept] = code[r]
+            kept += 1
+        n_rest = kept
         if extrapolate:  # exits at the node: the Taylor expansion, linear in U_p (in-star)
             kept = 0
             for r in range(n_rest):
@@ -2361,6 +2957,8 @@ def _node_gauss(
                 else:
                     rest[kept] = t  # kept <= r: overwrites only entries already read
                     code[kept] = code[r]
+                    r_in[kept] = r_in[r]
+                    r_out[kept] = r_out[r]
                     kept += 1
             n_rest = kept
         if n_rest > 0:  # in-star errors to the front, in trial order
@@ -2380,8 +2978,16 @@ def _node_gauss(
             for a in range(d):
                 delta[a] = smax * _unit_disp(wmat, zbuf, t, a)
             s = -1
+            r_lo = 0.0
+            r_hi = np.inf
             if n_star > 0:
                 s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
+                if s == LEAVES_MESH and not exact:  # no proof by itself at this node
+                    s, r_lo, r_hi = star_exit(lmat, reach[g], cand, n_cand, free, n_free,
+                                              delta, lam)  # fmt: skip
+                    if s == BEYOND_REACH:
+                        s, r_lo, r_hi = star_recheck(g, cells, n_star, lmat, nbr, simplices,
+                                                     excess, reach[g], delta, lam)  # fmt: skip
             taylor = extrapolate and s == LEAVES_MESH  # linear in U_p, as an in-star trial
             if s >= 0 or taylor:
                 mat, row, vec = (exit_grad, g, delta) if taylor else (dmat, s, lam)
@@ -2395,6 +3001,8 @@ def _node_gauss(
             else:
                 rest[n_rest] = t
                 code[n_rest] = s
+                r_in[n_rest] = r_lo
+                r_out[n_rest] = r_hi
                 n_rest += 1
     for r in range(n_rest):
         t = rest[r]
@@ -2417,7 +3025,11 @@ def _node_gauss(
                 continue
             for a in range(d):
                 pt[a] = coords[g, a] + scales[k] * disp[a]
-            s = locate(pt, cell if cell >= 0 else start, transform, neighbors, bary)
+            if ratio[k] < r_in[r] or ratio[k] > r_out[r]:  # proven (`star_recheck`)
+                s = OUTSIDE
+            else:
+                s = locate_exact(pt, cell if cell >= 0 else start, transform, neighbors, bary,
+                                 search)  # fmt: skip
             if s == OUTSIDE:
                 n_out[k] += 1
                 if not extrapolate:
@@ -2508,7 +3120,9 @@ def _node_gauss(
 def _gauss_buffers(n_up, n_trials, d):
     """Per-thread work arrays of `_node_gauss`: samples (comp, absb, scratch), normals (zbuf,
     okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start), merge space (work) and the
-    star pass's work space (dl, ibuf, rest, code, wmat; `star_errors3`)."""
+    star pass's work space (dl, ibuf, rest, code, wmat; `star_errors3`) and, per trial in
+    ``rest``, the fractions of its largest displacement where it is proven outside (r_in,
+    r_out; `star_recheck`), and the star cells and free faces of `star_behind` (cand, free)."""
     return (
         np.empty((n_up, 3, n_trials)),
         np.empty((n_up, n_trials)),
@@ -2527,6 +3141,10 @@ def _gauss_buffers(n_up, n_trials, d):
         np.empty(n_trials, dtype=np.int64),
         np.empty(n_trials, dtype=np.int64),
         np.empty((3, d)),
+        np.empty(n_trials),
+        np.empty(n_trials),
+        np.empty(MAX_STAR, dtype=np.int64),
+        np.empty((2, MAX_STAR * d), dtype=np.int64),
     )
 
 
@@ -2547,6 +3165,7 @@ def gauss_sweep(
     seed,
     p,
     exit_grad,
+    search,
 ):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node, statistics streamed per node.
 
@@ -2581,6 +3200,11 @@ def gauss_sweep(
         Empty: trials that leave the mesh are left out of the statistics. Else the node
         gradients (`cfm_fem.sweep.node_gradients` in the mesh frame): a trial that leaves takes
         the node's first-order Taylor expansion B_g + grad B_g . delta.
+    search : tuple
+        Face excess and cell buckets of the mesh (`locate_exact`;
+        `cfm_fem.interpolation.exact_search`): whether a trial left the mesh is then exact on
+        non-convex meshes too. Empty arrays for a convex mesh (its border faces are
+        supporting planes, every exit is a proof).
 
     Returns
     -------
@@ -2610,7 +3234,8 @@ def gauss_sweep(
             continue
         star[i] = _node_gauss(g, keys[i], coords, values, simplices, transform, neighbors,
                               start_cells, basis, sigma_axes, scales, n_trials, skey, fkey, p,
-                              exit_grad, buffers, stats[i], n_out[i], n_lost[i])  # fmt: skip
+                              exit_grad, search, buffers, stats[i], n_out[i],
+                              n_lost[i])  # fmt: skip
     return stats, n_out, n_lost, star
 
 
@@ -2665,7 +3290,7 @@ def coupled_probe_errors(
 def htm_sweep(
     nodes, keys, coords, values, simplices, transform, neighbors, start_cells, basis, rot, q_nodes,
     params, terms, use_geometric, use_noise, nkey, fkey, sig, speed, tau_code, tau_par, stack,
-    mounts, tool, strokes, profiles, p, exit_grad,
+    mounts, tool, strokes, profiles, p, exit_grad, search,
 ):  # fmt: skip
     """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
 
@@ -2703,6 +3328,10 @@ def htm_sweep(
     exit_grad : ndarray, shape (n, 3, d) or (0, 3, d), T/mm
         As in `gauss_sweep`: trials that leave the mesh left out (empty) or given the node's
         first-order Taylor expansion; counted in ``n_out`` either way.
+    search : tuple
+        As in `gauss_sweep`. A trial that leaves the mesh where that is no proof is placed by
+        `star_find` when nearer to its node than any other cell (`node_reach`), else by
+        `locate_exact`.
 
     Returns
     -------
@@ -2741,6 +3370,13 @@ def htm_sweep(
     cells = np.empty(n_trials, dtype=np.int64)
     act = np.empty(n_trials, dtype=np.int64)
     bary = np.empty((n_trials, d + 1))
+    excess, reach = search[0], search[1]
+    scells = np.empty(MAX_STAR, dtype=np.int64)  # star tables (`build_star`), non-convex mesh
+    lmat = np.empty((MAX_STAR, d, d))
+    dmat = np.empty((MAX_STAR, 3, d))
+    nbr = np.empty((MAX_STAR, d), dtype=np.int64)
+    htab = np.full((3, STAR_HASH), -1, dtype=np.int64)
+    delta = np.empty(d)
     for i in range(k_nodes):
         g = nodes[i]
         if start_cells[g, 0] < 0:
@@ -2790,6 +3426,23 @@ def htm_sweep(
         else:
             for t in range(n_trials):
                 cells[t] = locate(pts[t], starts[t], transform, neighbors, bary[t])
+        if excess.shape[0] > 0:  # non-convex mesh: is an exit a proof?
+            n_star = -2  # the star of g, built at the first exit near g
+            for t in range(n_trials):
+                if cells[t] != OUTSIDE:
+                    continue
+                n2 = 0.0
+                for a in range(d):
+                    n2 += (pts[t, a] - coords[g, a]) ** 2
+                if n2 < reach[g] ** 2:  # nearer to g than any other cell: in its star or out
+                    if n_star == -2:
+                        n_star = build_star(g, start_cells[g, 0], simplices, transform, neighbors,
+                                            values, scells, lmat, dmat, nbr, htab)  # fmt: skip
+                    if n_star > 0:
+                        cells[t] = star_find(pts[t], g, coords, transform, scells, n_star, lmat,
+                                             delta, bary[t])  # fmt: skip
+                        continue
+                cells[t] = locate_exact(pts[t], starts[t], transform, neighbors, bary[t], search)
         nv = 0
         for t in range(n_trials):
             s = cells[t]

@@ -29,7 +29,7 @@ from . import _kernels
 from .errors import CfmInputError
 from .field import FieldMap
 
-__all__ = ["SimplexMesh", "build_mesh", "LinearInterpolator"]
+__all__ = ["SimplexMesh", "build_mesh", "LinearInterpolator", "exact_search"]
 
 #: Relative singular value below which a point set is treated as planar (or collinear).
 FLAT_TOL = 1e-9
@@ -515,6 +515,189 @@ def _delaunay(coords, source):
     if len(tri.coplanar):
         notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
     return tri.simplices.astype(np.int64), "delaunay", coords, notes
+
+
+def face_excess(coords, simplices, transform, neighbors):
+    """How far the mesh's nodes reach beyond the plane of each border face, in heights of the
+    face's cell (the barycentric coordinate of the farthest node, negated).
+
+    A point beyond a border face's plane by more than this lies in no cell (every cell is the
+    convex hull of nodes on the near side), so a walk leaving the mesh there proves it outside.
+    On a convex mesh every border face is a supporting plane and the excess is 0; behind a
+    notch (an L-shaped map's re-entrant edge) or on faces that removed hull slivers leave
+    (`hull_sliver_cells`), it is not, and `cfm_fem._kernels.locate_exact` searches the cells.
+    The maximum over the nodes is the maximum over the vertices of their convex hull, found
+    by climbing its edges (`cfm_fem._kernels.hull_max`).
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+        The mesh's nodes (those of no cell are left out).
+    simplices : ndarray, shape (m, d + 1), int
+    transform : ndarray, shape (m, d + 1, d)
+    neighbors : ndarray, shape (m, d + 1), int
+        -1 across a border face.
+
+    Returns
+    -------
+    ndarray, shape (m, d + 1)
+        Entry (s, j): the excess of the face opposite vertex j of cell s if it is a border face,
+        else 0; values up to `cfm_fem._kernels.EXCESS_TOL` (rounding) are set to 0.
+    """
+    m, dp1 = simplices.shape
+    d = dp1 - 1
+    out = np.zeros((m, dp1))
+    s_idx, j_idx = np.nonzero(neighbors < 0)
+    if not len(s_idx):
+        return out
+    used = np.zeros(len(coords), dtype=bool)
+    used[simplices.ravel()] = True
+    hull = scipy.spatial.ConvexHull(coords[used])
+    pts = np.ascontiguousarray(hull.points[hull.vertices])
+    T = transform[s_idx]  # (f, d + 1, d)
+    # the face's barycentric coordinate lam_j(x) = grad . (x - r) (+ 1 for j = d); its
+    # smallest value over the nodes is minus the largest of -lam_j
+    last = j_idx == d
+    grad = np.where(last[:, None], -T[:, :d].sum(axis=1), T[np.arange(len(s_idx)),
+                                                           np.minimum(j_idx, d - 1)])  # fmt: skip
+    shift = last.astype(np.float64) - (grad * T[:, d]).sum(axis=1)
+    # the hull's edges (CSR over its vertices), and a start near each face for the climb
+    local = np.full(len(hull.points), -1, dtype=np.int64)
+    local[hull.vertices] = np.arange(len(hull.vertices))
+    tri = local[hull.simplices]
+    i, j = np.triu_indices(d, 1)
+    edges = np.unique(np.concatenate([tri[:, [a, b]] for a, b in zip(i, j, strict=True)] +
+                                     [tri[:, [b, a]] for a, b in zip(i, j, strict=True)]),
+                      axis=0)  # fmt: skip
+    adj_start = np.searchsorted(edges[:, 0], np.arange(len(pts) + 1)).astype(np.int64)
+    vertex = coords[simplices[s_idx, (j_idx + 1) % dp1]]  # a vertex of each face
+    start = scipy.spatial.cKDTree(pts).query(vertex)[1].astype(np.int64)
+    ex = _kernels.hull_max(pts, adj_start, np.ascontiguousarray(edges[:, 1]), start,
+                           np.ascontiguousarray(-grad), -shift)  # fmt: skip
+    ex[~(ex > _kernels.EXCESS_TOL)] = 0.0
+    out[s_idx, j_idx] = ex
+    return out
+
+
+def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float = 48.0):
+    """Uniform grid of buckets over the cells, each listing the cells whose bounding box meets
+    it (CSR), for the exact search `cfm_fem._kernels.find_cell`.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+    simplices : ndarray, shape (m, d + 1), int
+    per_bucket : float
+        Cells per bucket aimed at (about m / per_bucket buckets).
+    max_entries : float
+        Coarser grids are taken while the lists hold more than this many entries per cell (a
+        few large cells over many buckets).
+
+    Returns
+    -------
+    box : ndarray, shape (2, d)
+        Lower corner (mm) and buckets per mm of the grid.
+    dims : ndarray, shape (d,), int64
+        Buckets along each axis; the flat index of a bucket is in C order.
+    bstart : ndarray, shape (prod(dims) + 1,), int64
+    bcells : ndarray, int64
+        The cells of bucket b, increasing: ``bcells[bstart[b]:bstart[b + 1]]``.
+    """
+    m, dp1 = simplices.shape
+    d = dp1 - 1
+    lo = coords[simplices[:, 0]].copy()
+    hi = lo.copy()
+    for j in range(1, dp1):
+        v = coords[simplices[:, j]]
+        np.minimum(lo, v, out=lo)
+        np.maximum(hi, v, out=hi)
+    # padded, so a point a cell holds within the barycentric tolerance is inside its box
+    pad = 1e-8 * (hi - lo).max(axis=1, keepdims=True)
+    lo -= pad
+    hi += pad
+    g_lo, g_hi = lo.min(axis=0), hi.max(axis=0)
+    ext = g_hi - g_lo
+    while True:
+        step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
+        dims = np.maximum(np.ceil(ext / step), 1).astype(np.int64)
+        inv = dims / ext
+        i0 = np.clip(np.floor((lo - g_lo) * inv).astype(np.int64), 0, dims - 1)
+        i1 = np.clip(np.floor((hi - g_lo) * inv).astype(np.int64), 0, dims - 1)
+        span = i1 - i0 + 1
+        count = np.prod(span, axis=1)
+        if count.sum() <= max_entries * m or dims.prod() == 1:
+            break
+        per_bucket *= 4.0
+    cell = np.repeat(np.arange(m, dtype=np.int64), count)
+    rank = np.arange(len(cell), dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
+    flat = np.zeros(len(cell), dtype=np.int64)
+    for a in range(d - 1, -1, -1):  # rank -> offsets along each axis (last axis fastest)
+        w = span[cell, a]
+        off = rank % w
+        rank //= w
+        idx = i0[cell, a] + off
+        stride = np.prod(dims[a + 1 :], dtype=np.int64)
+        flat += idx * stride
+    order = np.argsort(flat, kind="stable")  # cells stay increasing within a bucket
+    bcells = cell[order]
+    bstart = np.zeros(int(dims.prod()) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(flat, minlength=int(dims.prod())), out=bstart[1:])
+    return np.ascontiguousarray(np.stack([g_lo, inv])), dims, bstart, bcells
+
+
+def no_search(dim: int) -> tuple:
+    """The `exact_search` arrays of a convex mesh: empty (every exit is a proof)."""
+    return (np.zeros((0, dim + 1)), np.zeros(0), np.zeros((2, dim)),
+            np.zeros(dim, dtype=np.int64), np.zeros(1, dtype=np.int64),
+            np.zeros(0, dtype=np.int64))  # fmt: skip
+
+
+def star_height(transform, simplices, n_nodes: int) -> np.ndarray:
+    """Per node, its largest height over the face opposite it in one of its cells, mm (0 for
+    nodes in no cell): the search radius of `cfm_fem._kernels.node_reach`. The cells across
+    those faces are about that near, so a wider search would seldom find a larger reach."""
+    d = transform.shape[2]
+    grad = np.concatenate([transform[:, :d], -transform[:, :d].sum(axis=1, keepdims=True)], 1)
+    out = np.zeros(n_nodes)
+    np.maximum.at(out, simplices.ravel(), 1.0 / np.linalg.norm(grad, axis=2).ravel())
+    return out
+
+
+def exact_search(mesh: SimplexMesh) -> tuple:
+    """Arrays that make the sweep kernels' outside verdicts exact on a non-convex mesh.
+
+    Returns
+    -------
+    tuple
+        ``(excess, reach, box, dims, bstart, bcells)``: `face_excess`, the
+        `cfm_fem._kernels.node_reach` of the nodes of faces with an excess (0 elsewhere, and
+        at nodes whose cells are not all face-connected, `cfm_fem._kernels.star_sizes`) and
+        `cell_buckets` (`cfm_fem._kernels.locate_exact`, `cfm_fem._kernels.star_recheck`);
+        `no_search` when every border face is a supporting plane of the mesh (convex: nothing
+        to search, the kernels' old path).
+    """
+    excess = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
+    if not (excess > 0.0).any():
+        return no_search(mesh.dim)
+    buckets = cell_buckets(mesh.coords, mesh.simplices)
+    s_idx, j_idx = np.nonzero(excess > 0.0)
+    on_face = np.ones((len(s_idx), mesh.dim + 1), dtype=bool)
+    on_face[np.arange(len(s_idx)), j_idx] = False
+    nodes = np.unique(mesh.simplices[s_idx][on_face])
+    reach = np.zeros(len(mesh.coords))
+    v = mesh.coords[mesh.simplices]
+    boxes = np.ascontiguousarray(np.stack([v.min(axis=1), v.max(axis=1)], axis=1))
+    del v
+    reach[nodes] = _kernels.node_reach(
+        mesh.coords, mesh.simplices, mesh.transform, boxes, *buckets, nodes,
+        star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes],
+    )  # fmt: skip
+    # a node whose cells are not all face-connected: its star (`build_star`) misses some of
+    # them, which come nearer than any reach proves (0: no proof, the global search decides)
+    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))
+    split = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
+    reach[nodes[split != incident[nodes]]] = 0.0
+    return (excess, reach, *buckets)
 
 
 def interpolate_points(mesh: SimplexMesh, values, points, start):

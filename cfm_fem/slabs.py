@@ -543,6 +543,43 @@ def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
     return boxes
 
 
+def _slab_search(search, cert):
+    """The exact-search arrays (`cfm_fem.interpolation.exact_search`) of a slab + halo mesh
+    for its two passes, the sentinel cell (index m) and copies of the uncertified cells
+    (m + 1 + i for ``unc[i]``) appended to the mesh arrays.
+
+    The face excess is the slab mesh's own: a point beyond a border face by more than every
+    node of slab + halo lies in none of its cells, which is what the search would find (a cut
+    face, a supporting plane of slab + halo, thus proves its exits at once). Pass 1 (suspect
+    faces lead to the sentinel) lists, in place of each uncertified cell, a copy of it whose
+    field is the sentinel's NaN: a point the search finds there reaches beyond the certified
+    region, as a walk through a suspect face does, and poisons its node. Pass 2 (suspect
+    faces closed) lists the certified cells only: the rest of slab + halo is outside.
+
+    Returns
+    -------
+    search_a, search_b : tuple or None
+        Pass 1 and pass 2 arrays (None: convex slab mesh, nothing to search).
+    unc : ndarray, shape (k,), int64
+        Uncertified cells copied (empty when there is nothing to search).
+    """
+    if search is None or not search[0].shape[0]:
+        return None, None, np.zeros(0, dtype=np.int64)
+    excess, reach, box, dims, bstart, bcells = search
+    m, dp1 = excess.shape
+    unc = np.flatnonzero(~cert)
+    excess = np.concatenate([excess, np.zeros((1 + len(unc), dp1))])
+    reach = np.concatenate([reach, [0.0]])  # the sentinel node
+    remap = np.arange(m, dtype=np.int64)
+    remap[unc] = m + 1 + np.arange(len(unc))
+    bucket = np.repeat(np.arange(len(bstart) - 1), np.diff(bstart))
+    keep = cert[bcells]
+    start_b = np.zeros_like(bstart)
+    np.cumsum(np.bincount(bucket[keep], minlength=len(bstart) - 1), out=start_b[1:])
+    return ((excess, reach, box, dims, bstart, remap[bcells]),
+            (excess, reach, box, dims, start_b, bcells[keep]), unc)  # fmt: skip
+
+
 class _SlabStore:
     """Per-slab results on disk (``.npy``), read back by node id."""
 
@@ -1041,12 +1078,16 @@ class _SlabJob:
         values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
         start_l = np.concatenate([problem.start_cells,
                                   np.full((1, problem.start_cells.shape[1]), -1)])  # fmt: skip
-        simp = np.concatenate([problem.simplices, np.full((1, dp1), nl)]).astype(np.int64)
-        trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1))])
-        nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1, dp1), -1)])
-        nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1, dp1), -1)])
+        search_a, search_b, unc = _slab_search(problem.search, cert)
+        simp = np.concatenate([problem.simplices, np.full((1 + len(unc), dp1), nl)])
+        simp = simp.astype(np.int64)
+        trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1)),
+                                problem.transform[unc]])  # fmt: skip
+        nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1 + len(unc), dp1), -1)])
+        nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1 + len(unc), dp1), -1)])
         gp = dataclasses.replace(problem, coords=coords_l, values=values_l, simplices=simp,
-                                 transform=trans, neighbors=nb_a, start_cells=start_l)  # fmt: skip
+                                 transform=trans, neighbors=nb_a, start_cells=start_l,
+                                 search=search_a)  # fmt: skip
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
         stats, n_out, n_lost, star, pos = gp.run_nodes(own_local, keys=own_ids)
@@ -1056,9 +1097,9 @@ class _SlabJob:
         n_left = n_out.copy() if cfg.outside == "exclude" else np.zeros_like(n_out)
         if hit.any():  # a halo border is not the map's surface: never extrapolated across
             no_exit = np.empty((0,) + gp.exit_grad.shape[1:])
-            redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit).run_nodes(
-                own_local[hit], keys=own_ids[hit]
-            )
+            redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit,
+                                       search=search_b).run_nodes(own_local[hit],
+                                                                  keys=own_ids[hit])  # fmt: skip
             first_out = n_out[hit]
             stats[hit], n_out[hit], n_lost[hit], star[hit], pos[hit] = redo
             n_left[hit] = n_out[hit]

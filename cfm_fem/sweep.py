@@ -14,7 +14,7 @@ import numpy as np
 from . import _kernels
 from .errors import CfmInputError, check_seed
 from .field import FieldMap
-from .interpolation import SimplexMesh, build_mesh, morton_order
+from .interpolation import SimplexMesh, build_mesh, exact_search, morton_order, no_search
 from .mc import numerical_tolerance
 from .threads import map_blocks
 
@@ -377,6 +377,12 @@ class SweepProblem:
     htm: dict | None = None  # mode htm: bench arrays (see `_htm_arrays`)
     # outside="extrapolate": `edge_fit_gradients` (n, 3, d), mesh frame; else (0, 3, d)
     exit_grad: np.ndarray | None = None
+    # non-convex mesh: face excess and cell buckets (`exact_search`); None: convex (empty)
+    search: tuple | None = None
+
+    def search_arrays(self) -> tuple:
+        """The kernels' ``search`` argument (`cfm_fem.interpolation.exact_search`)."""
+        return no_search(self.coords.shape[1]) if self.search is None else self.search
 
     def run_chunk(self, start: int, stop: int):
         """Statistics of nodes ``start .. stop-1``.
@@ -413,13 +419,14 @@ class SweepProblem:
         # each node's numbers depend on its key only, so the order changes no result
         order = morton_order(self.coords[nodes])
         nodes, keys = nodes[order], keys[order]
+        search = self.search_arrays()
 
         def block(i0, i1):
             return _kernels.gauss_sweep(
                 nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
                 self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
                 self.scales_mm, int(self.trials), int(self.seed), float(self.coverage),
-                self.exit_grad,
+                self.exit_grad, search,
             )  # fmt: skip
 
         s, o, lost, star = map_blocks(block, len(nodes), 32)
@@ -429,6 +436,7 @@ class SweepProblem:
 
     def _run_htm(self, nodes, keys):
         h = self.htm
+        search = self.search_arrays()
         parts = []
         for geo, noise in HTM_PARTS.values():
 
@@ -439,7 +447,7 @@ class SweepProblem:
                     h["q_nodes"], h["params"], h["terms" if geo else "terms_zero"], geo, noise,
                     h["nkey"], h["fkey"], h["sig"], h["speed"], h["tau_code"], h["tau_par"],
                     h["stack"], h["mounts"], h["tool"],
-                    h["strokes"], h["profiles"], float(self.coverage), self.exit_grad,
+                    h["strokes"], h["profiles"], float(self.coverage), self.exit_grad, search,
                 )  # fmt: skip
 
             parts.append(map_blocks(block, len(nodes), 16))
@@ -514,6 +522,7 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
             if cfg.outside == "extrapolate"
             else np.empty((0, 3, mesh.dim))
         ),
+        search=exact_search(mesh),
     )
     return mesh, problem, b_ref
 

@@ -7,7 +7,14 @@ import scipy.spatial
 import twins
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import build_mesh, interpolate_points
+from cfm_fem.interpolation import (
+    build_mesh,
+    cell_buckets,
+    exact_search,
+    face_excess,
+    interpolate_points,
+    star_height,
+)
 from cfm_fem.mc import coverage_count
 
 
@@ -203,7 +210,7 @@ def test_gauss_sweep_matches_numpy_twin(outside):
     stats, n_out, n_lost, _ = _kernels.gauss_sweep(
         np.arange(len(pts)), np.arange(len(pts)), mesh.coords, B, mesh.simplices,
         mesh.transform, mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95,
-        exit_grad,
+        exit_grad, exact_search(mesh),
     )  # fmt: skip
     ref, ref_out = twins.gauss_sweep(pts, B, up, 150, 9, grad=grad)
     np.testing.assert_array_equal(n_out, ref_out)
@@ -366,6 +373,7 @@ def test_abs_b_statistics_on_a_kinked_field():
     stats, n_out, _, star = _kernels.gauss_sweep(
         np.array([g]), np.array([g]), mesh.coords, fm.B, mesh.simplices, mesh.transform,
         mesh.neighbors, starts, np.eye(3), np.ones(3), up, 4000, 2, 0.95, np.empty((0, 3, 3)),
+        exact_search(mesh),
     )  # fmt: skip
     assert star[0] and n_out.sum() == 0
     z = twins.sweep_normals(2, g, 4000)
@@ -410,3 +418,203 @@ def test_uniform53_is_never_0_or_1():
         u = _kernels.uniform53(np.uint64(h))
         assert 0.0 < u < 1.0 and u == twins.uniform53(h)
     assert _kernels.uniform53(np.uint64(2**64 - 1)) == np.nextafter(1.0, 0.0)
+
+
+def _l_shape(n=9, h=0.5, seed=None):
+    """A grid map with the quadrant x > 0, y > 0 removed (a re-entrant edge along z), linear
+    field; with ``seed``, a scattered node set of the same shape (Delaunay, slivers removed)."""
+    ax = (np.arange(n) - n // 2) * h
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    if seed is not None:
+        pts = pts + np.random.default_rng(seed).uniform(-0.2, 0.2, pts.shape) * h
+    pts = pts[~((pts[:, 0] > 1e-9) & (pts[:, 1] > 1e-9))]
+    B = pts @ np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]]).T
+    kind = "grid" if seed is None else "delaunay"
+    return build_mesh(FieldMap.from_arrays(pts, B + 0.1), kind, "remove"), B + 0.1
+
+
+@pytest.mark.parametrize("seed", [None, 3])
+def test_face_excess_matches_brute_force_over_all_nodes(seed):
+    mesh, _ = _l_shape(seed=seed)
+    got = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
+    want = twins.face_excess(mesh)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert (got[mesh.neighbors >= 0] == 0).all()
+    if seed is None:  # the notch's faces: the nodes reach 2 mm (4 heights) beyond them
+        assert (got > 0).sum() == 2 * 2 * 4 * 8 and got.max() == pytest.approx(4.0)
+    ext = np.ptp(mesh.coords, axis=0)
+    convex = build_mesh(FieldMap.from_arrays(np.random.default_rng(1).uniform(0, ext, (300, 3)),
+                                             np.zeros((300, 3))), "delaunay", "keep")  # fmt: skip
+    assert len(exact_search(convex)[0]) == 0  # a convex mesh: nothing to search
+
+
+@pytest.mark.parametrize("seed", [None, 3])
+def test_exact_search_finds_the_cell_brute_force_finds(seed):
+    """`find_cell` (bucket lists) against every cell; `locate_exact` from a walk blocked by the
+    notch gives the brute-force verdict too, where `locate` says outside."""
+    mesh, _ = _l_shape(seed=seed)
+    search = exact_search(mesh)
+    excess, reach, box, dims, bstart, bcells = search
+    rng = np.random.default_rng(7)
+    q = rng.uniform(mesh.coords.min(0) - 0.3, mesh.coords.max(0) + 0.3, (3000, 3))
+    bary = np.empty(4)
+    blocked = 0
+    for p in q:
+        want = twins.find_cell(mesh, p)
+        got = _kernels.find_cell(p, mesh.transform, box, dims, bstart, bcells, bary)
+        assert got == want
+        if got >= 0:
+            np.testing.assert_allclose(bary, twins.barycentric_all(mesh, p)[got], atol=1e-12)
+        # walks from a node across the notch (x < 0, y > 0 -> x > 0, y < 0)
+        start = mesh.node_cell[np.argmin(((mesh.coords - [-1.5, 1.5, p[2]]) ** 2).sum(1))]
+        cell = _kernels.locate_exact(p, start, mesh.transform, mesh.neighbors, bary, search)
+        assert (cell >= 0) == (want >= 0)
+        if cell >= 0:
+            assert twins.barycentric_all(mesh, p)[cell].min() >= -_kernels.BARY_EPS
+        plain = _kernels.locate(p, start, mesh.transform, mesh.neighbors, bary)
+        blocked += plain < 0 <= want
+    # the plain walk was blocked by the notch that often (Delaunay fills the notch: only the
+    # faces the removed hull slivers leave are not supporting planes there)
+    assert blocked > 50 if seed is None else (excess > 0).any()
+
+
+def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
+    mesh, _ = _l_shape(seed=3)
+    search = exact_search(mesh)
+    s_idx, j_idx = np.nonzero(search[0] > 0)  # the nodes of the faces with an excess
+    on_face = np.arange(4)[None, :] != j_idx[:, None]
+    nodes = np.unique(mesh.simplices[s_idx][on_face])
+    assert len(nodes) > 50
+    cap = star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes]
+    v = mesh.coords[mesh.simplices]
+    boxes = np.stack([v.min(1), v.max(1)], axis=1)
+    got = _kernels.node_reach(mesh.coords, mesh.simplices, mesh.transform, boxes, *search[2:],
+                              nodes, cap)  # fmt: skip
+    np.testing.assert_allclose(got, twins.node_reach(mesh, nodes, cap), rtol=1e-12)
+    # the search keeps it where the node's cells are face-connected (its star holds them all)
+    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))[nodes]
+    whole = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
+    np.testing.assert_array_equal(np.where(whole == incident, got, 0.0), search[1][nodes])
+    assert (got > 0).all() and (got <= cap).all()
+    # points nearer to the node than its reach lie in its own cells or in none
+    rng = np.random.default_rng(2)
+    for g, r in zip(nodes[::10], got[::10], strict=True):
+        d = rng.normal(size=(100, 3))
+        p = mesh.coords[g] + d / np.linalg.norm(d, axis=1)[:, None] * r * rng.uniform(
+            0, 1, (100, 1)
+        )
+        for x in p:
+            c = twins.find_cell(mesh, x)
+            assert c < 0 or g in mesh.simplices[c]
+
+
+def test_convex_faces_take_the_old_path_bit_for_bit():
+    """Search arrays whose excess is all 0 (every border face a supporting plane, as on a
+    convex map) give the numbers of the empty search, which is the kernels' old path."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0, 3, (150, 3))
+    B = np.c_[np.sin(pts[:, 0]) * pts[:, 1], np.cos(pts[:, 2]), pts[:, 0] * 0.3 + 1]
+    mesh = build_mesh(FieldMap.from_arrays(pts, B), "delaunay")
+    starts = _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors,
+                                   1e-7)  # fmt: skip
+    empty = exact_search(mesh)
+    assert len(empty[0]) == 0
+    zero = (np.zeros_like(mesh.neighbors, dtype=float), np.zeros(len(pts)),
+            *cell_buckets(mesh.coords, mesh.simplices))  # fmt: skip
+    runs = [
+        _kernels.gauss_sweep(
+            np.arange(len(pts)),
+            np.arange(len(pts)),
+            mesh.coords,
+            B,
+            mesh.simplices,
+            mesh.transform,
+            mesh.neighbors,
+            starts,
+            np.eye(3),
+            np.ones(3),
+            np.array([0.0, 0.05, 0.4]),
+            200,
+            4,
+            0.95,
+            np.empty((0, 3, 3)),
+            search,
+        )  # fmt: skip
+        for search in (empty, zero)
+    ]
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert runs[0][1][:, 2].sum() > 0  # trials did leave the map
+
+
+@pytest.mark.parametrize("n", [100, 3000, 6000])
+def test_sort_values_with_nan_is_numpys(n):
+    """A NaN (a trial that met a slab's halo sentinel) must not index the counting arrays."""
+    a = np.random.default_rng(n).normal(size=n)
+    a[:: n // 10] = np.nan
+    b = a.copy()
+    _kernels.sort_values(b)
+    np.testing.assert_array_equal(b, np.sort(a))
+
+
+def _faceted_cylinder(n=700, seed=5):
+    """Scattered nodes of a cylinder (r 3 mm, 12 mm long), a third on its mantle: the flat
+    hull cells removed, the mantle is a faceted surface that is not convex at most of its
+    nodes (few stars are; most have free faces and cells reaching beyond other faces)."""
+    rng = np.random.default_rng(seed)
+    m = n // 3
+    r, t = 3 * np.sqrt(rng.uniform(0, 1, n - m)), rng.uniform(0, 2 * np.pi, n - m)
+    inner = np.c_[r * np.cos(t), r * np.sin(t), rng.uniform(0, 12, n - m)]
+    t = rng.uniform(0, 2 * np.pi, m)
+    pts = np.r_[inner, np.c_[3 * np.cos(t), 3 * np.sin(t), rng.uniform(0, 12, m)]]
+    B = np.c_[pts[:, 1], pts[:, 0], 0 * pts[:, 2]]
+    return build_mesh(FieldMap.from_arrays(pts, B), "delaunay", "remove"), B
+
+
+@pytest.mark.parametrize("which", ["l_shape", "cylinder"])
+def test_star_exit_verdicts_match_brute_force(which):
+    """Trials the star walk finds leaving the star at a node whose border faces are no proof
+    (`star_exact` False), within the node's reach: `star_exit` says outside (LEAVES_MESH) only
+    where no cell of the mesh holds x_g + r delta for any r in (0, 1]; a star cell only where
+    that cell holds x_g + delta. Exercises both proofs: the free faces (no star cell beyond
+    their plane) and the cones of the cells that reach beyond a border plane."""
+    mesh, B = _l_shape(seed=3) if which == "l_shape" else _faceted_cylinder()
+    excess, reach = exact_search(mesh)[:2]
+    d, ms = 3, _kernels.MAX_STAR
+    cells, lmat = np.empty(ms, np.int64), np.empty((ms, d, d))
+    dmat, nbr = np.empty((ms, 3, d)), np.empty((ms, d), np.int64)
+    htab = np.full((3, _kernels.STAR_HASH), -1, np.int64)
+    cand, free = np.empty(ms, np.int64), np.empty((2, ms * d), np.int64)
+    lam = np.empty(d)
+    rng = np.random.default_rng(7)
+    seen = dict(free_face=0, cone_cells=0, outside=0, in_star=0, walk=0)
+    for g in np.flatnonzero(reach > 0)[:60]:
+        n_star = _kernels.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                     mesh.neighbors, B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+        if n_star <= 0 or _kernels.star_exact(g, cells, n_star, mesh.simplices, excess):
+            continue
+        n_cand, n_free = _kernels.star_behind(g, mesh.coords, cells, n_star, lmat, nbr,
+                                              mesh.simplices, cand, free)  # fmt: skip
+        seen["free_face"] += n_free > 0
+        seen["cone_cells"] += n_cand > 0
+        u = rng.normal(size=(60, 3))
+        deltas = u / np.linalg.norm(u, axis=1)[:, None] * reach[g] * rng.uniform(0.05, 1, (60, 1))
+        for delta in deltas:
+            s = _kernels.star_locate3(0, lmat, nbr, n_star, *delta)[0]
+            if s != _kernels.LEAVES_MESH:
+                continue
+            got = _kernels.star_exit(lmat, reach[g], cand, n_cand, free, n_free, delta, lam)[0]
+            if got == _kernels.LEAVES_MESH:
+                seen["outside"] += 1
+                for r in (0.05, 0.3, 1.0):
+                    assert twins.find_cell(mesh, mesh.coords[g] + r * delta) < 0
+            elif got >= 0:
+                seen["in_star"] += 1
+                bary = twins.barycentric_all(mesh, mesh.coords[g] + delta)[cells[got]]
+                assert bary.min() >= -_kernels.BARY_EPS
+            else:
+                assert got == -1  # in a cell's cone, beyond it: the global walk decides
+                seen["walk"] += 1
+    assert seen["free_face"] > 5 and seen["outside"] > 100, seen
+    if which == "l_shape":  # the re-entrant edge: stars whose other arm holds trials
+        assert seen["cone_cells"] > 5 and seen["in_star"] + seen["walk"] > 0, seen

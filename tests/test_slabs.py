@@ -5,6 +5,7 @@ The numbers of the own nodes of every slab must be those of the in-memory run on
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import xml.etree.ElementTree as ET
 
@@ -341,10 +342,10 @@ def test_mesh_formats_are_read_whole_and_say_so(tmp_path, capsys):
     assert json.loads((out / "summary.json").read_text())["pieces"] == 2
 
 
-def test_l_shaped_grid_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
-    """A grid map with a notch (x > 0, y > 0 removed) cut into slabs across it: the notch's
-    faces are the map's border, not halo borders (they were taken for cuts, and the trials
-    sent to the halo sentinel corrupted the heap in the kernel's sort)."""
+def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
+    """A grid map with a notch (x > 0, y > 0 removed) cut into slabs across it: trials that
+    cross the notch are found in the other arm (the exact search of each slab's own mesh, its
+    face excess taken over the slab's own nodes) exactly as by the whole map's."""
     ax = np.linspace(-10.0, 10.0, 7)
     pts = np.stack(np.meshgrid(np.linspace(-30.0, 30.0, 14), ax, ax, indexing="ij"), -1)
     pts = pts.reshape(-1, 3)
@@ -360,6 +361,16 @@ def test_l_shaped_grid_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         _, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
         _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         _same_fields(a, b, gradients=("grad", "gum_U95"))
+    from cfm_fem.interpolation import exact_search
+    from cfm_fem.sweep import SweepConfig as _Cfg
+    from cfm_fem.sweep import prepare_sweep
+
+    mesh, problem, _ = prepare_sweep(read_field(path), _Cfg(up_um=[2000.0], trials=300))
+    assert len(exact_search(mesh)[0]) > 0  # the exact search did run
+    edge = np.flatnonzero(np.isclose(mesh.coords[:, 0], -30 / 13) & (mesh.coords[:, 1] == 0))
+    _, n_out, _, _, _ = problem.run_nodes(edge)
+    plain = dataclasses.replace(problem, search=None).run_nodes(edge)[1]
+    assert (n_out <= plain).all() and n_out.sum() < plain.sum()  # trials found across the notch
 
 
 @pytest.mark.parametrize("k", [3, 4])

@@ -352,3 +352,53 @@ def test_removing_hull_slivers_brings_hull_nodes_uf_to_the_field():
             assert worst[rule] < 2.0 and gum.max() < 2.0
             assert abs(np.median(ratio[hull]) - 1.0) < 0.05  # measured 1.02
     assert worst["keep"] > 5.0
+
+
+def _l_shape_map(h=0.1, n=11):
+    """Grid map of [-0.5, 0.5]^3 mm (h = 0.1 mm) with the quadrant x > 0, y > 0 removed: a
+    re-entrant edge along z at x = y = 0; linear field."""
+    ax = (np.arange(n) - n // 2) * h
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    pts = pts[~((pts[:, 0] > 1e-9) & (pts[:, 1] > 1e-9))]
+    return FieldMap.from_arrays(pts, pts @ G.T + B0)
+
+
+def _l_shape_outside(p, sigma, half=0.5):
+    """Exact probability that p + N(0, sigma^2 I) leaves the L-shaped map of `_l_shape_map`."""
+    from scipy.stats import norm
+
+    box = norm.cdf((half - p) / sigma) - norm.cdf((-half - p) / sigma)  # per axis, in the box
+    pos = norm.cdf((half - p) / sigma) - norm.cdf(-p / sigma)  # in (0, half]
+    return 1.0 - box[2] * (box[0] * box[1] - pos[0] * pos[1])
+
+
+@pytest.mark.parametrize(
+    "up_um, where",
+    [
+        (10.0, [(0.0, 0.0)]),  # U_p = h / 10: every trial in the node's star
+        (100.0, [(0.0, 0.0), (0.0, 0.1), (0.1, 0.0), (-0.1, 0.1)]),  # = h: the global walk
+    ],
+)
+def test_outside_fraction_at_a_re_entrant_edge_is_the_geometric_one(up_um, where):
+    """Trials that cross the notch of an L-shaped map (x > 0, y > 0 removed) into its other
+    arm are inside: on the edge x = y = 0, far from other faces, 1/4 of them leave the map
+    (every trial beyond a border face at the node used to count as out: 0.27-0.29), and next
+    to it the Gaussian probability of the removed quadrant and the box (at (0, 0.1) with
+    U_p = h: 0.444, where 0.518 used to be counted)."""
+    from cfm_fem.sweep import prepare_sweep
+
+    fm = _l_shape_map()
+    cfg = SweepConfig(up_um=[up_um], trials=4000, seed=5)
+    mesh, problem, _ = prepare_sweep(fm, cfg)
+    assert len(problem.search[0]) > 0  # not convex: the exact search is on
+    sigma = up_um * 1e-3
+    zs = np.arange(-4, 5) * 0.1  # the exact probability counts the faces z = +-0.5 too
+    for x0, y0 in where:
+        nodes = np.array([np.argmin(((mesh.coords - [x0, y0, z]) ** 2).sum(1)) for z in zs])
+        np.testing.assert_allclose(mesh.coords[nodes, :2], [(x0, y0)] * len(zs), atol=1e-12)
+        _, n_out, n_lost, _, _ = problem.run_nodes(nodes)
+        assert n_lost.sum() == 0
+        want = np.mean([_l_shape_outside(mesh.coords[g], sigma) for g in nodes])
+        n = cfg.trials * len(nodes)
+        frac = n_out.sum() / n
+        assert abs(frac - want) < 4 * np.sqrt(want * (1 - want) / n), (x0, y0, frac, want)

@@ -152,3 +152,58 @@ def node_gradients(mesh, B):
         np.add.at(acc, mesh.simplices[:, j], cell_grad)
         np.add.at(wsum, mesh.simplices[:, j], vol)
     return (acc / wsum[:, None, None]) @ mesh.basis.T
+
+
+def barycentric_all(mesh, p):
+    """Barycentric coordinates (m, d + 1) of point ``p`` (d,) in every cell of ``mesh``."""
+    d = mesh.dim
+    T = mesh.transform
+    lam = np.einsum("mjk,mk->mj", T[:, :d], p - T[:, d])
+    return np.c_[lam, 1.0 - lam.sum(1)]
+
+
+def find_cell(mesh, p):
+    """Twin of `cfm_fem._kernels.find_cell`, brute force over all cells: of the cells holding
+    ``p`` (every coordinate >= -BARY_EPS) the one where it lies deepest; -1 if none."""
+    lmin = barycentric_all(mesh, p).min(1)
+    ok = lmin >= -_kernels.BARY_EPS
+    if not ok.any():
+        return -1
+    return int(np.flatnonzero(ok)[np.argmax(lmin[ok])])
+
+
+def face_excess(mesh):
+    """Twin of `cfm_fem.interpolation.face_excess`: for each border face, the largest minus
+    barycentric coordinate of its face over all nodes, brute force (no hull)."""
+    d = mesh.dim
+    out = np.zeros(mesh.neighbors.shape)
+    nodes = np.unique(mesh.simplices)
+    for s, j in zip(*np.nonzero(mesh.neighbors < 0), strict=True):
+        T = mesh.transform[s]
+        lam = (mesh.coords[nodes] - T[d]) @ T[:d].T
+        lam = np.c_[lam, 1.0 - lam.sum(1)][:, j]
+        ex = max(0.0, -lam.min())
+        out[s, j] = ex if ex > _kernels.EXCESS_TOL else 0.0
+    return out
+
+
+def node_reach(mesh, nodes, cap):
+    """Twin of `cfm_fem._kernels.node_reach`, brute force over all cells: per node, the least
+    over the cells not incident to it whose bounding box comes within ``cap`` of it of the
+    larger of the distance to the box and the largest distance of the node beyond one of the
+    cell's face planes (at most ``cap``)."""
+    d = mesh.dim
+    T = mesh.transform
+    grad = np.concatenate([T[:, :d], -T[:, :d].sum(1, keepdims=True)], axis=1)  # (m, d+1, d)
+    norm = np.linalg.norm(grad, axis=2)
+    v = mesh.coords[mesh.simplices]
+    lo, hi = v.min(1), v.max(1)
+    out = np.empty(len(nodes))
+    for i, (g, r) in enumerate(zip(nodes, cap, strict=True)):
+        x = mesh.coords[g]
+        gap = np.sqrt((np.maximum(np.maximum(lo - x, x - hi), 0.0) ** 2).sum(1))
+        near = (gap <= r) & ~(mesh.simplices == g).any(1)
+        lam = barycentric_all(mesh, x)[near]
+        lb = np.maximum(np.maximum(-lam / norm[near], 0.0).max(1), gap[near])
+        out[i] = min(r, lb.min()) if near.any() else r
+    return out
