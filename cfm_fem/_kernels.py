@@ -1395,6 +1395,63 @@ def node_reach(coords, simplices, transform, boxes, box, dims, bstart, bcells, n
     return out
 
 
+@nb.njit(inline="always", **JIT)
+def _bucket_pass(i0, span, dims, slot, out):
+    """One pass of `bucket_lists`: with ``out`` empty, count the cells of each bucket into
+    ``slot[b + 1]``; else write each cell at ``slot[b]`` of its buckets and advance it."""
+    m, d = i0.shape
+    idx = np.empty(d, dtype=np.int64)
+    count = out.shape[0] == 0
+    for c in range(m):
+        n = 1
+        for a in range(d):
+            n *= span[c, a]
+        for r in range(n):  # the box's buckets, last axis fastest
+            rest = r
+            for a in range(d - 1, -1, -1):
+                idx[a] = i0[c, a] + rest % span[c, a]
+                rest //= span[c, a]
+            b = 0
+            for a in range(d):
+                b = b * dims[a] + idx[a]
+            if count:
+                slot[b + 1] += 1
+            else:
+                out[slot[b]] = c
+                slot[b] += 1
+
+
+@nb.njit(**JIT)
+def bucket_lists(i0, span, dims):
+    """CSR lists of the buckets each cell's box meets (`cfm_fem.interpolation.cell_buckets`),
+    counted, then filled in cell order: no temporaries per entry.
+
+    Parameters
+    ----------
+    i0, span : ndarray, shape (m, d), int64
+        Per cell, the first bucket along each axis and how many it spans.
+    dims : ndarray, shape (d,), int64
+        Buckets along each axis; flat bucket index in C order.
+
+    Returns
+    -------
+    bstart : ndarray, shape (prod(dims) + 1,), int64
+    bcells : ndarray, int64
+        The cells meeting bucket b, increasing: ``bcells[bstart[b]:bstart[b + 1]]``.
+    """
+    n_b = 1
+    for a in range(dims.shape[0]):
+        n_b *= dims[a]
+    bstart = np.zeros(n_b + 1, dtype=np.int64)
+    _bucket_pass(i0, span, dims, bstart, np.empty(0, dtype=np.int64))
+    for b in range(n_b):
+        bstart[b + 1] += bstart[b]
+    fill = bstart[:-1].copy()
+    bcells = np.empty(bstart[n_b], dtype=np.int64)
+    _bucket_pass(i0, span, dims, fill, bcells)
+    return bstart, bcells
+
+
 @nb.njit(**JIT)
 def star_sizes(nodes, start, simplices, neighbors):
     """Per node g, the cells reached from ``start[g]`` across faces that contain g (its star,

@@ -628,20 +628,9 @@ def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float 
         if count.sum() <= max_entries * m or dims.prod() == 1:
             break
         per_bucket *= 4.0
-    cell = np.repeat(np.arange(m, dtype=np.int64), count)
-    rank = np.arange(len(cell), dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
-    flat = np.zeros(len(cell), dtype=np.int64)
-    for a in range(d - 1, -1, -1):  # rank -> offsets along each axis (last axis fastest)
-        w = span[cell, a]
-        off = rank % w
-        rank //= w
-        idx = i0[cell, a] + off
-        stride = np.prod(dims[a + 1 :], dtype=np.int64)
-        flat += idx * stride
-    order = np.argsort(flat, kind="stable")  # cells stay increasing within a bucket
-    bcells = cell[order]
-    bstart = np.zeros(int(dims.prod()) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(flat, minlength=int(dims.prod())), out=bstart[1:])
+    # counted, then filled in cell order: no per-entry temporaries (a few GB on a
+    # 1e6-node map), and the cells of a bucket stay increasing
+    bstart, bcells = _kernels.bucket_lists(i0, span, dims)
     return np.ascontiguousarray(np.stack([g_lo, inv])), dims, bstart, bcells
 
 

@@ -618,3 +618,19 @@ def test_star_exit_verdicts_match_brute_force(which):
     assert seen["free_face"] > 5 and seen["outside"] > 100, seen
     if which == "l_shape":  # the re-entrant edge: stars whose other arm holds trials
         assert seen["cone_cells"] > 5 and seen["in_star"] + seen["walk"] > 0, seen
+
+
+def test_bucket_lists_match_twin():
+    """The bucket grid of the exact search, counted and filled by the kernel, is the numpy
+    twin's (every entry listed and sorted) entry for entry, on the bundled-like L map and on
+    boxes spanning several buckets per axis."""
+    rng = np.random.default_rng(4)
+    dims = np.array([5, 3, 7])
+    i0 = np.stack([rng.integers(0, n, 400) for n in dims], axis=1)
+    span = np.stack([rng.integers(1, n - i + 1) for n, i in zip(dims, i0.T, strict=True)], 1)
+    for got, want in zip(_kernels.bucket_lists(i0, span, dims),
+                         twins.bucket_lists(i0, span, dims), strict=True):  # fmt: skip
+        np.testing.assert_array_equal(got, want)
+    mesh, _ = _l_shape(seed=3)
+    box, dims, bstart, bcells = cell_buckets(mesh.coords, mesh.simplices)
+    assert bstart[-1] == len(bcells) >= len(mesh.simplices)

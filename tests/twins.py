@@ -207,3 +207,19 @@ def node_reach(mesh, nodes, cap):
         lb = np.maximum(np.maximum(-lam / norm[near], 0.0).max(1), gap[near])
         out[i] = min(r, lb.min()) if near.any() else r
     return out
+
+
+def bucket_lists(i0, span, dims):
+    """Twin of `cfm_fem._kernels.bucket_lists` in numpy: every (cell, bucket) entry listed,
+    then sorted by bucket (stable: cells stay increasing)."""
+    count = np.prod(span, axis=1)
+    cell = np.repeat(np.arange(len(i0), dtype=np.int64), count)
+    rank = np.arange(len(cell), dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
+    flat = np.zeros(len(cell), dtype=np.int64)
+    for a in range(i0.shape[1] - 1, -1, -1):  # rank -> offsets along each axis
+        w = span[cell, a]
+        flat += (i0[cell, a] + rank % w) * np.prod(dims[a + 1 :], dtype=np.int64)
+        rank //= w
+    bstart = np.zeros(int(dims.prod()) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(flat, minlength=int(dims.prod())), out=bstart[1:])
+    return bstart, cell[np.argsort(flat, kind="stable")]
