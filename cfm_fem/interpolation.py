@@ -246,7 +246,11 @@ def barycentric_transforms(coords, simplices):
 
 
 def build_mesh(
-    fm: FieldMap, method: str = "auto", hull_slivers: str = "keep", hull_points=None
+    fm: FieldMap,
+    method: str = "auto",
+    hull_slivers: str = "keep",
+    hull_points=None,
+    jitter_span: float | None = None,
 ) -> SimplexMesh:
     """Choose and build the simplicial mesh that interpolates ``fm``.
 
@@ -262,6 +266,9 @@ def build_mesh(
     hull_points : ndarray, shape (k, dim), optional
         Points whose convex hull is the whole map's (`hull_sliver_cells`); the out-of-core
         sweep triangulates a part of the map and passes the whole map's hull.
+    jitter_span : float, optional
+        Size of the whole map (mm) when ``fm`` is a part of it: the scale of the Delaunay
+        jitter of co-spherical nodes (`node_jitter`), so a part jitters as the whole does.
 
     Raises
     ------
@@ -303,7 +310,7 @@ def build_mesh(
         if simplices is None and method == "grid":
             raise CfmInputError("interpolation 'grid' needs nodes on a rectilinear grid", file=src)
     if simplices is None:
-        simplices, kind, coords, extra = _delaunay(coords, src)
+        simplices, kind, coords, extra = _delaunay(coords, src, jitter_span)
         notes += extra
         sliver = hull_sliver_cells(coords, simplices, hull_points)
         if hull_slivers == "remove":
@@ -482,8 +489,41 @@ def sliver_note(count: int) -> str:
     )
 
 
-def _delaunay(coords, source):
-    """Delaunay triangulation; nodes are jittered only if Qhull leaves flat simplices."""
+def _splitmix64(x):
+    """SplitMix64 finaliser of uint64 arrays (wrapping arithmetic)."""
+    x = x + np.uint64(0x9E3779B97F4A7C15)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def node_jitter(coords):
+    """A pseudo-random offset in [-1, 1) per node and axis, keyed by the node's coordinates
+    (their float64 bits): the same for a node whatever other nodes are triangulated with it,
+    so a slab of the map jitters its nodes exactly as the whole map does.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+
+    Returns
+    -------
+    ndarray, shape (n, d)
+    """
+    bits = np.ascontiguousarray(coords + 0.0).view(np.uint64)  # + 0.0: -0.0 keys as 0.0
+    key = np.zeros(len(coords), dtype=np.uint64)
+    for a in range(coords.shape[1]):
+        key = _splitmix64(key ^ bits[:, a])
+    out = np.empty(coords.shape)
+    for a in range(coords.shape[1]):
+        h = _splitmix64(key + np.uint64(a + 1))
+        out[:, a] = (h >> np.uint64(11)).astype(np.float64) * 2.0**-52 - 1.0
+    return out
+
+
+def _delaunay(coords, source, jitter_span=None):
+    """Delaunay triangulation; nodes are jittered only if Qhull leaves flat simplices, by
+    `node_jitter` times 1e-5 of ``jitter_span`` (mm; default: the nodes' own extent)."""
     notes = []
     try:
         tri = scipy.spatial.Delaunay(coords)
@@ -497,10 +537,10 @@ def _delaunay(coords, source):
         # Co-spherical nodes off any lattice: Qhull triangulates them with flat simplices whose
         # barycentric transform is singular. A deterministic jitter of 1e-5 of the map size
         # (0.001 um on a 100 mm map) makes the slivers well enough conditioned (their volume
-        # grows with the jitter squared) and stays far below any positioning uncertainty.
-        rng = np.random.default_rng(12345)
-        span = np.ptp(coords, axis=0).max()
-        coords = coords + rng.uniform(-1e-5, 1e-5, coords.shape) * span
+        # grows with the jitter squared) and stays far below any positioning uncertainty. Keyed
+        # by the coordinates and scaled by the whole map's size, it is the same in every slab.
+        span = np.ptp(coords, axis=0).max() if jitter_span is None else jitter_span
+        coords = coords + node_jitter(coords) * (1e-5 * span)
         tri = scipy.spatial.Delaunay(coords)
         _, measure = barycentric_transforms(coords, tri.simplices)
         if np.any(np.abs(measure) <= 1e-12 * scale):

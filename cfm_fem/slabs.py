@@ -1032,7 +1032,7 @@ class _SlabJob:
             B = np.array(st.rows[rows, 3:])
             lfm = FieldMap(points=pts, B=B, source=file, lines=np.array(st.lines[rows]))
             st.release()
-            mesh = build_mesh(lfm, kind, cfg.hull_slivers, self.hull)
+            mesh = build_mesh(lfm, kind, cfg.hull_slivers, self.hull, jitter_span=span)
             gone = mesh.hull_slivers
             boxes = _beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
             if kind == "grid":  # the Kuhn triangulation is local: every cell is the map's own
