@@ -95,7 +95,7 @@ from .interpolation import (
 from .io._atomic import write_json
 from .io.pvtu import write_pvtu
 from .io.streaming import check_opera_counts, open_stream
-from .io.sweep_out import _point_data, provenance_codes, vtu_name
+from .io.sweep_out import _point_data, provenance_codes, retire_index, vtu_name
 from .io.vtk import write_pvd, write_vtu
 from .sweep import (
     HTM_PARTS,
@@ -1199,6 +1199,7 @@ def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
 
 def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
     """One piece per slab and U_p value, the .pvtu indices, sweep.pvd, summary.json."""
+    retire_index(out)  # an interrupted write leaves no earlier run's summary beside new maps
     prov = summary["provenance"]
     htm = cfg.mode == "htm"
     labels = summary["columns"]

@@ -357,3 +357,34 @@ def test_rerun_into_the_same_out_removes_the_earlier_runs_stale_maps_only(
     # a run that fails writes nothing and removes nothing
     assert main([*base, "--up", "5e5"]) == 2
     assert _maps_present(out) - mine == {"uf_up10um.vtu", "uf_up20um.vtu"}
+
+
+@pytest.mark.parametrize("layout", [[], ["--pieces", "2"], ["--slabs", "2"]])
+def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
+    csv_map, tmp_path, monkeypatch, layout
+):
+    """A re-run stopped (Ctrl-C) after its first new map left the earlier run's summary.json
+    and sweep.pvd beside it: a set that contradicts itself (session-14 audit). The earlier
+    summary and index are now removed before any new map is written: what remains has no
+    summary, which says the run did not complete."""
+    import cfm_fem.io.sweep_out
+    import cfm_fem.slabs
+
+    out = tmp_path / "res"
+    base = ["sweep", str(csv_map), "--up", "0,10,20", "--trials", "50", "--out", str(out)]
+    assert main([*base, *layout, "--seed", "1"]) == 0
+    assert (out / "summary.json").exists() and (out / "sweep.pvd").exists()
+    real = cfm_fem.io.sweep_out.write_vtu
+    calls = []
+
+    def stop_after_one(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cfm_fem.io.sweep_out, "write_vtu", stop_after_one)
+    monkeypatch.setattr(cfm_fem.slabs, "write_vtu", stop_after_one)
+    assert main([*base, *layout, "--seed", "0"]) == 1  # interrupted
+    assert len(calls) == 1  # one new map (or piece) was written
+    assert not (out / "summary.json").exists() and not (out / "sweep.pvd").exists()

@@ -92,15 +92,27 @@ _WRITE_BYTES = 1 << 30
 _POINT_VALUES = 110
 
 
+def retire_index(out: Path) -> None:
+    """Remove the ``summary.json`` and ``sweep.pvd`` an earlier run left in ``out``; called
+    before the first new map is written. A run stopped while writing then leaves new maps and
+    no summary, not new maps under the old run's summary and index."""
+    for name in ("summary.json", "sweep.pvd"):
+        path = out / name
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+
+
 def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> dict:
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
     The maps are written first, then ``sweep.pvd``, then ``summary.json``: each file atomically,
-    so an interrupted run never leaves a partial file and a present summary means a complete run.
+    so an interrupted run never leaves a partial file and a present summary means a complete run
+    (an earlier run's summary and index are removed first, `retire_index`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = summarize(res)
+    retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
     common = {
@@ -162,6 +174,7 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
     summary = summarize(compact)
     summary["provenance"] = provenance or {}
     summary["pieces"] = int(n_pieces)
+    retire_index(out)
     # issue 6: columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
     labels = compact.labels
     ups = compact.column_up_um()
