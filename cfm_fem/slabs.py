@@ -718,6 +718,7 @@ def run_slab_sweep(
     halo_cells: float = HALO_CELLS,
     log=None,
     progress=None,
+    progress_total=None,
     description: dict | None = None,
     resume: bool = False,
     keep: bool = False,
@@ -744,6 +745,8 @@ def run_slab_sweep(
         Messages for the user.
     progress : callable(int), optional
         Called with the number of nodes finished.
+    progress_total : callable(int), optional
+        Called once with the number of nodes, when it is known (after staging).
     description : dict, optional
         Everything that determines the numbers (`cfm_fem.resume.describe_sweep` plus the slab
         options). Given, the work files live in ``out_dir/.cfm_fem_slabs`` under that run's key
@@ -781,7 +784,7 @@ def run_slab_sweep(
             finished = True
             return None
         summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
-                       log, progress, t0, resume, map_chunks)  # fmt: skip
+                       log, progress, t0, resume, map_chunks, progress_total)  # fmt: skip
         finished = True
         return summary
     except CfmInputError:
@@ -844,7 +847,7 @@ def _make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
 
 
 def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
-         resume=False, map_chunks=None):  # fmt: skip
+         resume=False, map_chunks=None, progress_total=None):  # fmt: skip
     file = str(path)
     n_rows = len(st.rows)
     htm = cfg.mode == "htm"
@@ -930,6 +933,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
                    hull=hull)  # fmt: skip
     records = {}
+    if progress_total is not None:
+        progress_total(n)
     for k in range(K):
         record = store.done(k) if resume else None
         if record is not None:  # finished by an interrupted run with the same key

@@ -267,6 +267,17 @@ class _Bars:
             def update(self, n=1):
                 bar["done"] += n
 
+            @property
+            def total(self):
+                return bar["total"]
+
+            @total.setter
+            def total(self, n):  # as tqdm: a total set once it is known
+                bar["total"] = n
+
+            def refresh(self):
+                pass
+
             def write(self, text, file=None):
                 print(text, file=file)
 
@@ -276,7 +287,8 @@ class _Bars:
 @pytest.mark.parametrize("option", [["--slabs", "2"], ["--max-memory", "1G"]])
 def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, option):
     """--slabs/--max-memory ran without a progress bar (the in-memory path has one): the bar
-    now counts the nodes as the slabs finish (no total: it is known after staging only)."""
+    now counts the nodes as the slabs finish, against the total the slab run sets once the
+    file is staged."""
     import cfm_fem.cli.sweep
 
     bars = _Bars()
@@ -284,7 +296,7 @@ def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, 
     argv = ["sweep", str(csv_map), "--up", "10", "--trials", "50", *option]
     assert main([*argv, "--out", str(tmp_path / "o")]) == 0
     assert [b["unit"] for b in bars.bars] == ["nodes"]
-    assert bars.bars[0]["done"] == 216
+    assert bars.bars[0]["done"] == bars.bars[0]["total"] == 216
 
 
 def _maps_named(out):

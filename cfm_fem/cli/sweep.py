@@ -272,16 +272,22 @@ def _run_slabs(args, up):
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
                 prov["backend"] = _backend(args) + ", slabs (out of core)"
-            # the node count is known only once the file is staged (inside run_slab_sweep):
-            # the bar counts the finished nodes, slab by slab, without a total; messages go
-            # above it (tqdm's write), not into its line
+            # the node count is known only once the file is staged (inside run_slab_sweep),
+            # which then sets the bar's total; it advances slab by slab; messages go above it
+            # (tqdm's write), not into its line
             with progress_bar(None, "nodes") as bar:
+
+                def set_total(n, bar=bar):
+                    bar.total = n
+                    bar.refresh()
+
                 summary = run_slab_sweep(
                     args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
                     length_unit=args.length_unit, field_unit=args.field_unit,
                     zero_rows=args.zero_rows, provenance=prov,
                     log=lambda m: bar.write(f"cfm-fem sweep: {m}", file=sys.stderr),
-                    progress=bar.update, description=description, resume=args.resume,
+                    progress=bar.update, progress_total=set_total, description=description,
+                    resume=args.resume,
                     keep=args.keep_chunks,
                     map_chunks=None if client is None else dask_chunk_map(client),
                 )  # fmt: skip
