@@ -1218,7 +1218,7 @@ def find_cell(p, transform, box, dims, bstart, bcells, bary):
         Lower corner of the bucket grid (mm) and buckets per mm along each axis.
     dims : ndarray, shape (d,), int64
         Buckets along each axis (C order of the flat bucket index).
-    bstart, bcells : ndarray, int64
+    bstart : ndarray, int64; bcells : ndarray, int32
         CSR lists: the simplices whose (padded) bounding box meets bucket b are
         ``bcells[bstart[b]:bstart[b + 1]]`` (`cfm_fem.interpolation.cell_buckets`).
     bary : ndarray, shape (d + 1,)
@@ -1436,7 +1436,7 @@ def bucket_lists(i0, span, dims):
     Returns
     -------
     bstart : ndarray, shape (prod(dims) + 1,), int64
-    bcells : ndarray, int64
+    bcells : ndarray, int32
         The cells meeting bucket b, increasing: ``bcells[bstart[b]:bstart[b + 1]]``.
     """
     n_b = 1
@@ -1447,7 +1447,7 @@ def bucket_lists(i0, span, dims):
     for b in range(n_b):
         bstart[b + 1] += bstart[b]
     fill = bstart[:-1].copy()
-    bcells = np.empty(bstart[n_b], dtype=np.int64)
+    bcells = np.empty(bstart[n_b], dtype=np.int32)  # held for the run: 4 bytes per entry
     _bucket_pass(i0, span, dims, fill, bcells)
     return bstart, bcells
 

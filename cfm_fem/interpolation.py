@@ -640,7 +640,7 @@ def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float 
     dims : ndarray, shape (d,), int64
         Buckets along each axis; the flat index of a bucket is in C order.
     bstart : ndarray, shape (prod(dims) + 1,), int64
-    bcells : ndarray, int64
+    bcells : ndarray, int32
         The cells of bucket b, increasing: ``bcells[bstart[b]:bstart[b + 1]]``.
     """
     m, dp1 = simplices.shape
@@ -676,9 +676,9 @@ def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float 
 
 def no_search(dim: int) -> tuple:
     """The `exact_search` arrays of a convex mesh: empty (every exit is a proof)."""
-    return (np.zeros((0, dim + 1)), np.zeros(0), np.zeros((2, dim)),
+    return (np.zeros((0, dim + 1), dtype=np.float32), np.zeros(0), np.zeros((2, dim)),
             np.zeros(dim, dtype=np.int64), np.zeros(1, dtype=np.int64),
-            np.zeros(0, dtype=np.int64))  # fmt: skip
+            np.zeros(0, dtype=np.int32))  # fmt: skip
 
 
 def star_height(transform, simplices, n_nodes: int) -> np.ndarray:
@@ -708,15 +708,24 @@ def exact_search(mesh: SimplexMesh) -> tuple:
     excess = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
     if not (excess > 0.0).any():
         return no_search(mesh.dim)
+    # float32, rounded up (a larger excess proves fewer exits: still exact), held by the
+    # kernels for the whole run: 4 bytes per face
+    ex32 = excess.astype(np.float32)
+    low = ex32 < excess
+    ex32[low] = np.nextafter(ex32[low], np.float32(np.inf))
+    excess = ex32
     buckets = cell_buckets(mesh.coords, mesh.simplices)
     s_idx, j_idx = np.nonzero(excess > 0.0)
     on_face = np.ones((len(s_idx), mesh.dim + 1), dtype=bool)
     on_face[np.arange(len(s_idx)), j_idx] = False
     nodes = np.unique(mesh.simplices[s_idx][on_face])
     reach = np.zeros(len(mesh.coords))
-    v = mesh.coords[mesh.simplices]
-    boxes = np.ascontiguousarray(np.stack([v.min(axis=1), v.max(axis=1)], axis=1))
-    del v
+    boxes = np.empty((len(mesh.simplices), 2, mesh.dim))  # vertex by vertex: no (m, d + 1, d)
+    boxes[:, 0] = boxes[:, 1] = mesh.coords[mesh.simplices[:, 0]]
+    for j in range(1, mesh.dim + 1):
+        v = mesh.coords[mesh.simplices[:, j]]
+        np.minimum(boxes[:, 0], v, out=boxes[:, 0])
+        np.maximum(boxes[:, 1], v, out=boxes[:, 1])
     reach[nodes] = _kernels.node_reach(
         mesh.coords, mesh.simplices, mesh.transform, boxes, *buckets, nodes,
         star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes],

@@ -568,9 +568,9 @@ def _slab_search(search, cert):
     excess, reach, box, dims, bstart, bcells = search
     m, dp1 = excess.shape
     unc = np.flatnonzero(~cert)
-    excess = np.concatenate([excess, np.zeros((1 + len(unc), dp1))])
+    excess = np.concatenate([excess, np.zeros((1 + len(unc), dp1), dtype=excess.dtype)])
     reach = np.concatenate([reach, [0.0]])  # the sentinel node
-    remap = np.arange(m, dtype=np.int64)
+    remap = np.arange(m, dtype=bcells.dtype)
     remap[unc] = m + 1 + np.arange(len(unc))
     bucket = np.repeat(np.arange(len(bstart) - 1), np.diff(bstart))
     keep = cert[bcells]

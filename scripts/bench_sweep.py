@@ -5,6 +5,7 @@
     python scripts/bench_sweep.py big                # 1,000,000 nodes, 10,000 trials, 6 U_p
     python scripts/bench_sweep.py big --nodes 200000 --trials 2000   # smaller, same code path
     python scripts/bench_sweep.py big --outside extrapolate   # surface nodes extrapolated
+    python scripts/bench_sweep.py big --notch        # a quadrant removed: non-convex map
     python scripts/bench_sweep.py trial              # CPU ns per trial, one thread, bundled map
 
 ``ratio``: perturbed-interpolation samples per second of the numba walk kernel against
@@ -141,11 +142,13 @@ def build_scipy_delaunay(mesh):
     return Delaunay(mesh.coords)
 
 
-def fem_like_map(n_target: int, seed: int = 0) -> FieldMap:
+def fem_like_map(n_target: int, seed: int = 0, notch: bool = False) -> FieldMap:
     """Native tetrahedra on a jittered grid filling a 20 x 20 x 120 mm aperture box.
 
     Kuhn tetrahedra of a grid whose inner nodes are moved by up to 15 % of the spacing: an
     unstructured-looking but valid FEM mesh with cells, like an export with its elements.
+    ``notch``: the quadrant x > 0, y > 0 removed (its nodes and every cell touching them): a
+    non-convex map with a re-entrant edge along z, where the sweep's exact search runs.
     """
     nx = int(round((n_target / 6) ** (1 / 3)))
     shape = (nx, nx, 6 * nx)
@@ -161,18 +164,26 @@ def fem_like_map(n_target: int, seed: int = 0) -> FieldMap:
     rng = np.random.default_rng(seed)
     pts[inner] += rng.uniform(-0.15, 0.15, (inner.sum(), 3)) * h
     cells = kuhn_simplices(shape, np.arange(len(pts)))
+    if notch:
+        gone = (pts[:, 0] > 1e-9) & (pts[:, 1] > 1e-9)
+        cells = cells[~gone[cells].any(axis=1)]
+        keep = np.zeros(len(pts), dtype=bool)
+        keep[cells.ravel()] = True
+        new = np.cumsum(keep) - 1
+        pts, cells = pts[keep], new[cells]
     return FieldMap.from_arrays(
         pts, quadrupole_with_ends(pts), cells=cells, source="synthetic FEM map"
     )
 
 
-def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outside="exclude"):
+def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outside="exclude",
+              notch=False):  # fmt: skip
     t0 = time.perf_counter()
-    fm = fem_like_map(n_nodes)
+    fm = fem_like_map(n_nodes, notch=notch)
     t_map = time.perf_counter() - t0
     cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside)
     # compile outside the timing
-    run_sweep(fem_like_map(2000), SweepConfig(up_um=ups, trials=20, outside=outside))
+    run_sweep(fem_like_map(2000, notch=notch), SweepConfig(up_um=ups, trials=20, outside=outside))
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg)
     t_run = time.perf_counter() - t0
@@ -181,7 +192,8 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
         s = write_sweep(tmp, res, {})
         t_write = time.perf_counter() - t1
     total = t_run + t_write
-    print(f"map: {fm.n_nodes} nodes, {len(fm.cells)} native tetrahedra (made in {t_map:.1f} s)")
+    print(f"map: {fm.n_nodes} nodes, {len(fm.cells)} native tetrahedra (made in {t_map:.1f} s)"
+          + (", quadrant x > 0, y > 0 removed (non-convex)" if notch else ""))  # fmt: skip
     print(f"sweep: {trials} trials per node, U_p = {ups} um, {numba.get_num_threads()} threads, "
           f"--outside {outside}")  # fmt: skip
     print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
@@ -230,6 +242,11 @@ def main():
     )
     ap.add_argument("--outside", choices=["exclude", "extrapolate"], default="exclude",
                     help="'big': what becomes of trials that leave the map")  # fmt: skip
+    ap.add_argument(
+        "--notch",
+        action="store_true",
+        help="'big': remove a quadrant (a non-convex map: the exact search runs)",
+    )
     a = ap.parse_args()
     if a.what == "ratio":
         per_node = a.trials or 1000
@@ -243,6 +260,7 @@ def main():
             [0.0, 10.0, 20.0, 30.0, 40.0, 50.0],
             a.out,
             a.outside,
+            a.notch,
         )
 
 

@@ -519,7 +519,7 @@ def test_convex_faces_take_the_old_path_bit_for_bit():
                                    1e-7)  # fmt: skip
     empty = exact_search(mesh)
     assert len(empty[0]) == 0
-    zero = (np.zeros_like(mesh.neighbors, dtype=float), np.zeros(len(pts)),
+    zero = (np.zeros_like(mesh.neighbors, dtype=np.float32), np.zeros(len(pts)),
             *cell_buckets(mesh.coords, mesh.simplices))  # fmt: skip
     runs = [
         _kernels.gauss_sweep(
