@@ -1150,14 +1150,7 @@ def _walk(p, start, transform, neighbors, bary):
     if s < 0:
         return OUTSIDE, s, -1
     for _ in range(MAX_WALK):
-        last = 1.0
-        for j in range(d):
-            c = 0.0
-            for k in range(d):
-                c += transform[s, j, k] * (p[k] - transform[s, d, k])
-            bary[j] = c
-            last -= c
-        bary[d] = last
+        _bary_in(p, s, transform, bary)
         jmin = 0
         for j in range(1, d + 1):
             if bary[j] < bary[jmin]:
@@ -2352,6 +2345,23 @@ def star_locate3(start, lmat, nbr, n_star, d0, d1, d2):
     return -1, 0.0, 0.0, 0.0
 
 
+@nb.njit(inline="always", **JIT)
+def _star_bary(lmat, i, delta, lam):
+    """``lam[:d] = lmat[i] @ delta``: in star cell i, the barycentric coordinates of its
+    vertices other than g at ``x_g + delta``; returns their sum and their minimum."""
+    d = lmat.shape[2]
+    tot = 0.0
+    lmin = np.inf
+    for a in range(d):
+        v = 0.0
+        for b in range(d):
+            v += lmat[i, a, b] * delta[b]
+        lam[a] = v
+        tot += v
+        lmin = min(lmin, v)
+    return tot, lmin
+
+
 @nb.njit(**JIT)
 def star_exact(g, cells, n_star, simplices, excess):
     """Whether LEAVES_MESH is a proven verdict at node g: every border face of its star (they
@@ -2408,14 +2418,7 @@ def star_find(p, g, coords, transform, cells, n_star, lmat, delta, bary):
     for a in range(d):
         delta[a] = p[a] - coords[g, a]
     for i in range(n_star):
-        tot = 0.0
-        lmin = np.inf
-        for a in range(d):
-            v = 0.0
-            for b in range(d):
-                v += lmat[i, a, b] * delta[b]
-            tot += v
-            lmin = min(lmin, v)
+        tot, lmin = _star_bary(lmat, i, delta, bary)  # bary: scratch until the cell is found
         if lmin >= -BARY_EPS and 1.0 - tot >= -BARY_EPS:
             _bary_in(p, cells[i], transform, bary)
             return cells[i]
@@ -2585,15 +2588,7 @@ def star_recheck(g, cells, n_star, lmat, nbr, simplices, excess, reach, delta, l
     for a in range(d):
         norm += delta[a] * delta[a]
     for i in range(n_star):
-        tot = 0.0
-        lmin = np.inf
-        for a in range(d):
-            v = 0.0
-            for b in range(d):
-                v += lmat[i, a, b] * delta[b]
-            lam[a] = v
-            tot += v
-            lmin = min(lmin, v)
+        tot, lmin = _star_bary(lmat, i, delta, lam)
         if lmin >= -BARY_EPS:
             if 1.0 - tot >= -BARY_EPS:
                 return i, 0.0, np.inf
