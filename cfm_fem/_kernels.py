@@ -39,6 +39,19 @@ import numpy as np
 JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 PJIT = dict(JIT, parallel=True)
 
+
+def kernels_cached(*kernels) -> bool:
+    """Whether numba's on-disk cache holds compiled code of each of ``kernels`` for this source.
+
+    False means the next call compiles (tens of seconds for the sweep kernels); the commands
+    say so before starting. Reads numba's cache index (a private API): if that fails, True.
+    """
+    try:
+        return all(len(k._cache._cache_file._load_index()) > 0 for k in kernels)
+    except Exception:  # another numba version: say nothing rather than something wrong
+        return True
+
+
 # ---------------------------------------------------------------------------------------------
 # Random numbers and bench kinematics
 # ---------------------------------------------------------------------------------------------
@@ -1897,9 +1910,31 @@ def sort_values(a):
         lo = min(lo, a[i])
         hi = max(hi, a[i])
         nan |= a[i] != a[i]
-    if nan:  # a trial that met a slab's halo sentinel (NaN field): its key would index
-        a[:] = np.sort(a)  # out of the counting arrays; the node's statistics are NaN anyway
-        return
+    if nan:  # a trial that met a slab's halo sentinel (NaN field): its key would index out
+        # of the counting arrays. NaN go last, as numpy's; the node's statistics are NaN anyway.
+        k = 0  # (not np.sort: its quicksort would add ~3 s to every first run's compile)
+        for i in range(n):
+            v = a[i]
+            if v == v:
+                a[k] = v
+                k += 1
+        a[k:] = np.nan
+        if k < 48:
+            _insertion_sort(a[:k], a[:k].copy())
+            return
+        n = k
+        lo = a[0]
+        hi = a[0]
+        for i in range(n):
+            lo = min(lo, a[i])
+            hi = max(hi, a[i])
+    _sort_finite(a[:n], lo, hi)
+
+
+@nb.njit(**JIT)
+def _sort_finite(a, lo, hi):
+    """`sort_values` for 48 or more finite values in [lo, hi]."""
+    n = a.shape[0]
     if not hi > lo:
         return
     if n <= 4096:

@@ -547,7 +547,7 @@ def test_convex_faces_take_the_old_path_bit_for_bit():
     assert runs[0][1][:, 2].sum() > 0  # trials did leave the map
 
 
-@pytest.mark.parametrize("n", [100, 3000, 6000])
+@pytest.mark.parametrize("n", [50, 100, 3000, 6000])
 def test_sort_values_with_nan_is_numpys(n):
     """A NaN (a trial that met a slab's halo sentinel) must not index the counting arrays."""
     a = np.random.default_rng(n).normal(size=n)
@@ -634,3 +634,20 @@ def test_bucket_lists_match_twin():
     mesh, _ = _l_shape(seed=3)
     box, dims, bstart, bcells = cell_buckets(mesh.coords, mesh.simplices)
     assert bstart[-1] == len(bcells) >= len(mesh.simplices)
+
+
+def test_kernels_cached_tells_a_cold_cache_from_a_warm_one(tmp_path, monkeypatch):
+    """The first-run note of the commands relies on reading numba's cache index (a new
+    module's cache is cold: numba writes it beside the source, in tmp_path)."""
+    import importlib
+    import sys
+
+    (tmp_path / "tiny_kernel.py").write_text(
+        "import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("tiny_kernel", None)
+    mod = importlib.import_module("tiny_kernel")
+    assert not _kernels.kernels_cached(mod.twice)
+    assert mod.twice(3) == 6
+    assert _kernels.kernels_cached(mod.twice)

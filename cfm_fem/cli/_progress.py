@@ -18,3 +18,15 @@ def progress_bar(total: int, unit: str):
         yield bar
     finally:
         bar.close()
+
+
+def note_first_compile(*kernels) -> None:
+    """Say, before a bar that would sit at 0 %, that numba compiles the kernels this time."""
+    from .._kernels import kernels_cached
+
+    if not kernels_cached(*kernels):
+        print(
+            "cfm-fem: compiling the numerical kernels for this machine (first run after an "
+            "install or upgrade, about a minute); later runs load them from numba's cache",
+            file=sys.stderr,
+        )

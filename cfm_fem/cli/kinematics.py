@@ -12,7 +12,7 @@ import sys
 
 from ..errors import CfmInputError
 from ._checks import check_out_dir, check_seed
-from ._progress import progress_bar
+from ._progress import note_first_compile, progress_bar
 from .sweep import add_scale_out_args
 
 NAME = "kinematics"
@@ -70,6 +70,10 @@ def run(args) -> int:
         file=sys.stderr,
     )
     on_dask = args.scheduler is not None or args.workers is not None
+    if not on_dask:  # (Dask workers compile in their own processes)
+        from .. import _kernels
+
+        note_first_compile(_kernels.pass_window_fast)
     if on_dask and args.adaptive is not None:
         raise CfmInputError(
             "--adaptive stops on the pooled result of all points and cannot be split over Dask "

@@ -16,7 +16,7 @@ from pathlib import Path
 from ..errors import CfmInputError
 from . import interrupted, option_type
 from ._checks import check_out_dir, check_seed
-from ._progress import progress_bar
+from ._progress import note_first_compile, progress_bar
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
 #: maps and exhaust the memory before anything is computed).
@@ -264,6 +264,7 @@ def _run_slabs(args, up):
             f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
+    _note_compile(cfg.mode)
     description = describe_sweep(cfg, file_sha256(args.field), _read_options(args),
                                  file_sha256(args.bench) if args.bench else None)  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
@@ -361,6 +362,12 @@ def parse_up_range(text: str) -> list[float]:
     return values
 
 
+def _note_compile(mode: str) -> None:
+    from .. import _kernels
+
+    note_first_compile(_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep)
+
+
 def run(args) -> int:
     if args.bench is not None and args.mode != "htm":  # gauss draws N(0, U_p): no bench in it
         raise CfmInputError(
@@ -424,6 +431,7 @@ def run(args) -> int:
         f"{cfg.trials} trials per node, seed {cfg.seed}",
         file=sys.stderr,
     )
+    _note_compile(cfg.mode)
     read_options = _read_options(args)
     bench_sha = file_sha256(args.bench) if args.bench else None
     description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
