@@ -13,7 +13,6 @@ only when a cluster is asked for.
 from __future__ import annotations
 
 import contextlib
-import inspect
 
 import numpy as np
 
@@ -23,7 +22,6 @@ __all__ = [
     "dask_client",
     "dask_chunk_map",
     "check_workers",
-    "kinematics_supports_points",
     "run_kinematics_dask",
 ]
 
@@ -175,13 +173,6 @@ def dask_chunk_map(client):
     return run
 
 
-def kinematics_supports_points() -> bool:
-    """True if `cfm_fem.kinematics.run_kinematics` takes ``point_index`` (the point seam)."""
-    from .kinematics import run_kinematics
-
-    return "point_index" in inspect.signature(run_kinematics).parameters
-
-
 def _kinematics_block(bench, trials, seed, q, index, exact):
     from .kinematics import run_kinematics
 
@@ -212,18 +203,9 @@ def run_kinematics_dask(client, bench, trials, seed, *, exact=True, block_points
     -------
     KinematicsResult
 
-    Raises
-    ------
-    CfmInputError
-        This version's `run_kinematics` has no ``point_index`` argument (see the README).
     """
     from .kinematics import KinematicsResult, pool_table_iv
 
-    if not kinematics_supports_points():
-        raise CfmInputError(
-            "cfm-fem kinematics on Dask needs run_kinematics(..., point_index=...), which this "
-            "version does not have yet; run it without --scheduler/--workers"
-        )
     distributed = _import_distributed()
     check_workers(client)
     q = np.ascontiguousarray(bench.grid_points())

@@ -123,12 +123,10 @@ def test_bad_scale_out_options_exit_2(csv_map, tmp_path, capsys, monkeypatch):
 
 
 def test_kinematics_on_dask_matches_one_process(cluster):
-    from cfm_fem.distributed import kinematics_supports_points, run_kinematics_dask
+    from cfm_fem.distributed import run_kinematics_dask
     from cfm_fem.io.bench_toml import read_reference_bench
     from cfm_fem.kinematics import run_kinematics
 
-    if not kinematics_supports_points():
-        pytest.skip("run_kinematics has no point_index argument yet (see README, scale-out)")
     _, client = cluster
     bench = read_reference_bench()
     ref = run_kinematics(bench, trials=3000, seed=4)
@@ -138,17 +136,10 @@ def test_kinematics_on_dask_matches_one_process(cluster):
     assert res.pooled == ref.pooled
 
 
-def test_cli_kinematics_on_dask(cluster, tmp_path, capsys):
-    from cfm_fem.distributed import kinematics_supports_points
-
+def test_cli_kinematics_on_dask(cluster, tmp_path):
     c, _ = cluster
     base = ["kinematics", "--trials", "2000", "--seed", "3"]
     rc = main([*base, "--scheduler", c.scheduler_address, "--out", str(tmp_path / "dask")])
-    if not kinematics_supports_points():
-        assert rc == 2
-        assert "point_index" in capsys.readouterr().err
-        assert not (tmp_path / "dask").exists()
-        return
     assert rc == 0
     assert main([*base, "--out", str(tmp_path / "one")]) == 0
     one = json.loads((tmp_path / "one" / "summary.json").read_text())
