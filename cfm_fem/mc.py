@@ -108,11 +108,15 @@ def numerical_tolerance(u, ndig: int = 2):
     """Numerical tolerance delta of a standard uncertainty (JCGM 101, 7.9.2).
 
     ``u`` is written as c x 10**l with c an ``ndig``-digit integer; delta = 10**l / 2.
-    Zero gives zero.
+    Zero gives zero. c is u rounded to ``ndig`` significant digits, so a u that rounds up into
+    the next decade takes that decade's l (0.0996 with two digits is 10 x 10**-2, delta 0.005).
     """
     u = np.abs(np.asarray(u, dtype=np.float64))
-    with np.errstate(divide="ignore"):
-        l_exp = np.floor(np.log10(np.where(u > 0, u, 1.0))) - (ndig - 1)
+    safe = np.where(u > 0, u, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l_exp = np.floor(np.log10(safe)) - (ndig - 1)
+        c = np.floor(safe / 10.0**l_exp + 0.5)
+    l_exp = np.where(c >= 10**ndig, l_exp + 1, l_exp)
     delta = 0.5 * 10.0**l_exp
     return np.where(u > 0, delta, 0.0)
 

@@ -14,6 +14,7 @@ from cfm_fem.mc import (
     Pdf,
     adaptive_monte_carlo,
     coverage_count,
+    draw_inputs,
     gum_linear,
     monte_carlo,
     numerical_tolerance,
@@ -51,6 +52,26 @@ def test_ranks_agree_with_the_sorted_interval():
     xs = np.sort(x)
     assert (xs[r_lo - 1], xs[r_hi - 1]) == (lo, hi)
     assert r_hi - r_lo == coverage_count(1001, 0.95)
+
+
+@pytest.mark.parametrize(
+    "m, p, q, ranks",
+    [
+        (1000, 0.95, 950, (25, 975)),  # pM integer, (M - q)/2 integer
+        (1001, 0.95, 951, (25, 976)),  # pM = 950.95 -> q = int(pM + 1/2)
+        (1021, 0.95, 970, (26, 996)),  # M - q = 51 odd -> r = int((M - q + 1)/2)
+        (107, 0.9, 96, (6, 102)),  # pM = 96.3 -> 96, M - q = 11
+        (10**4, 0.99, 9900, (50, 9950)),
+    ],
+)
+def test_ranks_follow_jcgm_101_7_7(m, p, q, ranks):
+    """q and r written out from JCGM 101 7.7.1-7.7.2 (the worked examples cannot see r +- 1)."""
+    assert coverage_count(m, p) == q
+    assert symmetric_ranks(m, p) == ranks
+    x = np.arange(1.0, m + 1)[::-1]  # value = its 1-based rank after sorting
+    assert symmetric_interval(x, p) == ranks
+    lo, hi = shortest_interval(x, p)  # equal spacing: every r ties, the first is taken
+    assert (lo, hi) == (1.0, 1.0 + q)
 
 
 def test_9_2_2_sum_of_four_normals():
@@ -161,11 +182,43 @@ def test_adaptive_procedure_stops_at_the_numerical_tolerance():
     assert abs(s.u - 2.0) <= r.delta and abs(s.high - 3.92) <= 2 * r.delta
 
 
+def test_adaptive_stopping_rule_recomputed_from_the_batches():
+    """7.9.4 g)-k) written out: batch h uses child h of SeedSequence(seed); s**2 is
+    sum (x_r - mean)**2 / (h (h - 1)) for each of y, u, y_low, y_high; stop at the first h >= 2
+    where all four 2 s <= delta(u of all h M values). Seed 8 needs several batches."""
+    pdfs, m = [Pdf.normal(0, 1)] * 4, 10**4
+    r = adaptive_monte_carlo(lambda x: x.sum(axis=1), pdfs, ndig=2, seed=8)
+    assert r.converged and r.batch_trials == m and r.batches > 3
+    kids = np.random.SeedSequence(8).spawn(r.batches)
+    batches = [draw_inputs(pdfs, m, np.random.default_rng(k)).sum(axis=1) for k in kids]
+    stats = []
+    for h, b in enumerate(batches, start=1):
+        s = summarize(b)
+        stats.append([s.y, s.u, s.low, s.high])
+        if h < 2:
+            continue
+        x = np.array(stats)
+        two_s = 2 * np.sqrt(((x - x.mean(axis=0)) ** 2).sum(axis=0) / (h * (h - 1)))
+        delta = numerical_tolerance(np.concatenate(batches[:h]).std(ddof=1), 2)
+        assert np.all(two_s <= delta) == (h == r.batches), h  # stops at the first such h
+    np.testing.assert_allclose(r.two_s, two_s, rtol=1e-12)
+    assert r.summary.trials == r.batches * m
+    assert r.summary.high == summarize(np.concatenate(batches)).high
+
+
 def test_numerical_tolerance_examples():
-    # JCGM 101 7.9.2 example: u = 0.02 mg (one significant digit)? here two digits of 0.028
+    # JCGM 101 7.9.2 examples 1-3: u = 0.000 35 g with two and with one digit, u = 2 K
+    assert numerical_tolerance(0.00035, 2) == pytest.approx(0.000005)
+    assert numerical_tolerance(0.00035, 1) == pytest.approx(0.00005)
+    assert numerical_tolerance(2.0, 1) == pytest.approx(0.5)
     assert numerical_tolerance(0.028, 2) == pytest.approx(0.0005)
     assert numerical_tolerance(0.0754, 1) == pytest.approx(0.005)
     assert numerical_tolerance(36.0, 2) == pytest.approx(0.5)
+    # c is u rounded to n_dig digits: 0.0996 -> 0.10 = 10 x 10**-2 (not 99.6 x 10**-3)
+    assert numerical_tolerance(0.0996, 2) == pytest.approx(0.005)
+    assert numerical_tolerance(0.0994, 2) == pytest.approx(0.0005)
+    assert numerical_tolerance(0.96, 1) == pytest.approx(0.5)
+    np.testing.assert_allclose(numerical_tolerance([9.96, 0.0, 1e-3], 2), [0.5, 0.0, 5e-5])
 
 
 def test_variance_shares_and_shortest_interval():
