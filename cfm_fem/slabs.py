@@ -83,7 +83,7 @@ from pathlib import Path
 import numpy as np
 import scipy.spatial
 
-from .errors import CfmInputError, CfmInputWarning
+from .errors import CfmInputError, CfmInputWarning, check_seed
 from .field import DUPLICATE_TOL_MM, FieldMap
 from .interpolation import (
     FLAT_TOL,
@@ -765,8 +765,15 @@ def run_slab_sweep(
     -------
     dict or None
         The summary written; None for a map that is not 3-D (the caller then runs in memory).
+
+    Raises
+    ------
+    CfmInputError
+        A seed that is not an integer in [0, 2**63) (`cfm_fem.errors.check_seed`, checked
+        before the file is read or ``out_dir`` made), or bad input in the file or options.
     """
     t0 = time.perf_counter()
+    check_seed(cfg.seed)  # the CLI's rule and message, before anything is read or written
     log = log or (lambda s: None)
     out = Path(out_dir)
     if description is None:

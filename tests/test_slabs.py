@@ -421,3 +421,28 @@ def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     _, b = _by_position(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
     np.testing.assert_array_equal(a["complete"], b["complete"])
     np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [-1, 2**63, True], ids=["negative", "too_large", "bool"])
+def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
+    """The API checked the seed only when the first slab was prepared: after staging the file
+    into a work folder made in out_dir. Now up front, with the CLI's message."""
+    import cfm_fem.slabs
+    from cfm_fem.errors import check_seed
+
+    path = _write_csv(tmp_path / "g.csv", _lattice(4, 6))
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("the file was read")
+
+    monkeypatch.setattr(cfm_fem.slabs, "stage", no_read)
+    monkeypatch.setattr(cfm_fem.slabs, "open_stream", no_read)
+    with pytest.raises(CfmInputError) as cli:
+        check_seed(seed)
+    out = tmp_path / "o"
+    cfg = SweepConfig(up_um=[10.0], trials=50, seed=seed)
+    for desc in (None, {"run": "resumable"}):
+        with pytest.raises(CfmInputError) as api:
+            run_slab_sweep(path, cfg, out, n_slabs=2, description=desc)
+        assert str(api.value) == str(cli.value)
+        assert not out.exists()
