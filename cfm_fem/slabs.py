@@ -64,7 +64,7 @@ run continues from its finished slabs. Records are merged in slab order: the out
 depend on where or in which order the slabs ran.
 
 Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run in memory
-(the caller says so).
+(the caller says so; a planar map from its staged rows, `staged_fieldmap`, not read again).
 """
 
 from __future__ import annotations
@@ -108,7 +108,14 @@ from .sweep import (
     summarize,
 )
 
-__all__ = ["SlabPlan", "stage", "run_slab_sweep", "disk_percentiles", "slabs_for_memory"]
+__all__ = [
+    "SlabPlan",
+    "stage",
+    "staged_fieldmap",
+    "run_slab_sweep",
+    "disk_percentiles",
+    "slabs_for_memory",
+]
 
 #: Distinct values per axis tracked while staging; more means "not a grid".
 MAX_DISTINCT = 1 << 20
@@ -282,6 +289,19 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     rows, lines, maps = _map_rows(workdir)
     return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
                   maps, workdir)  # fmt: skip
+
+
+def staged_fieldmap(st: Staged, path) -> FieldMap:
+    """The staged map as the `FieldMap` `cfm_fem.io.read_field` reads from the same file
+    (same points, field, lines, notes; duplicates merged as it does), held in memory.
+
+    For maps that are not 3-D, run in memory: the file is then read once, and its warnings
+    (units, thousands separators, placeholder rows) are given once.
+    """
+    values = np.array(st.rows)  # a copy: the staged files are removed after the run
+    return FieldMap.from_arrays(values[:, :3], values[:, 3:], source=str(path),
+                                lines=np.array(st.lines), notes=list(st.notes),
+                                columns=tuple(st.spelled))  # fmt: skip
 
 
 def _map_rows(workdir: Path):
@@ -723,6 +743,7 @@ def run_slab_sweep(
     resume: bool = False,
     keep: bool = False,
     map_chunks=None,
+    flat_map=None,
 ) -> dict | None:
     """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
 
@@ -760,6 +781,9 @@ def run_slab_sweep(
         Runs the slabs (default `cfm_fem.sweep.serial_map`, one after the other here; e.g.
         `cfm_fem.distributed.dask_chunk_map` on workers that share ``out_dir``). The outputs do
         not depend on it.
+    flat_map : callable(FieldMap), optional
+        Given, a map that is not 3-D is handed to it as read from the staged rows
+        (`staged_fieldmap`), so the caller runs it in memory without reading the file again.
 
     Returns
     -------
@@ -788,6 +812,8 @@ def run_slab_sweep(
         st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
                    zero_rows=zero_rows)  # fmt: skip
         if st.dim != 3:
+            if flat_map is not None:
+                flat_map(staged_fieldmap(st, path))
             finished = True
             return None
         summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,

@@ -251,6 +251,44 @@ def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monk
     assert s["nodes"] == 216
 
 
+def test_slabs_read_a_planar_map_once(tmp_path, capsys, monkeypatch):
+    """--slabs on a planar map (left to the in-memory run) staged the file, then read it again
+    whole: every warning of the file (thousands separators, placeholder rows) was printed
+    twice. The in-memory run now takes the staged rows; its numbers are those of --pieces."""
+    import cfm_fem.io
+
+    ax = np.arange(7.0)
+    pts = np.stack(np.meshgrid(ax + 1000.0, ax, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
+    B[5] = 0.0  # a placeholder row, kept with a warning
+    rows = "".join(
+        f'"1,{p[0] - 1000:03.0f}",{p[1]:g},{p[2]:g},' + ",".join(f"{v:.17g}" for v in b) + "\n"
+        for p, b in zip(pts, B, strict=True)
+    )
+    path = tmp_path / "planar.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows)
+    argv = ["sweep", str(path), "--up", "0,10", "--trials", "60"]
+    assert main([*argv, "--pieces", "2", "--out", str(tmp_path / "mem")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    assert err.count("exactly 0 0 0") == 1, err
+    reads = []
+    read_field = cfm_fem.io.read_field
+    monkeypatch.setattr(
+        cfm_fem.io, "read_field", lambda *a, **k: reads.append(a) or read_field(*a, **k)
+    )
+    assert main([*argv, "--slabs", "2", "--out", str(tmp_path / "sl")]) == 0
+    err = capsys.readouterr().err
+    assert "the map is not 3-D: run in memory" in err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    assert err.count("exactly 0 0 0") == 1, err
+    assert reads == []
+    mem, sl = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("mem", "sl"))
+    assert sl["nodes"] == 49 and "slabs" not in sl
+    for key in set(mem) - {"seconds", "provenance"}:
+        assert mem[key] == sl[key], key
+
+
 class _Bars:
     """Stands in for `cfm_fem.cli._progress.progress_bar`: records each bar's total and updates."""
 

@@ -446,3 +446,34 @@ def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, m
             run_slab_sweep(path, cfg, out, n_slabs=2, description=desc)
         assert str(api.value) == str(cli.value)
         assert not out.exists()
+
+
+@pytest.mark.parametrize("ext", ["csv", "table"])
+@pytest.mark.parametrize("zero_rows", ["warn", "drop"])
+def test_staged_planar_map_is_the_map_read_field_gives(tmp_path, ext, zero_rows):
+    """A map that is not 3-D goes to the in-memory run as staged (`staged_fieldmap`, not read
+    again): the same points, field, lines, notes and source as `read_field`."""
+    import warnings
+
+    from cfm_fem.field import FieldMap
+    from cfm_fem.slabs import stage, staged_fieldmap
+
+    ax = np.linspace(-10.0, 10.0, 6)
+    pts = np.stack(np.meshgrid(ax, [2.5], ax, indexing="ij"), -1).reshape(-1, 3)
+    B = _field(pts)
+    B[[4, 17]] = 0.0
+    path = tmp_path / f"plane.{ext}"
+    write_field(path, FieldMap.from_arrays(pts, B))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        ref = read_field(path, zero_rows=zero_rows)
+        fmt = streaming.is_streamable(path)
+        (tmp_path / "w").mkdir()
+        st = stage(path, fmt, tmp_path / "w", zero_rows=zero_rows)
+        assert st.dim == 2
+        fm = staged_fieldmap(st, path)
+    np.testing.assert_array_equal(fm.points, ref.points)
+    np.testing.assert_array_equal(fm.B, ref.B)
+    np.testing.assert_array_equal(fm.lines, ref.lines)
+    assert fm.cells is None and ref.cells is None
+    assert fm.notes == ref.notes and fm.source == ref.source
