@@ -289,6 +289,49 @@ def test_slabs_read_a_planar_map_once(tmp_path, capsys, monkeypatch):
         assert mem[key] == sl[key], key
 
 
+@pytest.mark.parametrize("extra", [[], ["--slabs", "2"]], ids=["in_memory", "slabs"])
+def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, capsys, extra):
+    """A run killed while writing leaves hidden temporaries (`cfm_fem.io._atomic.atomic_path`)
+    in --out; the next run removes those of its outputs, says how many in one line, and
+    leaves every other file."""
+    import os
+
+    out = tmp_path / "res"
+    argv = ["sweep", str(csv_map), "--up", "0,10", "--trials", "60", *extra, "--out", str(out)]
+    assert main(argv) == 0
+    pieces = "uf_up10um/" if extra else ""
+    ours = [".uf_up10um.vtu.k3x_9abq.vtu", ".summary.json.0a1b2c3d.json", ".sweep.pvd.zz_zz_zz.pvd",
+            ".uf_up50um.pvtu.abcdefgh.pvtu"]  # fmt: skip
+    if extra:
+        ours.append(f"{pieces}.piece_0001.vtu.q1w2e3r4.vtu")
+    others = [
+        "uf_up10um.vtu.k3x_9abq.vtu",  # not hidden
+        ".uf_up10um.vtu.k3x9abq.vtu",  # 7 random characters
+        ".uf_up10um.vtu.k3x_9abq.pvd",  # suffix of another file
+        ".map.csv.k3x_9abq.csv",  # not a sweep output
+        ".points.csv.k3x_9abq.csv",
+        ".uf_up10um.vtu.k3x_9abq.vtu.bak",
+    ]
+    if extra:
+        others.append(f"{pieces}.notes.txt.k3x_9abq.txt")
+    for name in ours + others:
+        (out / name).write_bytes(b"<VTKFile")
+    (out / ".uf_up20um.vtu.linkto12.vtu").symlink_to(out / "summary.json")
+    (out / ".uf_up30um.vtu.folder12.vtu").mkdir()
+    capsys.readouterr()
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    told = [line for line in err.splitlines() if "leftover temporary" in line]
+    assert len(told) == 1, err
+    assert f"removed {len(ours)} leftover temporary file(s)" in told[0]
+    assert not [n for n in ours if os.path.lexists(out / n)]
+    for name in others + [".uf_up20um.vtu.linkto12.vtu", ".uf_up30um.vtu.folder12.vtu"]:
+        assert os.path.lexists(out / name), name
+    assert (out / "summary.json").is_file()
+    assert main(argv) == 0  # nothing left to remove: nothing said
+    assert "leftover temporary" not in capsys.readouterr().err
+
+
 class _Bars:
     """Stands in for `cfm_fem.cli._progress.progress_bar`: records each bar's total and updates."""
 

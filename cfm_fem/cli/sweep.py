@@ -202,8 +202,16 @@ def _remove_if_made_and_empty(out, made: bool) -> None:
 
 def _remove_stale_maps(out) -> None:
     """After a successful run: remove the maps of an earlier run in ``out`` that this run does
-    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and say so."""
-    from ..io.sweep_out import remove_stale_maps
+    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and the
+    temporaries a killed run left (`cfm_fem.io.sweep_out.remove_leftover_temporaries`), and
+    say so."""
+    from ..io.sweep_out import remove_leftover_temporaries, remove_stale_maps
+
+    temps = remove_leftover_temporaries(out)
+    if temps:
+        shown = ", ".join(temps[:3]) + (", ..." if len(temps) > 3 else "")
+        print(f"cfm-fem sweep: removed {len(temps)} leftover temporary file(s) of an interrupted "
+              f"run from {out}: {shown}", file=sys.stderr)  # fmt: skip
 
     removed, kept = remove_stale_maps(out)
     if removed:
