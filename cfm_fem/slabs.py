@@ -90,6 +90,7 @@ from .interpolation import (
     build_mesh,
     circumspheres,
     convex_hull_points,
+    morton_order,
     sliver_note,
 )
 from .io._atomic import write_json
@@ -765,7 +766,9 @@ def run_slab_sweep(
     log : callable(str), optional
         Messages for the user.
     progress : callable(int), optional
-        Called with the number of nodes finished.
+        Called with the number of nodes finished: block by block (``cfg.chunk_nodes`` nodes)
+        within each slab when the slabs run in this process, slab by slab otherwise; a slab's
+        last nodes are reported once it is saved.
     progress_total : callable(int), optional
         Called once with the number of nodes, when it is known (after staging).
     description : dict, optional
@@ -965,6 +968,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
                    hull=hull)  # fmt: skip
+    if map_chunks is None:  # slabs run here: progress block by block within each slab
+        job.progress = progress
     records = {}
     if progress_total is not None:
         progress_total(n)
@@ -980,8 +985,10 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         for m in record["log"]:
             log(m)
         records[k] = record
-        if progress is not None:
-            progress(record["nodes"])
+        if progress is not None:  # the rest of the slab's nodes, now that it is saved
+            early = 0 if job.progress is None else _reported_early(record["nodes"],
+                                                                   cfg.chunk_nodes)  # fmt: skip
+            progress(record["nodes"] - early)
     sums, template, mesh_notes = _zero_sums(n_col), None, []
     for k in range(K):  # merged in slab order: the same summary however the slabs ran
         record = records[k]
@@ -1045,6 +1052,12 @@ class _SlabJob:
     span: float
     work: Path
     hull: np.ndarray | None = None  # hull slivers removed: the whole map's hull vertices (k, 3)
+    #: Called with the number of own nodes finished, block by block (`_run_blocks`); set only
+    #: when the slabs run in this process, never pickled.
+    progress: object = None
+
+    def __getstate__(self):
+        return dict(self.__dict__, progress=None)
 
     def per_node(self, name: str):
         """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
@@ -1128,7 +1141,8 @@ class _SlabJob:
                                  search=search_a)  # fmt: skip
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
-        stats, n_out, n_lost, star, pos = gp.run_nodes(own_local, keys=own_ids)
+        stats, n_out, n_lost, star, pos = _run_blocks(gp, own_local, own_ids, cfg.chunk_nodes,
+                                                      self.progress)  # fmt: skip
         lost_all = (n_out + n_lost) >= cfg.trials
         skipped = start_l[own_local, 0] < 0  # in no cell, or out of the bench's strokes: NaN
         hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1) & ~skipped
@@ -1189,6 +1203,35 @@ class _SlabJob:
                   "log": messages}  # fmt: skip
         store.mark_done(k, record)
         return record
+
+
+def _run_blocks(problem, nodes, keys, block: int, progress=None):
+    """``problem.run_nodes(nodes, keys=keys)``, by blocks of ``block`` nodes when there is a
+    ``progress`` to report to: it is called with each block's node count but the last one's,
+    which the caller reports once the slab is saved (`_reported_early`), so progress never
+    counts a slab as done before it can be resumed from.
+
+    The same numbers either way (a node's depend on its key only); the blocks are runs of the
+    Z-order curve over ``nodes``, the order `SweepProblem.run_nodes` visits them in, so each
+    block keeps its neighbours' cells in cache as one call would.
+    """
+    if progress is None or len(nodes) <= block:
+        return problem.run_nodes(nodes, keys=keys)
+    order = morton_order(problem.coords[nodes])
+    parts = []
+    for a in range(0, len(nodes), block):
+        sel = order[a : a + block]
+        parts.append(problem.run_nodes(nodes[sel], keys=keys[sel]))
+        if a + block < len(nodes):
+            progress(len(sel))
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(np.concatenate(arrays)[back] for arrays in zip(*parts, strict=True))
+
+
+def _reported_early(nodes: int, block: int) -> int:
+    """Nodes of a slab of ``nodes`` own nodes that `_run_blocks` reported before it ended."""
+    return block * ((nodes - 1) // block) if nodes > 0 else 0
 
 
 def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):

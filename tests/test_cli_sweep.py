@@ -341,12 +341,13 @@ class _Bars:
     def __call__(self, total, unit):
         import contextlib
 
-        bar = {"total": total, "unit": unit, "done": 0}
+        bar = {"total": total, "unit": unit, "done": 0, "updates": []}
         self.bars.append(bar)
 
         class _Bar:
             def update(self, n=1):
                 bar["done"] += n
+                bar["updates"].append(n)
 
             @property
             def total(self):
@@ -378,6 +379,33 @@ def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, 
     assert main([*argv, "--out", str(tmp_path / "o")]) == 0
     assert [b["unit"] for b in bars.bars] == ["nodes"]
     assert bars.bars[0]["done"] == bars.bars[0]["total"] == 216
+
+
+def test_slab_progress_advances_within_a_slab_and_changes_no_number(csv_map, tmp_path,
+                                                                    monkeypatch):  # fmt: skip
+    """The bar of a --slabs run advanced once per finished slab; it now advances by blocks of
+    --chunk-nodes nodes within a slab. The maps are those of one call per slab, bit for bit."""
+    import cfm_fem.cli.sweep
+
+    bars = _Bars()
+    monkeypatch.setattr(cfm_fem.cli.sweep, "progress_bar", bars)
+    argv = ["sweep", str(csv_map), "--up", "0,10,30", "--trials", "80", "--slabs", "2"]
+    assert main([*argv, "--out", str(tmp_path / "one")]) == 0
+    assert main([*argv, "--chunk-nodes", "25", "--out", str(tmp_path / "blocks")]) == 0
+    one, blocks = (b for b in bars.bars)
+    assert one["done"] == blocks["done"] == blocks["total"] == 216
+    assert len(one["updates"]) == 2  # one per slab: each slab is a single block
+    assert len(blocks["updates"]) >= 8 and max(blocks["updates"]) == 25
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("one", "blocks"))
+    assert a["uf_units"] == b["uf_units"] and a["outside_fraction"] == b["outside_fraction"]
+    pieces = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").glob("*/*.vtu"))
+    assert len(pieces) == 6
+    for rel in pieces:
+        ma, mb = meshio.read(tmp_path / "one" / rel), meshio.read(tmp_path / "blocks" / rel)
+        np.testing.assert_array_equal(ma.points, mb.points)
+        assert set(ma.point_data) == set(mb.point_data)
+        for name in ma.point_data:
+            np.testing.assert_array_equal(ma.point_data[name], mb.point_data[name], err_msg=name)
 
 
 def _maps_named(out):

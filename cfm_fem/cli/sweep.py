@@ -284,7 +284,8 @@ def _run_slabs(args, up):
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
                 prov["backend"] = _backend(args) + ", slabs (out of core)"
             # the node count is known only once the file is staged (inside run_slab_sweep),
-            # which then sets the bar's total; it advances slab by slab; messages go above it
+            # which then sets the bar's total; it advances by blocks of --chunk-nodes nodes
+            # within each slab (slab by slab on Dask workers); messages go above it
             # (tqdm's write), not into its line
             with progress_bar(None, "nodes") as bar:
 
