@@ -38,7 +38,7 @@ import numpy as np
 
 from . import _kernels as K
 from .bench import AXES, ERROR_DESCRIPTIONS, ERROR_NAMES, Bench
-from .errors import MAX_SEED, CfmInputError
+from .errors import CfmInputError, check_seed
 from .mc import gum_validation, numerical_tolerance, ppf_numpy, symmetric_ranks
 
 __all__ = [
@@ -349,8 +349,7 @@ def kernel_geometry(bench: Bench) -> KernelGeometry:
 
 
 def _keys(seed: int):
-    if not (isinstance(seed, (int, np.integer)) and 0 <= int(seed) < MAX_SEED):
-        raise CfmInputError(f"seed must be an integer in [0, 2**63); found {seed!r}")
+    check_seed(seed)  # the one seed rule and message of every command and of the API
     s = np.uint64(int(seed))
     # numba boxes uint64 results as Python ints; keep them uint64 for the kernels
     return tuple(

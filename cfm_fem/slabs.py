@@ -64,7 +64,7 @@ run continues from its finished slabs. Records are merged in slab order: the out
 depend on where or in which order the slabs ran.
 
 Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run in memory
-(the caller says so).
+(the caller says so; a planar map from its staged rows, `staged_fieldmap`, not read again).
 """
 
 from __future__ import annotations
@@ -83,13 +83,14 @@ from pathlib import Path
 import numpy as np
 import scipy.spatial
 
-from .errors import CfmInputError, CfmInputWarning
+from .errors import CfmInputError, CfmInputWarning, check_seed
 from .field import DUPLICATE_TOL_MM, FieldMap
 from .interpolation import (
     FLAT_TOL,
     build_mesh,
     circumspheres,
     convex_hull_points,
+    morton_order,
     sliver_note,
 )
 from .io._atomic import write_json
@@ -108,7 +109,14 @@ from .sweep import (
     summarize,
 )
 
-__all__ = ["SlabPlan", "stage", "run_slab_sweep", "disk_percentiles", "slabs_for_memory"]
+__all__ = [
+    "SlabPlan",
+    "stage",
+    "staged_fieldmap",
+    "run_slab_sweep",
+    "disk_percentiles",
+    "slabs_for_memory",
+]
 
 #: Distinct values per axis tracked while staging; more means "not a grid".
 MAX_DISTINCT = 1 << 20
@@ -282,6 +290,19 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     rows, lines, maps = _map_rows(workdir)
     return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
                   maps, workdir)  # fmt: skip
+
+
+def staged_fieldmap(st: Staged, path) -> FieldMap:
+    """The staged map as the `FieldMap` `cfm_fem.io.read_field` reads from the same file
+    (same points, field, lines, notes; duplicates merged as it does), held in memory.
+
+    For maps that are not 3-D, run in memory: the file is then read once, and its warnings
+    (units, thousands separators, placeholder rows) are given once.
+    """
+    values = np.array(st.rows)  # a copy: the staged files are removed after the run
+    return FieldMap.from_arrays(values[:, :3], values[:, 3:], source=str(path),
+                                lines=np.array(st.lines), notes=list(st.notes),
+                                columns=tuple(st.spelled))  # fmt: skip
 
 
 def _map_rows(workdir: Path):
@@ -723,6 +744,7 @@ def run_slab_sweep(
     resume: bool = False,
     keep: bool = False,
     map_chunks=None,
+    flat_map=None,
 ) -> dict | None:
     """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
 
@@ -744,7 +766,9 @@ def run_slab_sweep(
     log : callable(str), optional
         Messages for the user.
     progress : callable(int), optional
-        Called with the number of nodes finished.
+        Called with the number of nodes finished: block by block (``cfg.chunk_nodes`` nodes)
+        within each slab when the slabs run in this process, slab by slab otherwise; a slab's
+        last nodes are reported once it is saved.
     progress_total : callable(int), optional
         Called once with the number of nodes, when it is known (after staging).
     description : dict, optional
@@ -760,13 +784,23 @@ def run_slab_sweep(
         Runs the slabs (default `cfm_fem.sweep.serial_map`, one after the other here; e.g.
         `cfm_fem.distributed.dask_chunk_map` on workers that share ``out_dir``). The outputs do
         not depend on it.
+    flat_map : callable(FieldMap), optional
+        Given, a map that is not 3-D is handed to it as read from the staged rows
+        (`staged_fieldmap`), so the caller runs it in memory without reading the file again.
 
     Returns
     -------
     dict or None
         The summary written; None for a map that is not 3-D (the caller then runs in memory).
+
+    Raises
+    ------
+    CfmInputError
+        A seed that is not an integer in [0, 2**63) (`cfm_fem.errors.check_seed`, checked
+        before the file is read or ``out_dir`` made), or bad input in the file or options.
     """
     t0 = time.perf_counter()
+    check_seed(cfg.seed)  # the CLI's rule and message, before anything is read or written
     log = log or (lambda s: None)
     out = Path(out_dir)
     if description is None:
@@ -781,6 +815,8 @@ def run_slab_sweep(
         st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
                    zero_rows=zero_rows)  # fmt: skip
         if st.dim != 3:
+            if flat_map is not None:
+                flat_map(staged_fieldmap(st, path))
             finished = True
             return None
         summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
@@ -932,6 +968,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
                    hull=hull)  # fmt: skip
+    if map_chunks is None:  # slabs run here: progress block by block within each slab
+        job.progress = progress
     records = {}
     if progress_total is not None:
         progress_total(n)
@@ -947,8 +985,10 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         for m in record["log"]:
             log(m)
         records[k] = record
-        if progress is not None:
-            progress(record["nodes"])
+        if progress is not None:  # the rest of the slab's nodes, now that it is saved
+            early = 0 if job.progress is None else _reported_early(record["nodes"],
+                                                                   cfg.chunk_nodes)  # fmt: skip
+            progress(record["nodes"] - early)
     sums, template, mesh_notes = _zero_sums(n_col), None, []
     for k in range(K):  # merged in slab order: the same summary however the slabs ran
         record = records[k]
@@ -1012,6 +1052,12 @@ class _SlabJob:
     span: float
     work: Path
     hull: np.ndarray | None = None  # hull slivers removed: the whole map's hull vertices (k, 3)
+    #: Called with the number of own nodes finished, block by block (`_run_blocks`); set only
+    #: when the slabs run in this process, never pickled.
+    progress: object = None
+
+    def __getstate__(self):
+        return dict(self.__dict__, progress=None)
 
     def per_node(self, name: str):
         """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
@@ -1095,7 +1141,8 @@ class _SlabJob:
                                  search=search_a)  # fmt: skip
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
-        stats, n_out, n_lost, star, pos = gp.run_nodes(own_local, keys=own_ids)
+        stats, n_out, n_lost, star, pos = _run_blocks(gp, own_local, own_ids, cfg.chunk_nodes,
+                                                      self.progress)  # fmt: skip
         lost_all = (n_out + n_lost) >= cfg.trials
         skipped = start_l[own_local, 0] < 0  # in no cell, or out of the bench's strokes: NaN
         hit = (np.isnan(stats[..., :2]).any(axis=(2, 3)) & ~lost_all).any(axis=1) & ~skipped
@@ -1156,6 +1203,35 @@ class _SlabJob:
                   "log": messages}  # fmt: skip
         store.mark_done(k, record)
         return record
+
+
+def _run_blocks(problem, nodes, keys, block: int, progress=None):
+    """``problem.run_nodes(nodes, keys=keys)``, by blocks of ``block`` nodes when there is a
+    ``progress`` to report to: it is called with each block's node count but the last one's,
+    which the caller reports once the slab is saved (`_reported_early`), so progress never
+    counts a slab as done before it can be resumed from.
+
+    The same numbers either way (a node's depend on its key only); the blocks are runs of the
+    Z-order curve over ``nodes``, the order `SweepProblem.run_nodes` visits them in, so each
+    block keeps its neighbours' cells in cache as one call would.
+    """
+    if progress is None or len(nodes) <= block:
+        return problem.run_nodes(nodes, keys=keys)
+    order = morton_order(problem.coords[nodes])
+    parts = []
+    for a in range(0, len(nodes), block):
+        sel = order[a : a + block]
+        parts.append(problem.run_nodes(nodes[sel], keys=keys[sel]))
+        if a + block < len(nodes):
+            progress(len(sel))
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(np.concatenate(arrays)[back] for arrays in zip(*parts, strict=True))
+
+
+def _reported_early(nodes: int, block: int) -> int:
+    """Nodes of a slab of ``nodes`` own nodes that `_run_blocks` reported before it ended."""
+    return block * ((nodes - 1) // block) if nodes > 0 else 0
 
 
 def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):

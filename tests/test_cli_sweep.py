@@ -251,6 +251,87 @@ def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monk
     assert s["nodes"] == 216
 
 
+def test_slabs_read_a_planar_map_once(tmp_path, capsys, monkeypatch):
+    """--slabs on a planar map (left to the in-memory run) staged the file, then read it again
+    whole: every warning of the file (thousands separators, placeholder rows) was printed
+    twice. The in-memory run now takes the staged rows; its numbers are those of --pieces."""
+    import cfm_fem.io
+
+    ax = np.arange(7.0)
+    pts = np.stack(np.meshgrid(ax + 1000.0, ax, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
+    B[5] = 0.0  # a placeholder row, kept with a warning
+    rows = "".join(
+        f'"1,{p[0] - 1000:03.0f}",{p[1]:g},{p[2]:g},' + ",".join(f"{v:.17g}" for v in b) + "\n"
+        for p, b in zip(pts, B, strict=True)
+    )
+    path = tmp_path / "planar.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows)
+    argv = ["sweep", str(path), "--up", "0,10", "--trials", "60"]
+    assert main([*argv, "--pieces", "2", "--out", str(tmp_path / "mem")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    assert err.count("exactly 0 0 0") == 1, err
+    reads = []
+    read_field = cfm_fem.io.read_field
+    monkeypatch.setattr(
+        cfm_fem.io, "read_field", lambda *a, **k: reads.append(a) or read_field(*a, **k)
+    )
+    assert main([*argv, "--slabs", "2", "--out", str(tmp_path / "sl")]) == 0
+    err = capsys.readouterr().err
+    assert "the map is not 3-D: run in memory" in err
+    assert err.count("read with ',' as thousands separator") == 1, err
+    assert err.count("exactly 0 0 0") == 1, err
+    assert reads == []
+    mem, sl = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("mem", "sl"))
+    assert sl["nodes"] == 49 and "slabs" not in sl
+    for key in set(mem) - {"seconds", "provenance"}:
+        assert mem[key] == sl[key], key
+
+
+@pytest.mark.parametrize("extra", [[], ["--slabs", "2"]], ids=["in_memory", "slabs"])
+def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, capsys, extra):
+    """A run killed while writing leaves hidden temporaries (`cfm_fem.io._atomic.atomic_path`)
+    in --out; the next run removes those of its outputs, says how many in one line, and
+    leaves every other file."""
+    import os
+
+    out = tmp_path / "res"
+    argv = ["sweep", str(csv_map), "--up", "0,10", "--trials", "60", *extra, "--out", str(out)]
+    assert main(argv) == 0
+    pieces = "uf_up10um/" if extra else ""
+    ours = [".uf_up10um.vtu.k3x_9abq.vtu", ".summary.json.0a1b2c3d.json", ".sweep.pvd.zz_zz_zz.pvd",
+            ".uf_up50um.pvtu.abcdefgh.pvtu"]  # fmt: skip
+    if extra:
+        ours.append(f"{pieces}.piece_0001.vtu.q1w2e3r4.vtu")
+    others = [
+        "uf_up10um.vtu.k3x_9abq.vtu",  # not hidden
+        ".uf_up10um.vtu.k3x9abq.vtu",  # 7 random characters
+        ".uf_up10um.vtu.k3x_9abq.pvd",  # suffix of another file
+        ".map.csv.k3x_9abq.csv",  # not a sweep output
+        ".points.csv.k3x_9abq.csv",
+        ".uf_up10um.vtu.k3x_9abq.vtu.bak",
+    ]
+    if extra:
+        others.append(f"{pieces}.notes.txt.k3x_9abq.txt")
+    for name in ours + others:
+        (out / name).write_bytes(b"<VTKFile")
+    (out / ".uf_up20um.vtu.linkto12.vtu").symlink_to(out / "summary.json")
+    (out / ".uf_up30um.vtu.folder12.vtu").mkdir()
+    capsys.readouterr()
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    told = [line for line in err.splitlines() if "leftover temporary" in line]
+    assert len(told) == 1, err
+    assert f"removed {len(ours)} leftover temporary file(s)" in told[0]
+    assert not [n for n in ours if os.path.lexists(out / n)]
+    for name in others + [".uf_up20um.vtu.linkto12.vtu", ".uf_up30um.vtu.folder12.vtu"]:
+        assert os.path.lexists(out / name), name
+    assert (out / "summary.json").is_file()
+    assert main(argv) == 0  # nothing left to remove: nothing said
+    assert "leftover temporary" not in capsys.readouterr().err
+
+
 class _Bars:
     """Stands in for `cfm_fem.cli._progress.progress_bar`: records each bar's total and updates."""
 
@@ -260,12 +341,13 @@ class _Bars:
     def __call__(self, total, unit):
         import contextlib
 
-        bar = {"total": total, "unit": unit, "done": 0}
+        bar = {"total": total, "unit": unit, "done": 0, "updates": []}
         self.bars.append(bar)
 
         class _Bar:
             def update(self, n=1):
                 bar["done"] += n
+                bar["updates"].append(n)
 
             @property
             def total(self):
@@ -297,6 +379,33 @@ def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, 
     assert main([*argv, "--out", str(tmp_path / "o")]) == 0
     assert [b["unit"] for b in bars.bars] == ["nodes"]
     assert bars.bars[0]["done"] == bars.bars[0]["total"] == 216
+
+
+def test_slab_progress_advances_within_a_slab_and_changes_no_number(csv_map, tmp_path,
+                                                                    monkeypatch):  # fmt: skip
+    """The bar of a --slabs run advanced once per finished slab; it now advances by blocks of
+    --chunk-nodes nodes within a slab. The maps are those of one call per slab, bit for bit."""
+    import cfm_fem.cli.sweep
+
+    bars = _Bars()
+    monkeypatch.setattr(cfm_fem.cli.sweep, "progress_bar", bars)
+    argv = ["sweep", str(csv_map), "--up", "0,10,30", "--trials", "80", "--slabs", "2"]
+    assert main([*argv, "--out", str(tmp_path / "one")]) == 0
+    assert main([*argv, "--chunk-nodes", "25", "--out", str(tmp_path / "blocks")]) == 0
+    one, blocks = (b for b in bars.bars)
+    assert one["done"] == blocks["done"] == blocks["total"] == 216
+    assert len(one["updates"]) == 2  # one per slab: each slab is a single block
+    assert len(blocks["updates"]) >= 8 and max(blocks["updates"]) == 25
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("one", "blocks"))
+    assert a["uf_units"] == b["uf_units"] and a["outside_fraction"] == b["outside_fraction"]
+    pieces = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").glob("*/*.vtu"))
+    assert len(pieces) == 6
+    for rel in pieces:
+        ma, mb = meshio.read(tmp_path / "one" / rel), meshio.read(tmp_path / "blocks" / rel)
+        np.testing.assert_array_equal(ma.points, mb.points)
+        assert set(ma.point_data) == set(mb.point_data)
+        for name in ma.point_data:
+            np.testing.assert_array_equal(ma.point_data[name], mb.point_data[name], err_msg=name)
 
 
 def _maps_named(out):

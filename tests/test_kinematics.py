@@ -492,3 +492,39 @@ def test_fused_passes_match_the_plain_passes(bench):
                 want = np.sort(vals[i, c][(y >= 0) & (np.floor(y) == 3)])
                 o, k = offset[i, c, e], count[i, c, e]
                 np.testing.assert_array_equal(np.sort(buf[o : o + k]), want)
+
+
+@pytest.mark.parametrize(
+    "seed, message",
+    [
+        (-1, "--seed must be in [0, 2**63); got -1"),
+        (2**63, "--seed must be in [0, 2**63); got 9223372036854775808"),
+        (True, "--seed must be an integer in [0, 2**63); got True"),
+        (1.0, "--seed must be an integer in [0, 2**63); got 1.0"),
+    ],
+    ids=["negative", "too_large", "bool", "float"],
+)
+def test_kinematics_seeds_follow_the_one_seed_rule(bench, seed, message):
+    """kinematics kept its own seed check (another message, and True taken as seed 1); it is
+    `cfm_fem.errors.check_seed` now, as every command and the sweep API."""
+    from cfm_fem.errors import CfmInputError
+
+    with pytest.raises(CfmInputError) as info:
+        kin.draw_error_sets(bench, 2, seed)
+    assert str(info.value) == message
+    with pytest.raises(CfmInputError, match=r"^--seed must be"):
+        kin.noise_keys(seed)
+
+
+def test_kinematics_stream_keys_of_valid_seeds_are_unchanged():
+    """The seed check changed; the keys (hence every number) of valid seeds did not."""
+    expected = {
+        0: (14347448314117563705, 8500450509414873753, 17593686279737627579),
+        12345: (9998596017203915950, 15630863903320480134, 14432981579369329159),
+        2**63 - 1: (4357909079089423242, 10249593929634935389, 17363596703774052514),
+    }
+    for seed, keys in expected.items():
+        for s in (seed, np.int64(seed)):
+            got = kin._keys(s)
+            assert all(isinstance(k, np.uint64) for k in got)
+            assert tuple(int(k) for k in got) == keys

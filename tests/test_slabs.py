@@ -421,3 +421,59 @@ def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     _, b = _by_position(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
     np.testing.assert_array_equal(a["complete"], b["complete"])
     np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [-1, 2**63, True], ids=["negative", "too_large", "bool"])
+def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
+    """The API checked the seed only when the first slab was prepared: after staging the file
+    into a work folder made in out_dir. Now up front, with the CLI's message."""
+    import cfm_fem.slabs
+    from cfm_fem.errors import check_seed
+
+    path = _write_csv(tmp_path / "g.csv", _lattice(4, 6))
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("the file was read")
+
+    monkeypatch.setattr(cfm_fem.slabs, "stage", no_read)
+    monkeypatch.setattr(cfm_fem.slabs, "open_stream", no_read)
+    with pytest.raises(CfmInputError) as cli:
+        check_seed(seed)
+    out = tmp_path / "o"
+    cfg = SweepConfig(up_um=[10.0], trials=50, seed=seed)
+    for desc in (None, {"run": "resumable"}):
+        with pytest.raises(CfmInputError) as api:
+            run_slab_sweep(path, cfg, out, n_slabs=2, description=desc)
+        assert str(api.value) == str(cli.value)
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("ext", ["csv", "table"])
+@pytest.mark.parametrize("zero_rows", ["warn", "drop"])
+def test_staged_planar_map_is_the_map_read_field_gives(tmp_path, ext, zero_rows):
+    """A map that is not 3-D goes to the in-memory run as staged (`staged_fieldmap`, not read
+    again): the same points, field, lines, notes and source as `read_field`."""
+    import warnings
+
+    from cfm_fem.field import FieldMap
+    from cfm_fem.slabs import stage, staged_fieldmap
+
+    ax = np.linspace(-10.0, 10.0, 6)
+    pts = np.stack(np.meshgrid(ax, [2.5], ax, indexing="ij"), -1).reshape(-1, 3)
+    B = _field(pts)
+    B[[4, 17]] = 0.0
+    path = tmp_path / f"plane.{ext}"
+    write_field(path, FieldMap.from_arrays(pts, B))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        ref = read_field(path, zero_rows=zero_rows)
+        fmt = streaming.is_streamable(path)
+        (tmp_path / "w").mkdir()
+        st = stage(path, fmt, tmp_path / "w", zero_rows=zero_rows)
+        assert st.dim == 2
+        fm = staged_fieldmap(st, path)
+    np.testing.assert_array_equal(fm.points, ref.points)
+    np.testing.assert_array_equal(fm.B, ref.B)
+    np.testing.assert_array_equal(fm.lines, ref.lines)
+    assert fm.cells is None and ref.cells is None
+    assert fm.notes == ref.notes and fm.source == ref.source

@@ -202,8 +202,16 @@ def _remove_if_made_and_empty(out, made: bool) -> None:
 
 def _remove_stale_maps(out) -> None:
     """After a successful run: remove the maps of an earlier run in ``out`` that this run does
-    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and say so."""
-    from ..io.sweep_out import remove_stale_maps
+    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and the
+    temporaries a killed run left (`cfm_fem.io.sweep_out.remove_leftover_temporaries`), and
+    say so."""
+    from ..io.sweep_out import remove_leftover_temporaries, remove_stale_maps
+
+    temps = remove_leftover_temporaries(out)
+    if temps:
+        shown = ", ".join(temps[:3]) + (", ..." if len(temps) > 3 else "")
+        print(f"cfm-fem sweep: removed {len(temps)} leftover temporary file(s) of an interrupted "
+              f"run from {out}: {shown}", file=sys.stderr)  # fmt: skip
 
     removed, kept = remove_stale_maps(out)
     if removed:
@@ -227,7 +235,9 @@ def _remove_stale_maps(out) -> None:
 
 
 def _run_slabs(args, up):
-    """Dispatch of ``--slabs`` / ``--max-memory``; None when the map must be run in memory."""
+    """Dispatch of ``--slabs`` / ``--max-memory``: (exit code, None), or (None, the map or
+    None) when the map must be run in memory (a map that is not 3-D comes back as read while
+    staging: the file is read, and its warnings given, once)."""
     from ..distributed import dask_chunk_map, dask_client
     from ..io.provenance import file_sha256, provenance
     from ..io.streaming import is_streamable
@@ -248,7 +258,7 @@ def _run_slabs(args, up):
             "(not streamed) and the statistics are written as pieces",
             file=sys.stderr,
         )
-        return None
+        return None, None
     bench = None
     if args.mode == "htm":
         from ..io.bench_toml import read_bench, read_reference_bench
@@ -269,12 +279,14 @@ def _run_slabs(args, up):
                                  file_sha256(args.bench) if args.bench else None)  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
     made = not Path(args.out).exists()  # bad input must not leave a folder this run made
+    flat = []  # a map that is not 3-D, as staged (run in memory, not read again)
     try:
         with dask_client(args.scheduler, args.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
                 prov["backend"] = _backend(args) + ", slabs (out of core)"
             # the node count is known only once the file is staged (inside run_slab_sweep),
-            # which then sets the bar's total; it advances slab by slab; messages go above it
+            # which then sets the bar's total; it advances by blocks of --chunk-nodes nodes
+            # within each slab (slab by slab on Dask workers); messages go above it
             # (tqdm's write), not into its line
             with progress_bar(None, "nodes") as bar:
 
@@ -291,6 +303,7 @@ def _run_slabs(args, up):
                     resume=args.resume,
                     keep=args.keep_chunks,
                     map_chunks=None if client is None else dask_chunk_map(client),
+                    flat_map=flat.append,
                 )  # fmt: skip
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
@@ -307,10 +320,10 @@ def _run_slabs(args, up):
     if summary is None:
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
         _remove_if_made_and_empty(args.out, made)  # the in-memory run makes it when it writes
-        return None
+        return None, (flat[0] if flat else None)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _print_summary(summary, args.out)
-    return 0
+    return 0, None
 
 
 def add_scale_out_args(p):
@@ -391,8 +404,9 @@ def run(args) -> int:
     from ..resume import ResumableRun, describe_sweep
     from ..sweep import SweepConfig, chunk_ranges, run_sweep
 
+    fm = None
     if args.slabs is not None or args.max_memory is not None:  # issue 6: out of core
-        rc = _run_slabs(args, up)
+        rc, fm = _run_slabs(args, up)  # fm: a map that is not 3-D, read while staging
         if rc is not None:
             return rc
         args.pieces = args.pieces or args.slabs or 8  # read whole: statistics still by pieces
@@ -401,13 +415,14 @@ def run(args) -> int:
         bench = read_bench(args.bench)
     elif args.mode == "htm":
         bench = read_reference_bench()
-    fm = read_field(
-        args.field,
-        fmt=args.fmt,
-        length_unit=args.length_unit,
-        field_unit=args.field_unit,
-        zero_rows=args.zero_rows,
-    )
+    if fm is None:
+        fm = read_field(
+            args.field,
+            fmt=args.fmt,
+            length_unit=args.length_unit,
+            field_unit=args.field_unit,
+            zero_rows=args.zero_rows,
+        )
     cfg = SweepConfig(
         up_um=up,
         trials=args.trials,

@@ -5,10 +5,22 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_paths", "json_text", "write_json", "write_text"]
+__all__ = [
+    "atomic_path",
+    "atomic_paths",
+    "json_text",
+    "temp_target",
+    "write_json",
+    "write_text",
+]
+
+#: The temporary names `atomic_path` and `atomic_paths` give: ``.<name>.<8 random>.<suffix>``
+#: (`tempfile.mkstemp` with prefix ``.<name>.``; its random part is 8 of [a-z0-9_]).
+_TEMP_NAME = re.compile(r"\.(?P<target>.+?\.(?P<ext>[^./]+))\.[a-z0-9_]{8}\.(?P=ext)")
 
 
 @contextlib.contextmanager
@@ -33,6 +45,16 @@ def atomic_path(path, suffix: str | None = None):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def temp_target(name: str) -> str | None:
+    """The file name whose temporary ``name`` is, if ``name`` is named like a temporary of
+    `atomic_path` (e.g. ``".uf_up20um.vtu.k3x_9abq.vtu"`` -> ``"uf_up20um.vtu"``); else None.
+
+    A killed process leaves such a file behind; the name alone cannot tell whose it was.
+    """
+    m = _TEMP_NAME.fullmatch(name)
+    return None if m is None else m["target"]
 
 
 @contextlib.contextmanager

@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ..sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
-from ._atomic import write_json
+from ._atomic import temp_target, write_json
 from .pvtu import write_pvtu
 from .vtk import write_pvd, write_vtu
 
@@ -21,6 +22,7 @@ __all__ = [
     "provenance_codes",
     "read_provenance",
     "remove_stale_maps",
+    "remove_leftover_temporaries",
 ]
 
 
@@ -295,3 +297,45 @@ def remove_stale_maps(out_dir) -> tuple[list[str], list[str]]:
                 entry.rmdir()
                 removed.append(entry.relative_to(out).as_posix() + "/")
     return removed, kept
+
+
+#: Files of a sweep's output folder, and of its piece folders (``uf_*/``), that are written
+#: through a temporary (`cfm_fem.io._atomic.atomic_path`).
+_OUTPUT_NAME = re.compile(r"uf_[^/]+\.(vtu|pvtu)|sweep\.pvd|summary\.json")
+_PIECE_NAME = re.compile(r"piece_[0-9]+\.vtu")
+
+
+def remove_leftover_temporaries(out_dir) -> list[str]:
+    """Remove the temporaries of sweep outputs that a killed run left in ``out_dir``.
+
+    A run killed while writing leaves the hidden temporary of the file it was writing, named
+    ``.<output>.<8 random characters>.<suffix>`` (e.g. ``.uf_up20um.vtu.k3x_9abq.vtu``). Only
+    regular files (no symbolic link) named so for one of a sweep's outputs (``uf_*.vtu``,
+    ``uf_*.pvtu``, ``sweep.pvd``, ``summary.json``) in ``out_dir``, or for a piece
+    (``piece_<k>.vtu``) in one of its piece folders ``uf_*/``, are removed; call it once the
+    run's own outputs are written (its own temporaries are renamed by then).
+
+    Returns
+    -------
+    list of str
+        Paths relative to ``out_dir`` of the files removed.
+    """
+    out = Path(out_dir)
+    removed = []
+
+    def sweep(folder: Path, names: re.Pattern):
+        for f in sorted(folder.glob(".*")):
+            target = temp_target(f.name)
+            if target is None or not names.fullmatch(target):
+                continue
+            if f.is_file() and not f.is_symlink():
+                f.unlink()
+                removed.append(f.relative_to(out).as_posix())
+
+    if not out.is_dir():
+        return removed
+    sweep(out, _OUTPUT_NAME)
+    for folder in sorted(out.glob("uf_*")):
+        if folder.is_dir() and not folder.is_symlink():
+            sweep(folder, _PIECE_NAME)
+    return removed
