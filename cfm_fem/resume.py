@@ -71,7 +71,9 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
     read_options : dict
         Reader options (format, units, zero-row rule) that change how the file is read.
     bench_sha256 : str or None
-        Hash of the bench file, if one was given.
+        Hash of the bench file of mode htm, the packaged reference bench included when no file
+        is given (`cfm_fem.io.provenance.bench_input`): a run on the default bench and one on a
+        copy of the same file then share a key. None in mode gauss (no bench).
 
     Returns
     -------

@@ -527,6 +527,16 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     return mesh, problem, b_ref
 
 
+def _bench_named(cfg) -> dict | None:
+    """Name and file of the bench of mode htm (the packaged reference bench when none is set)."""
+    if cfg.mode != "htm":
+        return None
+    from .io.bench_toml import read_reference_bench
+
+    bench = cfg.bench if cfg.bench is not None else read_reference_bench()
+    return {"name": bench.name, "source": str(bench.source)}
+
+
 def _htm_arrays(cfg: SweepConfig, fm: FieldMap):
     """Bench arrays of mode htm for `SweepProblem`, and the nodes the bench cannot reach."""
     from .io.bench_toml import read_reference_bench  # the packaged default bench
@@ -702,6 +712,8 @@ def summarize(res: SweepResult) -> dict:
             "y_GUM = g . mean probe error (0 in mode gauss)",
         },
         "mode": cfg.mode,
+        # mode htm: the bench model used (its file's hash: provenance.inputs.bench); None: gauss
+        "bench": _bench_named(cfg),
         "axis_scale": list(cfg.axis_scale),
         "coverage": cfg.coverage,
         "interpolation": res.mesh.description,

@@ -3,6 +3,7 @@ tracker and Hall comparisons on data with known answers, and the ``compare`` com
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -150,6 +151,10 @@ def test_cli_compare_tracker_and_bad_input(tmp_path, bench, capsys):
     names = {p.name for p in out.iterdir()}
     assert {"compare.json", "points.csv", "report.html", "fig12.png"} <= names
     assert "ISO 230-2 X" in capsys.readouterr().out
+    inputs = json.loads((out / "compare.json").read_text())["provenance"]["inputs"]
+    assert inputs["bench"]["packaged_default"] is True  # no --bench: the packaged bench, named
+    assert inputs["bench"]["path"].endswith("cfm_reference_bench.toml")
+    assert len(inputs["bench"]["sha256"]) == 64
     bad = tmp_path / "bad.csv"
     bad.write_text(path.read_text().replace("\n1,1,", "\n1,1,NaN-ish", 1))
     out2 = tmp_path / "cmp2"

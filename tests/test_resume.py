@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from importlib import resources
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -154,6 +157,7 @@ def test_every_output_records_what_produced_it(small_map, tmp_path):
     assert main(["kinematics", "--trials", "500", "--seed", "2", "--out", str(kin)]) == 0
     kprov = json.loads((kin / "summary.json").read_text())["provenance"]
     assert kprov["seed"] == 2 and kprov["trials"] == 500 and kprov["bench_name"]
+    assert kprov["inputs"]["bench"] == _packaged_bench()  # no --bench: the packaged one
     assert kprov["command_line"].startswith("cfm-fem kinematics") and kprov["cfm_fem_version"]
     csv_line = next(
         ln for ln in (kin / "points.csv").read_text().splitlines() if ln.startswith("# provenance:")
@@ -195,3 +199,53 @@ def test_resume_removes_the_temporary_file_of_a_killed_write(small_map, tmp_path
     assert "resumed: 4 chunk(s) read from" in capsys.readouterr().err
     assert not partial.exists()
     assert (out / STORE_NAME / "chunk_50_100.npz").exists()
+
+
+def _packaged_bench():
+    """Provenance entry expected for the packaged reference bench."""
+    ref = resources.files("cfm_fem.data").joinpath("cfm_reference_bench.toml")
+    sha = hashlib.sha256(ref.read_bytes()).hexdigest()
+    return {"path": str(ref), "sha256": sha, "packaged_default": True}
+
+
+def test_the_packaged_bench_is_recorded_and_keyed_like_a_copy_of_it(small_map, tmp_path, capsys):
+    """Mode htm without --bench names the packaged bench (path, hash) in the provenance and the
+    summary; a run given a copy of that file has the same key: it resumes from the store of the
+    default run, with the same numbers."""
+    from cfm_fem.io.bench_toml import read_reference_bench
+
+    packaged = _packaged_bench()
+    base = ["sweep", str(small_map), "--mode", "htm", "--trials", "40", "--seed", "3",
+            "--chunk-nodes", "50"]  # fmt: skip
+    out = tmp_path / "o"
+    assert main([*base, "--out", str(out), "--keep-chunks"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["provenance"]["inputs"]["bench"] == packaged
+    assert s["bench"] == {"name": read_reference_bench().name, "source": packaged["path"]}
+    manifest = json.loads((out / STORE_NAME / "manifest.json").read_text())
+    assert manifest["run"]["bench_sha256"] == packaged["sha256"]
+
+    copy = tmp_path / "copy.toml"
+    copy.write_bytes(Path(packaged["path"]).read_bytes())
+    (out / "summary.json").unlink()
+    capsys.readouterr()
+    assert main([*base, "--bench", str(copy), "--out", str(out), "--resume"]) == 0
+    assert "resumed: 5 chunk(s) read from" in capsys.readouterr().err  # nothing recomputed
+    c = json.loads((out / "summary.json").read_text())
+    assert c["provenance"]["inputs"]["bench"] == dict(
+        packaged, path=str(copy), packaged_default=False
+    )
+    assert c["provenance"]["run_key"] == s["provenance"]["run_key"]
+    assert c["bench"] == {"name": s["bench"]["name"], "source": str(copy)}
+    for key in ("uf_units", "uf_nodes", "outside_fraction", "up_um"):
+        assert c[key] == s[key], key
+
+    sl = tmp_path / "sl"  # out of core: the same record
+    assert main([*base, "--slabs", "2", "--out", str(sl)]) == 0
+    s_sl = json.loads((sl / "summary.json").read_text())
+    assert s_sl["provenance"]["inputs"]["bench"] == packaged and s_sl["bench"] == s["bench"]
+
+    g = tmp_path / "g"  # mode gauss uses no bench: none recorded
+    assert main(["sweep", str(small_map), "--up", "10", "--trials", "40", "--out", str(g)]) == 0
+    s_g = json.loads((g / "summary.json").read_text())
+    assert "bench" not in s_g["provenance"]["inputs"] and s_g["bench"] is None

@@ -63,7 +63,7 @@ def run(args) -> int:
 def _tracker(args, bench, bench_note) -> int:
     from ..compare import compare_tracker
     from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
-    from ..io.provenance import provenance
+    from ..io.provenance import bench_input, provenance
     from ..io.recordings import read_tracker
     from ..kinematics import uncertainty_budget
 
@@ -83,7 +83,9 @@ def _tracker(args, bench, bench_note) -> int:
         )
     if bench_note:
         comp.notes.append(bench_note)
-    prov = provenance({"bench": args.bench, "tracker": args.tracker}, args.command_line)
+    prov = provenance(
+        {"bench": bench_input(args.bench), "tracker": args.tracker}, args.command_line
+    )
     summary = tracker_summary(
         comp, bench, budget=uncertainty_budget(bench, comp.cmd), extra={"provenance": prov}
     )
@@ -103,7 +105,7 @@ def _hall(args, bench, bench_note) -> int:
     from ..compare import compare_hall
     from ..coupled import field_budget
     from ..io.compare_out import hall_points_csv, hall_summary, write_run
-    from ..io.provenance import provenance
+    from ..io.provenance import bench_input, provenance
     from ..io.recordings import read_hall_map
     from ..io.reference_field import read_reference
     from ..probe import HallProbe
@@ -142,7 +144,7 @@ def _hall(args, bench, bench_note) -> int:
             align=args.align,
         )
     prov = provenance(
-        {"bench": args.bench, "hall_map": args.hall_map, "reference": args.reference},
+        {"bench": bench_input(args.bench), "hall_map": args.hall_map, "reference": args.reference},
         args.command_line,
     )
     summary = hall_summary(comp, bench, field_budget=fb, extra={"provenance": prov})

@@ -192,7 +192,7 @@ def run(args) -> int:
     from ..coupled import FieldModel, field_budget, run_coupled
     from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
     from ..io.harmonics import qfdp4_path, read_qfdp4
-    from ..io.provenance import provenance
+    from ..io.provenance import bench_input, provenance
     from ..io.reference_field import read_reference
     from ..kinematics import uncertainty_budget
     from ..probe import HallProbe
@@ -239,7 +239,7 @@ def run(args) -> int:
         )
     if bench_note:
         res.notes.append(bench_note)
-    prov = provenance({"bench": args.bench, "field": field_path}, args.command_line)
+    prov = provenance({"bench": bench_input(args.bench), "field": field_path}, args.command_line)
     summary = coupled_summary(
         res,
         bench,

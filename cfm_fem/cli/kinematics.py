@@ -51,7 +51,7 @@ def run(args) -> int:
     from ..distributed import dask_client, run_kinematics_dask
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.kinematics_out import kinematics_summary, write_kinematics
-    from ..io.provenance import provenance
+    from ..io.provenance import bench_input, provenance
     from ..kinematics import gum_check, run_kinematics, uncertainty_budget
 
     check_out_dir(args.out)
@@ -103,7 +103,7 @@ def run(args) -> int:
             )
     budget = uncertainty_budget(bench, res.q_cmd)
     gum = gum_check(bench, res)
-    prov = provenance({"bench": args.bench}, args.command_line)
+    prov = provenance({"bench": bench_input(args.bench)}, args.command_line)  # packaged or given
     prov.update(
         bench_name=bench.name,
         seed=int(args.seed),

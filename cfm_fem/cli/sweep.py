@@ -239,7 +239,7 @@ def _run_slabs(args, up):
     None) when the map must be run in memory (a map that is not 3-D comes back as read while
     staging: the file is read, and its warnings given, once)."""
     from ..distributed import dask_chunk_map, dask_client
-    from ..io.provenance import file_sha256, provenance
+    from ..io.provenance import bench_input, file_sha256, provenance
     from ..io.streaming import is_streamable
     from ..resume import describe_sweep
     from ..slabs import SLAB_WORK, run_slab_sweep
@@ -268,7 +268,8 @@ def _run_slabs(args, up):
                       b_ref_T=args.b_ref, interpolation=args.interpolation, mode=args.mode,
                       bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside,
                       hull_slivers=args.hull_slivers)  # fmt: skip
-    prov = provenance({"field": args.field, "bench": args.bench}, args.command_line)
+    bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None  # packaged or given
+    prov = provenance({"field": args.field, "bench": bench_entry}, args.command_line)
     prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
     what = (f"U_p = {', '.join(f'{u:g}' for u in up)} um" if cfg.mode == "gauss" else
             f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
@@ -276,7 +277,7 @@ def _run_slabs(args, up):
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
     _note_compile(cfg.mode)
     description = describe_sweep(cfg, file_sha256(args.field), _read_options(args),
-                                 file_sha256(args.bench) if args.bench else None)  # fmt: skip
+                                 bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
     made = not Path(args.out).exists()  # bad input must not leave a folder this run made
     flat = []  # a map that is not 3-D, as staged (run in memory, not read again)
@@ -398,7 +399,7 @@ def run(args) -> int:
     from ..distributed import dask_chunk_map, dask_client
     from ..io import read_field
     from ..io.bench_toml import read_bench, read_reference_bench
-    from ..io.provenance import file_sha256, provenance
+    from ..io.provenance import bench_input, file_sha256, provenance
     from ..io.sweep_out import write_sweep, write_sweep_pieces
     from ..pieces import run_sweep_pieces
     from ..resume import ResumableRun, describe_sweep
@@ -448,7 +449,10 @@ def run(args) -> int:
     )
     _note_compile(cfg.mode)
     read_options = _read_options(args)
-    bench_sha = file_sha256(args.bench) if args.bench else None
+    # the bench used, the packaged one included: a default-bench run and one given a copy of
+    # the same file have the same key (same numbers), and both name the file they used
+    bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None
+    bench_sha = bench_entry and bench_entry["sha256"]
     description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
     runner = ResumableRun(args.out, description, resume=args.resume)
     runner.check()  # a store made by another run: refuse before any work
@@ -487,7 +491,7 @@ def run(args) -> int:
             ),
             file=sys.stderr,
         )
-    prov = provenance({"field": args.field, "bench": args.bench}, args.command_line)
+    prov = provenance({"field": args.field, "bench": bench_entry}, args.command_line)
     prov.update(
         seed=cfg.seed,
         trials=cfg.trials,

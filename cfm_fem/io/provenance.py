@@ -14,7 +14,7 @@ import platform
 import re
 from pathlib import Path
 
-__all__ = ["file_sha256", "provenance", "xml_comment", "read_xml_provenance"]
+__all__ = ["file_sha256", "bench_input", "provenance", "xml_comment", "read_xml_provenance"]
 
 #: Start of the XML comment that carries the provenance JSON.
 XML_TAG = "cfm_fem provenance:"
@@ -29,13 +29,37 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
+def bench_input(path=None) -> dict:
+    """The provenance entry of the bench file a run used: the file given, or (``path`` None)
+    the packaged CFM reference bench that the commands fall back to.
+
+    Returns
+    -------
+    dict
+        ``path``, ``sha256`` of its bytes and ``packaged_default`` (True for the packaged
+        reference bench ``cfm_fem/data/cfm_reference_bench.toml``).
+    """
+    if path is not None:
+        return {"path": str(Path(path)), "sha256": file_sha256(path), "packaged_default": False}
+    from importlib import resources
+
+    from .bench_toml import REFERENCE_BENCH
+
+    ref = resources.files("cfm_fem.data").joinpath(REFERENCE_BENCH)
+    with resources.as_file(ref) as p:  # the installed file (a temporary copy from a zip)
+        return {"path": str(p), "sha256": file_sha256(p), "packaged_default": True}
+
+
 def provenance(inputs: dict, command_line: str | None = None) -> dict:
-    """Provenance record: ``inputs`` maps a role ('field', 'bench') to a path (or None)."""
+    """Provenance record: ``inputs`` maps a role ('field', 'bench') to a path (or None: not
+    used), or to a ready entry such as `bench_input` gives."""
     from .. import __version__
 
     files = {}
     for role, p in inputs.items():
-        if p is not None:
+        if isinstance(p, dict):
+            files[role] = dict(p)
+        elif p is not None:
             files[role] = {"path": str(Path(p)), "sha256": file_sha256(p)}
     return {
         "cfm_fem_version": __version__,
