@@ -20,12 +20,18 @@ Q = np.stack(
 ).reshape(-1, 3)
 
 
-def test_cli_tracker(tmp_path):
+def test_cli_tracker(tmp_path, capsys):
     rec, _ = tracker_twin(3, {"reversal": {"backlash_z": 10.0}}, n_reps=6, points=Q)
     f = tmp_path / "rec.csv"
     write_tracker(f, rec)
     out = tmp_path / "diag"
     assert main(["diagnose", "--tracker", str(f), "--out", str(out)]) == 0
+    # the closing line names every file written, no more, no fewer
+    wrote = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("wrote ")]
+    assert len(wrote) == 1
+    named = sorted(Path(p).name for p in wrote[0].removeprefix("wrote ").split(", "))
+    assert named == sorted(p.name for p in out.iterdir())
+    assert {"residual_rows.vtu", "fit.png", "residuals.png", "diagnosis.json"} <= set(named)
     d = json.loads((out / "diagnosis.json").read_text())
     assert set(d) >= {"mismatch", "located", "effects", "fit", "advice"}
     assert d["mismatch"] is True and d["effects"][0]["name"] == "reversal"

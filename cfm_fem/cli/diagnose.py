@@ -161,5 +161,5 @@ def run(args) -> int:
         print(f"  implausible (not claimed): {c['name']}: {c['reason']}")
     for a in s["advice"]:
         print(f"advice: {a}")
-    print(f"wrote {paths['json']}, {paths['report']}, {paths['vtu_points']}")
+    print("wrote " + ", ".join(str(p) for p in paths.values()))  # every file written
     return 0
