@@ -227,7 +227,7 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     CfmInputError
         As `cfm_fem.io.read_field` for the same file (file, line, column).
     """
-    from .io._parse import check_zero_rows, zero_rows_kept
+    from .io._parse import check_zero_rows, zero_rows_dropped, zero_rows_kept
 
     check_zero_rows(zero_rows)
     stream = open_stream(path, fmt, length_unit=length_unit, field_unit=field_unit)
@@ -276,7 +276,7 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
             f"{first_zero})"
         )
         if zero_rows == "drop":
-            notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
+            notes.append(zero_rows_dropped(what))
         else:
             notes.append(zero_rows_kept(stream.file, what, zero_rows, stacklevel=2))
     dim = 0

@@ -509,3 +509,45 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     assert main([*base, *layout, "--seed", "0"]) == 1  # interrupted
     assert len(calls) == 1  # one new map (or piece) was written
     assert not (out / "summary.json").exists() and not (out / "sweep.pvd").exists()
+
+
+def test_reader_hints_name_the_command_line_option_and_the_python_argument(
+    csv_map, tmp_path, capsys
+):
+    """What a message tells the user to pass is spelt as the option of this command, with the
+    Python argument beside it, never as the Python argument alone."""
+    no_units = tmp_path / "no_units.csv"
+    no_units.write_text("x,y,z,Bx [T],By [T],Bz [T]\n0,0,0,0,0,1\n1,0,0,0,0,1\n")
+    assert main(["sweep", str(no_units), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "no length unit" in err and "--length-unit mm (length_unit='mm' from Python)" in err
+
+    zeros = tmp_path / "zeros.csv"
+    text = csv_map.read_text().splitlines()
+    text[1] = "0,0,0,0,0,0"  # one placeholder row
+    zeros.write_text("\n".join(text) + "\n")
+    base = ["sweep", str(zeros), "--up", "10", "--trials", "20"]
+    assert main([*base, "--out", str(tmp_path / "b")]) == 0
+    err = capsys.readouterr().err
+    assert "drop them with --zero-rows drop (zero_rows='drop' from Python)" in err
+    for run in (["--out", str(tmp_path / "c")], ["--slabs", "2", "--out", str(tmp_path / "s")]):
+        assert main([*base, "--zero-rows", "drop", *run]) == 0
+        notes = json.loads((tmp_path / run[-1] / "summary.json").read_text())["notes"]
+        hint = "as asked by --zero-rows drop (zero_rows='drop' from Python)"
+        assert any(hint in n for n in notes), notes
+
+    vtu = tmp_path / "map.vtu"  # a mesh file: no length unit in it, mm assumed and noted
+    ax = np.arange(4.0)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    meshio.write(vtu, meshio.Mesh(pts, [("vertex", np.arange(len(pts))[:, None])],
+                                  point_data={"B": pts @ G.T + [0.0, 0.0, 1.0]}))  # fmt: skip
+    capsys.readouterr()
+    assert (
+        main(["sweep", str(vtu), "--up", "10", "--trials", "20", "--out", str(tmp_path / "d")]) == 0
+    )
+    out = capsys.readouterr().out
+    assert "if not mm, pass --length-unit UNIT (length_unit= from Python)" in out
+    assert "if not T, pass --field-unit UNIT (field_unit= from Python)" in out
+
+    assert main(["sweep", str(csv_map), "--format", "excel", "--out", str(tmp_path / "e")]) == 2
+    assert "unknown format --format excel (fmt='excel' from Python)" in capsys.readouterr().err

@@ -112,7 +112,7 @@ def _error(tmp_path, text, **kw) -> CfmInputError:
 
 def test_missing_reference_radius(tmp_path):
     e = _error(tmp_path, "# convention: tesla\nn,Bn,An\n2,0.07,0\n")
-    assert "r_ref_mm" in e.what
+    assert "'# r_ref_mm: <mm>' or --r-ref MM (r_ref_mm= from Python)" in e.what
 
 
 def test_missing_convention(tmp_path):

@@ -116,7 +116,9 @@ def test_zero_rows_keep_is_silent_but_noted(tmp_path):
         warnings.simplefilter("error")
         fm = read_comsol(_write(tmp_path, "z.txt", ZERO_ROWS), zero_rows="keep")
     assert fm.n_nodes == 4
-    assert any("kept (zero_rows='keep')" in n for n in fm.notes)
+    assert any(
+        "kept, as asked by --zero-rows keep (zero_rows='keep' from Python)" in n for n in fm.notes
+    )
 
 
 def test_comsol_spreadsheet_csv_is_read(tmp_path):
@@ -127,7 +129,10 @@ def test_comsol_spreadsheet_csv_is_read(tmp_path):
 
 def test_comsol_length_unit_option_overrides_header_with_warning(tmp_path):
     path = _write(tmp_path, "m.txt", COMSOL_3D)
-    with pytest.warns(CfmInputWarning, match=r"length_unit='m' overrides the file's 'cm'"):
+    with pytest.warns(
+        CfmInputWarning,
+        match=r"--length-unit m \(length_unit='m' from Python\) overrides the file's 'cm'",
+    ):
         fm = read_comsol(path, length_unit="m")
     np.testing.assert_array_equal(fm.points[0], [2000.0, 3000.0, 1000.0])
 
@@ -450,7 +455,9 @@ def test_read_field_dispatches_on_content(tmp_path):
 def test_read_field_fmt_overrides_the_extension(tmp_path):
     path = _write(tmp_path, "data.bin", "x [mm] y [mm] z [mm] Bx [T] By [T] Bz [T]\n1 2 3 4 5 6\n")
     assert read_field(path, fmt="csv").n_nodes == 1
-    with pytest.raises(CfmInputError, match=r"unknown format fmt='excel'"):
+    with pytest.raises(
+        CfmInputError, match=r"unknown format --format excel \(fmt='excel' from Python\)"
+    ):
         read_field(path, fmt="excel")
 
 

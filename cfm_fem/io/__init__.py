@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ..errors import CfmInputError
 from ..field import FieldMap
-from ._parse import check_zero_rows, read_lines
+from ._parse import check_zero_rows, option_hint, read_lines
 from .comsol import looks_like_comsol, read_comsol, write_comsol
 from .meshfile import meshio_format, read_meshfile, write_meshfile
 from .opera import looks_like_opera, read_opera, write_opera
@@ -142,7 +142,7 @@ def _checked_fmt(fmt: str) -> str:
     if kind in _TEXT_READERS or kind == "meshio" or kind in mesh_formats:
         return kind
     known = ", ".join([*_TEXT_READERS, "csv", "meshio", *sorted(mesh_formats)])
-    raise CfmInputError(f"unknown format fmt={fmt!r}; expected one of {known}")
+    raise CfmInputError(f"unknown format {option_hint('fmt', fmt)}; expected one of {known}")
 
 
 def _format_for_writing(path) -> str:

@@ -23,6 +23,36 @@ FIELDS = ("Bx", "By", "Bz")
 ROLES = COORDS + FIELDS
 ZERO_ROWS_CHOICES = ("warn", "drop", "keep")
 
+#: Command-line spelling of the reader arguments (option, metavar), for messages that tell how
+#: to set one: a ``cfm-fem`` user and a Python caller each find their own (`option_hint`).
+CLI_OPTIONS = {
+    "zero_rows": ("--zero-rows", "RULE"),
+    "length_unit": ("--length-unit", "UNIT"),
+    "field_unit": ("--field-unit", "UNIT"),
+    "fmt": ("--format", "FMT"),
+    "r_ref_mm": ("--r-ref", "MM"),
+    "b_ref_T": ("--b-ref", "T"),
+}
+
+
+def option_hint(name: str, value=None) -> str:
+    """How to set reader argument ``name``, in both spellings, for messages.
+
+    ``option_hint("zero_rows", "drop")`` gives ``--zero-rows drop (zero_rows='drop' from
+    Python)``; without a value, ``option_hint("length_unit")`` gives ``--length-unit UNIT
+    (length_unit= from Python)``.
+    """
+    option, metavar = CLI_OPTIONS[name]
+    if value is None:
+        return f"{option} {metavar} ({name}= from Python)"
+    return f"{option} {value} ({name}={value!r} from Python)"
+
+
+def zero_rows_dropped(what: str) -> str:
+    """The note for rows of exactly 0 0 0 dropped on request; ``what`` counts them."""
+    return f"{what}: dropped as placeholders, as asked by {option_hint('zero_rows', 'drop')}"
+
+
 # --------------------------------------------------------------------------- text
 
 
@@ -449,15 +479,16 @@ def resolve_unit(
     notes: list[str] = []
     if option is not None:
         scale = to_scale(option)
+        given = option_hint(f"{kind}_unit", option)
         said = [(c.unit, f"column '{c.name}'") for c in columns if c.unit is not None]
         if not said and fallback is not None:
             said = [(fallback[0], fallback[1])]
         differ = [f"'{u}' ({where})" for u, where in said if _scale_or_none(kind, u) != scale]
         if differ:
-            msg = f"{file}: {kind}_unit='{option}' overrides the file's {', '.join(differ)}"
+            msg = f"{file}: {given} overrides the file's {', '.join(differ)}"
             warnings.warn(msg, CfmInputWarning, stacklevel=4)
             notes.append(msg)
-        notes.append(f"{kind} unit '{option}' for {listed} (from the {kind}_unit option)")
+        notes.append(f"{kind} unit '{option}' for {listed}, as given by {given}")
         return scale, notes
     stated = [c for c in columns if c.unit is not None]
     scales = {c.name: to_scale(c.unit, file=file, line=c.line, column=c.name) for c in stated}
@@ -478,7 +509,7 @@ def resolve_unit(
             # the file contradicts itself (a factor of 1000 for m vs mm): say which one is used
             msg = (
                 f"{file}: the column names say '{unit}' but the file states '{fallback[0]}' "
-                f"({fallback[1]}); using '{unit}' (pass {kind}_unit to choose)"
+                f"({fallback[1]}); using '{unit}'; choose with {option_hint(f'{kind}_unit')}"
             )
             warnings.warn(msg, CfmInputWarning, stacklevel=4)
             notes.append(msg)
@@ -495,7 +526,7 @@ def resolve_unit(
     named = "x [mm]" if kind == "length" else "Bx [T]"
     raise CfmInputError(
         f"no {kind} unit for columns {listed}: name it in the header (e.g. '{named}') or pass "
-        f"{kind}_unit (e.g. {kind}_unit='{example}')",
+        f"it, e.g. {option_hint(f'{kind}_unit', example)}",
         file=file,
         line=line,
         column=columns[0].name,
@@ -684,7 +715,7 @@ def build_fieldmap(
             lines = None if lines is None else lines[keep]
             had_cells = cells is not None
             cells = _cells_without(cells, keep)
-            notes.append(f"{what}: dropped as placeholders (zero_rows='drop')")
+            notes.append(zero_rows_dropped(what))
             if had_cells and cells is None:
                 notes.append("no cell is left without a dropped node: cells=None (Delaunay)")
         else:
@@ -748,8 +779,8 @@ def zero_rows_kept(source, what: str, zero_rows: str, stacklevel: int = 2) -> st
     if zero_rows == "warn":
         msg = (
             f"{source}: {what}; kept as real 0 T values. If they are placeholders, drop them "
-            f"with zero_rows='drop'"
+            f"with {option_hint('zero_rows', 'drop')}"
         )
         warnings.warn(msg, CfmInputWarning, stacklevel=stacklevel + 1)
         return msg
-    return f"{what}: kept (zero_rows='keep')"
+    return f"{what}: kept, as asked by {option_hint('zero_rows', 'keep')}"

@@ -30,7 +30,7 @@ from ..errors import CfmInputError
 from ..multipole import UNIT, Multipole
 from ..units import length_scale
 from ._atomic import write_text
-from ._parse import check_nul, check_utf16
+from ._parse import check_nul, check_utf16, option_hint
 
 __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "read_qfdp4"]
 
@@ -281,8 +281,8 @@ def parse_harmonics(
     main = _merge("main", meta.get("main"), meta_lines.get("main"), main, file=source)
     if r_ref is None:
         raise CfmInputError(
-            "the reference radius is not given; expected a line '# r_ref_mm: <mm>' or the "
-            "argument r_ref_mm",
+            "the reference radius is not given; expected a line '# r_ref_mm: <mm>' or "
+            f"{option_hint('r_ref_mm')}",
             file=source,
         )
     if not r_ref > 0:

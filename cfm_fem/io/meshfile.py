@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import CfmInputError
 from ..field import FieldMap
 from ._atomic import atomic_path
-from ._parse import Column, build_fieldmap, describe_column, resolve_unit
+from ._parse import Column, build_fieldmap, describe_column, option_hint, resolve_unit
 
 __all__ = ["read_meshfile", "write_meshfile", "meshio_format"]
 
@@ -40,7 +40,8 @@ def meshio_format(path, file_format=None) -> str:
     if not formats:
         known = ", ".join(sorted(meshio.extension_to_filetypes))
         raise CfmInputError(
-            f"unknown mesh file extension '{suffix}'; expected one of {known} (or pass fmt=)",
+            f"unknown mesh file extension '{suffix}'; expected one of {known}, or pass the "
+            f"format: {option_hint('fmt')}",
             file=path,
         )
     return formats[0]
@@ -102,7 +103,10 @@ def read_meshfile(
         [Column("node coordinates", 0, None, None, None, None)],
         option=length_unit,
         fallback=None,
-        assumed=("mm", "mesh files carry no length unit; pass length_unit if not mm"),
+        assumed=(
+            "mm",
+            f"mesh files carry no length unit; if not mm, pass {option_hint('length_unit')}",
+        ),
         file=file,
         line=None,
     )
@@ -113,7 +117,10 @@ def read_meshfile(
         field_columns,
         option=field_unit,
         fallback=None,
-        assumed=("T", "the point data name gives no unit; pass field_unit if not T"),
+        assumed=(
+            "T",
+            f"the point data name gives no unit; if not T, pass {option_hint('field_unit')}",
+        ),
         file=file,
         line=None,
     )

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..coupled import FieldModel
 from . import read_field
-from ._parse import read_lines
+from ._parse import option_hint, read_lines
 from .harmonics import read_harmonics
 
 __all__ = ["is_harmonics_file", "read_reference"]
@@ -51,7 +51,8 @@ def read_reference(path, *, b_ref_T: float | None = None, r_ref_mm: float | None
     if is_harmonics_file(path):
         if b_ref_T is not None:
             raise CfmInputError(
-                "--b-ref applies to field maps; for harmonics B_ref is the main harmonic at R_ref",
+                f"{option_hint('b_ref_T')} applies to field maps; for harmonics B_ref is the "
+                "main harmonic at R_ref",
                 file=path,
             )
         return FieldModel.from_multipole(read_harmonics(path, r_ref_mm=r_ref_mm))
