@@ -172,6 +172,19 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     return compact
 
 
+def piece_bounds(n_nodes: int, n_pieces: int) -> np.ndarray:
+    """Node ranges of the pieces of `partition`: piece k owns nodes ``bounds[k]:bounds[k + 1]``
+    (and holds copies of lower nodes its cells use).
+
+    Returns
+    -------
+    ndarray, shape (K + 1,), int64
+        K = min(n_pieces, n_nodes), at least 1.
+    """
+    n_pieces = max(1, min(int(n_pieces), int(n_nodes)))
+    return np.linspace(0, n_nodes, n_pieces + 1).round().astype(np.int64)
+
+
 def partition(simplices: np.ndarray, n_nodes: int, n_pieces: int):
     """Split a mesh into pieces by node ranges; each cell goes to the piece of its last node.
 
@@ -189,8 +202,8 @@ def partition(simplices: np.ndarray, n_nodes: int, n_pieces: int):
     cells : ndarray, shape (c, k), int64
         The piece's cells in local indices (into ``nodes``).
     """
-    n_pieces = max(1, min(int(n_pieces), int(n_nodes)))
-    bounds = np.linspace(0, n_nodes, n_pieces + 1).round().astype(np.int64)
+    bounds = piece_bounds(n_nodes, n_pieces)
+    n_pieces = len(bounds) - 1
     owner = np.searchsorted(bounds, simplices.max(axis=1), side="right") - 1
     for k in range(n_pieces):
         own = simplices[owner == k]

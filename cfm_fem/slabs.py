@@ -94,7 +94,7 @@ from .interpolation import (
     sliver_note,
 )
 from .io._atomic import write_json
-from .io.pvtu import write_pvtu
+from .io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .io.streaming import check_opera_counts, open_stream
 from .io.sweep_out import _point_data, provenance_codes, retire_index, vtu_name
 from .io.vtk import write_pvd, write_vtu
@@ -1301,6 +1301,7 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
             sigma_mm = (np.asarray(ups)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
 
         piece_cells = np.searchsorted(nodes, cells)
+        ghost = ghost_flags(np.isin(nodes, ids))  # halo nodes: copies of another slab's nodes
         res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
                           n_outside=g["n_out"], n_walk_failed=g["n_lost"],
                           linear_in_up=g["star"], gradient=g["gradient"],
@@ -1309,7 +1310,7 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
                           n_left_out=g["n_left"])  # fmt: skip
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
-            data = _point_data(res, k)
+            data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
             fields = {"U_p_um": float(ups[k]), "B_ref_T": b_ref, "trials": cfg.trials,
                       "seed": cfg.seed, "piece": p,
                       "provenance_utf8": provenance_codes(prov)}  # fmt: skip

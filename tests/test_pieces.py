@@ -24,7 +24,33 @@ def _by_position(grid):
     """Point data of a grid with duplicate points merged, rows sorted by position."""
     grid = grid.clean(tolerance=0.0)
     order = np.lexsort(np.asarray(grid.points).T)
-    return grid, {k: np.asarray(grid.point_data[k])[order] for k in grid.point_data}
+    names = [k for k in grid.point_data if k != "vtkGhostType"]  # pieces only: tested below
+    return grid, {k: np.asarray(grid.point_data[k])[order] for k in names}
+
+
+def _owned_points(grid):
+    """Each node once: the points of a ``.pvtu`` that are not VTK ghost copies (another piece
+    owns them), sorted by position, with their point data (``vtkGhostType`` left out)."""
+    ghost = np.asarray(grid.point_data["vtkGhostType"])
+    assert ghost.dtype == np.uint8 and set(np.unique(ghost).tolist()) <= {0, 1}
+    assert grid.GetPointGhostArray() is not None  # VTK takes it for its ghost array
+    keep = ghost == 0
+    pts = np.asarray(grid.points)[keep]
+    order = np.lexsort(pts.T)
+    data = {k: np.asarray(v)[keep][order] for k, v in grid.point_data.items()}
+    return pts[order], {k: v for k, v in data.items() if k != "vtkGhostType"}
+
+
+def _vtk_histogram_count(grid, name):
+    """Values VTK's histogram filter counts (it skips ghost points, as ParaView's does)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkFiltersStatistics import vtkExtractHistogram
+
+    h = vtkExtractHistogram()
+    h.SetInputData(grid)
+    h.SetInputArrayToProcess(0, 0, 0, 0, name)
+    h.Update()
+    return int(vtk_to_numpy(h.GetOutput().GetRowData().GetArray("bin_values")).sum())
 
 
 def test_pieces_give_the_numbers_of_the_single_file(tmp_path):
@@ -48,6 +74,33 @@ def test_pieces_give_the_numbers_of_the_single_file(tmp_path):
         assert set(a) == set(b)
         for name in a:
             np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_nodes_shared_by_pieces_are_counted_once_as_vtk_ghost_points(tmp_path):
+    """A node used by cells of several pieces is written in each; every copy but the one in
+    the piece whose node range holds it is flagged vtkGhostType = 1, so VTK counts each node
+    once, with the values of the one-file output."""
+    from cfm_fem.pieces import piece_bounds
+
+    path = _write_map(tmp_path / "map.csv")
+    base = ["sweep", str(path), "--up", "15", "--trials", "100", "--chunk-nodes", "40"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--pieces", "3", "--out", str(tmp_path / "pc")]) == 0
+    one = pv.read(tmp_path / "one" / "uf_up15um.vtu")
+    pc = pv.read(tmp_path / "pc" / "uf_up15um.pvtu")
+    assert pc.n_points > one.n_points == 343  # the shared nodes are repeated
+    pts, b = _owned_points(pc)
+    order = np.lexsort(np.asarray(one.points).T)
+    np.testing.assert_array_equal(pts, np.asarray(one.points)[order])  # each node once
+    assert set(b) == set(one.point_data)
+    for name in one.point_data:
+        np.testing.assert_array_equal(b[name], np.asarray(one.point_data[name])[order], name)
+    assert _vtk_histogram_count(pc, "U_f_units") == _vtk_histogram_count(one, "U_f_units") == 343
+    owned = [
+        int((np.asarray(pv.read(f).point_data["vtkGhostType"]) == 0).sum())
+        for f in sorted((tmp_path / "pc" / "uf_up15um").glob("piece_*.vtu"))
+    ]
+    assert owned == np.diff(piece_bounds(343, 3)).tolist()  # the owner: the node's range
 
 
 def test_more_pieces_than_nodes_and_bad_count(tmp_path, capsys):

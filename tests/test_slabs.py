@@ -44,7 +44,33 @@ def _lattice(nx=7, nz=14):
 def _by_position(grid):
     grid = grid.clean(tolerance=0.0)
     order = np.lexsort(np.asarray(grid.points).T)
-    return grid, {k: np.asarray(grid.point_data[k])[order] for k in grid.point_data}
+    names = [k for k in grid.point_data if k != "vtkGhostType"]  # pieces only: tested below
+    return grid, {k: np.asarray(grid.point_data[k])[order] for k in names}
+
+
+def _owned_points(grid):
+    """Each node once: the points of a ``.pvtu`` that are not VTK ghost copies (another piece
+    owns them), sorted by position, with their point data (``vtkGhostType`` left out)."""
+    ghost = np.asarray(grid.point_data["vtkGhostType"])
+    assert ghost.dtype == np.uint8 and set(np.unique(ghost).tolist()) <= {0, 1}
+    assert grid.GetPointGhostArray() is not None  # VTK takes it for its ghost array
+    keep = ghost == 0
+    pts = np.asarray(grid.points)[keep]
+    order = np.lexsort(pts.T)
+    data = {k: np.asarray(v)[keep][order] for k, v in grid.point_data.items()}
+    return pts[order], {k: v for k, v in data.items() if k != "vtkGhostType"}
+
+
+def _vtk_histogram_count(grid, name):
+    """Values VTK's histogram filter counts (it skips ghost points, as ParaView's does)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkFiltersStatistics import vtkExtractHistogram
+
+    h = vtkExtractHistogram()
+    h.SetInputData(grid)
+    h.SetInputArrayToProcess(0, 0, 0, 0, name)
+    h.Update()
+    return int(vtk_to_numpy(h.GetOutput().GetRowData().GetArray("bin_values")).sum())
 
 
 def _same_summary(one, sl, exact=True):
@@ -95,6 +121,28 @@ def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         assert g1.n_points == g2.n_points == 686 and g1.n_cells == g2.n_cells
         assert set(a) == set(b)
         _same_fields(a, b, gradients=("grad", "gum_U95"))
+
+
+def test_halo_nodes_are_vtk_ghost_points_each_node_counted_once(tmp_path):
+    """A slab's piece holds the halo nodes its cells use, which other slabs own: they are
+    flagged vtkGhostType = 1, so VTK counts each node once, with the in-memory run's values."""
+    path = _write_csv(tmp_path / "g.csv", _lattice())
+    base = ["sweep", str(path), "--up", "20", "--trials", "100"]
+    _in_memory_and_slabs(tmp_path, base, 3)
+    one = pv.read(tmp_path / "one" / "uf_up20um.vtu")
+    sl = pv.read(tmp_path / "sl" / "uf_up20um.pvtu")
+    assert sl.n_points > one.n_points == 686
+    pts, b = _owned_points(sl)
+    order = np.lexsort(np.asarray(one.points).T)
+    np.testing.assert_array_equal(pts, np.asarray(one.points)[order])  # each node once
+    a = {k: np.asarray(v)[order] for k, v in one.point_data.items()}
+    assert set(a) == set(b)
+    _same_fields(a, b, gradients=("grad", "gum_U95"))
+    assert _vtk_histogram_count(sl, "U_f_units") == _vtk_histogram_count(one, "U_f_units") == 686
+    grids = [pv.read(f) for f in sorted((tmp_path / "sl" / "uf_up20um").glob("piece_*.vtu"))]
+    z = [np.asarray(g.points)[np.asarray(g.point_data["vtkGhostType"]) == 0, 2] for g in grids]
+    assert sum(map(len, z)) == 686
+    assert z[0].max() <= z[1].min() and z[1].max() <= z[2].min()  # owner: the node's slab
 
 
 def _same_scattered_maps(tmp_path, column):

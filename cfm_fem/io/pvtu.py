@@ -2,6 +2,10 @@
 
 The pieces are ordinary ``.vtu`` files (`cfm_fem.io.vtk.write_vtu`); this module writes the
 small XML index that names them and declares their point arrays. Written atomically.
+
+A node shared by several pieces (a cell of one piece uses it) is written in each of them; all
+copies but the owner's carry the VTK ghost flag (point array ``vtkGhostType``, `ghost_flags`),
+so that VTK and ParaView count and merge it once (statistics, histograms, merging the pieces).
 """
 
 from __future__ import annotations
@@ -14,7 +18,12 @@ import numpy as np
 from ._atomic import write_text
 from .provenance import xml_comment
 
-__all__ = ["vtk_type", "write_pvtu"]
+__all__ = ["GHOST_ARRAY", "DUPLICATEPOINT", "ghost_flags", "vtk_type", "write_pvtu"]
+
+#: Name of VTK's ghost point array (vtkDataSetAttributes::GhostArrayName()).
+GHOST_ARRAY = "vtkGhostType"
+#: vtkDataSetAttributes::DUPLICATEPOINT: a copy of a point another piece owns.
+DUPLICATEPOINT = 1
 
 _VTK_TYPES = {
     np.dtype(np.float32): "Float32",
@@ -28,6 +37,21 @@ _VTK_TYPES = {
     np.dtype(np.int64): "Int64",
     np.dtype(np.uint64): "UInt64",
 }
+
+
+def ghost_flags(owned) -> np.ndarray:
+    """``vtkGhostType`` values of a piece's points: 0 where the piece owns the point, else
+    DUPLICATEPOINT (each point must be owned by exactly one piece).
+
+    Parameters
+    ----------
+    owned : ndarray, shape (p,), bool
+
+    Returns
+    -------
+    ndarray, shape (p,), uint8
+    """
+    return np.where(np.asarray(owned, dtype=bool), 0, DUPLICATEPOINT).astype(np.uint8)
 
 
 def vtk_type(dtype) -> str:

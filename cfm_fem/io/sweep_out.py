@@ -12,7 +12,7 @@ import numpy as np
 from ..sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
 from ._atomic import temp_target, write_json
-from .pvtu import write_pvtu
+from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import write_pvd, write_vtu
 
 __all__ = [
@@ -167,9 +167,11 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
     -----
     Pieces are node ranges; each cell belongs to the piece of its highest node, and a piece
     also holds the nodes of its cells that lie in earlier ranges (their data are repeated), so
-    every cell is drawn once and ParaView shows one continuous map.
+    every cell is drawn once and ParaView shows one continuous map. The repeated copies are
+    flagged as VTK ghost points (``vtkGhostType`` = 1; the piece whose range holds a node owns
+    it), so that VTK and ParaView count every node once.
     """
-    from ..pieces import partition, piece_result
+    from ..pieces import partition, piece_bounds, piece_result
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -183,8 +185,10 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
     names = {}
     written = {k: [] for k in range(len(labels))}
     fm = compact.fieldmap
+    bounds = piece_bounds(fm.n_nodes, n_pieces)
     for p, (nodes, cells) in enumerate(partition(compact.mesh.simplices, fm.n_nodes, n_pieces)):
         res = piece_result(compact, nodes, load(nodes))
+        ghost = ghost_flags((nodes >= bounds[p]) & (nodes < bounds[p + 1]))
         for k, label in enumerate(labels):
             folder = out / vtu_name(label).removesuffix(".vtu")
             path = folder / f"piece_{p:04d}.vtu"
@@ -196,7 +200,7 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
                 "piece": p,
                 "provenance_utf8": provenance_codes(summary["provenance"]),
             }
-            data = _point_data(res, k)
+            data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
             write_vtu(path, res.fieldmap.points, cells, data, fields)
             written[k].append(path)
             names[k] = {name: values[:1] for name, values in data.items()}
