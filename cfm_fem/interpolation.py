@@ -536,8 +536,9 @@ def _delaunay(coords, source, jitter_span=None):
     if np.any(np.abs(measure) <= 1e-12 * scale):
         # Co-spherical nodes off any lattice: Qhull triangulates them with flat simplices whose
         # barycentric transform is singular. A deterministic jitter of 1e-5 of the map size
-        # (0.001 um on a 100 mm map) makes the slivers well enough conditioned (their volume
-        # grows with the jitter squared) and stays far below any positioning uncertainty. Keyed
+        # (1 um on a 100 mm map) makes the slivers well enough conditioned (their volume
+        # grows with the jitter squared); it is small against the node spacing, not always
+        # against U_p on a large map, so the note gives it in um. Keyed
         # by the coordinates and scaled by the whole map's size, it is the same in every slab.
         span = np.ptp(coords, axis=0).max() if jitter_span is None else jitter_span
         coords = coords + node_jitter(coords) * (1e-5 * span)
@@ -550,7 +551,8 @@ def _delaunay(coords, source, jitter_span=None):
                 file=source,
             )
         notes.append(
-            "nodes jittered by at most 1e-5 of the map size to break Delaunay degeneracies"
+            f"nodes jittered by at most 1e-5 of the map size ({1e-2 * span:.3g} um) to break "
+            "Delaunay degeneracies"
         )
     if len(tri.coplanar):
         notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")

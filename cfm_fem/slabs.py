@@ -124,6 +124,15 @@ MAX_DISTINCT = 1 << 20
 BLOCK = 1 << 16
 #: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
 HALO_CELLS = 4.0
+#: A slab's halo is doubled for removed hull slivers it cannot certify only while slab + halo
+#: holds at most this many times a slab's share of the rows (or `SMALL_SLAB_ROWS`). Surface
+#: nodes in degenerate positions (the mantle of a cylinder: generator lines of co-planar nodes)
+#: make slivers whose choice depends on nodes anywhere along the map, so no halo short of the
+#: whole map certifies them all; beyond the limit, the faces they leave are halo borders.
+GONE_ROWS_FACTOR = 2.0
+#: Rows a slab + halo may always grow to for those slivers (little memory, and the same
+#: numbers as the in-memory run).
+SMALL_SLAB_ROWS = 20_000
 
 
 def htm_reach_mm(bench, trials: int, seed: int, lo, hi) -> float:
@@ -1074,6 +1083,7 @@ class _SlabJob:
         sums = _zero_sums(n_col)
         messages = []
         h = halo
+        limit = max(GONE_ROWS_FACTOR * len(st.rows) / plan.n_slabs, SMALL_SLAB_ROWS)
         while True:
             rows, own = _extract(st, plan, k, h)
             keep = ~np.isin(rows, dropped)
@@ -1098,8 +1108,21 @@ class _SlabJob:
             near = own.copy()
             for _ in range(2):
                 near[mesh.simplices[near[mesh.simplices].any(axis=1)]] = True
-            if (cert[own_cells].all() and cert_gone[near[gone].any(axis=1)].all()) or not boxes:
+            own_ok = cert[own_cells].all()
+            gone_bad = int((~cert_gone[near[gone].any(axis=1)]).sum())
+            if own_ok and gone_bad == 0 or not boxes:
                 break
+            if own_ok:  # only removed slivers left: widen while slab + halo stays in the limit
+                wider = len(_extract(st, plan, k, 2.0 * h)[0])
+                st.release()
+                if wider > limit:
+                    messages.append(
+                        f"slab {k}: {gone_bad} removed hull sliver(s) near its nodes could not be "
+                        f"certified with a halo of {h:.4g} mm (surface nodes in degenerate "
+                        "positions, e.g. co-planar on a cylinder's mantle); trials reaching the "
+                        "faces they leave are counted at the halo border"
+                    )
+                    break
             h *= 2.0
             messages.append(
                 f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)"
