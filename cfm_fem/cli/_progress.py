@@ -27,6 +27,6 @@ def note_first_compile(*kernels) -> None:
     if not kernels_cached(*kernels):
         print(
             "cfm-fem: compiling the numerical kernels for this machine (first run after an "
-            "install or upgrade, about a minute); later runs load them from numba's cache",
+            "install or upgrade: some 30 s more); later runs load them from numba's cache",
             file=sys.stderr,
         )
