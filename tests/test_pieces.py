@@ -7,6 +7,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pyvista as pv
+from vtk_points import by_position, owned_points, vtk_histogram_count
 
 from cfm_fem.cli import main
 
@@ -18,39 +19,6 @@ def _write_map(path, n=7):
     rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
     path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
     return path
-
-
-def _by_position(grid):
-    """Point data of a grid with duplicate points merged, rows sorted by position."""
-    grid = grid.clean(tolerance=0.0)
-    order = np.lexsort(np.asarray(grid.points).T)
-    names = [k for k in grid.point_data if k != "vtkGhostType"]  # pieces only: tested below
-    return grid, {k: np.asarray(grid.point_data[k])[order] for k in names}
-
-
-def _owned_points(grid):
-    """Each node once: the points of a ``.pvtu`` that are not VTK ghost copies (another piece
-    owns them), sorted by position, with their point data (``vtkGhostType`` left out)."""
-    ghost = np.asarray(grid.point_data["vtkGhostType"])
-    assert ghost.dtype == np.uint8 and set(np.unique(ghost).tolist()) <= {0, 1}
-    assert grid.GetPointGhostArray() is not None  # VTK takes it for its ghost array
-    keep = ghost == 0
-    pts = np.asarray(grid.points)[keep]
-    order = np.lexsort(pts.T)
-    data = {k: np.asarray(v)[keep][order] for k, v in grid.point_data.items()}
-    return pts[order], {k: v for k, v in data.items() if k != "vtkGhostType"}
-
-
-def _vtk_histogram_count(grid, name):
-    """Values VTK's histogram filter counts (it skips ghost points, as ParaView's does)."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-    from vtkmodules.vtkFiltersStatistics import vtkExtractHistogram
-
-    h = vtkExtractHistogram()
-    h.SetInputData(grid)
-    h.SetInputArrayToProcess(0, 0, 0, 0, name)
-    h.Update()
-    return int(vtk_to_numpy(h.GetOutput().GetRowData().GetArray("bin_values")).sum())
 
 
 def test_pieces_give_the_numbers_of_the_single_file(tmp_path):
@@ -68,8 +36,8 @@ def test_pieces_give_the_numbers_of_the_single_file(tmp_path):
     assert len(list((tmp_path / "pc" / "uf_up15um").glob("piece_*.vtu"))) == 3
     assert not (tmp_path / "pc" / ".cfm_fem_chunks").exists()
     for up in (0, 15, 30):
-        g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
-        g2, b = _by_position(pv.read(tmp_path / "pc" / f"uf_up{up}um.pvtu"))  # VTK's reader
+        g1, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        g2, b = by_position(pv.read(tmp_path / "pc" / f"uf_up{up}um.pvtu"))  # VTK's reader
         assert g1.n_points == g2.n_points == 343 and g1.n_cells == g2.n_cells
         assert set(a) == set(b)
         for name in a:
@@ -89,13 +57,13 @@ def test_nodes_shared_by_pieces_are_counted_once_as_vtk_ghost_points(tmp_path):
     one = pv.read(tmp_path / "one" / "uf_up15um.vtu")
     pc = pv.read(tmp_path / "pc" / "uf_up15um.pvtu")
     assert pc.n_points > one.n_points == 343  # the shared nodes are repeated
-    pts, b = _owned_points(pc)
+    pts, b = owned_points(pc)
     order = np.lexsort(np.asarray(one.points).T)
     np.testing.assert_array_equal(pts, np.asarray(one.points)[order])  # each node once
     assert set(b) == set(one.point_data)
     for name in one.point_data:
         np.testing.assert_array_equal(b[name], np.asarray(one.point_data[name])[order], name)
-    assert _vtk_histogram_count(pc, "U_f_units") == _vtk_histogram_count(one, "U_f_units") == 343
+    assert vtk_histogram_count(pc, "U_f_units") == vtk_histogram_count(one, "U_f_units") == 343
     owned = [
         int((np.asarray(pv.read(f).point_data["vtkGhostType"]) == 0).sum())
         for f in sorted((tmp_path / "pc" / "uf_up15um").glob("piece_*.vtu"))
@@ -132,8 +100,8 @@ def test_pieces_in_mode_htm_give_the_numbers_of_the_single_file(tmp_path):
     assert files == ["uf_htm_total.pvtu", "uf_htm_geometric.pvtu", "uf_htm_vibration_delay.pvtu"]
     assert read_xml_provenance(tmp_path / "pc" / "sweep.pvd") == pc["provenance"]
     assert read_xml_provenance(tmp_path / "one" / "sweep.pvd") == one["provenance"]
-    g1, a = _by_position(pv.read(tmp_path / "one" / "uf_htm_geometric.vtu"))
-    g2, b = _by_position(pv.read(tmp_path / "pc" / "uf_htm_geometric.pvtu"))
+    g1, a = by_position(pv.read(tmp_path / "one" / "uf_htm_geometric.vtu"))
+    g2, b = by_position(pv.read(tmp_path / "pc" / "uf_htm_geometric.pvtu"))
     assert g1.n_points == g2.n_points == 125 and g1.n_cells == g2.n_cells
     assert "positioning_std_um" in b
     for name in a:

@@ -13,6 +13,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 import pyvista as pv
+from vtk_points import by_position, owned_points, vtk_histogram_count
 
 from cfm_fem.cli import main
 from cfm_fem.errors import CfmInputError
@@ -40,38 +41,6 @@ def _lattice(nx=7, nz=14):
     return np.stack(np.meshgrid(ax, ax, np.linspace(-30.0, 30.0, nz), indexing="ij"), -1).reshape(
         -1, 3
     )
-
-
-def _by_position(grid):
-    grid = grid.clean(tolerance=0.0)
-    order = np.lexsort(np.asarray(grid.points).T)
-    names = [k for k in grid.point_data if k != "vtkGhostType"]  # pieces only: tested below
-    return grid, {k: np.asarray(grid.point_data[k])[order] for k in names}
-
-
-def _owned_points(grid):
-    """Each node once: the points of a ``.pvtu`` that are not VTK ghost copies (another piece
-    owns them), sorted by position, with their point data (``vtkGhostType`` left out)."""
-    ghost = np.asarray(grid.point_data["vtkGhostType"])
-    assert ghost.dtype == np.uint8 and set(np.unique(ghost).tolist()) <= {0, 1}
-    assert grid.GetPointGhostArray() is not None  # VTK takes it for its ghost array
-    keep = ghost == 0
-    pts = np.asarray(grid.points)[keep]
-    order = np.lexsort(pts.T)
-    data = {k: np.asarray(v)[keep][order] for k, v in grid.point_data.items()}
-    return pts[order], {k: v for k, v in data.items() if k != "vtkGhostType"}
-
-
-def _vtk_histogram_count(grid, name):
-    """Values VTK's histogram filter counts (it skips ghost points, as ParaView's does)."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-    from vtkmodules.vtkFiltersStatistics import vtkExtractHistogram
-
-    h = vtkExtractHistogram()
-    h.SetInputData(grid)
-    h.SetInputArrayToProcess(0, 0, 0, 0, name)
-    h.Update()
-    return int(vtk_to_numpy(h.GetOutput().GetRowData().GetArray("bin_values")).sum())
 
 
 def _same_summary(one, sl, exact=True):
@@ -117,8 +86,8 @@ def test_lattice_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
     assert read_xml_provenance(tmp_path / "sl" / "uf_up20um.pvtu") == sl["provenance"]
     assert not list((tmp_path / "sl").glob(".cfm_fem_slabs*"))  # work files removed
     for up in (20, 40):
-        g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
-        g2, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        g1, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        g2, b = by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         assert g1.n_points == g2.n_points == 686 and g1.n_cells == g2.n_cells
         assert set(a) == set(b)
         _same_fields(a, b, gradients=("grad", "gum_U95"))
@@ -133,13 +102,13 @@ def test_halo_nodes_are_vtk_ghost_points_each_node_counted_once(tmp_path):
     one = pv.read(tmp_path / "one" / "uf_up20um.vtu")
     sl = pv.read(tmp_path / "sl" / "uf_up20um.pvtu")
     assert sl.n_points > one.n_points == 686
-    pts, b = _owned_points(sl)
+    pts, b = owned_points(sl)
     order = np.lexsort(np.asarray(one.points).T)
     np.testing.assert_array_equal(pts, np.asarray(one.points)[order])  # each node once
     a = {k: np.asarray(v)[order] for k, v in one.point_data.items()}
     assert set(a) == set(b)
     _same_fields(a, b, gradients=("grad", "gum_U95"))
-    assert _vtk_histogram_count(sl, "U_f_units") == _vtk_histogram_count(one, "U_f_units") == 686
+    assert vtk_histogram_count(sl, "U_f_units") == vtk_histogram_count(one, "U_f_units") == 686
     grids = [pv.read(f) for f in sorted((tmp_path / "sl" / "uf_up20um").glob("piece_*.vtu"))]
     z = [np.asarray(g.points)[np.asarray(g.point_data["vtkGhostType"]) == 0, 2] for g in grids]
     assert sum(map(len, z)) == 686
@@ -149,8 +118,8 @@ def test_halo_nodes_are_vtk_ghost_points_each_node_counted_once(tmp_path):
 def _same_scattered_maps(tmp_path, column):
     """The in-memory (DIR one) and slab (DIR sl) maps of a Delaunay run: same cells, same
     complete nodes and outside fractions, U_f to rounding (Qhull's vertex order)."""
-    g1, a = _by_position(pv.read(tmp_path / "one" / f"uf_{column}.vtu"))
-    g2, b = _by_position(pv.read(tmp_path / "sl" / f"uf_{column}.pvtu"))
+    g1, a = by_position(pv.read(tmp_path / "one" / f"uf_{column}.vtu"))
+    g2, b = by_position(pv.read(tmp_path / "sl" / f"uf_{column}.pvtu"))
     assert g1.n_cells == g2.n_cells
     np.testing.assert_array_equal(a["complete"], b["complete"])
     np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
@@ -209,7 +178,7 @@ def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
     s = run_slab_sweep(path, cfg, tmp_path / "sl", n_slabs=2, halo_cells=0.0)
     assert s["slabs"]["halo_outside_nodes"] > 0
     assert any("halo border" in n for n in s["notes"])
-    g, b = _by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
+    g, b = by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
     order = np.lexsort(fm.points.T)
     uf_ref = ref.uf_units()[order, 1]
     out_ref = ref.n_outside[order, 1]
@@ -232,8 +201,8 @@ def test_extrapolating_slabs_agree_with_the_in_memory_run(tmp_path):
     assert sl["uf_nodes"] == one["uf_nodes"] == [686] * 3
     _same_summary(one, sl, exact=False)
     for up in (20, 40):
-        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
-        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        _, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        _, b = by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         assert (a["outside_fraction"] > 0).sum() > 200  # the surface nodes
         for name in a:
             np.testing.assert_allclose(a[name], b[name], rtol=1e-6, atol=1e-15, err_msg=name)
@@ -247,13 +216,13 @@ def test_nodes_that_reach_the_halo_are_not_extrapolated(tmp_path):
     s = run_slab_sweep(path, cfg, tmp_path / "sl", n_slabs=2, halo_cells=0.0)
     halo = s["slabs"]["halo_outside_nodes"]
     assert halo > 0 and any("not extrapolated" in n for n in s["notes"])
-    _, b = _by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
+    _, b = by_position(pv.read(tmp_path / "sl" / "uf_up1000um.pvtu"))
     assert (b["complete"] == 0).sum() == halo == 200 - s["uf_nodes"][1]
     assert (b["outside_fraction"][b["complete"] == 0] > 0).all()
     # those nodes: the statistics of the default run (their leaving trials left out)
     ref = SweepConfig(up_um=[0.0, 1000.0], trials=200)
     run_slab_sweep(path, ref, tmp_path / "ex", n_slabs=2, halo_cells=0.0)
-    _, a = _by_position(pv.read(tmp_path / "ex" / "uf_up1000um.pvtu"))
+    _, a = by_position(pv.read(tmp_path / "ex" / "uf_up1000um.pvtu"))
     cut = b["complete"] == 0
     np.testing.assert_array_equal(a["absB_U95_units"][cut], b["absB_U95_units"][cut])
 
@@ -275,8 +244,8 @@ def test_htm_slabs_equal_the_in_memory_run(tmp_path):
     _same_summary({k: v for k, v in one.items() if k != "up_um"},
                   {k: v for k, v in sl.items() if k != "up_um"})  # fmt: skip
     for label in one["columns"]:
-        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_{label}.vtu"))
-        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_{label}.pvtu"))
+        _, a = by_position(pv.read(tmp_path / "one" / f"uf_{label}.vtu"))
+        _, b = by_position(pv.read(tmp_path / "sl" / f"uf_{label}.pvtu"))
         assert set(a) == set(b) and "positioning_std_um" in a
         _same_fields(a, b, gradients=("grad", "gum"))
 
@@ -312,8 +281,8 @@ def test_an_interrupted_slab_run_resumes_to_the_same_numbers(tmp_path):
     got = json.loads((tmp_path / "cut" / "summary.json").read_text())
     got["notes"] = [n for n in got["notes"] if not n.startswith("resumed")]
     _same_summary(ref, got)
-    _, a = _by_position(pv.read(tmp_path / "ref" / "uf_up30um.pvtu"))
-    _, b = _by_position(pv.read(tmp_path / "cut" / "uf_up30um.pvtu"))
+    _, a = by_position(pv.read(tmp_path / "ref" / "uf_up30um.pvtu"))
+    _, b = by_position(pv.read(tmp_path / "cut" / "uf_up30um.pvtu"))
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
@@ -407,8 +376,8 @@ def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
     assert one["outside_fraction"][2] > 0  # trials do leave across the notch
     _same_summary(one, sl)
     for up in (1000, 2000):
-        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
-        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        _, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        _, b = by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         _same_fields(a, b, gradients=("grad", "gum_U95"))
     from cfm_fem.interpolation import exact_search
     from cfm_fem.sweep import SweepConfig as _Cfg
@@ -442,8 +411,8 @@ def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
     _same_summary(dict(one, notes=[], interpolation=""), dict(sl, notes=[], interpolation=""),
                   exact=False)  # fmt: skip
     for up in (20, 50):  # the cells written differ by the slivers of the slab hulls
-        _, a = _by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
-        _, b = _by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
+        _, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
+        _, b = by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         np.testing.assert_array_equal(a["complete"], b["complete"])
         np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
         np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
@@ -466,8 +435,8 @@ def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     one, sl = _in_memory_and_slabs(tmp_path, base, 4)
     assert any("jittered" in n for n in one["notes"])
     _same_summary(one, sl, exact=False)
-    _, a = _by_position(pv.read(tmp_path / "one" / "uf_up300um.vtu"))
-    _, b = _by_position(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
+    _, a = by_position(pv.read(tmp_path / "one" / "uf_up300um.vtu"))
+    _, b = by_position(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
     np.testing.assert_array_equal(a["complete"], b["complete"])
     np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-9)
 
@@ -567,8 +536,8 @@ def test_cylinder_mantle_slivers_do_not_widen_the_halo_to_the_whole_map(
     assert one["outside_fraction"] == sl["outside_fraction"]
     for q in one["uf_units"]:  # percentiles over the nodes: taken in another order on disk
         np.testing.assert_allclose(one["uf_units"][q], sl["uf_units"][q], rtol=1e-12)
-    _, a = _by_position(pv.read(tmp_path / "one" / "uf_up20um.vtu"))
-    _, b = _owned_points(pv.read(tmp_path / "sl" / "uf_up20um.pvtu"))
+    _, a = by_position(pv.read(tmp_path / "one" / "uf_up20um.vtu"))
+    _, b = owned_points(pv.read(tmp_path / "sl" / "uf_up20um.pvtu"))
     np.testing.assert_array_equal(a["complete"], b["complete"])
     done = a["complete"] == 1
     np.testing.assert_array_equal(a["U_f_units"][done], b["U_f_units"][done])
