@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -41,6 +42,11 @@ def test_cli_tracker(tmp_path, capsys):
         assert np.isfinite(d["fit"][k])
     for name in ("report.md", "fit.png", "residuals.png", "residual_points.vtu"):
         assert (out / name).stat().st_size > 0
+    # what produced it, as every other command records it: the recording and the packaged bench
+    inputs = d["provenance"]["inputs"]
+    assert inputs["tracker"]["sha256"] == hashlib.sha256(f.read_bytes()).hexdigest()
+    assert inputs["bench"]["packaged_default"] is True and len(inputs["bench"]["sha256"]) == 64
+    assert d["provenance"]["command_line"].startswith("cfm-fem diagnose --tracker")
 
 
 @pytest.mark.parametrize(

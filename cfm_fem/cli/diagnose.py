@@ -107,6 +107,21 @@ def _reference(spec, rec):
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), False, f"FEM map {path.name}"
 
 
+def _provenance(args) -> dict:
+    """What produced the diagnosis: the recording, the reference (a file, or a fit: spec) and
+    the bench (given, or the packaged one), with their SHA-256, as the other commands record."""
+    from pathlib import Path
+
+    from ..io.provenance import bench_input, provenance
+
+    ref = args.reference
+    if ref is not None and not Path(ref).is_file():
+        ref = {"spec": ref}  # fit:DEG / fitz:DEG: fitted to the recording itself
+    inputs = {"bench": bench_input(args.bench), "tracker": args.tracker,
+              "hall_map": args.hall_map, "reference": ref}  # fmt: skip
+    return provenance(inputs, getattr(args, "command_line", None))
+
+
 def run(args) -> int:
     from ..diagnose.problem import hall_problem, tracker_problem
     from ..diagnose.report import figures, markdown
@@ -144,6 +159,7 @@ def run(args) -> int:
         d = diagnose(prob, progress=bar.update)
     s = d.summary
     s["source"] = str(src)
+    s["provenance"] = _provenance(args)
     paths = write_diagnosis(args.out, s, d.arrays, markdown(s, str(src)), figures(s, d.arrays))
     fit = s["fit"]
     print(f"mismatch: {s['mismatch']}")
