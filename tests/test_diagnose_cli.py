@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.diagnose.twin import tracker_twin
-from cfm_fem.io.recordings import write_tracker
+from cfm_fem.diagnose.twin import hall_twin, tracker_twin
+from cfm_fem.io.recordings import write_hall_map, write_tracker
 
 Q = np.stack(
     np.meshgrid(
@@ -131,3 +131,24 @@ def test_b_ref_with_tracker_is_refused(tmp_path, capsys):
     out = tmp_path / "o"
     err = _err(["diagnose", "--tracker", "x.csv", "--b-ref", "1", "--out", out], out, capsys)
     assert "--b-ref is for --hall-map only" in err, err
+
+
+def test_r_ref_for_a_harmonics_reference_that_does_not_state_it(tmp_path, capsys):
+    """The harmonics reader asks for --r-ref when the file gives no R_ref; diagnose had none."""
+    from importlib import resources
+
+    text = (resources.files("cfm_fem") / "data" / "qfdp4_harmonics.csv").read_text()
+    ref = tmp_path / "h.csv"
+    ref.write_text("".join(s for s in text.splitlines(True) if not s.startswith("# r_ref_mm")))
+    rec, _, _ = hall_twin(3, {}, n_reps=3)
+    f = tmp_path / "rec.csv"
+    write_hall_map(f, rec)
+    base = ["diagnose", "--hall-map", f, "--reference", ref]
+    err = _err([*base, "--out", tmp_path / "o"], tmp_path / "o", capsys)
+    assert "--r-ref" in err, err
+    assert main([str(a) for a in [*base, "--r-ref", 10, "--out", tmp_path / "ok"]]) == 0
+    d = json.loads((tmp_path / "ok" / "diagnosis.json").read_text())
+    assert d["provenance"]["inputs"]["reference"]["path"] == str(ref)
+    err = _err(["diagnose", "--tracker", f, "--r-ref", 10, "--out", tmp_path / "t"],
+               tmp_path / "t", capsys)  # fmt: skip
+    assert "--r-ref is for --hall-map" in err

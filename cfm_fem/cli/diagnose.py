@@ -22,11 +22,30 @@ HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or
 
 def add_args(p):
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--tracker", metavar="REC.csv", help="laser-tracker recording (DESIGN 4.2)")
-    g.add_argument("--hall-map", metavar="REC.csv", help="Hall-probe map recording (DESIGN 4.2)")
-    p.add_argument("--reference", metavar="FIELD", help="reference field (Hall map only)")
+    g.add_argument(
+        "--tracker",
+        metavar="REC.csv",
+        help="laser-tracker recording: point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas (mm)",
+    )
+    g.add_argument(
+        "--hall-map",
+        metavar="REC.csv",
+        help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
+    )
+    p.add_argument(
+        "--reference",
+        metavar="FIELD",
+        help="reference field of a Hall map: harmonics .csv (n,Bn,An), an FEM export, or "
+        "fit:DEG / fitz:DEG (a harmonic polynomial fitted to the recording)",
+    )
     p.add_argument("--bench", metavar="B.toml", help="bench file (default: the reference bench)")
     p.add_argument("--b-ref", type=float, metavar="T", help="reference field of units (T)")
+    p.add_argument(
+        "--r-ref",
+        type=float,
+        metavar="MM",
+        help="R_ref for a harmonics file that does not state it",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
 
 
@@ -50,8 +69,8 @@ def _check_enough(rec):
         )
 
 
-def _reference(spec, rec):
-    """(field function, b_ref, smooth, description)."""
+def _reference(spec, rec, r_ref=None):
+    """(field function, b_ref, smooth, description); ``r_ref`` (mm) for a harmonics file."""
     from pathlib import Path
 
     import numpy as np
@@ -79,7 +98,7 @@ def _reference(spec, rec):
     if is_harmonics_file(path):
         from ..io.harmonics import read_harmonics
 
-        mp = read_harmonics(path)
+        mp = read_harmonics(path, r_ref_mm=r_ref)
         return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
     from ..interpolation import LinearInterpolator
     from ..io import read_field
@@ -137,6 +156,8 @@ def run(args) -> int:
             raise CfmInputError("--reference is for --hall-map only")
         if args.b_ref is not None:  # tracker residuals are in um: B_ref has no use there
             raise CfmInputError("--b-ref is for --hall-map only")
+        if args.r_ref is not None:
+            raise CfmInputError("--r-ref is for --hall-map with a harmonics --reference only")
         rec = read_tracker(args.tracker)
         _check_enough(rec)
         prob = tracker_problem(rec, bench)
@@ -146,7 +167,7 @@ def run(args) -> int:
             raise CfmInputError("--hall-map needs --reference FIELD")
         rec = read_hall_map(args.hall_map)
         _check_enough(rec)
-        fn, b_ref, smooth, desc = _reference(args.reference, rec)
+        fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref)
         if args.b_ref is not None:
             if not args.b_ref > 0:
                 raise CfmInputError(f"--b-ref must be > 0; got {args.b_ref}")
