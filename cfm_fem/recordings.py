@@ -234,7 +234,7 @@ def check_hall_scale(B_meas, B_ref, *, source, reference: str | None = None) -> 
         if k > 0:
             hint = (
                 f"the Bx, By, Bz columns look like {unit}, not T; a Hall map is in T "
-                f"(DESIGN.md 4.2): divide them by {10.0**k:g}"
+                f"(the recording format's unit): divide them by {10.0**k:g}"
             )
         else:
             hint = (
