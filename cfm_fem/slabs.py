@@ -1124,9 +1124,8 @@ class _SlabJob:
                     )
                     break
             h *= 2.0
-            messages.append(
-                f"slab {k}: halo widened to {h:.4g} mm (a cell of an own node was not certified)"
-            )
+            why = "a cell of an own node" if not own_ok else "a removed hull sliver near one"
+            messages.append(f"slab {k}: halo widened to {h:.4g} mm ({why} was not certified)")
         # per-slab notes left out: grid gaps, strokes and hull slivers are counted over slabs
         mesh_notes = [m for m in mesh.notes if "grid point" not in m
                       and "outside the strokes" not in m and "Delaunay hull" not in m]  # fmt: skip
