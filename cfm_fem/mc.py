@@ -3,9 +3,10 @@
 Coverage intervals from Monte Carlo samples (section 7.7), the numerical tolerance of a standard
 uncertainty (section 7.9.2) and the validation of the GUM uncertainty framework against Monte Carlo
 (section 8); PDFs of the input quantities (6.4), plain Monte Carlo propagation for vectorised
-numpy models, the adaptive procedure (7.9.4), the first-order GUM result and linearised variance
-budgets. The paper-scale bench Monte Carlo with its numba kernels is in
-:mod:`cfm_fem.kinematics`; it uses the rank and tolerance helpers here.
+numpy models, the adaptive procedure (7.9.4), the GUM uncertainty framework (first order, with
+Welch-Satterthwaite effective degrees of freedom, JCGM 100 G.4) and linearised variance budgets.
+The paper-scale bench Monte Carlo with its numba kernels is in :mod:`cfm_fem.kinematics`; it uses
+the rank and tolerance helpers here.
 """
 
 from __future__ import annotations
@@ -628,42 +629,155 @@ def sensitivities_fd(model, x0, steps) -> np.ndarray:
 
 @dataclass(frozen=True)
 class GumResult:
-    """Law of propagation of uncertainty, first order (GUM 5.1.2; JCGM 101, 5.6)."""
+    """The GUM uncertainty framework, first order (GUM 5.1.2, G.4; JCGM 101, 5.6).
+
+    Attributes
+    ----------
+    y : ndarray
+        Estimate: the model at the input estimates.
+    u : ndarray
+        Combined standard uncertainty u_c(y) = sqrt(sum_i (c_i u_i)**2) (GUM eq. 10).
+    sensitivities : ndarray, shape (..., n)
+        c_i = df/dx_i at the input estimates.
+    contributions : ndarray, shape (..., n)
+        (c_i u_i)**2 / u_c**2, summing to 1 (0 where u_c = 0).
+    dof : ndarray or float
+        Effective degrees of freedom nu_eff of u_c by the Welch-Satterthwaite formula
+        (GUM G.4.1, eq. G.2b); ``inf`` when every contributing input has infinite degrees of
+        freedom or u_c = 0.
+    """
 
     y: np.ndarray
     u: np.ndarray
     sensitivities: np.ndarray  # (..., n)
     contributions: np.ndarray  # (..., n): (c_i u_i)**2 / u**2, sums to 1
+    dof: np.ndarray | float = np.inf
 
-    def interval(self, p: float = 0.95, dof: float = np.inf):
-        """y -+ k u with k the normal (dof=inf) or Student-t two-sided quantile."""
-        k = special.ndtri(0.5 + p / 2) if np.isinf(dof) else special.stdtrit(dof, 0.5 + p / 2)
+    def coverage_factor(self, p: float = 0.95, dof=None):
+        """Coverage factor k_p = t_p(nu) of GUM G.3 and G.4.1.
+
+        Parameters
+        ----------
+        p : float
+            Coverage probability (level of confidence).
+        dof : float or ndarray, optional
+            Degrees of freedom used as given (``inf``: the normal quantile). By default the
+            effective degrees of freedom ``self.dof`` truncated to the next lower integer, as
+            the note to GUM G.4.1 says (values below 1 are used unchanged).
+
+        Returns
+        -------
+        ndarray or float
+            The two-sided Student-t quantile t_{(1+p)/2}(nu), or the normal one for nu = inf.
+        """
+        if dof is None:
+            nu = np.asarray(self.dof, dtype=np.float64)
+            nu = np.where(nu >= 1.0, np.floor(nu), nu)
+        else:
+            nu = np.asarray(dof, dtype=np.float64)
+        q = 0.5 + p / 2
+        finite = np.isfinite(nu)
+        k = np.where(finite, special.stdtrit(np.where(finite, nu, 1.0), q), special.ndtri(q))
+        return k[()] if k.ndim == 0 else k
+
+    def interval(self, p: float = 0.95, dof=None):
+        """Coverage interval y -+ k_p u_c (GUM 6.2.1, G.4.1).
+
+        k_p is :meth:`coverage_factor`: by default t_p(floor(nu_eff)), the normal quantile when
+        nu_eff is infinite; an explicit ``dof`` is used as given.
+        """
+        k = self.coverage_factor(p, dof)
         return self.y - k * self.u, self.y + k * self.u
 
 
-def gum_linear(model, pdfs, rel_step: float = 1e-4) -> GumResult:
-    """First-order GUM result at the input expectations (no correlations).
+def _input_dof(pdfs, dof) -> np.ndarray:
+    """Degrees of freedom of each input's standard uncertainty (see :func:`gum_linear`)."""
+    nu = np.array([p.params[2] if p.kind == "student_t" else np.inf for p in pdfs])
+    if dof is None:
+        return nu
+    if isinstance(dof, str) or not hasattr(dof, "__len__") or len(dof) != len(pdfs):
+        raise CfmInputError(
+            f"gum_linear 'dof' must be a sequence with one entry per input ({len(pdfs)}); "
+            f"found {dof!r}"
+        )
+    for i, (pdf, v) in enumerate(zip(pdfs, dof, strict=True)):
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise CfmInputError(
+                f"gum_linear 'dof' of input {i} must be a number or None; found {v!r}"
+            )
+        if not v > 0:  # also rejects nan
+            raise CfmInputError(
+                f"gum_linear 'dof' of input {i} must be positive (or inf); found {v!r}"
+            )
+        if pdf.kind == "student_t" and float(v) != nu[i]:
+            raise CfmInputError(
+                f"gum_linear 'dof' of input {i} is a Student-t whose degrees of freedom are its "
+                f"own dof={nu[i]:g}; found {v!r} (pass None)"
+            )
+        nu[i] = float(v)
+    return nu
+
+
+def gum_linear(model, pdfs, rel_step: float = 1e-4, dof=None) -> GumResult:
+    """The GUM uncertainty framework at the input estimates (first order, no correlations).
+
+    Each input contributes an estimate x_i, a standard uncertainty u_i and degrees of freedom
+    nu_i (GUM 4.2, 4.3, G.4.2); u_c is the law of propagation of uncertainty (GUM eq. 10),
+    nu_eff the Welch-Satterthwaite formula (GUM G.4.1, eq. G.2b),
+    nu_eff = u_c**4 / sum_i (c_i u_i)**4 / nu_i, and ``GumResult.interval`` the coverage factor
+    t_p(nu_eff) (GUM G.3, G.4.1).
 
     Parameters
     ----------
     model : callable, vectorised as in :func:`monte_carlo`
     pdfs : sequence of Pdf
-        Their means and standard deviations are the GUM estimates and standard uncertainties
-        (the Student-t scale convention: u = ``Pdf.std``, which for t_nu(loc, scale) is
-        scale * sqrt(nu / (nu - 2)); GUM-style inputs pass ``Pdf.normal(loc, scale)`` instead).
+        x_i is ``Pdf.mean``. For ``Pdf.student_t(loc, scale, dof)`` the GUM convention holds:
+        u_i = ``scale`` (s/sqrt(n) of a Type A mean) with nu_i = ``dof`` (GUM G.4; JCGM 101 6.4.9
+        and 9.5 build their Student-t inputs from these), *not* the standard deviation
+        scale * sqrt(nu / (nu - 2)) that the Monte Carlo propagates. Every other PDF gives
+        u_i = ``Pdf.std`` and nu_i = inf unless ``dof`` states otherwise.
     rel_step : float
         Central-difference step as a fraction of each standard uncertainty.
+    dof : sequence of (float or None), optional
+        One entry per input: the degrees of freedom of its standard uncertainty, for Type B
+        evaluations whose reliability is stated (GUM G.4.2, nu ~ (1/2) (Delta u / u)**-2;
+        JCGM 100 H.1 gives 50 and 2). Positive numbers or ``inf``; None keeps the default
+        above. A Student-t input accepts only None or its own dof.
+
+    Returns
+    -------
+    GumResult
+        ``dof`` holds nu_eff (inf when every input with a non-zero contribution has nu_i = inf,
+        or u_c = 0).
+
+    Raises
+    ------
+    CfmInputError
+        ``dof`` has the wrong length or an entry that is not positive.
     """
+    nu = _input_dof(pdfs, dof)
     x0 = np.array([p.mean for p in pdfs])
-    ux = np.array([p.std for p in pdfs])
+    ux = np.array([p.params[1] if p.kind == "student_t" else p.std for p in pdfs])
     y = np.asarray(model(x0[None, :]))[0]
     c = sensitivities_fd(model, x0, rel_step * ux)
     var = (c * ux) ** 2
     tot = var.sum(axis=-1)
     u = np.sqrt(tot)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        share = np.where(tot[..., None] > 0, var / tot[..., None], 0.0)
-    return GumResult(y=y, u=u, sensitivities=c, contributions=share)
+    share = np.divide(var, tot[..., None], out=np.zeros_like(var), where=tot[..., None] > 0)
+    # Welch-Satterthwaite: terms with nu_i = inf or a zero contribution add nothing
+    terms = np.divide(var**2, nu, out=np.zeros_like(var), where=(var > 0) & np.isfinite(nu))
+    den = terms.sum(axis=-1)
+    num = np.asarray(tot**2, dtype=np.float64)
+    nu_eff = np.divide(num, den, out=np.full_like(num, np.inf), where=den > 0)
+    return GumResult(
+        y=y,
+        u=u,
+        sensitivities=c,
+        contributions=share,
+        dof=nu_eff[()] if nu_eff.ndim == 0 else nu_eff,
+    )
 
 
 def validate_gum(gum_low, gum_high, mc: McSummary, ndig: int = 2) -> dict:

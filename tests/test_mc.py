@@ -10,6 +10,7 @@ Published values that are exact (analytic) get 4 standard deviations plus the ro
 import numpy as np
 import pytest
 
+from cfm_fem.errors import CfmInputError
 from cfm_fem.mc import (
     Pdf,
     adaptive_monte_carlo,
@@ -169,6 +170,89 @@ def test_9_5_gauge_block_99_percent():
     wrong = [as_std(p) if p.kind == "student_t" else p for p in GAUGE_PDFS]
     s_wrong = summarize(monte_carlo(_gauge, wrong, 200_000, seed=6), 0.99)
     assert s.u - s_wrong.u > 10 * sd[1]
+
+
+# JCGM 100 H.1 (the same gauge block): H.1.3 assigns rectangular PDFs to delta_alpha and
+# delta_theta, u = 1e-6/sqrt(3) = 0.58e-6 /degC and 0.05/sqrt(3) = 0.029 degC, and H.1.3.4 /
+# H.1.3.6 their reliability, nu = 50 and nu = 2. JCGM 101 9.5 replaces them by the curvilinear
+# trapezoids of GAUGE_PDFS (std 0.0300 degC for delta_theta), which moves nu_eff below 16.
+GAUGE_H1_PDFS = GAUGE_PDFS[:7] + [Pdf.uniform(-1.0e-6, 1.0e-6), Pdf.uniform(-0.050, 0.050)]
+GAUGE_H1_DOF = [None] * 7 + [50, 2]  # _gauge order: ..., d_alpha, d_theta
+# GUM standard uncertainties in _gauge order (Student-t inputs: the scale, H.1.3.1-H.1.3.2)
+GAUGE_H1_U = [25.0, 5.8, 3.9, 6.7, 4e-6 / np.sqrt(12), 0.2, 0.5 / np.sqrt(2)] + [
+    1e-6 / np.sqrt(3),
+    0.05 / np.sqrt(3),
+]
+
+
+def test_h_1_gauge_block_gum_uncertainty_framework():
+    g = gum_linear(_gauge, GAUGE_H1_PDFS, dof=GAUGE_H1_DOF)
+    # H.1.6: l = 50.000 838 mm, u_c = 32 nm, nu_eff = 16, t_99(16) = 2.92, U_99 = 93 nm
+    assert round(float(g.y)) == 838
+    assert round(float(g.u)) == 32
+    assert 16.0 <= g.dof < 17.0
+    k = g.coverage_factor(0.99)
+    assert round(float(k), 2) == 2.92
+    lo, hi = g.interval(0.99)
+    assert float(hi - g.y) == pytest.approx(float(g.y - lo))
+    # the GUM multiplies its rounded figures, U_99 = 2.92 x 32 nm = 93 nm (unrounded 92.5 nm)
+    assert round(round(float(k), 2) * round(float(g.u))) == 93
+    assert 92.0 < float(hi - g.y) < 93.5
+
+    # Welch-Satterthwaite (GUM eq. G.2b) written out from the sensitivities and the GUM u's
+    ci = g.sensitivities * np.array(GAUGE_H1_U)
+    uc4 = np.sum(ci**2) ** 2
+    ws = ci[0] ** 4 / 18 + ci[1] ** 4 / 24 + ci[2] ** 4 / 5 + ci[3] ** 4 / 8
+    assert float(g.u) == pytest.approx(np.sqrt(np.sum(ci**2)), rel=1e-12)
+    assert float(g.dof) == pytest.approx(uc4 / (ws + ci[7] ** 4 / 50 + ci[8] ** 4 / 2), rel=1e-12)
+
+    # without the stated reliability of delta_alpha and delta_theta only the Type A terms count
+    g_inf = gum_linear(_gauge, GAUGE_H1_PDFS)
+    assert float(g_inf.u) == float(g.u)
+    assert float(g_inf.dof) == pytest.approx(uc4 / ws, rel=1e-12)
+    assert g_inf.dof > 45.0  # 45.6: t_99 = 2.69, U_99 = 85 nm
+    assert round(float(g_inf.coverage_factor(0.99)), 2) == 2.69
+
+    # JCGM 101's curvilinear trapezoids: u(delta_theta) = 0.0300 degC, nu_eff 15.8 -> 15
+    g_101 = gum_linear(_gauge, GAUGE_PDFS, dof=GAUGE_H1_DOF)
+    assert 15.0 <= g_101.dof < 16.0
+
+
+def test_gum_welch_satterthwaite_sum_of_t_and_normal():
+    """Y = X1 + X2, X1 ~ t_4(0, 1) (u = 1, nu = 4), X2 ~ N(0, 1): u_c = sqrt 2,
+    nu_eff = 2**2 / (1**4 / 4) = 16, k_95 = t_0.975(16) = 2.120."""
+    pdfs = [Pdf.student_t(0.0, 1.0, 4), Pdf.normal(0.0, 1.0)]
+    g = gum_linear(lambda x: x.sum(axis=1), pdfs)
+    assert float(g.u) == pytest.approx(np.sqrt(2.0), rel=1e-9)
+    assert float(g.dof) == pytest.approx(16.0, rel=1e-9)
+    np.testing.assert_allclose(g.contributions, [0.5, 0.5], rtol=1e-9)
+    assert round(float(g.coverage_factor(0.95)), 3) == 2.120
+    lo, hi = g.interval(0.95)
+    assert round(float(hi), 3) == round(2.120 * np.sqrt(2.0), 3) == 2.998
+    lo, hi = g.interval(0.95, dof=np.inf)  # explicit dof still used as given
+    assert round(float(hi), 3) == round(1.960 * np.sqrt(2.0), 3)
+    # a stated Type B reliability for X2: 4 / (1/4 + 1/4) = 8
+    assert float(gum_linear(lambda x: x.sum(axis=1), pdfs, dof=[None, 4]).dof) == pytest.approx(8)
+
+
+def test_gum_dof_edge_cases_and_bad_arguments():
+    import warnings
+
+    total = lambda x: x.sum(axis=1)  # noqa: E731
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        g0 = gum_linear(total, [Pdf.constant(1.0), Pdf.constant(2.0)], dof=[3, None])
+        assert float(g0.u) == 0.0 and np.isinf(g0.dof)
+        assert g0.interval(0.95) == (3.0, 3.0)
+        # a zero contribution with finite dof adds nothing
+        g1 = gum_linear(total, [Pdf.constant(1.0), Pdf.normal(0.0, 1.0)], dof=[2, None])
+        assert np.isinf(g1.dof)
+    for bad in ([None], [None, 0], [None, -1.0], [None, np.nan], [None, "5"], [None, True], 5):
+        with pytest.raises(CfmInputError, match="gum_linear 'dof'"):
+            gum_linear(total, [Pdf.normal(0, 1)] * 2, dof=bad)
+    with pytest.raises(CfmInputError, match="Student-t"):
+        gum_linear(total, [Pdf.student_t(0, 1, 4), Pdf.normal(0, 1)], dof=[5, None])
+    assert float(gum_linear(total, [Pdf.student_t(0, 1, 4)] * 2, dof=[4, None]).dof) == 8
 
 
 def test_adaptive_procedure_stops_at_the_numerical_tolerance():
