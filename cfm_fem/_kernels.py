@@ -35,6 +35,8 @@ import math
 import numba as nb
 import numpy as np
 
+from .threads import map_blocks
+
 #: One place for numba options. ``cache`` keeps compile time out of repeated runs.
 JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 PJIT = dict(JIT, parallel=True)
@@ -929,7 +931,9 @@ def _fast_values(terms, tkeys, rows, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok
         k = rows[j]
         ok[j] = _fast_sample(terms, tkeys, k, c, q0, q1, q2, s0, s1, s2, ev, j)
     for b in range(_compact_false(ok, m, bad)):
-        _redo_sample(terms, tkeys, rows[bad[b]], q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b])
+        _redo_sample(
+            terms, tkeys, np.int64(rows[bad[b]]), q0, q1, q2, s0, s1, s2, fkey, pi, ev, bad[b]
+        )
 
 
 @nb.njit(**JIT)
@@ -1091,7 +1095,7 @@ def _in_ranges(ev, m, lo, hi, mask):
 def _capture_point(terms, tkeys, fkey, sig, q, i, pi, k0, m, word0, bits, wlo, winv, target,
                    vlo, vhi, offset, fill, buf, rows, ev, ok, mask, idx):  # fmt: skip
     """Pass 2 of point i over block rows k0 .. k0+m-1: the flagged trials only."""
-    nr = 0
+    nr = np.int64(0)  # not a literal 0: numba would also compile the callees for nr = 0
     for w in range((m + 63) // 64):
         word = bits[i, word0 + w]
         while word != 0:
@@ -1713,27 +1717,37 @@ def interpolate_points(points, start, simplices, transform, neighbors, values, o
                         out[i0 + j, c] = np.nan
 
 
-@nb.njit(**PJIT)
 def octant_cells(coords, node_cell, transform, neighbors, eps):
     """Per node, the simplex that contains node + eps * (+-1, +-1[, +-1]) for each sign pattern.
 
     A walk for a displacement starts from the cell of its octant (bit a of the index set when
     component a is negative, as in `octant_starts`), which cuts the walk across the node's star
     to about one step. In 3-D the eight walks of a block of nodes advance together
-    (`walk_block3`).
+    (`walk_block3`). Blocks of nodes run on numba's number of threads (`cfm_fem.threads`): a
+    numba parallel loop would compile the walk kernels once more on first use (~1 s).
 
     Returns
     -------
     ndarray, shape (n, 2**d), int64
         Start simplex per node and octant (the node's own cell where the probe leaves the mesh).
     """
-    n, d = coords.shape
+
+    def work(g0, g1):
+        return (_octant_rows(coords, node_cell, transform, neighbors, eps, g0, g1),)
+
+    return map_blocks(work, len(coords), 2048)[0]
+
+
+@nb.njit(**JIT)
+def _octant_rows(coords, node_cell, transform, neighbors, eps, n0, n1):
+    """Rows n0 .. n1-1 of `octant_cells`."""
+    d = coords.shape[1]
     n_oct = 1 << d
-    out = np.empty((n, n_oct), dtype=np.int64)
+    out = np.empty((n1 - n0, n_oct), dtype=np.int64)
     per = WALK_BLOCK // n_oct  # nodes per block
-    for b in nb.prange((n + per - 1) // per):
-        g0 = b * per
-        g1 = min(n, g0 + per)
+    for b in range((n1 - n0 + per - 1) // per):
+        g0 = n0 + b * per
+        g1 = min(n1, g0 + per)
         m = (g1 - g0) * n_oct
         p = np.empty((m, d))
         st = np.empty(m, dtype=np.int64)
@@ -1755,7 +1769,7 @@ def octant_cells(coords, node_cell, transform, neighbors, eps):
         for g in range(g0, g1):
             for o in range(n_oct):
                 s = found[(g - g0) * n_oct + o]
-                out[g, o] = s if s >= 0 else node_cell[g]
+                out[g - n0, o] = s if s >= 0 else node_cell[g]
     return out
 
 
@@ -2107,7 +2121,7 @@ def sample_stats(a, n, q, out, scratch):
         low = lo[:h]
         high = hi[n_hi - h :]
     else:
-        select_inplace(a, 0, n - 1, h - 1)
+        select_inplace(a, np.int64(0), n - 1, h - 1)  # a literal 0 compiles a 2nd version
         select_inplace(a, h, n - 1, q)
         low = a[:h]
         high = a[q:n]
