@@ -36,6 +36,13 @@ FLAT_TOL = 1e-9
 #: A Delaunay cell is a hull sliver when its circumradius exceeds this many times its shortest
 #: edge and its circumcentre lies outside the convex hull of the nodes (`hull_sliver_cells`).
 SLIVER_RATIO = 5.0
+#: Delaunay triangulates the nodes moved by `node_jitter` times this fraction of the map's size
+#: (`delaunay_coords`), always: co-spherical nodes then have one triangulation, the same in any
+#: part of the map. Small against any node spacing, large enough that Qhull resolves the cells
+#: it makes of collinear nodes on the hull's edges (their volume grows with its square: 1e-9
+#: left some at 1e-17 of the mean cell volume on a grid). Only the nodes of cells that are
+#: flat on the nodes themselves keep the move (`build_mesh`).
+TIE_JITTER = 1e-6
 #: What `build_mesh` does with the flat cells of a Delaunay hull.
 HULL_SLIVERS = ("keep", "remove")
 
@@ -67,6 +74,11 @@ class SimplexMesh:
     hull_slivers : ndarray, shape (k, dim + 1), int64, or None
         Delaunay cells removed as hull slivers (`hull_sliver_cells`), as node indices (empty
         when none were; None for a mesh not made by `build_mesh`).
+    tie_nodes : ndarray, shape (n,), bool, or None
+        Delaunay only: the nodes of cells that are flat on the nodes themselves (co-spherical
+        nodes, a tie of the triangulation); ``coords`` holds them moved (`delaunay_coords`).
+        Kept hull slivers that are flat on the nodes move none: their transform alone is that
+        of the moved nodes. None for other meshes.
     """
 
     dim: int
@@ -80,6 +92,7 @@ class SimplexMesh:
     kind: str
     notes: list[str] = field(default_factory=list)
     hull_slivers: np.ndarray | None = None
+    tie_nodes: np.ndarray | None = None
 
     @property
     def description(self) -> str:
@@ -267,8 +280,9 @@ def build_mesh(
         Points whose convex hull is the whole map's (`hull_sliver_cells`); the out-of-core
         sweep triangulates a part of the map and passes the whole map's hull.
     jitter_span : float, optional
-        Size of the whole map (mm) when ``fm`` is a part of it: the scale of the Delaunay
-        jitter of co-spherical nodes (`node_jitter`), so a part jitters as the whole does.
+        Size of the whole map (mm) when ``fm`` is a part of it: the scale of the moves of the
+        nodes that Delaunay triangulates (`delaunay_coords`), so a part moves them as the whole
+        does.
 
     Raises
     ------
@@ -309,12 +323,29 @@ def build_mesh(
                 simplices = None
         if simplices is None and method == "grid":
             raise CfmInputError("interpolation 'grid' needs nodes on a rectilinear grid", file=src)
+    tie = None  # Delaunay: the nodes of cells flat on the nodes, which keep their move
+    lone = None  # Delaunay: kept hull slivers flat on the nodes, on their moved nodes alone
     if simplices is None:
-        simplices, kind, coords, extra = _delaunay(coords, src, jitter_span)
+        span = float(np.ptp(coords, axis=0).max()) if jitter_span is None else jitter_span
+        simplices, kind, moved, flat, extra = _delaunay(coords, src, span)
         notes += extra
-        sliver = hull_sliver_cells(coords, simplices, hull_points)
+        # the moved nodes' cells are Delaunay: their circumspheres decide; the hull is the
+        # nodes' own (as the out-of-core sweep's `hull_points`)
+        sliver = hull_sliver_cells(moved, simplices, coords if hull_points is None else hull_points)
         if hull_slivers == "remove":
-            slivers, simplices = simplices[sliver], simplices[~sliver]
+            slivers, simplices, flat = simplices[sliver], simplices[~sliver], flat[~sliver]
+            lone = np.zeros(len(simplices), dtype=bool)
+        else:  # kept hull slivers flat on the nodes (thin ones of scattered nodes, turned over
+            # by the move) take the moved nodes' geometry alone: their nodes stay, and so does
+            # the interpolant of every other cell
+            lone = flat & sliver
+        tie = np.zeros(len(coords), dtype=bool)
+        tie[simplices[flat & ~lone]] = True
+        if tie.any():  # a conforming mesh: every cell of such a node sees it moved
+            coords = np.where(tie[:, None], moved, coords)
+            _check_moved_cells(coords, moved, simplices, tie, src)
+            notes.append(tie_note(int(tie.sum()), span))
+        if hull_slivers == "remove":
             if len(slivers):
                 notes.append(sliver_note(len(slivers)))
         elif sliver.any():
@@ -333,6 +364,9 @@ def build_mesh(
     del centre
     simplices = simplices[order]
     T, measure = barycentric_transforms(coords, simplices)
+    if lone is not None and lone.any():
+        lone = lone[order]
+        T[lone], measure[lone] = barycentric_transforms(moved, simplices[lone])
     scale = np.ptp(coords, axis=0).prod() / max(len(simplices), 1)
     flat = np.abs(measure) <= 1e-12 * scale
     if flat.any():
@@ -365,6 +399,7 @@ def build_mesh(
         kind=kind,
         notes=notes,
         hull_slivers=slivers,
+        tie_nodes=tie,
     )
 
 
@@ -521,42 +556,103 @@ def node_jitter(coords):
     return out
 
 
-def _delaunay(coords, source, jitter_span=None):
-    """Delaunay triangulation; nodes are jittered only if Qhull leaves flat simplices, by
-    `node_jitter` times 1e-5 of ``jitter_span`` (mm; default: the nodes' own extent)."""
+def delaunay_coords(coords, span):
+    """The nodes that `build_mesh` triangulates (Delaunay): ``coords`` (n, d), mm, each moved
+    by `node_jitter` times `TIE_JITTER` of ``span`` (the whole map's size, mm).
+
+    Keyed by each node's coordinates and scaled by the whole map, the move of a node is the
+    same in any part of the map. The moved nodes are in general position: their Delaunay
+    triangulation is unique, so a part of the map has the whole map's cells around its nodes
+    (co-spherical nodes, as on a lattice, leave a choice that Qhull makes by insertion order).
+    """
+    return coords + node_jitter(coords) * (TIE_JITTER * span)
+
+
+def signed_measures(coords, simplices):
+    """Signed volumes (areas in 2-D) of simplices (m, d + 1), as `barycentric_transforms` gives
+    them, without the transforms."""
+    d = coords.shape[1]
+    r = coords[simplices[:, d]]
+    e = [coords[simplices[:, j]] - r for j in range(d)]
+    if d == 2:
+        return (e[0][:, 0] * e[1][:, 1] - e[0][:, 1] * e[1][:, 0]) / 2.0
+    c = np.cross(e[1], e[2])
+    return np.einsum("ij,ij->i", e[0], c) / 6.0
+
+
+def tie_note(count: int, span: float) -> str:
+    """The note that says ``count`` nodes keep their Delaunay move (in memory and out of core)."""
+    return (
+        f"{count} node(s) of co-spherical sets, where Delaunay cells would be flat, jittered by "
+        f"at most {TIE_JITTER:g} of the map size ({TIE_JITTER * 1e3 * span:.3g} um) to break "
+        "the tie; the cells of the other nodes interpolate a linear field exactly"
+    )
+
+
+def _check_moved_cells(coords, moved, simplices, tie, source):
+    """Refuse a mesh whose cells with a moved node (``tie``) are flat or turned over on
+    ``coords`` (the nodes with those moved): they are Delaunay cells of ``moved``."""
+    cells = simplices[tie[simplices].any(axis=1)]
+    mix, full = signed_measures(coords, cells), signed_measures(moved, cells)
+    scale = np.ptp(coords, axis=0).prod() / len(simplices)
+    if np.any(mix * np.sign(full) <= 1e-12 * scale):
+        raise CfmInputError(
+            "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
+            "export the mesh cells with the field, or the nodes of a rectilinear grid",
+            file=source,
+        )
+
+
+def _delaunay(coords, source, span):
+    """Delaunay triangulation of the nodes moved by `delaunay_coords`.
+
+    Returns
+    -------
+    simplices : ndarray, shape (m, d + 1), int64
+    kind : str
+        ``"delaunay"``.
+    moved : ndarray, shape (n, d), mm
+        The moved nodes.
+    flat : ndarray, shape (m,), bool
+        Cells that are flat (or turned over) on the nodes themselves: co-spherical nodes, which
+        any triangulation of them leaves flat somewhere. Such a cell has less than 1e-3 of its
+        volume on the moved nodes there, or less than 1e-12 of its longest edge cubed (a test of
+        the cell alone, so any part of the map decides it as the whole map). Their nodes keep
+        the move (`build_mesh`); the other nodes stay where they are, so a linear field is
+        interpolated exactly in their cells (thin cells of scattered nodes, as on the hull,
+        keep far more of their volume).
+    notes : list of str
+    """
     notes = []
+    moved = delaunay_coords(coords, span)
     try:
-        tri = scipy.spatial.Delaunay(coords)
+        tri = scipy.spatial.Delaunay(moved)
     except scipy.spatial.QhullError as exc:  # pragma: no cover - _frame catches flat sets first
         raise CfmInputError(
             f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source
         ) from None
-    _, measure = barycentric_transforms(coords, tri.simplices)
-    scale = np.ptp(coords, axis=0).prod() / len(tri.simplices)
-    if np.any(np.abs(measure) <= 1e-12 * scale):
-        # Co-spherical nodes off any lattice: Qhull triangulates them with flat simplices whose
-        # barycentric transform is singular. A deterministic jitter of 1e-5 of the map size
-        # (1 um on a 100 mm map) makes the slivers well enough conditioned (their volume
-        # grows with the jitter squared); it is small against the node spacing, not always
-        # against U_p on a large map, so the note gives it in um. Keyed
-        # by the coordinates and scaled by the whole map's size, it is the same in every slab.
-        span = np.ptp(coords, axis=0).max() if jitter_span is None else jitter_span
-        coords = coords + node_jitter(coords) * (1e-5 * span)
-        tri = scipy.spatial.Delaunay(coords)
-        _, measure = barycentric_transforms(coords, tri.simplices)
-        if np.any(np.abs(measure) <= 1e-12 * scale):
-            raise CfmInputError(
-                "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
-                "export the mesh cells with the field, or the nodes of a rectilinear grid",
-                file=source,
-            )
-        notes.append(
-            f"nodes jittered by at most 1e-5 of the map size ({1e-2 * span:.3g} um) to break "
-            "Delaunay degeneracies"
+    simplices = tri.simplices.astype(np.int64)
+    own, on_moved = signed_measures(coords, simplices), signed_measures(moved, simplices)
+    d = coords.shape[1]
+    edge2 = np.zeros(len(simplices))  # longest edge, squared
+    for i in range(d + 1):
+        for j in range(i + 1, d + 1):
+            e = coords[simplices[:, i]] - coords[simplices[:, j]]
+            np.maximum(edge2, np.einsum("ij,ij->i", e, e), out=edge2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flat = ~(own / on_moved >= 1e-3) | (
+            np.abs(own) * (2 if d == 2 else 6) <= 1e-12 * edge2 ** (d / 2)
+        )
+    scale = np.ptp(coords, axis=0).prod() / len(simplices)
+    if np.any(np.abs(on_moved) <= 1e-12 * scale):
+        raise CfmInputError(
+            "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
+            "export the mesh cells with the field, or the nodes of a rectilinear grid",
+            file=source,
         )
     if len(tri.coplanar):
         notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
-    return tri.simplices.astype(np.int64), "delaunay", coords, notes
+    return simplices, "delaunay", moved, flat, notes
 
 
 def face_excess(coords, simplices, transform, neighbors):

@@ -29,8 +29,11 @@ is checked, not trusted:
 - every cell incident to an own node must be *certified*: for a grid, every Kuhn cell of
   slab + halo is a cell of the whole map's triangulation; for Delaunay, a cell is certified when
   its circumsphere stays inside the slab + halo along the slab axis (then no node outside can
-  lie in it, so it is a Delaunay cell of the whole map). Otherwise h is doubled and the slab
-  rebuilt.
+  lie in it, so it is a Delaunay cell of the whole map), on the nodes as Delaunay triangulates
+  them (`cfm_fem.interpolation.delaunay_coords`: moved by 1e-6 of the whole map's size, keyed by
+  their coordinates, so that the triangulation is unique), and when no node of it is in an
+  uncertified cell (a node keeps its move when one of its cells is flat without it: only then
+  is that decided as in the whole map). Otherwise h is doubled and the slab rebuilt.
 - with ``hull_slivers="remove"``, every slab tests its cells against the whole map's convex
   hull (`_hull_points`, so a cell is removed in a slab when the whole map removes it), and the
   removed cells within two rings of cells of an own node must be certified too; the faces they
@@ -87,11 +90,14 @@ from .errors import CfmInputError, CfmInputWarning, check_seed
 from .field import DUPLICATE_TOL_MM, FieldMap
 from .interpolation import (
     FLAT_TOL,
+    TIE_JITTER,
     build_mesh,
     circumspheres,
     convex_hull_points,
+    delaunay_coords,
     morton_order,
     sliver_note,
+    tie_note,
 )
 from .io._atomic import write_json
 from .io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
@@ -440,9 +446,10 @@ def _lattice_keys(points, span):
     return np.round(points / (span * 1e-9))
 
 
-def _circum_ok(coords, simplices, boxes, spheres=False):
+def _circum_ok(coords, simplices, boxes, spheres=False, pad=0.0):
     """Certified Delaunay cells: the circumsphere meets no part of the map's bounding box beyond
-    the slab + halo (``boxes``), so no node left out can lie in it.
+    the slab + halo (``boxes``, each widened by ``pad``, mm: the move of the nodes that
+    Delaunay triangulates), so no node left out can lie in it.
 
     With ``spheres``, also return the circumcentres (m, 3) and squared radii (m,), mm.
     """
@@ -451,20 +458,23 @@ def _circum_ok(coords, simplices, boxes, spheres=False):
         r2 = r2 * (1.0 + 1e-9)
     ok = np.isfinite(r2)
     for lo, hi in boxes:
+        lo, hi = lo - pad, hi + pad
         d2 = (np.maximum(np.maximum(lo - c, c - hi), 0.0) ** 2).sum(-1)
         ok &= d2 >= r2
     return (ok, c, r2) if spheres else ok
 
 
-def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2):
+def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2, span):
     """For circumspheres that reach beyond the slab + halo: True where no staged node outside
     a_lo..a_hi along ``axis`` lies in (or on) the sphere, so the cell is the whole map's too.
-    One scan of the staged rows; hull slivers (huge spheres bulging out of the map) pass here."""
+    The nodes are moved as Delaunay triangulates them (`delaunay_coords`, ``span``: the whole
+    map's size, mm). One scan of the staged rows; hull slivers (huge spheres bulging out of the
+    map) pass here."""
     hits = np.zeros(len(centers), dtype=np.int64)
     r = np.sqrt(r2)
     for a in range(0, len(st.rows), BLOCK):
         p = np.asarray(st.rows[a : a + BLOCK, :3])
-        p = p[(p[:, axis] < a_lo) | (p[:, axis] > a_hi)]
+        p = delaunay_coords(p[(p[:, axis] < a_lo) | (p[:, axis] > a_hi)], span)
         st.release(a, a + BLOCK)
         if len(p):
             tree = scipy.spatial.cKDTree(p)
@@ -497,19 +507,38 @@ def _hull_face_ok(coords, simplices, s, j, boxes, tol):
     return out
 
 
-def _certify(st: Staged, plan, k, h, coords, simplices, boxes):
+def _certify(st: Staged, plan, k, h, coords, simplices, boxes, span):
     """Cells of slab k + halo h (m,) that are provably cells of the whole map's Delaunay
     triangulation: by the box test (`_circum_ok`), and for cells away from the cut zone that it
-    could not certify, against the nodes left out (`_empty_spheres`, one scan of the rows)."""
-    cert, cen, r2 = _circum_ok(coords, simplices, boxes, spheres=True)
+    could not certify, against the nodes left out (`_empty_spheres`, one scan of the rows).
+
+    ``coords``: the slab + halo's nodes as Delaunay triangulates them (`delaunay_coords` with
+    the whole map's size ``span``): the moved nodes are in general position, so the whole map
+    has the one Delaunay triangulation, whose cells these tests prove.
+    """
+    pad = TIE_JITTER * span  # a node moves less than this along each axis
+    cert, cen, r2 = _circum_ok(coords, simplices, boxes, spheres=True, pad=pad)
     near = coords[simplices, plan.axis]
     inner = (near >= plan.edges[k] - h / 2) & (near <= plan.edges[k + 1] + h / 2)
     cand = np.flatnonzero(~cert & inner.any(axis=1))
     if len(cand):
         cert[cand] = _empty_spheres(
-            st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand]
+            st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand], span
         )
     return cert
+
+
+def _settled(simplices, cert):
+    """Nodes of a slab + halo's Delaunay mesh (n,) in no uncertified cell: their cells are the
+    whole map's (nearly always: a node on a cut face is in an uncertified cell too, whose
+    circumsphere reaches beyond the cut), and so is their Delaunay move, which `build_mesh`
+    keeps when one of a node's cells is flat (co-spherical nodes). The sweep leaves the cells
+    of the other nodes uncertified. Faces left by removed hull slivers that cannot be certified
+    (a cylinder's mantle) are accepted as halo borders (`GONE_ROWS_FACTOR`), and the moves of
+    their nodes with them."""
+    settled = np.ones(simplices.max(initial=-1) + 1, dtype=bool)
+    settled[simplices[~cert]] = False
+    return settled
 
 
 def _at_cut(coords, simplices, s, j, axis, map_lo, map_hi, tol):
@@ -877,7 +906,7 @@ def _zero_sums(n_col: int) -> dict:
     """The counts a slab adds to the run's summary (`_summary`)."""
     return dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64), processed=0,
                 star=0, dis=np.zeros((n_col, 4), np.int64), cells=0, halo_nodes=0,
-                unreachable=0, slivers=0)  # fmt: skip
+                unreachable=0, slivers=0, ties=0)  # fmt: skip
 
 
 def _make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
@@ -1015,6 +1044,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                          "axes: no statistics (NaN)")  # fmt: skip
     else:
         ups = [float(u) for u in cfg.up_um]
+    if sums["ties"]:
+        mesh_notes.append(tie_note(int(sums["ties"]), span))
     if sums["slivers"]:
         mesh_notes.append(sliver_note(int(sums["slivers"])))
     summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
@@ -1101,8 +1132,10 @@ class _SlabJob:
                 cert_gone = np.ones(0, dtype=bool)
             else:  # the removed hull slivers too: where the map ends around own nodes
                 both = np.concatenate([mesh.simplices, gone])
-                cert, cert_gone = np.split(_certify(st, plan, k, h, mesh.coords, both, boxes),
+                moved = delaunay_coords(pts, span)  # 3-D: the mesh frame is the map frame
+                cert, cert_gone = np.split(_certify(st, plan, k, h, moved, both, boxes, span),
                                            [len(mesh.simplices)])  # fmt: skip
+                cert &= _settled(mesh.simplices, cert)[mesh.simplices].all(axis=1)
             own_cells = own[mesh.simplices].any(axis=1)
             # removed cells a walk from an own node can meet: two rings of cells around it
             near = own.copy()
@@ -1126,9 +1159,10 @@ class _SlabJob:
             h *= 2.0
             why = "a cell of an own node" if not own_ok else "a removed hull sliver near one"
             messages.append(f"slab {k}: halo widened to {h:.4g} mm ({why} was not certified)")
-        # per-slab notes left out: grid gaps, strokes and hull slivers are counted over slabs
-        mesh_notes = [m for m in mesh.notes if "grid point" not in m
-                      and "outside the strokes" not in m and "Delaunay hull" not in m]  # fmt: skip
+        # per-slab notes left out: grid gaps, strokes, hull slivers and flat cells of
+        # co-spherical nodes are counted over slabs
+        counted = ("grid point", "outside the strokes", "Delaunay hull", "co-spherical")
+        mesh_notes = [m for m in mesh.notes if not any(c in m for c in counted)]
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
         # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
@@ -1215,6 +1249,8 @@ class _SlabJob:
         top = cells.max(axis=1)  # local indices increase with node ids
         cells = ids[cells[own[top]]]
         sums["cells"] += len(cells)
+        if mesh.tie_nodes is not None:  # own nodes that keep their Delaunay move
+            sums["ties"] += int(mesh.tie_nodes[own].sum())
         if len(gone):  # counted, like the piece's cells, by their highest node
             sums["slivers"] += int(own[gone[cert_gone].max(axis=1)].sum())
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,

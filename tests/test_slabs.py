@@ -419,11 +419,12 @@ def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
 
 
 def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
-    """Scattered nodes beside a block of lattice nodes (co-spherical sets: Qhull leaves flat
-    cells, so the nodes are jittered). The jitter is keyed by each node's coordinates and
-    scaled by the whole map's size, so every slab triangulates its nodes as the whole map does
+    """Scattered nodes beside a block of lattice nodes (co-spherical sets: their cells are flat
+    unless the nodes are jittered). The jitter is keyed by each node's coordinates and scaled
+    by the whole map's size, so every slab triangulates its nodes as the whole map does
     (with a random stream in slab order and the slab's own size, U_f of 568 of 3,160 complete
-    nodes differed, by up to 1.75 units, on the audit's 4,519-node map)."""
+    nodes differed, by up to 1.75 units, on the audit's 4,519-node map). Here the slabs grow to
+    1,267-1,520 of the 1,520 nodes (`SMALL_SLAB_ROWS`); the next test keeps them small."""
     rng = np.random.default_rng(8)
     scattered = rng.uniform([-5, -5, -30], [5, 5, 8], (1200, 3))
     ax = np.linspace(-5, 5, 6)
@@ -439,6 +440,38 @@ def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     _, b = by_position(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
     np.testing.assert_array_equal(a["complete"], b["complete"])
     np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-9)
+
+
+def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path, monkeypatch):
+    """The map of `test_jittered_maps_slabs_equal_the_in_memory_run`, in slabs that stay parts
+    of it (no growth to 20,000 rows). Nodes were jittered (1e-5 of the map size) only when
+    Qhull left flat cells: all of them in the whole map (its lattice block), none in the three
+    slabs of scattered nodes alone, whose 450 complete nodes' U_f then differed by up to 1.2
+    units (and 21 nodes' outside fractions). Now Delaunay always triangulates the nodes moved
+    by 1e-6 of the map size (one triangulation, the same in every slab), and the nodes of the
+    cells flat without the move keep it, the same in every slab too."""
+    import cfm_fem.slabs
+
+    monkeypatch.setattr(cfm_fem.slabs, "SMALL_SLAB_ROWS", 0)
+    rng = np.random.default_rng(8)
+    scattered = rng.uniform([-5, -5, -30], [5, 5, 8], (1200, 3))
+    ax = np.linspace(-5, 5, 6)
+    lattice = np.stack(np.meshgrid(ax, ax, np.linspace(12, 30, 10), indexing="ij"), -1)
+    lattice = lattice.reshape(-1, 3)
+    lattice = lattice[rng.uniform(size=len(lattice)) > 0.15]
+    path = _write_csv(tmp_path / "m.csv", np.r_[scattered, lattice])
+    base = ["sweep", str(path), "--up", "0,300", "--trials", "200"]
+    one, sl = _in_memory_and_slabs(tmp_path, base, 4)
+    assert sl["slabs"]["count"] == 4 and max(sl["slabs"]["edges_mm"][1:4]) < 8  # 3 scattered
+    _, a = by_position(pv.read(tmp_path / "one" / "uf_up300um.vtu"))
+    _, b = owned_points(pv.read(tmp_path / "sl" / "uf_up300um.pvtu"))
+    np.testing.assert_array_equal(a["complete"], b["complete"])
+    assert a["complete"].sum() > 800
+    np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
+    np.testing.assert_array_equal(a["outside_fraction"], b["outside_fraction"])
+    assert one["outside_fraction"] == sl["outside_fraction"]
+    ties = [n for n in one["notes"] if "co-spherical" in n]  # the lattice's nodes, counted
+    assert len(ties) == 1 and ties == [n for n in sl["notes"] if "co-spherical" in n]
 
 
 @pytest.mark.parametrize("seed", [-1, 2**63, True], ids=["negative", "too_large", "bool"])
