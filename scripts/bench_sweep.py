@@ -100,7 +100,11 @@ def bench_ratio(n_nodes: int, layouts, up_um: float, seed: int = 0):
         inside = cell >= 0
         for c in (cell, cell_oct):
             assert np.array_equal(c >= 0, np.isfinite(ref[:, 0])), "kernel and scipy disagree"
-        err = max(np.abs(o[inside] - ref[inside]).max() for o in (ours, ours_oct))
+        # build_mesh triangulates the nodes moved by 1e-6 of the map size (`delaunay_coords`),
+        # scipy the nodes themselves: a few near-degenerate cells of the hull differ, and so
+        # does the interpolant there; elsewhere the values agree to rounding
+        dev = np.max([np.abs(o[inside] - ref[inside]).max(axis=1) for o in (ours, ours_oct)], 0)
+        err, n_off = dev.max(), int((dev > 1e-12).sum())
         n = len(queries)
         print(f"{n_query} nodes x {per_node} samples per node = {n} points:")
         print(
@@ -114,7 +118,8 @@ def bench_ratio(n_nodes: int, layouts, up_um: float, seed: int = 0):
         )
         print(
             f"  scipy LinearND                              : {n / t_scipy:10.4g} samples/s "
-            f"({t_scipy:.3f} s)   (max |difference| {err:.2e} T)"
+            f"({t_scipy:.3f} s)   (max |difference| {err:.2e} T; {n_off} of {n} points "
+            f"differ by more than 1e-12 T, in cells where the triangulations differ)"
         )
         scipy_rate = n / t_scipy
     # the full sweep kernel: random numbers, walk and per-node statistics, 1 U_p value
