@@ -589,6 +589,15 @@ def tie_note(count: int, span: float) -> str:
     )
 
 
+def _too_degenerate(source) -> CfmInputError:
+    """The error for nodes whose Delaunay cells stay flat even on the moved nodes."""
+    return CfmInputError(
+        "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
+        "export the mesh cells with the field, or the nodes of a rectilinear grid",
+        file=source,
+    )
+
+
 def _check_moved_cells(coords, moved, simplices, tie, source):
     """Refuse a mesh whose cells with a moved node (``tie``) are flat or turned over on
     ``coords`` (the nodes with those moved): they are Delaunay cells of ``moved``."""
@@ -596,11 +605,7 @@ def _check_moved_cells(coords, moved, simplices, tie, source):
     mix, full = signed_measures(coords, cells), signed_measures(moved, cells)
     scale = np.ptp(coords, axis=0).prod() / len(simplices)
     if np.any(mix * np.sign(full) <= 1e-12 * scale):
-        raise CfmInputError(
-            "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
-            "export the mesh cells with the field, or the nodes of a rectilinear grid",
-            file=source,
-        )
+        raise _too_degenerate(source)
 
 
 def _delaunay(coords, source, span):
@@ -645,11 +650,7 @@ def _delaunay(coords, source, span):
         )
     scale = np.ptp(coords, axis=0).prod() / len(simplices)
     if np.any(np.abs(on_moved) <= 1e-12 * scale):
-        raise CfmInputError(
-            "the nodes are too degenerate to triangulate robustly (co-spherical sets); "
-            "export the mesh cells with the field, or the nodes of a rectilinear grid",
-            file=source,
-        )
+        raise _too_degenerate(source)
     if len(tri.coplanar):
         notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
     return simplices, "delaunay", moved, flat, notes
