@@ -468,3 +468,34 @@ def test_harmonic_order_too_high(tmp_path, capsys):
         ["coupled", "--field", path, "--trials", 20, "--no-budget", "--out", out], out, capsys
     )
     assert f"error: {path}:8: column 'n' must be an order <= 1000; found '100000000'" in err
+
+
+@pytest.mark.parametrize(
+    "argv, dest, value",
+    [
+        (["coupled", "--z", "-100,0,100", "--out", "o"], "z", "-100,0,100"),  # the help's form
+        (["sweep", "m.csv", "--up", "-10:50:10", "--out", "o"], "up", "-10:50:10"),
+        (["sweep", "m.csv", "--axis-scale", "-1,1,1", "--out", "o"], "axis_scale", (-1, 1, 1)),
+    ],
+)
+def test_values_that_start_with_a_minus_sign_are_values(argv, dest, value):
+    """argparse took '-100,0,100' for an option: 'argument --z: expected one argument'."""
+    from cfm_fem.cli import build_parser
+
+    assert tuple(np.atleast_1d(getattr(build_parser().parse_args(argv), dest))) == (
+        value if isinstance(value, tuple) else (value,)
+    )
+
+
+def test_negative_target_says_why(capsys):
+    assert main(["tolerance", "--target", "-5,5,5"]) == 2
+    err = capsys.readouterr().err
+    assert "--target: must be one or three positive numbers in um; got '-5,5,5'" in err, err
+
+
+def test_negative_up_range_says_why(tmp_path, capsys):
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--up", "-10:50:10", "--out", out], out, capsys)
+    assert "--up values must be finite and >= 0 um; got '-10:50:10'" in err, err
