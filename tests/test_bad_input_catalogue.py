@@ -499,3 +499,33 @@ def test_negative_up_range_says_why(tmp_path, capsys):
     out = tmp_path / "out"
     err = _run(["sweep", path, "--up", "-10:50:10", "--out", out], out, capsys)
     assert "--up values must be finite and >= 0 um; got '-10:50:10'" in err, err
+
+
+@pytest.mark.parametrize("name", ["maps", "map.table", "map.csv", "map.vtu"])
+@pytest.mark.parametrize("extra", [[], ["--slabs", 2]])
+def test_field_is_a_folder(tmp_path, capsys, name, extra):
+    """A folder gave "unknown mesh file extension ''" (or, named *.vtu, "it does not exist"),
+    and with --slabs an IsADirectoryError traceback from hashing it (exit 1)."""
+    folder = tmp_path / name
+    folder.mkdir()
+    out = tmp_path / "out"
+    err = _run(["sweep", folder, "--trials", 20, *extra, "--out", out], out, capsys)
+    assert f"error: {folder}: " in err, err
+    assert "this is a folder; expected a field-map file" in err or "Is a directory" in err, err
+
+
+def test_missing_field_without_extension(tmp_path, capsys):
+    """A mistyped name without an extension was "unknown mesh file extension ''"."""
+    path = tmp_path / "quadrupole"
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--trials", 20, "--out", out], out, capsys)
+    assert f"error: {path}: cannot read the file: it does not exist" in err, err
+
+
+def test_hashing_an_unreadable_input_is_a_bad_input(tmp_path):
+    """The out-of-core sweep hashes its input before reading it: a PermissionError traceback
+    (exit 1) for a file without read permission."""
+    from cfm_fem.io.provenance import file_sha256
+
+    with pytest.raises(CfmInputError, match=r"cannot read the file: Is a directory"):
+        file_sha256(tmp_path)
