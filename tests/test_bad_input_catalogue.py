@@ -529,3 +529,23 @@ def test_hashing_an_unreadable_input_is_a_bad_input(tmp_path):
 
     with pytest.raises(CfmInputError, match=r"cannot read the file: Is a directory"):
         file_sha256(tmp_path)
+
+
+@pytest.mark.parametrize("command", ["sweep", "fig4"])
+@pytest.mark.parametrize("up", ["0,10,10", "10,10.0000001"])
+def test_up_values_that_name_the_same_map(tmp_path, capsys, command, up):
+    """--up 0,10,10 ran, wrote uf_up10um.vtu twice and listed it twice in sweep.pvd."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run([command, path, "--up", up, "--trials", 20, "--out", out], out, capsys)
+    assert "--up: U_p = 10 um appears twice" in err and "uf_up10um.vtu" in err, err
+
+
+def test_up_values_that_name_the_same_map_from_python():
+    from cfm_fem.field import FieldMap
+    from cfm_fem.sweep import SweepConfig, run_sweep
+
+    fm = FieldMap(GRID, np.c_[0.1 * GRID[:, 1], 0.1 * GRID[:, 0], np.ones(len(GRID))])
+    with pytest.raises(CfmInputError, match=r"up_um: U_p = 10 um appears twice"):
+        run_sweep(fm, SweepConfig(up_um=[10.0, 10.0], trials=20))

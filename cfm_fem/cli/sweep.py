@@ -373,6 +373,9 @@ def parse_up_range(text: str) -> list[float]:
         raise CfmInputError(
             f"--up gives {len(values)} U_p values; expected at most {MAX_UP_VALUES}"
         )
+    from ..sweep import check_up_distinct
+
+    check_up_distinct(values, "--up")
     return values
 
 
