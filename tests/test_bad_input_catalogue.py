@@ -549,3 +549,14 @@ def test_up_values_that_name_the_same_map_from_python():
     fm = FieldMap(GRID, np.c_[0.1 * GRID[:, 1], 0.1 * GRID[:, 0], np.ones(len(GRID))])
     with pytest.raises(CfmInputError, match=r"up_um: U_p = 10 um appears twice"):
         run_sweep(fm, SweepConfig(up_um=[10.0, 10.0], trials=20))
+
+
+@pytest.mark.parametrize("command", _COMMANDS)
+def test_help_cites_no_file_outside_the_project(capsys, command):
+    """compare's and diagnose's --help sent the user to DESIGN.md, which is not shipped."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = capsys.readouterr().out
+    assert "DESIGN.md" not in text
+    if command == "compare":  # the columns a recording needs, as diagnose --help gives them
+        assert "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas" in text.replace("\n", "")
