@@ -560,3 +560,21 @@ def test_help_cites_no_file_outside_the_project(capsys, command):
     assert "DESIGN.md" not in text
     if command == "compare":  # the columns a recording needs, as diagnose --help gives them
         assert "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas" in text.replace("\n", "")
+
+
+@pytest.mark.parametrize(
+    "extra, what",
+    [
+        (["--up", "0:10:10"], "--up is used by mode gauss only"),
+        (["--axis-scale", "1,1,2"], "--axis-scale is used by mode gauss only"),
+        (["--up", "5", "--axis-scale", "2"], "--up and --axis-scale are used by mode gauss only"),
+    ],
+)
+def test_gauss_options_in_mode_htm(tmp_path, capsys, extra, what):
+    """--mode htm ran with --up / --axis-scale and ignored them without a word (summary.json
+    even recorded the axis scale), as --bench was in mode gauss (C9)."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--mode", "htm", "--trials", 20, *extra, "--out", out], out, capsys)
+    assert what in err, err
