@@ -578,3 +578,15 @@ def test_gauss_options_in_mode_htm(tmp_path, capsys, extra, what):
     out = tmp_path / "out"
     err = _run(["sweep", path, "--mode", "htm", "--trials", 20, *extra, "--out", out], out, capsys)
     assert what in err, err
+
+
+def test_format_help_names_the_formats(capsys):
+    """sweep --help said only 'input format if the extension is ambiguous': no value named."""
+    from cfm_fem.io import _TEXT_READERS
+
+    with pytest.raises(SystemExit):
+        main(["sweep", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    help_fmt = text[text.index("--format FMT input format") :][:200]
+    for name in [*_TEXT_READERS, "vtu", "gmsh"]:
+        assert name in help_fmt, help_fmt

@@ -86,7 +86,11 @@ def add_args(p):
         help="auto: the export's cells if any, Kuhn triangulation of a grid, else Delaunay",
     )
     p.add_argument(
-        "--format", dest="fmt", metavar="FMT", help="input format if the extension is ambiguous"
+        "--format",
+        dest="fmt",
+        metavar="FMT",
+        help="input format if the extension is ambiguous: comsol, opera, table (or csv), or a "
+        "meshio format (vtu, vtk, gmsh, xdmf, ...)",
     )
     p.add_argument(
         "--length-unit",
