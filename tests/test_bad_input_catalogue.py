@@ -194,6 +194,9 @@ BENCH_CASES = [
      ["errors.z.delta_x", "std >= 0"]),
     ("unknown pdf", 'pdf = "uniform"\nlow = -18.5', 'pdf = "cauchy"\nlow = -18.5',
      ["errors.x.eps_x.pdf", "one of"]),
+    # a table named only inside a longer header had no line: "bench.toml: 'errors.w' is ..."
+    ("unknown error group", "[errors.z.delta_y]", "[errors.w.delta_y]",
+     ["'errors.w' is not a known key; expected one of squareness, x, y, z"]),
     # integers too large for a float (TypeError in numpy's isfinite before)
     ("400-digit stroke", "stroke_mm = 800.0", "stroke_mm = " + "9" * 400,
      ["axes.z.stroke_mm", "must be a finite number", "(400 characters)"]),
