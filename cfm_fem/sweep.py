@@ -51,6 +51,27 @@ OUTSIDE_RULES = {
 Z95 = 1.959963984540054
 
 
+def up_label(up_um: float) -> str:
+    """Column name of a U_p value, ``up<U_p>um`` (6 significant digits): it names the map
+    (``uf_up20um.vtu``) and the summary column."""
+    return f"up{up_um:g}um"
+
+
+def check_up_distinct(up_um, option: str = "up_um") -> None:
+    """Refuse U_p values that name the same map twice (``10,10``, or ``10,10.0000001``, which
+    differ beyond the 6 digits of the name): the second map would overwrite the first.
+    ``option`` names where they came from, for the message."""
+    seen = {}
+    for u in up_um:
+        label = up_label(u)
+        if label in seen:
+            raise CfmInputError(
+                f"{option}: U_p = {u:g} um appears twice ({seen[label]!r} and {u!r} both name "
+                f"the map uf_{label}.vtu); expected distinct values"
+            )
+        seen[label] = u
+
+
 @dataclass
 class SweepConfig:
     """What to run.
@@ -168,7 +189,7 @@ class SweepResult:
         """Name of each column: ``up<U_p>um`` (gauss) or the `HTM_PARTS` names (htm)."""
         if self.config.mode == "htm":
             return list(HTM_PARTS)
-        return [f"up{u:g}um" for u in self.config.up_um]
+        return [up_label(u) for u in self.config.up_um]
 
     def column_up_um(self) -> list[float]:
         """U_p of each column, um: the sweep values (gauss), or for htm the RMS over the
@@ -343,6 +364,7 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     check_seed(cfg.seed)  # the CLI's rule and message (numba takes the seed as int64)
     if cfg.mode == "htm":
         return
+    check_up_distinct(cfg.up_um)
     extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
     up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if up_max_mm * 5.0 > extent:

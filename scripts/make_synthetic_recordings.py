@@ -1,4 +1,5 @@
-"""Write a small synthetic tracker recording and Hall map (DESIGN.md 4.2) for the compare example.
+"""Write a small synthetic tracker recording and Hall map (CSV, see `cfm-fem compare --help`)
+for the compare example.
 
     python scripts/make_synthetic_recordings.py OUTDIR [--seed S]
 

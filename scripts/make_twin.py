@@ -1,4 +1,5 @@
-"""Write twin recordings (DESIGN.md 4.2) with concealed effects: tracker and/or Hall map.
+"""Write twin recordings (CSV, see `cfm-fem compare --help`) with concealed effects: tracker
+and/or Hall map.
 
     python scripts/make_twin.py --kind tracker --effects '{"reversal": {"backlash_z": 8}}' \
         --seed 3 --out twin_tracker.csv

@@ -194,6 +194,9 @@ BENCH_CASES = [
      ["errors.z.delta_x", "std >= 0"]),
     ("unknown pdf", 'pdf = "uniform"\nlow = -18.5', 'pdf = "cauchy"\nlow = -18.5',
      ["errors.x.eps_x.pdf", "one of"]),
+    # a table named only inside a longer header had no line: "bench.toml: 'errors.w' is ..."
+    ("unknown error group", "[errors.z.delta_y]", "[errors.w.delta_y]",
+     ["'errors.w' is not a known key; expected one of squareness, x, y, z"]),
     # integers too large for a float (TypeError in numpy's isfinite before)
     ("400-digit stroke", "stroke_mm = 800.0", "stroke_mm = " + "9" * 400,
      ["axes.z.stroke_mm", "must be a finite number", "(400 characters)"]),
@@ -468,3 +471,125 @@ def test_harmonic_order_too_high(tmp_path, capsys):
         ["coupled", "--field", path, "--trials", 20, "--no-budget", "--out", out], out, capsys
     )
     assert f"error: {path}:8: column 'n' must be an order <= 1000; found '100000000'" in err
+
+
+@pytest.mark.parametrize(
+    "argv, dest, value",
+    [
+        (["coupled", "--z", "-100,0,100", "--out", "o"], "z", "-100,0,100"),  # the help's form
+        (["sweep", "m.csv", "--up", "-10:50:10", "--out", "o"], "up", "-10:50:10"),
+        (["sweep", "m.csv", "--axis-scale", "-1,1,1", "--out", "o"], "axis_scale", (-1, 1, 1)),
+    ],
+)
+def test_values_that_start_with_a_minus_sign_are_values(argv, dest, value):
+    """argparse took '-100,0,100' for an option: 'argument --z: expected one argument'."""
+    from cfm_fem.cli import build_parser
+
+    assert tuple(np.atleast_1d(getattr(build_parser().parse_args(argv), dest))) == (
+        value if isinstance(value, tuple) else (value,)
+    )
+
+
+def test_negative_target_says_why(capsys):
+    assert main(["tolerance", "--target", "-5,5,5"]) == 2
+    err = capsys.readouterr().err
+    assert "--target: must be one or three positive numbers in um; got '-5,5,5'" in err, err
+
+
+def test_negative_up_range_says_why(tmp_path, capsys):
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--up", "-10:50:10", "--out", out], out, capsys)
+    assert "--up values must be finite and >= 0 um; got '-10:50:10'" in err, err
+
+
+@pytest.mark.parametrize("name", ["maps", "map.table", "map.csv", "map.vtu"])
+@pytest.mark.parametrize("extra", [[], ["--slabs", 2]])
+def test_field_is_a_folder(tmp_path, capsys, name, extra):
+    """A folder gave "unknown mesh file extension ''" (or, named *.vtu, "it does not exist"),
+    and with --slabs an IsADirectoryError traceback from hashing it (exit 1)."""
+    folder = tmp_path / name
+    folder.mkdir()
+    out = tmp_path / "out"
+    err = _run(["sweep", folder, "--trials", 20, *extra, "--out", out], out, capsys)
+    assert f"error: {folder}: " in err, err
+    assert "this is a folder; expected a field-map file" in err or "Is a directory" in err, err
+
+
+def test_missing_field_without_extension(tmp_path, capsys):
+    """A mistyped name without an extension was "unknown mesh file extension ''"."""
+    path = tmp_path / "quadrupole"
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--trials", 20, "--out", out], out, capsys)
+    assert f"error: {path}: cannot read the file: it does not exist" in err, err
+
+
+def test_hashing_an_unreadable_input_is_a_bad_input(tmp_path):
+    """The out-of-core sweep hashes its input before reading it: a PermissionError traceback
+    (exit 1) for a file without read permission."""
+    from cfm_fem.io.provenance import file_sha256
+
+    with pytest.raises(CfmInputError, match=r"cannot read the file: Is a directory"):
+        file_sha256(tmp_path)
+
+
+@pytest.mark.parametrize("command", ["sweep", "fig4"])
+@pytest.mark.parametrize("up", ["0,10,10", "10,10.0000001"])
+def test_up_values_that_name_the_same_map(tmp_path, capsys, command, up):
+    """--up 0,10,10 ran, wrote uf_up10um.vtu twice and listed it twice in sweep.pvd."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run([command, path, "--up", up, "--trials", 20, "--out", out], out, capsys)
+    assert "--up: U_p = 10 um appears twice" in err and "uf_up10um.vtu" in err, err
+
+
+def test_up_values_that_name_the_same_map_from_python():
+    from cfm_fem.field import FieldMap
+    from cfm_fem.sweep import SweepConfig, run_sweep
+
+    fm = FieldMap(GRID, np.c_[0.1 * GRID[:, 1], 0.1 * GRID[:, 0], np.ones(len(GRID))])
+    with pytest.raises(CfmInputError, match=r"up_um: U_p = 10 um appears twice"):
+        run_sweep(fm, SweepConfig(up_um=[10.0, 10.0], trials=20))
+
+
+@pytest.mark.parametrize("command", _COMMANDS)
+def test_help_cites_no_file_outside_the_project(capsys, command):
+    """compare's and diagnose's --help sent the user to DESIGN.md, which is not shipped."""
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = capsys.readouterr().out
+    assert "DESIGN.md" not in text
+    if command == "compare":  # the columns a recording needs, as diagnose --help gives them
+        assert "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas" in text.replace("\n", "")
+
+
+@pytest.mark.parametrize(
+    "extra, what",
+    [
+        (["--up", "0:10:10"], "--up is used by mode gauss only"),
+        (["--axis-scale", "1,1,2"], "--axis-scale is used by mode gauss only"),
+        (["--up", "5", "--axis-scale", "2"], "--up and --axis-scale are used by mode gauss only"),
+    ],
+)
+def test_gauss_options_in_mode_htm(tmp_path, capsys, extra, what):
+    """--mode htm ran with --up / --axis-scale and ignored them without a word (summary.json
+    even recorded the axis scale), as --bench was in mode gauss (C9)."""
+    path = tmp_path / "map.csv"
+    path.write_text(_map_text(GRID))
+    out = tmp_path / "out"
+    err = _run(["sweep", path, "--mode", "htm", "--trials", 20, *extra, "--out", out], out, capsys)
+    assert what in err, err
+
+
+def test_format_help_names_the_formats(capsys):
+    """sweep --help said only 'input format if the extension is ambiguous': no value named."""
+    from cfm_fem.io import _TEXT_READERS
+
+    with pytest.raises(SystemExit):
+        main(["sweep", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    help_fmt = text[text.index("--format FMT input format") :][:200]
+    for name in [*_TEXT_READERS, "vtu", "gmsh"]:
+        assert name in help_fmt, help_fmt

@@ -125,7 +125,7 @@ def test_tracker_report(tmp_path):
     assert row(p.tables["iso230"], p.tables["iso230"][1][0])[7] == fmt(iso["B"])
 
 
-def test_fig4_report_linear_law(tmp_path):
+def test_fig4_report_linear_law(tmp_path, capsys):
     """Linear quadrupole map: U_f = 1.96 U_p G / B_ref at every body node."""
     g = np.linspace(-8.0, 8.0, 9)
     z = np.linspace(-40.0, 40.0, 5)
@@ -152,3 +152,10 @@ def test_fig4_report_linear_law(tmp_path):
     assert row(t, "20")[5] == "10" and row(t, "50")[5] == "25"
     assert row(t, "50")[1] == fmt(doc["table"][2]["p50"])
     assert re.search(r"linear in U_p", (out / "report.html").read_text())
+    # the printed table names the nodes of each row: it said "over the <U_p = 0 count>
+    # magnet-body nodes" while the rows above 0 are over fewer (surface nodes lose trials)
+    printed = capsys.readouterr().out
+    assert "magnet-body nodes (|z| <= 30 mm) that kept every trial" in printed
+    for r in doc["table"]:
+        assert re.search(rf"^\s*{r['up_um']:g}\s+{r['nodes']}\s", printed, re.M), printed
+    assert doc["table"][0]["nodes"] > doc["table"][1]["nodes"]

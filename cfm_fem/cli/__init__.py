@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import shlex
 import sys
 import warnings
@@ -30,7 +31,16 @@ EXIT_BAD_INPUT = 2
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse that raises instead of exiting, so ``main`` keeps control of the exit code."""
+    """argparse that raises instead of exiting, so ``main`` keeps control of the exit code.
+
+    A value that starts with a minus sign and a digit (``--z -100,0,100``, ``--up -10:50:10``)
+    is a value, not an option: argparse's own test takes only a plain number such as ``-100``
+    for one, and answered "expected one argument". No option of cfm-fem looks like a number.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")
 
     def error(self, message):
         raise CfmInputError(f"{self.prog}: {message}")

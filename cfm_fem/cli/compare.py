@@ -1,4 +1,5 @@
-"""Simulation against recordings (DESIGN.md 4.2 files).
+"""Simulation against recordings (CSV, one header row, '#' comments; optional columns t_s,
+dir_x, dir_y, dir_z, speed, temp_C).
 
 ``--tracker REC.csv``: Table IV of the recording and of the kinematic Monte Carlo at the same
 commanded positions, per-point standardised residuals, the Fig. 12 view and ISO 230-2 for any
@@ -22,8 +23,16 @@ HELP = "recordings against the simulation: Table IV / Fig. 12 (tracker), Table V
 
 def add_args(p):
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--tracker", metavar="REC.csv", help="laser-tracker recording")
-    src.add_argument("--hall-map", metavar="REC.csv", help="Hall-probe map recording")
+    src.add_argument(
+        "--tracker",
+        metavar="REC.csv",
+        help="laser-tracker recording: point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas (mm)",
+    )
+    src.add_argument(
+        "--hall-map",
+        metavar="REC.csv",
+        help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
+    )
     p.add_argument(
         "--reference",
         metavar="FIELD",

@@ -1,7 +1,7 @@
 """Find what the simulation left out: calibrate the bench model to tracker or Hall-map
 recordings, locate significant residuals, attribute them to catalogued physical effects by nested
-model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json
-(DESIGN.md 4.3), DIR/report.md with PNG plots, and residual maps DIR/residual_*.vtu.
+model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
+DIR/report.md with PNG plots, and residual maps DIR/residual_*.vtu.
 
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map

@@ -77,19 +77,20 @@ def run(args) -> int:
     files.update(rep.images)
     files["report.html"] = rep.render()
     paths = write_run(args.out, files)
+    # the body nodes that kept every trial: fewer at U_p > 0 (surface nodes lose trials)
     print(
-        f"U_f (95 %) over the {summary['table'][0]['nodes']} magnet-body nodes, B_ref = "
-        f"{summary['b_ref_T']:.6g} T; {args.trials} trials/node (+-"
-        f"{100 * summary['uf_relative_mc_std']:.1f} % per node)"
+        f"U_f (95 %) over the magnet-body nodes (|z| <= {summary['body_half_length_mm']:g} mm) "
+        f"that kept every trial, B_ref = {summary['b_ref_T']:.6g} T; {args.trials} trials/node "
+        f"(+-{100 * summary['uf_relative_mc_std']:.1f} % per node)"
     )
-    print(f"{'U_p [um]':>9}{'p50':>8}{'p95':>8}{'max':>8}{'law':>8}{'paper':>7}")
+    print(f"{'U_p [um]':>9}{'nodes':>8}{'p50':>8}{'p95':>8}{'max':>8}{'law':>8}{'paper':>7}")
     for r in summary["table"]:
         paper = "" if r["paper"] is None else f"{r['paper']:g}"
         cells = "".join(
             f"{'-':>8}" if r[k] is None else f"{r[k]:8.1f}"
             for k in ("p50", "p95", "max", "analytic")
         )  # None: no complete body node, or no gradient for the law
-        print(f"{r['up_um']:9g}{cells}{paper:>7}")
+        print(f"{r['up_um']:9g}{r['nodes']:8d}{cells}{paper:>7}")
     print(summary["explanation"])
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0

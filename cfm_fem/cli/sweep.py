@@ -49,9 +49,8 @@ def add_args(p):
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     p.add_argument(
         "--up",
-        default="0:50:10",
         metavar="START:STOP:STEP",
-        help="U_p values in um, STOP included, or a comma list (default 0:50:10)",
+        help="U_p values in um, STOP included, or a comma list (default 0:50:10; mode gauss)",
     )
     p.add_argument(
         "--trials",
@@ -77,9 +76,8 @@ def add_args(p):
     p.add_argument(
         "--axis-scale",
         type=option_type(_triplet, "--axis-scale"),
-        default=(1.0, 1.0, 1.0),
         metavar="SX,SY,SZ",
-        help="per-axis multiplier of U_p (default 1,1,1: isotropic)",
+        help="per-axis multiplier of U_p (default 1,1,1: isotropic; mode gauss)",
     )
     p.add_argument(
         "--interpolation",
@@ -88,7 +86,11 @@ def add_args(p):
         help="auto: the export's cells if any, Kuhn triangulation of a grid, else Delaunay",
     )
     p.add_argument(
-        "--format", dest="fmt", metavar="FMT", help="input format if the extension is ambiguous"
+        "--format",
+        dest="fmt",
+        metavar="FMT",
+        help="input format if the extension is ambiguous: comsol, opera, table (or csv), or a "
+        "meshio format (vtu, vtk, gmsh, xdmf, ...)",
     )
     p.add_argument(
         "--length-unit",
@@ -373,6 +375,9 @@ def parse_up_range(text: str) -> list[float]:
         raise CfmInputError(
             f"--up gives {len(values)} U_p values; expected at most {MAX_UP_VALUES}"
         )
+    from ..sweep import check_up_distinct
+
+    check_up_distinct(values, "--up")
     return values
 
 
@@ -388,6 +393,15 @@ def run(args) -> int:
             "--bench is used by --mode htm only (mode gauss has no bench model); "
             "add --mode htm or leave out --bench"
         )
+    given = [o for o, v in (("--up", args.up), ("--axis-scale", args.axis_scale)) if v is not None]
+    if given and args.mode == "htm":  # htm draws the probe error from the bench: no U_p in it
+        raise CfmInputError(
+            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by mode gauss only "
+            "(mode htm draws the probe error from the bench model); leave "
+            f"{'it' if len(given) == 1 else 'them'} out"
+        )
+    args.up = "0:50:10" if args.up is None else args.up
+    args.axis_scale = (1.0, 1.0, 1.0) if args.axis_scale is None else args.axis_scale
     check_out_dir(args.out)
     check_seed(args.seed)
     up = parse_up_range(args.up)

@@ -56,6 +56,10 @@ def detect_format(path) -> str:
     ``0``) means Opera, a Tecplot header (``.dat``) goes to meshio, anything else is a table.
     Other extensions go to meshio.
     """
+    if Path(path).is_dir():  # else "unknown mesh file extension ''" for a folder
+        raise CfmInputError("this is a folder; expected a field-map file", file=path)
+    if not Path(path).exists():  # before the extension: a typo'd name has the wrong one
+        raise CfmInputError("cannot read the file: it does not exist", file=path)
     suffix = Path(path).suffix.lower()
     if suffix == ".table":
         return "opera"

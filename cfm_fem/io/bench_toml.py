@@ -83,6 +83,9 @@ class _Doc:
                 table = [p.strip().strip("\"'") for p in m.group(1).split(".")]
                 if table == parts:
                     return n
+                # a table only named inside a longer header ([errors.w.delta_y] for errors.w)
+                if table[: len(parts)] == parts and best is None:
+                    best = n
                 continue
             k = keyline.match(line)
             if not k:

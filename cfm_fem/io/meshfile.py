@@ -72,6 +72,8 @@ def read_meshfile(
         tetrahedra, (m, 3) triangles of a planar map, or None; ``lines`` is None.
     """
     file = str(path)
+    if Path(path).is_dir():
+        raise CfmInputError("this is a folder; expected a field-map file", file=file)
     if not Path(path).is_file():
         raise CfmInputError("cannot read the file: it does not exist", file=file)
     fmt = meshio_format(path, file_format)

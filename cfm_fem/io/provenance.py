@@ -14,6 +14,8 @@ import platform
 import re
 from pathlib import Path
 
+from ..errors import CfmInputError
+
 __all__ = ["file_sha256", "bench_input", "provenance", "xml_comment", "read_xml_provenance"]
 
 #: Start of the XML comment that carries the provenance JSON.
@@ -21,11 +23,15 @@ XML_TAG = "cfm_fem provenance:"
 
 
 def file_sha256(path) -> str:
-    """SHA-256 of a file's bytes, hex."""
+    """SHA-256 of a file's bytes, hex; a file that cannot be read is a `CfmInputError` (the
+    out-of-core sweep hashes its input before it reads it)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
     return h.hexdigest()
 
 
