@@ -1321,21 +1321,29 @@ def node_reach(coords, simplices, transform, boxes, box, dims, bstart, bcells, n
 
     A lower bound on the distance from g to the cells not incident to g: per cell, the larger
     of the distance to its bounding box and the largest distance of g beyond one of its face
-    planes (``-lam_j(g) / |grad lam_j|``), for the cells whose bounding box comes within
-    ``cap`` of g (the others are farther than that). A point nearer to g than this is in the
-    mesh if and only if it is in a star cell, however the mesh folds further away:
+    planes (``-lam_j(g) / |grad lam_j|``), the least over the cells whose bounding box comes
+    within ``cap`` of g (the others are farther than that). A point nearer to g than this is
+    in the mesh if and only if it is in a star cell, however the mesh folds further away:
     `star_exit` proves trials outside with it.
+
+    The least is found without testing every cell within ``cap``: the cells of g's own bucket
+    first, then only the buckets within the distance found so far (a cell whose box is that
+    near is listed in one of them), each cell once (at the first of those buckets that lists
+    it) and only while its box is nearer than the distance found so far. The cells left out
+    cannot lower it, so the result is that of testing them all, bit for bit (a least over a
+    set does not depend on the order).
 
     Parameters
     ----------
     coords : ndarray, shape (n, d), mm
     simplices, transform : mesh arrays
     boxes : ndarray, shape (m, 2, d), mm
-        Lower and upper corner of each cell's bounding box.
-    box, dims, bstart, bcells : bucket lists of the cells (`find_cell`)
+        Lower and upper corner of each cell's bounding box (`cell_boxes`).
+    box, dims, bstart, bcells : bucket lists of the cells (`find_cell`), built from ``boxes``
+        (`bucket_lists`)
     nodes : ndarray, shape (k,), int64
     cap : ndarray, shape (k,), mm
-        Search radius per node (`cfm_fem.interpolation.star_height`).
+        Search radius per node (`star_sizes`).
 
     Returns
     -------
@@ -1343,103 +1351,253 @@ def node_reach(coords, simplices, transform, boxes, box, dims, bstart, bcells, n
         At most ``cap``; 0 where a cell not incident to g touches it (a non-conforming mesh).
     """
     d = coords.shape[1]
-    dp1 = d + 1
     out = np.empty(nodes.shape[0])
     lo = np.empty(d, dtype=np.int64)
     hi = np.empty(d, dtype=np.int64)
-    idx = np.empty(d, dtype=np.int64)
+    own = np.empty(d, dtype=np.int64)
+    c0 = np.empty(d, dtype=np.int64)
+    c1 = np.empty(d, dtype=np.int64)
     gsum = np.empty(d)
+    # a margin on the radius of the second pass, far above the rounding of the bucket indices
+    margin = np.inf
+    for a in range(d):
+        margin = min(margin, 1e-6 / box[1, a])
+    e = 3 - d
+    n1 = dims[1 - e]
+    n2 = dims[2 - e]
+    idx = np.empty(d, dtype=np.int64)  # the bucket's index along each axis
     for i in range(nodes.shape[0]):
         g = nodes[i]
         r = cap[i]
-        n_b = 1
+        if not _reach_range(coords, g, r, box, dims, lo, hi):
+            out[i] = r
+            continue
+        # pass 1: g's own bucket (inside the range of cap, as the index is monotonic)
+        b_own = 0
         for a in range(d):
-            x0 = np.floor((coords[g, a] - r - box[0, a]) * box[1, a])
-            x1 = np.floor((coords[g, a] + r - box[0, a]) * box[1, a])
-            lo[a] = np.int64(max(x0, 0.0))
-            hi[a] = np.int64(min(x1, dims[a] - 1.0))
-            n_b *= max(hi[a] - lo[a] + 1, 0)
-        for k in range(n_b):  # every bucket of the box around g
-            rest = k
-            b = 0
-            for a in range(d - 1, -1, -1):
-                w = hi[a] - lo[a] + 1
-                idx[a] = lo[a] + rest % w
-                rest //= w
-            for a in range(d):
-                b = b * dims[a] + idx[a]
-            for e in range(bstart[b], bstart[b + 1]):
-                c = bcells[e]
-                gap = 0.0  # squared distance from g to the cell's bounding box
-                for a in range(d):
-                    x = coords[g, a]
-                    gap += max(boxes[c, 0, a] - x, 0.0, x - boxes[c, 1, a]) ** 2
-                if gap > cap[i] * cap[i]:
-                    continue
-                own = False
-                for j in range(dp1):
-                    own |= simplices[c, j] == g
-                if own:
-                    continue
-                lb = 0.0
-                lsum = 0.0
-                for a in range(d):
-                    gsum[a] = 0.0
-                for j in range(d):
-                    lam = 0.0
-                    gn = 0.0
-                    for a in range(d):
-                        lam += transform[c, j, a] * (coords[g, a] - transform[c, d, a])
-                        gn += transform[c, j, a] ** 2
-                        gsum[a] += transform[c, j, a]
-                    lsum += lam
-                    if lam < 0.0:
-                        lb = max(lb, -lam / math.sqrt(gn))
-                gn = 0.0
-                for a in range(d):
-                    gn += gsum[a] ** 2
-                if 1.0 - lsum < 0.0:
-                    lb = max(lb, -(1.0 - lsum) / math.sqrt(gn))
-                r = min(r, max(lb, math.sqrt(gap)))  # both bound the distance from below
+            x = np.floor((coords[g, a] - box[0, a]) * box[1, a])
+            own[a] = min(max(np.int64(max(x, -1.0)), lo[a]), hi[a])
+            b_own = b_own * dims[a] + own[a]
+        for k in range(bstart[b_own], bstart[b_own + 1]):
+            c = bcells[k]
+            gap = _box_gap(coords, g, boxes, c)
+            r = _reach_cell(coords, simplices, transform, g, c, gap, cap[i], r, gsum)
+        # pass 2: the other buckets within r (narrowed range of cap), each cell once; three
+        # nested loops as in `_bucket_pass`
+        _reach_range(coords, g, min(r + margin, cap[i]), box, dims, lo, hi)
+        x0 = lo[0] if e == 0 else 0
+        x1 = hi[0] if e == 0 else 0
+        for x in range(x0, x1 + 1):
+            if e == 0:
+                idx[0] = x
+            for y in range(lo[1 - e], hi[1 - e] + 1):
+                idx[1 - e] = y
+                row = (x * n1 + y) * n2
+                for z in range(lo[2 - e], hi[2 - e] + 1):
+                    idx[2 - e] = z
+                    b = row + z
+                    if b == b_own:
+                        continue
+                    for k in range(bstart[b], bstart[b + 1]):
+                        c = bcells[k]
+                        gap = _box_gap(coords, g, boxes, c)
+                        if gap > cap[i] * cap[i] or math.sqrt(gap) >= r:
+                            continue  # as `_reach_cell` would: r stays
+                        _padded_range(boxes, c, box, dims, c0, c1)
+                        first = True  # b is the first bucket of the range that lists c
+                        for a in range(d):
+                            first &= max(c0[a], lo[a]) == idx[a]
+                        if first:
+                            r = _reach_cell(coords, simplices, transform, g, c, gap, cap[i], r,
+                                            gsum)  # fmt: skip
         out[i] = r
     return out
 
 
 @nb.njit(inline="always", **JIT)
-def _bucket_pass(i0, span, dims, slot, out):
-    """One pass of `bucket_lists`: with ``out`` empty, count the cells of each bucket into
-    ``slot[b + 1]``; else write each cell at ``slot[b]`` of its buckets and advance it."""
-    m, d = i0.shape
-    idx = np.empty(d, dtype=np.int64)
-    count = out.shape[0] == 0
-    for c in range(m):
-        n = 1
+def _reach_range(coords, g, r, box, dims, lo, hi):
+    """Buckets within ``r`` of node g along each axis (lo..hi, clipped); False: none."""
+    d = coords.shape[1]
+    for a in range(d):
+        x0 = np.floor((coords[g, a] - r - box[0, a]) * box[1, a])
+        x1 = np.floor((coords[g, a] + r - box[0, a]) * box[1, a])
+        lo[a] = np.int64(max(x0, 0.0))
+        hi[a] = np.int64(min(x1, dims[a] - 1.0))
+        if hi[a] < lo[a]:
+            return False
+    return True
+
+
+@nb.njit(inline="always", **JIT)
+def _box_gap(coords, g, boxes, c):
+    """Squared distance from node g to cell c's bounding box, mm^2."""
+    gap = 0.0
+    for a in range(coords.shape[1]):
+        x = coords[g, a]
+        gap += max(boxes[c, 0, a] - x, 0.0, x - boxes[c, 1, a]) ** 2
+    return gap
+
+
+@nb.njit(inline="always", **JIT)
+def _reach_cell(coords, simplices, transform, g, c, gap, cap, r, gsum):
+    """`node_reach`'s distance r after cell c (squared distance ``gap`` from g to its box):
+    min(r, its bound) if c is not g's and its box is within ``cap`` of g; r unchanged when the
+    box is not nearer than r (no bound can be)."""
+    d = coords.shape[1]
+    if gap > cap * cap:
+        return r
+    dist = math.sqrt(gap)
+    if dist >= r:
+        return r
+    for j in range(d + 1):
+        if simplices[c, j] == g:
+            return r
+    lb = 0.0
+    lsum = 0.0
+    for a in range(d):
+        gsum[a] = 0.0
+    for j in range(d):
+        lam = 0.0
+        gn = 0.0
         for a in range(d):
-            n *= span[c, a]
-        for r in range(n):  # the box's buckets, last axis fastest
-            rest = r
-            for a in range(d - 1, -1, -1):
-                idx[a] = i0[c, a] + rest % span[c, a]
-                rest //= span[c, a]
-            b = 0
-            for a in range(d):
-                b = b * dims[a] + idx[a]
-            if count:
-                slot[b + 1] += 1
-            else:
-                out[slot[b]] = c
-                slot[b] += 1
+            lam += transform[c, j, a] * (coords[g, a] - transform[c, d, a])
+            gn += transform[c, j, a] ** 2
+            gsum[a] += transform[c, j, a]
+        lsum += lam
+        if lam < 0.0:
+            lb = max(lb, -lam / math.sqrt(gn))
+    gn = 0.0
+    for a in range(d):
+        gn += gsum[a] ** 2
+    if 1.0 - lsum < 0.0:
+        lb = max(lb, -(1.0 - lsum) / math.sqrt(gn))
+    return min(r, max(lb, dist))  # both bound the distance from below
 
 
 @nb.njit(**JIT)
-def bucket_lists(i0, span, dims):
-    """CSR lists of the buckets each cell's box meets (`cfm_fem.interpolation.cell_buckets`),
-    counted, then filled in cell order: no temporaries per entry.
+def cell_boxes(coords, simplices):
+    """Bounding box of each cell.
 
     Parameters
     ----------
-    i0, span : ndarray, shape (m, d), int64
-        Per cell, the first bucket along each axis and how many it spans.
+    coords : ndarray, shape (n, d), mm
+    simplices : ndarray, shape (m, d + 1), int
+
+    Returns
+    -------
+    ndarray, shape (m, 2, d), mm
+        Lower and upper corner: the least and the largest coordinate of the cell's vertices.
+    """
+    m, dp1 = simplices.shape
+    d = coords.shape[1]
+    out = np.empty((m, 2, d))
+    for c in range(m):
+        for a in range(d):
+            lo = coords[simplices[c, 0], a]
+            hi = lo
+            for j in range(1, dp1):
+                x = coords[simplices[c, j], a]
+                lo = min(lo, x)
+                hi = max(hi, x)
+            out[c, 0, a] = lo
+            out[c, 1, a] = hi
+    return out
+
+
+@nb.njit(inline="always", **JIT)
+def _padded(boxes, c):
+    """The padding of cell c's box in the bucket grid: 1e-8 of its largest side, so a point
+    the cell holds within the barycentric tolerance is inside the padded box."""
+    side = 0.0
+    for a in range(boxes.shape[2]):
+        side = max(side, boxes[c, 1, a] - boxes[c, 0, a])
+    return 1e-8 * side
+
+
+@nb.njit(**JIT)
+def padded_extent(boxes):
+    """Lower and upper corner of the union of the padded cell boxes (`_padded`), mm, shape
+    (2, d): the extent of the bucket grid (`cfm_fem.interpolation.cell_buckets`)."""
+    m, _, d = boxes.shape
+    out = np.empty((2, d))
+    out[0] = np.inf
+    out[1] = -np.inf
+    for c in range(m):
+        pad = _padded(boxes, c)
+        for a in range(d):
+            out[0, a] = min(out[0, a], boxes[c, 0, a] - pad)
+            out[1, a] = max(out[1, a], boxes[c, 1, a] + pad)
+    return out
+
+
+@nb.njit(inline="always", **JIT)
+def _padded_range(boxes, c, box, dims, i0, i1):
+    """First and last bucket along each axis (clipped to the grid) that cell c's padded box
+    meets, into i0, i1."""
+    pad = _padded(boxes, c)
+    for a in range(boxes.shape[2]):
+        x0 = np.int64(np.floor((boxes[c, 0, a] - pad - box[0, a]) * box[1, a]))
+        x1 = np.int64(np.floor((boxes[c, 1, a] + pad - box[0, a]) * box[1, a]))
+        i0[a] = min(max(x0, 0), dims[a] - 1)
+        i1[a] = min(max(x1, 0), dims[a] - 1)
+
+
+@nb.njit(**JIT)
+def bucket_entries(boxes, box, dims):
+    """How many (cell, bucket) entries the lists of `bucket_lists` would hold."""
+    d = boxes.shape[2]
+    i0 = np.empty(d, dtype=np.int64)
+    i1 = np.empty(d, dtype=np.int64)
+    total = 0
+    for c in range(boxes.shape[0]):
+        _padded_range(boxes, c, box, dims, i0, i1)
+        n = 1
+        for a in range(d):
+            n *= i1[a] - i0[a] + 1
+        total += n
+    return total
+
+
+@nb.njit(inline="always", **JIT)
+def _bucket_pass(boxes, box, dims, slot, out):
+    """One pass of `bucket_lists`: with ``out`` empty, count the cells of each bucket into
+    ``slot[b + 1]``; else write each cell at ``slot[b]`` of its buckets and advance it."""
+    m, _, d = boxes.shape
+    i0 = np.empty(d, dtype=np.int64)
+    i1 = np.empty(d, dtype=np.int64)
+    # three nested loops (a planar mesh: one bucket along a first axis of its own), twice as
+    # fast as a loop over d axes
+    e = 3 - d
+    n1 = dims[1 - e]
+    n2 = dims[2 - e]
+    count = out.shape[0] == 0
+    for c in range(m):
+        _padded_range(boxes, c, box, dims, i0, i1)
+        x0 = i0[0] if e == 0 else 0
+        x1 = i1[0] if e == 0 else 0
+        for x in range(x0, x1 + 1):
+            for y in range(i0[1 - e], i1[1 - e] + 1):
+                row = (x * n1 + y) * n2
+                for b in range(row + i0[2 - e], row + i1[2 - e] + 1):  # last axis fastest
+                    if count:
+                        slot[b + 1] += 1
+                    else:
+                        out[slot[b]] = c
+                        slot[b] += 1
+
+
+@nb.njit(**JIT)
+def bucket_lists(boxes, box, dims):
+    """CSR lists of the buckets each cell's padded box meets
+    (`cfm_fem.interpolation.cell_buckets`), counted, then filled in cell order: no
+    temporaries per entry or per cell.
+
+    Parameters
+    ----------
+    boxes : ndarray, shape (m, 2, d), mm
+        The cells' bounding boxes (`cell_boxes`), padded here (`_padded`).
+    box : ndarray, shape (2, d)
+        Lower corner of the grid (mm) and buckets per mm along each axis.
     dims : ndarray, shape (d,), int64
         Buckets along each axis; flat bucket index in C order.
 
@@ -1453,23 +1611,27 @@ def bucket_lists(i0, span, dims):
     for a in range(dims.shape[0]):
         n_b *= dims[a]
     bstart = np.zeros(n_b + 1, dtype=np.int64)
-    _bucket_pass(i0, span, dims, bstart, np.empty(0, dtype=np.int64))
+    _bucket_pass(boxes, box, dims, bstart, np.empty(0, dtype=np.int32))
     for b in range(n_b):
         bstart[b + 1] += bstart[b]
     fill = bstart[:-1].copy()
     bcells = np.empty(bstart[n_b], dtype=np.int32)  # held for the run: 4 bytes per entry
-    _bucket_pass(i0, span, dims, fill, bcells)
+    _bucket_pass(boxes, box, dims, fill, bcells)
     return bstart, bcells
 
 
 @nb.njit(**JIT)
-def star_sizes(nodes, start, simplices, neighbors):
+def star_sizes(nodes, start, simplices, neighbors, transform):
     """Per node g, the cells reached from ``start[g]`` across faces that contain g (its star,
-    as `build_star` builds it), counted up to MAX_STAR + 1.
+    as `build_star` builds it), counted up to MAX_STAR + 1, and g's largest height over the
+    face opposite it in one of them.
 
     Fewer than the cells incident to g: the node's cells form several face-connected parts
     (a node where removed hull slivers or a pinched mesh leave two wedges meeting at an edge or
     a point); the star then misses incident cells, and `node_reach` is no proof there.
+    Otherwise the height is over all of g's cells: `node_reach`'s search radius (the cells
+    across those faces are about that near, so a wider search would seldom find a larger
+    reach).
 
     Parameters
     ----------
@@ -1477,13 +1639,18 @@ def star_sizes(nodes, start, simplices, neighbors):
     start : ndarray, shape (n,), int64
         A cell incident to each node (-1: none).
     simplices, neighbors : ndarray, shape (m, d + 1), int64
+    transform : ndarray, shape (m, d + 1, d)
 
     Returns
     -------
-    ndarray, shape (k,), int64
+    sizes : ndarray, shape (k,), int64
+    height : ndarray, shape (k,), mm
+        1 / |grad lam_j| of the cells s counted, j the vertex of s at g, largest (0 for a node
+        in no cell).
     """
     dp1 = simplices.shape[1]
     out = np.zeros(nodes.shape[0], dtype=np.int64)
+    height = np.zeros(nodes.shape[0])
     seen = np.empty(MAX_STAR + 1, dtype=np.int64)
     for i in range(nodes.shape[0]):
         g = nodes[i]
@@ -1497,6 +1664,8 @@ def star_sizes(nodes, start, simplices, neighbors):
             k += 1
             for j in range(dp1):
                 ns = neighbors[s, j]
+                if simplices[s, j] == g:
+                    height[i] = max(height[i], _node_height(transform, s, j))
                 if simplices[s, j] == g or ns < 0:
                     continue
                 new = True
@@ -1506,7 +1675,24 @@ def star_sizes(nodes, start, simplices, neighbors):
                     seen[n] = ns
                     n += 1
         out[i] = n
-    return out
+    return out, height
+
+
+@nb.njit(inline="always", **JIT)
+def _node_height(transform, s, j):
+    """Height of vertex j of cell s over the opposite face, 1 / |grad lam_j|, mm (the gradient
+    of the last coordinate is minus the sum of the others, summed in numpy's order)."""
+    d = transform.shape[2]
+    gn = 0.0
+    for a in range(d):
+        if j < d:
+            v = transform[s, j, a]
+        else:
+            v = transform[s, 0, a]
+            for q in range(1, d):
+                v += transform[s, q, a]
+        gn += v * v
+    return 1.0 / math.sqrt(gn)
 
 
 @nb.njit(**JIT)

@@ -704,21 +704,26 @@ def face_excess(coords, simplices, transform, neighbors):
     local = np.full(len(hull.points), -1, dtype=np.int64)
     local[hull.vertices] = np.arange(len(hull.vertices))
     tri = local[hull.simplices]
-    i, j = np.triu_indices(d, 1)
-    edges = np.unique(np.concatenate([tri[:, [a, b]] for a, b in zip(i, j, strict=True)] +
-                                     [tri[:, [b, a]] for a, b in zip(i, j, strict=True)]),
-                      axis=0)  # fmt: skip
-    adj_start = np.searchsorted(edges[:, 0], np.arange(len(pts) + 1)).astype(np.int64)
+    h = len(pts)  # an edge (v, w) as the key v * h + w: a 1-D unique, ten times faster
+    pairs = [(a, b) for a in range(d) for b in range(d) if a != b]  # both directions
+    key = np.unique(np.concatenate([tri[:, a] * h + tri[:, b] for a, b in pairs]))
+    adj_start = np.searchsorted(key // h, np.arange(h + 1)).astype(np.int64)
     vertex = coords[simplices[s_idx, (j_idx + 1) % dp1]]  # a vertex of each face
     start = scipy.spatial.cKDTree(pts).query(vertex)[1].astype(np.int64)
-    ex = _kernels.hull_max(pts, adj_start, np.ascontiguousarray(edges[:, 1]), start,
+    ex = _kernels.hull_max(pts, adj_start, key % h, start,
                            np.ascontiguousarray(-grad), -shift)  # fmt: skip
     ex[~(ex > _kernels.EXCESS_TOL)] = 0.0
     out[s_idx, j_idx] = ex
     return out
 
 
-def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float = 48.0):
+def cell_buckets(
+    coords,
+    simplices,
+    per_bucket: float = 4.0,
+    max_entries: float = 48.0,
+    boxes=None,
+):
     """Uniform grid of buckets over the cells, each listing the cells whose bounding box meets
     it (CSR), for the exact search `cfm_fem._kernels.find_cell`.
 
@@ -731,6 +736,8 @@ def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float 
     max_entries : float
         Coarser grids are taken while the lists hold more than this many entries per cell (a
         few large cells over many buckets).
+    boxes : ndarray, shape (m, 2, d), mm, optional
+        The cells' bounding boxes (`cfm_fem._kernels.cell_boxes`), if the caller has them.
 
     Returns
     -------
@@ -744,33 +751,24 @@ def cell_buckets(coords, simplices, per_bucket: float = 4.0, max_entries: float 
     """
     m, dp1 = simplices.shape
     d = dp1 - 1
-    lo = coords[simplices[:, 0]].copy()
-    hi = lo.copy()
-    for j in range(1, dp1):
-        v = coords[simplices[:, j]]
-        np.minimum(lo, v, out=lo)
-        np.maximum(hi, v, out=hi)
-    # padded, so a point a cell holds within the barycentric tolerance is inside its box
-    pad = 1e-8 * (hi - lo).max(axis=1, keepdims=True)
-    lo -= pad
-    hi += pad
-    g_lo, g_hi = lo.min(axis=0), hi.max(axis=0)
+    if boxes is None:
+        boxes = _kernels.cell_boxes(coords, simplices)
+    # the boxes are padded (`cfm_fem._kernels._padded`), so a point a cell holds within the
+    # barycentric tolerance is inside its box; per cell, on the fly: no (m, d) temporaries
+    g_lo, g_hi = _kernels.padded_extent(boxes)
     ext = g_hi - g_lo
     while True:
         step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
         dims = np.maximum(np.ceil(ext / step), 1).astype(np.int64)
         inv = dims / ext
-        i0 = np.clip(np.floor((lo - g_lo) * inv).astype(np.int64), 0, dims - 1)
-        i1 = np.clip(np.floor((hi - g_lo) * inv).astype(np.int64), 0, dims - 1)
-        span = i1 - i0 + 1
-        count = np.prod(span, axis=1)
-        if count.sum() <= max_entries * m or dims.prod() == 1:
+        box = np.ascontiguousarray(np.stack([g_lo, inv]))
+        if _kernels.bucket_entries(boxes, box, dims) <= max_entries * m or dims.prod() == 1:
             break
         per_bucket *= 4.0
     # counted, then filled in cell order: no per-entry temporaries (a few GB on a
     # 1e6-node map), and the cells of a bucket stay increasing
-    bstart, bcells = _kernels.bucket_lists(i0, span, dims)
-    return np.ascontiguousarray(np.stack([g_lo, inv])), dims, bstart, bcells
+    bstart, bcells = _kernels.bucket_lists(boxes, box, dims)
+    return box, dims, bstart, bcells
 
 
 def no_search(dim: int) -> tuple:
@@ -778,17 +776,6 @@ def no_search(dim: int) -> tuple:
     return (np.zeros((0, dim + 1), dtype=np.float32), np.zeros(0), np.zeros((2, dim)),
             np.zeros(dim, dtype=np.int64), np.zeros(1, dtype=np.int64),
             np.zeros(0, dtype=np.int32))  # fmt: skip
-
-
-def star_height(transform, simplices, n_nodes: int) -> np.ndarray:
-    """Per node, its largest height over the face opposite it in one of its cells, mm (0 for
-    nodes in no cell): the search radius of `cfm_fem._kernels.node_reach`. The cells across
-    those faces are about that near, so a wider search would seldom find a larger reach."""
-    d = transform.shape[2]
-    grad = np.concatenate([transform[:, :d], -transform[:, :d].sum(axis=1, keepdims=True)], 1)
-    out = np.zeros(n_nodes)
-    np.maximum.at(out, simplices.ravel(), 1.0 / np.linalg.norm(grad, axis=2).ravel())
-    return out
 
 
 def exact_search(mesh: SimplexMesh) -> tuple:
@@ -813,27 +800,22 @@ def exact_search(mesh: SimplexMesh) -> tuple:
     low = ex32 < excess
     ex32[low] = np.nextafter(ex32[low], np.float32(np.inf))
     excess = ex32
-    buckets = cell_buckets(mesh.coords, mesh.simplices)
+    boxes = _kernels.cell_boxes(mesh.coords, mesh.simplices)  # (m, 2, d), for this call only
+    buckets = cell_buckets(mesh.coords, mesh.simplices, boxes=boxes)
     s_idx, j_idx = np.nonzero(excess > 0.0)
     on_face = np.ones((len(s_idx), mesh.dim + 1), dtype=bool)
     on_face[np.arange(len(s_idx)), j_idx] = False
     nodes = np.unique(mesh.simplices[s_idx][on_face])
-    reach = np.zeros(len(mesh.coords))
-    boxes = np.empty((len(mesh.simplices), 2, mesh.dim))  # vertex by vertex: no (m, d + 1, d)
-    boxes[:, 0] = boxes[:, 1] = mesh.coords[mesh.simplices[:, 0]]
-    for j in range(1, mesh.dim + 1):
-        v = mesh.coords[mesh.simplices[:, j]]
-        np.minimum(boxes[:, 0], v, out=boxes[:, 0])
-        np.maximum(boxes[:, 1], v, out=boxes[:, 1])
-    reach[nodes] = _kernels.node_reach(
-        mesh.coords, mesh.simplices, mesh.transform, boxes, *buckets, nodes,
-        star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes],
-    )  # fmt: skip
     # a node whose cells are not all face-connected: its star (`build_star`) misses some of
     # them, which come nearer than any reach proves (0: no proof, the global search decides)
     incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))
-    split = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
-    reach[nodes[split != incident[nodes]]] = 0.0
+    size, height = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors,
+                                       mesh.transform)  # fmt: skip
+    whole = size == incident[nodes]
+    reach = np.zeros(len(mesh.coords))
+    reach[nodes[whole]] = _kernels.node_reach(
+        mesh.coords, mesh.simplices, mesh.transform, boxes, *buckets, nodes[whole], height[whole]
+    )
     return (excess, reach, *buckets)
 
 

@@ -13,7 +13,6 @@ from cfm_fem.interpolation import (
     exact_search,
     face_excess,
     interpolate_points,
-    star_height,
 )
 from cfm_fem.mc import coverage_count
 
@@ -479,22 +478,36 @@ def test_exact_search_finds_the_cell_brute_force_finds(seed):
 
 
 def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
+    """The kernel tests only the cells of the buckets nearest to the node and stops at the
+    distance found so far; the brute force over every cell gives the same numbers bit for
+    bit, at the nodes `exact_search` asks for and at every node (the grid's outer layers)."""
     mesh, _ = _l_shape(seed=3)
     search = exact_search(mesh)
     s_idx, j_idx = np.nonzero(search[0] > 0)  # the nodes of the faces with an excess
     on_face = np.arange(4)[None, :] != j_idx[:, None]
     nodes = np.unique(mesh.simplices[s_idx][on_face])
     assert len(nodes) > 50
-    cap = star_height(mesh.transform, mesh.simplices, len(mesh.coords))[nodes]
-    v = mesh.coords[mesh.simplices]
-    boxes = np.stack([v.min(1), v.max(1)], axis=1)
+    size, cap = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors,
+                                    mesh.transform)  # fmt: skip
+    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))[nodes]
+    whole = size == incident
+    assert whole.sum() > 50 and not whole.all()
+    # the heights over the star are those over every cell of the node where it holds them all
+    height = twins.star_height(mesh.transform, mesh.simplices, len(mesh.coords))
+    np.testing.assert_array_equal(cap[whole], height[nodes][whole])
+    assert (cap[~whole] <= height[nodes][~whole]).all()
+    boxes = _kernels.cell_boxes(mesh.coords, mesh.simplices)
     got = _kernels.node_reach(mesh.coords, mesh.simplices, mesh.transform, boxes, *search[2:],
                               nodes, cap)  # fmt: skip
-    np.testing.assert_allclose(got, twins.node_reach(mesh, nodes, cap), rtol=1e-12)
+    np.testing.assert_array_equal(got, twins.node_reach(mesh, nodes, cap))
+    every = np.arange(len(mesh.coords))
+    np.testing.assert_array_equal(
+        _kernels.node_reach(mesh.coords, mesh.simplices, mesh.transform, boxes, *search[2:],
+                            every, height),
+        twins.node_reach(mesh, every, height),
+    )  # fmt: skip
     # the search keeps it where the node's cells are face-connected (its star holds them all)
-    incident = np.bincount(mesh.simplices.ravel(), minlength=len(mesh.coords))[nodes]
-    whole = _kernels.star_sizes(nodes, mesh.node_cell, mesh.simplices, mesh.neighbors)
-    np.testing.assert_array_equal(np.where(whole == incident, got, 0.0), search[1][nodes])
+    np.testing.assert_array_equal(np.where(whole, got, 0.0), search[1][nodes])
     assert (got > 0).all() and (got <= cap).all()
     # points nearer to the node than its reach lie in its own cells or in none
     rng = np.random.default_rng(2)
@@ -622,18 +635,48 @@ def test_star_exit_verdicts_match_brute_force(which):
 
 def test_bucket_lists_match_twin():
     """The bucket grid of the exact search, counted and filled by the kernel, is the numpy
-    twin's (every entry listed and sorted) entry for entry, on the bundled-like L map and on
-    boxes spanning several buckets per axis."""
+    twin's (every entry listed and sorted) entry for entry, on boxes spanning several buckets
+    per axis (3-D and planar)."""
     rng = np.random.default_rng(4)
-    dims = np.array([5, 3, 7])
-    i0 = np.stack([rng.integers(0, n, 400) for n in dims], axis=1)
-    span = np.stack([rng.integers(1, n - i + 1) for n, i in zip(dims, i0.T, strict=True)], 1)
-    for got, want in zip(_kernels.bucket_lists(i0, span, dims),
-                         twins.bucket_lists(i0, span, dims), strict=True):  # fmt: skip
-        np.testing.assert_array_equal(got, want)
-    mesh, _ = _l_shape(seed=3)
-    box, dims, bstart, bcells = cell_buckets(mesh.coords, mesh.simplices)
-    assert bstart[-1] == len(bcells) >= len(mesh.simplices)
+    for dims in (np.array([5, 3, 7]), np.array([6, 4])):
+        d = len(dims)
+        box = np.stack([rng.uniform(-1, 1, d), dims / rng.uniform(1, 3, d)])  # corner, 1/mm
+        lo = box[0] + rng.uniform(-0.1, 1.0, (400, d)) * dims / box[1]  # some beyond the grid
+        boxes = np.stack([lo, lo + rng.uniform(0, 0.5, (400, d)) * dims / box[1]], axis=1)
+        i0, span = twins.padded_ranges(boxes, box, dims)
+        assert (span > 1).any(axis=0).all() and (span == 1).any()
+        assert _kernels.bucket_entries(boxes, box, dims) == np.prod(span, axis=1).sum()
+        for got, want in zip(_kernels.bucket_lists(boxes, box, dims),
+                             twins.bucket_lists(i0, span, dims), strict=True):  # fmt: skip
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("which", ["l_grid", "l_scatter", "planar", "coarsened"])
+def test_cell_buckets_match_twin_bit_for_bit(which):
+    """`cell_buckets` (boxes, padded extent and lists by kernels) gives the numpy code's grid
+    and lists exactly, including the coarser grids taken when boxes span many buckets."""
+    kw = {}
+    if which == "planar":
+        uv = np.random.default_rng(2).uniform(-3, 3, (300, 2))
+        pts = np.c_[uv[:, 0], np.full(300, 7.5), uv[:, 1]]
+        mesh = build_mesh(FieldMap.from_arrays(pts, pts + 1), "delaunay", "remove")
+        assert mesh.dim == 2
+    else:
+        mesh = _l_shape(seed=None if which == "l_grid" else 3)[0]
+    if which == "coarsened":
+        kw = dict(per_bucket=0.05, max_entries=3.0)
+    v = mesh.coords[mesh.simplices]
+    boxes = _kernels.cell_boxes(mesh.coords, mesh.simplices)
+    np.testing.assert_array_equal(boxes, np.stack([v.min(1), v.max(1)], axis=1))
+    got = cell_buckets(mesh.coords, mesh.simplices, **kw)
+    want = twins.cell_buckets(mesh.coords, mesh.simplices, **kw)
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert got[2][-1] == len(got[3]) >= len(mesh.simplices)
+    if which == "coarsened":  # the first grid held too many entries: a coarser one was taken
+        n_first = twins.cell_buckets(mesh.coords, mesh.simplices, 0.05, np.inf)[1].prod()
+        assert got[1].prod() < n_first
 
 
 def test_kernels_cached_tells_a_cold_cache_from_a_warm_one(tmp_path, monkeypatch):

@@ -191,22 +191,63 @@ def node_reach(mesh, nodes, cap):
     """Twin of `cfm_fem._kernels.node_reach`, brute force over all cells: per node, the least
     over the cells not incident to it whose bounding box comes within ``cap`` of it of the
     larger of the distance to the box and the largest distance of the node beyond one of the
-    cell's face planes (at most ``cap``)."""
+    cell's face planes (at most ``cap``). Each sum in the kernel's order, so equal bit for bit
+    to a kernel that finds the nearest cells (the least does not depend on the order)."""
     d = mesh.dim
     T = mesh.transform
-    grad = np.concatenate([T[:, :d], -T[:, :d].sum(1, keepdims=True)], axis=1)  # (m, d+1, d)
-    norm = np.linalg.norm(grad, axis=2)
+    gn = np.c_[(T[:, :d] ** 2).sum(2), (T[:, :d].sum(1) ** 2).sum(1)]  # |grad lam_j|^2
     v = mesh.coords[mesh.simplices]
     lo, hi = v.min(1), v.max(1)
     out = np.empty(len(nodes))
     for i, (g, r) in enumerate(zip(nodes, cap, strict=True)):
         x = mesh.coords[g]
-        gap = np.sqrt((np.maximum(np.maximum(lo - x, x - hi), 0.0) ** 2).sum(1))
-        near = (gap <= r) & ~(mesh.simplices == g).any(1)
-        lam = barycentric_all(mesh, x)[near]
-        lb = np.maximum(np.maximum(-lam / norm[near], 0.0).max(1), gap[near])
-        out[i] = min(r, lb.min()) if near.any() else r
+        gap = (np.maximum(np.maximum(lo - x, 0.0), x - hi) ** 2).sum(1)
+        near = (gap <= r * r) & ~(mesh.simplices == g).any(1)
+        lam = (T[near, :d] * (x - T[near, d])[:, None, :]).sum(2)
+        lam = np.c_[lam, 1.0 - lam.sum(1)]
+        lb = np.where(lam < 0.0, -lam / np.sqrt(gn[near]), 0.0).max(1)
+        out[i] = min(r, np.maximum(lb, np.sqrt(gap[near])).min()) if near.any() else r
     return out
+
+
+def star_height(transform, simplices, n_nodes):
+    """Twin of the heights of `cfm_fem._kernels.star_sizes`, over every cell of every node:
+    per node, its largest height over the face opposite it in one of its cells, mm."""
+    d = transform.shape[2]
+    grad = np.concatenate([transform[:, :d], -transform[:, :d].sum(axis=1, keepdims=True)], 1)
+    out = np.zeros(n_nodes)
+    np.maximum.at(out, simplices.ravel(), 1.0 / np.linalg.norm(grad, axis=2).ravel())
+    return out
+
+
+def padded_ranges(boxes, box, dims):
+    """Twin of `cfm_fem._kernels._padded_range` for every cell: (i0, span), shape (m, d)."""
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    pad = 1e-8 * (hi - lo).max(axis=1, keepdims=True)
+    i0 = np.clip(np.floor((lo - pad - box[0]) * box[1]).astype(np.int64), 0, dims - 1)
+    i1 = np.clip(np.floor((hi + pad - box[0]) * box[1]).astype(np.int64), 0, dims - 1)
+    return i0, i1 - i0 + 1
+
+
+def cell_buckets(coords, simplices, per_bucket=4.0, max_entries=48.0):
+    """Twin of `cfm_fem.interpolation.cell_buckets` in numpy (its code before the kernels)."""
+    m, dp1 = simplices.shape
+    d = dp1 - 1
+    v = coords[simplices]
+    lo, hi = v.min(1), v.max(1)
+    pad = 1e-8 * (hi - lo).max(axis=1, keepdims=True)
+    g_lo, g_hi = (lo - pad).min(axis=0), (hi + pad).max(axis=0)
+    ext = g_hi - g_lo
+    while True:
+        step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
+        dims = np.maximum(np.ceil(ext / step), 1).astype(np.int64)
+        box = np.stack([g_lo, dims / ext])
+        i0, span = padded_ranges(np.stack([lo, hi], axis=1), box, dims)
+        if np.prod(span, axis=1).sum() <= max_entries * m or dims.prod() == 1:
+            break
+        per_bucket *= 4.0
+    bstart, bcells = bucket_lists(i0, span, dims)
+    return box, dims, bstart, bcells.astype(np.int32)
 
 
 def bucket_lists(i0, span, dims):
