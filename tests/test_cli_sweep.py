@@ -293,8 +293,9 @@ def test_slabs_read_a_planar_map_once(tmp_path, capsys, monkeypatch):
 def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, capsys, extra):
     """A run killed while writing leaves hidden temporaries (`cfm_fem.io._atomic.atomic_path`)
     in --out; the next run removes those of its outputs, says how many in one line, and
-    leaves every other file."""
+    leaves every other file, and those modified within the hour (another run's, in flight)."""
     import os
+    import time
 
     out = tmp_path / "res"
     argv = ["sweep", str(csv_map), "--up", "0,10", "--trials", "60", *extra, "--out", str(out)]
@@ -316,6 +317,13 @@ def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, caps
         others.append(f"{pieces}.notes.txt.k3x_9abq.txt")
     for name in ours + others:
         (out / name).write_bytes(b"<VTKFile")
+    hours_ago = time.time() - 7200.0
+    for name in ours:  # a killed run's: written two hours ago
+        os.utime(out / name, (hours_ago, hours_ago))
+    # named like ours but modified a minute ago: another run may be writing it right now
+    others.append(".uf_up10um.vtu.in_fl1gt.vtu")
+    (out / others[-1]).write_bytes(b"<VTKFile")
+    os.utime(out / others[-1], (time.time() - 60.0,) * 2)
     (out / ".uf_up20um.vtu.linkto12.vtu").symlink_to(out / "summary.json")
     (out / ".uf_up30um.vtu.folder12.vtu").mkdir()
     capsys.readouterr()
@@ -478,6 +486,39 @@ def test_rerun_into_the_same_out_removes_the_earlier_runs_stale_maps_only(
     # a run that fails writes nothing and removes nothing
     assert main([*base, "--up", "5e5"]) == 2
     assert _maps_present(out) - mine == {"uf_up10um.vtu", "uf_up20um.vtu"}
+
+
+def test_leftover_temporaries_modified_within_the_hour_are_left(tmp_path):
+    """A temporary of a sweep output named as a killed run leaves it may be another run's that
+    is still writing into the same folder: only those modified an hour ago or more are
+    removed (a later run removes the others)."""
+    import os
+    import time
+
+    from cfm_fem.io.sweep_out import remove_leftover_temporaries
+
+    hour = 3600.0  # `cfm_fem.io.sweep_out.TEMPORARY_AGE_S`
+    (tmp_path / "uf_up10um").mkdir()
+    ages = {  # seconds since the last modification
+        ".uf_up20um.vtu.old_0001.vtu": 2 * hour,
+        ".summary.json.old_0002.json": hour + 1.0,
+        "uf_up10um/.piece_0001.vtu.old_0003.vtu": 3 * hour,
+        ".uf_up30um.vtu.young001.vtu": hour - 60.0,
+        ".sweep.pvd.young002.pvd": 0.0,
+        "uf_up10um/.piece_0000.vtu.young003.vtu": 5.0,
+        ".uf_up40um.vtu.future01.vtu": -600.0,  # a clock ahead of ours: young
+    }
+    now = time.time()
+    for name, age in ages.items():
+        (tmp_path / name).write_bytes(b"<VTKFile")
+        os.utime(tmp_path / name, (now - age, now - age))
+    old = sorted(n for n in ages if ".old_" in n)
+    assert sorted(remove_leftover_temporaries(tmp_path)) == old
+    left = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob(".*"))
+    assert left == sorted(set(ages) - set(old))
+    assert sorted(remove_leftover_temporaries(tmp_path, min_age_s=0.0)) == sorted(
+        n for n in left if "future" not in n
+    )
 
 
 @pytest.mark.parametrize("layout", [[], ["--pieces", "2"], ["--slabs", "2"]])

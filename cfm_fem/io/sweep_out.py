@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import re
+import stat
+import time
 from pathlib import Path
 
 import numpy as np
@@ -309,15 +311,29 @@ _OUTPUT_NAME = re.compile(r"uf_[^/]+\.(vtu|pvtu)|sweep\.pvd|summary\.json")
 _PIECE_NAME = re.compile(r"piece_[0-9]+\.vtu")
 
 
-def remove_leftover_temporaries(out_dir) -> list[str]:
+#: A temporary modified less than this long ago is left: it may be another run's, still being
+#: written in the same folder. Its age is the robust test: a temporary lives only while its
+#: writer writes that one file (`atomic_path`: made just before, renamed just after), so a live
+#: writer's is never older than one file's write (a 1e6-node map: 74 s for all its maps side by
+#: side, README), while a process id in the name would not tell a writer gone (another host on
+#: a shared folder, another container's pid namespace, a reused pid). A modification time is the
+#: file server's clock, compared with this host's: a skew of minutes is well within the hour.
+TEMPORARY_AGE_S = 3600.0
+
+
+def remove_leftover_temporaries(out_dir, min_age_s: float = TEMPORARY_AGE_S) -> list[str]:
     """Remove the temporaries of sweep outputs that a killed run left in ``out_dir``.
 
     A run killed while writing leaves the hidden temporary of the file it was writing, named
     ``.<output>.<8 random characters>.<suffix>`` (e.g. ``.uf_up20um.vtu.k3x_9abq.vtu``). Only
     regular files (no symbolic link) named so for one of a sweep's outputs (``uf_*.vtu``,
     ``uf_*.pvtu``, ``sweep.pvd``, ``summary.json``) in ``out_dir``, or for a piece
-    (``piece_<k>.vtu``) in one of its piece folders ``uf_*/``, are removed; call it once the
-    run's own outputs are written (its own temporaries are renamed by then).
+    (``piece_<k>.vtu``) in one of its piece folders ``uf_*/``, and last modified at least
+    ``min_age_s`` seconds ago, are removed; call it once the run's own outputs are written
+    (its own temporaries are renamed by then).
+
+    A younger temporary is left (`TEMPORARY_AGE_S`): another run writing into the same folder
+    at the same time would otherwise lose the file it is writing. A later run removes it.
 
     Returns
     -------
@@ -326,14 +342,19 @@ def remove_leftover_temporaries(out_dir) -> list[str]:
     """
     out = Path(out_dir)
     removed = []
+    now = time.time()
 
     def sweep(folder: Path, names: re.Pattern):
         for f in sorted(folder.glob(".*")):
             target = temp_target(f.name)
             if target is None or not names.fullmatch(target):
                 continue
-            if f.is_file() and not f.is_symlink():
-                f.unlink()
+            try:
+                st = f.lstat()
+            except OSError:  # renamed or removed by its writer meanwhile
+                continue
+            if stat.S_ISREG(st.st_mode) and now - st.st_mtime >= min_age_s:
+                f.unlink(missing_ok=True)
                 removed.append(f.relative_to(out).as_posix())
 
     if not out.is_dir():
