@@ -488,6 +488,60 @@ def test_rerun_into_the_same_out_removes_the_earlier_runs_stale_maps_only(
     assert _maps_present(out) - mine == {"uf_up10um.vtu", "uf_up20um.vtu"}
 
 
+def test_python_writers_remove_the_earlier_runs_stale_maps_once_complete(
+    csv_map, tmp_path, monkeypatch
+):
+    """`write_sweep`, `write_sweep_pieces` and `run_slab_sweep` into a folder holding an earlier
+    sweep left its maps that the new sweep.pvd does not name (only the CLI removed them). They
+    now remove them as the CLI does, after the new outputs are complete, never before; the
+    user's files stay, and ``remove_stale=False`` leaves everything."""
+    import cfm_fem.io.sweep_out as so
+    from cfm_fem.io import read_field
+    from cfm_fem.pieces import run_sweep_pieces
+    from cfm_fem.slabs import run_slab_sweep
+    from cfm_fem.sweep import SweepConfig, run_sweep, serial_map
+
+    fm = read_field(csv_map)
+    out = tmp_path / "res"
+    so.write_sweep(out, run_sweep(fm, SweepConfig(up_um=(0.0, 10.0, 20.0), trials=40)))
+    (out / "uf_custom.vtu").write_text("<VTKFile>my own map</VTKFile>\n")
+    mine = {"uf_custom.vtu"}
+    res = run_sweep(fm, SweepConfig(up_um=(10.0,), trials=40))
+    so.write_sweep(out, res)  # fewer U_p values
+    assert _maps_present(out) - mine == _maps_named(out) == {"uf_up10um.vtu"}
+
+    kept = {}
+
+    def mapper(problem, chunks):
+        for ab, r in serial_map(problem, chunks):
+            kept[ab] = r
+            yield ab, r
+
+    compact = run_sweep_pieces(fm, SweepConfig(up_um=(10.0,), trials=40), mapper)
+    full = [np.concatenate([kept[ab][i] for ab in sorted(kept)]) for i in range(5)]
+    so.write_sweep_pieces(out, compact, 3, lambda nodes: tuple(x[nodes] for x in full))
+    want = {"uf_up10um.pvtu", *(f"uf_up10um/piece_000{p}.vtu" for p in range(3))}
+    assert _maps_present(out) - mine == _maps_named(out) == want  # the one-file map is gone
+
+    run_slab_sweep(csv_map, SweepConfig(up_um=(10.0,), trials=40), out, n_slabs=2)
+    assert _maps_present(out) - mine == _maps_named(out) == want - {"uf_up10um/piece_0002.vtu"}
+
+    so.write_sweep(out, res, remove_stale=False)  # left to the caller (the CLI names them)
+    assert _maps_present(out) - mine == {"uf_up10um.vtu", *want} - {"uf_up10um/piece_0002.vtu"}
+    so.write_sweep(out, run_sweep(fm, SweepConfig(up_um=(0.0, 10.0, 20.0), trials=40)))
+    before = _maps_present(out)
+    assert before - mine == {"uf_up0um.vtu", "uf_up10um.vtu", "uf_up20um.vtu"}
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(so, "write_json", fail)  # no summary: the run is not complete
+    with pytest.raises(OSError, match="disk full"):
+        so.write_sweep(out, res)
+    assert _maps_present(out) == before  # nothing removed before the outputs were complete
+    assert (out / "uf_custom.vtu").read_text() == "<VTKFile>my own map</VTKFile>\n"
+
+
 def test_leftover_temporaries_modified_within_the_hour_are_left(tmp_path):
     """A temporary of a sweep output named as a killed run leaves it may be another run's that
     is still writing into the same folder: only those modified an hour ago or more are

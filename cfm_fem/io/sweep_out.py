@@ -25,6 +25,7 @@ __all__ = [
     "read_provenance",
     "remove_stale_maps",
     "remove_leftover_temporaries",
+    "remove_earlier_outputs",
 ]
 
 
@@ -106,12 +107,25 @@ def retire_index(out: Path) -> None:
             path.unlink()
 
 
-def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> dict:
+def write_sweep(
+    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True
+) -> dict:
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
     The maps are written first, then ``sweep.pvd``, then ``summary.json``: each file atomically,
     so an interrupted run never leaves a partial file and a present summary means a complete run
     (an earlier run's summary and index are removed first, `retire_index`).
+
+    Parameters
+    ----------
+    out_dir : path-like
+    res : SweepResult
+    provenance : dict, optional
+    remove_stale : bool
+        Once the new outputs are complete, remove what an earlier sweep left in ``out_dir``
+        that they do not use (`remove_earlier_outputs`: its maps that ``sweep.pvd`` does not
+        name, the temporaries of a killed run); False leaves them (``cfm-fem sweep`` removes
+        them itself and names them).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -138,6 +152,8 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
     entries = map_threads(write_map, range(len(res.labels)), max(1, _WRITE_BYTES // per_map))
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])  # issue 6
     write_json(out / "summary.json", summary)
+    if remove_stale:
+        remove_earlier_outputs(out)
     return summary
 
 
@@ -146,7 +162,9 @@ def pieces_name(up_um: float) -> str:
     return f"uf_up{up_um:g}um.pvtu"
 
 
-def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict | None = None):
+def write_sweep_pieces(
+    out_dir, compact, n_pieces: int, load, provenance: dict | None = None, *, remove_stale=True
+):
     """Write a sweep as ``n_pieces`` ``.vtu`` pieces per U_p value, a ``.pvtu`` index each, the
     ``sweep.pvd`` over the indices and ``summary.json``; only one piece in memory at a time.
 
@@ -159,6 +177,9 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
         Reads back the statistics of the sorted node indices ``nodes`` (e.g. from the chunk
         store: `cfm_fem.resume.ResumableRun.gather`).
     provenance : dict, optional
+    remove_stale : bool
+        As in `write_sweep`: an earlier sweep's maps this one does not use (e.g. its one-file
+        maps, or pieces beyond ``n_pieces``) are removed once the new outputs are complete.
 
     Returns
     -------
@@ -214,6 +235,8 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
         entries.append((ups[k] if compact.config.mode == "gauss" else float(k), path))
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_json(out / "summary.json", summary)
+    if remove_stale:
+        remove_earlier_outputs(out)
     return summary
 
 
@@ -364,3 +387,19 @@ def remove_leftover_temporaries(out_dir, min_age_s: float = TEMPORARY_AGE_S) -> 
         if folder.is_dir() and not folder.is_symlink():
             sweep(folder, _PIECE_NAME)
     return removed
+
+
+def remove_earlier_outputs(out_dir) -> tuple[list[str], list[str], list[str]]:
+    """After a sweep was written into ``out_dir`` (its ``sweep.pvd`` and ``summary.json`` are
+    in place): remove the temporaries a killed run left (`remove_leftover_temporaries`), then
+    the maps of an earlier sweep that this one does not use (`remove_stale_maps`). Never call
+    it before the new outputs are complete: the earlier maps are then all stale.
+
+    Returns
+    -------
+    temporaries, removed, kept : list of str
+        The temporaries removed, and `remove_stale_maps`'s two lists.
+    """
+    temporaries = remove_leftover_temporaries(out_dir)
+    removed, kept = remove_stale_maps(out_dir)
+    return temporaries, removed, kept
