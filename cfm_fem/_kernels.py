@@ -1200,7 +1200,8 @@ def locate(p, start, transform, neighbors, bary):
     int
         The simplex, ``OUTSIDE`` (-1) if the walk leaves the mesh, ``WALK_FAILED`` (-2) after
         ``MAX_WALK`` steps. On a non-convex mesh a walk can leave through a border face
-        although ``p`` is inside (behind a notch): `locate_exact` settles those.
+        although ``p`` is inside (behind a notch): `locate_exact` settles those, `settle_walk`
+        a failed walk.
     """
     return _walk(p, start, transform, neighbors, bary)[0]
 
@@ -1250,15 +1251,66 @@ def find_cell(p, transform, box, dims, bstart, bcells, bary):
     best_min = 0.0
     for i in range(bstart[b], bstart[b + 1]):
         s = bcells[i]
-        last = 1.0
-        lmin = np.inf
-        for j in range(d):
-            c = 0.0
-            for k in range(d):
-                c += transform[s, j, k] * (p[k] - transform[s, d, k])
-            last -= c
-            lmin = min(lmin, c)
-        lmin = min(lmin, last)
+        lmin = _depth(p, s, transform)
+        if lmin >= -BARY_EPS and (best < 0 or lmin > best_min):
+            best = s
+            best_min = lmin
+    if best >= 0:
+        _bary_in(p, best, transform, bary)
+    return best
+
+
+@nb.njit(inline="always", **JIT)
+def _depth(p, s, transform):
+    """Smallest barycentric coordinate of ``p`` in simplex ``s`` (>= -BARY_EPS: inside)."""
+    d = p.shape[0]
+    last = 1.0
+    lmin = np.inf
+    for j in range(d):
+        c = 0.0
+        for k in range(d):
+            c += transform[s, j, k] * (p[k] - transform[s, d, k])
+        last -= c
+        lmin = min(lmin, c)
+    return min(lmin, last)
+
+
+@nb.njit(**JIT)
+def settle_walk(p, transform, search, bary):
+    """Simplex containing ``p`` for a walk that failed (`WALK_FAILED`), found exactly.
+
+    Only a walk that cycles runs out of its ``MAX_WALK`` steps: not on a Delaunay or grid
+    mesh (in exact arithmetic the walk is acyclic there), rarely if ever on a native one (none in
+    2,000 random non-Delaunay 2-D and 400 3-D meshes tried). Counting its trial as lost took
+    the node's U_f away. With search arrays (a non-convex mesh) the bucket search `find_cell`
+    answers. Without (a convex mesh: `cfm_fem.interpolation.no_search`) every simplex is
+    tested: O(m), about 2 ms per 1e5 cells, paid only for a failed walk.
+
+    Parameters
+    ----------
+    p, transform, bary :
+        As in `locate`.
+    search : tuple
+        As in `locate_exact`.
+
+    Returns
+    -------
+    int
+        The simplex where ``p`` lies deepest (as `find_cell`), or ``OUTSIDE`` (in none).
+
+    Notes
+    -----
+    The out-of-core sweep (`cfm_fem.slabs`) appends a sentinel cell and copies of
+    uncertified cells to its arrays, which this search does not tell from the mesh; its meshes
+    are Delaunay or Kuhn grids, whose walks do not cycle: it does not come here.
+    """
+    excess, _reach, box, dims, bstart, bcells = search
+    if excess.shape[0] > 0:
+        return find_cell(p, transform, box, dims, bstart, bcells, bary)
+    best = OUTSIDE
+    best_min = 0.0
+    for s in range(transform.shape[0]):
+        lmin = _depth(p, s, transform)
         if lmin >= -BARY_EPS and (best < 0 or lmin > best_min):
             best = s
             best_min = lmin
@@ -1289,7 +1341,9 @@ def locate_exact(p, start, transform, neighbors, bary, search):
     beyond that face's plane by more than any node of the mesh does (its `face_excess`): then
     no cell can hold it. Otherwise (behind a notch, or a face left by removed hull slivers) the
     cells of ``p``'s bucket are tested (`find_cell`). On a convex mesh (empty excess table)
-    this is `locate`, step for step.
+    this is `locate`, step for step. A ``WALK_FAILED`` is returned as is, for the caller to
+    settle with `settle_walk` (that call made here took about 20 % more CPU time for the whole
+    Gaussian sweep, though never run).
 
     Parameters
     ----------
@@ -3317,6 +3371,8 @@ def _node_gauss(
             else:
                 s = locate_exact(pt, cell if cell >= 0 else start, transform, neighbors, bary,
                                  search)  # fmt: skip
+                if s == WALK_FAILED:  # rare: a walk that cycled (non-Delaunay meshes only)
+                    s = settle_walk(pt, transform, search, bary)
             if s == OUTSIDE:
                 n_out[k] += 1
                 if not extrapolate:
@@ -3326,9 +3382,6 @@ def _node_gauss(
                     for a in range(d):
                         e += exit_grad[g, c, a] * (scales[k] * disp[a])
                     err[c] = e
-            elif s == WALK_FAILED:
-                n_lost[k] += 1
-                continue
             else:
                 cell = s
                 _interp_in(s, bary, simplices, values, bi)
@@ -3347,7 +3400,7 @@ def _node_gauss(
         if scales[k] > 0.0:
             n_out[k] += n_exit
         # with extrapolation every trial has a value: exits are in-star or in m_out
-        if m_out[k] > 0 or (n_out[k] > 0 and not extrapolate) or n_lost[k] > 0:
+        if m_out[k] > 0 or (n_out[k] > 0 and not extrapolate):
             all_star = False
     # |B| per U_p: in-star trials at the front, out-of-star ones already at the back
     for k in range(n_up):
@@ -3502,7 +3555,8 @@ def gauss_sweep(
     n_out : ndarray, shape (k, n_up), int64
         Trials whose perturbed point left the mesh (left out, or extrapolated).
     n_lost : ndarray, shape (k, n_up), int64
-        Trials whose walk did not terminate (cyclic native meshes only).
+        Trials left without a value by a walk that did not end: 0, a walk that cycles is
+        settled exactly (`settle_walk`); kept for the outputs' ``walk_failed_fraction``.
     star : ndarray, shape (k,), bool
         True if every trial stayed in a cell incident to the node (errors exactly linear in U_p).
     """
@@ -3624,6 +3678,7 @@ def htm_sweep(
     -------
     stats : ndarray, shape (k, 1, 4, 6), T
     n_out, n_lost : ndarray, shape (k, 1), int64
+        As `gauss_sweep` (n_lost: 0, failed walks are settled by `settle_walk`).
     pos : ndarray, shape (k, 3, 3)
         Over all trials, per map axis: mean (row 0, mm) and standard deviation (row 1, mm) of
         the probe error, and (row 2) its correlation coefficients xy, xz, yz (0 where an
@@ -3733,6 +3788,8 @@ def htm_sweep(
         nv = 0
         for t in range(n_trials):
             s = cells[t]
+            if s == WALK_FAILED:  # rare: a walk that cycled (non-Delaunay meshes only)
+                s = settle_walk(pts[t], transform, search, bary[t])
             if s == OUTSIDE:
                 n_out[i, 0] += 1
                 if exit_grad.shape[0] == 0:
@@ -3742,9 +3799,6 @@ def htm_sweep(
                     for a in range(d):
                         e0 += exit_grad[g, c, a] * (pts[t, a] - coords[g, a])
                     comp[c, nv] = e0
-            elif s == WALK_FAILED:
-                n_lost[i, 0] += 1
-                continue
             else:
                 _interp_in(s, bary[t], simplices, values, bi)
                 for c in range(3):

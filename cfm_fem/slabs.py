@@ -102,7 +102,13 @@ from .interpolation import (
 from .io._atomic import write_json
 from .io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .io.streaming import check_opera_counts, open_stream
-from .io.sweep_out import _point_data, provenance_codes, retire_index, vtu_name
+from .io.sweep_out import (
+    _point_data,
+    provenance_codes,
+    remove_earlier_outputs,
+    retire_index,
+    vtu_name,
+)
 from .io.vtk import write_pvd, write_vtu
 from .sweep import (
     HTM_PARTS,
@@ -783,6 +789,7 @@ def run_slab_sweep(
     keep: bool = False,
     map_chunks=None,
     flat_map=None,
+    remove_stale: bool = True,
 ) -> dict | None:
     """Out-of-core sweep (module docstring); writes the outputs and returns the summary.
 
@@ -825,6 +832,10 @@ def run_slab_sweep(
     flat_map : callable(FieldMap), optional
         Given, a map that is not 3-D is handed to it as read from the staged rows
         (`staged_fieldmap`), so the caller runs it in memory without reading the file again.
+    remove_stale : bool
+        Once the outputs are complete, remove what an earlier sweep left in ``out_dir`` that
+        they do not use (`cfm_fem.io.sweep_out.remove_earlier_outputs`), as
+        `cfm_fem.io.sweep_out.write_sweep` does; False leaves them.
 
     Returns
     -------
@@ -860,13 +871,15 @@ def run_slab_sweep(
         summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
                        log, progress, t0, resume, map_chunks, progress_total)  # fmt: skip
         finished = True
-        return summary
     except CfmInputError:
         finished = True  # bad input: nothing kept
         raise
     finally:  # an interrupted resumable run keeps its finished slabs for --resume
         if description is None or (finished and not keep):
             shutil.rmtree(work, ignore_errors=True)
+    if remove_stale:  # the new outputs are complete: now the old maps can go
+        remove_earlier_outputs(out)
+    return summary
 
 
 #: Work folder of a resumable out-of-core run (staged rows, per-slab results, manifest).

@@ -134,6 +134,8 @@ class SweepResult:
         (mean, std, symmetric low/high, shortest low/high).
     n_outside : ndarray, shape (n, n_up), int64
     n_walk_failed : ndarray, shape (n, n_up), int64
+        Trials without a value because their walk did not end: 0 (a walk that cycles, on a
+        non-Delaunay native mesh, is settled by an exact search: `_kernels.settle_walk`).
     linear_in_up : ndarray, shape (n,), bool
         Every trial stayed in a cell incident to the node.
     gradient : ndarray, shape (n, 3, 3), T/mm

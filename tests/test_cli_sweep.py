@@ -293,8 +293,9 @@ def test_slabs_read_a_planar_map_once(tmp_path, capsys, monkeypatch):
 def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, capsys, extra):
     """A run killed while writing leaves hidden temporaries (`cfm_fem.io._atomic.atomic_path`)
     in --out; the next run removes those of its outputs, says how many in one line, and
-    leaves every other file."""
+    leaves every other file, and those modified within the hour (another run's, in flight)."""
     import os
+    import time
 
     out = tmp_path / "res"
     argv = ["sweep", str(csv_map), "--up", "0,10", "--trials", "60", *extra, "--out", str(out)]
@@ -316,6 +317,13 @@ def test_rerun_removes_the_temporaries_a_killed_run_left(csv_map, tmp_path, caps
         others.append(f"{pieces}.notes.txt.k3x_9abq.txt")
     for name in ours + others:
         (out / name).write_bytes(b"<VTKFile")
+    hours_ago = time.time() - 7200.0
+    for name in ours:  # a killed run's: written two hours ago
+        os.utime(out / name, (hours_ago, hours_ago))
+    # named like ours but modified a minute ago: another run may be writing it right now
+    others.append(".uf_up10um.vtu.in_fl1gt.vtu")
+    (out / others[-1]).write_bytes(b"<VTKFile")
+    os.utime(out / others[-1], (time.time() - 60.0,) * 2)
     (out / ".uf_up20um.vtu.linkto12.vtu").symlink_to(out / "summary.json")
     (out / ".uf_up30um.vtu.folder12.vtu").mkdir()
     capsys.readouterr()
@@ -478,6 +486,93 @@ def test_rerun_into_the_same_out_removes_the_earlier_runs_stale_maps_only(
     # a run that fails writes nothing and removes nothing
     assert main([*base, "--up", "5e5"]) == 2
     assert _maps_present(out) - mine == {"uf_up10um.vtu", "uf_up20um.vtu"}
+
+
+def test_python_writers_remove_the_earlier_runs_stale_maps_once_complete(
+    csv_map, tmp_path, monkeypatch
+):
+    """`write_sweep`, `write_sweep_pieces` and `run_slab_sweep` into a folder holding an earlier
+    sweep left its maps that the new sweep.pvd does not name (only the CLI removed them). They
+    now remove them as the CLI does, after the new outputs are complete, never before; the
+    user's files stay, and ``remove_stale=False`` leaves everything."""
+    import cfm_fem.io.sweep_out as so
+    from cfm_fem.io import read_field
+    from cfm_fem.pieces import run_sweep_pieces
+    from cfm_fem.slabs import run_slab_sweep
+    from cfm_fem.sweep import SweepConfig, run_sweep, serial_map
+
+    fm = read_field(csv_map)
+    out = tmp_path / "res"
+    so.write_sweep(out, run_sweep(fm, SweepConfig(up_um=(0.0, 10.0, 20.0), trials=40)))
+    (out / "uf_custom.vtu").write_text("<VTKFile>my own map</VTKFile>\n")
+    mine = {"uf_custom.vtu"}
+    res = run_sweep(fm, SweepConfig(up_um=(10.0,), trials=40))
+    so.write_sweep(out, res)  # fewer U_p values
+    assert _maps_present(out) - mine == _maps_named(out) == {"uf_up10um.vtu"}
+
+    kept = {}
+
+    def mapper(problem, chunks):
+        for ab, r in serial_map(problem, chunks):
+            kept[ab] = r
+            yield ab, r
+
+    compact = run_sweep_pieces(fm, SweepConfig(up_um=(10.0,), trials=40), mapper)
+    full = [np.concatenate([kept[ab][i] for ab in sorted(kept)]) for i in range(5)]
+    so.write_sweep_pieces(out, compact, 3, lambda nodes: tuple(x[nodes] for x in full))
+    want = {"uf_up10um.pvtu", *(f"uf_up10um/piece_000{p}.vtu" for p in range(3))}
+    assert _maps_present(out) - mine == _maps_named(out) == want  # the one-file map is gone
+
+    run_slab_sweep(csv_map, SweepConfig(up_um=(10.0,), trials=40), out, n_slabs=2)
+    assert _maps_present(out) - mine == _maps_named(out) == want - {"uf_up10um/piece_0002.vtu"}
+
+    so.write_sweep(out, res, remove_stale=False)  # left to the caller (the CLI names them)
+    assert _maps_present(out) - mine == {"uf_up10um.vtu", *want} - {"uf_up10um/piece_0002.vtu"}
+    so.write_sweep(out, run_sweep(fm, SweepConfig(up_um=(0.0, 10.0, 20.0), trials=40)))
+    before = _maps_present(out)
+    assert before - mine == {"uf_up0um.vtu", "uf_up10um.vtu", "uf_up20um.vtu"}
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(so, "write_json", fail)  # no summary: the run is not complete
+    with pytest.raises(OSError, match="disk full"):
+        so.write_sweep(out, res)
+    assert _maps_present(out) == before  # nothing removed before the outputs were complete
+    assert (out / "uf_custom.vtu").read_text() == "<VTKFile>my own map</VTKFile>\n"
+
+
+def test_leftover_temporaries_modified_within_the_hour_are_left(tmp_path):
+    """A temporary of a sweep output named as a killed run leaves it may be another run's that
+    is still writing into the same folder: only those modified an hour ago or more are
+    removed (a later run removes the others)."""
+    import os
+    import time
+
+    from cfm_fem.io.sweep_out import remove_leftover_temporaries
+
+    hour = 3600.0  # `cfm_fem.io.sweep_out.TEMPORARY_AGE_S`
+    (tmp_path / "uf_up10um").mkdir()
+    ages = {  # seconds since the last modification
+        ".uf_up20um.vtu.old_0001.vtu": 2 * hour,
+        ".summary.json.old_0002.json": hour + 1.0,
+        "uf_up10um/.piece_0001.vtu.old_0003.vtu": 3 * hour,
+        ".uf_up30um.vtu.young001.vtu": hour - 60.0,
+        ".sweep.pvd.young002.pvd": 0.0,
+        "uf_up10um/.piece_0000.vtu.young003.vtu": 5.0,
+        ".uf_up40um.vtu.future01.vtu": -600.0,  # a clock ahead of ours: young
+    }
+    now = time.time()
+    for name, age in ages.items():
+        (tmp_path / name).write_bytes(b"<VTKFile")
+        os.utime(tmp_path / name, (now - age, now - age))
+    old = sorted(n for n in ages if ".old_" in n)
+    assert sorted(remove_leftover_temporaries(tmp_path)) == old
+    left = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob(".*"))
+    assert left == sorted(set(ages) - set(old))
+    assert sorted(remove_leftover_temporaries(tmp_path, min_age_s=0.0)) == sorted(
+        n for n in left if "future" not in n
+    )
 
 
 @pytest.mark.parametrize("layout", [[], ["--pieces", "2"], ["--slabs", "2"]])

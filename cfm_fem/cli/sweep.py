@@ -206,16 +206,14 @@ def _remove_stale_maps(out) -> None:
     """After a successful run: remove the maps of an earlier run in ``out`` that this run does
     not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and the
     temporaries a killed run left (`cfm_fem.io.sweep_out.remove_leftover_temporaries`), and
-    say so."""
-    from ..io.sweep_out import remove_leftover_temporaries, remove_stale_maps
+    say so. The writers leave these to it (``remove_stale=False``): it names them."""
+    from ..io.sweep_out import remove_earlier_outputs
 
-    temps = remove_leftover_temporaries(out)
+    temps, removed, kept = remove_earlier_outputs(out)
     if temps:
         shown = ", ".join(temps[:3]) + (", ..." if len(temps) > 3 else "")
         print(f"cfm-fem sweep: removed {len(temps)} leftover temporary file(s) of an interrupted "
               f"run from {out}: {shown}", file=sys.stderr)  # fmt: skip
-
-    removed, kept = remove_stale_maps(out)
     if removed:
         pieces, items = {}, []
         for r in removed:
@@ -307,6 +305,7 @@ def _run_slabs(args, up):
                     keep=args.keep_chunks,
                     map_chunks=None if client is None else dask_chunk_map(client),
                     flat_map=flat.append,
+                    remove_stale=False,  # removed below, and named
                 )  # fmt: skip
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
@@ -516,10 +515,15 @@ def run(args) -> int:
     if args.pieces:
         chunks = chunk_ranges(fm.n_nodes, cfg.chunk_nodes)
         summary = write_sweep_pieces(
-            args.out, res, args.pieces, lambda nodes: runner.gather(nodes, chunks), prov
+            args.out,
+            res,
+            args.pieces,
+            lambda nodes: runner.gather(nodes, chunks),
+            prov,
+            remove_stale=False,
         )
     else:
-        summary = write_sweep(args.out, res, prov)
+        summary = write_sweep(args.out, res, prov, remove_stale=False)
     runner.finish(keep=args.keep_chunks)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _print_summary(summary, args.out)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import re
+import stat
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ __all__ = [
     "read_provenance",
     "remove_stale_maps",
     "remove_leftover_temporaries",
+    "remove_earlier_outputs",
 ]
 
 
@@ -104,12 +107,25 @@ def retire_index(out: Path) -> None:
             path.unlink()
 
 
-def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> dict:
+def write_sweep(
+    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True
+) -> dict:
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
     The maps are written first, then ``sweep.pvd``, then ``summary.json``: each file atomically,
     so an interrupted run never leaves a partial file and a present summary means a complete run
     (an earlier run's summary and index are removed first, `retire_index`).
+
+    Parameters
+    ----------
+    out_dir : path-like
+    res : SweepResult
+    provenance : dict, optional
+    remove_stale : bool
+        Once the new outputs are complete, remove what an earlier sweep left in ``out_dir``
+        that they do not use (`remove_earlier_outputs`: its maps that ``sweep.pvd`` does not
+        name, the temporaries of a killed run); False leaves them (``cfm-fem sweep`` removes
+        them itself and names them).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -136,6 +152,8 @@ def write_sweep(out_dir, res: SweepResult, provenance: dict | None = None) -> di
     entries = map_threads(write_map, range(len(res.labels)), max(1, _WRITE_BYTES // per_map))
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])  # issue 6
     write_json(out / "summary.json", summary)
+    if remove_stale:
+        remove_earlier_outputs(out)
     return summary
 
 
@@ -144,7 +162,9 @@ def pieces_name(up_um: float) -> str:
     return f"uf_up{up_um:g}um.pvtu"
 
 
-def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict | None = None):
+def write_sweep_pieces(
+    out_dir, compact, n_pieces: int, load, provenance: dict | None = None, *, remove_stale=True
+):
     """Write a sweep as ``n_pieces`` ``.vtu`` pieces per U_p value, a ``.pvtu`` index each, the
     ``sweep.pvd`` over the indices and ``summary.json``; only one piece in memory at a time.
 
@@ -157,6 +177,9 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
         Reads back the statistics of the sorted node indices ``nodes`` (e.g. from the chunk
         store: `cfm_fem.resume.ResumableRun.gather`).
     provenance : dict, optional
+    remove_stale : bool
+        As in `write_sweep`: an earlier sweep's maps this one does not use (e.g. its one-file
+        maps, or pieces beyond ``n_pieces``) are removed once the new outputs are complete.
 
     Returns
     -------
@@ -212,6 +235,8 @@ def write_sweep_pieces(out_dir, compact, n_pieces: int, load, provenance: dict |
         entries.append((ups[k] if compact.config.mode == "gauss" else float(k), path))
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_json(out / "summary.json", summary)
+    if remove_stale:
+        remove_earlier_outputs(out)
     return summary
 
 
@@ -309,15 +334,29 @@ _OUTPUT_NAME = re.compile(r"uf_[^/]+\.(vtu|pvtu)|sweep\.pvd|summary\.json")
 _PIECE_NAME = re.compile(r"piece_[0-9]+\.vtu")
 
 
-def remove_leftover_temporaries(out_dir) -> list[str]:
+#: A temporary modified less than this long ago is left: it may be another run's, still being
+#: written in the same folder. Its age is the robust test: a temporary lives only while its
+#: writer writes that one file (`atomic_path`: made just before, renamed just after), so a live
+#: writer's is never older than one file's write (a 1e6-node map: 74 s for all its maps side by
+#: side, README), while a process id in the name would not tell a writer gone (another host on
+#: a shared folder, another container's pid namespace, a reused pid). A modification time is the
+#: file server's clock, compared with this host's: a skew of minutes is well within the hour.
+TEMPORARY_AGE_S = 3600.0
+
+
+def remove_leftover_temporaries(out_dir, min_age_s: float = TEMPORARY_AGE_S) -> list[str]:
     """Remove the temporaries of sweep outputs that a killed run left in ``out_dir``.
 
     A run killed while writing leaves the hidden temporary of the file it was writing, named
     ``.<output>.<8 random characters>.<suffix>`` (e.g. ``.uf_up20um.vtu.k3x_9abq.vtu``). Only
     regular files (no symbolic link) named so for one of a sweep's outputs (``uf_*.vtu``,
     ``uf_*.pvtu``, ``sweep.pvd``, ``summary.json``) in ``out_dir``, or for a piece
-    (``piece_<k>.vtu``) in one of its piece folders ``uf_*/``, are removed; call it once the
-    run's own outputs are written (its own temporaries are renamed by then).
+    (``piece_<k>.vtu``) in one of its piece folders ``uf_*/``, and last modified at least
+    ``min_age_s`` seconds ago, are removed; call it once the run's own outputs are written
+    (its own temporaries are renamed by then).
+
+    A younger temporary is left (`TEMPORARY_AGE_S`): another run writing into the same folder
+    at the same time would otherwise lose the file it is writing. A later run removes it.
 
     Returns
     -------
@@ -326,14 +365,19 @@ def remove_leftover_temporaries(out_dir) -> list[str]:
     """
     out = Path(out_dir)
     removed = []
+    now = time.time()
 
     def sweep(folder: Path, names: re.Pattern):
         for f in sorted(folder.glob(".*")):
             target = temp_target(f.name)
             if target is None or not names.fullmatch(target):
                 continue
-            if f.is_file() and not f.is_symlink():
-                f.unlink()
+            try:
+                st = f.lstat()
+            except OSError:  # renamed or removed by its writer meanwhile
+                continue
+            if stat.S_ISREG(st.st_mode) and now - st.st_mtime >= min_age_s:
+                f.unlink(missing_ok=True)
                 removed.append(f.relative_to(out).as_posix())
 
     if not out.is_dir():
@@ -343,3 +387,19 @@ def remove_leftover_temporaries(out_dir) -> list[str]:
         if folder.is_dir() and not folder.is_symlink():
             sweep(folder, _PIECE_NAME)
     return removed
+
+
+def remove_earlier_outputs(out_dir) -> tuple[list[str], list[str], list[str]]:
+    """After a sweep was written into ``out_dir`` (its ``sweep.pvd`` and ``summary.json`` are
+    in place): remove the temporaries a killed run left (`remove_leftover_temporaries`), then
+    the maps of an earlier sweep that this one does not use (`remove_stale_maps`). Never call
+    it before the new outputs are complete: the earlier maps are then all stale.
+
+    Returns
+    -------
+    temporaries, removed, kept : list of str
+        The temporaries removed, and `remove_stale_maps`'s two lists.
+    """
+    temporaries = remove_leftover_temporaries(out_dir)
+    removed, kept = remove_stale_maps(out_dir)
+    return temporaries, removed, kept
