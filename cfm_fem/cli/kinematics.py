@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import note_first_compile, progress_bar
 from .sweep import add_scale_out_args
 
@@ -25,7 +25,7 @@ def add_args(p):
     )
     p.add_argument(
         "--trials",
-        type=int,
+        type=trial_count_type(),
         default=1_000_000,
         metavar="N",
         help="Monte Carlo trials (default 1e6)",

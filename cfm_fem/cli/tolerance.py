@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import CfmInputError
 from . import option_type
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
 
 NAME = "tolerance"
@@ -64,7 +64,7 @@ def add_args(p):
     p.add_argument("--out", metavar="DIR", help="write DIR/tolerance.json and DIR/bench_plan.toml")
     p.add_argument(
         "--check",
-        type=int,
+        type=trial_count_type("--check"),
         default=0,
         metavar="N",
         help="verify the plan with an N-trial Monte Carlo of the exact model (0: skip)",
