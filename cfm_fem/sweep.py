@@ -144,6 +144,7 @@ class SweepResult:
         component: Sigma = diag(U_p,j^2) in mode gauss; in mode htm the covariance of the
         node's probe error (its geometric part moves the probe along several axes at once).
     seconds : float
+        Wall time of `run_sweep` (mesh, every chunk, gradients), all U_p values together.
     positioning : ndarray, shape (n, 3, 3, 3), or None
         Mode htm, per column (total, geometric, vibration and delay) and map axis: mean (mm),
         standard deviation (mm) and correlation coefficients xy, xz, yz of the probe position
@@ -677,7 +678,13 @@ def run_sweep(
 
 
 def summarize(res: SweepResult) -> dict:
-    """The ``summary.json`` content (DESIGN.md 4.1) plus the context a reader needs.
+    """The ``summary.json`` content plus the context a reader needs.
+
+    Stable keys (other tools read them): ``b_ref_T``, ``trials``, ``seed``, ``seconds`` (one
+    number for the run) and, one entry per U_p value, ``up_um``, ``uf_units`` (``p50``, ``p95``,
+    ``p99``, ``max`` over nodes) and ``outside_fraction``. U_f of a node is the 95 % expanded
+    uncertainty of |B|: the larger of |lower| and |upper| of the probabilistically symmetric
+    95 % interval of B_meas - B_nom, in units of 1e-4 B_ref.
 
     U_f percentiles are taken over the nodes whose every trial has a value (``uf_nodes`` counts
     them): by default those whose every trial stayed inside the map, as nodes near the map's
