@@ -32,7 +32,7 @@ def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
     """
     g = p.add_argument_group(
         f"how {what} is read",
-        f"apply to {what} {when}" if when else None,
+        f"apply to {what} {when}; refused otherwise" if when else None,
     )
     g.add_argument(
         "--format",
