@@ -182,7 +182,8 @@ class MagnetPlacement:
 
 @dataclass(frozen=True)
 class Bench:
-    """A three-axis Cartesian bench (paper section II-A, DESIGN.md section 5).
+    """A three-axis Cartesian bench (paper section II-A; the shipped CFM reference bench, whose
+    geometry the paper does not give, is `cfm_fem.io.bench_toml.read_reference_bench`).
 
     Attributes
     ----------

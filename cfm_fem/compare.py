@@ -1,7 +1,8 @@
 """Simulation against recordings: Table IV / Fig. 12 (tracker) and Table V / Fig. 13 (Hall map).
 
 Tracker. The measured probe error of a reading is E = meas - nominal, nominal = cmd + mount
-offsets + tool offset (bench frame, DESIGN.md 4.2). Per point: mean over repetitions (systematic)
+offsets + tool offset (bench frame: the tracker measures the probe's reflector in the bench
+frame, `cfm_fem.io.recordings`). Per point: mean over repetitions (systematic)
 and standard deviation (ddof = 1). Pooled as Table IV (`kinematics.pool_table_iv`: RMS over
 points). The simulated distribution at the same commanded positions comes from
 `kinematics.run_kinematics`. Per point and axis the standardised residual is

@@ -18,7 +18,8 @@ uncertainty = RMS over points of the per-point std, U_f = sqrt(systematic^2 + un
 Why B_ref and not the local field (paper eq. 14 divides by B_nom,i): a field component passes
 through zero inside the aperture (B_x = 0 on the whole mid-plane y = 0 of a normal quadrupole,
 both components at the centre), where B_nom,i -> 0 makes eq. 14 infinite for any finite error;
-"units" in magnet measurement are 1e-4 of the main harmonic at R_ref (DESIGN.md section 3).
+"units" in magnet measurement are 1e-4 of the main harmonic at R_ref (`Multipole.b_ref`); for
+an FEM map B_ref is given or max |B| over the nodes, and every output states it.
 
 Alignment. ``align="placement"`` puts the magnet where the bench file says: a trial's common
 offset (the systematic E_p of the bench) is a field error. ``align="probe"`` models the paper's

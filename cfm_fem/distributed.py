@@ -19,6 +19,7 @@ import numpy as np
 from .errors import CfmInputError
 
 __all__ = [
+    "check_scale_out",
     "dask_client",
     "dask_chunk_map",
     "check_workers",
@@ -38,6 +39,23 @@ def _import_distributed():
             "--scheduler and --workers need Dask: pip install 'cfm_fem[dask]'"
         ) from None
     return distributed
+
+
+def check_scale_out(scheduler: str | None = None, workers: int | None = None) -> None:
+    """The checks of `dask_client` that need no cluster, for a command to run before any work.
+
+    Raises
+    ------
+    CfmInputError
+        Both given, ``workers < 1``, or Dask missing.
+    """
+    if scheduler is None and workers is None:
+        return
+    if scheduler is not None and workers is not None:
+        raise CfmInputError("give either --scheduler or --workers, not both")
+    if workers is not None and workers < 1:
+        raise CfmInputError(f"--workers must be >= 1; got {workers}")
+    _import_distributed()
 
 
 @contextlib.contextmanager
@@ -65,10 +83,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
     if scheduler is None and workers is None:
         yield None
         return
-    if scheduler is not None and workers is not None:
-        raise CfmInputError("give either --scheduler or --workers, not both")
-    if workers is not None and workers < 1:
-        raise CfmInputError(f"--workers must be >= 1; got {workers}")
+    check_scale_out(scheduler, workers)
     distributed = _import_distributed()
     with contextlib.ExitStack() as stack:
         if scheduler is not None:

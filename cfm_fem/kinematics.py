@@ -1088,6 +1088,20 @@ class _Timer:
 
 NOISE_NAME = "vibration+delay"
 
+#: The two shares of the budget (`uncertainty_budget`), for its ``estimator`` text and the tables
+#: that print them (``cfm-fem kinematics``, ``cfm-fem tolerance``).
+VAR_SHARE_MEANING = (
+    "var_share = the error's share of the variance u^2 (random part only; the first-order Sobol "
+    "index of the linear model, in [0, 1])"
+)
+UP_SHARE_MEANING = (
+    "up_share = the error's share of U_p^2 = sys^2 + u^2: (its variance + the mean over points of "
+    "its mean error times the total mean error) / U_p^2, i.e. (1/2) d ln U_p^2 / d ln s_k for its "
+    "tolerance scaled by s_k; the shares of an axis sum to 1 (100 %), and an error's is negative "
+    "where its mean error opposes the total systematic error (tightening it slightly, alone, "
+    "raises U_p)"
+)
+
 
 @dataclass(frozen=True)
 class LinearModel:
@@ -1136,11 +1150,15 @@ class LinearModel:
 
         Returns
         -------
-        var_share : variance shares of u**2 (linearised GUM; equal to first-order Sobol
-            indices here since the inputs are independent and the model is linear to 1e-5).
-        up_share : shares of U_p**2 = (1/2) d ln U_p**2 / d ln s_k (elasticity: how much of
-            U_p**2 goes with error k when its tolerance is scaled); they sum to 1 and may be
-            negative when an error's mean offsets the others.
+        var_share : shares of the variance u**2 = mean_i var_ia: mean_i v_ika / u_a**2, in [0, 1]
+            (linearised GUM; equal to first-order Sobol indices here since the inputs are
+            independent and the model is linear to 1e-5). The systematic part is not in them.
+        up_share : shares of U_p**2 = sys**2 + u**2: (mean_i b_ika m_ia + mean_i v_ika) /
+            U_p,a**2, m_ia = sum_k b_ika the total mean error at point i; equal to
+            (1/2) d ln U_p**2 / d ln s_k (elasticity: how much of U_p**2 goes with error k when
+            its tolerance is scaled). They sum to 1; one is negative where error k's mean error
+            opposes the total one (b_ika m_ia < 0 outweighs its variance), and is not a variance
+            share.
         """
         mean = self.b.sum(-1)  # (n, 3)
         var_k = np.mean(self.v, axis=0)  # (3, 21)
@@ -1181,8 +1199,12 @@ def uncertainty_budget(bench: Bench, q_cmd=None) -> dict:
     """Share of each of the 21 errors (and of the noise) in u**2 and U_p**2 per axis.
 
     Estimator: the linearised model of :class:`LinearModel` with exact sensitivities (central
-    differences of the HTM chain); variance shares are first-order (here also total) Sobol
-    indices for this near-linear model with independent inputs; U_p shares are elasticities.
+    differences of the HTM chain). ``var_share``, the share of the variance u**2, is the
+    first-order (here also total) Sobol index for this near-linear model with independent
+    inputs, in [0, 1]. ``up_share``, the share of U_p**2 = sys**2 + u**2, also counts the
+    error's mean error times the total mean error: an elasticity, which sums to 1 over the rows
+    and is negative for an error whose mean opposes the total systematic error
+    (`LinearModel.shares`).
 
     Returns
     -------
@@ -1229,8 +1251,7 @@ def uncertainty_budget(bench: Bench, q_cmd=None) -> dict:
     return {
         "estimator": (
             "linearised model with exact sensitivities (central differences of the HTM chain at "
-            "zero error); var_share = share of u^2 (first-order Sobol index of the linear "
-            "model); up_share = (1/2) d ln U_p^2 / d ln s_k, sums to 1"
+            f"zero error); {VAR_SHARE_MEANING}; {UP_SHARE_MEANING}"
         ),
         "notes": notes,
         "rows": rows,
@@ -1257,7 +1278,8 @@ def design_tolerances(bench: Bench, target_up_mm, q_cmd=None) -> dict:
     Returns
     -------
     dict
-        ``current``: U_p per axis (um); ``rows`` sorted by the largest U_p share first, each with
+        ``current``: U_p per axis (um); ``rows`` sorted by the largest absolute ``up_share`` first
+        (share of U_p**2, `LinearModel.shares`: may be negative), each with
         ``factor`` (largest admissible s; > 1 loosen, < 1 tighten, None if no s works alone,
         inf if the error does not matter), ``up_at_factor_um``; ``common_factor`` and
         ``up_at_common_um``; ``noise_floor_um`` (U_p with all 21 errors at zero).

@@ -213,8 +213,9 @@ class Multipole:
 
     Notes
     -----
-    ``b_ref`` = |B_main + i A_main| is the reference field of "units" (DESIGN.md section 3): the
-    modulus of the main harmonic at R_ref, which a roll leaves unchanged.
+    ``b_ref`` = |B_main + i A_main| is the reference field of "units" (field errors in units of
+    1e-4 B_ref, as in magnet measurement): the modulus of the main harmonic at R_ref, which a roll
+    leaves unchanged.
     """
 
     normal: np.ndarray

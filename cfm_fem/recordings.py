@@ -1,6 +1,7 @@
 """Recordings of a real bench: laser-tracker positions or Hall-probe field maps (no I/O here).
 
-The file contract is DESIGN.md 4.2; :mod:`cfm_fem.io.recordings` reads and writes it. A
+The file contract (CSV columns, units, what is refused) is given and enforced by
+:mod:`cfm_fem.io.recordings`, which reads and writes it. A
 `Recording` holds one row per acquisition (one point, one repetition) with the commanded axis
 positions and either the measured probe position (``kind="tracker"``) or the measured field
 (``kind="hall"``).

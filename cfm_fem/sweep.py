@@ -26,6 +26,7 @@ __all__ = [
     "SweepConfig",
     "SweepResult",
     "run_sweep",
+    "check_options",
     "summarize",
     "node_gradients",
     "edge_fit_gradients",
@@ -145,6 +146,7 @@ class SweepResult:
         component: Sigma = diag(U_p,j^2) in mode gauss; in mode htm the covariance of the
         node's probe error (its geometric part moves the probe along several axes at once).
     seconds : float
+        Wall time of `run_sweep` (mesh, every chunk, gradients), all U_p values together.
     positioning : ndarray, shape (n, 3, 3, 3), or None
         Mode htm, per column (total, geometric, vibration and delay) and map axis: mean (mm),
         standard deviation (mm) and correlation coefficients xy, xz, yz of the probe position
@@ -350,17 +352,29 @@ def _gum_mean(gradient, B, mean_mm):
     return np.einsum("ncj,nkj->nkc", _gradients4(gradient, B), mean_mm)
 
 
+def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
+    """The checks of a `SweepConfig` that need no map: the command line runs them before it
+    reads the map (which can take minutes), `_check_config` again for a Python caller.
+
+    Raises
+    ------
+    CfmInputError
+        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0.
+    """
+    if trials < 20:
+        raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {trials}")
+    if any(not np.isfinite(a) or a < 0 for a in axis_scale) or max(axis_scale) == 0:
+        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {axis_scale}")
+    if b_ref_T is not None and not (np.isfinite(b_ref_T) and b_ref_T > 0):
+        raise CfmInputError(f"B_ref must be a positive field in T; got {b_ref_T}")
+
+
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     if cfg.mode not in ("gauss", "htm"):
         raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
-    if cfg.trials < 20:
-        raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {cfg.trials}")
+    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T)
     if not 0.5 < cfg.coverage < 1.0:
         raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
-    if any(not np.isfinite(a) or a < 0 for a in cfg.axis_scale) or max(cfg.axis_scale) == 0:
-        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {cfg.axis_scale}")
-    if cfg.b_ref_T is not None and not (np.isfinite(cfg.b_ref_T) and cfg.b_ref_T > 0):
-        raise CfmInputError(f"B_ref must be a positive field in T; got {cfg.b_ref_T}")
     if cfg.outside not in OUTSIDE_RULES:
         raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
     check_seed(cfg.seed)  # the CLI's rule and message (numba takes the seed as int64)
@@ -666,7 +680,13 @@ def run_sweep(
 
 
 def summarize(res: SweepResult) -> dict:
-    """The ``summary.json`` content (DESIGN.md 4.1) plus the context a reader needs.
+    """The ``summary.json`` content plus the context a reader needs.
+
+    Stable keys (other tools read them): ``b_ref_T``, ``trials``, ``seed``, ``seconds`` (one
+    number for the run) and, one entry per U_p value, ``up_um``, ``uf_units`` (``p50``, ``p95``,
+    ``p99``, ``max`` over nodes) and ``outside_fraction``. U_f of a node is the 95 % expanded
+    uncertainty of |B|: the larger of |lower| and |upper| of the probabilistically symmetric
+    95 % interval of B_meas - B_nom, in units of 1e-4 B_ref.
 
     U_f percentiles are taken over the nodes whose every trial has a value (``uf_nodes`` counts
     them): by default those whose every trial stayed inside the map, as nodes near the map's

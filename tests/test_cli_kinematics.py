@@ -40,6 +40,9 @@ def test_kinematics_writes_contract_outputs(tmp_path, capsys):
     assert mesh.point_data["U_p_um"].shape == (936, 3)
     text = capsys.readouterr().out
     assert "paper Table IV" in text and "assumption:" in text
+    # the printed budget is up_share, which can be negative: not "contributions", not variances
+    assert "largest shares of U_p^2 = sys^2 + u^2 (up_share; not variance shares)" in text
+    assert "negative" in text and "contributions" not in text
 
 
 def test_kinematics_bad_input_exit_2(tmp_path, capsys):
@@ -65,7 +68,9 @@ def test_tolerance_design_in_reverse(tmp_path, capsys):
         mc = d["plan_check_mc"][a]["U_p_um"]
         assert mc == pytest.approx(d["up_after_plan_um"][j], abs=5 * 13 / np.sqrt(3000) + 0.1)
     assert (out / "bench_plan.toml").exists()
-    assert "factor" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "factor" in text and "up_share X/Y/Z %" in text
+    assert "up_share = the error's share of U_p^2 = sys^2 + u^2" in " ".join(text.split())
     assert main(["tolerance", "--target", "-3", "--out", str(out)]) == 2
 
 

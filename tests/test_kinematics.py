@@ -390,6 +390,31 @@ def test_budget_shares_sum_to_one_and_design_meets_target(bench):
     assert loose["plan"] == []
 
 
+def test_up_share_is_an_elasticity_and_negative_where_the_mean_opposes(bench):
+    """What the budget's columns are (README, `cfm-fem kinematics`/`tolerance` headers):
+    var_share a share of u^2 in [0, 1]; up_share = (1/2) d ln U_p^2 / d ln s_k, negative for
+    eps_y(z) on Z (its mean opposes the total systematic error): tightening it raises U_p."""
+    lm = kin.linear_model(bench)
+    var_share, up_share = lm.shares()
+    assert np.all((var_share >= 0) & (var_share <= 1))
+    up2 = lm.pooled()[2] ** 2
+    h = 1e-6
+    for k in range(len(bench.errors)):
+        s = np.ones(len(bench.errors))
+        s[k] = 1 + h
+        hi = lm.pooled(s)[2] ** 2
+        s[k] = 1 - h
+        lo = lm.pooled(s)[2] ** 2
+        np.testing.assert_allclose(up_share[:, k], (hi - lo) / (2 * h) / (2 * up2), atol=1e-8)
+    k = error_index("eps_y(z)")
+    assert up_share[2, k] < -0.01  # Z axis
+    s = np.ones(len(bench.errors))
+    s[k] = 0.99
+    assert lm.pooled(s)[2][2] > lm.pooled()[2][2]
+    mean = lm.b.sum(-1)
+    assert np.mean(lm.b[:, 2, k] * mean[:, 2]) < 0  # the mean part is what makes it negative
+
+
 def test_adaptive_run_stops_at_the_numerical_tolerance(bench):
     q = bench.grid_points()[::113]
     res = kin.run_kinematics(bench, seed=3, q_cmd=q, adaptive_digits=2, exact=False)

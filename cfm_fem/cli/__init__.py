@@ -43,7 +43,11 @@ class _Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-\.?\d")
 
     def error(self, message):
-        raise CfmInputError(f"{self.prog}: {message}")
+        # ``main`` prints "cfm-fem: error: " before it: a subcommand's parser adds only its name
+        # ("sweep: argument --trials: ..."), the top one nothing (it printed "cfm-fem: error:
+        # cfm-fem: unrecognized arguments: -x")
+        _, _, command = self.prog.partition(" ")
+        raise CfmInputError(f"{command}: {message}" if command else message)
 
 
 def option_type(func, option: str):

@@ -15,6 +15,7 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
+from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
 from .coupled import add_common, check_common, load_bench
 
 NAME = "compare"
@@ -52,6 +53,7 @@ def add_args(p):
         help="Hall map: skip the positioning-only / probe-only split",
     )
     add_common(p)
+    add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv)")
 
 
 def run(args) -> int:
@@ -61,6 +63,8 @@ def run(args) -> int:
         raise CfmInputError("--hall-map needs --reference FIELD (harmonics .csv or FEM export)")
     if args.tracker and args.reference:
         raise CfmInputError("--reference applies to --hall-map only")
+    if args.tracker:
+        refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
     if not args.tracker_u_um >= 0:
         raise CfmInputError(f"--tracker-u-um must be >= 0; got {args.tracker_u_um}")
     bench, bench_note = load_bench(args)
@@ -120,7 +124,9 @@ def _hall(args, bench, bench_note) -> int:
     from ..probe import HallProbe
 
     rec = read_hall_map(args.hall_map)
-    ref = read_reference(args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
+    ref = read_reference(
+        args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
+    )
     probe = HallProbe(model=args.probe)
     _, pts = rec.point_cmd()
     print(

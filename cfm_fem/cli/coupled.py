@@ -13,8 +13,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
+from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
 
 if TYPE_CHECKING:
     from ..coupled import FieldModel
@@ -30,7 +31,7 @@ def add_common(p):
     )
     p.add_argument(
         "--trials",
-        type=int,
+        type=trial_count_type(),
         default=100_000,
         metavar="N",
         help="Monte Carlo trials (default 1e5; the paper used 1e6)",
@@ -102,6 +103,7 @@ def add_args(p):
         help="skip the positioning-only / probe-only split (two extra runs)",
     )
     add_common(p)
+    add_reader_args(p, "--field", "when it is a field map (not a harmonics .csv)")
 
 
 def check_common(args):
@@ -201,10 +203,13 @@ def run(args) -> int:
     check_common(args)
     bench, bench_note = load_bench(args)
     if args.field is None:
+        refuse_reader_options(args, "without --field the bundled QFDp4 harmonics are used")
         fm = FieldModel.from_multipole(read_qfdp4())
         field_path = qfdp4_path()
     else:
-        fm = read_reference(args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref)
+        fm = read_reference(
+            args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
+        )
         field_path = args.field
     points, region = _region(args, fm)
     _check_region_inside(args, fm, points, field_path)

@@ -15,6 +15,7 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
+from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
 
 NAME = "diagnose"
 HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or Hall map)"
@@ -47,6 +48,7 @@ def add_args(p):
         help="R_ref for a harmonics file that does not state it",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
 
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
@@ -69,8 +71,9 @@ def _check_enough(rec):
         )
 
 
-def _reference(spec, rec, r_ref=None):
-    """(field function, b_ref, smooth, description); ``r_ref`` (mm) for a harmonics file."""
+def _reference(spec, rec, r_ref=None, args=None):
+    """(field function, b_ref, smooth, description); ``r_ref`` (mm) for a harmonics file;
+    ``args``: the command line's reader options (`_reader`), for a field map."""
     from pathlib import Path
 
     import numpy as np
@@ -78,6 +81,8 @@ def _reference(spec, rec, r_ref=None):
     from ..diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
     if spec.startswith(("fit:", "fitz:")):
+        if args is not None:
+            refuse_reader_options(args, f"--reference {spec} is fitted to the recording")
         try:
             deg = int(spec.split(":", 1)[1])
         except ValueError:
@@ -98,12 +103,15 @@ def _reference(spec, rec, r_ref=None):
     if is_harmonics_file(path):
         from ..io.harmonics import read_harmonics
 
+        if args is not None:
+            refuse_reader_options(args, f"--reference {spec} is a harmonics file (n, Bn, An)")
+
         mp = read_harmonics(path, r_ref_mm=r_ref)
         return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
     from ..interpolation import LinearInterpolator
     from ..io import read_field
 
-    fm = read_field(path)
+    fm = read_field(path, **({} if args is None else reader_kwargs(args)))
     interp = LinearInterpolator(fm)
 
     def fn(p):
@@ -158,6 +166,7 @@ def run(args) -> int:
             raise CfmInputError("--b-ref is for --hall-map only")
         if args.r_ref is not None:
             raise CfmInputError("--r-ref is for --hall-map with a harmonics --reference only")
+        refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
         rec = read_tracker(args.tracker)
         _check_enough(rec)
         prob = tracker_problem(rec, bench)
@@ -167,7 +176,7 @@ def run(args) -> int:
             raise CfmInputError("--hall-map needs --reference FIELD")
         rec = read_hall_map(args.hall_map)
         _check_enough(rec)
-        fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref)
+        fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
             if not args.b_ref > 0:
                 raise CfmInputError(f"--b-ref must be > 0; got {args.b_ref}")

@@ -10,8 +10,9 @@ from __future__ import annotations
 import sys
 
 from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
+from ._reader import add_reader_args, reader_kwargs
 from .sweep import parse_up_range
 
 NAME = "fig4"
@@ -28,7 +29,7 @@ def add_args(p):
     )
     p.add_argument(
         "--trials",
-        type=int,
+        type=trial_count_type(),
         default=2000,
         metavar="N",
         help="trials per node and U_p (default 2000)",
@@ -36,6 +37,7 @@ def add_args(p):
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument("--b-ref", type=float, metavar="T", help="B_ref (default max |B| of the map)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    add_reader_args(p)
 
 
 def run(args) -> int:
@@ -49,7 +51,7 @@ def run(args) -> int:
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)
-    fm = read_field(args.field)
+    fm = read_field(args.field, **reader_kwargs(args))
     print(
         f"cfm-fem fig4: {fm.n_nodes} nodes from {args.field}; U_p = "
         f"{', '.join(f'{u:g}' for u in up)} um; {args.trials} trials",

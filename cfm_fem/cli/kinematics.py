@@ -9,9 +9,10 @@ prints the result beside the paper's simulated Table IV.
 from __future__ import annotations
 
 import sys
+import textwrap
 
 from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import note_first_compile, progress_bar
 from .sweep import add_scale_out_args
 
@@ -25,7 +26,7 @@ def add_args(p):
     )
     p.add_argument(
         "--trials",
-        type=int,
+        type=trial_count_type(),
         default=1_000_000,
         metavar="N",
         help="Monte Carlo trials (default 1e6)",
@@ -156,11 +157,16 @@ def print_table_iv(s: dict) -> None:
         )
     b = s.get("budget")
     if b:
-        print("largest contributions to U_p^2 (share per axis X / Y / Z):")
+        from ..kinematics import UP_SHARE_MEANING
+
+        print("largest shares of U_p^2 = sys^2 + u^2 (up_share; not variance shares), per axis "
+              "X / Y / Z:")  # fmt: skip
         rows = sorted(b["rows"], key=lambda r: -max(abs(v) for v in r["up_share"].values()))
         for r in rows[:6]:
             sh = " / ".join(f"{100 * r['up_share'][a]:5.1f}" for a in "xyz")
             print(f"  {r['name']:16} {r['pdf']:24} {sh} %")
+        text = f"{UP_SHARE_MEANING}. The variance shares (var_share) are in summary.json."
+        print(textwrap.fill(text, width=100, initial_indent="  ", subsequent_indent="  "))
     bench = s["bench"]
     print(
         f"geometry: stack {' / '.join(bench['stack_from_foundation'])} from the foundation; "

@@ -15,8 +15,9 @@ from pathlib import Path
 
 from ..errors import CfmInputError
 from . import interrupted, option_type
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import note_first_compile, progress_bar
+from ._reader import add_reader_args, reader_kwargs
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
 #: maps and exhaust the memory before anything is computed).
@@ -54,7 +55,7 @@ def add_args(p):
     )
     p.add_argument(
         "--trials",
-        type=int,
+        type=trial_count_type(),
         default=10000,
         metavar="N",
         help="trials per node and U_p (default 10000)",
@@ -84,29 +85,6 @@ def add_args(p):
         choices=["auto", "native", "grid", "delaunay"],
         default="auto",
         help="auto: the export's cells if any, Kuhn triangulation of a grid, else Delaunay",
-    )
-    p.add_argument(
-        "--format",
-        dest="fmt",
-        metavar="FMT",
-        help="input format if the extension is ambiguous: comsol, opera, table (or csv), or a "
-        "meshio format (vtu, vtk, gmsh, xdmf, ...)",
-    )
-    p.add_argument(
-        "--length-unit",
-        metavar="UNIT",
-        help="unit of the coordinates if the file does not say (mm, m, in, ...)",
-    )
-    p.add_argument(
-        "--field-unit",
-        metavar="UNIT",
-        help="unit of the field if the file does not say (T, mT, G, kG)",
-    )
-    p.add_argument(
-        "--zero-rows",
-        choices=["warn", "drop", "keep"],
-        default="warn",
-        help="rows with B exactly 0 0 0 (placeholders of measured maps): warn and keep, drop, keep",
     )
     p.add_argument(
         "--outside",
@@ -155,6 +133,7 @@ def add_args(p):
         "do not fit in memory",
     )
     add_slab_args(p)  # issue 6: maps larger than memory
+    add_reader_args(p)
 
 
 def add_slab_args(p):
@@ -189,8 +168,7 @@ def _size(text) -> float:
 
 def _read_options(args) -> dict:
     """The reader options that decide how the file is read (part of a resumable run's key)."""
-    return {"fmt": args.fmt, "length_unit": args.length_unit, "field_unit": args.field_unit,
-            "zero_rows": args.zero_rows}  # fmt: skip
+    return reader_kwargs(args)
 
 
 def _remove_if_made_and_empty(out, made: bool) -> None:
@@ -408,6 +386,12 @@ def run(args) -> int:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
     if args.pieces is not None and args.pieces < 1:
         raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
+    # before the map is read and meshed (minutes for a large one), not after
+    from ..distributed import check_scale_out
+    from ..sweep import check_options
+
+    check_options(args.trials, args.axis_scale, args.b_ref)
+    check_scale_out(args.scheduler, args.workers)
     # the options are checked before the numerics are imported: a typo is answered at once
     from ..distributed import dask_chunk_map, dask_client
     from ..io import read_field
@@ -430,13 +414,7 @@ def run(args) -> int:
     elif args.mode == "htm":
         bench = read_reference_bench()
     if fm is None:
-        fm = read_field(
-            args.field,
-            fmt=args.fmt,
-            length_unit=args.length_unit,
-            field_unit=args.field_unit,
-            zero_rows=args.zero_rows,
-        )
+        fm = read_field(args.field, **reader_kwargs(args))
     cfg = SweepConfig(
         up_um=up,
         trials=args.trials,

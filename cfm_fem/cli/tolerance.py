@@ -1,7 +1,8 @@
 """Design in reverse: for a target U_p per axis, how far can each geometric tolerance go?
 
-Ranks the 21 errors of a bench by their share of U_p^2 (linearised model with exact HTM
-sensitivities, Table IV pooling) and reports, for each, the factor by which its tolerance could
+Ranks the 21 errors of a bench by their share of U_p^2 = sys^2 + u^2 (up_share: linearised model
+with exact HTM sensitivities, Table IV pooling; negative for an error whose mean error opposes the
+total systematic error) and reports, for each, the factor by which its tolerance could
 be loosened (> 1) or must be tightened (< 1) on its own to meet the target, the U_p that
 results, a common factor for all errors, and a short plan that tightens the largest contributors
 first. ``--check N`` verifies the plan's U_p with an N-trial Monte Carlo of the full model.
@@ -9,13 +10,14 @@ first. ``--check N`` verifies the plan's U_p with an N-trial Monte Carlo of the 
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CfmInputError
 from . import option_type
-from ._checks import check_out_dir, check_seed
+from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
 
 NAME = "tolerance"
@@ -64,7 +66,7 @@ def add_args(p):
     p.add_argument("--out", metavar="DIR", help="write DIR/tolerance.json and DIR/bench_plan.toml")
     p.add_argument(
         "--check",
-        type=int,
+        type=trial_count_type("--check"),
         default=0,
         metavar="N",
         help="verify the plan with an N-trial Monte Carlo of the exact model (0: skip)",
@@ -134,10 +136,7 @@ def _print(d):
     print(f"target U_p X / Y / Z  [um]: {_fmt3(d['target_um'])}")
     print(f"current U_p (linearised):   {_fmt3(d['current_um'])}")
     print(f"floor (vibration + delay):  {_fmt3(d['noise_floor_um'])}")
-    print(
-        f"{'error':14}{'tolerance now':>26}{'share of U_p^2 X/Y/Z %':>26}{'factor':>9}"
-        "   U_p at factor"
-    )
+    print(f"{'error':14}{'tolerance now':>26}{'up_share X/Y/Z %':>26}{'factor':>9}   U_p at factor")
     for r in d["rows"]:
         sh = " / ".join(f"{100 * r['up_share'][a]:5.1f}" for a in "xyz")
         f = r["factor"]
@@ -148,6 +147,9 @@ def _print(d):
         else:
             fs, up = f"{f:9.3g}", _fmt3(r["up_at_factor_um"])
         print(f"{r['name']:14}{r['pdf']:>26}{sh:>26}{fs:>9}   {up}")
+    from ..kinematics import UP_SHARE_MEANING
+
+    print(textwrap.fill(f"{UP_SHARE_MEANING}.", width=100, subsequent_indent="  "))
     print(
         f"common factor for all 21 tolerances: {d['common_factor']:.3g} "
         f"-> U_p {_fmt3(d['up_at_common_um'])} um"

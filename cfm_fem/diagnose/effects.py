@@ -3,7 +3,7 @@
 Every builder takes a :class:`~cfm_fem.diagnose.problem.Problem` and returns either a
 :class:`~cfm_fem.diagnose.calibrate.Columns` block (change of the residual per unit of each
 physical parameter) or a string saying why the recording cannot test it (which is then turned into
-advice). Names follow DESIGN.md 4.3.
+advice). The names are those of ``effects[].name`` in ``diagnosis.json``: keep their spelling.
 
 Positioning (tracker), displacement of the probe in the bench frame:
 

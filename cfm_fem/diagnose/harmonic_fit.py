@@ -2,7 +2,8 @@
 
 Every basis field is the gradient of a harmonic polynomial (Laplace Phi = 0), so the model has
 div B = 0 and curl B = 0 exactly: what it cannot fit is either higher order than the fit or breaks
-Maxwell's equations in free space (an instrument effect, DESIGN.md section 6).
+Maxwell's equations in free space: a residual that breaks div B = 0 or curl B = 0 comes from
+the instrument, never from the magnet.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """The diagnosis workflow: calibrate, locate, attribute, model, advise (issue 5).
 
-``diagnose(problem)`` returns a :class:`Diagnosis` whose ``summary`` is the DESIGN.md 4.3
-document; the arrays (residuals before/after, standardised residuals) feed the report and the
+``diagnose(problem)`` returns a :class:`Diagnosis` whose ``summary`` is the ``diagnosis.json``
+document (``mismatch``, ``located``, ``effects`` sorted by evidence, strongest first, ``fit``,
+``advice``); the arrays (residuals before/after, standardised residuals) feed the report and the
 ``.vtu`` maps.
 """
 

@@ -284,7 +284,9 @@ def read_bench(path) -> Bench:
 
 
 def read_reference_bench() -> Bench:
-    """The shipped CFM reference bench (DESIGN.md section 5 with Table II PDFs)."""
+    """The shipped CFM reference bench: stated assumptions where the paper gives no geometry
+    (stack Z, X, Y from the foundation, strokes 800/150/150 mm, probe arm offset), Table II
+    PDFs for the 21 errors; each assumption is written in the file and in the outputs."""
     ref = resources.files("cfm_fem.data").joinpath(REFERENCE_BENCH)
     with resources.as_file(ref) as p:
         return read_bench(p)

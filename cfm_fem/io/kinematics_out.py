@@ -72,7 +72,8 @@ def bench_description(bench) -> dict:
 
 
 def kinematics_summary(result, bench, budget=None, gum=None, extra=None) -> dict:
-    """The ``summary.json`` document (DESIGN.md 4.1 keys plus context)."""
+    """The ``summary.json`` document: the stable keys ``axes`` (``x``, ``y``, ``z``, each
+    ``systematic_um``, ``std_um``, ``U_p_um``), ``trials`` and ``points``, plus context."""
     axes = {a: dict(result.pooled[a]) for a in "xyz"}
     doc = {
         "axes": axes,

@@ -1,4 +1,4 @@
-"""Tracker recordings and Hall maps in and out (the CSV contract of DESIGN.md 4.2).
+"""Tracker recordings and Hall maps in and out (the CSV contract, stated here).
 
 Comma separated, one header row, ``#`` comment lines anywhere, column names case-insensitive and in
 any order:

@@ -29,7 +29,16 @@ def is_harmonics_file(path) -> bool:
     return False
 
 
-def read_reference(path, *, b_ref_T: float | None = None, r_ref_mm: float | None = None):
+def read_reference(
+    path,
+    *,
+    b_ref_T: float | None = None,
+    r_ref_mm: float | None = None,
+    fmt: str | None = None,
+    length_unit: str | None = None,
+    field_unit: str | None = None,
+    zero_rows: str = "warn",
+):
     """The reference field as a `FieldModel`.
 
     Parameters
@@ -41,6 +50,8 @@ def read_reference(path, *, b_ref_T: float | None = None, r_ref_mm: float | None
         the main harmonic at R_ref and this must not be given.
     r_ref_mm : float, optional
         R_ref for a harmonics file that does not state it.
+    fmt, length_unit, field_unit, zero_rows
+        How a field map is read (`cfm_fem.io.read_field`); refused for a harmonics file.
 
     Returns
     -------
@@ -55,5 +66,18 @@ def read_reference(path, *, b_ref_T: float | None = None, r_ref_mm: float | None
                 "main harmonic at R_ref",
                 file=path,
             )
+        reader = {"fmt": fmt, "length_unit": length_unit, "field_unit": field_unit,
+                  "zero_rows": None if zero_rows == "warn" else zero_rows}  # fmt: skip
+        given = [option_hint(k, v) for k, v in reader.items() if v is not None]
+        if given:
+            verb = "applies" if len(given) == 1 else "apply"
+            raise CfmInputError(
+                f"{' and '.join(given)} {verb} to field maps; this is a harmonics file "
+                "(n, Bn, An), read as it is",
+                file=path,
+            )
         return FieldModel.from_multipole(read_harmonics(path, r_ref_mm=r_ref_mm))
-    return FieldModel.from_map(read_field(path), b_ref_T)
+    fm = read_field(
+        path, fmt=fmt, length_unit=length_unit, field_unit=field_unit, zero_rows=zero_rows
+    )
+    return FieldModel.from_map(fm, b_ref_T)

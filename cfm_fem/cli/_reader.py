@@ -1,0 +1,80 @@
+"""The field-map reader's options, written once for every command that reads a field map.
+
+The reader's messages tell the user to pass ``--format``, ``--length-unit``, ``--field-unit`` or
+``--zero-rows`` (`cfm_fem.io._parse.option_hint`), so each command that reads a map takes them
+under these names, with these help texts: ``sweep`` and ``fig4`` (FIELD), ``coupled --field``,
+``compare --reference`` and ``diagnose --reference`` (when a field map).
+"""
+
+from __future__ import annotations
+
+from ..errors import CfmInputError
+
+__all__ = ["add_reader_args", "reader_kwargs", "given_reader_options", "refuse_reader_options"]
+
+#: Default of each reader argument, by argparse dest; an option left at it was not given.
+_DEFAULTS = {"fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn"}
+_OPTIONS = {"fmt": "--format", "length_unit": "--length-unit", "field_unit": "--field-unit",
+            "zero_rows": "--zero-rows"}  # fmt: skip
+
+
+def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
+    """Add the reader options to parser ``p``, in a group of their own.
+
+    Parameters
+    ----------
+    p : argparse.ArgumentParser
+    what : str
+        The argument or option that names the map (``'FIELD'``, ``'--reference'``).
+    when : str, optional
+        When the options apply, for the group's description (e.g. "when it is a field map, not
+        a harmonics .csv"); said once there rather than in each option's help.
+    """
+    g = p.add_argument_group(
+        f"how {what} is read",
+        f"apply to {what} {when}; refused otherwise" if when else None,
+    )
+    g.add_argument(
+        "--format",
+        dest="fmt",
+        metavar="FMT",
+        help="input format if the extension is ambiguous: comsol, opera, table (or csv), or a "
+        "meshio format (vtu, vtk, gmsh, xdmf, ...)",
+    )
+    g.add_argument(
+        "--length-unit",
+        metavar="UNIT",
+        help="unit of the coordinates (mm, m, in, ...); overrides a unit the file states (with "
+        "a warning when they differ); needed when the file states none (mesh files: mm assumed)",
+    )
+    g.add_argument(
+        "--field-unit",
+        metavar="UNIT",
+        help="unit of the field (T, mT, G, kG); overrides a unit the file states (with a "
+        "warning when they differ); needed when the file states none (mesh files: T assumed)",
+    )
+    g.add_argument(
+        "--zero-rows",
+        choices=["warn", "drop", "keep"],  # io._parse.ZERO_ROWS_CHOICES; not imported: fast --help
+        default="warn",
+        help="rows with B exactly 0 0 0 (placeholders of measured maps): warn and keep "
+        "(default), drop, keep",
+    )
+
+
+def reader_kwargs(args) -> dict:
+    """The reader options of ``args`` as keyword arguments of `cfm_fem.io.read_field`."""
+    return {k: getattr(args, k) for k in _DEFAULTS}
+
+
+def given_reader_options(args) -> list[str]:
+    """The reader options given on the command line (not left at their default), as spelt."""
+    return [_OPTIONS[k] for k, v in _DEFAULTS.items() if getattr(args, k) != v]
+
+
+def refuse_reader_options(args, why: str) -> None:
+    """Refuse reader options given where no field map is read; ``why`` says what is read."""
+    given = given_reader_options(args)
+    if given:
+        verb = "applies" if len(given) == 1 else "apply"
+        raise CfmInputError(f"{' and '.join(given)} {verb} to a field map only; {why}")
