@@ -48,8 +48,9 @@ def quadrupole_with_ends(p):
     return np.c_[g * y, g * x, dg * x * y]
 
 
-def peak_rss_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+def peak_rss_bytes() -> float:
+    """Peak resident set size of this process, bytes (Linux reports kibibytes)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
 
 
 def bench_ratio(n_nodes: int, layouts, up_um: float, seed: int = 0):
@@ -204,7 +205,8 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
     print(f"  writing {len(ups)} .vtu + pvd + json: {t_write:8.1f} s")
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
-    print(f"  peak resident memory       : {peak_rss_gb():8.2f} GB")
+    peak = peak_rss_bytes()  # both units: the issue's "4 GB" could be read either way
+    print(f"  peak resident memory       : {peak / 1e9:8.2f} GB ({peak / 2**30:.2f} GiB)")
     print(
         f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
         f"(all {len(ups)} U_p values per trial)"
