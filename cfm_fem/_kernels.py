@@ -1247,10 +1247,18 @@ def find_cell(p, transform, box, dims, bstart, bcells, bary):
         if not (x >= 0.0 and x < dims[a]):  # beyond every cell's box (NaN too)
             return OUTSIDE
         b = b * dims[a] + np.int64(x)
+    return _deepest(p, transform, bcells, bstart[b], bstart[b + 1], bary)
+
+
+@nb.njit(inline="always", **JIT)
+def _deepest(p, transform, cells, lo, hi, bary):
+    """The simplex holding ``p`` deepest (largest smallest barycentric coordinate) among
+    ``cells[lo:hi]``, or among simplices ``lo .. hi - 1`` when ``cells`` is empty; ``OUTSIDE``
+    if none holds it. ``bary``: its barycentric coordinates (as `locate` computes them)."""
     best = OUTSIDE
     best_min = 0.0
-    for i in range(bstart[b], bstart[b + 1]):
-        s = bcells[i]
+    for i in range(lo, hi):
+        s = np.int64(cells[i]) if cells.shape[0] > 0 else np.int64(i)
         lmin = _depth(p, s, transform)
         if lmin >= -BARY_EPS and (best < 0 or lmin > best_min):
             best = s
@@ -1307,16 +1315,7 @@ def settle_walk(p, transform, search, bary):
     excess, _reach, box, dims, bstart, bcells = search
     if excess.shape[0] > 0:
         return find_cell(p, transform, box, dims, bstart, bcells, bary)
-    best = OUTSIDE
-    best_min = 0.0
-    for s in range(transform.shape[0]):
-        lmin = _depth(p, s, transform)
-        if lmin >= -BARY_EPS and (best < 0 or lmin > best_min):
-            best = s
-            best_min = lmin
-    if best >= 0:
-        _bary_in(p, best, transform, bary)
-    return best
+    return _deepest(p, transform, bcells[:0], 0, transform.shape[0], bary)  # every simplex
 
 
 @nb.njit(inline="always", **JIT)
