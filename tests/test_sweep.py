@@ -447,3 +447,22 @@ def test_trials_whose_walk_cycles_are_settled_not_lost(mode, shape):
     for a, b in zip(got, want, strict=True):
         np.testing.assert_array_equal(a, b)
     assert np.isfinite(got[0][..., 3, 1]).all()
+
+
+def test_gum_u_by_blocks_is_the_whole_map_at_once():
+    """`_gum_u` takes the nodes in blocks (memory): every block size gives the numbers of the
+    whole map in one block, bit for bit, in mode gauss (one sigma per column) and with the
+    per-node sigmas and correlations of mode htm; |B| = 0 stays NaN."""
+    from cfm_fem.sweep import _gum_u
+
+    rng = np.random.default_rng(5)
+    n = 1001
+    grad, B = rng.normal(size=(n, 3, 3)), rng.normal(size=(n, 3))
+    B[:4] = 0.0
+    sig_g = np.abs(rng.normal(size=(1, 6, 3))) * 1e-2
+    sig_h, corr = np.abs(rng.normal(size=(n, 3, 3))), rng.uniform(-1, 1, (n, 3, 3))
+    for sig, c in ((sig_g, None), (sig_h, corr)):
+        whole = _gum_u(grad, B, sig, c, block=n)
+        assert np.isnan(whole[:4, :, 3]).all() and np.isfinite(whole[4:]).all()
+        for block in (1, 7, 500, 1 << 16):
+            assert np.array_equal(_gum_u(grad, B, sig, c, block=block), whole, equal_nan=True)
