@@ -10,7 +10,13 @@ from __future__ import annotations
 
 from ..errors import CfmInputError
 
-__all__ = ["add_reader_args", "reader_kwargs", "given_reader_options", "refuse_reader_options"]
+__all__ = [
+    "add_reader_args",
+    "add_recording_args",
+    "reader_kwargs",
+    "given_reader_options",
+    "refuse_reader_options",
+]
 
 #: Default of each reader argument, by argparse dest; an option left at it was not given.
 _DEFAULTS = {"fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn"}
@@ -59,6 +65,22 @@ def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
         default="warn",
         help="rows with B exactly 0 0 0 (placeholders of measured maps): warn and keep "
         "(default), drop, keep",
+    )
+
+
+def add_recording_args(p) -> None:
+    """Add the required choice of recording, ``--tracker`` or ``--hall-map`` (REC.csv), to
+    parser ``p``, naming the columns each must have (``compare`` and ``diagnose``)."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument(
+        "--tracker",
+        metavar="REC.csv",
+        help="laser-tracker recording: point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas (mm)",
+    )
+    src.add_argument(
+        "--hall-map",
+        metavar="REC.csv",
+        help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
     )
 
 

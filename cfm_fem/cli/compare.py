@@ -15,7 +15,7 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
+from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
 from .coupled import add_common, check_common, load_bench
 
 NAME = "compare"
@@ -23,17 +23,7 @@ HELP = "recordings against the simulation: Table IV / Fig. 12 (tracker), Table V
 
 
 def add_args(p):
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--tracker",
-        metavar="REC.csv",
-        help="laser-tracker recording: point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas (mm)",
-    )
-    src.add_argument(
-        "--hall-map",
-        metavar="REC.csv",
-        help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
-    )
+    add_recording_args(p)
     p.add_argument(
         "--reference",
         metavar="FIELD",

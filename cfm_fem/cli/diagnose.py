@@ -15,24 +15,14 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
+from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
 
 NAME = "diagnose"
 HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or Hall map)"
 
 
 def add_args(p):
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument(
-        "--tracker",
-        metavar="REC.csv",
-        help="laser-tracker recording: point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas (mm)",
-    )
-    g.add_argument(
-        "--hall-map",
-        metavar="REC.csv",
-        help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
-    )
+    add_recording_args(p)
     p.add_argument(
         "--reference",
         metavar="FIELD",
