@@ -166,11 +166,6 @@ def _size(text) -> float:
     return v
 
 
-def _read_options(args) -> dict:
-    """The reader options that decide how the file is read (part of a resumable run's key)."""
-    return reader_kwargs(args)
-
-
 def _remove_if_made_and_empty(out, made: bool) -> None:
     """Remove ``out`` when this run created it and nothing is in it (never a user's files)."""
     if made:
@@ -254,7 +249,7 @@ def _run_slabs(args, up):
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
     _note_compile(cfg.mode)
-    description = describe_sweep(cfg, file_sha256(args.field), _read_options(args),
+    description = describe_sweep(cfg, file_sha256(args.field), reader_kwargs(args),
                                  bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
     made = not Path(args.out).exists()  # bad input must not leave a folder this run made
@@ -439,7 +434,7 @@ def run(args) -> int:
         file=sys.stderr,
     )
     _note_compile(cfg.mode)
-    read_options = _read_options(args)
+    read_options = reader_kwargs(args)
     # the bench used, the packaged one included: a default-bench run and one given a copy of
     # the same file have the same key (same numbers), and both name the file they used
     bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None
