@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.spatial
 
 from cfm_fem import _kernels
-from cfm_fem.mc import coverage_count, shortest_interval, symmetric_interval
+from cfm_fem.mc import coverage_count, ppf_numpy, shortest_interval, symmetric_interval
 
 M64 = (1 << 64) - 1
 GAMMA = 0x9E3779B97F4A7C15
@@ -264,3 +266,165 @@ def bucket_lists(i0, span, dims):
     bstart = np.zeros(int(dims.prod()) + 1, dtype=np.int64)
     np.cumsum(np.bincount(flat, minlength=int(dims.prod())), out=bstart[1:])
     return bstart, cell[np.argsort(flat, kind="stable")]
+
+
+# ---------------------------------------------------------------------------------------------
+# Bench kinematics: the random keys and the samples of the pilot pass
+# ---------------------------------------------------------------------------------------------
+def trial_keys(nkey: int, t0: int, n: int) -> np.ndarray:
+    """Twin of `cfm_fem._kernels.trial_keys`: `trial_key` of trials t0 .. t0+n-1, uint64."""
+    return np.array([trial_key(nkey, t0 + k) for k in range(n)], dtype=np.uint64)
+
+
+def chain(terms, k: int, q, n) -> tuple:
+    """Twin of `cfm_fem._kernels._chain`: E_x, E_y, E_z, |E| (mm) of row k of the collapsed
+    chain ``terms`` at commanded position q and axis noise n, each sum left to right as in
+    the kernel (the same bits)."""
+    t = [float(x) for x in terms[k]]
+    q0, q1, q2 = (float(x) for x in q)
+    n0, n1, n2 = (float(x) for x in n)
+    e = [t[c] + q0 * t[3 + c] + q1 * t[6 + c] + q2 * t[9 + c]
+         + n0 * t[12 + c] + n1 * t[15 + c] + n2 * t[18 + c] for c in range(3)]  # fmt: skip
+    return e[0], e[1], e[2], math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+
+
+def axis_noise(nkey: int, fkey: int, trial: int, point: int, sig, speed, tau_code, tau_par):
+    """Twin of `cfm_fem._kernels.axis_noise_mm` (mm, shape (3,)): three normals at positions
+    4 * point, 4 * point + 1 of the trial's sequence, times ``sig``; plus ``speed`` x tau, tau
+    from the uniform at position 4 * point + 2 (none for tau_code < 0)."""
+    tkey = trial_key(nkey, trial)
+    z = three_normals(tkey, fkey, point)
+    out = [float(sig[a]) * z[a] for a in range(3)]
+    if tau_code >= 0:
+        u = uniform53(draw(tkey, 4 * point + 2))
+        tau = float(ppf_numpy(int(tau_code), tau_par, np.array([u]))[0])
+        out = [out[a] + float(speed[a]) * tau for a in range(3)]
+    return np.array(out)
+
+
+def kinematics_values(model, t0: int, n: int, q, pidx) -> np.ndarray:
+    """Twin of `cfm_fem._kernels.pass_pilot` (and of `fill_values` per point): E_x, E_y, E_z,
+    |E| of trials t0 .. t0+n-1 at the points q, shape (npts, 4, n), mm.
+
+    ``model`` as the kernel's (`cfm_fem.kinematics._Engine.model`): row k of its terms and
+    params serves trial t0 + k. The noise of (trial, point) is `axis_noise` keyed by the
+    point's index pidx[i] (the twin derives the trial keys itself; the model's are not read).
+    Collapsed chain (`chain`) when the model is linear, else the numpy HTM chain
+    `cfm_fem.kinematics.probe_errors` (equal to the kernel's to rounding only).
+    """
+    from cfm_fem.kinematics import probe_errors
+
+    linear, terms, params, sig, speed, tau_code, tau_par, nkey, _, fkey = model[:10]
+    stack, mounts, tool, strokes, profiles = model[10:]
+    npts = len(q)
+    dq = np.array([[axis_noise(int(nkey), int(fkey), t0 + k, int(pidx[i]), sig, speed,
+                               tau_code, tau_par) for i in range(npts)]
+                   for k in range(n)])  # fmt: skip
+    out = np.empty((npts, 4, n))
+    if linear:
+        for i in range(npts):
+            for k in range(n):
+                out[i, :, k] = chain(terms, k, q[i], dq[k, i])
+        return out
+    e = probe_errors(params[:n], q, dq, stack, mounts, tool, strokes, profiles)  # (n, npts, 3)
+    out[:, :3] = e.transpose(1, 2, 0)
+    out[:, 3] = np.sqrt((e * e).sum(-1)).T
+    return out
+
+
+def pilot_brackets(values, kth, bins: int = 2048) -> np.ndarray:
+    """Twin of `cfm_fem._kernels.pass_pilot_quantiles` given the pilot's values (npts, 4, n):
+    per point and quantity, brackets of the order statistics kth[:4] (0-based) read from a
+    ``bins``-bin histogram of [min, max] (a lower bracket, even j, the lower edge of the bin
+    holding it, an upper bracket its upper edge), then min, max and mean; shape (npts, 4, 7)."""
+    out = np.empty(values.shape[:2] + (7,))
+    for i, c in np.ndindex(*values.shape[:2]):
+        v = values[i, c]
+        vmin, vmax = v.min(), v.max()
+        out[i, c, 4:] = vmin, vmax, v.mean()
+        width = (vmax - vmin) / bins
+        if not width > 0.0:  # every value equal
+            out[i, c, :4] = vmin
+            continue
+        b = np.minimum(((v - vmin) * (1.0 / width)).astype(np.int64), bins - 1)
+        cum = np.cumsum(np.bincount(b, minlength=bins))
+        for j in range(4):
+            first = np.searchsorted(cum, kth[j] + 1)  # first bin whose count reaches the rank
+            out[i, c, j] = vmin + (first + j % 2) * width
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Stars of the sweep (the cells incident to a node, `cfm_fem._kernels.build_star` tables)
+# ---------------------------------------------------------------------------------------------
+def _ordered_sum(x) -> float:
+    s = 0.0
+    for v in x:
+        s += float(v)
+    return s
+
+
+def star_lam(lmat, i: int, delta) -> np.ndarray:
+    """``lmat[i] @ delta`` summed left to right as the star kernels do (the same bits): the
+    barycentric coordinates, in star cell i of node g, of x_g + delta of the cell's vertices
+    other than g."""
+    lam = np.zeros(lmat.shape[1])
+    for b in range(len(delta)):
+        lam = lam + lmat[i, :, b] * delta[b]
+    return lam
+
+
+def star_locate(start, lmat, nbr, n_star, delta):
+    """Twin of `cfm_fem._kernels.star_locate`: from star cell ``start``, cross the face opposite
+    the most negative coordinate (the first of equal ones) until every coordinate of the other
+    vertices is >= -BARY_EPS. Returns (cell, lam): the cell if g's coordinate 1 - sum(lam) is
+    >= -BARY_EPS too, else -1; LEAVES_MESH on crossing a border face (nbr < 0); -1 after
+    n_star + 4 steps."""
+    eps = _kernels.BARY_EPS
+    s = start
+    lam = np.zeros(lmat.shape[1])
+    for _ in range(n_star + 4):
+        lam = star_lam(lmat, s, delta)
+        if lam.min() >= -eps:
+            return (s if 1.0 - _ordered_sum(lam) >= -eps else -1), lam
+        s = nbr[s, int(np.argmin(lam))]
+        if s < 0:
+            return _kernels.LEAVES_MESH, lam
+    return -1, lam
+
+
+def star_find(mesh, cells, p):
+    """Twin of `cfm_fem._kernels.star_find` from the mesh alone: the first of the star cells
+    ``cells`` whose barycentric coordinates of ``p`` (`barycentric_all`) are all >= -BARY_EPS,
+    with those coordinates; (OUTSIDE, None) if none."""
+    bary = barycentric_all(mesh, p)[cells]
+    ok = np.flatnonzero(bary.min(1) >= -_kernels.BARY_EPS)
+    if len(ok) == 0:
+        return _kernels.OUTSIDE, None
+    return int(cells[ok[0]]), bary[ok[0]]
+
+
+def star_recheck(g, cells, n_star, lmat, nbr, simplices, excess, reach, delta):
+    """Twin of `cfm_fem._kernels.star_recheck`. Returns (cell, r_in, r_out, lam): the first
+    star cell holding x_g + delta (`star_lam` >= -BARY_EPS, g's coordinate too), with 0, inf
+    and its coordinates; else -1, r_in = reach / |delta| unless delta is in some star cell's
+    cone (coordinates of the other vertices >= -BARY_EPS; then 0), and r_out the least over
+    the border faces (nbr < 0) whose plane x_g + delta is beyond (lam_a < -BARY_EPS) of
+    (excess * (1 + EXCESS_MARGIN) + BARY_EPS) / -lam_a (inf if none)."""
+    eps = _kernels.BARY_EPS
+    r_out = np.inf
+    cone = False
+    for i in range(n_star):
+        lam = star_lam(lmat, i, delta)
+        if lam.min() >= -eps:
+            if 1.0 - _ordered_sum(lam) >= -eps:
+                return i, 0.0, np.inf, lam
+            cone = True
+        s = cells[i]
+        others = [j for j in range(simplices.shape[1]) if simplices[s, j] != g]
+        for a, j in enumerate(others):
+            if nbr[i, a] < 0 and lam[a] < -eps:
+                ex = float(excess[s, j])  # float32 in the search arrays; the kernel widens it
+                r_out = min(r_out, (ex * (1.0 + _kernels.EXCESS_MARGIN) + eps) / -lam[a])
+    r_in = 0.0 if cone else reach / math.sqrt(_ordered_sum(np.asarray(delta) ** 2))
+    return -1, r_in, r_out, None
