@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import CfmInputError
 from .field import FieldMap
 from .sweep import (
     HTM_PARTS,
@@ -221,5 +222,13 @@ def piece_result(compact: CompactSweep, nodes, parts) -> SweepResult:
     parts : tuple
         The `cfm_fem.sweep.SweepProblem.run_chunk` arrays of those nodes (e.g. from
         `cfm_fem.resume.ResumableRun.gather`).
+
+    Raises
+    ------
+    CfmInputError
+        ``nodes`` is empty (a piece of `partition` never is).
     """
-    return _part_result(compact, np.asarray(nodes), parts)
+    nodes = np.asarray(nodes)
+    if nodes.size == 0:
+        raise CfmInputError("nodes is empty; expected the node indices of a piece (at least one)")
+    return _part_result(compact, nodes, parts)

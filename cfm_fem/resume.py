@@ -192,7 +192,9 @@ class ResumableRun:
             chunks = [(int(a), int(b)) for a, b in chunks]
             present = set(self.check())
             if self.resume:
-                self.store.remove_partial()  # a write cut short by the kill
+                # temporaries of writes cut short by a kill, once an hour old (a younger one
+                # may be another run's, still being written)
+                self.store.remove_partial()
             else:
                 self.store.remove()
             self.store.write_manifest({"key": self.key, "run": self.description})

@@ -523,7 +523,24 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     mesh : SimplexMesh
     problem : SweepProblem
     b_ref : float, T
+
+    Raises
+    ------
+    CfmInputError
+        A map without nodes (a `FieldMap` made without `FieldMap.from_arrays`), a ``mesh``
+        whose node count is not the map's, or a bad ``cfg`` (`check_options` and more).
     """
+    if fm.n_nodes == 0:  # a mesh given: build_mesh, which refuses it, is not called
+        raise CfmInputError(
+            "the map has 0 node(s); expected at least 4 non-coplanar nodes (or 3 in a plane)",
+            file=fm.source,
+        )
+    if mesh is not None and len(mesh.coords) != fm.n_nodes:
+        raise CfmInputError(
+            f"the mesh has {len(mesh.coords)} node(s) and the map {fm.n_nodes}; give the mesh "
+            "built for this map (`build_mesh`), or none",
+            file=fm.source,
+        )
     mesh = build_mesh(fm, cfg.interpolation, cfg.hull_slivers) if mesh is None else mesh
     _check_config(cfg, fm, mesh)
     b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
@@ -638,7 +655,8 @@ def run_sweep(
     progress : callable(int), optional
         Called with the number of nodes finished after each chunk.
     mesh : SimplexMesh, optional
-        Reuse a mesh built earlier (it must belong to ``fm``).
+        Reuse a mesh built earlier (it must belong to ``fm``: `prepare_sweep` refuses one of
+        another node count).
     map_chunks : callable(problem, chunks) -> iterable of ((start, stop), result), optional
         Runs the chunks (in any order, anywhere: a Dask cluster, a resumable store); default
         `serial_map`. Results are identical whatever runs them.

@@ -536,7 +536,7 @@ def write_readme(path: Path, info: dict) -> None:
         "## Magnet",
         "",
         f"{m['type']}, computed with magpylib {info['magpylib']} (`CylinderSegment`: analytic"
-        " field of uniformly polarised sectors, mu_r = 1). Frame as in DESIGN.md section 5:",
+        " field of uniformly polarised sectors, mu_r = 1). Frame of the reference bench:",
         "z along the magnet axis, y vertical, x horizontal; the magnet is centred at the origin.",
         "",
         "| parameter | value |",

@@ -5,9 +5,12 @@
 
 Every number printed comes from this run; Monte Carlo figures carry their trial count and a
 numerical standard uncertainty (batches) where the engine gives one. Assumptions that decide the
-numbers: the reference bench (DESIGN.md section 5; the paper gives no geometry), QFDp4 with
-R_ref = 10 mm (the paper does not state R_ref), the coupled scan region (transverse grid, 2 mm
-step, r <= R_ref, z = -100..100 mm), and B_ref = the main harmonic at R_ref.
+numbers: the geometry of the reference bench (cfm_fem/data/cfm_reference_bench.toml; the paper
+gives none): stack Z (800 mm stroke) on the foundation, X (150 mm) on the Z carriage, Y (150 mm)
+on the X carriage, probe arm offset (0, -60, 500) mm from the Y carriage, scan grid of
+9 x 8 x 13 = 936 points over the strokes; QFDp4 with R_ref = 10 mm (the paper does not state
+R_ref), the coupled scan region (transverse grid, 2 mm step, r <= R_ref, z = -100..100 mm), and
+B_ref = the main harmonic at R_ref.
 """
 
 from __future__ import annotations

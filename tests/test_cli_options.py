@@ -222,3 +222,36 @@ def test_sweep_checks_its_options_before_reading_the_map(tmp_path, capsys, monke
     err = _err(["sweep", path, "--length-unit", "mm", *extra, "--out", tmp_path / "o"], capsys)
     assert message in err, err
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ kinematics, early checks
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--workers", "0"], "--workers must be >= 1; got 0"),
+        (["--workers", "-3"], "--workers must be >= 1; got -3"),
+        (["--trials", "1"], "--trials must be >= 2; got 1"),
+        (["--adaptive", "9"], "--adaptive must be 1..4 significant digits; got 9"),
+        (["--seed", "-1"], "--seed must be in [0, 2**63); got -1"),
+        (["--adaptive", "2", "--workers", "2"], "--adaptive stops on the pooled result"),
+    ],
+)
+def test_kinematics_checks_its_options_before_reading_the_bench(tmp_path, capsys, monkeypatch,
+                                                                extra, message):  # fmt: skip
+    """--workers (and --adaptive with it) were checked after the bench was read: a bad bench
+    was then reported instead of the bad option."""
+    import cfm_fem.io.bench_toml
+
+    def no_reading(*args, **kwargs):
+        raise AssertionError("the bench was read before the options were checked")
+
+    monkeypatch.setattr(cfm_fem.io.bench_toml, "read_bench", no_reading)
+    monkeypatch.setattr(cfm_fem.io.bench_toml, "read_reference_bench", no_reading)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("this is [ not toml\n")
+    for bench in ([], ["--bench", bad]):
+        err = _err(["kinematics", *bench, *extra, "--out", tmp_path / "o"], capsys)
+        assert message in err and err.count("error:") == 1 and "toml" not in err, err
+        assert not (tmp_path / "o").exists()

@@ -1,4 +1,13 @@
-"""Recordings (DESIGN.md 4.2): round trip, optional and extra columns, bad input named precisely."""
+"""Recordings: round trip, optional and extra columns, bad input named precisely.
+
+The contract (CSV, comma separated, a header row, ``#`` comment lines allowed): a laser tracker
+recording has ``point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas`` (mm; commanded axis
+positions and the measured probe position in the bench frame), a Hall map
+``point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz`` (mm, T; magnet frame). Optional for both: ``t_s``
+(s since start), ``dir_x,dir_y,dir_z`` (approach direction of the last move per axis: -1, 0,
++1), ``speed`` (mm/s at acquisition, 0 for stop-and-go), ``temp_C``. Unknown extra columns are
+kept and ignored; a missing required column is a clear error.
+"""
 
 from __future__ import annotations
 

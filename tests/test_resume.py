@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.io.chunk_store import STORE_NAME
+from cfm_fem.io._atomic import TEMPORARY_AGE_S
+from cfm_fem.io.chunk_store import STORE_NAME, ChunkStore
 from cfm_fem.io.sweep_out import read_provenance
 
 
@@ -191,14 +192,47 @@ def test_resume_removes_the_temporary_file_of_a_killed_write(small_map, tmp_path
     out = tmp_path / "o"
     base = ["sweep", str(small_map), "--up", "0:20:10", "--seed", "2", "--chunk-nodes", "50"]
     assert main([*base, "--trials", "200", "--out", str(out), "--keep-chunks"]) == 0
-    partial = out / STORE_NAME / ".chunk_50_100.npz.k1ll3d.npz"
+    store = out / STORE_NAME
+    partial = store / ".chunk_50_100.npz.k1ll3d_0.npz"  # `atomic_path`'s name: 8 random chars
     partial.write_bytes(b"PK\x03\x04 cut short")
-    (out / STORE_NAME / "chunk_50_100.npz").unlink()  # the chunk whose write was killed
+    old = time.time() - 2 * TEMPORARY_AGE_S
+    os.utime(partial, (old, old))
+    (store / "chunk_50_100.npz").unlink()  # the chunk whose write was killed
+    # another run's write still in progress, and a file that is no temporary of the store
+    young = store / ".chunk_0_50.npz.wr1t1ng0.npz"
+    young.write_bytes(b"PK\x03\x04 being written")
+    other = store / ".nfs000000000001"
+    other.write_bytes(b"not ours")
+    os.utime(other, (old, old))
     capsys.readouterr()
     assert main([*base, "--trials", "200", "--out", str(out), "--resume", "--keep-chunks"]) == 0
     assert "resumed: 4 chunk(s) read from" in capsys.readouterr().err
     assert not partial.exists()
-    assert (out / STORE_NAME / "chunk_50_100.npz").exists()
+    assert (store / "chunk_50_100.npz").exists()
+    assert young.exists() and other.exists()
+
+
+def test_remove_partial_removes_only_old_temporaries_of_the_store(tmp_path):
+    store = ChunkStore(tmp_path)
+    store.write_manifest({"key": "k"})
+    old = time.time() - TEMPORARY_AGE_S - 60
+    names = {
+        ".chunk_0_50.npz.a1b2c3d4.npz": old,  # removed: a killed chunk write
+        ".manifest.json.zz_9zz_9.json": old,  # removed: a killed manifest write
+        ".chunk_0_50.npz.e5f6g7h8.npz": None,  # kept: young, may be in flight
+        ".chunk_0_50.npz.short.npz": old,  # kept: not a name `atomic_path` gives
+        ".notes.txt.a1b2c3d4.txt": old,  # kept: a temporary, but of no store file
+        ".hidden": old,  # kept: no temporary
+    }
+    for name, t in names.items():
+        (store.path / name).write_bytes(b"x")
+        if t is not None:
+            os.utime(store.path / name, (t, t))
+    assert store.remove_partial() == 2
+    left = sorted(p.name for p in store.path.iterdir())
+    assert left == sorted([*list(names)[2:], "manifest.json"])
+    assert store.remove_partial(min_age_s=0.0) == 1  # the young one, once old enough
+    assert store.read_manifest() == {"key": "k"}
 
 
 def _packaged_bench():

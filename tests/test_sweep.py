@@ -466,3 +466,35 @@ def test_gum_u_by_blocks_is_the_whole_map_at_once():
         assert np.isnan(whole[:4, :, 3]).all() and np.isfinite(whole[4:]).all()
         for block in (1, 7, 500, 1 << 16):
             assert np.array_equal(_gum_u(grad, B, sig, c, block=block), whole, equal_nan=True)
+
+
+@pytest.mark.parametrize("mode", ["gauss", "htm"])
+def test_an_empty_map_or_a_mesh_of_another_map_is_refused_by_name(mode):
+    """With a mesh given, `build_mesh` (which refuses an empty map) is not called: an empty
+    `FieldMap` (made without `FieldMap.from_arrays`) failed with numpy's "zero-size array to
+    reduction operation" (`FieldMap.b_max`, `_gradients4`), and a mesh of another map with a
+    broadcast error or not at all."""
+    from cfm_fem.interpolation import build_mesh
+
+    mesh = build_mesh(grid_map(4), "auto", "remove")
+    empty = FieldMap(points=np.zeros((0, 3)), B=np.zeros((0, 3)), source="empty.csv")
+    for b_ref in (None, 1.0):
+        cfg = SweepConfig(up_um=[10.0], trials=40, mode=mode, b_ref_T=b_ref)
+        with pytest.raises(CfmInputError, match=r"empty.csv: the map has 0 node\(s\)"):
+            run_sweep(empty, cfg, mesh=mesh)
+    with pytest.raises(CfmInputError, match=r"the mesh has 64 node\(s\) and the map 27"):
+        run_sweep(grid_map(3), SweepConfig(up_um=[10.0], trials=40, mode=mode), mesh=mesh)
+
+
+def test_piece_result_refuses_an_empty_piece():
+    """An empty node list reached `_gradients4`: numpy's "zero-size array to reduction"."""
+    from cfm_fem.pieces import piece_result, run_sweep_pieces
+    from cfm_fem.sweep import prepare_sweep, serial_map
+
+    fm, cfg = grid_map(3), SweepConfig(up_um=[10.0], trials=40)
+    compact = run_sweep_pieces(fm, cfg, serial_map)
+    problem = prepare_sweep(fm, cfg, compact.mesh)[1]
+    with pytest.raises(CfmInputError, match="nodes is empty"):
+        piece_result(compact, np.zeros(0, np.int64), problem.run_chunk(0, 0))
+    part = piece_result(compact, np.arange(2), problem.run_chunk(0, 2))
+    assert part.uf_units().shape == (2, 1)

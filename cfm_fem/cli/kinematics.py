@@ -48,19 +48,41 @@ def add_args(p):
     add_scale_out_args(p)
 
 
+def check_options(args) -> None:
+    """Every check of the options that needs no file read, run before the bench is read (a bad
+    bench would otherwise be reported instead of the bad option) and before any output.
+
+    Raises
+    ------
+    CfmInputError
+        ``--trials`` < 2 (without ``--adaptive``), ``--adaptive`` not 1..4, a seed numba cannot
+        take, ``--workers`` < 1 or Dask missing, ``--adaptive`` with ``--scheduler``/``--workers``,
+        or an ``--out`` that cannot be a folder.
+    """
+    from ..distributed import check_scale_out
+
+    if args.adaptive is None and args.trials < 2:
+        raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
+    if args.adaptive is not None and not 1 <= args.adaptive <= 4:
+        raise CfmInputError(f"--adaptive must be 1..4 significant digits; got {args.adaptive}")
+    check_seed(args.seed)
+    check_scale_out(args.scheduler, args.workers)
+    if args.adaptive is not None and (args.scheduler is not None or args.workers is not None):
+        raise CfmInputError(
+            "--adaptive stops on the pooled result of all points and cannot be split over Dask "
+            "workers; drop --scheduler/--workers or --adaptive"
+        )
+    check_out_dir(args.out)
+
+
 def run(args) -> int:
+    check_options(args)
     from ..distributed import dask_client, run_kinematics_dask
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.kinematics_out import kinematics_summary, write_kinematics
     from ..io.provenance import bench_input, provenance
     from ..kinematics import gum_check, run_kinematics, uncertainty_budget
 
-    check_out_dir(args.out)
-    if args.adaptive is None and args.trials < 2:
-        raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
-    if args.adaptive is not None and not 1 <= args.adaptive <= 4:
-        raise CfmInputError(f"--adaptive must be 1..4 significant digits; got {args.adaptive}")
-    check_seed(args.seed)
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     npts = len(bench.grid_points())
     passes = 1 if args.fast_intervals else 2
@@ -75,11 +97,6 @@ def run(args) -> int:
         from .. import _kernels
 
         note_first_compile(_kernels.pass_window_fast)
-    if on_dask and args.adaptive is not None:
-        raise CfmInputError(
-            "--adaptive stops on the pooled result of all points and cannot be split over Dask "
-            "workers; drop --scheduler/--workers or --adaptive"
-        )
     if on_dask:
         with dask_client(args.scheduler, args.workers) as client:
             with progress_bar(npts, "points") as bar:

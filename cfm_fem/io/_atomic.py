@@ -6,13 +6,17 @@ import contextlib
 import json
 import os
 import re
+import stat
 import tempfile
+import time
 from pathlib import Path
 
 __all__ = [
+    "TEMPORARY_AGE_S",
     "atomic_path",
     "atomic_paths",
     "json_text",
+    "remove_old_temporaries",
     "temp_target",
     "write_json",
     "write_text",
@@ -55,6 +59,47 @@ def temp_target(name: str) -> str | None:
     """
     m = _TEMP_NAME.fullmatch(name)
     return None if m is None else m["target"]
+
+
+#: A temporary modified less than this long ago is left: it may be another run's, still being
+#: written in the same folder. Its age is the robust test: a temporary lives only while its
+#: writer writes that one file (`atomic_path`: made just before, renamed just after), so a live
+#: writer's is never older than one file's write (a 1e6-node map: 74 s for all its maps side by
+#: side, README), while a process id in the name would not tell a writer gone (another host on
+#: a shared folder, another container's pid namespace, a reused pid). A modification time is the
+#: file server's clock, compared with this host's: a skew of minutes is well within the hour.
+TEMPORARY_AGE_S = 3600.0
+
+
+def remove_old_temporaries(
+    folder, names: re.Pattern, min_age_s: float = TEMPORARY_AGE_S, now: float | None = None
+) -> list[Path]:
+    """Remove the temporaries that killed writers left in ``folder`` (not its subfolders).
+
+    Only regular files (no symbolic link) named like a temporary of `atomic_path`
+    (`temp_target`) whose target name fully matches ``names``, and last modified at least
+    ``min_age_s`` seconds before ``now`` (default: the time of the call), are removed: a younger
+    one may be another process's file still being written (`TEMPORARY_AGE_S`).
+
+    Returns
+    -------
+    list of Path
+        The files removed, in name order.
+    """
+    now = time.time() if now is None else now
+    removed = []
+    for f in sorted(Path(folder).glob(".*")):
+        target = temp_target(f.name)
+        if target is None or not names.fullmatch(target):
+            continue
+        try:
+            st = f.lstat()
+        except OSError:  # renamed or removed by its writer meanwhile
+            continue
+        if stat.S_ISREG(st.st_mode) and now - st.st_mtime >= min_age_s:
+            f.unlink(missing_ok=True)
+            removed.append(f)
+    return removed
 
 
 @contextlib.contextmanager

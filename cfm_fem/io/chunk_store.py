@@ -6,9 +6,11 @@ Layout of ``DIR/.cfm_fem_chunks/``::
     chunk_<start>_<stop>.npz   arrays of nodes start .. stop-1 and the run key
 
 Every file is written under a hidden temporary name and renamed, so a chunk file is always
-complete. A run killed (SIGKILL) during a write cannot delete its temporary file; the next run
-that uses the store removes it (`ChunkStore.remove_partial`). What the arrays mean and when a
-store may be reused is decided by :mod:`cfm_fem.resume`; this module only reads and writes files.
+complete. A run killed (SIGKILL) during a write cannot delete its temporary file; a run that
+resumes from the store removes it once it is an hour old (`ChunkStore.remove_partial`; a younger
+one may be another run's file still being written), and the store goes as a whole after a
+successful run. What the arrays mean and when a store may be reused is decided by
+:mod:`cfm_fem.resume`; this module only reads and writes files.
 """
 
 from __future__ import annotations
@@ -22,13 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError
-from ._atomic import atomic_path, write_json
+from ._atomic import TEMPORARY_AGE_S, atomic_path, remove_old_temporaries, write_json
 
 __all__ = ["STORE_NAME", "ChunkStore"]
 
 #: Folder of the store inside the output folder.
 STORE_NAME = ".cfm_fem_chunks"
 _CHUNK = re.compile(r"^chunk_(\d+)_(\d+)\.npz$")
+#: Files of the store written through a temporary (`atomic_path`).
+_STORE_FILE = re.compile(r"chunk_\d+_\d+\.npz|manifest\.json")
 
 
 class ChunkStore:
@@ -79,16 +83,17 @@ class ChunkStore:
                 found.append((int(m[1]), int(m[2])))
         return sorted(found)
 
-    def remove_partial(self) -> int:
-        """Delete temporary files left by a writer that was killed; return how many."""
+    def remove_partial(self, min_age_s: float = TEMPORARY_AGE_S) -> int:
+        """Delete the temporary files that killed writers left; return how many.
+
+        Only temporaries of the store's own files (``.chunk_<a>_<b>.npz.<8 random>.npz``,
+        ``.manifest.json.<8 random>.json``) last modified at least ``min_age_s`` seconds ago go
+        (`cfm_fem.io._atomic.remove_old_temporaries`): a younger one may be another process's
+        file still being written, and any other file is left alone.
+        """
         if not self.exists():
             return 0
-        removed = 0
-        for p in self.path.glob(".*"):
-            if p.is_file():
-                p.unlink(missing_ok=True)
-                removed += 1
-        return removed
+        return len(remove_old_temporaries(self.path, _STORE_FILE, min_age_s))
 
     def save(self, start: int, stop: int, arrays: dict) -> None:
         """Write the arrays of one chunk atomically (uncompressed ``.npz``)."""

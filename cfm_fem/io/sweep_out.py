@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import re
-import stat
 import time
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import numpy as np
 
 from ..sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
-from ._atomic import temp_target, write_json
+from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import write_pvd, write_vtu
 
@@ -334,16 +333,6 @@ _OUTPUT_NAME = re.compile(r"uf_[^/]+\.(vtu|pvtu)|sweep\.pvd|summary\.json")
 _PIECE_NAME = re.compile(r"piece_[0-9]+\.vtu")
 
 
-#: A temporary modified less than this long ago is left: it may be another run's, still being
-#: written in the same folder. Its age is the robust test: a temporary lives only while its
-#: writer writes that one file (`atomic_path`: made just before, renamed just after), so a live
-#: writer's is never older than one file's write (a 1e6-node map: 74 s for all its maps side by
-#: side, README), while a process id in the name would not tell a writer gone (another host on
-#: a shared folder, another container's pid namespace, a reused pid). A modification time is the
-#: file server's clock, compared with this host's: a skew of minutes is well within the hour.
-TEMPORARY_AGE_S = 3600.0
-
-
 def remove_leftover_temporaries(out_dir, min_age_s: float = TEMPORARY_AGE_S) -> list[str]:
     """Remove the temporaries of sweep outputs that a killed run left in ``out_dir``.
 
@@ -364,29 +353,14 @@ def remove_leftover_temporaries(out_dir, min_age_s: float = TEMPORARY_AGE_S) -> 
         Paths relative to ``out_dir`` of the files removed.
     """
     out = Path(out_dir)
-    removed = []
-    now = time.time()
-
-    def sweep(folder: Path, names: re.Pattern):
-        for f in sorted(folder.glob(".*")):
-            target = temp_target(f.name)
-            if target is None or not names.fullmatch(target):
-                continue
-            try:
-                st = f.lstat()
-            except OSError:  # renamed or removed by its writer meanwhile
-                continue
-            if stat.S_ISREG(st.st_mode) and now - st.st_mtime >= min_age_s:
-                f.unlink(missing_ok=True)
-                removed.append(f.relative_to(out).as_posix())
-
     if not out.is_dir():
-        return removed
-    sweep(out, _OUTPUT_NAME)
+        return []
+    now = time.time()
+    removed = remove_old_temporaries(out, _OUTPUT_NAME, min_age_s, now)
     for folder in sorted(out.glob("uf_*")):
         if folder.is_dir() and not folder.is_symlink():
-            sweep(folder, _PIECE_NAME)
-    return removed
+            removed += remove_old_temporaries(folder, _PIECE_NAME, min_age_s, now)
+    return [f.relative_to(out).as_posix() for f in removed]
 
 
 def remove_earlier_outputs(out_dir) -> tuple[list[str], list[str], list[str]]:
