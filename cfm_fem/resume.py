@@ -22,6 +22,7 @@ import numpy as np
 
 from .errors import CfmInputError
 from .io.chunk_store import ChunkStore
+from .io.lock import output_lock
 from .sweep import serial_map
 
 __all__ = ["CODE_MODULES", "code_fingerprint", "describe_sweep", "run_key", "ResumableRun"]
@@ -124,6 +125,12 @@ class ResumableRun:
         Reuse the finished chunks of an identical earlier run. Without it an existing store is
         replaced.
 
+    The mapper and `finish` remove the store: each holds the lock of ``out_dir``
+    (`cfm_fem.io.lock.output_lock`; shared with a caller that holds it, as ``cfm-fem sweep``
+    does for the whole run), so they refuse, with a `CfmInputError`, to remove the store of
+    another run writing into ``out_dir`` at the same time. Hold the lock around the whole run
+    to keep another run out between the chunks and `finish` too.
+
     Attributes
     ----------
     loaded, computed : int
@@ -134,6 +141,7 @@ class ResumableRun:
     """
 
     def __init__(self, out_dir, description: dict, resume: bool = False):
+        self.out_dir = out_dir
         self.store = ChunkStore(out_dir)
         self.description = description
         self.key = run_key(description)
@@ -189,30 +197,35 @@ class ResumableRun:
         inner = serial_map if inner is None else inner
 
         def run(problem, chunks):
-            chunks = [(int(a), int(b)) for a, b in chunks]
-            present = set(self.check())
-            if self.resume:
-                # temporaries of writes cut short by a kill, once an hour old (a younger one
-                # may be another run's, still being written)
-                self.store.remove_partial()
-            else:
-                self.store.remove()
-            self.store.write_manifest({"key": self.key, "run": self.description})
-            todo = []
-            for a, b in chunks:
-                result = self._load(a, b, problem) if (a, b) in present else None
-                if result is None:
-                    todo.append((a, b))
-                    continue
-                self.loaded += 1
-                yield (a, b), result
-            for (a, b), result in inner(problem, todo):
-                parts = {f"part{j}": np.asarray(x) for j, x in enumerate(result)}
-                self.store.save(a, b, dict(parts, n_parts=len(result), key=self.key))
-                self.computed += 1
-                yield (a, b), result
+            with output_lock(self.out_dir, option="out_dir"):  # the store is removed below
+                yield from self._map(problem, chunks, inner)
 
         return run
+
+    def _map(self, problem, chunks, inner):
+        """The body of `mapper`'s chunk mapper."""
+        chunks = [(int(a), int(b)) for a, b in chunks]
+        present = set(self.check())
+        if self.resume:
+            # temporaries of writes cut short by a kill, once an hour old (a younger one
+            # may be another run's, still being written)
+            self.store.remove_partial()
+        else:
+            self.store.remove()
+        self.store.write_manifest({"key": self.key, "run": self.description})
+        todo = []
+        for a, b in chunks:
+            result = self._load(a, b, problem) if (a, b) in present else None
+            if result is None:
+                todo.append((a, b))
+                continue
+            self.loaded += 1
+            yield (a, b), result
+        for (a, b), result in inner(problem, todo):
+            parts = {f"part{j}": np.asarray(x) for j, x in enumerate(result)}
+            self.store.save(a, b, dict(parts, n_parts=len(result), key=self.key))
+            self.computed += 1
+            yield (a, b), result
 
     def _load(self, a, b, problem=None):
         """The result tuple of chunk (a, b) from its file, or None if it cannot be used."""
@@ -256,7 +269,8 @@ class ResumableRun:
     def finish(self, keep: bool = False) -> None:
         """After the outputs are written: delete the store unless ``keep``."""
         if not keep:
-            self.store.remove()
+            with output_lock(self.out_dir, option="out_dir"):  # never another run's store
+                self.store.remove()
 
 
 def _parts(arrays, key):

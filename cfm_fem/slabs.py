@@ -100,6 +100,7 @@ from .interpolation import (
     tie_note,
 )
 from .io._atomic import write_json
+from .io.lock import output_lock
 from .io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .io.streaming import check_opera_counts, open_stream
 from .io.sweep_out import (
@@ -846,40 +847,45 @@ def run_slab_sweep(
     ------
     CfmInputError
         A seed that is not an integer in [0, 2**63) (`cfm_fem.errors.check_seed`, checked
-        before the file is read or ``out_dir`` made), or bad input in the file or options.
+        before the file is read or ``out_dir`` made), or bad input in the file or options. Or
+        another run writes into ``out_dir``: the call holds its lock for the whole run
+        (`cfm_fem.io.lock.output_lock`, shared with a caller that holds it), so it never
+        removes another run's work folder or maps.
     """
     t0 = time.perf_counter()
     check_seed(cfg.seed)  # the CLI's rule and message, before anything is read or written
-    log = log or (lambda s: None)
-    out = Path(out_dir)
-    if description is None:
-        out.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
-        resume = keep = False
-    else:
-        work = _slab_work_dir(out, description, resume)
-        resume = resume and any(work.glob("results/slab*/done.json"))
-    finished = False
-    try:
-        st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
-                   zero_rows=zero_rows)  # fmt: skip
-        if st.dim != 3:
-            if flat_map is not None:
-                flat_map(staged_fieldmap(st, path))
+    # one run at a time in out_dir: the work folder and an earlier run's maps are removed
+    with output_lock(out_dir, option="out_dir"):
+        log = log or (lambda s: None)
+        out = Path(out_dir)
+        if description is None:
+            out.mkdir(parents=True, exist_ok=True)
+            work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
+            resume = keep = False
+        else:
+            work = _slab_work_dir(out, description, resume)
+            resume = resume and any(work.glob("results/slab*/done.json"))
+        finished = False
+        try:
+            st = stage(path, fmt, work, length_unit=length_unit, field_unit=field_unit,
+                       zero_rows=zero_rows)  # fmt: skip
+            if st.dim != 3:
+                if flat_map is not None:
+                    flat_map(staged_fieldmap(st, path))
+                finished = True
+                return None
+            summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
+                           log, progress, t0, resume, map_chunks, progress_total)  # fmt: skip
             finished = True
-            return None
-        summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
-                       log, progress, t0, resume, map_chunks, progress_total)  # fmt: skip
-        finished = True
-    except CfmInputError:
-        finished = True  # bad input: nothing kept
-        raise
-    finally:  # an interrupted resumable run keeps its finished slabs for --resume
-        if description is None or (finished and not keep):
-            shutil.rmtree(work, ignore_errors=True)
-    if remove_stale:  # the new outputs are complete: now the old maps can go
-        remove_earlier_outputs(out)
-    return summary
+        except CfmInputError:
+            finished = True  # bad input: nothing kept
+            raise
+        finally:  # an interrupted resumable run keeps its finished slabs for --resume
+            if description is None or (finished and not keep):
+                shutil.rmtree(work, ignore_errors=True)
+        if remove_stale:  # the new outputs are complete: now the old maps can go
+            remove_earlier_outputs(out)
+        return summary
 
 
 #: Work folder of a resumable out-of-core run (staged rows, per-slab results, manifest).

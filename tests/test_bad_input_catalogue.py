@@ -37,6 +37,7 @@ import test_io_bad_input
 
 from cfm_fem.cli import _COMMANDS, main
 from cfm_fem.errors import CfmInputError
+from cfm_fem.io.lock import LOCK_NAME
 
 
 def _parametrized(func):
@@ -395,7 +396,12 @@ def test_bench_without_errors(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["axes"]["x"]["U_p_um"] == 0.0
     assert "U_p = 0 on axis x" in summary["budget"]["notes"][0]
-    assert sorted(p.name for p in out.iterdir()) == ["points.csv", "points.vtu", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        LOCK_NAME,
+        "points.csv",
+        "points.vtu",
+        "summary.json",
+    ]
     out = tmp_path / "t"
     assert main(["tolerance", "--target", "5", "--bench", str(bench), "--out", str(out)]) == 0
     assert json.loads((out / "tolerance.json").read_text())["common_factor"] == "inf"

@@ -11,6 +11,7 @@ import pytest
 
 from cfm_fem.cli import main
 from cfm_fem.diagnose.twin import hall_twin, tracker_twin
+from cfm_fem.io.lock import LOCK_NAME
 from cfm_fem.io.recordings import write_hall_map, write_tracker
 
 Q = np.stack(
@@ -31,7 +32,7 @@ def test_cli_tracker(tmp_path, capsys):
     wrote = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("wrote ")]
     assert len(wrote) == 1
     named = sorted(Path(p).name for p in wrote[0].removeprefix("wrote ").split(", "))
-    assert named == sorted(p.name for p in out.iterdir())
+    assert named == sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME)  # not output
     assert {"residual_rows.vtu", "fit.png", "residuals.png", "diagnosis.json"} <= set(named)
     d = json.loads((out / "diagnosis.json").read_text())
     assert set(d) >= {"mismatch", "located", "effects", "fit", "advice"}

@@ -57,10 +57,13 @@ def run(args) -> int:
         refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
     if not args.tracker_u_um >= 0:
         raise CfmInputError(f"--tracker-u-um must be >= 0; got {args.tracker_u_um}")
-    bench, bench_note = load_bench(args)
-    if args.tracker:
-        return _tracker(args, bench, bench_note)
-    return _hall(args, bench, bench_note)
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # one run at a time in --out
+        bench, bench_note = load_bench(args)
+        if args.tracker:
+            return _tracker(args, bench, bench_note)
+        return _hall(args, bench, bench_note)
 
 
 def _tracker(args, bench, bench_note) -> int:

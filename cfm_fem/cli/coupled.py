@@ -191,6 +191,17 @@ def _check_region_inside(args, fm, points, field_path) -> None:
 
 
 def run(args) -> int:
+    check_out_dir(args.out)
+    check_common(args)
+    if args.field is None:
+        refuse_reader_options(args, "without --field the bundled QFDp4 harmonics are used")
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # one run at a time in --out
+        return _run(args)
+
+
+def _run(args) -> int:
     from ..coupled import FieldModel, field_budget, run_coupled
     from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
     from ..io.harmonics import qfdp4_path, read_qfdp4
@@ -199,11 +210,8 @@ def run(args) -> int:
     from ..kinematics import uncertainty_budget
     from ..probe import HallProbe
 
-    check_out_dir(args.out)
-    check_common(args)
     bench, bench_note = load_bench(args)
     if args.field is None:
-        refuse_reader_options(args, "without --field the bundled QFDp4 harmonics are used")
         fm = FieldModel.from_multipole(read_qfdp4())
         field_path = qfdp4_path()
     else:

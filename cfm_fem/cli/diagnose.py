@@ -140,15 +140,7 @@ def _provenance(args) -> dict:
 
 
 def run(args) -> int:
-    from ..diagnose.problem import hall_problem, tracker_problem
-    from ..diagnose.report import figures, markdown
-    from ..diagnose.workflow import diagnose
-    from ..io.bench_toml import read_bench, read_reference_bench
-    from ..io.diagnosis_out import write_diagnosis
-    from ..io.recordings import read_hall_map, read_tracker
-
     check_out_dir(args.out)
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:
         if args.reference:
             raise CfmInputError("--reference is for --hall-map only")
@@ -157,19 +149,35 @@ def run(args) -> int:
         if args.r_ref is not None:
             raise CfmInputError("--r-ref is for --hall-map with a harmonics --reference only")
         refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
+    elif not args.reference:
+        raise CfmInputError("--hall-map needs --reference FIELD")
+    elif args.b_ref is not None and not args.b_ref > 0:
+        raise CfmInputError(f"--b-ref must be > 0; got {args.b_ref}")
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, getattr(args, "command_line", None)):  # one run at a time
+        return _run(args)
+
+
+def _run(args) -> int:
+    from ..diagnose.problem import hall_problem, tracker_problem
+    from ..diagnose.report import figures, markdown
+    from ..diagnose.workflow import diagnose
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.diagnosis_out import write_diagnosis
+    from ..io.recordings import read_hall_map, read_tracker
+
+    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    if args.tracker:
         rec = read_tracker(args.tracker)
         _check_enough(rec)
         prob = tracker_problem(rec, bench)
         src = args.tracker
     else:
-        if not args.reference:
-            raise CfmInputError("--hall-map needs --reference FIELD")
         rec = read_hall_map(args.hall_map)
         _check_enough(rec)
         fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
-            if not args.b_ref > 0:
-                raise CfmInputError(f"--b-ref must be > 0; got {args.b_ref}")
             b_ref = args.b_ref
         prob = hall_problem(rec, fn, b_ref, bench, smooth=smooth)
         prob.notes.append(f"reference: {desc}")

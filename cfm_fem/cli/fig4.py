@@ -41,16 +41,23 @@ def add_args(p):
 
 
 def run(args) -> int:
-    from ..fig4 import fig4_summary, plane_nodes, run_fig4
-    from ..io import read_field
-    from ..io.compare_out import write_run
-    from ..io.provenance import provenance
-
     check_out_dir(args.out)
     check_seed(args.seed)
     if args.trials < 20:
         raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # one run at a time in --out
+        return _run(args, up)
+
+
+def _run(args, up) -> int:
+    from ..fig4 import fig4_summary, plane_nodes, run_fig4
+    from ..io import read_field
+    from ..io.compare_out import write_run
+    from ..io.provenance import provenance
+
     fm = read_field(args.field, **reader_kwargs(args))
     print(
         f"cfm-fem fig4: {fm.n_nodes} nodes from {args.field}; U_p = "

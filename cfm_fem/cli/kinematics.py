@@ -77,6 +77,13 @@ def check_options(args) -> None:
 
 def run(args) -> int:
     check_options(args)
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # one run at a time in --out
+        return _run(args)
+
+
+def _run(args) -> int:
     from ..distributed import dask_client, run_kinematics_dask
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.kinematics_out import kinematics_summary, write_kinematics

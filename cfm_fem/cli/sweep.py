@@ -166,15 +166,6 @@ def _size(text) -> float:
     return v
 
 
-def _remove_if_made_and_empty(out, made: bool) -> None:
-    """Remove ``out`` when this run created it and nothing is in it (never a user's files)."""
-    if made:
-        try:
-            Path(out).rmdir()
-        except OSError:
-            pass  # not empty (work kept for --resume) or never created
-
-
 def _remove_stale_maps(out) -> None:
     """After a successful run: remove the maps of an earlier run in ``out`` that this run does
     not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and the
@@ -207,10 +198,23 @@ def _remove_stale_maps(out) -> None:
               "not part of this run and not written by cfm-fem sweep", file=sys.stderr)  # fmt: skip
 
 
+def _check_slab_options(args) -> None:
+    """The checks of ``--slabs`` / ``--max-memory`` that need no file, before any output."""
+    if args.slabs is not None and args.slabs < 1:
+        raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
+    if args.max_memory:
+        _size(args.max_memory)
+    if args.pieces:
+        raise CfmInputError("--slabs/--max-memory cannot be combined with --pieces (slabs are "
+                            "written as pieces already)")  # fmt: skip
+
+
 def _run_slabs(args, up):
     """Dispatch of ``--slabs`` / ``--max-memory``: (exit code, None), or (None, the map or
     None) when the map must be run in memory (a map that is not 3-D comes back as read while
-    staging: the file is read, and its warnings given, once)."""
+    staging: the file is read, and its warnings given, once). Options checked
+    (`_check_slab_options`); the caller holds the lock of ``--out``, and a run that fails
+    leaves the folder as it was (`cfm_fem.io.lock.output_lock`)."""
     from ..distributed import dask_chunk_map, dask_client
     from ..io.provenance import bench_input, file_sha256, provenance
     from ..io.streaming import is_streamable
@@ -218,12 +222,7 @@ def _run_slabs(args, up):
     from ..slabs import SLAB_WORK, run_slab_sweep
     from ..sweep import SweepConfig
 
-    if args.slabs is not None and args.slabs < 1:
-        raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
     budget = _size(args.max_memory) if args.max_memory else None
-    if args.pieces:
-        raise CfmInputError("--slabs/--max-memory cannot be combined with --pieces (slabs are "
-                            "written as pieces already)")  # fmt: skip
     kind = is_streamable(args.field, args.fmt)
     if kind is None:
         print(
@@ -252,7 +251,6 @@ def _run_slabs(args, up):
     description = describe_sweep(cfg, file_sha256(args.field), reader_kwargs(args),
                                  bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
-    made = not Path(args.out).exists()  # bad input must not leave a folder this run made
     flat = []  # a map that is not 3-D, as staged (run in memory, not read again)
     try:
         with dask_client(args.scheduler, args.workers) as client:
@@ -289,12 +287,8 @@ def _run_slabs(args, up):
             print(f"cfm-fem sweep: {done} finished slab(s) kept in {store}; run the same "
                   "command with --resume to continue", file=sys.stderr)  # fmt: skip
         raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
-    except CfmInputError:
-        _remove_if_made_and_empty(args.out, made)
-        raise
     if summary is None:
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
-        _remove_if_made_and_empty(args.out, made)  # the in-memory run makes it when it writes
         return None, (flat[0] if flat else None)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _print_summary(summary, args.out)
@@ -387,7 +381,18 @@ def run(args) -> int:
 
     check_options(args.trials, args.axis_scale, args.b_ref)
     check_scale_out(args.scheduler, args.workers)
-    # the options are checked before the numerics are imported: a typo is answered at once
+    if args.slabs is not None or args.max_memory is not None:
+        _check_slab_options(args)
+    # the options are checked before the numerics are imported and the lock of --out is taken:
+    # a typo is answered at once, also for a folder in use
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # no other run removes or writes in it
+        return _run(args, up)
+
+
+def _run(args, up) -> int:
+    """The sweep, once the options are checked and the lock of ``--out`` is held."""
     from ..distributed import dask_chunk_map, dask_client
     from ..io import read_field
     from ..io.bench_toml import read_bench, read_reference_bench

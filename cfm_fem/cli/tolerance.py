@@ -75,17 +75,26 @@ def add_args(p):
 
 
 def run(args) -> int:
-    from ..io._atomic import atomic_paths, json_text, write_text
-    from ..io.bench_toml import read_bench, read_reference_bench, write_bench
-    from ..io.kinematics_out import bench_description
-    from ..kinematics import design_tolerances, run_kinematics
-
     if args.out:
         check_out_dir(args.out)
     check_seed(args.seed)
     _check_target(args.target)
     if args.check < 0 or args.check == 1:
         raise CfmInputError(f"--check must be 0 or >= 2 trials; got {args.check}")
+    if not args.out:
+        return _run(args)
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):  # one run at a time in --out
+        return _run(args)
+
+
+def _run(args) -> int:
+    from ..io._atomic import atomic_paths, json_text, write_text
+    from ..io.bench_toml import read_bench, read_reference_bench, write_bench
+    from ..io.kinematics_out import bench_description
+    from ..kinematics import design_tolerances, run_kinematics
+
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     d = design_tolerances(bench, np.asarray(args.target) * 1e-3)
     plan_bench = bench.scaled_errors(_plan_factors(bench, d["plan"]))

@@ -13,6 +13,7 @@ import numpy as np
 from ..sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
 from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
+from .lock import locks_output
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import write_pvd, write_vtu
 
@@ -106,6 +107,7 @@ def retire_index(out: Path) -> None:
             path.unlink()
 
 
+@locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
     out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True
 ) -> dict:
@@ -125,6 +127,12 @@ def write_sweep(
         that they do not use (`remove_earlier_outputs`: its maps that ``sweep.pvd`` does not
         name, the temporaries of a killed run); False leaves them (``cfm-fem sweep`` removes
         them itself and names them).
+
+    Raises
+    ------
+    CfmInputError
+        Another run writes into ``out_dir`` (the call holds its lock, `cfm_fem.io.lock`):
+        nothing is written or removed.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -161,6 +169,7 @@ def pieces_name(up_um: float) -> str:
     return f"uf_up{up_um:g}um.pvtu"
 
 
+@locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep_pieces(
     out_dir, compact, n_pieces: int, load, provenance: dict | None = None, *, remove_stale=True
 ):
@@ -184,6 +193,11 @@ def write_sweep_pieces(
     -------
     dict
         The summary written (the same as `write_sweep` gives for the same run).
+
+    Raises
+    ------
+    CfmInputError
+        Another run writes into ``out_dir``, as in `write_sweep`.
 
     Notes
     -----
