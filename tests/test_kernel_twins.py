@@ -408,3 +408,37 @@ def test_htm_sweep_on_a_non_convex_mesh_matches_a_brute_force_twin(which, path, 
     plain = replace(problem, search=None).run_nodes(nodes)[1]  # every exit taken for a proof
     assert (plain >= n_out).all()
     assert (plain - n_out).sum() == sum(placed.values()), (plain - n_out).sum(0)
+
+
+@pytest.mark.parametrize("mode", ["gauss", "htm"])
+def test_a_node_listed_twice_gets_the_same_numbers_twice(mode):
+    """The star's hash table (`_star_slot`) took a slot whose owner is another node for free,
+    and was never cleared: a node whose star was built again in the same kernel call found its
+    own entries of the first build and got a star of one cell (mode htm: `star_find` then
+    tried that cell alone and counted trials in the others outside; gauss: the walks ran on
+    tables left by other nodes). Every node listed twice in a row, on the faceted cylinder:
+    the numbers of the nodes listed once, bit for bit."""
+    scale, cfg = (1.0, SweepConfig(up_um=[50.0, 500.0], trials=120, seed=5))
+    if mode == "htm":
+        scale, cfg = (0.04, SweepConfig(trials=120, seed=5, mode="htm", bench=_bench("chain")))
+    fm, mesh, nodes = _notched("cylinder", scale)
+    _, problem, _ = prepare_sweep(fm, cfg, mesh)
+    once = problem.run_nodes(nodes)
+    twice = problem.run_nodes(np.repeat(nodes, 2))
+    for a, b in zip(once, twice, strict=True):
+        np.testing.assert_array_equal(b[0::2], a)
+        np.testing.assert_array_equal(b[1::2], a)
+    # the star tables themselves: built twice on one table, the same star
+    d, ms = 3, K.MAX_STAR
+    htab = np.full((3, K.STAR_HASH), -1, np.int64)
+    for g in nodes[:10]:
+        tables = []
+        for _ in range(2):
+            cells, lmat = np.empty(ms, np.int64), np.empty((ms, d, d))
+            dmat, nbr = np.empty((ms, 3, d)), np.empty((ms, d), np.int64)
+            n_star = K.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                  mesh.neighbors, fm.B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+            tables.append((n_star, cells[:n_star], lmat[:n_star], dmat[:n_star], nbr[:n_star]))
+        assert tables[0][0] > 1
+        for x, y in zip(*tables, strict=True):
+            np.testing.assert_array_equal(x, y)
