@@ -2488,8 +2488,9 @@ STAR_HASH = 2 * MAX_STAR
 @nb.njit(inline="always", **JIT)
 def _star_slot(htab, g, s, n):
     """Index of cell s in the star of g being built; inserts it as index n if absent (returns
-    -1 - n then). ``htab`` (3, STAR_HASH) int64 rows: cell, index, owner node (a stale owner
-    marks a free slot, so the table needs no clearing between nodes)."""
+    -1 - n then). ``htab`` (3, STAR_HASH) int64 rows: cell, index, owner node (a slot owned
+    by another node is free; `build_star` clears the owners first, else a node built a second
+    time would find its own entries of the first time)."""
     h = np.int64((np.uint64(s) * GAMMA) >> np.uint64(55)) & (STAR_HASH - 1)
     while htab[2, h] == g:
         if htab[0, h] == s:
@@ -2527,7 +2528,7 @@ def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat
         Output: star index of the cell across the face opposite that vertex (the face contains
         g); -1 across the mesh boundary.
     htab : ndarray, shape (3, STAR_HASH), int64
-        Work space (see `_star_slot`); initialise row 2 to -1 once.
+        Work space (see `_star_slot`); its owner row is cleared here.
 
     Returns
     -------
@@ -2538,6 +2539,7 @@ def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat
     d = transform.shape[2]
     if c0 < 0 or not _star_contains(simplices, c0, g):
         return -1
+    htab[2, :] = -1  # 512 stores: a star built before for g (a node listed twice) is gone
     cells[0] = c0
     _star_slot(htab, g, c0, 0)
     n = 1

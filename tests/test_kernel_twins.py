@@ -3,10 +3,13 @@
 The kinematics pilot (`pass_pilot`, `fill_values`, `pass_pilot_quantiles`) and its trial keys;
 the star searches of the sweep (`star_locate`, `star_find`, `star_recheck`), whose cells a
 linear test map cannot tell apart (any cell's linear field is the map's), plus brute-force
-checks of what their verdicts promise.
+checks of what their verdicts promise; the sweep kernels (`gauss_sweep`, `htm_sweep`) on
+non-convex meshes with non-linear fields, against a twin that locates every trial in the
+mesh's own cells by brute force.
 """
 
 from dataclasses import replace
+from functools import cache
 
 import numpy as np
 import pytest
@@ -16,9 +19,11 @@ from cfm_fem import FieldMap
 from cfm_fem import _kernels as K
 from cfm_fem import kinematics as kin
 from cfm_fem.bench import ReadingDelay, error_index
-from cfm_fem.interpolation import build_mesh, exact_search
+from cfm_fem.interpolation import build_mesh, exact_search, interpolate_points, no_search
 from cfm_fem.io.bench_toml import read_reference_bench
+from cfm_fem.kinematics import draw_error_sets, point_noise, probe_errors_for_bench
 from cfm_fem.mc import Pdf
+from cfm_fem.sweep import HTM_PARTS, SweepConfig, prepare_sweep
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,3 +288,157 @@ def test_star_recheck_matches_twin_and_its_proofs_hold():
             seen["r_in"] += (fractions < r_in).any()
             seen["r_out"] += (fractions > r_out).any()
     assert min(seen.values()) > 5, seen
+
+
+# ---------------------------------------------------------------------------------------------
+# Sweep kernels on non-convex meshes: every trial located in the mesh's own cells
+# ---------------------------------------------------------------------------------------------
+def _field(p):
+    """A non-linear field (T) of p (k, 3): no two triangulations interpolate it alike."""
+    x, y, z = p.T
+    return np.c_[np.sin(x) * y, np.cos(z) + 0.5 * x * y, 0.3 * x**2 + 1.0]
+
+
+@cache  # built once per session (the scattered cylinder's Delaunay takes ~1 s)
+def _notched(which, scale=1.0):
+    """Non-convex maps (lengths in mm times ``scale``, non-linear fields of the unscaled
+    positions) and the nodes to sweep. ``l_grid``: a 7^3 grid of step 0.5 mm with the
+    quadrant x > 0, y > 0 removed (Kuhn cells; a re-entrant edge along z), the nodes next to
+    the edge. ``cylinder``: scattered nodes of a cylinder (r 3 mm, 8 mm long), a third on its
+    mantle, flat hull cells removed (a faceted mantle, not convex at most of its nodes), the
+    nodes near the mantle."""
+    if which == "l_grid":
+        ax = (np.arange(7) - 3) * 0.5
+        pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        pts = pts[~((pts[:, 0] > 1e-9) & (pts[:, 1] > 1e-9))]
+        nodes = np.flatnonzero((np.abs(pts[:, :2]) <= 0.5 + 1e-9).all(1))
+    else:
+        rng = np.random.default_rng(5)
+        n, m = 420, 140
+        r, t = 3 * np.sqrt(rng.uniform(0, 1, n - m)), rng.uniform(0, 2 * np.pi, n - m)
+        inner = np.c_[r * np.cos(t), r * np.sin(t), rng.uniform(0, 8, n - m)]
+        t = rng.uniform(0, 2 * np.pi, m)
+        pts = np.r_[inner, np.c_[3 * np.cos(t), 3 * np.sin(t), rng.uniform(0, 8, m)]]
+        nodes = np.flatnonzero((np.hypot(pts[:, 0], pts[:, 1]) > 2.5) & (np.abs(pts[:, 2] - 4) < 2))
+    fm = FieldMap.from_arrays(pts * scale, _field(pts))
+    mesh = build_mesh(fm, "grid" if which == "l_grid" else "delaunay", "remove")
+    assert len(exact_search(mesh)[0]) > 0  # not convex: the exact search is on
+    return fm, mesh, nodes
+
+
+@pytest.mark.parametrize("outside", ["exclude", "extrapolate"])
+@pytest.mark.parametrize("which", ["l_grid", "cylinder"])
+def test_gauss_sweep_on_a_non_convex_mesh_matches_a_brute_force_twin(which, outside):
+    """`gauss_sweep` against the twin that locates every trial by brute force in the mesh's own
+    cells (`twins.mesh_interpolant`), on a non-linear field: the cell a trial lands in matters,
+    and so does whether it is in one (a Delaunay of the nodes would fill the notch). The count
+    of trials outside exactly, the statistics to rounding. U_p up to a cell height: trials
+    leave the star, the map, and cross the notch into the other arm (the exact search places
+    them: without it the kernel counts them outside)."""
+    fm, mesh, nodes = _notched(which)
+    B = fm.B
+    up = np.array([0.0, 0.05, 0.5])  # mm
+    starts = K.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, 1e-7)
+    grad = twins.node_gradients(mesh, B) if outside == "extrapolate" else None
+    exit_grad = np.empty((0, 3, 3)) if grad is None else grad  # 3-D: mesh frame = map frame
+
+    def run(search):
+        return K.gauss_sweep(nodes, nodes, mesh.coords, B, mesh.simplices, mesh.transform,
+                             mesh.neighbors, starts, np.eye(3), np.ones(3), up, 150, 9, 0.95,
+                             exit_grad, search)  # fmt: skip
+
+    stats, n_out, n_lost, _ = run(exact_search(mesh))
+    interp = twins.mesh_interpolant(mesh, B)
+    ref, ref_out = twins.gauss_sweep(mesh.coords, B, up, 150, 9, grad=grad, nodes=nodes,
+                                     interp=interp)  # fmt: skip
+    np.testing.assert_array_equal(n_out, ref_out)
+    assert n_lost.sum() == 0
+    np.testing.assert_allclose(stats, ref, rtol=1e-9, atol=1e-12)
+    assert (n_out[:, 1:].sum(0) > 0).all()  # trials did leave the map at each U_p
+    plain = run(no_search(3))[1]  # every exit taken for a proof, as on a convex mesh
+    assert (plain >= n_out).all() and (plain - n_out)[:, 2].sum() > 20, (plain - n_out).sum(0)
+
+
+@pytest.mark.parametrize(
+    "which, path, outside", [("l_grid", "hot", "exclude"), ("cylinder", "chain", "extrapolate")]
+)
+def test_htm_sweep_on_a_non_convex_mesh_matches_a_brute_force_twin(which, path, outside):
+    """`htm_sweep` (every column of mode htm) against the numpy HTM chain and the brute-force
+    twin of the mesh's own cells, on the non-convex maps shrunk to cells of 20-30 um, the size
+    of the reference bench's probe errors (mean ~15 um, std ~14 um): trials cross cells, leave
+    the map, cross the notch; a non-linear field, so the cell matters. The collapsed chain and
+    the full chain (`_bench`); trials outside left out, or extrapolated with the node
+    gradients the sweep uses. Counts outside exactly, statistics to rounding (probe errors
+    agree to ~1e-13 mm). Trials the walk puts outside but that lie in the mesh are placed by
+    `locate_exact` (both maps) or, nearer to their node than its reach, by `star_find`
+    (the cylinder's faceted mantle)."""
+    n, seed = 120, 5
+    fm, mesh, nodes = _notched(which, 0.04)
+    bench = _bench(path)
+    cfg = SweepConfig(trials=n, seed=seed, mode="htm", bench=bench, outside=outside)
+    _, problem, _ = prepare_sweep(fm, cfg, mesh)
+    stats, n_out, n_lost = problem.run_nodes(nodes)[:3]
+    assert n_lost.sum() == 0
+    q = bench.axis_positions_for(fm.points[nodes])
+    params = draw_error_sets(bench, n, seed)
+    dq = np.stack([point_noise(bench, t, nodes, seed) for t in range(n)])  # (n, k, 3)
+    rot = bench.bench_to_magnet_rotation()
+    interp = twins.mesh_interpolant(mesh, fm.B)
+    grad = problem.exit_grad if outside == "extrapolate" else None
+    reach = problem.search[1]
+    placed = {"star_find": 0, "locate_exact": 0}
+    for j, (geo, noise) in enumerate(HTM_PARTS.values()):
+        dm = probe_errors_for_bench(bench, params * geo, q, dq * noise) @ rot.T  # map frame
+        for i, g in enumerate(nodes):
+            p = mesh.coords[g] + dm[:, i]
+            gg = None if grad is None else grad[g]
+            want, want_out = twins.error_stats(interp(p), fm.B[g], dm[:, i], gg)
+            assert n_out[i, j] == want_out, (g, j)
+            # probe errors to ~1e-13 mm (axis positions ~100 mm), fields ~50 T/mm: 1e-10 T
+            np.testing.assert_allclose(stats[i, j], want, rtol=1e-9, atol=1e-10)
+            # in the mesh, but outside by the plain walk from the kernel's start cells
+            octant = ((dm[:, i] < 0) * [1, 2, 4]).sum(1)
+            walk = interpolate_points(mesh, fm.B, p, problem.start_cells[g, octant])[1]
+            found = (twins.locate_all(mesh, p)[0] >= 0) & (walk == K.OUTSIDE)
+            near = np.linalg.norm(dm[:, i], axis=1) < reach[g]
+            placed["star_find"] += (found & near).sum()
+            placed["locate_exact"] += (found & ~near).sum()
+    assert (n_out.sum(0) > 0).all()  # trials did leave the map in every column
+    assert placed["locate_exact"] > 20 and (which == "l_grid" or placed["star_find"] > 20), placed
+    plain = replace(problem, search=None).run_nodes(nodes)[1]  # every exit taken for a proof
+    assert (plain >= n_out).all()
+    assert (plain - n_out).sum() == sum(placed.values()), (plain - n_out).sum(0)
+
+
+@pytest.mark.parametrize("mode", ["gauss", "htm"])
+def test_a_node_listed_twice_gets_the_same_numbers_twice(mode):
+    """The star's hash table (`_star_slot`) took a slot whose owner is another node for free,
+    and was never cleared: a node whose star was built again in the same kernel call found its
+    own entries of the first build and got a star of one cell (mode htm: `star_find` then
+    tried that cell alone and counted trials in the others outside; gauss: the walks ran on
+    tables left by other nodes). Every node listed twice in a row, on the faceted cylinder:
+    the numbers of the nodes listed once, bit for bit."""
+    scale, cfg = (1.0, SweepConfig(up_um=[50.0, 500.0], trials=120, seed=5))
+    if mode == "htm":
+        scale, cfg = (0.04, SweepConfig(trials=120, seed=5, mode="htm", bench=_bench("chain")))
+    fm, mesh, nodes = _notched("cylinder", scale)
+    _, problem, _ = prepare_sweep(fm, cfg, mesh)
+    once = problem.run_nodes(nodes)
+    twice = problem.run_nodes(np.repeat(nodes, 2))
+    for a, b in zip(once, twice, strict=True):
+        np.testing.assert_array_equal(b[0::2], a)
+        np.testing.assert_array_equal(b[1::2], a)
+    # the star tables themselves: built twice on one table, the same star
+    d, ms = 3, K.MAX_STAR
+    htab = np.full((3, K.STAR_HASH), -1, np.int64)
+    for g in nodes[:10]:
+        tables = []
+        for _ in range(2):
+            cells, lmat = np.empty(ms, np.int64), np.empty((ms, d, d))
+            dmat, nbr = np.empty((ms, 3, d)), np.empty((ms, d), np.int64)
+            n_star = K.build_star(g, mesh.node_cell[g], mesh.simplices, mesh.transform,
+                                  mesh.neighbors, fm.B, cells, lmat, dmat, nbr, htab)  # fmt: skip
+            tables.append((n_star, cells[:n_star], lmat[:n_star], dmat[:n_star], nbr[:n_star]))
+        assert tables[0][0] > 1
+        for x, y in zip(*tables, strict=True):
+            np.testing.assert_array_equal(x, y)

@@ -104,35 +104,100 @@ def sample_stats(a, p=0.95):
     return np.array([a.mean(), a.std(ddof=1), lo, hi, slo, shi])
 
 
-def gauss_sweep(points, B, up_mm, n_trials, seed, axis=(1.0, 1.0, 1.0), p=0.95, grad=None):
-    """Twin of `cfm_fem._kernels.gauss_sweep` for a 3-D scattered map, using scipy's
-    LinearNDInterpolator (Delaunay) and full sorting. Returns stats (n, n_up, 4, 6), n_out.
-    ``grad`` (n, 3, 3), T/mm: points outside take B_g + grad_g . delta (else left out)."""
-    interp = scipy.spatial.Delaunay(points)
-    from scipy.interpolate import LinearNDInterpolator
+def gauss_sweep(
+    points,
+    B,
+    up_mm,
+    n_trials,
+    seed,
+    axis=(1.0, 1.0, 1.0),
+    p=0.95,
+    grad=None,
+    nodes=None,
+    interp=None,
+):
+    """Twin of `cfm_fem._kernels.gauss_sweep` for a 3-D map: the interpolant ``interp`` (a
+    callable (k, 3) mm -> (k, 3) T, NaN outside; default scipy's LinearNDInterpolator on the
+    Delaunay of ``points``, see `mesh_interpolant` for a mesh's own cells) and full sorting.
+    Returns stats (len(nodes), n_up, 4, 6), n_out. ``grad`` (n, 3, 3), T/mm: points outside take
+    B_g + grad_g . delta (else left out). ``nodes``: the nodes to sweep (default all), each
+    drawing the normals of its own index."""
+    if interp is None:
+        from scipy.interpolate import LinearNDInterpolator
 
-    f = LinearNDInterpolator(interp, B)
-    n, n_up = len(points), len(up_mm)
-    stats = np.full((n, n_up, 4, 6), np.nan)
-    n_out = np.zeros((n, n_up), dtype=np.int64)
-    abs0 = np.linalg.norm(B, axis=1)
-    for g in range(n):
-        z = sweep_normals(seed, g, n_trials)
+        interp = LinearNDInterpolator(scipy.spatial.Delaunay(points), B)
+    nodes = np.arange(len(points)) if nodes is None else np.asarray(nodes)
+    n_up = len(up_mm)
+    stats = np.full((len(nodes), n_up, 4, 6), np.nan)
+    n_out = np.zeros((len(nodes), n_up), dtype=np.int64)
+    for i, g in enumerate(nodes):
+        z = sweep_normals(seed, int(g), n_trials)
         for k, s in enumerate(up_mm):
-            pts = points[g] + s * z * np.asarray(axis)
-            Bm = f(pts)
-            ok = np.isfinite(Bm[:, 0])
-            n_out[g, k] = int((~ok).sum())
-            if grad is not None:
-                Bm[~ok] = B[g] + (pts[~ok] - points[g]) @ grad[g].T
-                ok[:] = True
-            err = Bm[ok] - B[g]
-            absb = np.linalg.norm(Bm[ok], axis=1) - abs0[g]
-            if ok.sum() >= 2:
-                for c in range(3):
-                    stats[g, k, c] = sample_stats(err[:, c], p)
-                stats[g, k, 3] = sample_stats(absb, p)
+            delta = s * z * np.asarray(axis)
+            stats[i, k], n_out[i, k] = error_stats(
+                interp(points[g] + delta), B[g], delta, None if grad is None else grad[g], p
+            )
     return stats, n_out
+
+
+def error_stats(Bm, b0, delta, grad=None, p=0.95):
+    """Statistics (4, 6) of the errors Bm - b0 of the trials (k, 3) and the number of trials
+    outside (Bm NaN). Those are left out, or with ``grad`` (3, 3), T/mm, take the node's Taylor
+    expansion b0 + grad . delta (delta (k, 3), mm). NaN statistics for fewer than 2 values."""
+    Bm = np.array(Bm, dtype=np.float64)
+    ok = np.isfinite(Bm[:, 0])
+    n_out = int((~ok).sum())
+    if grad is not None:
+        Bm[~ok] = b0 + delta[~ok] @ grad.T
+        ok[:] = True
+    err = Bm[ok] - b0
+    absb = np.linalg.norm(Bm[ok], axis=1) - np.linalg.norm(b0)
+    out = np.full((4, 6), np.nan)
+    if ok.sum() >= 2:
+        for c in range(3):
+            out[c] = sample_stats(err[:, c], p)
+        out[3] = sample_stats(absb, p)
+    return out, n_out
+
+
+def locate_all(mesh, q, pad=1e-6):
+    """Twin of `find_cell` for many points at once, brute force over the mesh's own (not
+    Delaunay's) cells: per point of ``q`` (k, d) the cell holding it where it lies deepest
+    (every coordinate >= -BARY_EPS) or -1, and its barycentric coordinates (k, d + 1). Only
+    the cells whose bounding box, padded by ``pad`` (mm), meets that of the points are tried:
+    no other can hold one of them (and the test stays fast)."""
+    d = mesh.dim
+    v = mesh.coords[mesh.simplices]
+    near = ((v.min(1) - pad <= q.max(0)) & (v.max(1) + pad >= q.min(0))).all(1)
+    cells = np.flatnonzero(near)
+    if len(cells) == 0:
+        return np.full(len(q), -1), np.full((len(q), d + 1), np.nan)
+    T = mesh.transform[cells]
+    # lam[j] = T_j . (x - T_d), (k, m) per coordinate j: one matrix product each
+    lam = [q @ T[:, j].T - (T[:, j] * T[:, d]).sum(1) for j in range(d)]
+    lam.append(1.0 - sum(lam))
+    lmin = np.minimum.reduce(lam)
+    ok = lmin >= -_kernels.BARY_EPS
+    best = np.argmax(np.where(ok, lmin, -np.inf), axis=1)
+    hit = ok.any(1)
+    cell = np.where(hit, cells[best], -1)
+    rows = np.arange(len(q))
+    bary = np.where(hit[:, None], np.stack([x[rows, best] for x in lam], 1), np.nan)
+    return cell, bary
+
+
+def mesh_interpolant(mesh, B):
+    """The linear interpolant of ``B`` (n, 3) in the mesh's own cells (`locate_all`): a callable
+    (k, d) mesh coordinates -> (k, 3) T, NaN for points in no cell."""
+
+    def interp(q):
+        cell, bary = locate_all(mesh, np.atleast_2d(q))
+        out = np.full((len(cell), 3), np.nan)
+        inside = cell >= 0
+        out[inside] = np.einsum("pj,pjc->pc", bary[inside], B[mesh.simplices[cell[inside]]])
+        return out
+
+    return interp
 
 
 def coverage_q(n, p=0.95):
