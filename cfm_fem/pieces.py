@@ -95,7 +95,7 @@ def _part_result(compact, nodes, parts) -> SweepResult:
         n_walk_failed=n_lost,
         linear_in_up=star,
         gradient=grad,
-        gum_u=_gum_u(grad, sub.B, sigma, corr),
+        gum_u=_gum_u(grad, sub.B, compact.b_ref_T, sigma, corr),
         seconds=0.0,
         **extra,
     )

@@ -1248,7 +1248,8 @@ class _SlabJob:
             sigma_mm, corr = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None], None
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
-                          gradient=grad, gum_u=_gum_u(grad, sub.B, sigma_mm, corr), seconds=0.0,
+                          gradient=grad, seconds=0.0,
+                          gum_u=_gum_u(grad, sub.B, b_ref, sigma_mm, corr),
                           positioning=pos if htm else None, n_left_out=n_left)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
@@ -1382,7 +1383,7 @@ def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
         res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
                           n_outside=g["n_out"], n_walk_failed=g["n_lost"],
                           linear_in_up=g["star"], gradient=g["gradient"],
-                          gum_u=_gum_u(g["gradient"], g["B"], sigma_mm, corr), seconds=0.0,
+                          gum_u=_gum_u(g["gradient"], g["B"], b_ref, sigma_mm, corr), seconds=0.0,
                           positioning=g["pos"] if htm else None,
                           n_left_out=g["n_left"])  # fmt: skip
         for k, label in enumerate(labels):

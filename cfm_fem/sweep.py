@@ -178,7 +178,7 @@ class SweepResult:
         error in mode htm."""
         if self.positioning is None:
             return np.zeros(self.gum_u.shape)
-        return _gum_mean(self.gradient, self.fieldmap.B, self.positioning[:, :, 0])
+        return _gum_mean(self.gradient, self.fieldmap.B, self.b_ref_T, self.positioning[:, :, 0])
 
     def left_out(self, cols=slice(None)) -> np.ndarray:
         """`n_left_out` (or its default) for the columns ``cols``, shape (n, ...)."""
@@ -322,26 +322,28 @@ def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 
     return grad
 
 
-def _gradients4(gradient, B):
+def _gradients4(gradient, B, b_ref):
     """Gradients of Bx, By, Bz and |B| per node, shape (n, 4, 3), T/mm (|B|'s NaN where
-    |B| = 0: not differentiable there)."""
+    |B| < 1e-12 ``b_ref``: not differentiable there). ``b_ref`` (T) is the run's B_ref, not the
+    largest |B| of ``B``, so that a slab or piece of the map marks the nodes the whole map does."""
     absb = np.sqrt((B**2).sum(axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
         grad_abs = np.einsum("nc,ncj->nj", B, gradient) / absb[:, None]
-    grad_abs[absb < 1e-12 * max(absb.max(), 1e-300)] = np.nan
+    grad_abs[absb < 1e-12 * max(b_ref, 1e-300)] = np.nan
     return np.concatenate([gradient, grad_abs[:, None, :]], axis=1)
 
 
-def _gum_u(gradient, B, sigma_mm, corr=None, block: int = 1 << 16):
+def _gum_u(gradient, B, b_ref, sigma_mm, corr=None, block: int = 1 << 16):
     """Linearised standard uncertainty per node, column and component; shape (n, n_col, 4).
 
-    ``sigma_mm`` (1 or n, n_col, 3): standard deviation of the probe position per map axis;
+    ``b_ref``: B_ref of the run, T (`_gradients4`). ``sigma_mm`` (1 or n, n_col, 3): standard
+    deviation of the probe position per map axis;
     ``corr`` (n, n_col, 3), optional: its correlation coefficients xy, xz, yz (mode htm).
     Nodes are taken ``block`` at a time (each node's arithmetic is the same whatever the
     block): the temporaries of the whole map at once took 0.7 GB on a 1e6-node map with 6
     columns, the peak of the run.
     """
-    g4 = _gradients4(gradient, B)  # whole map: its |B| threshold is relative to max |B|
+    g4 = _gradients4(gradient, B, b_ref)
     n = len(B)
     sig_all = np.broadcast_to(sigma_mm, (n, *sigma_mm.shape[1:]))
     out = np.empty((n, sigma_mm.shape[1], 4))
@@ -356,10 +358,10 @@ def _gum_u(gradient, B, sigma_mm, corr=None, block: int = 1 << 16):
     return out
 
 
-def _gum_mean(gradient, B, mean_mm):
+def _gum_mean(gradient, B, b_ref, mean_mm):
     """Linearised systematic error g . mean per node, column and component, shape
     (n, n_col, 4), T; ``mean_mm`` (n, n_col, 3): mean probe position error per map axis."""
-    return np.einsum("ncj,nkj->nkc", _gradients4(gradient, B), mean_mm)
+    return np.einsum("ncj,nkj->nkc", _gradients4(gradient, B, b_ref), mean_mm)
 
 
 def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
@@ -691,9 +693,9 @@ def run_sweep(
     del problem
     gradient = node_gradients(mesh, fm.B)
     if positioning is None:
-        gum_u = _gum_u(gradient, fm.B, sigma_mm[None])
+        gum_u = _gum_u(gradient, fm.B, b_ref, sigma_mm[None])
     else:
-        gum_u = _gum_u(gradient, fm.B, positioning[:, :, 1], positioning[:, :, 2])
+        gum_u = _gum_u(gradient, fm.B, b_ref, positioning[:, :, 1], positioning[:, :, 2])
     return SweepResult(
         fieldmap=fm,
         mesh=mesh,

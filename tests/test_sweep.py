@@ -462,10 +462,10 @@ def test_gum_u_by_blocks_is_the_whole_map_at_once():
     sig_g = np.abs(rng.normal(size=(1, 6, 3))) * 1e-2
     sig_h, corr = np.abs(rng.normal(size=(n, 3, 3))), rng.uniform(-1, 1, (n, 3, 3))
     for sig, c in ((sig_g, None), (sig_h, corr)):
-        whole = _gum_u(grad, B, sig, c, block=n)
+        whole = _gum_u(grad, B, 1.0, sig, c, block=n)
         assert np.isnan(whole[:4, :, 3]).all() and np.isfinite(whole[4:]).all()
         for block in (1, 7, 500, 1 << 16):
-            assert np.array_equal(_gum_u(grad, B, sig, c, block=block), whole, equal_nan=True)
+            assert np.array_equal(_gum_u(grad, B, 1.0, sig, c, block=block), whole, equal_nan=True)
 
 
 @pytest.mark.parametrize("mode", ["gauss", "htm"])
@@ -498,3 +498,16 @@ def test_piece_result_refuses_an_empty_piece():
         piece_result(compact, np.zeros(0, np.int64), problem.run_chunk(0, 0))
     part = piece_result(compact, np.arange(2), problem.run_chunk(0, 2))
     assert part.uf_units().shape == (2, 1)
+
+
+def test_abs_b_gradient_of_part_of_a_map_is_the_whole_maps():
+    """|B|'s gradient is NaN where |B| < 1e-12 B_ref (not differentiable). The threshold is the
+    run's B_ref, not the largest |B| of the nodes given: slabs and pieces, which pass part of
+    the map, mark the nodes the whole map marks (they marked relative to their own largest |B|)."""
+    from cfm_fem.sweep import _gradients4
+
+    B = np.array([[1.0, 0, 0], [5e-13, 0, 0], [1e-2, 0, 0], [0, 0, 0]])
+    grad = np.random.default_rng(2).normal(size=(4, 3, 3))
+    whole = _gradients4(grad, B, 1.0)
+    assert np.isnan(whole[[1, 3], 3]).all() and np.isfinite(whole[[0, 2], 3]).all()
+    np.testing.assert_array_equal(_gradients4(grad[1:], B[1:], 1.0), whole[1:])
