@@ -14,7 +14,9 @@ to scipy grouped by node (its fastest order, consecutive queries share a simplex
 The kernel walks from the node's own cell, then (as the sweep does) from the cell of the
 displacement's octant, the octant table of the queried nodes built inside the timing.
 Also prints the throughput of the full sweep kernel (random numbers and per-node statistics
-included), which is what a user gets.
+included), which is what a user gets, and the memory floor of any kernel with this interface:
+the time to read the points and write their values into a fresh array, as scipy returns them,
+no interpolation (best of three), against the time that 20x scipy allows.
 
 ``trial``: CPU time per trial of the sweep kernel on one thread (8,000 random nodes of the
 bundled map, 2,000 trials, 6 U_p values, each trial serving all of them), three repeats.
@@ -122,6 +124,11 @@ def bench_ratio(n_nodes: int, layouts, up_um: float, seed: int = 0):
             f"({t_scipy:.3f} s)   (max |difference| {err:.2e} T; {n_off} of {n} points "
             f"differ by more than 1e-12 T, in cells where the triangulations differ)"
         )
+        t_floor = memory_floor(queries)
+        print(
+            f"  memory floor (read the points, write their values into a fresh array, no "
+            f"interpolation): {t_floor:.3f} s; 20 x scipy leaves {t_scipy / 20:.3f} s"
+        )
         scipy_rate = n / t_scipy
     # the full sweep kernel: random numbers, walk and per-node statistics, 1 U_p value
     run_sweep(fem_like_map(2000), SweepConfig(up_um=[up_um], trials=20))  # compile
@@ -139,6 +146,19 @@ def bench_ratio(n_nodes: int, layouts, up_um: float, seed: int = 0):
         f"  against scipy's rate at {per_node} points per node (interpolation only, no random "
         f"numbers or statistics): {n / t_full / scipy_rate:.1f} x"
     )
+
+
+def memory_floor(points) -> float:
+    """Seconds, best of three, to read ``points`` (k, 3) and write a freshly allocated (k, 3)
+    float64 array: what any interpolation kernel that returns the values, as scipy does, spends
+    on memory alone (numpy, one thread: two numba threads took the same within 10 % here)."""
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        out = np.multiply(points, 2.0)
+        best = min(best, time.perf_counter() - t0)
+        del out
+    return best
 
 
 def build_scipy_delaunay(mesh):
