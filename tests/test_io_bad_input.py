@@ -99,6 +99,14 @@ CASES = {
         "column 'y [mm]' must be a number with '.' as decimal point; found '0,000', which has "
         "a decimal comma",
     ),
+    "decimal comma, six decimals": (  # "-5,000000" is no thousands group: a decimal comma
+        "m.csv",
+        "x [mm];y [mm];z [mm];Bx [T];By [T];Bz [T]\n-5,000000;1,5;2,0;0,1;0,2;0,3\n",
+        2,
+        "x [mm]",
+        "column 'x [mm]' must be a number with '.' as decimal point; found '-5,000000', which "
+        "has a decimal comma (a thousands group has three digits)",
+    ),
     "unknown length unit": (
         "m.csv",
         "x [furlong],y [furlong],z [furlong],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,

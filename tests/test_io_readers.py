@@ -265,9 +265,13 @@ def test_thousands_separators_only_where_they_cannot_be_decimal_commas(tmp_path)
     assert fm.points[0, 0] == 1066.5
     text = text.replace("1,066.5", "1,066")  # 1066 or 1.066? refuse to guess
     with pytest.raises(
-        CfmInputError, match=r":2: column 'x \[mm\]' must be a number; found '1,066'"
+        CfmInputError,
+        match=r":2: column 'x \[mm\]' must be a number; found '1,066', which is 1066 with a "
+        r"thousands separator or 1\.066 with a decimal comma",
     ):
         read_table(_write(tmp_path, "b.txt", text))
+    with pytest.raises(CfmInputError, match=r"found '0,125', which has a decimal comma"):
+        read_table(_write(tmp_path, "c.txt", text.replace("1,066", '"0,125"')))
 
 
 def test_table_without_units_needs_options(tmp_path):

@@ -190,6 +190,9 @@ _THOUSANDS = re.compile(r"[+-]?\d{1,3}(?:,\d{3})+(?:\.\d*)?(?:[eE][+-]?\d+)?")
 # refuse instead of reading it as 0.125 because the same file then also holds "1,250", which is
 # 1250 or 1.25 depending on the writer's locale, and guessing per value would mix both readings.
 _DECIMAL_COMMA = re.compile(r"[+-]?0,\d+(?:[eE][+-]?\d+)?")
+# One comma between digits and no point: "-5,000000" (not a thousands group of three digits) has
+# a decimal comma too; "1,066" unquoted is 1066 or 1.066, and is refused as ambiguous.
+_ONE_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?")
 
 
 def parse_number(token: str, *, column: str, file, line, was_quoted: bool = False) -> float:
@@ -211,18 +214,29 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
         return float(s)
     except ValueError:
         pass
-    if _DECIMAL_COMMA.fullmatch(s):
+    thousands = _THOUSANDS.fullmatch(s)
+    why = None
+    if _DECIMAL_COMMA.fullmatch(s):  # before the thousands: "0,125" would match them
+        why = "a thousands group never starts with 0"
+    elif _ONE_COMMA.fullmatch(s) and not thousands:
+        why = "a thousands group has three digits"
+    elif thousands and (was_quoted or "." in s):
+        return float(s.replace(",", ""))
+    if why:
         raise CfmInputError(
             f"column '{column}' must be a number with '.' as decimal point; found '{s}', which "
-            "has a decimal comma (a thousands group never starts with 0); export the file with "
-            "'.' as decimal separator",
+            f"has a decimal comma ({why}); export the file with '.' as decimal separator",
             file=file,
             line=line,
             column=column,
         )
-    if _THOUSANDS.fullmatch(s) and (was_quoted or "." in s):
-        return float(s.replace(",", ""))
     found = "an empty field" if not s else f"'{s}'"
+    if _ONE_COMMA.fullmatch(s):  # "1,066": a thousands separator or a decimal comma
+        found += (
+            f", which is {s.replace(',', '')} with a thousands separator or "
+            f"{s.replace(',', '.')} with a decimal comma; export the file with '.' as decimal "
+            "separator and no thousands separators (or quote numbers that have them)"
+        )
     raise CfmInputError(
         f"column '{column}' must be a number; found {found}", file=file, line=line, column=column
     )
