@@ -14,6 +14,16 @@ GOOD_ROW = "1,2,3,0.1,0.2,0.3\n"
 COMSOL_HEAD = "% Nodes: 2\n% Length unit: mm\n% X Y Z mf.Bx (T) mf.By (T) mf.Bz (T)\n"
 OPERA_HEAD = " 1 1 1 2\n 1 X [M]\n 2 Y [M]\n 3 Z [M]\n 4 BX [T]\n 5 BY [T]\n 6 BZ [T]\n 0\n"
 
+# COMSOL sectionwise export: a unit cube split into tetrahedra around node 9 at its centre
+SECT_HEAD = "% Dimension: 3\n% Nodes: 5\n% Length unit: mm\n% Coordinates\n"
+SECT_XYZ = "0 0 0\n1 0 0\n0 1 0\n0 0 1\n1 1 1\n"
+SECT_CELLS = "% Elements (tetrahedra)\n1 2 3 4\n2 3 4 5\n"
+
+
+def _sect_data(values=("0.1",) * 5, sections=("mf.Bx (T)", "mf.By (T)", "mf.Bz (T)")):
+    return "".join(f"% Data ({s})\n" + "\n".join(values) + "\n" for s in sections)
+
+
 # (file name, content, line, column, what the message must say)
 CASES = {
     "empty file": ("m.csv", "", None, None, "the file is empty; expected a field map"),
@@ -106,6 +116,64 @@ CASES = {
         "x [mm]",
         "column 'x [mm]' must be a number with '.' as decimal point; found '-5,000000', which "
         "has a decimal comma (a thousands group has three digits)",
+    ),
+    "sectionwise: a data block too short": (
+        "m.txt",
+        SECT_HEAD
+        + SECT_XYZ
+        + SECT_CELLS
+        + _sect_data(sections=("mf.Bx (T)", "mf.By (T)"))
+        + "% Data (mf.Bz (T))\n0.1\n0.1\n0.1\n0.1\n",
+        25,
+        None,
+        "'% Data (mf.Bz (T))' has 4 value(s); expected 5, one per node of '% Coordinates' (line 4)",
+    ),
+    "sectionwise: NaN in a data block": (
+        "m.txt",
+        SECT_HEAD
+        + SECT_XYZ
+        + SECT_CELLS
+        + _sect_data(values=("0.1", "0.1", "nan", "0.1", "0.1"), sections=("mf.Bx (T)",))
+        + _sect_data(sections=("mf.By (T)", "mf.Bz (T)")),
+        16,
+        "mf.Bx (T)",
+        "'mf.Bx (T)' must be a finite number; found nan",
+    ),
+    "sectionwise: element node out of range": (
+        "m.txt",
+        SECT_HEAD + SECT_XYZ + "% Elements (tetrahedra)\n1 2 3 4\n2 3 4 6\n" + _sect_data(),
+        12,
+        "node 4",
+        "'node 4' of an element of '% Elements (tetrahedra)' is 6; expected a node number, a "
+        "whole number from 1 to 5",
+    ),
+    "sectionwise: truncated coordinate row": (
+        "m.txt",
+        SECT_HEAD + "0 0 0\n1 0 0\n0 1 0\n0 0 1\n1 1\n" + SECT_CELLS + _sect_data(),
+        9,
+        "Z",
+        "the row has 2 field(s) but the header names 3; column 'Z' is missing",
+    ),
+    "sectionwise: unknown section": (
+        "m.txt",
+        SECT_HEAD + SECT_XYZ + SECT_CELLS + "% Solution 2\n" + _sect_data(),
+        13,
+        None,
+        "unknown section '% Solution 2'; expected '% Elements (type)' or '% Data (expression)'",
+    ),
+    "sectionwise: two coordinate sections": (
+        "m.txt",
+        SECT_HEAD + SECT_XYZ + "% Coordinates\n" + SECT_XYZ + SECT_CELLS + _sect_data(),
+        10,
+        None,
+        "a second '% Coordinates' section; expected one per file",
+    ),
+    "sectionwise: no By block": (
+        "m.txt",
+        SECT_HEAD + SECT_XYZ + SECT_CELLS + _sect_data(sections=("mf.Bx (T)", "mf.Bz (T)")),
+        4,
+        "By",
+        "missing column(s) 'By'",
     ),
     "unknown length unit": (
         "m.csv",

@@ -6,7 +6,7 @@ exported too. Every reader returns a `FieldMap` in mm and T, converted once, her
 ========  =====================================  ===============================
 fmt       files                                  module
 ========  =====================================  ===============================
-comsol    COMSOL text / spreadsheet export       :mod:`cfm_fem.io.comsol`
+comsol    COMSOL text, spreadsheet, sectionwise  :mod:`cfm_fem.io.comsol`
 opera     Opera-3D ``.table``                    :mod:`cfm_fem.io.opera`
 table     CSV or blank-separated, header row     :mod:`cfm_fem.io.table`
 meshio    VTU, VTK, Gmsh ``.msh``, XDMF, ...     :mod:`cfm_fem.io.meshfile`

@@ -11,7 +11,9 @@ Layout read::
     ...
 
 The column line is the last ``%`` line that is not a ``Key: value`` line. Data may be separated by
-blanks (COMSOL "text") or commas (COMSOL "spreadsheet" CSV).
+blanks (COMSOL "text") or commas (COMSOL "spreadsheet" CSV). A "Sectionwise" export (a
+``% Coordinates`` line, then ``% Elements (...)`` and ``% Data (...)`` blocks) is read by
+`cfm_fem.io.comsol_sections`, with its tetrahedra as the map's cells.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from ._parse import (
     table_fieldmap,
     write_rows,
 )
+from .comsol_sections import is_coordinates_line, read_sections
 
 __all__ = ["read_comsol", "write_comsol", "looks_like_comsol"]
 
@@ -81,6 +84,24 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         elif body:
             column_line = (body, start + 1)
         start += 1
+    notes = []
+    dimension = _int_or_none(meta.get("dimension", ("", 0))[0])
+    length_fallback = None
+    if "length unit" in meta:
+        unit, line = meta["length unit"]
+        length_fallback = (unit, f"from '% Length unit' on line {line}", line)
+    if column_line is not None and is_coordinates_line(column_line[0]):
+        return read_sections(
+            lines,
+            column_line[1] - 1,
+            file=file,
+            dimension=dimension,
+            length_fallback=length_fallback,
+            length_unit=length_unit,
+            field_unit=field_unit,
+            zero_rows=zero_rows,
+            check_points=lambda points: _check_nodes(meta.get("nodes"), len(points), file),
+        )
     rows, row_lines = data_rows(lines, start)
     if column_line is None:
         raise CfmInputError(
@@ -95,15 +116,9 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         describe_column(name, k, header_line)
         for k, name in enumerate(header_names(text, delimiter))
     ]
-    notes = []
-    dimension = _int_or_none(meta.get("dimension", ("", 0))[0])
     optional = ("z", "Bz") if dimension == 2 else ()
     if dimension == 2:
         notes.append("2-D export ('% Dimension: 2')")
-    length_fallback = None
-    if "length unit" in meta:
-        unit, line = meta["length unit"]
-        length_fallback = (unit, f"from '% Length unit' on line {line}", line)
     return table_fieldmap(
         columns,
         rows,
