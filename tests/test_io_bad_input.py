@@ -175,6 +175,25 @@ CASES = {
         "By",
         "missing column(s) 'By'",
     ),
+    "comsol: two solutions": (  # a parametric export: one column per component and solution
+        "m.txt",
+        "% Length unit: mm\n% X Y Z mf.Bx (T) @ I0=100 mf.By (T) @ I0=100 mf.Bz (T) @ I0=100 "
+        "mf.Bx (T) @ I0=200 mf.By (T) @ I0=200 mf.Bz (T) @ I0=200\n0 0 0 1 2 3 2 4 6\n",
+        2,
+        None,
+        "the export holds 2 solutions ('@ I0=100', '@ I0=200'); expected the field of one",
+    ),
+    "sectionwise: two solutions": (
+        "m.txt",
+        SECT_HEAD
+        + SECT_XYZ
+        + SECT_CELLS
+        + _sect_data(sections=("mf.Bx (T) @ t=0", "mf.By (T) @ t=0", "mf.Bz (T) @ t=0"))
+        + _sect_data(sections=("mf.Bx (T) @ t=1",)),
+        31,
+        None,
+        "the export holds 2 solutions ('@ t=0', '@ t=1')",
+    ),
     "unknown length unit": (
         "m.csv",
         "x [furlong],y [furlong],z [furlong],Bx [T],By [T],Bz [T]\n" + GOOD_ROW,

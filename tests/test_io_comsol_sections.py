@@ -111,3 +111,19 @@ def test_sectionwise_through_the_cli_uses_the_export_cells(tmp_path, cloud, caps
     said = capsys.readouterr().out
     assert "linear interpolation in the export's own cells" in said, said
     assert (out / "sweep.pvd").exists()
+
+
+def test_one_comsol_solution_is_read_and_named(tmp_path, cloud):
+    """A single-solution export tags its expressions ("mf.Bx (T) @ I0=100, p=2"), in both
+    layouts; the tag is said in a note (two solutions: `tests/test_io_bad_input.py` CASES)."""
+    xyz, tets, B = cloud
+    tag = " @ I0=100, p=2"
+    data = [(f"mf.B{a} (T){tag}", B[:, k]) for k, a in enumerate("xyz")]
+    sect = read_field(_sectionwise(tmp_path / "s.txt", xyz, [("tetrahedra", tets)], data))
+    header = "% Length unit: mm\n% X Y Z " + " ".join(name for name, _ in data) + "\n"
+    rows = "".join(" ".join(repr(float(v)) for v in r) + "\n" for r in np.c_[xyz, B])
+    (tmp_path / "p.txt").write_text(header + rows, encoding="utf-8")
+    plain = read_field(tmp_path / "p.txt")
+    for fm in (sect, plain):
+        np.testing.assert_array_equal(fm.B, B)
+        assert "COMSOL solution '@ I0=100, p=2'" in fm.notes

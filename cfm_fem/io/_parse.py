@@ -158,14 +158,19 @@ def header_names(text: str, delimiter) -> list[str]:
     """Column names of a header line.
 
     Blank-separated headers cannot hold names with blanks, except a unit in brackets written
-    apart from its name: ``mf.Bx (T)`` and ``x [mm]`` stay one name each.
+    apart from its name: ``mf.Bx (T)`` and ``x [mm]`` stay one name each, and so does COMSOL's
+    solution tag: ``mf.Bx (T) @ t=0.1`` (``@ I0=100, p=2``).
     """
     if delimiter is not None:
         return [name.strip() for name in split_fields(text, delimiter)]
     names: list[str] = []
     for token in text.split():
+        tagged = names and " @" in names[-1]
         if names and (
-            _bracket_depth(names[-1]) > 0 or (token[0] in "([" and not _has_unit(names[-1]))
+            _bracket_depth(names[-1]) > 0
+            or (token[0] in "([" and not _has_unit(names[-1]))
+            or token == "@"
+            or (tagged and (names[-1].endswith(("@", ",")) or token[0] == ","))
         ):
             names[-1] += " " + token
         else:

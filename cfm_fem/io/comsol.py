@@ -28,14 +28,13 @@ from ..errors import CfmInputError, CfmInputWarning
 from ..field import FieldMap
 from ._parse import (
     data_rows,
-    describe_column,
     detect_delimiter,
     header_names,
     read_lines,
     table_fieldmap,
     write_rows,
 )
-from .comsol_sections import is_coordinates_line, read_sections
+from .comsol_sections import is_coordinates_line, read_sections, solution_columns
 
 __all__ = ["read_comsol", "write_comsol", "looks_like_comsol"]
 
@@ -112,10 +111,8 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         )
     text, header_line = column_line
     delimiter = detect_delimiter(text, rows[0] if rows else None)
-    columns = [
-        describe_column(name, k, header_line)
-        for k, name in enumerate(header_names(text, delimiter))
-    ]
+    names = header_names(text, delimiter)
+    columns = solution_columns(names, [header_line] * len(names), file, notes)
     optional = ("z", "Bz") if dimension == 2 else ()
     if dimension == 2:
         notes.append("2-D export ('% Dimension: 2')")

@@ -28,6 +28,7 @@ as in the other text formats (`cfm_fem.io._parse.describe_column`).
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -36,7 +37,7 @@ from ..errors import CfmInputError
 from ..field import FieldMap
 from ._parse import build_fieldmap, describe_column, parse_block, table_layout
 
-__all__ = ["is_coordinates_line", "read_sections"]
+__all__ = ["is_coordinates_line", "read_sections", "solution_columns"]
 
 _SECTION = re.compile(r"^(?P<kind>coordinates|elements|data)\s*(?:\((?P<label>.*)\))?$", re.I)
 #: COMSOL's element names, by dimension of the element.
@@ -98,11 +99,14 @@ def read_sections(
     xyz = _numbers(coords, names, file)
     n = len(xyz)
     data = [s for s in sections if s["kind"] == "data"]
-    columns = [describe_column(name, k, coords["line"]) for k, name in enumerate(names)]
+    notes = ["COMSOL sectionwise export"]
+    columns = solution_columns(
+        names + [s["label"] for s in data], [coords["line"]] * dim + [s["line"] for s in data],
+        file, notes,
+    )  # fmt: skip
     blocks = [xyz]
-    for k, section in enumerate(data):
+    for section in data:
         label = section["label"]
-        columns.append(describe_column(label, dim + k, section["line"]))
         values = _numbers(section, [label], file)
         if len(values) != n:
             raise CfmInputError(
@@ -130,7 +134,6 @@ def read_sections(
         optional=("z", "Bz") if dim == 2 else (),
     )
     values = layout.values(np.hstack(blocks)[:, layout.usecols])
-    notes = ["COMSOL sectionwise export"]
     if dim == 2:
         notes.append("2-D export ('% Dimension: 2'): z = 0")
     notes += layout.notes
@@ -146,6 +149,40 @@ def read_sections(
         cells=cells,
         zero_rows=zero_rows,
     )
+
+
+def solution_columns(names, lines, file, notes) -> list:
+    """Columns whose names may carry COMSOL's solution tag (``mf.Bx (T) @ t=0.1``).
+
+    One solution: the tag is dropped for the column's role and said in a note. Several (a
+    parametric or time-dependent export holds one column per component and solution): an error,
+    since which one is the map is the user's choice.
+
+    Parameters
+    ----------
+    names : list of str
+        Column names (or ``% Data`` expressions) in file order.
+    lines : list of int
+        1-based line where each is written.
+    """
+    columns, tags = [], {}
+    for k, (name, line) in enumerate(zip(names, lines, strict=True)):
+        base, _, tag = name.partition(" @ ")
+        column = dataclasses.replace(describe_column(base, k, line), name=name)
+        columns.append(column)
+        if tag and column.role is not None:
+            tags.setdefault(tag.strip(), []).append(column)
+    if len(tags) > 1:
+        listed = ", ".join(f"'@ {t}'" for t in tags)
+        raise CfmInputError(
+            f"the export holds {len(tags)} solutions ({listed}); expected the field of one: "
+            "export a single parameter value or time from COMSOL",
+            file=file,
+            line=list(tags.values())[1][0].line,
+        )
+    if tags:
+        notes.append(f"COMSOL solution '@ {next(iter(tags))}'")
+    return columns
 
 
 def _split(lines, start, file) -> list[dict]:
