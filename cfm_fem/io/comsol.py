@@ -89,18 +89,16 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
     if "length unit" in meta:
         unit, line = meta["length unit"]
         length_fallback = (unit, f"from '% Length unit' on line {line}", line)
+    shared = dict(  # both layouts: units, placeholder rows and the '% Nodes' count
+        file=file,
+        length_unit=length_unit,
+        field_unit=field_unit,
+        zero_rows=zero_rows,
+        length_fallback=length_fallback,
+        check_points=lambda points: _check_nodes(meta.get("nodes"), len(points), file),
+    )
     if column_line is not None and is_coordinates_line(column_line[0]):
-        return read_sections(
-            lines,
-            column_line[1] - 1,
-            file=file,
-            dimension=dimension,
-            length_fallback=length_fallback,
-            length_unit=length_unit,
-            field_unit=field_unit,
-            zero_rows=zero_rows,
-            check_points=lambda points: _check_nodes(meta.get("nodes"), len(points), file),
-        )
+        return read_sections(lines, column_line[1] - 1, dimension=dimension, **shared)
     rows, row_lines = data_rows(lines, start)
     if column_line is None:
         raise CfmInputError(
@@ -121,15 +119,10 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         rows,
         row_lines,
         delimiter=delimiter,
-        file=file,
         header_line=header_line,
-        length_unit=length_unit,
-        field_unit=field_unit,
-        zero_rows=zero_rows,
-        length_fallback=length_fallback,
         optional=optional,
         notes=notes,
-        check_points=lambda points: _check_nodes(meta.get("nodes"), len(points), file),
+        **shared,
     )
 
 
