@@ -187,6 +187,10 @@ def _has_unit(name: str) -> bool:
     return name.endswith(("]", ")"))
 
 
+#: How a note ends when a reader keeps no cells of the export (meshio files, COMSOL sections).
+DELAUNAY_NOTE = "interpolation will use a Delaunay triangulation of the nodes"
+
+
 # --------------------------------------------------------------------------- numbers
 
 _THOUSANDS = re.compile(r"[+-]?\d{1,3}(?:,\d{3})+(?:\.\d*)?(?:[eE][+-]?\d+)?")
@@ -220,10 +224,11 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
     except ValueError:
         pass
     thousands = _THOUSANDS.fullmatch(s)
+    one_comma = _ONE_COMMA.fullmatch(s)
     why = None
     if _DECIMAL_COMMA.fullmatch(s):  # before the thousands: "0,125" would match them
         why = "a thousands group never starts with 0"
-    elif _ONE_COMMA.fullmatch(s) and not thousands:
+    elif one_comma and not thousands:
         why = "a thousands group has three digits"
     elif thousands and (was_quoted or "." in s):
         return float(s.replace(",", ""))
@@ -236,7 +241,7 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
             column=column,
         )
     found = "an empty field" if not s else f"'{s}'"
-    if _ONE_COMMA.fullmatch(s):  # "1,066": a thousands separator or a decimal comma
+    if one_comma:  # "1,066": a thousands separator or a decimal comma
         found += (
             f", which is {s.replace(',', '')} with a thousands separator or "
             f"{s.replace(',', '.')} with a decimal comma; export the file with '.' as decimal "

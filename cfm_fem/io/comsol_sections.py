@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import CfmInputError
 from ..field import FieldMap
-from ._parse import build_fieldmap, describe_column, parse_block, table_layout
+from ._parse import DELAUNAY_NOTE, build_fieldmap, describe_column, parse_block, table_layout
 
 __all__ = ["is_coordinates_line", "read_sections", "solution_columns"]
 
@@ -45,7 +45,6 @@ _VOLUME = ("tetrahedra", "pyramids", "prisms", "hexahedra")
 _SURFACE = ("triangles", "quadrilaterals", "quads")
 _KNOWN = _VOLUME + _SURFACE + ("edges", "lines", "vertices", "points")
 _KEPT = {3: ("tetrahedra", 4), 2: ("triangles", 3)}  # dimension -> element kept, its corners
-_DELAUNAY = "interpolation will use a Delaunay triangulation of the nodes"
 
 
 def is_coordinates_line(body: str) -> bool:
@@ -240,15 +239,15 @@ def _cells(sections, dim, n, file, notes):
     own = _VOLUME if dim == 3 else _SURFACE
     unknown = sorted({s["label"] for s in elements if s["label"].lower() not in _KNOWN})
     if unknown:  # of which dimension? their nodes may be the map's: none is used
-        notes.append(f"elements of type {', '.join(unknown)} are not used: {_DELAUNAY}")
+        notes.append(f"elements of type {', '.join(unknown)} are not used: {DELAUNAY_NOTE}")
         return None
     mine = [s for s in elements if s["label"].lower() in own]
     if not mine:
-        notes.append(f"no {kept} in the export: {_DELAUNAY}")
+        notes.append(f"no {kept} in the export: {DELAUNAY_NOTE}")
         return None
     others = sorted({s["label"] for s in mine if s["label"].lower() != kept})
     if others:
-        notes.append(f"elements of type {', '.join(others)} are not used: {_DELAUNAY}")
+        notes.append(f"elements of type {', '.join(others)} are not used: {DELAUNAY_NOTE}")
         return None
     blocks = []
     for s in mine:

@@ -16,7 +16,14 @@ import numpy as np
 from ..errors import CfmInputError
 from ..field import FieldMap
 from ._atomic import atomic_path
-from ._parse import Column, build_fieldmap, describe_column, option_hint, resolve_unit
+from ._parse import (
+    DELAUNAY_NOTE,
+    Column,
+    build_fieldmap,
+    describe_column,
+    option_hint,
+    resolve_unit,
+)
 
 __all__ = ["read_meshfile", "write_meshfile", "meshio_format"]
 
@@ -24,7 +31,6 @@ __all__ = ["read_meshfile", "write_meshfile", "meshio_format"]
 _VECTOR_NAMES = {"b", "bfield", "magneticfluxdensity", "fluxdensity"}
 #: Extensions meshio would guess wrongly or that we read as text first.
 _FORMAT_OF_SUFFIX = {".msh": "gmsh"}
-_DELAUNAY = "interpolation will use a Delaunay triangulation of the nodes"
 
 
 def meshio_format(path, file_format=None) -> str:
@@ -207,12 +213,12 @@ def _usable_cells(blocks, points, notes):
             continue
         types = sorted({b.type for b in by_dim[dim]})
         if any(not t.startswith(kind) for t in types):
-            notes.append(f"cells of type {', '.join(types)} are not used: {_DELAUNAY}")
+            notes.append(f"cells of type {', '.join(types)} are not used: {DELAUNAY_NOTE}")
             return None
         if dim == 2:
             plane = _constant_axis(points)
             if plane is None:
-                notes.append(f"triangles of a non-planar surface are not used: {_DELAUNAY}")
+                notes.append(f"triangles of a non-planar surface are not used: {DELAUNAY_NOTE}")
                 return None
             notes.append(f"planar map in the plane {plane}")
         cells = np.concatenate([np.asarray(b.data)[:, :corners] for b in by_dim[dim]])
@@ -220,7 +226,7 @@ def _usable_cells(blocks, points, notes):
         if higher:
             notes.append(f"{', '.join(higher)} cells: only their {corners} corner nodes are used")
         return cells.astype(np.int64)
-    notes.append(f"no volume cells: {_DELAUNAY}")
+    notes.append(f"no volume cells: {DELAUNAY_NOTE}")
     return None
 
 
