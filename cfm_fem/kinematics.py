@@ -522,30 +522,26 @@ def pool_table_iv(mean, std) -> dict:
 #: Trials per kernel call. Part of the fixed layout: sums are grouped per block, so results are
 #: bit-identical for any number of threads (not for another block size: last-bit rounding).
 BLOCK = 4096
-#: Largest candidate bitmap (one bit per point and trial) kept between the two passes.
-BITMAP_BYTES = 512 * 2**20
-#: Largest store of per-block chain terms and trial keys kept between the two passes.
-KEPT_BYTES = 512 * 2**20
 #: Half-width of the pilot's interval-end brackets in binomial standard deviations. A window
-#: that misses its order statistic costs a re-count of that point alone (1/936 of pass 1 on the
-#: reference grid); at 4 sigma about 0.5 of the 7,488 windows miss per run, and each window
-#: flags a third fewer trials for pass 2 than at 6 sigma.
+#: that misses its order statistic costs a recount of that point alone.
 PILOT_SIGMAS = 4.0
-#: Slots per interval-end window. Few slots keep a point's histograms (8 windows) in L1 during
-#: pass 1: 256 slots cost 17.6 ns per sample and core, 32 slots 13.0; pass 2 then keeps ~350
-#: values per end instead of ~45, which is nothing.
+#: Slots per interval-end window of the generic path (counting pass, then a pass that keeps
+#: the values of the slot holding each end).
 WINDOW_SLOTS = 32
-#: Pass 1 marks every window hit of its first MARK_AFTER of the trials for pass 2; later hits
-#: only in the slots that hold the interval end with near certainty given those trials
-#: (`_likely_slots`, MARK_SIGMAS wide). A point whose end falls outside them is regenerated
-#: whole in pass 2 (~1/936 of a pass on the reference grid); at 5 sigma that almost never
-#: happens, and pass 2 regenerates about half the trials it would otherwise.
-MARK_AFTER = 0.25
-MARK_SIGMAS = 5.0
-#: Most widening rounds of a missed interval window. Each round widens a window at least 5-fold,
-#: so 200 rounds span any finite range; only NaN or infinite positions (a bench whose errors
-#: overflow) could miss for ever, and they are refused before the loop.
+#: Most widening rounds of a missed interval window (generic path). Each round widens a window
+#: at least 5-fold, so 200 rounds span any finite range; only NaN or infinite positions (a bench
+#: whose errors overflow) could miss for ever, and they are refused before the loop.
 MAX_WIDEN_ROUNDS = 200
+#: Hot path: the windows narrow when the trials seen reach NARROW_FIRST and at each doubling,
+#: up to three quarters of the run; each narrowing keeps the ranks that hold the final order
+#: statistic with near certainty (NARROW_SIGMAS hypergeometric standard deviations,
+#: `_narrow_ranks`). A window that loses its order statistic all the same is recounted on the
+#: generic path (one point).
+NARROW_FIRST = 16 * BLOCK
+NARROW_SIGMAS = 5.0
+#: Largest store of window values of the hot path (125 MB for 1e6 trials on the reference
+#: grid, 464 MB for 1e7); a run that would need more takes the generic path.
+STORE_BYTES = 2**30
 
 
 def _terms_array(n):
@@ -571,8 +567,6 @@ class _Engine:
         self.terms = _terms_array(self.block)
         self.tkeys = np.empty(self.block, dtype=np.uint64)
         self.dummy = np.zeros((1, 21))
-        self.keep_blocks = False
-        self.kept = {}
 
     @property
     def fast(self) -> bool:
@@ -580,19 +574,9 @@ class _Engine:
         return self.g.linear and self.g.tau_code < 0
 
     def prepare(self, a, b):
-        """Draw the errors of trials a..b-1 (and the collapsed chain terms); return b - a.
-
-        On the hot path with ``keep_blocks`` on, the terms and trial keys of each block are
-        kept, so the later passes reuse them instead of drawing them again (~0.7 us per trial:
-        21 draws and three exact rotations)."""
+        """Draw the errors of trials a..b-1 (and the collapsed chain terms); return b - a."""
         n = b - a
         g = self.g
-        if self.fast and a in self.kept:
-            self.terms, self.tkeys = self.kept[a]
-            return n
-        if self.fast and self.keep_blocks:
-            self.terms, self.tkeys = _terms_array(self.block), np.empty(self.block, np.uint64)
-            self.kept[a] = (self.terms, self.tkeys)
         K.draw_error_params(self.ekey, a, n, g.codes, g.pars, self.params)
         if g.linear:
             K.trial_terms(self.params[:n], g.stack, g.mounts, g.tool, self.terms)
@@ -629,8 +613,6 @@ class _Engine:
         big.block = n
         big.params = np.empty((n, len(ERROR_NAMES)))
         big.terms = _terms_array(n)
-        big.keep_blocks = False
-        big.kept = {}
         big.tkeys = np.empty(n, dtype=np.uint64)
         big.prepare(0, n)
         K.pass_pilot_quantiles(big.model, 0, n, q, pidx, kth, out)
@@ -638,74 +620,18 @@ class _Engine:
     def pilot(self, a, n, q, pidx, out):
         K.pass_pilot(self.model, a, n, q, pidx, out)
 
-    def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits=None, mark=None):
-        """Pass 1 over trials a .. a+n-1. mark (npts, 4, 2, 2): slots whose hits set ``bits``
-        (default all; the hot path only)."""
-        if bits is None:
-            bits = np.zeros((q.shape[0], 0), dtype=np.uint64)
-        if self.fast:
-            if mark is None:
-                mark = _all_slots(whist)
-            top = wlo + (whist.shape[-1] + 1) / winv  # one slot of slack above each window
-            g = self.g
-            K.pass_window_fast(self.terms, a, n, q, pidx, g.sig, self.tkeys, self.fkey, shift,
-                               wlo, winv, top, acc, below, whist, mark, bits)  # fmt: skip
-        else:
-            K.pass_window(self.model, a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
-
-    def capture_candidates(
-        self, a, n, q, pidx, bits, wlo, winv, target, vlo, vhi, offset, fill, buf
-    ):
-        K.pass_capture_fast(
-            self.terms,
-            a,
-            n,
-            q,
-            pidx,
-            self.g.sig,
-            self.tkeys,
-            self.fkey,
-            bits,
-            wlo,
-            winv,
-            target,
-            vlo,
-            vhi,
-            offset,
-            fill,
-            buf,
-        )
+    def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist):
+        """Generic pass 1 over trials a .. a+n-1 (counts in slot windows)."""
+        K.pass_window(self.model, a, n, q, pidx, shift, wlo, winv, acc, below, whist)
 
     def capture(self, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
         K.pass_capture(self.model, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf)
 
-
-def _all_slots(whist):
-    """Mark range of every slot of every window (npts, 4, 2, 2)."""
-    mark = np.zeros(whist.shape[:3] + (2,), dtype=np.int64)
-    mark[..., 1] = whist.shape[-1] - 1
-    return mark
-
-
-def _likely_slots(ranks, total, seen, below, whist):
-    """Slots that hold each final order statistic with near certainty, from the counts of the
-    first ``seen`` of ``total`` trials (npts, 4, 2, 2: first and last slot).
-
-    The number of the first ``seen`` values at or below the final order statistic of rank r is
-    hypergeometric, mean seen r / total; the range spans MARK_SIGMAS of its standard deviation
-    plus one value either side, and one slot either side."""
-    r = np.asarray(ranks, dtype=np.float64)[None, None, :]
-    f = seen / total
-    sd = np.sqrt(seen * (r / total) * (1 - r / total) * (1 - f))
-    lo = np.maximum(r * f - MARK_SIGMAS * sd - 1, 0.0)
-    hi = r * f + MARK_SIGMAS * sd + 1
-    cum = below[..., None] + np.cumsum(whist, axis=-1)  # values at or below each slot's top
-    w = whist.shape[-1]
-    mark = np.empty(whist.shape[:3] + (2,), dtype=np.int64)
-    # first slot whose top holds >= lo values; last slot whose bottom holds < hi values
-    mark[..., 0] = np.sum(cum < lo[..., None], axis=-1) - 1
-    mark[..., 1] = np.sum((cum - whist) < hi[..., None], axis=-1)
-    return np.clip(mark, 0, w - 1)
+    def keep(self, n, q, pidx, shift, lo, hi, acc, below, store):
+        """The hot path's fused pass over the prepared block (`_kernels.pass_keep`)."""
+        g = self.g
+        K.pass_keep(self.terms, n, q, pidx, g.sig, self.tkeys, self.fkey, shift, lo, hi, acc,
+                    below, store.values, store.off, store.cap, store.fill)  # fmt: skip
 
 
 def _locate(ranks, below, whist):
@@ -753,24 +679,23 @@ def run_kinematics(
 
     Mean and standard deviation: shifted sums (shift = pilot mean), one pass.
 
-    95 % intervals, exact order statistics (JCGM 101 7.7.2 ranks) in two passes:
+    95 % intervals, exact order statistics (JCGM 101 7.7.2 ranks). A pilot of the first
+    ``pilot`` trials places, per point, quantity and interval end, a window in value space that
+    holds the end with near certainty (pilot quantiles at p_end -+ PILOT_SIGMAS binomial standard
+    deviations, read conservatively from a histogram of the pilot). Then:
 
-    1. a pilot of the first ``pilot`` trials places, per point, quantity and interval end, a
-       window in value space that holds the end with near certainty (pilot quantiles at
-       p_end -+ PILOT_SIGMAS binomial standard deviations, read conservatively from a histogram
-       of the pilot); pass 1 counts, over all trials, the values below each window and those in each
-       of its ``window_slots`` slots, and marks (one bit per point and trial) the trials that
-       put a value in some window (after the first ``MARK_AFTER`` of the trials, only in the
-       slots that then hold the end with near certainty, `_likely_slots`);
-    2. the counts give the slot holding each order statistic and its rank in the slot; pass 2
-       regenerates the marked trials only (counter-based RNG: the same numbers; an unmarked
-       trial cannot fall in a slot) and keeps the values of the target slots, which are then
-       partially sorted. Without the bitmap (adaptive runs, models off the hot path, or a
-       bitmap above ``BITMAP_BYTES``) every trial is regenerated.
-
-    A window that misses its order statistic (the counts show it) is widened and re-counted for
-    the points concerned, so the result is exact whatever the pilot. ``exact=False`` stops after
-    pass 1 and interpolates inside the slot.
+    - hot path (constant error profiles, normal noise: the reference bench), one pass: every
+      sample is counted below its windows or kept in them; as the trials accumulate, each window
+      narrows to the values that can still hold its end (`_narrow_ranks`), and at the end the
+      end is selected from the kept values. A point whose window lost its end (rare) or whose
+      store overflowed is recounted on the generic path;
+    - generic path (position-dependent errors, speed x tau delay, or a store above
+      STORE_BYTES): pass 1 counts the values below each window and in each of its
+      ``window_slots`` slots; the counts give the slot holding each end and its rank in the
+      slot; pass 2 regenerates every sample (counter-based RNG: the same numbers) and keeps the
+      values of the target slots, which are then partially sorted. A window that missed its
+      order statistic is widened and recounted for the points concerned. ``exact=False`` stops
+      after pass 1 and interpolates inside the slot (the hot path is exact either way).
 
     Parameters
     ----------
@@ -782,10 +707,15 @@ def run_kinematics(
         Commanded axis positions; default the bench grid.
     p : float
         Coverage probability of the per-point intervals.
+    window_slots : int
+        Slots per window of the generic path.
+    pilot : int
+        Trials of the pilot.
     adaptive_digits : int, optional
         Adaptive procedure of JCGM 101 7.9 on the pooled per-axis systematic error, standard
         uncertainty and U_p: batches until twice the standard deviation of the batch results is
-        within the numerical tolerance for ``adaptive_digits`` significant digits of u.
+        within the numerical tolerance for ``adaptive_digits`` significant digits of u; the
+        intervals then come from a run of that many trials.
     max_trials : int
         Cap of the adaptive run.
     progress : callable(int), optional
@@ -813,8 +743,7 @@ def run_kinematics(
         pidx = np.ascontiguousarray(point_index, dtype=np.int64)
         if pidx.shape != (npts,):
             raise CfmInputError(f"point_index must have shape ({npts},); found {pidx.shape}")
-    block = BLOCK
-    eng = _Engine(bench, seed, block)
+    eng = _Engine(bench, seed, BLOCK)
     notes = []
 
     # Pilot: window placement and the shift of the sums (one point at a time in the kernel).
@@ -823,150 +752,72 @@ def run_kinematics(
     pil = np.empty((npts, 4, len(kth) + 1))
     eng.pilot_quantiles(n_pilot, q, pidx, kth, pil)
     shift = np.ascontiguousarray(pil[..., -1])
-    wlo, winv = _windows(pil[..., :-1], probs, window_slots)
     timer.mark("pilot")
 
-    acc = np.zeros((npts, 4, 2))
-    below = np.zeros((npts, 4, 2), dtype=np.int64)
-    whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
+    hot = eng.fast
     adaptive = None
-    # candidate bitmap: pass 2 then regenerates only the trials that reached a window
-    words = (int(trials) + 63) // 64
-    use_bits = exact and eng.fast and adaptive_digits is None and npts * words * 8 <= BITMAP_BYTES
-    bits = np.zeros((npts, words if use_bits else 0), dtype=np.uint64)
-    # keep each block's terms and keys for pass 2 when they fit (about 180 MB per 1e6 trials)
-    eng.keep_blocks = exact and adaptive_digits is None and int(trials) * 176 <= KEPT_BYTES
-    mark = _all_slots(whist)  # until the first MARK_AFTER of the trials have been seen
-    narrowed = False
-    if adaptive_digits is None:
-        total = int(trials)
-        for a, b in _blocks(0, total, block):
-            if use_bits and not narrowed and a >= MARK_AFTER * total:
-                mark = _likely_slots(symmetric_ranks(total, p), total, a, below, whist)
-                narrowed = True
-            n = eng.prepare(a, b)
-            eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist, bits, mark)
-            if progress is not None:
-                progress(n)
-    else:
-        total, adaptive = _adaptive_pass1(
-            eng, q, pidx, shift, wlo, winv, acc, below, whist, adaptive_digits, max_trials, progress
+    acc = np.zeros((npts, 4, 2))
+    if hot:
+        if adaptive_digits is None:
+            total = int(trials)
+        else:  # the stopping rule on the sums alone, then the intervals from a run of total
+            total, adaptive = _adaptive_pass1(
+                eng, lambda a, n, bacc: _sums_only(eng, n, q, pidx, shift, bacc), shift, acc,
+                adaptive_digits, max_trials, progress,
+            )  # fmt: skip
+            timer.mark("adaptive")
+            acc[...] = 0.0
+        cap = _store_capacity(total, p, kth, n_pilot)
+        hot = npts * 8 * (cap + 1) * 8 <= STORE_BYTES
+    if hot:
+        lo, hi = _value_windows(pil[..., :-1])
+        store = _Store(npts, cap)
+        ends = _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
+        del store
+        _mean_std(shift, acc, total, bench.source)  # refuses NaN positions before any recount
+        timer.mark("pass")
+        low, high = ends[..., 0].copy(), ends[..., 1].copy()
+        redo = np.nonzero(np.isnan(ends).any(axis=(1, 2)))[0]
+        method = (
+            "exact order statistics (JCGM 101 7.7.2 ranks): one pass counting each value below "
+            "its pilot-placed window or keeping it there, the windows narrowing as the trials "
+            "accumulate, the end then selected from the kept values"
         )
-    timer.mark("pass1")
-
-    m = float(total)
-    mean = shift + acc[..., 0] / m
-    std = np.sqrt(np.maximum(acc[..., 1] - acc[..., 0] ** 2 / m, 0.0) / (m - 1.0))
-    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
-        raise CfmInputError(
-            "the bench's errors give infinite or NaN probe positions (an overflow): check the "
-            "sizes of its error PDFs and profiles",
-            file=bench.source,
-        )
-    ranks = symmetric_ranks(total, p)
-    slot, within = _locate(ranks, below, whist)
-    bit_rows = np.full(npts, use_bits)  # points whose bitmap still covers their windows
-    if narrowed:  # an end outside its marked slots: that point is regenerated whole
-        outside = np.any((slot < mark[..., 0]) | (slot > mark[..., 1]), axis=(1, 2))
-        if np.any(outside & bit_rows):
+        if len(redo):
+            sub = np.ascontiguousarray(q[redo])
+            _, r_low, r_high, sub_notes, _ = _generic_intervals(
+                eng, sub, pidx[redo], pil[redo], probs, total, p, True, window_slots, None,
+                source=bench.source,
+            )  # fmt: skip
+            low[redo], high[redo] = r_low, r_high
             notes.append(
-                f"{int(np.count_nonzero(outside & bit_rows))} point(s) whose interval end fell "
-                "outside the slots marked in pass 1 were regenerated whole in pass 2"
+                f"{len(redo)} point(s) whose window lost its interval end were recounted on "
+                "the generic path (exact)"
             )
-        bit_rows &= ~outside
-    widened = 0
-    for _round in range(MAX_WIDEN_ROUNDS + 1):
-        if not np.any(slot < 0):
-            break
-        if _round == MAX_WIDEN_ROUNDS:
-            raise RuntimeError(
-                f"interval windows still miss their order statistic after {MAX_WIDEN_ROUNDS} "
-                "widenings"
-            )
-        # a window missed its order statistic: widen, re-count those points
-        sel = np.unique(np.nonzero(slot < 0)[0])
-        widened += int(np.count_nonzero(slot < 0))
-        width = window_slots / winv[sel]
-        span = np.maximum(pil[sel][..., 5] - pil[sel][..., 4], 1e-12)[..., None]
-        miss_low, miss_high = slot[sel] == -1, slot[sel] == -2
-        new_lo = np.where(
-            miss_low, wlo[sel] - 4 * (width + span), np.where(miss_high, wlo[sel] + width, wlo[sel])
-        )
-        new_w = np.where(miss_low | miss_high, 4 * (width + span) + width, width)
-        wlo[sel] = new_lo
-        winv[sel] = window_slots / new_w
-        b_sel = np.zeros((len(sel), 4, 2), dtype=np.int64)
-        h_sel = np.zeros((len(sel), 4, 2, window_slots), dtype=np.int64)
-        junk = np.zeros((len(sel), 4, 2))
-        q_sel, p_sel = np.ascontiguousarray(q[sel]), pidx[sel]
-        for a, b in _blocks(0, total, block):
-            n = eng.prepare(a, b)
-            eng.window(a, n, q_sel, p_sel, shift[sel], wlo[sel], winv[sel], junk, b_sel, h_sel)
-        below[sel], whist[sel] = b_sel, h_sel
-        bit_rows[sel] = False
-        slot, within = _locate(ranks, below, whist)
-    if widened:
-        notes.append(
-            f"{widened} interval-end windows missed by the pilot were widened and re-counted"
-        )
-    timer.mark("refine")
-
-    count = np.take_along_axis(whist, slot[..., None], -1)[..., 0]
-    width = 1.0 / winv
-    low = np.empty((npts, 4))
-    high = np.empty((npts, 4))
-    if exact:
-        offset = np.zeros_like(count)
-        offset.ravel()[1:] = np.cumsum(count.ravel())[:-1]
-        buf = np.empty(int(count.sum()))
-        fill = np.zeros_like(count)
-        slack = 1e-9 * width + 1e-300
-        vlo = wlo + slot * width - slack
-        vhi = wlo + (slot + 1) * width + slack
-        with_bits = np.nonzero(bit_rows)[0]
-        full = np.nonzero(~bit_rows)[0]
-        # per group of points: (uses bitmap, rows, q, pidx, wlo, winv, slot, vlo, vhi, offset,
-        # fill, bitmap rows); copies made once, not per block
-        groups = []
-        for rows, candidates in ((with_bits, True), (full, False)):
-            if len(rows) == 0:
-                continue
-            sub = [np.ascontiguousarray(x[rows]) for x in (q, pidx, wlo, winv, slot, vlo, vhi)]
-            sub += [np.ascontiguousarray(offset[rows]), np.zeros((len(rows), 4, 2), np.int64)]
-            sub.append(bits if len(rows) == npts else np.ascontiguousarray(bits[rows]))
-            groups.append((candidates, rows, sub))
-        for a, b in _blocks(0, total, block):
-            n = eng.prepare(a, b)
-            for candidates, _, (q_r, p_r, wl, wi, sl, lo_, hi_, off, fl, bt) in groups:
-                if candidates:
-                    eng.capture_candidates(a, n, q_r, p_r, bt, wl, wi, sl, lo_, hi_, off, fl, buf)
-                else:
-                    eng.capture(a, n, q_r, p_r, wl, wi, sl, lo_, hi_, off, fl, buf)
-            if progress is not None:
-                progress(n)
-        for _, rows, sub in groups:
-            fill[rows] = sub[8]
-        if not np.array_equal(fill, count):  # same samples, same slots: cannot happen
-            raise RuntimeError("pass 2 did not reproduce the pass 1 counts")
-        ends = (low, high)
-        for i in range(npts):
-            for c in range(4):
-                for e in range(2):
-                    o, k, r = offset[i, c, e], count[i, c, e], within[i, c, e]
-                    ends[e][i, c] = np.partition(buf[o : o + k], r - 1)[r - 1]
-        method = (
-            "exact order statistics (JCGM 101 7.7.2 ranks) by counting in pilot-placed windows "
-            f"({window_slots} slots each) and a second pass that regenerates the samples (the "
-            "trials marked in pass 1, or all) and keeps those of the slot holding each end"
-        )
-        timer.mark("pass2")
+            notes += sub_notes
+            timer.mark("recount")
     else:
-        val = wlo + (slot + (within - 0.5) / np.maximum(count, 1)) * width
-        low[...], high[...] = val[..., 0], val[..., 1]
-        method = (
-            f"interpolated in the slot holding each order statistic ({window_slots}-slot windows; "
-            f"error below {1e3 * float(np.max(width)):.2g} um)"
-        )
+        below = np.zeros((npts, 4, 2), dtype=np.int64)
+        whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
+        if adaptive_digits is None:
+            total = int(trials)
+            counted = False
+        else:
+            wlo, winv = _windows(pil[..., :-1], probs, window_slots)
+            total, adaptive = _adaptive_pass1(
+                eng,
+                lambda a, n, bacc: eng.window(a, n, q, pidx, shift, wlo, winv, bacc, below, whist),
+                shift, acc, adaptive_digits, max_trials, progress,
+            )  # fmt: skip
+            counted = True
+        acc_g, low, high, sub_notes, method = _generic_intervals(
+            eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
+            counts=(acc, below, whist) if counted else None, timer=timer, source=bench.source,
+        )  # fmt: skip
+        acc = acc_g
+        notes += sub_notes
+
+    mean, std = _mean_std(shift, acc, total, bench.source)
     notes.append(f"95 % intervals: {method}")
     if eng.g.tau_code < 0:
         notes.append(
@@ -989,6 +840,243 @@ def run_kinematics(
         notes=notes,
         adaptive=adaptive,
     )
+
+
+def _mean_std(shift, acc, total, source):
+    """Mean and std (npts, 4) from the shifted sums; a CfmInputError naming the bench file
+    when they are not finite (errors that overflow the positions)."""
+    m = float(total)
+    mean = shift + acc[..., 0] / m
+    std = np.sqrt(np.maximum(acc[..., 1] - acc[..., 0] ** 2 / m, 0.0) / (m - 1.0))
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(std))):
+        raise CfmInputError(
+            "the bench's errors give infinite or NaN probe positions (an overflow): check the "
+            "sizes of its error PDFs and profiles",
+            file=source,
+        )
+    return mean, std
+
+
+def _sums_only(eng, n, q, pidx, shift, acc):
+    """The hot pass for its sums alone (windows that hold nothing; adaptive batches)."""
+    npts = q.shape[0]
+    lo = np.full((npts, 4, 2), np.inf)
+    hi = np.full((npts, 4, 2), -np.inf)
+    eng.keep(n, q, pidx, shift, lo, hi, acc, np.zeros((npts, 4, 2), np.int64), _Store(npts, 0))
+
+
+class _Store:
+    """Values kept in the hot path's windows: window w (flat index over (npts, 4, 2)) owns
+    values[w * (cap + 1) : (w + 1) * (cap + 1)] (the last place is a spare that overflowing
+    writes land on) and holds fill[w] values; fill[w] > cap means it overflowed."""
+
+    def __init__(self, npts, cap):
+        self.cap = np.full((npts, 4, 2), int(cap), dtype=np.int64)
+        self.off = np.arange(npts * 8, dtype=np.int64).reshape(npts, 4, 2) * (int(cap) + 1)
+        self.fill = np.zeros((npts, 4, 2), dtype=np.int64)
+        self.values = np.empty(npts * 8 * (int(cap) + 1))
+
+
+def _narrowings(total):
+    """Trial counts at which the hot path's windows narrow: NARROW_FIRST and its doublings up
+    to three quarters of the run."""
+    out = []
+    s = NARROW_FIRST
+    while 4 * s <= 3 * total:
+        out.append(s)
+        s *= 2
+    return out
+
+
+def _margin(expect):
+    """Places for a Poisson count of mean ``expect``: exceeded with negligible probability (an
+    overflow only sends the point to the generic path)."""
+    return np.ceil(1.3 * expect + 8.0 * np.sqrt(expect) + 64.0)
+
+
+def _store_capacity(total, p, kth, n_pilot):
+    """Places per window the hot path needs over the run: the pilot window's share of the
+    trials before the first narrowing, then, after each, the values kept (the ranks of
+    `_narrow_ranks`, widened by the histogram bins that hold the two edge ranks) and their share
+    of the trials up to the next one."""
+    frac = max(kth[1] - kth[0] + 1, kth[3] - kth[2] + 1) / n_pilot
+    stops = _narrowings(total)
+    need = _margin(frac * (stops[0] if stops else total))
+    rank = np.array(symmetric_ranks(total, p))
+    for k, s in enumerate(stops):
+        held = min(need, frac * s)  # values in the window before it narrows
+        klo, khi = _narrow_ranks(rank, total, s)
+        kept = max(float(np.max(khi - klo + 1)), 0.0) + 8.0 * held / K.NARROW_BINS
+        frac = kept / s
+        following = (stops[k + 1] if k + 1 < len(stops) else total) - s
+        need = max(need, kept + _margin(frac * following))
+    return int(need)
+
+
+def _value_windows(qs):
+    """Windows [lo, hi] (npts, 4, 2) around each interval end from the pilot brackets qs
+    (npts, 4, 6), padded by 1 % of the bracket (and 1e-9 of the pilot's range)."""
+    vmin, vmax = qs[..., 4], qs[..., 5]
+    span = np.maximum(vmax - vmin, 1e-12)
+    lo = np.empty(qs.shape[:2] + (2,))
+    hi = np.empty(qs.shape[:2] + (2,))
+    for e in range(2):
+        a, b = qs[..., 2 * e], qs[..., 2 * e + 1]
+        pad = 0.01 * (b - a) + 1e-9 * span
+        lo[..., e] = a - pad
+        hi[..., e] = b + pad
+    return np.ascontiguousarray(lo), np.ascontiguousarray(hi)
+
+
+def _narrow_ranks(rank, total, seen):
+    """Ranks among the first ``seen`` trials between which the final order statistic of rank
+    ``rank`` (1-based among ``total``) lies with near certainty: (klo, khi), arrays like rank.
+
+    The number C of the first ``seen`` values at or below the final order statistic is
+    hypergeometric (mean seen r / total); the statistic lies between the C-th and (C+1)-th
+    smallest of them. The range spans NARROW_SIGMAS standard deviations of C either side, plus
+    one rank."""
+    r = np.asarray(rank, dtype=np.float64)
+    f = seen / total
+    sd = np.sqrt(seen * (r / total) * (1.0 - r / total) * (1.0 - f))
+    klo = np.floor(r * f - NARROW_SIGMAS * sd) - 1
+    khi = np.ceil(r * f + NARROW_SIGMAS * sd) + 2
+    return np.maximum(klo, 1).astype(np.int64), np.minimum(khi, seen).astype(np.int64)
+
+
+def _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
+    """The hot path's one pass: sums into ``acc`` and the interval ends (npts, 4, 2), NaN where
+    a window lost its end or overflowed (that point needs the generic path). ``lo``, ``hi``:
+    the pilot windows (narrowed in place); ``store``: a `_Store` of `_store_capacity`."""
+    npts = q.shape[0]
+    rank = np.empty((npts, 4, 2), np.int64)
+    rank[..., 0], rank[..., 1] = symmetric_ranks(total, p)
+    below = np.zeros((npts, 4, 2), dtype=np.int64)
+    flat = [x.reshape(-1) for x in (store.values, store.off, store.cap, store.fill, below)]
+    lost = np.zeros((npts, 4, 2), dtype=bool)
+    stops = _narrowings(total)
+    for a, b in _blocks(0, total, BLOCK):
+        if stops and a == stops[0]:
+            stops.pop(0)
+            lost |= store.fill > store.cap
+            lo[lost], hi[lost] = np.inf, -np.inf  # a lost window takes no more values
+            klo, khi = _narrow_ranks(rank, total, a)
+            K.narrow_windows(*flat, lo.reshape(-1), hi.reshape(-1), klo.ravel(), khi.ravel())
+        n = eng.prepare(a, b)
+        eng.keep(n, q, pidx, shift, lo, hi, acc, below, store)
+        if progress is not None:
+            progress(n)
+    ends = np.empty((npts, 4, 2))
+    values, off, cap, fill, below_flat = flat
+    K.select_ends(values, off, fill, cap, below_flat, rank.reshape(-1), ends.reshape(-1))
+    ends[lost] = np.nan
+    return ends
+
+
+def _generic_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
+                       counts=None, timer=None, source=None):  # fmt: skip
+    """The generic path: counting pass (unless ``counts`` = (acc, below, whist) holds it),
+    widening of missed windows, then the pass that keeps the values of the target slots.
+    ``source``: the bench file, named when its positions are not finite.
+
+    Returns acc (npts, 4, 2), low, high (npts, 4), notes, method."""
+    npts = q.shape[0]
+    shift = np.ascontiguousarray(pil[..., -1])
+    wlo, winv = _windows(pil[..., :-1], probs, window_slots)
+    notes = []
+    if counts is None:
+        acc = np.zeros((npts, 4, 2))
+        below = np.zeros((npts, 4, 2), dtype=np.int64)
+        whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
+        for a, b in _blocks(0, total, eng.block):
+            n = eng.prepare(a, b)
+            eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist)
+            if progress is not None:
+                progress(n)
+    else:
+        acc, below, whist = counts
+    _mean_std(shift, acc, total, source)  # NaN positions would miss every window for ever
+    if timer is not None:
+        timer.mark("pass1")
+    ranks = symmetric_ranks(total, p)
+    slot, within = _locate(ranks, below, whist)
+    widened = 0
+    for _round in range(MAX_WIDEN_ROUNDS + 1):
+        if not np.any(slot < 0):
+            break
+        if _round == MAX_WIDEN_ROUNDS:
+            raise RuntimeError(
+                f"interval windows still miss their order statistic after {MAX_WIDEN_ROUNDS} "
+                "widenings"
+            )
+        # a window missed its order statistic: widen, recount those points
+        sel = np.unique(np.nonzero(slot < 0)[0])
+        widened += int(np.count_nonzero(slot < 0))
+        width = window_slots / winv[sel]
+        span = np.maximum(pil[sel][..., 5] - pil[sel][..., 4], 1e-12)[..., None]
+        miss_low, miss_high = slot[sel] == -1, slot[sel] == -2
+        new_lo = np.where(
+            miss_low, wlo[sel] - 4 * (width + span), np.where(miss_high, wlo[sel] + width, wlo[sel])
+        )
+        new_w = np.where(miss_low | miss_high, 4 * (width + span) + width, width)
+        wlo[sel] = new_lo
+        winv[sel] = window_slots / new_w
+        b_sel = np.zeros((len(sel), 4, 2), dtype=np.int64)
+        h_sel = np.zeros((len(sel), 4, 2, window_slots), dtype=np.int64)
+        junk = np.zeros((len(sel), 4, 2))
+        q_sel, p_sel = np.ascontiguousarray(q[sel]), pidx[sel]
+        for a, b in _blocks(0, total, eng.block):
+            n = eng.prepare(a, b)
+            eng.window(a, n, q_sel, p_sel, shift[sel], wlo[sel], winv[sel], junk, b_sel, h_sel)
+        below[sel], whist[sel] = b_sel, h_sel
+        slot, within = _locate(ranks, below, whist)
+    if widened:
+        notes.append(
+            f"{widened} interval-end windows missed by the pilot were widened and recounted"
+        )
+    if timer is not None:
+        timer.mark("refine")
+
+    count = np.take_along_axis(whist, slot[..., None], -1)[..., 0]
+    width = 1.0 / winv
+    low = np.empty((npts, 4))
+    high = np.empty((npts, 4))
+    if exact:
+        offset = np.zeros_like(count)
+        offset.ravel()[1:] = np.cumsum(count.ravel())[:-1]
+        buf = np.empty(int(count.sum()))
+        fill = np.zeros_like(count)
+        slack = 1e-9 * width + 1e-300
+        vlo = wlo + slot * width - slack
+        vhi = wlo + (slot + 1) * width + slack
+        for a, b in _blocks(0, total, eng.block):
+            n = eng.prepare(a, b)
+            eng.capture(a, n, q, pidx, wlo, winv, slot, vlo, vhi, offset, fill, buf)
+            if progress is not None:
+                progress(n)
+        if not np.array_equal(fill, count):  # same samples, same slots: cannot happen
+            raise RuntimeError("pass 2 did not reproduce the pass 1 counts")
+        ends = (low, high)
+        for i in range(npts):
+            for c in range(4):
+                for e in range(2):
+                    o, k, r = offset[i, c, e], count[i, c, e], within[i, c, e]
+                    ends[e][i, c] = np.partition(buf[o : o + k], r - 1)[r - 1]
+        method = (
+            "exact order statistics (JCGM 101 7.7.2 ranks) by counting in pilot-placed windows "
+            f"({window_slots} slots each) and a second pass that regenerates every sample and "
+            "keeps those of the slot holding each end"
+        )
+        if timer is not None:
+            timer.mark("pass2")
+    else:
+        val = wlo + (slot + (within - 0.5) / np.maximum(count, 1)) * width
+        low[...], high[...] = val[..., 0], val[..., 1]
+        method = (
+            f"interpolated in the slot holding each order statistic ({window_slots}-slot windows; "
+            f"error below {1e3 * float(np.max(width)):.2g} um)"
+        )
+    return acc, low, high, notes, method
 
 
 def _pilot_ranks(n, p):
@@ -1016,21 +1104,16 @@ def _pilot_ranks(n, p):
 
 
 def _windows(qs, probs, slots):
-    """Windows (low edge, slots per mm) from the pilot brackets qs (npts, 4, 6)."""
-    vmin, vmax = qs[..., 4], qs[..., 5]
-    span = np.maximum(vmax - vmin, 1e-12)
-    wlo = np.empty(qs.shape[:2] + (2,))
-    winv = np.empty(qs.shape[:2] + (2,))
-    for e in range(2):
-        lo, hi = qs[..., 2 * e], qs[..., 2 * e + 1]
-        pad = 0.01 * (hi - lo) + 1e-9 * span
-        wlo[..., e] = lo - pad
-        winv[..., e] = slots / (hi - lo + 2 * pad)
-    return np.ascontiguousarray(wlo), np.ascontiguousarray(winv)
+    """Generic-path windows (low edge, slots per mm) from the pilot brackets qs (npts, 4, 6):
+    the hot path's value windows (`_value_windows`) cut into ``slots`` slots."""
+    lo, hi = _value_windows(qs)
+    return lo, np.ascontiguousarray(slots / (hi - lo))
 
 
-def _adaptive_pass1(eng, q, pidx, shift, wlo, winv, acc, below, whist, ndig, max_trials, progress):
-    """JCGM 101 7.9.4 on the pooled per-axis (systematic, std, U_p); fills acc, below, whist."""
+def _adaptive_pass1(eng, run_block, shift, acc, ndig, max_trials, progress):
+    """JCGM 101 7.9.4 on the pooled per-axis (systematic, std, U_p); ``run_block(a, n, bacc)``
+    adds the sums (shifted by ``shift``) of the prepared block to bacc. Fills acc; returns
+    (total, adaptive info)."""
     block = eng.block
     batch = ((10_000 + block - 1) // block) * block  # JCGM: M = max(J, 1e4) trials per batch
     results = []
@@ -1039,7 +1122,7 @@ def _adaptive_pass1(eng, q, pidx, shift, wlo, winv, acc, below, whist, ndig, max
         bacc = np.zeros_like(acc)
         for a, b in _blocks(total, total + batch, block):
             n = eng.prepare(a, b)
-            eng.window(a, n, q, pidx, shift, wlo, winv, bacc, below, whist)
+            run_block(a, n, bacc)
             if progress is not None:
                 progress(n)
         total += batch

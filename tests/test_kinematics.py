@@ -280,26 +280,38 @@ def test_streaming_statistics_are_exact(bench):
         np.testing.assert_allclose(v[:, :3, t], ref, atol=1e-12)
 
 
-def test_pass_two_marks_only_the_likely_slots_and_stays_exact(bench, monkeypatch):
+def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     q = bench.grid_points()[::37]
+    monkeypatch.setattr(kin, "NARROW_FIRST", 4096)  # narrowings at 4096, 8192, 16384 trials
     seen = []
 
-    def spy(*args):
-        mark = likely(*args)
-        seen.append(mark)
-        return mark
+    def spy(values, off, cap, fill, below, lo, hi, klo, khi):
+        before = (hi - lo).copy()
+        narrow(values, off, cap, fill, below, lo, hi, klo, khi)
+        seen.append((before, hi - lo, fill.copy(), khi - klo + 1))
 
-    likely = kin._likely_slots
-    monkeypatch.setattr(kin, "_likely_slots", spy)
-    # a pilot much smaller than the trials seen when marking starts (8192), as in a full run
-    _check_against_brute_force(bench, q, 5 * 4096, seed=3, pilot=1024)
-    (mark,) = seen
-    width = mark[..., 1] - mark[..., 0] + 1
-    assert np.all(width >= 3) and np.mean(width) < 0.6 * kin.WINDOW_SLOTS, np.mean(width)
-    # marks that cannot hold the ends: every point is regenerated whole, still exact
-    monkeypatch.setattr(kin, "MARK_SIGMAS", -1e9)
-    res, _ = _check_against_brute_force(bench, q, 5 * 4096, seed=3, pilot=1024)
-    assert f"{len(q)} point(s) whose interval end fell outside" in " ".join(res.notes)
+    narrow = K.narrow_windows
+    monkeypatch.setattr(K, "narrow_windows", spy)
+    res, _ = _check_against_brute_force(bench, q, 6 * 4096, seed=3, pilot=1024)
+    assert len(seen) == 3
+    for before, after, kept, ranks in seen:
+        assert np.all(after <= before) and np.mean(after / before) < 0.8
+        assert np.all(kept >= ranks)  # at least the ranks that may hold the end
+    assert not any("recounted" in n for n in res.notes)
+    # ranks that cannot hold the ends: every window loses its end, every point is recounted
+    # on the generic path, still exact
+    monkeypatch.setattr(kin, "NARROW_SIGMAS", -1e9)
+    res, _ = _check_against_brute_force(bench, q, 6 * 4096, seed=3, pilot=1024)
+    assert f"{len(q)} point(s) whose window lost its interval end were recounted" in " ".join(
+        res.notes
+    )
+
+
+def test_overflowing_stores_are_recounted_exactly(bench, monkeypatch):
+    q = bench.grid_points()[::53]
+    monkeypatch.setattr(kin, "_margin", lambda expect: np.ceil(0.5 * np.asarray(expect)))
+    res, _ = _check_against_brute_force(bench, q, 3 * 4096, seed=6)
+    assert f"{len(q)} point(s) whose window lost" in " ".join(res.notes)
 
 
 def test_windows_missed_by_a_tiny_pilot_are_recounted(bench):
@@ -461,62 +473,65 @@ def test_budget_share_equals_variance_removed_by_fixing_the_error(bench):
     assert share > 0.3
 
 
-def test_fused_passes_match_the_plain_passes(bench):
-    """The fused hot-path kernels (sub-blocks, vectorised reductions, compacted rare work) give
-    the plain kernels' counts, bitmap and captured values; sums agree to rounding."""
+def test_hot_pass_kernels_match_numpy(bench):
+    """The fused hot-path pass (sub-blocks, vectorised sums, slow-path samples redone, values
+    kept in their windows) against the plain values of the same samples; then the narrowing
+    and the selection of the ends against numpy."""
     q = np.ascontiguousarray(bench.grid_points()[::41])
-    npts, n, slots = len(q), 3000, 16
+    npts = len(q)
     pidx = np.arange(npts) * 41
     eng = kin._Engine(bench, 11, 4096)
     assert eng.fast
-    n = eng.prepare(0, n)
+    n = eng.prepare(0, 3000)
     vals = np.empty((npts, 4, n))
     eng.pilot(0, n, q, pidx, vals)
-    # windows around the 2.5 % and 97.5 % points, wide enough that every slot sees values
-    lo_q, hi_q = np.quantile(vals, [0.01, 0.04], axis=-1), np.quantile(vals, [0.96, 0.99], axis=-1)
-    wlo = np.ascontiguousarray(np.stack([lo_q[0], hi_q[0]], -1))
-    winv = np.ascontiguousarray(slots / np.stack([lo_q[1] - lo_q[0], hi_q[1] - hi_q[0]], -1))
+    lo = np.ascontiguousarray(np.quantile(vals, [0.01, 0.90], axis=-1).transpose(1, 2, 0))
+    hi = np.ascontiguousarray(np.quantile(vals, [0.05, 0.99], axis=-1).transpose(1, 2, 0))
     shift = np.ascontiguousarray(vals[..., :50].mean(-1))
-    words = (n + 63) // 64
-    out = {}
-    for name in ("plain", "fused"):
-        acc = np.zeros((npts, 4, 2))
-        below = np.zeros((npts, 4, 2), np.int64)
-        whist = np.zeros((npts, 4, 2, slots), np.int64)
-        bits = np.zeros((npts, words), np.uint64)
-        args = (0, n, q, pidx, shift, wlo, winv, acc, below, whist, bits)
-        if name == "plain":
-            K.pass_window(eng.model, *args)
-        else:
-            eng.window(*args)
-        out[name] = (acc, below, whist, bits)
-    (a0, b0, h0, t0), (a1, b1, h1, t1) = out["plain"], out["fused"]
-    np.testing.assert_array_equal(b1, b0)
-    np.testing.assert_array_equal(h1, h0)
-    np.testing.assert_array_equal(t1, t0)
-    assert 0 < h1.sum() < vals.size and np.unique(t1).size > 2
-    np.testing.assert_allclose(a1, a0, rtol=1e-11, atol=1e-15)
-    # the counts are those of the values themselves
-    np.testing.assert_array_equal(b1[..., 0], (vals < wlo[..., :1]).sum(-1))
-    # pass 2: the fused capture regenerates the flagged trials and keeps exactly the values
-    # that fall in slot 3 of every window
-    target = np.full((npts, 4, 2), 3, np.int64)
-    width = 1.0 / winv
-    vlo, vhi = wlo + 3 * width - 1e-12, wlo + 4 * width + 1e-12
-    count = h1[..., 3]
-    offset = np.zeros_like(count)
-    offset.ravel()[1:] = np.cumsum(count.ravel())[:-1]
-    buf, fill = np.zeros(int(count.sum())), np.zeros_like(count)
-    K.pass_capture_fast(eng.terms, 0, n, q, pidx, eng.g.sig, eng.tkeys, eng.fkey, t1, wlo, winv,
-                        target, vlo, vhi, offset, fill, buf)  # fmt: skip
-    np.testing.assert_array_equal(fill, count)
-    for i in range(npts):
-        for c in range(4):
-            for e in range(2):
-                y = (vals[i, c] - wlo[i, c, e]) * winv[i, c, e]  # `_slot`, the same operations
-                want = np.sort(vals[i, c][(y >= 0) & (np.floor(y) == 3)])
-                o, k = offset[i, c, e], count[i, c, e]
-                np.testing.assert_array_equal(np.sort(buf[o : o + k]), want)
+    acc = np.zeros((npts, 4, 2))
+    below = np.zeros((npts, 4, 2), np.int64)
+    store = kin._Store(npts, 200)
+    eng.keep(n, q, pidx, shift, lo, hi, acc, below, store)
+    d = vals - shift[..., None]
+    np.testing.assert_allclose(acc[..., 0], d.sum(-1), rtol=1e-11, atol=1e-15)
+    np.testing.assert_allclose(acc[..., 1], (d * d).sum(-1), rtol=1e-11, atol=1e-15)
+    inside = (vals[..., None, :] >= lo[..., None]) & (vals[..., None, :] <= hi[..., None])
+    np.testing.assert_array_equal(below, (vals[..., None, :] < lo[..., None]).sum(-1))
+    np.testing.assert_array_equal(store.fill, inside.sum(-1))
+    assert store.fill.min() > 20 and store.fill.max() > store.cap.max()  # some overflowed
+    for i, c, e in np.ndindex(npts, 4, 2):
+        f = store.fill[i, c, e]
+        if f <= store.cap[i, c, e]:
+            got = store.values[store.off[i, c, e] : store.off[i, c, e] + f]
+            np.testing.assert_array_equal(np.sort(got), np.sort(vals[i, c][inside[i, c, e]]))
+
+    # narrowing keeps the ranks asked for (1-based among the n samples) and counts the rest
+    ok = store.fill <= store.cap
+    klo = np.clip(below + 5, 1, None)
+    khi = below + np.maximum(store.fill - 5, 1)
+    old_lo, old_hi, old_fill = lo.copy(), hi.copy(), store.fill.copy()
+    flat = [x.reshape(-1) for x in (store.values, store.off, store.cap, store.fill, below)]
+    K.narrow_windows(*flat, lo.reshape(-1), hi.reshape(-1), klo.ravel(), khi.ravel())
+    srt = np.sort(vals, -1)
+    for i, c, e in np.ndindex(npts, 4, 2):
+        if not ok[i, c, e]:  # overflowed: left alone
+            assert store.fill[i, c, e] == old_fill[i, c, e] and lo[i, c, e] == old_lo[i, c, e]
+            continue
+        assert old_lo[i, c, e] <= lo[i, c, e] <= srt[i, c, klo[i, c, e] - 1]
+        assert srt[i, c, khi[i, c, e] - 1] <= hi[i, c, e] <= old_hi[i, c, e]
+        v = vals[i, c]
+        assert below[i, c, e] == np.count_nonzero(v < lo[i, c, e])
+        kept = v[(v >= lo[i, c, e]) & (v <= hi[i, c, e])]
+        got = store.values[store.off[i, c, e] : store.off[i, c, e] + store.fill[i, c, e]]
+        np.testing.assert_array_equal(np.sort(got), np.sort(kept))
+    # the ends: the order statistics of the ranks asked for, NaN where not held
+    rank = np.clip(below + 3, 1, n)
+    ends = np.empty((npts, 4, 2))
+    values, off, cap, fill, below_flat = flat
+    K.select_ends(values, off, fill, cap, below_flat, rank.ravel(), ends.reshape(-1))
+    want = np.take_along_axis(srt[:, :, None, :], rank[..., None] - 1, -1)[..., 0]
+    np.testing.assert_array_equal(ends[ok], want[ok])
+    assert np.isnan(ends[~ok]).all()
 
 
 @pytest.mark.parametrize(

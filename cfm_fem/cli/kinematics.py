@@ -103,7 +103,7 @@ def _run(args) -> int:
     if not on_dask:  # (Dask workers compile in their own processes)
         from .. import _kernels
 
-        note_first_compile(_kernels.pass_window_fast)
+        note_first_compile(_kernels.pass_keep)
     if on_dask:
         with dask_client(args.scheduler, args.workers) as client:
             with progress_bar(npts, "points") as bar:
