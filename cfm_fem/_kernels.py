@@ -422,14 +422,24 @@ def _delay_tau(tkey, point, tau_code, tau_par):
 
 
 @nb.njit(inline="always", **JIT)
+def _cos_sin(x):
+    """cos x, sin x (rad): Taylor polynomials within 1 ulp for |x| <= 1/16 (bench error angles
+    are ~1e-5 rad: there they equal libm's bits, at a tenth of the cost), libm beyond."""
+    if abs(x) > 0.0625:
+        return math.cos(x), math.sin(x)
+    x2 = x * x
+    c = 1.0 + x2 * (-0.5 + x2 * (1.0 / 24.0 + x2 * (-1.0 / 720.0 + x2 * (
+        1.0 / 40320.0 - x2 / 3628800.0))))  # fmt: skip
+    s = x + x * x2 * (-1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (-1.0 / 5040.0 + x2 / 362880.0)))
+    return c, s
+
+
+@nb.njit(inline="always", **JIT)
 def rotation_zyx_into(phi, theta, psi, r):
     """Paper eq. 4 into ``r`` (3, 3): Rz(psi) Ry(theta) Rx(phi)."""
-    cf = math.cos(phi)
-    sf = math.sin(phi)
-    ct = math.cos(theta)
-    st = math.sin(theta)
-    cp = math.cos(psi)
-    sp = math.sin(psi)
+    cf, sf = _cos_sin(phi)
+    ct, st = _cos_sin(theta)
+    cp, sp = _cos_sin(psi)
     r[0, 0] = cp * ct
     r[0, 1] = cp * sf * st - cf * sp
     r[0, 2] = sf * sp + cf * cp * st
@@ -1177,21 +1187,46 @@ def move_stores(src, src_off, fill, dst, dst_off):
 
 
 @nb.njit(**PJIT)
-def select_ends(store, off, fill, cap, below, rank, out):
+def select_ends(store, off, fill, cap, below, lo, hi, rank, out):
     """Order statistic of 1-based rank rank[w] among all trials, per window (flat arrays).
 
-    It is the (rank - below)-th smallest stored value when that lies among the stored ones
-    and the window did not overflow; otherwise out[w] = NaN (the caller recomputes that point).
-    The stores are partially reordered."""
-    for w in nb.prange(fill.shape[0]):
-        f = fill[w]
-        k = rank[w] - below[w]
-        if f > cap[w] or k < 1 or k > f:
-            out[w] = np.nan
-            continue
-        o = off[w]
-        select_inplace(store, o, o + f - 1, o + k - 1)
-        out[w] = store[o + k - 1]
+    It is the (rank - below)-th smallest stored value (all in [lo, hi]) when that lies among
+    the stored ones and the window did not overflow; otherwise out[w] = NaN (the caller
+    recomputes that point). A histogram of NARROW_BINS bins finds the bin holding the rank;
+    that bin's values are moved to the front of the store and selected among (three cheap
+    passes instead of a selection over all: 3x faster). The stores are overwritten."""
+    nw = fill.shape[0]
+    nchunk = min(nw, 256)
+    per = (nw + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        cnt = np.empty(NARROW_BINS, np.int64)
+        for w in range(ch * per, min(nw, (ch + 1) * per)):
+            f = fill[w]
+            k = rank[w] - below[w]
+            if f > cap[w] or k < 1 or k > f:
+                out[w] = np.nan
+                continue
+            o = off[w]
+            a = lo[w]
+            if not hi[w] > a:  # every value equal
+                out[w] = store[o]
+                continue
+            inv = NARROW_BINS / (hi[w] - a)
+            cnt[:] = 0
+            for t in range(f):
+                cnt[min(np.int64((store[o + t] - a) * inv), NARROW_BINS - 1)] += 1
+            before = 0
+            kb = 0
+            while before + cnt[kb] < k:
+                before += cnt[kb]
+                kb += 1
+            n = 0
+            for t in range(f):  # the bin's values to the front, branch-free
+                v = store[o + t]
+                store[o + n] = v
+                n += min(np.int64((v - a) * inv), NARROW_BINS - 1) == kb
+            select_inplace(store, o, o + n - 1, o + k - before - 1)
+            out[w] = store[o + k - before - 1]
 
 
 # ---------------------------------------------------------------------------------------------

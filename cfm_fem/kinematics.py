@@ -537,7 +537,7 @@ MAX_WIDEN_ROUNDS = 200
 #: statistic with near certainty (NARROW_SIGMAS hypergeometric standard deviations,
 #: `_narrow_ranks`). A window that loses its order statistic all the same is recounted on the
 #: generic path (one point).
-NARROW_FIRST = 16 * BLOCK
+NARROW_FIRST = 4 * BLOCK
 NARROW_SIGMAS = 5.0
 #: Largest store of window values of the hot path (125 MB for 1e6 trials on the reference
 #: grid, 464 MB for 1e7); a run that would need more takes the generic path.
@@ -665,7 +665,7 @@ def run_kinematics(
     p: float = 0.95,
     exact: bool = True,
     window_slots: int = WINDOW_SLOTS,
-    pilot: int = 16384,
+    pilot: int = 4096,
     adaptive_digits: int | None = None,
     max_trials: int = 10_000_000,
     progress=None,
@@ -968,7 +968,8 @@ def _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
             progress(n)
     ends = np.empty((npts, 4, 2))
     values, off, cap, fill, below_flat = flat
-    K.select_ends(values, off, fill, cap, below_flat, rank.reshape(-1), ends.reshape(-1))
+    K.select_ends(values, off, fill, cap, below_flat, lo.reshape(-1), hi.reshape(-1),
+                  rank.reshape(-1), ends.reshape(-1))  # fmt: skip
     ends[lost] = np.nan
     return ends
 

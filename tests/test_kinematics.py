@@ -528,7 +528,8 @@ def test_hot_pass_kernels_match_numpy(bench):
     rank = np.clip(below + 3, 1, n)
     ends = np.empty((npts, 4, 2))
     values, off, cap, fill, below_flat = flat
-    K.select_ends(values, off, fill, cap, below_flat, rank.ravel(), ends.reshape(-1))
+    K.select_ends(values, off, fill, cap, below_flat, lo.ravel(), hi.ravel(), rank.ravel(),
+                  ends.reshape(-1))  # fmt: skip
     want = np.take_along_axis(srt[:, :, None, :], rank[..., None] - 1, -1)[..., 0]
     np.testing.assert_array_equal(ends[ok], want[ok])
     assert np.isnan(ends[~ok]).all()
