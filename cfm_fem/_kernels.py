@@ -927,9 +927,9 @@ def _chain(terms, k, q0, q1, q2, n0, n1, n2):
 
 
 @nb.njit(inline="always", **JIT)
-def _byte_index(low):
-    """Index of the byte holding the single set bit of ``low`` (a power of two, uint64)."""
-    return _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))] >> 3
+def _bit_index(low):
+    """Index of the single set bit of ``low`` (a power of two, uint64)."""
+    return _DEBRUIJN_INDEX[np.int64((low * _DEBRUIJN) >> np.uint64(58))]
 
 
 @nb.njit(**JIT)
@@ -961,7 +961,7 @@ def _values_run(terms, tkeys, k0, m, q0, q1, q2, s0, s1, s2, fkey, pi, ev, ok, o
         while bad != 0:
             low = bad & (~bad + np.uint64(1))
             bad ^= low
-            j = (w << 3) + _byte_index(low)
+            j = (w << 3) + (_bit_index(low) >> 3)
             if j < m:
                 _redo_sample(terms, tkeys, k0 + j, q0, q1, q2, s0, s1, s2, fkey, pi, ev, j)
 
@@ -972,7 +972,7 @@ def _sums_flags(ev, m, i, shift, lo, hi, out, flag):
 
     For point i: shift (npts, 4); lo, hi (npts, 4, 2): window (c, e) is [lo, hi]. Adds to out
     (4, 4), per quantity c: sum (v - shift), sum (v - shift)^2, #(v < lo[i, c, 0]),
-    #(v < lo[i, c, 1]). flag[j]: sample j lies in some window.
+    #(v < lo[i, c, 1]). flag[j] (uint8): bit 2c + e set when sample j lies in window (c, e).
     """
     e0 = ev[0]
     e1 = ev[1]
@@ -1012,10 +1012,14 @@ def _sums_flags(ev, m, i, shift, lo, hi, out, flag):
         c30 += x3 < l30
         c31 += x3 < l31
         flag[j] = (
-            ((x0 >= l00) & (x0 <= u00)) | ((x0 >= l01) & (x0 <= u01))
-            | ((x1 >= l10) & (x1 <= u10)) | ((x1 >= l11) & (x1 <= u11))
-            | ((x2 >= l20) & (x2 <= u20)) | ((x2 >= l21) & (x2 <= u21))
-            | ((x3 >= l30) & (x3 <= u30)) | ((x3 >= l31) & (x3 <= u31))
+            np.uint8((x0 >= l00) & (x0 <= u00))
+            | np.uint8((x0 >= l01) & (x0 <= u01)) << np.uint8(1)
+            | np.uint8((x1 >= l10) & (x1 <= u10)) << np.uint8(2)
+            | np.uint8((x1 >= l11) & (x1 <= u11)) << np.uint8(3)
+            | np.uint8((x2 >= l20) & (x2 <= u20)) << np.uint8(4)
+            | np.uint8((x2 >= l21) & (x2 <= u21)) << np.uint8(5)
+            | np.uint8((x3 >= l30) & (x3 <= u30)) << np.uint8(6)
+            | np.uint8((x3 >= l31) & (x3 <= u31)) << np.uint8(7)
         )  # fmt: skip
     out[0, 0] += a0
     out[1, 0] += a1
@@ -1037,24 +1041,31 @@ def _sums_flags(ev, m, i, shift, lo, hi, out, flag):
 
 @nb.njit(inline="always", **JIT)
 def _keep_flagged(ev, flagw, m, i, lo, hi, store, off, cap, fill):
-    """Append each flagged sample's values to the stores of the windows that hold them.
+    """Append each flagged value to the stores of the windows its flag names.
 
-    Window (i, c, e) owns store[off : off + cap + 1]; fill counts its values, stored while
-    fill <= cap (fill > cap: overflow, the window is lost). Branch-free per window: the value is
-    written at the next free place (the spare last one once full) and fill advances only when
-    the value is in the window."""
+    ``flagw``: the flags (`_sums_flags`) eight at a time as uint64. Window (i, c, e) owns
+    store[off : off + cap + 1] and counts its values in fill, stored while fill <= cap (fill >
+    cap: overflow, the window is lost); a value is written at the next free place, the spare
+    last one once full (no branch on the capacity)."""
     for w in range((m + 7) >> 3):
         hits = flagw[w]
         while hits != 0:
             low = hits & (~hits + np.uint64(1))
-            hits ^= low
-            j = (w << 3) + _byte_index(low)
-            for c in range(4):
-                v = ev[c, j]
-                for e in range(2):
-                    f = fill[i, c, e]
-                    store[off[i, c, e] + min(f, cap[i, c, e])] = v
-                    fill[i, c, e] = f + ((v >= lo[i, c, e]) & (v <= hi[i, c, e]))
+            sh = np.uint64(_bit_index(low) & ~7)  # the byte of the first flagged sample
+            mk = (hits >> sh) & np.uint64(255)
+            hits ^= mk << sh
+            j = (w << 3) + np.int64(sh >> np.uint64(3))
+            if j >= m:  # bytes past the sub-block's end hold an earlier point's flags
+                break
+            while mk != 0:
+                lb = mk & (~mk + np.uint64(1))
+                mk ^= lb
+                b = _bit_index(lb)
+                c = b >> 1
+                e = b & 1
+                f = fill[i, c, e]
+                store[off[i, c, e] + min(f, cap[i, c, e])] = ev[c, j]
+                fill[i, c, e] = f + 1
 
 
 @nb.njit(**PJIT)
@@ -1095,7 +1106,7 @@ def pass_keep(terms, n, q, pidx, sig, tkeys, fkey, shift, lo, hi, acc, below, st
         okw = np.empty(SUB // 8, dtype=np.uint64)
         ok = okw.view(np.bool_)
         flagw = np.empty(SUB // 8, dtype=np.uint64)
-        flag = flagw.view(np.bool_)
+        flag = flagw.view(np.uint8)
         red = np.empty((4, 4))
         for k0 in range(0, n, SUB):
             m = min(SUB, n - k0)
