@@ -11,7 +11,8 @@ Random numbers
 Every number is a pure function of (seed, stream, index), so results do not depend on threads,
 chunking or the order of evaluation. The generator is SplitMix64 read at a position (state = key
 + counter * gamma, output = Stafford's mix13 finaliser). Normals come from Marsaglia and Tsang's
-ziggurat (1024 layers) with independent bits for the value (32) and the layer (10); the slow
+ziggurat (1024 layers) with independent bits for the value (32) and the layer (10); each
+layer's scale and (rounded-down) threshold share one table word (`ziggurat_tables`); the slow
 path (about 0.4 % of draws) draws from a separate stream. The kinematics reads one sequence per
 seed for the error amplitudes at 32 * trial + k and, for the noise of trial t, positions 4 *
 point + slot of a sequence keyed by a double hash of (seed, t) (`trial_key`): consecutive

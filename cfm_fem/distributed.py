@@ -208,7 +208,8 @@ def run_kinematics_dask(client, bench, trials, seed, *, exact=True, block_points
     bench : Bench
     trials, seed : int
     exact : bool
-        Exact interval ends (two passes), as `run_kinematics`.
+        Exact interval ends on the generic path, as `run_kinematics` (the reference bench's
+        are exact either way).
     block_points : int
         Points per task.
     progress : callable(int), optional
