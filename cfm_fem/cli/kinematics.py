@@ -68,12 +68,13 @@ def check_options(args) -> None:
     if args.adaptive is not None and not 1 <= args.adaptive <= 4:
         raise CfmInputError(f"--adaptive must be 1..4 significant digits; got {args.adaptive}")
     check_seed(args.seed)
-    check_scale_out(args.scheduler, args.workers)
+    # the conflict first: installing Dask, as the next check would say, would not help
     if args.adaptive is not None and (args.scheduler is not None or args.workers is not None):
         raise CfmInputError(
             "--adaptive stops on the pooled result of all points and cannot be split over Dask "
             "workers; drop --scheduler/--workers or --adaptive"
         )
+    check_scale_out(args.scheduler, args.workers)
     check_out_dir(args.out)
 
 
