@@ -1189,16 +1189,6 @@ def narrow_windows(store, off, cap, fill, below, lo, hi, klo, khi):
 
 
 @nb.njit(**PJIT)
-def move_stores(src, src_off, fill, dst, dst_off):
-    """Copy each window's fill[w] stored values from src[src_off[w]:] to dst[dst_off[w]:]."""
-    for w in nb.prange(fill.shape[0]):
-        a = src_off[w]
-        b = dst_off[w]
-        for t in range(fill[w]):
-            dst[b + t] = src[a + t]
-
-
-@nb.njit(**PJIT)
 def select_ends(store, off, fill, cap, below, lo, hi, rank, out):
     """Order statistic of 1-based rank rank[w] among all trials, per window (flat arrays).
 

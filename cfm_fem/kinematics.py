@@ -756,11 +756,10 @@ def run_kinematics(
 
     hot = eng.fast
     adaptive = None
+    total = int(trials) if adaptive_digits is None else None
     acc = np.zeros((npts, 4, 2))
     if hot:
-        if adaptive_digits is None:
-            total = int(trials)
-        else:  # the stopping rule on the sums alone, then the intervals from a run of total
+        if total is None:  # the stopping rule on the sums alone, then the intervals of a run
             total, adaptive = _adaptive_pass1(
                 eng, lambda a, n, bacc: _sums_only(eng, n, q, pidx, shift, bacc), shift, acc,
                 adaptive_digits, max_trials, progress,
@@ -799,17 +798,14 @@ def run_kinematics(
     else:
         below = np.zeros((npts, 4, 2), dtype=np.int64)
         whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
-        if adaptive_digits is None:
-            total = int(trials)
-            counted = False
-        else:
+        counted = total is None  # an adaptive run counts in its batches
+        if counted:
             wlo, winv = _windows(pil[..., :-1], probs, window_slots)
             total, adaptive = _adaptive_pass1(
                 eng,
                 lambda a, n, bacc: eng.window(a, n, q, pidx, shift, wlo, winv, bacc, below, whist),
                 shift, acc, adaptive_digits, max_trials, progress,
             )  # fmt: skip
-            counted = True
         acc_g, low, high, sub_notes, method = _generic_intervals(
             eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
             counts=(acc, below, whist) if counted else None, timer=timer, source=bench.source,

@@ -308,6 +308,18 @@ def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     )
 
 
+def test_a_store_too_large_takes_the_generic_path(bench, monkeypatch):
+    """A run whose window store would pass STORE_BYTES counts and regenerates (generic path),
+    exact all the same; an adaptive run there keeps the trial count its batches chose."""
+    q = bench.grid_points()[::61]
+    monkeypatch.setattr(kin, "STORE_BYTES", 1)
+    res, _ = _check_against_brute_force(bench, q, 3000, seed=2)
+    assert "second pass that regenerates every sample" in res.interval_method
+    ad = kin.run_kinematics(bench, seed=2, q_cmd=q, adaptive_digits=1, max_trials=40_000)
+    assert ad.trials == ad.adaptive["batches"] * ad.adaptive["batch_trials"]
+    assert "second pass" in ad.interval_method
+
+
 def test_overflowing_stores_are_recounted_exactly(bench, monkeypatch):
     q = bench.grid_points()[::53]
     monkeypatch.setattr(kin, "_margin", lambda expect: np.ceil(0.5 * np.asarray(expect)))
