@@ -200,6 +200,13 @@ def test_draw_error_sets_numba_numpy_twins_and_reproducibility(bench):
     b = kin.draw_error_sets_numpy(bench, 300, seed=11)
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-18)
     np.testing.assert_array_equal(kin.draw_error_sets(bench, 100, seed=11, start=200), a[200:])
+    for start in (200, 2**33 + 7):  # a counter past 32 bits: the numpy twin, not numba itself
+        np.testing.assert_allclose(
+            kin.draw_error_sets(bench, 50, seed=11, start=start),
+            kin.draw_error_sets_numpy(bench, 50, seed=11, start=start),
+            rtol=1e-12,
+            atol=1e-18,
+        )
     assert not np.array_equal(kin.draw_error_sets(bench, 300, seed=12), a)
     numba.set_num_threads(1)
     try:
@@ -358,13 +365,23 @@ def test_results_do_not_depend_on_threads(bench):
     q = bench.grid_points()[::29]
     numba.set_num_threads(1)
     try:
-        one = kin.run_kinematics(bench, trials=9000, seed=6, q_cmd=q)
+        one = kin.run_kinematics(bench, trials=40_000, seed=6, q_cmd=q)  # one narrowing
     finally:
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     assert numba.get_num_threads() == 2 or numba.config.NUMBA_NUM_THREADS < 2
-    two = kin.run_kinematics(bench, trials=9000, seed=6, q_cmd=q)
+    two = kin.run_kinematics(bench, trials=40_000, seed=6, q_cmd=q)
     for name in ("mean", "std", "low", "high"):
         np.testing.assert_array_equal(getattr(one, name), getattr(two, name))
+
+
+def test_a_block_of_points_alone_gives_the_full_runs_numbers(bench):
+    """What a Dask worker does: each point's numbers (windows, narrowings, ends) are its own."""
+    q = bench.grid_points()[::29]
+    full = kin.run_kinematics(bench, trials=40_000, seed=6, q_cmd=q)
+    rows = np.array([3, 4, 17, 30])
+    part = kin.run_kinematics(bench, trials=40_000, seed=6, q_cmd=q[rows], point_index=rows)
+    for name in ("mean", "std", "low", "high"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(full, name)[rows])
 
 
 def test_mc_agrees_with_linearised_model_within_mc_uncertainty(bench):
