@@ -38,6 +38,7 @@ CODE_MODULES = (
     "io/__init__.py",
     "io/_parse.py",
     "io/comsol.py",
+    "io/comsol_sections.py",  # the sectionwise layout and the choice of a COMSOL solution
     "io/opera.py",
     "io/table.py",
     "io/meshfile.py",
@@ -70,7 +71,8 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
     field_sha256 : str
         Hash of the field-map file's bytes.
     read_options : dict
-        Reader options (format, units, zero-row rule) that change how the file is read.
+        Reader options (format, units, zero-row rule, COMSOL solution) that change how the file
+        is read.
     bench_sha256 : str or None
         Hash of the bench file of mode htm, the packaged reference bench included when no file
         is given (`cfm_fem.io.provenance.bench_input`): a run on the default bench and one on a
@@ -283,12 +285,18 @@ def _parts(arrays, key):
     return tuple(arrays[f"part{j}"] for j in range(n))
 
 
-def _differences(old: dict, new: dict) -> str:
-    """'trials: 400 in the store, 500 now; seed: ...' for the keys that differ."""
+def _differences(old: dict, new: dict, prefix: str = "") -> str:
+    """'trials: 400 in the store, 500 now; seed: ...' for the keys that differ; within a dict
+    on both sides, its keys that differ ('read_options.solution: ...')."""
     diffs = []
     for k in sorted(set(old) | set(new)):
-        if old.get(k) != new.get(k):
-            diffs.append(f"{k}: {_short(old.get(k))} in the store, {_short(new.get(k))} now")
+        a, b = old.get(k), new.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            diffs.append(_differences(a, b, f"{prefix}{k}."))
+        else:
+            diffs.append(f"{prefix}{k}: {_short(a)} in the store, {_short(b)} now")
     return "; ".join(diffs) or "the run keys differ"
 
 

@@ -28,7 +28,7 @@ MAP_COMMANDS = {
 }
 
 READER_ARGS = ["--format", "csv", "--length-unit", "in", "--field-unit", "mT", "--zero-rows",
-               "drop"]  # fmt: skip
+               "drop", "--solution", "I0=200"]  # fmt: skip
 
 
 def _no_unit_map(path, lo=-3, hi=3):
@@ -40,7 +40,8 @@ def _no_unit_map(path, lo=-3, hi=3):
 
 
 def reader_kwargs(args):
-    return {k: getattr(args, k) for k in ("fmt", "length_unit", "field_unit", "zero_rows")}
+    keys = ("fmt", "length_unit", "field_unit", "zero_rows", "solution")
+    return {k: getattr(args, k) for k in keys}
 
 
 def _err(argv, capsys):
@@ -59,11 +60,13 @@ def test_every_command_that_reads_a_map_takes_the_reader_options(command, capsys
     to pass them: 'unrecognized arguments: --length-unit in'."""
     args = build_parser().parse_args([*MAP_COMMANDS[command], *READER_ARGS, "--out", "o"])
     assert reader_kwargs(args) == {
-        "fmt": "csv", "length_unit": "in", "field_unit": "mT", "zero_rows": "drop"
+        "fmt": "csv", "length_unit": "in", "field_unit": "mT", "zero_rows": "drop",
+        "solution": "I0=200",
     }  # fmt: skip
     defaults = build_parser().parse_args([*MAP_COMMANDS[command], "--out", "o"])
     assert reader_kwargs(defaults) == {
-        "fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn"
+        "fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn",
+        "solution": None,
     }  # fmt: skip
     with pytest.raises(SystemExit):
         main([command, "--help"])
@@ -71,6 +74,9 @@ def test_every_command_that_reads_a_map_takes_the_reader_options(command, capsys
     # what the unit options do when the file states a unit (the help said "if the file does
     # not say"; they override it, with a warning)
     assert "overrides a unit the file states (with a warning when they differ)" in text
+    # what --solution is, with an example
+    assert "--solution TAG COMSOL export of a parametric or time-dependent study" in text
+    assert "e.g. --solution I0=200 or --solution t=0.1" in text
     if command in ("coupled", "compare", "diagnose"):
         assert "when it is a field map (not a harmonics .csv" in text
 
@@ -145,6 +151,107 @@ def test_reader_options_are_refused_for_a_harmonics_reference(tmp_path, capsys, 
 def test_reader_options_are_refused_with_a_tracker_recording(tmp_path, capsys, command):
     argv = [command, "--tracker", "t.csv", "--length-unit", "m", "--out", tmp_path / "o"]
     assert "--length-unit applies to a field map only; --tracker" in _err(argv, capsys)
+
+
+# --------------------------------------------------------------------------- --solution
+
+
+def _current_sweep(path, lo=-3, hi=3):
+    """A COMSOL text export of a current sweep (I0=100, I0=200; the field doubles), grid nodes."""
+    g = np.stack(np.meshgrid(*[np.arange(lo, hi + 1.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    B = np.c_[0.1 * g[:, 1], 0.1 * g[:, 0], np.ones(len(g))]
+    names = ["X", "Y", "Z"] + [f"mf.B{a} (T) @ I0={i}" for i in (100, 200) for a in "xyz"]
+    rows = "".join(" ".join(f"{v:g}" for v in r) + "\n" for r in np.c_[g, B, 2.0 * B])
+    path.write_text("% Model: magnet.mph\n% Length unit: mm\n% " + "  ".join(names) + "\n" + rows)
+    return path
+
+
+def test_sweep_of_one_solution_of_a_current_sweep(tmp_path, capsys):
+    path = _current_sweep(tmp_path / "two_solutions.txt")
+    base = ["sweep", path, "--up", "0:10:10", "--trials", "200"]
+    err = _err([*base, "--out", tmp_path / "none"], capsys)
+    assert "the export holds 2 solutions ('@ I0=100', '@ I0=200')" in err, err
+    assert "--solution TAG" in err and not (tmp_path / "none").exists()
+    err = _err([*base, "--solution", "I0=300", "--out", tmp_path / "bad"], capsys)
+    assert f"{path}:3: --solution I0=300" in err and "'@ I0=100', '@ I0=200'" in err, err
+    assert not (tmp_path / "bad").exists()
+    out = {}
+    for solution in ("I0=100", "I0=200"):
+        out[solution] = tmp_path / solution
+        assert main([str(a) for a in [*base, "--solution", solution, "--out", out[solution]]]) == 0
+        said = capsys.readouterr().out
+        assert f"note: COMSOL solution '@ {solution}' (of 2: '@ I0=100', '@ I0=200')" in said
+    summary = {k: json.loads((o / "summary.json").read_text()) for k, o in out.items()}
+    s = summary["I0=200"]
+    assert "COMSOL solution '@ I0=200' (of 2: '@ I0=100', '@ I0=200')" in s["notes"]
+    assert "--solution I0=200" in s["provenance"]["command_line"]
+    # the field of I0=200 is twice that of I0=100: B_ref doubles, the relative U_f stays
+    assert s["b_ref_T"] == pytest.approx(2.0 * summary["I0=100"]["b_ref_T"])
+    assert s["provenance"]["run_key"] != summary["I0=100"]["provenance"]["run_key"]
+    # --slabs streams only tables: a COMSOL export is read whole, by read_field, solution and all
+    slabs = tmp_path / "slabs"
+    argv = [*base, "--solution", "I0=200", "--slabs", "2", "--out", slabs]
+    assert main([str(a) for a in argv]) == 0
+    assert "is not a plain or Opera table: it is read whole" in capsys.readouterr().err
+    doc = json.loads((slabs / "summary.json").read_text())
+    assert "COMSOL solution '@ I0=200' (of 2: '@ I0=100', '@ I0=200')" in doc["notes"]
+    assert doc["b_ref_T"] == s["b_ref_T"]
+
+
+@pytest.mark.parametrize("extra", [[], ["--slabs", "2"]])
+@pytest.mark.parametrize("kind", ["csv", "opera"])
+def test_sweep_refuses_solution_for_a_map_that_is_not_comsol(tmp_path, capsys, extra, kind):
+    """--slabs streams tables and Opera tables past read_field: refused there too."""
+    if kind == "csv":
+        path = _no_unit_map(tmp_path / "map.csv")
+    else:
+        g = np.stack(np.meshgrid(*[np.arange(3.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        head = " 3 3 3 2\n 1 X [MM]\n 2 Y [MM]\n 3 Z [MM]\n 4 BX [T]\n 5 BY [T]\n 6 BZ [T]\n 0\n"
+        path = tmp_path / "map.table"
+        path.write_text(head + "".join(f" {x:g} {y:g} {z:g} 0.1 0.2 1\n" for x, y, z in g))
+    out = tmp_path / "DIR"
+    argv = ["sweep", path, "--solution", "x", "--up", "0:10:10", "--trials", "20", *extra]
+    err = _err([*argv, "--out", out], capsys)
+    assert (f"cfm-fem: error: {path}: --solution x (solution='x' from Python) applies to COMSOL "
+            "exports only") in err, err  # fmt: skip
+    assert err.count("error:") == 1 and not out.exists()
+
+
+def test_solution_reaches_the_reader_of_coupled_and_compare(tmp_path, capsys):
+    ref = _current_sweep(tmp_path / "map.txt")
+    base = ["coupled", "--field", ref, "--radius", 1, "--step", 1, "--z", 0, "--trials", 20,
+            "--no-budget"]  # fmt: skip
+    err = _err([*base, "--out", tmp_path / "a"], capsys)
+    assert "the export holds 2 solutions" in err and "--solution TAG" in err, err
+    assert main([str(a) for a in [*base, "--solution", "I0=200", "--out", tmp_path / "b"]]) == 0
+    rec = tmp_path / "hall.csv"
+    rows = [f"{p},{r},{x},1,1,0,0,1\n" for p, x in enumerate([1, 2, 9]) for r in range(3)]
+    rec.write_text(HALL_HEAD + "".join(rows))
+    argv = ["compare", "--hall-map", rec, "--reference", ref, "--solution", "I0=100"]
+    err = _err([*argv, "--out", tmp_path / "c"], capsys)  # read: on to the point outside it
+    assert "[9.0, 1.0, 1.0] mm is outside the reference field" in err, err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["coupled"], "--solution applies to a field map only; without --field the bundled"),
+        (["compare", "--tracker", "t.csv"], "--solution applies to a field map only; --tracker"),
+        (["diagnose", "--hall-map", "h.csv", "--reference", "fit:2"],
+         "--solution applies to a field map only; --reference fit:2 is fitted"),
+        (["coupled", "--field", "QFDP4"], "--solution t=0 (solution='t=0' from Python) applies "
+         "to field maps; this is a harmonics file"),
+    ],
+)  # fmt: skip
+def test_solution_is_refused_where_no_field_map_is_read(tmp_path, capsys, argv, message):
+    from cfm_fem.io.harmonics import qfdp4_path
+
+    hall = tmp_path / "h.csv"
+    hall.write_text(HALL_HEAD + "".join(f"1,{r},0,0,0,0,0,1\n" for r in range(3)))
+    argv = [qfdp4_path() if a == "QFDP4" else hall if a == "h.csv" else a for a in argv]
+    err = _err([*argv, "--solution", "t=0", "--out", tmp_path / "o"], capsys)
+    assert message in err, err
+    assert not (tmp_path / "o").exists()
 
 
 # --------------------------------------------------------------------------- trial counts

@@ -181,7 +181,18 @@ CASES = {
         "mf.Bx (T) @ I0=200 mf.By (T) @ I0=200 mf.Bz (T) @ I0=200\n0 0 0 1 2 3 2 4 6\n",
         2,
         None,
-        "the export holds 2 solutions ('@ I0=100', '@ I0=200'); expected the field of one",
+        "the export holds 2 solutions ('@ I0=100', '@ I0=200'); expected the field of one: "
+        "pass one of the tags as --solution TAG (solution= from Python), e.g. --solution I0=100, "
+        "or export a single parameter value or time from COMSOL",
+    ),
+    "comsol: two solutions, tags without blanks": (  # read as names without a role before
+        "m.txt",
+        "% Length unit: mm\n% X Y Z mf.Bx(T)@t=0 mf.By(T)@t=0 mf.Bz(T)@t=0 mf.Bx(T)@t=0.5 "
+        "mf.By(T)@t=0.5 mf.Bz(T)@t=0.5\n0 0 0 1 2 3 2 4 6\n",
+        2,
+        None,
+        "the export holds 2 solutions ('@ t=0', '@ t=0.5'); expected the field of one: pass "
+        "one of the tags as --solution TAG",
     ),
     "sectionwise: two solutions": (
         "m.txt",
@@ -192,7 +203,8 @@ CASES = {
         + _sect_data(sections=("mf.Bx (T) @ t=1",)),
         31,
         None,
-        "the export holds 2 solutions ('@ t=0', '@ t=1')",
+        "the export holds 2 solutions ('@ t=0', '@ t=1'); expected the field of one: pass one "
+        "of the tags as --solution TAG (solution= from Python), e.g. --solution t=0",
     ),
     "unknown length unit": (
         "m.csv",

@@ -465,6 +465,27 @@ def test_read_field_fmt_overrides_the_extension(tmp_path):
         read_field(path, fmt="excel")
 
 
+def test_solution_applies_to_comsol_exports_only(tmp_path):
+    """A COMSOL file read as another format (--format table) refuses it too."""
+    opera = _write(tmp_path, "f.table", OPERA + _opera_rows([0, 5], [0, 5, 10], [-1, 1]))
+    table = _write(tmp_path, "m.csv", "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n1,2,3,4,5,6\n")
+    vtu = _mesh_file(tmp_path, "m.vtu", [("tetra", [[0, 1, 2, 3]])], {"B": TETRA_FIELD})
+    comsol = _write(tmp_path, "m.txt", COMSOL_3D)
+    cases = [(opera, None, "an Opera table"), (table, None, "a table (CSV or blank-separated)"),
+             (vtu, None, "a mesh file (vtu)"), (comsol, "table", "a table")]  # fmt: skip
+    for path, fmt, what in cases:
+        with pytest.raises(CfmInputError) as info:
+            read_field(path, fmt=fmt, solution="I0=200")
+        assert str(info.value) == (
+            f"{path}: --solution I0=200 (solution='I0=200' from Python) applies to COMSOL "
+            "exports only (the solutions of a parametric or time-dependent study); this file is "
+            f"read as {what}" + (" (CSV or blank-separated)" if fmt else "")
+        )
+        assert info.value.file == str(path) and info.value.line is None
+        if fmt is None:
+            assert read_field(path).n_nodes > 0  # the file itself is fine
+
+
 def test_read_field_rejects_bad_zero_rows_value(tmp_path):
     path = _write(tmp_path, "m.txt", COMSOL_3D)
     with pytest.raises(CfmInputError, match=r"zero_rows must be one of warn, drop, keep"):

@@ -283,3 +283,26 @@ def test_the_packaged_bench_is_recorded_and_keyed_like_a_copy_of_it(small_map, t
     assert main(["sweep", str(small_map), "--up", "10", "--trials", "40", "--out", str(g)]) == 0
     s_g = json.loads((g / "summary.json").read_text())
     assert "bench" not in s_g["provenance"]["inputs"] and s_g["bench"] is None
+
+
+def test_resume_refuses_the_store_of_another_comsol_solution(tmp_path, capsys):
+    """The COMSOL solution read (--solution) is part of the run's key: the chunks of I0=100 are
+    not mixed into a run of I0=200 of the same file."""
+    ax = np.arange(5.0)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = np.c_[0.03 * pts[:, 0] ** 2, -0.02 * pts[:, 1] * pts[:, 2], 1.0 + 0.1 * pts[:, 2]]
+    names = ["X", "Y", "Z"] + [f"mf.B{a} (T) @ I0={i}" for i in (100, 200) for a in "xyz"]
+    rows = "".join(" ".join(f"{v:.17g}" for v in r) + "\n" for r in np.c_[pts, B, 2.0 * B])
+    path = tmp_path / "two_solutions.txt"
+    path.write_text("% Length unit: mm\n% " + "  ".join(names) + "\n" + rows)
+    out = tmp_path / "o"
+    base = ["sweep", str(path), "--up", "0:20:10", "--trials", "200", "--chunk-nodes", "50"]
+    assert main([*base, "--solution", "I0=100", "--out", str(out), "--keep-chunks"]) == 0
+    manifest = json.loads((out / STORE_NAME / "manifest.json").read_text())
+    assert manifest["run"]["read_options"]["solution"] == "I0=100"
+    capsys.readouterr()
+    assert main([*base, "--solution", "I0=200", "--out", str(out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert 'read_options.solution: "I0=100" in the store, "I0=200" now' in err, err
+    assert main([*base, "--solution", "I0=100", "--out", str(out), "--resume"]) == 0
+    assert "resumed: 3 chunk(s) read from" in capsys.readouterr().err

@@ -1,9 +1,9 @@
 """The field-map reader's options, written once for every command that reads a field map.
 
-The reader's messages tell the user to pass ``--format``, ``--length-unit``, ``--field-unit`` or
-``--zero-rows`` (`cfm_fem.io._parse.option_hint`), so each command that reads a map takes them
-under these names, with these help texts: ``sweep`` and ``fig4`` (FIELD), ``coupled --field``,
-``compare --reference`` and ``diagnose --reference`` (when a field map).
+The reader's messages tell the user to pass ``--format``, ``--length-unit``, ``--field-unit``,
+``--zero-rows`` or ``--solution`` (`cfm_fem.io._parse.option_hint`), so each command that reads
+a map takes them under these names, with these help texts: ``sweep`` and ``fig4`` (FIELD),
+``coupled --field``, ``compare --reference`` and ``diagnose --reference`` (when a field map).
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ __all__ = [
 ]
 
 #: Default of each reader argument, by argparse dest; an option left at it was not given.
-_DEFAULTS = {"fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn"}
+_DEFAULTS = {"fmt": None, "length_unit": None, "field_unit": None, "zero_rows": "warn",
+             "solution": None}  # fmt: skip
 _OPTIONS = {"fmt": "--format", "length_unit": "--length-unit", "field_unit": "--field-unit",
-            "zero_rows": "--zero-rows"}  # fmt: skip
+            "zero_rows": "--zero-rows", "solution": "--solution"}  # fmt: skip
 
 
 def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
@@ -65,6 +66,14 @@ def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
         default="warn",
         help="rows with B exactly 0 0 0 (placeholders of measured maps): warn and keep "
         "(default), drop, keep",
+    )
+    g.add_argument(
+        "--solution",
+        metavar="TAG",
+        help="COMSOL export of a parametric or time-dependent study (columns such as "
+        "'mf.Bx (T) @ I0=200'): the solution to read, by its tag, e.g. --solution I0=200 or "
+        "--solution t=0.1 (compared as written in the file; blanks around = and , and a "
+        "leading @ do not matter); COMSOL exports only",
     )
 
 

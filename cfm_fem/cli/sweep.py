@@ -224,6 +224,10 @@ def _run_slabs(args, up):
 
     budget = _size(args.max_memory) if args.max_memory else None
     kind = is_streamable(args.field, args.fmt)
+    if kind is not None:  # the streaming readers bypass read_field: refuse its way
+        from ..io import check_solution
+
+        check_solution(args.field, kind, args.solution)
     if kind is None:
         print(
             f"cfm-fem sweep: {args.field} is not a plain or Opera table: it is read whole "

@@ -29,6 +29,7 @@ __all__ = [
     "read_field",
     "write_field",
     "detect_format",
+    "check_solution",
     "read_comsol",
     "write_comsol",
     "read_opera",
@@ -76,7 +77,9 @@ def detect_format(path) -> str:
     return "table"
 
 
-def read_field(path, *, fmt=None, length_unit=None, field_unit=None, zero_rows="warn") -> FieldMap:
+def read_field(
+    path, *, fmt=None, length_unit=None, field_unit=None, zero_rows="warn", solution=None
+) -> FieldMap:
     """Read a field map from any supported file.
 
     Parameters
@@ -93,6 +96,13 @@ def read_field(path, *, fmt=None, length_unit=None, field_unit=None, zero_rows="
     zero_rows : {'warn', 'drop', 'keep'}
         Rows whose field is exactly 0 0 0 (placeholders in some measured maps): keep with a
         warning, drop, or keep silently. Each case leaves a note with the count.
+    solution : str, optional
+        COMSOL exports of a parametric or time-dependent study hold one column (or ``% Data``
+        block) per component and solution, named like ``mf.Bx (T) @ I0=200``: the solution to
+        read, by its tag (``'I0=200'``, ``'@ I0=200'``, ``'t=0.1'``). Compared as text after
+        dropping a leading ``@`` and the blanks around ``=`` and ``,`` (``'I0 = 200'`` matches
+        ``@ I0=200``; ``'I0=2e2'`` does not). Needed when the export holds several solutions,
+        checked against the tag when it holds one; refused for other formats.
 
     Returns
     -------
@@ -108,10 +118,28 @@ def read_field(path, *, fmt=None, length_unit=None, field_unit=None, zero_rows="
     check_zero_rows(zero_rows)
     kind = _checked_fmt(fmt) if fmt else detect_format(path)
     options = {"length_unit": length_unit, "field_unit": field_unit, "zero_rows": zero_rows}
+    check_solution(path, kind, solution)
+    if kind == "comsol":
+        return read_comsol(path, solution=solution, **options)
     if kind in _TEXT_READERS:
         return _TEXT_READERS[kind](path, **options)
     file_format = None if kind == "meshio" else kind
     return read_meshfile(path, file_format=file_format, **options)
+
+
+def check_solution(path, kind: str, solution) -> None:
+    """Refuse ``solution`` for a file read as format ``kind`` other than COMSOL (the readers of
+    the other formats, the streaming ones too, have no solution tags)."""
+    if solution is None or kind == "comsol":
+        return
+    what = {"opera": "an Opera table", "table": "a table (CSV or blank-separated)"}.get(
+        kind, f"a mesh file ({kind})"
+    )
+    raise CfmInputError(
+        f"{option_hint('solution', solution)} applies to COMSOL exports only (the solutions of a "
+        f"parametric or time-dependent study); this file is read as {what}",
+        file=path,
+    )
 
 
 def write_field(path, fieldmap: FieldMap, fmt=None) -> None:

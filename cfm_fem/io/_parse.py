@@ -30,6 +30,7 @@ CLI_OPTIONS = {
     "length_unit": ("--length-unit", "UNIT"),
     "field_unit": ("--field-unit", "UNIT"),
     "fmt": ("--format", "FMT"),
+    "solution": ("--solution", "TAG"),
     "r_ref_mm": ("--r-ref", "MM"),
     "b_ref_T": ("--b-ref", "T"),
 }
@@ -159,23 +160,33 @@ def header_names(text: str, delimiter) -> list[str]:
 
     Blank-separated headers cannot hold names with blanks, except a unit in brackets written
     apart from its name: ``mf.Bx (T)`` and ``x [mm]`` stay one name each, and so does COMSOL's
-    solution tag: ``mf.Bx (T) @ t=0.1`` (``@ I0=100, p=2``).
+    solution tag: ``mf.Bx (T) @ t=0.1`` (``@ I0=100, p=2``), also written without blanks around
+    the ``@`` (``mf.Bx(T)@t=0``, ``mf.Bx (T)@ t=0``, ``mf.Bx (T) @t=0``).
     """
     if delimiter is not None:
         return [name.strip() for name in split_fields(text, delimiter)]
     names: list[str] = []
     for token in text.split():
-        tagged = names and " @" in names[-1]
+        last = names[-1] if names else ""
+        tagged = " @" in last or GLUED_TAG.search(last) is not None
         if names and (
-            _bracket_depth(names[-1]) > 0
-            or (token[0] in "([" and not _has_unit(names[-1]))
+            _bracket_depth(last) > 0
+            or (token[0] in "([" and not _has_unit(last))
             or token == "@"
-            or (tagged and (names[-1].endswith(("@", ",")) or token[0] == ","))
+            or GLUED_TAG.match(token) is not None  # "@t=0" after "mf.Bx (T)"
+            or (last.endswith("@") and (tagged or _TAG_START.match(token) is not None))
+            or (tagged and (last.endswith(",") or token[0] == ","))
         ):
             names[-1] += " " + token
         else:
             names.append(token)
     return names
+
+
+#: A COMSOL solution tag glued to what comes before or after its ``@``: ``@t=0``, ``@ I0=100``
+#: (an ``@`` followed by a parameter name and ``=``); `header_names` keeps it with its name.
+GLUED_TAG = re.compile(r"@\s*[A-Za-z_][\w.]*\s*=")
+_TAG_START = re.compile(r"[A-Za-z_][\w.]*\s*=")
 
 
 def _bracket_depth(name: str) -> int:

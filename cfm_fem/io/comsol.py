@@ -47,7 +47,9 @@ def looks_like_comsol(lines) -> bool:
     return first.startswith("%")
 
 
-def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") -> FieldMap:
+def read_comsol(
+    path, *, length_unit=None, field_unit=None, zero_rows="warn", solution=None
+) -> FieldMap:
     """Read a COMSOL text (or spreadsheet CSV) export.
 
     Parameters
@@ -61,6 +63,11 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         ``mf.Bx (T)``), overrides them otherwise.
     zero_rows : {'warn', 'drop', 'keep'}
         What to do with rows whose field is exactly 0 0 0 (placeholders in some exports).
+    solution : str, optional
+        Which solution of a parametric or time-dependent export to read, by its tag as the
+        column names write it after ``@`` (``'I0=200'``, ``'@ I0=200'``, ``'t=0.1'``; blanks
+        around ``=`` and ``,`` do not matter, the values are compared as text). Needed when the
+        export holds several; checked against the tag when it holds one.
 
     Returns
     -------
@@ -98,7 +105,9 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
         check_points=lambda points: _check_nodes(meta.get("nodes"), len(points), file),
     )
     if column_line is not None and is_coordinates_line(column_line[0]):
-        return read_sections(lines, column_line[1] - 1, dimension=dimension, **shared)
+        return read_sections(
+            lines, column_line[1] - 1, dimension=dimension, solution=solution, **shared
+        )
     rows, row_lines = data_rows(lines, start)
     if column_line is None:
         raise CfmInputError(
@@ -110,7 +119,7 @@ def read_comsol(path, *, length_unit=None, field_unit=None, zero_rows="warn") ->
     text, header_line = column_line
     delimiter = detect_delimiter(text, rows[0] if rows else None)
     names = header_names(text, delimiter)
-    columns = solution_columns(names, [header_line] * len(names), file, notes)
+    columns = solution_columns(names, [header_line] * len(names), file, notes, solution)
     optional = ("z", "Bz") if dimension == 2 else ()
     if dimension == 2:
         notes.append("2-D export ('% Dimension: 2')")

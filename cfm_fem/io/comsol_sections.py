@@ -35,9 +35,17 @@ import numpy as np
 
 from ..errors import CfmInputError
 from ..field import FieldMap
-from ._parse import DELAUNAY_NOTE, build_fieldmap, describe_column, parse_block, table_layout
+from ._parse import (
+    DELAUNAY_NOTE,
+    FIELDS,
+    build_fieldmap,
+    describe_column,
+    option_hint,
+    parse_block,
+    table_layout,
+)
 
-__all__ = ["is_coordinates_line", "read_sections", "solution_columns"]
+__all__ = ["is_coordinates_line", "read_sections", "solution_columns", "split_tag", "normal_tag"]
 
 _SECTION = re.compile(r"^(?P<kind>coordinates|elements|data)\s*(?:\((?P<label>.*)\))?$", re.I)
 #: COMSOL's element names, by dimension of the element.
@@ -63,6 +71,7 @@ def read_sections(
     field_unit,
     zero_rows,
     check_points,
+    solution=None,
 ) -> FieldMap:
     """The `FieldMap` of a sectionwise export whose ``% Coordinates`` line is ``lines[start]``.
 
@@ -78,6 +87,9 @@ def read_sections(
         ``% Length unit`` of the header.
     check_points : callable
         ``check_points(points)`` -> notes (the ``% Nodes`` count).
+    solution : str, optional
+        The solution to read of a parametric or time-dependent export (`solution_columns`);
+        the ``% Data`` blocks of the others are not read.
     """
     sections = _split(lines, start, file)
     coords = sections[0]
@@ -101,11 +113,14 @@ def read_sections(
     notes = ["COMSOL sectionwise export"]
     columns = solution_columns(
         names + [s["label"] for s in data], [coords["line"]] * dim + [s["line"] for s in data],
-        file, notes,
+        file, notes, solution,
     )  # fmt: skip
     blocks = [xyz]
-    for section in data:
+    for column, section in zip(columns[dim:], data, strict=True):
         label = section["label"]
+        if _other_solution(column):  # no role: as if absent, so not read
+            blocks.append(np.zeros((n, 1)))
+            continue
         values = _numbers(section, [label], file)
         if len(values) != n:
             raise CfmInputError(
@@ -150,12 +165,13 @@ def read_sections(
     )
 
 
-def solution_columns(names, lines, file, notes) -> list:
+def solution_columns(names, lines, file, notes, solution=None) -> list:
     """Columns whose names may carry COMSOL's solution tag (``mf.Bx (T) @ t=0.1``).
 
     One solution: the tag is dropped for the column's role and said in a note. Several (a
-    parametric or time-dependent export holds one column per component and solution): an error,
-    since which one is the map is the user's choice.
+    parametric or time-dependent export holds one column per component and solution): the one
+    named by ``solution`` is the map, and the field columns of the others get no role (as if
+    absent); without ``solution`` an error, since which one is the map is the user's choice.
 
     Parameters
     ----------
@@ -163,25 +179,110 @@ def solution_columns(names, lines, file, notes) -> list:
         Column names (or ``% Data`` expressions) in file order.
     lines : list of int
         1-based line where each is written.
+    solution : str, optional
+        The solution to read, as the tag is written (``'I0=200'``, ``'@ I0=200'``, ``'t=0.1'``);
+        compared as text after `normal_tag` (so ``'I0 = 200'`` is ``@ I0=200``), not as numbers.
+
+    Raises
+    ------
+    CfmInputError
+        Several solutions and no ``solution``; a ``solution`` that is none of the export's.
     """
-    columns, tags = [], {}
+    columns, tags, spelled = [], {}, {}
     for k, (name, line) in enumerate(zip(names, lines, strict=True)):
-        base, _, tag = name.partition(" @ ")
+        base, tag = split_tag(name)
         column = dataclasses.replace(describe_column(base, k, line), name=name)
         columns.append(column)
         if tag and column.role is not None:
-            tags.setdefault(tag.strip(), []).append(column)
+            key = normal_tag(tag)
+            tags.setdefault(key, []).append(column)
+            spelled.setdefault(key, tag.strip())
+    listed = ", ".join(f"'@ {t}'" for t in spelled.values())
+    if solution is not None:
+        wanted = normal_tag(solution)
+        if wanted not in tags:
+            raise _no_such_solution(solution, tags, listed, columns, lines, file)
+        if len(tags) > 1:
+            for key, cs in tags.items():
+                if key != wanted:
+                    for c in cs:
+                        columns[c.index] = dataclasses.replace(c, role=None)
+            notes.append(f"COMSOL solution '@ {spelled[wanted]}' (of {len(tags)}: {listed})")
+        else:
+            notes.append(f"COMSOL solution '@ {spelled[wanted]}'")
+        return columns
     if len(tags) > 1:
-        listed = ", ".join(f"'@ {t}'" for t in tags)
         raise CfmInputError(
             f"the export holds {len(tags)} solutions ({listed}); expected the field of one: "
-            "export a single parameter value or time from COMSOL",
+            f"pass one of the tags as {option_hint('solution')}, e.g. "
+            f"{_example(next(iter(tags)))}, or export a single parameter value or time from "
+            "COMSOL",
             file=file,
             line=list(tags.values())[1][0].line,
         )
     if tags:
-        notes.append(f"COMSOL solution '@ {next(iter(tags))}'")
+        notes.append(f"COMSOL solution '@ {next(iter(spelled.values()))}'")
     return columns
+
+
+def _no_such_solution(solution, tags, listed, columns, lines, file) -> CfmInputError:
+    """The error for a ``solution`` that is none of the export's ``tags`` (maybe none)."""
+    given = option_hint("solution", solution)
+    if not tags:
+        fields = [c.line for c in columns if c.role in FIELDS]
+        return CfmInputError(
+            f"{given} names a solution, but no column name carries a COMSOL solution tag "
+            "('@ ...'): the export holds one solution; expected no --solution for it",
+            file=file,
+            line=fields[0] if fields else (lines[0] if lines else None),
+        )
+    example = _example(next(iter(tags)))
+    if len(tags) == 1:
+        expects = (f"is not the export's solution ({listed}); --solution expects its tag, "
+                   f"{example}, or may be left out")  # fmt: skip
+    else:
+        expects = (f"is none of the export's {len(tags)} solutions ({listed}); --solution "
+                   f"expects one of them, e.g. {example}")  # fmt: skip
+    # the line of the first tagged column: the column line, or the first tagged '% Data'
+    line = min((c for cs in tags.values() for c in cs), key=lambda c: c.index).line
+    return CfmInputError(f"{given} {expects}", file=file, line=line)
+
+
+def _other_solution(column) -> bool:
+    """True for a column of a solution that `solution_columns` did not choose: its name carries
+    a solution tag, its base name a role, and it has no role."""
+    base, tag = split_tag(column.name)
+    return bool(tag) and column.role is None and describe_column(base, 0, None).role is not None
+
+
+#: Where a COMSOL solution tag starts: `` @ `` (anything after it, as COMSOL writes it), or an
+#: ``@`` without blanks around it before a parameter name and ``=`` (``mf.Bx(T)@t=0``).
+_TAG_AT = re.compile(r"\s@\s|\s*@(?=\s*[A-Za-z_][\w.]*\s*=)")
+
+
+def split_tag(name: str) -> tuple[str, str]:
+    """``name`` without its COMSOL solution tag, and the tag (``''`` if none):
+    ``'mf.Bx (T) @ t=0.1'`` gives ``('mf.Bx (T)', 't=0.1')``, ``'mf.Bx(T)@t=0'`` gives
+    ``('mf.Bx(T)', 't=0')``."""
+    m = _TAG_AT.search(name)
+    if m is None:
+        return name, ""
+    return name[: m.start()], name[m.end() :].strip()
+
+
+def normal_tag(tag: str) -> str:
+    """A solution tag as compared: no leading ``@``, no blanks around ``=`` and ``,``, other
+    runs of blanks as one; the values stay as written (``'@ I0 = 200'`` -> ``'I0=200'``)."""
+    text = tag.strip().removeprefix("@")
+    text = re.sub(r"\s*([=,])\s*", r"\1", text.strip())
+    return re.sub(r"\s+", " ", text)
+
+
+def _example(key: str) -> str:
+    """``--solution TAG`` for the normalised tag ``key``, quoted for a shell if it must be."""
+    import shlex
+
+    return f"--solution {shlex.quote(key)}"
 
 
 def _split(lines, start, file) -> list[dict]:

@@ -38,6 +38,7 @@ def read_reference(
     length_unit: str | None = None,
     field_unit: str | None = None,
     zero_rows: str = "warn",
+    solution: str | None = None,
 ):
     """The reference field as a `FieldModel`.
 
@@ -50,7 +51,7 @@ def read_reference(
         the main harmonic at R_ref and this must not be given.
     r_ref_mm : float, optional
         R_ref for a harmonics file that does not state it.
-    fmt, length_unit, field_unit, zero_rows
+    fmt, length_unit, field_unit, zero_rows, solution
         How a field map is read (`cfm_fem.io.read_field`); refused for a harmonics file.
 
     Returns
@@ -67,7 +68,8 @@ def read_reference(
                 file=path,
             )
         reader = {"fmt": fmt, "length_unit": length_unit, "field_unit": field_unit,
-                  "zero_rows": None if zero_rows == "warn" else zero_rows}  # fmt: skip
+                  "zero_rows": None if zero_rows == "warn" else zero_rows,
+                  "solution": solution}  # fmt: skip
         given = [option_hint(k, v) for k, v in reader.items() if v is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
@@ -78,6 +80,7 @@ def read_reference(
             )
         return FieldModel.from_multipole(read_harmonics(path, r_ref_mm=r_ref_mm))
     fm = read_field(
-        path, fmt=fmt, length_unit=length_unit, field_unit=field_unit, zero_rows=zero_rows
-    )
+        path, fmt=fmt, length_unit=length_unit, field_unit=field_unit, zero_rows=zero_rows,
+        solution=solution,
+    )  # fmt: skip
     return FieldModel.from_map(fm, b_ref_T)
