@@ -402,7 +402,12 @@ def axis_noise_mm(nkey, fkey, trial, point, sig, speed, tau_code, tau_par, out):
     out : ndarray, shape (3,), mm
         Receives (n_x, n_y, n_z), to add to the commanded positions.
     """
-    tkey = trial_key(nkey, trial)
+    _noise_of_trial(trial_key(nkey, trial), fkey, point, sig, speed, tau_code, tau_par, out)
+
+
+@nb.njit(inline="always", **JIT)
+def _noise_of_trial(tkey, fkey, point, sig, speed, tau_code, tau_par, out):
+    """`axis_noise_mm` given the trial's key ``tkey = trial_key(nkey, trial)``."""
     z0, z1, z2 = _three_normals(tkey, fkey, point)
     out[0] = sig[0] * z0
     out[1] = sig[1] * z1
@@ -519,12 +524,9 @@ def _tilt(stack, a, a_xy, a_xz, a_yz):
 @nb.njit(inline="always", **JIT)
 def _rot_apply(phi, theta, psi, v0, v1, v2):
     """R(phi, theta, psi) of eq. 4 applied to (v0, v1, v2), without building the matrix."""
-    cf = math.cos(phi)
-    sf = math.sin(phi)
-    ct = math.cos(theta)
-    st = math.sin(theta)
-    cp = math.cos(psi)
-    sp = math.sin(psi)
+    cf, sf = _cos_sin(phi)
+    ct, st = _cos_sin(theta)
+    cp, sp = _cos_sin(psi)
     w0 = cp * ct * v0 + (cp * sf * st - cf * sp) * v1 + (sf * sp + cf * cp * st) * v2
     w1 = ct * sp * v0 + (cf * cp + sf * sp * st) * v1 + (cf * sp * st - cp * sf) * v2
     w2 = -st * v0 + ct * sf * v1 + cf * ct * v2
@@ -665,30 +667,16 @@ _RJIT = dict(JIT, fastmath={"reassoc"})
 
 
 @nb.njit(**JIT)
-def _sample(model, tt, t, i, pi, q, dq, e):
-    """E of row i of q (point index pi) in trial t into e (3,); tt: row of t in terms/params.
-
-    model: the tuple of ``_Engine.model`` (linear, terms, params, sig, speed, tau_code, tau_par,
-    nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles).
-    """
-    linear, terms, params, sig, speed, tau_code, tau_par, nkey, _tkeys, fkey = model[:10]
-    stack, mounts, tool, strokes, profiles = model[10:]
-    axis_noise_mm(nkey, fkey, t, pi, sig, speed, tau_code, tau_par, dq)
-    if linear:
-        e[0], e[1], e[2], _norm = _chain(terms, tt, q[i, 0], q[i, 1], q[i, 2], dq[0], dq[1], dq[2])
-    else:
-        probe_error_mm(params[tt], q[i], dq, stack, mounts, tool, strokes, profiles, e)
-
-
-@nb.njit(**JIT)
 def fill_values(model, t0, n, q, i, pi, ev):
     """Values of point i (index pi) for trials t0..t0+n-1 into ev (4, >= n): E_x, E_y, E_z, |E|.
 
-    ``model`` as `_sample`. ``linear`` with ``tau_code < 0`` is the hot path (collapsed chain,
-    three normals); otherwise ``probe_error_mm`` / the collapsed chain with ``axis_noise_mm``.
-    Both give the same numbers for the same (seed, trial, point).
+    model: the tuple of ``_Engine.model`` (linear, terms, params, sig, speed, tau_code, tau_par,
+    nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles), rows 0 .. n-1 of terms, params
+    and tkeys being trials t0 .. t0+n-1. ``linear`` with ``tau_code < 0`` is the hot path
+    (collapsed chain, three normals); otherwise ``probe_error_mm`` / the collapsed chain with
+    the noise of ``axis_noise_mm``. Both give the same numbers for the same (seed, trial, point).
     """
-    linear, terms, _, sig, _, tau_code, _, _, tkeys, fkey = model[:10]
+    linear, terms, params, sig, speed, tau_code, tau_par, _, tkeys, fkey = model[:10]
     if linear and tau_code < 0:
         s0 = sig[0]
         s1 = sig[1]
@@ -705,10 +693,16 @@ def fill_values(model, t0, n, q, i, pi, ev):
                 terms, k, q0, q1, q2, s0 * z[0, k], s1 * z[1, k], s2 * z[2, k]
             )
     else:
+        stack, mounts, tool, strokes, profiles = model[10:]
         e = np.empty(3)
-        dq = np.zeros(3)
+        dq = np.empty(3)
+        qi = q[i]
         for k in range(n):
-            _sample(model, k, t0 + k, i, pi, q, dq, e)
+            _noise_of_trial(tkeys[k], fkey, pi, sig, speed, tau_code, tau_par, dq)
+            if linear:
+                e[0], e[1], e[2], _ = _chain(terms, k, qi[0], qi[1], qi[2], dq[0], dq[1], dq[2])
+            else:
+                probe_error_mm(params[k], qi, dq, stack, mounts, tool, strokes, profiles, e)
             ev[0, k] = e[0]
             ev[1, k] = e[1]
             ev[2, k] = e[2]
@@ -766,7 +760,7 @@ def _count_windows(v, n, lo0, inv0, lo1, inv1, wh0, wh1):
 
 @nb.njit(**PJIT)
 def pass_pilot(model, t0, n, q, pidx, out):
-    """Values of trials t0..t0+n-1 into out (npts, 4, n); ``model`` as `_sample`."""
+    """Values of trials t0..t0+n-1 into out (npts, 4, n); ``model`` as `fill_values`."""
     for i in nb.prange(q.shape[0]):
         fill_values(model, t0, n, q, i, pidx[i], out[i])
 
@@ -775,7 +769,7 @@ def pass_pilot(model, t0, n, q, pidx, out):
 def pass_pilot_quantiles(model, t0, n, q, pidx, kth, out):
     """Order statistics ``kth`` (0-based, sorted) of trials t0..t0+n-1 per point and quantity,
     into out (npts, 4, len(kth)), plus the mean in out[..., -1] (one point's values at a time,
-    so a large pilot needs no trials x points memory); ``model`` as `_sample`."""
+    so a large pilot needs no trials x points memory); ``model`` as `fill_values`."""
     npts = q.shape[0]
     nchunk = min(npts, 64)  # one scratch array per chunk of points, not per point
     per = (npts + nchunk - 1) // nchunk
@@ -830,7 +824,8 @@ def pass_window(model, t0, n, q, pidx, shift, wlo, winv, acc, below, whist):
     acc (npts, 4, 2): sum of (v - shift) and of (v - shift)**2 per quantity (shift: a pilot
     mean, which keeps the variance free of cancellation). For each point, quantity c and
     interval end s, a window of W slots [wlo, wlo + W / winv): below[i, c, s] counts values under
-    it, whist[i, c, s, k] values in slot k (floor((v - wlo) * winv) == k). ``model`` as `_sample`.
+    it, whist[i, c, s, k] values in slot k (floor((v - wlo) * winv) == k). ``model`` as
+    `fill_values`.
     """
     for i in nb.prange(q.shape[0]):
         ev = np.empty((4, n))
@@ -885,7 +880,7 @@ def pass_capture(model, t0, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fil
 
     vlo, vhi (npts, 4, 2): that slot's value range widened by a few ulps (pre-test);
     offset (npts, 4, 2): start of each capture in buf; fill: values stored so far. ``model`` as
-    `_sample`.
+    `fill_values`.
     """
     for i in nb.prange(q.shape[0]):
         ev = np.empty((4, n))
@@ -1122,6 +1117,38 @@ def pass_keep(terms, n, q, pidx, sig, tkeys, fkey, shift, lo, hi, acc, below, st
                     below[i, c, 0] += np.int64(red[c, 2])
                     below[i, c, 1] += np.int64(red[c, 3])
                 _keep_flagged(ev, flagw, m, i, lo, hi, store, off, cap, fill)
+
+
+@nb.njit(**PJIT)
+def pass_keep_model(model, t0, n, q, pidx, shift, lo, hi, acc, below, store, off, cap, fill):
+    """`pass_keep` for any bench model (``model`` as `fill_values`: position-dependent errors,
+    speed x tau delay): each point's values of the block by `fill_values`, then its sums,
+    counts and kept values by sub-blocks of SUB trials as `pass_keep`. Arguments as
+    `pass_keep`; trials t0 .. t0+n-1 are rows 0 .. n-1 of the model's arrays."""
+    npts = q.shape[0]
+    nchunk = min(npts, _N_CHUNKS)
+    per = (npts + nchunk - 1) // nchunk
+    for ch in nb.prange(nchunk):
+        ev = np.empty((4, n))
+        sub = np.empty((4, SUB))
+        flagw = np.empty(SUB // 8, dtype=np.uint64)
+        flag = flagw.view(np.uint8)
+        red = np.empty((4, 4))
+        for i in range(ch * per, min(npts, (ch + 1) * per)):
+            fill_values(model, t0, n, q, i, pidx[i], ev)
+            for k0 in range(0, n, SUB):
+                m = min(SUB, n - k0)
+                for c in range(4):
+                    for j in range(m):
+                        sub[c, j] = ev[c, k0 + j]
+                red[:] = 0.0
+                _sums_flags(sub, m, i, shift, lo, hi, red, flag)
+                _keep_flagged(sub, flagw, m, i, lo, hi, store, off, cap, fill)
+                for c in range(4):
+                    acc[i, c, 0] += red[c, 0]
+                    acc[i, c, 1] += red[c, 1]
+                    below[i, c, 0] += np.int64(red[c, 2])
+                    below[i, c, 1] += np.int64(red[c, 3])
 
 
 #: Histogram bins of a window's values when it narrows (`narrow_windows`).

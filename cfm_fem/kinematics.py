@@ -525,22 +525,22 @@ BLOCK = 4096
 #: Half-width of the pilot's interval-end brackets in binomial standard deviations. A window
 #: that misses its order statistic costs a recount of that point alone.
 PILOT_SIGMAS = 4.0
-#: Slots per interval-end window of the generic path (counting pass, then a pass that keeps
+#: Slots per interval-end window of the two-pass way (counting pass, then a pass that keeps
 #: the values of the slot holding each end).
 WINDOW_SLOTS = 32
-#: Most widening rounds of a missed interval window (generic path). Each round widens a window
+#: Most widening rounds of a missed interval window (two-pass way). Each round widens a window
 #: at least 5-fold, so 200 rounds span any finite range; only NaN or infinite positions (a bench
 #: whose errors overflow) could miss for ever, and they are refused before the loop.
 MAX_WIDEN_ROUNDS = 200
-#: Hot path: the windows narrow when the trials seen reach NARROW_FIRST and at each doubling,
+#: One pass: the windows narrow when the trials seen reach NARROW_FIRST and at each doubling,
 #: up to three quarters of the run; each narrowing keeps the ranks that hold the final order
 #: statistic with near certainty (NARROW_SIGMAS hypergeometric standard deviations,
-#: `_narrow_ranks`). A window that loses its order statistic all the same is recounted on the
-#: generic path (one point).
+#: `_narrow_ranks`). A window that loses its order statistic all the same is recounted in two
+#: passes (one point).
 NARROW_FIRST = 4 * BLOCK
 NARROW_SIGMAS = 5.0
-#: Largest store of window values of the hot path (125 MB for 1e6 trials on the reference
-#: grid, 464 MB for 1e7); a run that would need more takes the generic path.
+#: Largest store of window values of the one pass (125 MB for 1e6 trials on the reference
+#: grid, 464 MB for 1e7); a run that would need more takes the two-pass way.
 STORE_BYTES = 2**30
 
 
@@ -580,13 +580,12 @@ class _Engine:
         K.draw_error_params(self.ekey, a, n, g.codes, g.pars, self.params)
         if g.linear:
             K.trial_terms(self.params[:n], g.stack, g.mounts, g.tool, self.terms)
-        if self.fast:
-            K.trial_keys(self.nkey, a, n, self.tkeys)
+        K.trial_keys(self.nkey, a, n, self.tkeys)
         return n
 
     @property
     def model(self):
-        """The tuple the generic kernels take (`_kernels._sample`)."""
+        """The tuple the generic kernels take (`_kernels.fill_values`)."""
         g = self.g
         return (
             g.linear,
@@ -627,11 +626,16 @@ class _Engine:
     def capture(self, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
         K.pass_capture(self.model, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf)
 
-    def keep(self, n, q, pidx, shift, lo, hi, acc, below, store):
-        """The hot path's fused pass over the prepared block (`_kernels.pass_keep`)."""
+    def keep(self, a, n, q, pidx, shift, lo, hi, acc, below, store):
+        """The one-pass counting and keeping over the prepared block of trials a .. a+n-1
+        (`_kernels.pass_keep` on the hot path, `_kernels.pass_keep_model` otherwise)."""
         g = self.g
-        K.pass_keep(self.terms, n, q, pidx, g.sig, self.tkeys, self.fkey, shift, lo, hi, acc,
-                    below, store.values, store.off, store.cap, store.fill)  # fmt: skip
+        st = (store.values, store.off, store.cap, store.fill)
+        if self.fast:
+            K.pass_keep(self.terms, n, q, pidx, g.sig, self.tkeys, self.fkey, shift, lo, hi, acc,
+                        below, *st)  # fmt: skip
+        else:
+            K.pass_keep_model(self.model, a, n, q, pidx, shift, lo, hi, acc, below, *st)
 
 
 def _locate(ranks, below, whist):
@@ -682,20 +686,21 @@ def run_kinematics(
     95 % intervals, exact order statistics (JCGM 101 7.7.2 ranks). A pilot of the first
     ``pilot`` trials places, per point, quantity and interval end, a window in value space that
     holds the end with near certainty (pilot quantiles at p_end -+ PILOT_SIGMAS binomial standard
-    deviations, read conservatively from a histogram of the pilot). Then:
+    deviations, read conservatively from a histogram of the pilot). Then one pass: every sample
+    is counted below its windows or kept in them; as the trials accumulate, each window narrows
+    to the values that can still hold its end (`_narrow_ranks`), and at the end the end is
+    selected from the kept values. Constant error profiles with normal noise (the reference
+    bench) take the hand-vectorised kernel (`_kernels.pass_keep`), other benches the same pass
+    over `_kernels.fill_values` (`_kernels.pass_keep_model`).
 
-    - hot path (constant error profiles, normal noise: the reference bench), one pass: every
-      sample is counted below its windows or kept in them; as the trials accumulate, each window
-      narrows to the values that can still hold its end (`_narrow_ranks`), and at the end the
-      end is selected from the kept values. A point whose window lost its end (rare) or whose
-      store overflowed is recounted on the generic path;
-    - generic path (position-dependent errors, speed x tau delay, or a store above
-      STORE_BYTES): pass 1 counts the values below each window and in each of its
-      ``window_slots`` slots; the counts give the slot holding each end and its rank in the
-      slot; pass 2 regenerates every sample (counter-based RNG: the same numbers) and keeps the
-      values of the target slots, which are then partially sorted. A window that missed its
-      order statistic is widened and recounted for the points concerned. ``exact=False`` stops
-      after pass 1 and interpolates inside the slot (the hot path is exact either way).
+    A point whose window lost its end (rare) or overflowed its store is recounted in two passes,
+    as is every point when the stores would pass STORE_BYTES: pass 1 counts the values below
+    each window and in each of its ``window_slots`` slots; the counts give the slot holding
+    each end and its rank in the slot; pass 2 regenerates every sample (counter-based RNG: the
+    same numbers) and keeps the values of the target slots, which are then partially sorted. A
+    window that missed its order statistic is widened and recounted for the points concerned.
+    ``exact=False`` stops the two-pass way after pass 1 and interpolates inside the slot (the
+    one pass is exact either way).
 
     Parameters
     ----------
@@ -708,7 +713,7 @@ def run_kinematics(
     p : float
         Coverage probability of the per-point intervals.
     window_slots : int
-        Slots per window of the generic path.
+        Slots per window of the two-pass way.
     pilot : int
         Trials of the pilot.
     adaptive_digits : int, optional
@@ -754,24 +759,24 @@ def run_kinematics(
     shift = np.ascontiguousarray(pil[..., -1])
     timer.mark("pilot")
 
-    hot = eng.fast
     adaptive = None
     total = int(trials) if adaptive_digits is None else None
     acc = np.zeros((npts, 4, 2))
-    if hot:
+    one_pass = True
+    if one_pass:
         if total is None:  # the stopping rule on the sums alone, then the intervals of a run
             total, adaptive = _adaptive_pass1(
-                eng, lambda a, n, bacc: _sums_only(eng, n, q, pidx, shift, bacc), shift, acc,
+                eng, lambda a, n, bacc: _sums_only(eng, a, n, q, pidx, shift, bacc), shift, acc,
                 adaptive_digits, max_trials, progress,
             )  # fmt: skip
             timer.mark("adaptive")
             acc[...] = 0.0
         cap = _store_capacity(total, p, kth, n_pilot)
-        hot = npts * 8 * (cap + 1) * 8 <= STORE_BYTES
-    if hot:
+        one_pass = npts * 8 * (cap + 1) * 8 <= STORE_BYTES
+    if one_pass:
         lo, hi = _value_windows(pil[..., :-1])
         store = _Store(npts, cap)
-        ends = _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
+        ends = _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
         del store
         _mean_std(shift, acc, total, bench.source)  # refuses NaN positions before any recount
         timer.mark("pass")
@@ -784,14 +789,14 @@ def run_kinematics(
         )
         if len(redo):
             sub = np.ascontiguousarray(q[redo])
-            _, r_low, r_high, sub_notes, _ = _generic_intervals(
+            _, r_low, r_high, sub_notes, _ = _two_pass_intervals(
                 eng, sub, pidx[redo], pil[redo], probs, total, p, True, window_slots, None,
                 source=bench.source,
             )  # fmt: skip
             low[redo], high[redo] = r_low, r_high
             notes.append(
-                f"{len(redo)} point(s) whose window lost its interval end were recounted on "
-                "the generic path (exact)"
+                f"{len(redo)} point(s) whose window lost its interval end were recounted in two "
+                "passes (exact)"
             )
             notes += sub_notes
             timer.mark("recount")
@@ -806,7 +811,7 @@ def run_kinematics(
                 lambda a, n, bacc: eng.window(a, n, q, pidx, shift, wlo, winv, bacc, below, whist),
                 shift, acc, adaptive_digits, max_trials, progress,
             )  # fmt: skip
-        acc_g, low, high, sub_notes, method = _generic_intervals(
+        acc_g, low, high, sub_notes, method = _two_pass_intervals(
             eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
             counts=(acc, below, whist) if counted else None, timer=timer, source=bench.source,
         )  # fmt: skip
@@ -853,16 +858,16 @@ def _mean_std(shift, acc, total, source):
     return mean, std
 
 
-def _sums_only(eng, n, q, pidx, shift, acc):
-    """The hot pass for its sums alone (windows that hold nothing; adaptive batches)."""
+def _sums_only(eng, a, n, q, pidx, shift, acc):
+    """The one pass for its sums alone (windows that hold nothing; adaptive batches)."""
     npts = q.shape[0]
     lo = np.full((npts, 4, 2), np.inf)
     hi = np.full((npts, 4, 2), -np.inf)
-    eng.keep(n, q, pidx, shift, lo, hi, acc, np.zeros((npts, 4, 2), np.int64), _Store(npts, 0))
+    eng.keep(a, n, q, pidx, shift, lo, hi, acc, np.zeros((npts, 4, 2), np.int64), _Store(npts, 0))
 
 
 class _Store:
-    """Values kept in the hot path's windows: window w (flat index over (npts, 4, 2)) owns
+    """Values kept in the one pass's windows: window w (flat index over (npts, 4, 2)) owns
     values[w * (cap + 1) : (w + 1) * (cap + 1)] (the last place is a spare that overflowing
     writes land on) and holds fill[w] values; fill[w] > cap means it overflowed."""
 
@@ -874,7 +879,7 @@ class _Store:
 
 
 def _narrowings(total):
-    """Trial counts at which the hot path's windows narrow: NARROW_FIRST and its doublings up
+    """Trial counts at which the one pass's windows narrow: NARROW_FIRST and its doublings up
     to three quarters of the run."""
     out = []
     s = NARROW_FIRST
@@ -886,12 +891,12 @@ def _narrowings(total):
 
 def _margin(expect):
     """Places for a Poisson count of mean ``expect``: exceeded with negligible probability (an
-    overflow only sends the point to the generic path)."""
+    overflow only sends the point to the two-pass way)."""
     return np.ceil(1.3 * expect + 8.0 * np.sqrt(expect) + 64.0)
 
 
 def _store_capacity(total, p, kth, n_pilot):
-    """Places per window the hot path needs over the run: the pilot window's share of the
+    """Places per window the one pass needs over the run: the pilot window's share of the
     trials before the first narrowing, then, after each, the values kept (the ranks of
     `_narrow_ranks`, widened by the histogram bins that hold the two edge ranks) and their share
     of the trials up to the next one."""
@@ -940,9 +945,9 @@ def _narrow_ranks(rank, total, seen):
     return np.maximum(klo, 1).astype(np.int64), np.minimum(khi, seen).astype(np.int64)
 
 
-def _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
-    """The hot path's one pass: sums into ``acc`` and the interval ends (npts, 4, 2), NaN where
-    a window lost its end or overflowed (that point needs the generic path). ``lo``, ``hi``:
+def _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
+    """The one pass: sums into ``acc`` and the interval ends (npts, 4, 2), NaN where a window
+    lost its end or overflowed (that point needs the two-pass way). ``lo``, ``hi``:
     the pilot windows (narrowed in place); ``store``: a `_Store` of `_store_capacity`."""
     npts = q.shape[0]
     rank = np.empty((npts, 4, 2), np.int64)
@@ -959,7 +964,7 @@ def _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
             klo, khi = _narrow_ranks(rank, total, a)
             K.narrow_windows(*flat, lo.reshape(-1), hi.reshape(-1), klo.ravel(), khi.ravel())
         n = eng.prepare(a, b)
-        eng.keep(n, q, pidx, shift, lo, hi, acc, below, store)
+        eng.keep(a, n, q, pidx, shift, lo, hi, acc, below, store)
         if progress is not None:
             progress(n)
     ends = np.empty((npts, 4, 2))
@@ -970,9 +975,9 @@ def _hot_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
     return ends
 
 
-def _generic_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
+def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
                        counts=None, timer=None, source=None):  # fmt: skip
-    """The generic path: counting pass (unless ``counts`` = (acc, below, whist) holds it),
+    """The two-pass way: counting pass (unless ``counts`` = (acc, below, whist) holds it),
     widening of missed windows, then the pass that keeps the values of the target slots.
     ``source``: the bench file, named when its positions are not finite.
 
@@ -1102,7 +1107,7 @@ def _pilot_ranks(n, p):
 
 def _windows(qs, probs, slots):
     """Generic-path windows (low edge, slots per mm) from the pilot brackets qs (npts, 4, 6):
-    the hot path's value windows (`_value_windows`) cut into ``slots`` slots."""
+    the one pass's value windows (`_value_windows`) cut into ``slots`` slots."""
     lo, hi = _value_windows(qs)
     return lo, np.ascontiguousarray(slots / (hi - lo))
 

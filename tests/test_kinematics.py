@@ -307,16 +307,17 @@ def test_windows_narrow_and_stay_exact(bench, monkeypatch):
         assert np.all(kept >= ranks)  # at least the ranks that may hold the end
     assert not any("recounted" in n for n in res.notes)
     # ranks that cannot hold the ends: every window loses its end, every point is recounted
-    # on the generic path, still exact
+    # in two passes, still exact
     monkeypatch.setattr(kin, "NARROW_SIGMAS", -1e9)
     res, _ = _check_against_brute_force(bench, q, 6 * 4096, seed=3, pilot=1024)
-    assert f"{len(q)} point(s) whose window lost its interval end were recounted" in " ".join(
-        res.notes
+    assert (
+        f"{len(q)} point(s) whose window lost its interval end were recounted in two passes"
+        in " ".join(res.notes)
     )
 
 
 def test_a_store_too_large_takes_the_generic_path(bench, monkeypatch):
-    """A run whose window store would pass STORE_BYTES counts and regenerates (generic path),
+    """A run whose window store would pass STORE_BYTES counts and regenerates (two passes),
     exact all the same; an adaptive run there keeps the trial count its batches chose."""
     q = bench.grid_points()[::61]
     monkeypatch.setattr(kin, "STORE_BYTES", 1)
@@ -340,7 +341,7 @@ def test_windows_missed_by_a_tiny_pilot_are_recounted(bench):
     assert any("widened" in n for n in res.notes)
 
 
-def test_generic_path_position_dependent_and_speed_tau(bench):
+def test_generic_path_position_dependent_and_speed_tau(bench, monkeypatch):
     errors = list(bench.errors)
     k = error_index("delta_z(z)")
     errors[k] = replace(errors[k], profile=(0.2, 1.0, -0.5))
@@ -359,6 +360,11 @@ def test_generic_path_position_dependent_and_speed_tau(bench):
         dq = kin.point_noise(b, t, range(len(q)), seed=2)
         ref = kin.probe_errors_for_bench(b, params[t : t + 1], q, dq[None])[0]
         np.testing.assert_allclose(v[:, :3, t], ref, atol=1e-12)
+    assert "one pass" in res.interval_method
+    # the one pass over `fill_values` with its windows narrowing (at 4096, 8192, 16384 trials)
+    monkeypatch.setattr(kin, "NARROW_FIRST", 4096)
+    res, _ = _check_against_brute_force(b, q, 6 * 4096, seed=4, pilot=1024)
+    assert not any("recounted" in n for n in res.notes)
 
 
 def test_results_do_not_depend_on_threads(bench):
@@ -503,7 +509,7 @@ def test_budget_share_equals_variance_removed_by_fixing_the_error(bench):
     assert share > 0.3
 
 
-def test_hot_pass_kernels_match_numpy(bench):
+def test_one_pass_kernels_match_numpy(bench):
     """The fused hot-path pass (sub-blocks, vectorised sums, slow-path samples redone, values
     kept in their windows) against the plain values of the same samples; then the narrowing
     and the selection of the ends against numpy."""
@@ -521,7 +527,7 @@ def test_hot_pass_kernels_match_numpy(bench):
     acc = np.zeros((npts, 4, 2))
     below = np.zeros((npts, 4, 2), np.int64)
     store = kin._Store(npts, 200)
-    eng.keep(n, q, pidx, shift, lo, hi, acc, below, store)
+    eng.keep(0, n, q, pidx, shift, lo, hi, acc, below, store)
     d = vals - shift[..., None]
     np.testing.assert_allclose(acc[..., 0], d.sum(-1), rtol=1e-11, atol=1e-15)
     np.testing.assert_allclose(acc[..., 1], (d * d).sum(-1), rtol=1e-11, atol=1e-15)
