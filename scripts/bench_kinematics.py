@@ -1,6 +1,7 @@
 """Performance of the paper-scale kinematics Monte Carlo (issue 3); prints figures, asserts nothing.
 
     python scripts/bench_kinematics.py [--trials 1000000] [--numpy-trials 1000] [--threads N]
+                                       [--variant reference|profile|speed_tau]
 
 1. the full run: ``run_kinematics`` on the reference bench, 936 points, exact HTM chain,
    vibration and delay drawn per point and trial, exact 95 % intervals (one pass: values counted
@@ -20,14 +21,16 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import numba
 import numpy as np
 
 from cfm_fem import _kernels as K
 from cfm_fem import kinematics as kin
+from cfm_fem.bench import ReadingDelay, error_index
 from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.mc import symmetric_interval
+from cfm_fem.mc import Pdf, symmetric_interval
 
 
 def numpy_reference_run(bench, trials, seed=0, batch=50):
@@ -130,14 +133,54 @@ def measure_peaks():
     return ns_ours, ns_scalar, ns_block, ns_hash, ns_numpy, gflops
 
 
+def numpy_comparison(bench, m, trials, wall_full, npts):
+    """Time the numpy implementation on m trials, scale it to ``trials`` and print the ratio."""
+    t = time.perf_counter()
+    ref = numpy_reference_run(bench, m)
+    wall_np = time.perf_counter() - t
+    scaled = wall_np * trials / m
+    print(
+        f"\nnumpy implementation of the same model: {m} trials in {wall_np:.2f} s "
+        f"({wall_np / (m * npts) * 1e9:.0f} ns per sample, one thread)"
+    )
+    ratio = scaled / wall_full
+    print(f"  scaled to {trials} trials: {scaled:.0f} s  ->  kernel speed-up {ratio:.0f}x")
+    chk = kin.run_kinematics(bench, trials=m, seed=3)
+    print(
+        f"  (same statistics; numpy {m} trials vs kernel {m} trials, different random streams: "
+        f"pooled X std {np.sqrt(np.mean(ref[1][:, 0] ** 2)) * 1e3:.2f} vs "
+        f"{chk.pooled['x']['std_um']:.2f} um)"
+    )
+
+
+def bench_variant(name):
+    """The reference bench, or it with delta_z(z) position dependent (profile 0.2 + u - 0.5 u^2:
+    the full HTM chain per sample) or with a speed x tau reading delay (20 mm/s along z, tau
+    uniform on [0, 0.2] ms): the benches off the hand-vectorised path."""
+    bench = read_reference_bench()
+    if name == "profile":
+        errors = list(bench.errors)
+        k = error_index("delta_z(z)")
+        errors[k] = replace(errors[k], profile=(0.2, 1.0, -0.5))
+        bench = replace(bench, errors=tuple(errors))
+    elif name == "speed_tau":
+        delay = ReadingDelay("speed_tau", np.zeros(3), np.array([0.0, 0.0, 20.0]),
+                             Pdf.uniform(0.0, 2e-4))  # fmt: skip
+        bench = replace(bench, delay=delay)
+    return bench
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=1_000_000)
     ap.add_argument("--numpy-trials", type=int, default=1000)
     ap.add_argument("--threads", type=int, default=numba.config.NUMBA_NUM_THREADS)
+    ap.add_argument("--variant", choices=["reference", "profile", "speed_tau"],
+                    default="reference", help="bench (`bench_variant`)")  # fmt: skip
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
-    bench = read_reference_bench()
+    bench = bench_variant(args.variant)
+    print(f"bench: {args.variant}")
     npts = len(bench.grid_points())
     pairs = args.trials * npts
     print(
@@ -172,24 +215,10 @@ def main():
         )
 
     m = args.numpy_trials
-    t = time.perf_counter()
-    ref = numpy_reference_run(bench, m)
-    wall_np = time.perf_counter() - t
-    scaled = wall_np * args.trials / m
-    print(
-        f"\nnumpy implementation of the same model: {m} trials in {wall_np:.2f} s "
-        f"({wall_np / (m * npts) * 1e9:.0f} ns per sample, one thread)"
-    )
-    print(
-        f"  scaled to {args.trials} trials: {scaled:.0f} s  ->  kernel speed-up "
-        f"{scaled / wall_full:.0f}x"
-    )
-    chk = kin.run_kinematics(bench, trials=m, seed=3)
-    print(
-        f"  (same statistics; numpy {m} trials vs kernel {m} trials, different random streams: "
-        f"pooled X std {np.sqrt(np.mean(ref[1][:, 0] ** 2)) * 1e3:.2f} vs "
-        f"{chk.pooled['x']['std_um']:.2f} um)"
-    )
+    if args.variant == "speed_tau" or m < 2:  # the numpy twin draws normal noise only
+        print("\nnumpy implementation: skipped (--numpy-trials < 2, or a speed x tau delay)")
+    else:
+        numpy_comparison(bench, m, args.trials, wall_full, npts)
 
     ns_ours, ns_scalar, ns_block, ns_hash, ns_numpy, gflops = measure_peaks()
     cores = numba.get_num_threads()
