@@ -760,20 +760,18 @@ def run_kinematics(
     timer.mark("pilot")
 
     adaptive = None
-    total = int(trials) if adaptive_digits is None else None
     acc = np.zeros((npts, 4, 2))
-    one_pass = True
-    if one_pass:
-        if total is None:  # the stopping rule on the sums alone, then the intervals of a run
-            total, adaptive = _adaptive_pass1(
-                eng, lambda a, n, bacc: _sums_only(eng, a, n, q, pidx, shift, bacc), shift, acc,
-                adaptive_digits, max_trials, progress,
-            )  # fmt: skip
-            timer.mark("adaptive")
-            acc[...] = 0.0
-        cap = _store_capacity(total, p, kth, n_pilot)
-        one_pass = npts * 8 * (cap + 1) * 8 <= STORE_BYTES
-    if one_pass:
+    if adaptive_digits is None:
+        total = int(trials)
+    else:  # the stopping rule on the sums alone, then the intervals of a run of that length
+        total, adaptive = _adaptive_pass1(
+            eng, lambda a, n, bacc: _sums_only(eng, a, n, q, pidx, shift, bacc), shift, acc,
+            adaptive_digits, max_trials, progress,
+        )  # fmt: skip
+        timer.mark("adaptive")
+        acc[...] = 0.0
+    cap = _store_capacity(total, p, kth, n_pilot)
+    if npts * 8 * (cap + 1) * 8 <= STORE_BYTES:
         lo, hi = _value_windows(pil[..., :-1])
         store = _Store(npts, cap)
         ends = _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
@@ -801,21 +799,10 @@ def run_kinematics(
             notes += sub_notes
             timer.mark("recount")
     else:
-        below = np.zeros((npts, 4, 2), dtype=np.int64)
-        whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
-        counted = total is None  # an adaptive run counts in its batches
-        if counted:
-            wlo, winv = _windows(pil[..., :-1], probs, window_slots)
-            total, adaptive = _adaptive_pass1(
-                eng,
-                lambda a, n, bacc: eng.window(a, n, q, pidx, shift, wlo, winv, bacc, below, whist),
-                shift, acc, adaptive_digits, max_trials, progress,
-            )  # fmt: skip
-        acc_g, low, high, sub_notes, method = _two_pass_intervals(
-            eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
-            counts=(acc, below, whist) if counted else None, timer=timer, source=bench.source,
+        acc, low, high, sub_notes, method = _two_pass_intervals(
+            eng, q, pidx, pil, probs, total, p, exact, window_slots, progress, timer=timer,
+            source=bench.source,
         )  # fmt: skip
-        acc = acc_g
         notes += sub_notes
 
     mean, std = _mean_std(shift, acc, total, bench.source)
@@ -976,27 +963,24 @@ def _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
 
 
 def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
-                       counts=None, timer=None, source=None):  # fmt: skip
-    """The two-pass way: counting pass (unless ``counts`` = (acc, below, whist) holds it),
-    widening of missed windows, then the pass that keeps the values of the target slots.
-    ``source``: the bench file, named when its positions are not finite.
+                        timer=None, source=None):  # fmt: skip
+    """The two-pass way: counting pass, widening of missed windows, then the pass that keeps
+    the values of the target slots. ``source``: the bench file, named when its positions are
+    not finite.
 
     Returns acc (npts, 4, 2), low, high (npts, 4), notes, method."""
     npts = q.shape[0]
     shift = np.ascontiguousarray(pil[..., -1])
     wlo, winv = _windows(pil[..., :-1], probs, window_slots)
     notes = []
-    if counts is None:
-        acc = np.zeros((npts, 4, 2))
-        below = np.zeros((npts, 4, 2), dtype=np.int64)
-        whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
-        for a, b in _blocks(0, total, eng.block):
-            n = eng.prepare(a, b)
-            eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist)
-            if progress is not None:
-                progress(n)
-    else:
-        acc, below, whist = counts
+    acc = np.zeros((npts, 4, 2))
+    below = np.zeros((npts, 4, 2), dtype=np.int64)
+    whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
+    for a, b in _blocks(0, total, eng.block):
+        n = eng.prepare(a, b)
+        eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist)
+        if progress is not None:
+            progress(n)
     _mean_std(shift, acc, total, source)  # NaN positions would miss every window for ever
     if timer is not None:
         timer.mark("pass1")
