@@ -576,23 +576,70 @@ def probe_error_mm(params, q_cmd, dq, stack, mounts, tool, strokes, profiles, ou
     v2 = tool[2]
     for jj in range(2, -1, -1):
         a = stack[jj]
-        base = 6 * a
-        u = q_cmd[a] / strokes[a]
-        ex = params[base + 3] * _horner(profiles, base + 3, u)
-        ey = params[base + 4] * _horner(profiles, base + 4, u)
-        ez = params[base + 5] * _horner(profiles, base + 5, u)
-        w0, w1, w2 = _rot_apply(ex, ey, ez, v0, v1, v2)
-        t0, t1, t2 = _tilt(stack, a, params[18], params[19], params[20])
-        d0, d1, d2 = _rot_apply(
-            t0, t1, t2, 1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0
-        )
-        s = q_cmd[a] + dq[a]
-        v0 = mounts[jj, 0] + s * d0 + params[base] * _horner(profiles, base, u) + w0
-        v1 = mounts[jj, 1] + s * d1 + params[base + 1] * _horner(profiles, base + 1, u) + w1
-        v2 = mounts[jj, 2] + s * d2 + params[base + 2] * _horner(profiles, base + 2, u) + w2
+        d0, d1, d2 = _travel_direction(stack, a, params)
+        v0, v1, v2 = _body_step(params, q_cmd, dq, jj, a, d0, d1, d2, mounts, strokes, profiles,
+                                v0, v1, v2)  # fmt: skip
+    _minus_nominal(v0, v1, v2, q_cmd, mounts, tool, out)
+
+
+@nb.njit(inline="always", **JIT)
+def _travel_direction(stack, a, params):
+    """Travel direction of axis a, tilted by the squareness errors params[18:21] (unit vector)."""
+    t0, t1, t2 = _tilt(stack, a, params[18], params[19], params[20])
+    return _rot_apply(
+        t0, t1, t2, 1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0
+    )
+
+
+@nb.njit(inline="always", **JIT)
+def _body_step(params, q_cmd, dq, jj, a, d0, d1, d2, mounts, strokes, profiles, v0, v1, v2):
+    """One body of the chain: m_j + (q + n) d_j + delta_j(q) + R_j(q) v, for body jj (axis a,
+    travel direction d)."""
+    base = 6 * a
+    u = q_cmd[a] / strokes[a]
+    ex = params[base + 3] * _horner(profiles, base + 3, u)
+    ey = params[base + 4] * _horner(profiles, base + 4, u)
+    ez = params[base + 5] * _horner(profiles, base + 5, u)
+    w0, w1, w2 = _rot_apply(ex, ey, ez, v0, v1, v2)
+    s = q_cmd[a] + dq[a]
+    return (
+        mounts[jj, 0] + s * d0 + params[base] * _horner(profiles, base, u) + w0,
+        mounts[jj, 1] + s * d1 + params[base + 1] * _horner(profiles, base + 1, u) + w1,
+        mounts[jj, 2] + s * d2 + params[base + 2] * _horner(profiles, base + 2, u) + w2,
+    )
+
+
+@nb.njit(inline="always", **JIT)
+def _minus_nominal(v0, v1, v2, q_cmd, mounts, tool, out):
+    """out = the probe position v minus the nominal one (mounts + q + tool)."""
     out[0] = v0 - (mounts[0, 0] + mounts[1, 0] + mounts[2, 0] + q_cmd[0] + tool[0])
     out[1] = v1 - (mounts[0, 1] + mounts[1, 1] + mounts[2, 1] + q_cmd[1] + tool[1])
     out[2] = v2 - (mounts[0, 2] + mounts[1, 2] + mounts[2, 2] + q_cmd[2] + tool[2])
+
+
+@nb.njit(inline="always", **JIT)
+def _probe_error_directed(params, q_cmd, dq, dirs, stack, mounts, tool, strokes, profiles, out):
+    """`probe_error_mm` with the trial's travel directions given (dirs (9,): axis a's at
+    3a .. 3a+2, `trial_directions`): the same numbers, without recomputing them per point."""
+    v0 = tool[0]
+    v1 = tool[1]
+    v2 = tool[2]
+    for jj in range(2, -1, -1):
+        a = stack[jj]
+        v0, v1, v2 = _body_step(params, q_cmd, dq, jj, a, dirs[3 * a], dirs[3 * a + 1],
+                                dirs[3 * a + 2], mounts, strokes, profiles, v0, v1, v2)  # fmt: skip
+    _minus_nominal(v0, v1, v2, q_cmd, mounts, tool, out)
+
+
+@nb.njit(**PJIT)
+def trial_directions(params, stack, out):
+    """Travel directions of the x, y, z axes of each trial (``_travel_direction``) into out
+    (m, 9): axis a's at 3a .. 3a+2."""
+    for t in nb.prange(params.shape[0]):
+        for a in range(3):
+            out[t, 3 * a], out[t, 3 * a + 1], out[t, 3 * a + 2] = _travel_direction(
+                stack, a, params[t]
+            )
 
 
 @nb.njit(**PJIT)
@@ -671,10 +718,11 @@ def fill_values(model, t0, n, q, i, pi, ev):
     """Values of point i (index pi) for trials t0..t0+n-1 into ev (4, >= n): E_x, E_y, E_z, |E|.
 
     model: the tuple of ``_Engine.model`` (linear, terms, params, sig, speed, tau_code, tau_par,
-    nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles), rows 0 .. n-1 of terms, params
-    and tkeys being trials t0 .. t0+n-1. ``linear`` with ``tau_code < 0`` is the hot path
-    (collapsed chain, three normals); otherwise ``probe_error_mm`` / the collapsed chain with
-    the noise of ``axis_noise_mm``. Both give the same numbers for the same (seed, trial, point).
+    nkey, tkeys, fkey, stack, mounts, tool, strokes, profiles, dirs), rows 0 .. n-1 of terms,
+    params, tkeys and dirs (`trial_directions`, non-linear models) being trials t0 .. t0+n-1.
+    ``linear`` with ``tau_code < 0`` is the hot path (collapsed chain, three normals); otherwise
+    ``probe_error_mm`` (with the trial's directions) / the collapsed chain with the noise of
+    ``axis_noise_mm``. Both give the same numbers for the same (seed, trial, point).
     """
     linear, terms, params, sig, speed, tau_code, tau_par, _, tkeys, fkey = model[:10]
     if linear and tau_code < 0:
@@ -693,7 +741,7 @@ def fill_values(model, t0, n, q, i, pi, ev):
                 terms, k, q0, q1, q2, s0 * z[0, k], s1 * z[1, k], s2 * z[2, k]
             )
     else:
-        stack, mounts, tool, strokes, profiles = model[10:]
+        stack, mounts, tool, strokes, profiles, dirs = model[10:]
         e = np.empty(3)
         dq = np.empty(3)
         qi = q[i]
@@ -702,7 +750,8 @@ def fill_values(model, t0, n, q, i, pi, ev):
             if linear:
                 e[0], e[1], e[2], _ = _chain(terms, k, qi[0], qi[1], qi[2], dq[0], dq[1], dq[2])
             else:
-                probe_error_mm(params[k], qi, dq, stack, mounts, tool, strokes, profiles, e)
+                _probe_error_directed(params[k], qi, dq, dirs[k], stack, mounts, tool, strokes,
+                                      profiles, e)  # fmt: skip
             ev[0, k] = e[0]
             ev[1, k] = e[1]
             ev[2, k] = e[2]

@@ -566,6 +566,7 @@ class _Engine:
         self.params = np.empty((self.block, len(ERROR_NAMES)))
         self.terms = _terms_array(self.block)
         self.tkeys = np.empty(self.block, dtype=np.uint64)
+        self.dirs = np.zeros((1 if self.g.linear else self.block, 9))
         self.dummy = np.zeros((1, 21))
 
     @property
@@ -580,6 +581,8 @@ class _Engine:
         K.draw_error_params(self.ekey, a, n, g.codes, g.pars, self.params)
         if g.linear:
             K.trial_terms(self.params[:n], g.stack, g.mounts, g.tool, self.terms)
+        else:
+            K.trial_directions(self.params[:n], g.stack, self.dirs)
         K.trial_keys(self.nkey, a, n, self.tkeys)
         return n
 
@@ -603,6 +606,7 @@ class _Engine:
             g.tool,
             g.strokes,
             g.profiles,
+            self.dirs,
         )
 
     def pilot_quantiles(self, n, q, pidx, kth, out):
@@ -613,6 +617,7 @@ class _Engine:
         big.params = np.empty((n, len(ERROR_NAMES)))
         big.terms = _terms_array(n)
         big.tkeys = np.empty(n, dtype=np.uint64)
+        big.dirs = np.zeros((1 if self.g.linear else n, 9))
         big.prepare(0, n)
         K.pass_pilot_quantiles(big.model, 0, n, q, pidx, kth, out)
 

@@ -380,7 +380,7 @@ def kinematics_values(model, t0: int, n: int, q, pidx) -> np.ndarray:
     from cfm_fem.kinematics import probe_errors
 
     linear, terms, params, sig, speed, tau_code, tau_par, nkey, _, fkey = model[:10]
-    stack, mounts, tool, strokes, profiles = model[10:]
+    stack, mounts, tool, strokes, profiles = model[10:15]
     npts = len(q)
     dq = np.array([[axis_noise(int(nkey), int(fkey), t0 + k, int(pidx[i]), sig, speed,
                                tau_code, tau_par) for i in range(npts)]
