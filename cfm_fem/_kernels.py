@@ -1113,6 +1113,21 @@ def _keep_flagged(ev, flagw, m, i, lo, hi, store, off, cap, fill):
                 fill[i, c, e] = f + 1
 
 
+@nb.njit(inline="always", **JIT)
+def _count_and_keep(ev, m, i, shift, lo, hi, acc, below, store, off, cap, fill, red, flag,
+                    flagw):  # fmt: skip
+    """The values ev[:, :m] of point i (a sub-block) into its sums, counts below the windows and
+    window stores (`_sums_flags`, `_keep_flagged`); red (4, 4), flag / flagw: work space."""
+    red[:] = 0.0
+    _sums_flags(ev, m, i, shift, lo, hi, red, flag)
+    for c in range(4):
+        acc[i, c, 0] += red[c, 0]
+        acc[i, c, 1] += red[c, 1]
+        below[i, c, 0] += np.int64(red[c, 2])
+        below[i, c, 1] += np.int64(red[c, 3])
+    _keep_flagged(ev, flagw, m, i, lo, hi, store, off, cap, fill)
+
+
 @nb.njit(**PJIT)
 def pass_keep(terms, n, q, pidx, sig, tkeys, fkey, shift, lo, hi, acc, below, store, off, cap,
               fill):  # fmt: skip
@@ -1158,14 +1173,8 @@ def pass_keep(terms, n, q, pidx, sig, tkeys, fkey, shift, lo, hi, acc, below, st
             for i in range(ch * per, min(npts, (ch + 1) * per)):
                 _values_run(terms, tkeys, k0, m, q[i, 0], q[i, 1], q[i, 2], s0, s1, s2, fkey,
                             pidx[i], ev, ok, okw)  # fmt: skip
-                red[:] = 0.0
-                _sums_flags(ev, m, i, shift, lo, hi, red, flag)
-                for c in range(4):
-                    acc[i, c, 0] += red[c, 0]
-                    acc[i, c, 1] += red[c, 1]
-                    below[i, c, 0] += np.int64(red[c, 2])
-                    below[i, c, 1] += np.int64(red[c, 3])
-                _keep_flagged(ev, flagw, m, i, lo, hi, store, off, cap, fill)
+                _count_and_keep(ev, m, i, shift, lo, hi, acc, below, store, off, cap, fill, red,
+                                flag, flagw)  # fmt: skip
 
 
 @nb.njit(**PJIT)
@@ -1190,14 +1199,8 @@ def pass_keep_model(model, t0, n, q, pidx, shift, lo, hi, acc, below, store, off
                 for c in range(4):
                     for j in range(m):
                         sub[c, j] = ev[c, k0 + j]
-                red[:] = 0.0
-                _sums_flags(sub, m, i, shift, lo, hi, red, flag)
-                _keep_flagged(sub, flagw, m, i, lo, hi, store, off, cap, fill)
-                for c in range(4):
-                    acc[i, c, 0] += red[c, 0]
-                    acc[i, c, 1] += red[c, 1]
-                    below[i, c, 0] += np.int64(red[c, 2])
-                    below[i, c, 1] += np.int64(red[c, 3])
+                _count_and_keep(sub, m, i, shift, lo, hi, acc, below, store, off, cap, fill,
+                                red, flag, flagw)  # fmt: skip
 
 
 #: Histogram bins of a window's values when it narrows (`narrow_windows`).
