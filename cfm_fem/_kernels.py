@@ -44,6 +44,9 @@ from .threads import map_blocks
 #: One place for numba options. ``cache`` keeps compile time out of repeated runs.
 JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 PJIT = dict(JIT, parallel=True)
+#: Multiply-adds fused where the hardware has them: for loops whose results only need to agree
+#: with their twins to rounding (same bits on a given machine, whatever the threads).
+FJIT = dict(JIT, fastmath={"contract"})
 
 
 def kernels_cached(*kernels) -> bool:
@@ -2201,6 +2204,292 @@ def octant_starts(points, node, coords, start_cells):
             o |= np.int64(points[i, a] < coords[g, a]) << a
         out[i] = start_cells[g, o]
     return out
+
+
+# -- interpolation of points grouped around nodes (the perturbation sweep's access pattern) ----
+
+#: Most cells in a node's star that `interpolate_groups` handles with its vectorised cone test
+#: (their index goes into the low bits of a float); a larger star (a degenerate fan) walks.
+STAR_MAX_CELLS = 256
+_STAR_TAG = np.uint64(STAR_MAX_CELLS - 1)
+
+
+@intrinsic
+def _bits_from_float(typingctx, x):
+    """The IEEE-754 bits of the float64 ``x`` as a uint64 (a cast that vectorises)."""
+    if x != types.float64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.uint64(types.float64), codegen
+
+
+@intrinsic
+def _prefetch(typingctx, arr, offset):
+    """Ask the CPU to start loading the cache line of element ``offset`` (flat index, C order)
+    of the contiguous array ``arr``. A hint: it changes no result."""
+    if not isinstance(arr, types.Array) or not isinstance(offset, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        off = context.cast(builder, args[1], signature.args[1], types.intp)
+        i8p = builder.bitcast(builder.gep(ary.data, [off]), ir.IntType(8).as_pointer())
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p.type, i32, i32, i32])
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [i8p.type], fnty)
+        builder.call(fn, [i8p, i32(0), i32(3), i32(1)])  # read, keep in all cache levels, data
+        return context.get_dummy_value()
+
+    return types.void(arr, offset), codegen
+
+
+@nb.njit(**JIT)
+def node_cells(simplices, n_nodes):
+    """The cells around each node (its star), as compressed rows.
+
+    Parameters
+    ----------
+    simplices : ndarray, shape (m, d + 1), int64
+    n_nodes : int
+
+    Returns
+    -------
+    start : ndarray, shape (n_nodes + 1,), int64
+    cells : ndarray, shape (m * (d + 1),), int32
+        The cells holding node g are ``cells[start[g]:start[g + 1]]``, in increasing order.
+    """
+    m, k = simplices.shape
+    start = np.zeros(n_nodes + 1, dtype=np.int64)
+    for s in range(m):
+        for j in range(k):
+            start[simplices[s, j] + 1] += 1
+    for g in range(n_nodes):
+        start[g + 1] += start[g]
+    fill = start[:-1].copy()
+    cells = np.empty(m * k, dtype=np.int32)
+    for s in range(m):
+        for j in range(k):
+            v = simplices[s, j]
+            cells[fill[v]] = s
+            fill[v] += 1
+    return start, cells
+
+
+@nb.njit(**FJIT)
+def _cone_tables(g, c0, ns, star, simplices, transform, values, cone, grad, far, rows):
+    """Per cell k of node g's star: ``cone[k]`` (9) the gradients of the barycentric coordinates
+    of its three other vertices (their values at g + d are cone @ d, so d is in the cell's cone
+    when all three are >= 0), ``far[k]`` (3) the gradient of g's own (g + d stays on g's side of
+    the opposite face while 1 + far @ d >= 0) and ``grad[k]`` (3 per value column) the
+    gradient of the linear interpolant in the cell. ``rows`` (4, 3) is work space."""
+    nc = values.shape[1]
+    for k in range(ns):
+        s = star[c0 + k]
+        j = (
+            np.int64(simplices[s, 1] == g)
+            + 2 * np.int64(simplices[s, 2] == g)
+            + 3 * np.int64(simplices[s, 3] == g)
+        )  # g's place in the cell, without branches
+        for a in range(3):
+            t0, t1, t2 = transform[s, 0, a], transform[s, 1, a], transform[s, 2, a]
+            rows[0, a] = t0
+            rows[1, a] = t1
+            rows[2, a] = t2
+            rows[3, a] = -(t0 + t1 + t2)
+        for r in range(3):
+            src = r + np.int64(r >= j)
+            for a in range(3):
+                cone[k, 3 * r + a] = rows[src, a]
+        for a in range(3):
+            far[k, a] = rows[j, a]
+        v0, v1, v2, v3 = simplices[s, 0], simplices[s, 1], simplices[s, 2], simplices[s, 3]
+        for c in range(nc):
+            b3 = values[v3, c]
+            e0 = values[v0, c] - b3
+            e1 = values[v1, c] - b3
+            e2 = values[v2, c] - b3
+            for a in range(3):
+                grad[k, 3 * c + a] = e0 * rows[0, a] + e1 * rows[1, a] + e2 * rows[2, a]
+
+
+@nb.njit(inline="always", **FJIT)
+def _tagged_min(c, k, x, y, z):
+    """min of the three cone coordinates (``c``: the 9 numbers of `_cone_tables`' cone row)
+    of displacement (x, y, z) in star cell k, its low 8 bits replaced by k: the max over the
+    cells of these is the cell where the point lies deepest, tagged, in one float."""
+    l0 = c[0] * x + c[1] * y + c[2] * z
+    l1 = c[3] * x + c[4] * y + c[5] * z
+    l2 = c[6] * x + c[7] * y + c[8] * z
+    bits = _bits_from_float(min(min(l0, l1), l2))
+    return _float_from_bits((bits & ~_STAR_TAG) | np.uint64(k))
+
+
+@nb.njit(inline="always", **JIT)
+def _cone_row(cone, k):
+    """Row k of the cone table as a tuple: scalars the vectorised loops keep in registers (a
+    table read inside them would be read again for every point, as it might alias the
+    stores)."""
+    return (cone[k, 0], cone[k, 1], cone[k, 2], cone[k, 3], cone[k, 4], cone[k, 5],
+            cone[k, 6], cone[k, 7], cone[k, 8])  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _prefetch_star(g, star_start, star, simplices, transform, values, with_values):
+    """Start loading the cell data of node g's star (and, once its cells are in cache, the
+    values at their vertices): the next groups' tables then build from cache."""
+    for c in range(star_start[g], star_start[g + 1]):
+        s = np.int64(star[c])
+        if with_values:
+            for j in range(4):
+                _prefetch(values, simplices[s, j] * values.shape[1])
+        else:
+            _prefetch(transform, s * 12)
+            _prefetch(transform, s * 12 + 11)
+            _prefetch(simplices, s * 4)
+
+
+@nb.njit(**FJIT)
+def _group_block(points, group_start, group_node, q0, q1, simplices, transform, neighbors,
+                 coords, values, star_start, star, out, n_max, s_max):  # fmt: skip
+    """Groups q0 .. q1-1 of `interpolate_groups`; returns how many points were walked."""
+    nc = values.shape[1]
+    cone = np.empty((s_max, 9))
+    grad = np.empty((s_max, 3 * nc))
+    far = np.empty((s_max, 3))
+    rows = np.empty((4, 3))
+    d0 = np.empty(n_max)
+    d1 = np.empty(n_max)
+    d2 = np.empty(n_max)
+    best = np.empty(n_max)
+    bary = np.empty(4)
+    walked = 0
+    for q in range(q0, q1):
+        if q + 2 < q1:
+            _prefetch_star(group_node[q + 2], star_start, star, simplices, transform, values, False)
+        if q + 1 < q1:
+            _prefetch_star(group_node[q + 1], star_start, star, simplices, transform, values, True)
+        g = group_node[q]
+        i0 = group_start[q]
+        n = group_start[q + 1] - i0
+        c0 = star_start[g]
+        ns = star_start[g + 1] - c0
+        pts = points[i0 : i0 + n]
+        res = out[i0 : i0 + n]
+        if ns == 0 or ns > STAR_MAX_CELLS:  # a node in no cell, or a degenerate fan: walk
+            s0 = np.int64(star[c0]) if ns > 0 else np.int64(0)
+            for i in range(n):
+                walked += 1
+                s = locate(pts[i], s0, transform, neighbors, bary)
+                if s >= 0:
+                    _interp_in(s, bary, simplices, values, res[i])
+                else:
+                    res[i, :] = np.nan
+            continue
+        _cone_tables(g, c0, ns, star, simplices, transform, values, cone, grad, far, rows)
+        x0, x1, x2 = coords[g, 0], coords[g, 1], coords[g, 2]
+        c = _cone_row(cone, 0)
+        # displacements from g, tested against the first cell on the way (vectorised loops:
+        # every point against every cell of the star, the best kept as one tagged float)
+        for i in range(n):
+            x = pts[i, 0] - x0
+            y = pts[i, 1] - x1
+            z = pts[i, 2] - x2
+            d0[i] = x
+            d1[i] = y
+            d2[i] = z
+            best[i] = _tagged_min(c, 0, x, y, z)
+        for k in range(1, ns):
+            c = _cone_row(cone, k)
+            for i in range(n):
+                best[i] = max(best[i], _tagged_min(c, k, d0[i], d1[i], d2[i]))
+        n_bad = 0
+        vg0 = values[g, 0]
+        vg1 = values[g, min(1, nc - 1)]
+        vg2 = values[g, min(2, nc - 1)]
+        for i in range(n):
+            b = best[i]
+            k = np.int64(_bits_from_float(b) & _STAR_TAG)
+            k = k if k < ns else 0  # the tag of a NaN point is noise
+            x, y, z = d0[i], d1[i], d2[i]
+            if nc == 3:  # a field: the loop over its components written out
+                res[i, 0] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
+                res[i, 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
+                res[i, 2] = vg2 + grad[k, 6] * x + grad[k, 7] * y + grad[k, 8] * z
+            else:
+                for c in range(nc):
+                    res[i, c] = (values[g, c] + grad[k, 3 * c] * x + grad[k, 3 * c + 1] * y) + grad[
+                        k, 3 * c + 2
+                    ] * z
+            f = 1.0 + far[k, 0] * x + far[k, 1] * y + far[k, 2] * z
+            n_bad += (b < -BARY_EPS) | (f < -BARY_EPS)  # a NaN point's values are NaN already
+        if n_bad == 0:
+            continue
+        # points outside the star: the walk, from the cell they came closest to
+        for i in range(n):
+            b = best[i]
+            k = np.int64(_bits_from_float(b) & _STAR_TAG)
+            k = k if k < ns else 0
+            f = 1.0 + far[k, 0] * d0[i] + far[k, 1] * d1[i] + far[k, 2] * d2[i]
+            if not ((b < -BARY_EPS) | (f < -BARY_EPS)):
+                continue
+            walked += 1
+            s = locate(pts[i], np.int64(star[c0 + k]), transform, neighbors, bary)
+            if s >= 0:
+                _interp_in(s, bary, simplices, values, res[i])
+            else:
+                res[i, :] = np.nan
+    return walked
+
+
+@nb.njit(**dict(PJIT, fastmath={"contract"}))
+def interpolate_groups(points, group_start, group_node, simplices, transform, neighbors,
+                       coords, values, star_start, star, out):  # fmt: skip
+    """Piecewise-linear values at points grouped around nodes (d = 3); NaN outside the mesh.
+
+    Group q holds the points ``group_start[q] .. group_start[q + 1] - 1``, drawn around node
+    ``group_node[q]`` (a perturbation sweep's trials). A point near its node lies in one of the
+    cones of the node's star: every point of a group is tested against every cell of the star
+    in loops without gathers or branches, which the compiler vectorises (the walk's
+    table-indexed loads keep it scalar). Points outside the star, or in a star of more than
+    `STAR_MAX_CELLS` cells, are walked (`locate`) from the nearest cell. The same values as
+    the walk to rounding (the interpolant taken as value at the node plus the cell's gradient
+    times the displacement); the same cells but on faces, where either side gives the value.
+
+    Parameters
+    ----------
+    points : ndarray, shape (k, 3), mm, in the mesh frame
+    group_start : ndarray, shape (n_groups + 1,), int64
+        Increasing offsets into ``points``, from 0 to k.
+    group_node : ndarray, shape (n_groups,), int64
+    simplices, transform, neighbors, coords : the mesh (`cfm_fem.interpolation.SimplexMesh`)
+    values : ndarray, shape (n, c)
+    star_start, star : `node_cells` of the mesh
+    out : ndarray, shape (k, c)
+        Output: the values (NaN where a walk left the mesh, or the point is not finite).
+
+    Returns
+    -------
+    int
+        Points that were walked.
+    """
+    n_groups = len(group_node)
+    n_max = 1
+    for q in range(n_groups):
+        n_max = max(n_max, group_start[q + 1] - group_start[q])
+    s_max = 1
+    for q in range(n_groups):
+        g = group_node[q]
+        s_max = max(s_max, min(star_start[g + 1] - star_start[g], STAR_MAX_CELLS))
+    per = max(1, (1 << 12) // n_max)  # groups per task: ~4k points, work space reused
+    walked = 0
+    for b in nb.prange((n_groups + per - 1) // per):
+        walked += _group_block(points, group_start, group_node, b * per,
+                               min(n_groups, (b + 1) * per), simplices, transform, neighbors,
+                               coords, values, star_start, star, out, n_max, s_max)  # fmt: skip
+    return walked
 
 
 @nb.njit(**JIT)
