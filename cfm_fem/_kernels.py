@@ -2336,6 +2336,16 @@ def _cone_row(cone, k):
             cone[k, 6], cone[k, 7], cone[k, 8])  # fmt: skip
 
 
+@nb.njit(inline="always", **FJIT)
+def _deepest_cell(tagged, ns, far, x, y, z):
+    """The star cell of a point from its tagged max (`_tagged_min`), and whether the point
+    left the star: in no cone, or beyond the cell's face opposite the node."""
+    k = np.int64(_bits_from_float(tagged) & _STAR_TAG)
+    k = k if k < ns else 0  # the tag of a NaN point is noise
+    f = 1.0 + far[k, 0] * x + far[k, 1] * y + far[k, 2] * z
+    return k, (tagged < -BARY_EPS) | (f < -BARY_EPS)
+
+
 @nb.njit(**JIT)
 def _prefetch_star(g, star_start, star, simplices, transform, values, with_values):
     """Start loading the cell data of node g's star (and, once its cells are in cache, the
@@ -2410,10 +2420,8 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
         vg1 = values[g, min(1, nc - 1)]
         vg2 = values[g, min(2, nc - 1)]
         for i in range(n):
-            b = best[i]
-            k = np.int64(_bits_from_float(b) & _STAR_TAG)
-            k = k if k < ns else 0  # the tag of a NaN point is noise
             x, y, z = d0[i], d1[i], d2[i]
+            k, left = _deepest_cell(best[i], ns, far, x, y, z)
             if nc == 3:  # a field: the loop over its components written out
                 res[i, 0] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
                 res[i, 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
@@ -2423,17 +2431,13 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
                     res[i, c] = (values[g, c] + grad[k, 3 * c] * x + grad[k, 3 * c + 1] * y) + grad[
                         k, 3 * c + 2
                     ] * z
-            f = 1.0 + far[k, 0] * x + far[k, 1] * y + far[k, 2] * z
-            n_bad += (b < -BARY_EPS) | (f < -BARY_EPS)  # a NaN point's values are NaN already
+            n_bad += left  # a NaN point's values are NaN already
         if n_bad == 0:
             continue
         # points outside the star: the walk, from the cell they came closest to
         for i in range(n):
-            b = best[i]
-            k = np.int64(_bits_from_float(b) & _STAR_TAG)
-            k = k if k < ns else 0
-            f = 1.0 + far[k, 0] * d0[i] + far[k, 1] * d1[i] + far[k, 2] * d2[i]
-            if not ((b < -BARY_EPS) | (f < -BARY_EPS)):
+            k, left = _deepest_cell(best[i], ns, far, d0[i], d1[i], d2[i])
+            if not left:
                 continue
             walked += 1
             s = locate(pts[i], np.int64(star[c0 + k]), transform, neighbors, bary)
