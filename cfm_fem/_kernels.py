@@ -3367,7 +3367,8 @@ def direction_bin(delta, d):
     The bins are cells of a square grid on the faces of the octahedron |x| + |y| + |z| = 1, so
     every bin is a convex cone of directions. A walk started from the star cell of the bin's
     centre direction (`star_bin_starts`) ends after at most one step for ~94 % of the
-    displacements of a typical 3-D Delaunay star (~27 cells).
+    displacements of a typical 3-D Delaunay star (~27 cells). Planar maps start their star
+    walks so; 3-D maps test every star cell instead (`star_errors3`).
     """
     tot = 0.0
     b = 0
@@ -3378,21 +3379,6 @@ def direction_bin(delta, d):
     for a in range(d - 1):
         b = BIN_LEVELS * b + min(np.int64(abs(delta[a]) * inv), BIN_LEVELS - 1)
     return b
-
-
-@nb.njit(inline="always", **JIT)
-def direction_bin3(d0, d1, d2):
-    """`direction_bin` for d = 3, branch-free (vectorises over a block of displacements)."""
-    a0 = abs(d0)
-    a1 = abs(d1)
-    tot = a0 + a1 + abs(d2)
-    # tot == 0 only with a0 = a1 = 0, which give level 0 whatever inv is; a select instead of a
-    # branch, and clamping as floats (the same levels), keep the loop vectorisable
-    inv = BIN_LEVELS / (tot + np.float64(tot == 0.0))
-    iu = np.int64(min(a0 * inv, BIN_LEVELS - 1.0))
-    iv = np.int64(min(a1 * inv, BIN_LEVELS - 1.0))
-    sg = (np.int64(d0 < 0.0) << 2) | (np.int64(d1 < 0.0) << 1) | np.int64(d2 < 0.0)
-    return (sg * BIN_LEVELS + iu) * BIN_LEVELS + iv
 
 
 @nb.njit(**JIT)
@@ -3520,15 +3506,16 @@ def _unit_disp(w, z, t, a):
 
 
 @nb.njit(**JIT)
-def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibuf, rest, code):
+def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, err, dl, tag, rest, code):
     """Field errors of n trials located in the star tables of a 3-D node, in blocks.
 
-    Trial t moves the probe by ``delta = smax * (w.T @ z[:, t])``. The displacements and their
-    `direction_bin` are computed in vectorised loops. Two branch-free loops then choose, per
-    trial, the bin's start cell or its neighbour across the most violated face, and test that
-    cell and write the error (~94 % of trials end there); the rest walk the star
-    (`star_locate3`). Same cells, so the same errors, as walking every trial from its bin's
-    start.
+    Trial t moves the probe by ``delta = smax * (w.T @ z[:, t])``, computed in a vectorised
+    loop. Every trial is then tested against every cell of the star, in vectorised loops over
+    the trials (`interpolate_groups`' cone test: the deepest cell kept as a float tagged with
+    its index), and its error written from that cell when it lies inside; the rest walk the
+    star from that cell (`star_locate3`), which gives the reason. Same cells, so the same
+    errors, as walking every trial (but for trials within rounding of a face between two
+    cells, where the walk may stop in either).
 
     Parameters
     ----------
@@ -3538,10 +3525,10 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
         Row c: the mesh-frame displacement per unit normal c (basis[c] * sigma_axes[c]);
         components summed as in `_unit_disp`.
     smax : float, mm
-    lmat, dmat, nbr, n_star : star tables (`build_star`); bin_start : `star_bin_starts`.
+    lmat, dmat, nbr, n_star : star tables (`build_star`), n_star <= MAX_STAR.
     err : ndarray, shape (3, >= n), T
         Output: B(x + delta) - B(x) of each trial found in the star (others left as they are).
-    dl : ndarray, shape (3, >= n); ibuf : ndarray, shape (2, >= n), int64
+    dl : ndarray, shape (3, >= n); tag : ndarray, shape (>= n,)
         Work space.
     rest, code : ndarray, shape (>= n,), int64
         Output: the trials not in the star, in increasing order, and why: LEAVES_MESH, or -1
@@ -3559,33 +3546,21 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
     d0s = dl[0]
     d1s = dl[1]
     d2s = dl[2]
-    bins = ibuf[0]
-    cell = ibuf[1]
+    cone = lmat.reshape((lmat.shape[0], 9))  # row a of cell k at 3 a .. 3 a + 2
+    c = _cone_row(cone, 0)
     for t in range(n):
-        bins[t] = direction_bin3(d0s[t], d1s[t], d2s[t])
-    # The cell to try: the bin's start, or its neighbour across the face star_locate3 would
-    # cross first. Chosen through memory (pick): LLVM turns a select here into a branch that
-    # mispredicts on the ~1/3 of trials whose start misses, and the CPU then discards the
-    # trials in flight behind it (the whole pass took 1.4x as long).
-    pick = np.empty(2, dtype=np.int64)
-    for t in range(n):
-        d0 = d0s[t]
-        d1 = d1s[t]
-        d2 = d2s[t]
-        s = np.uint64(bin_start[np.uint64(bins[t])])  # unsigned: no wrap-around of indices
-        l0, l1, l2 = _lam3(lmat, s, d0, d1, d2)
-        m01 = min(l0, l1)
-        a = np.uint64(2) if l2 < m01 else np.uint64(1 if l1 < l0 else 0)  # as star_locate3
-        nx = nbr[s, a]
-        pick[0] = s
-        pick[1] = nx
-        cell[t] = pick[np.int64(min(m01, l2) < -BARY_EPS) & np.int64(nx >= 0)]
+        tag[t] = _tagged_min(c, 0, d0s[t], d1s[t], d2s[t])
+    for k in range(1, n_star):
+        c = _cone_row(cone, k)
+        for t in range(n):
+            tag[t] = max(tag[t], _tagged_min(c, k, d0s[t], d1s[t], d2s[t]))
     nf = 0
     for t in range(n):
         d0 = d0s[t]
         d1 = d1s[t]
         d2 = d2s[t]
-        s = np.uint64(cell[t])
+        s = np.uint64(_bits_from_float(tag[t]) & _STAR_TAG)
+        s = s if s < np.uint64(n_star) else np.uint64(0)  # unsigned: no index wrap-around
         l0, l1, l2 = _lam3(lmat, s, d0, d1, d2)
         inside = min(min(l0, l1), min(l2, 1.0 - (l0 + l1 + l2))) >= -BARY_EPS
         err[0, t], err[1, t], err[2, t] = _err3(dmat, s, l0, l1, l2)
@@ -3597,7 +3572,9 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, bin_start, err, dl, ibu
         d0 = d0s[t]
         d1 = d1s[t]
         d2 = d2s[t]
-        s, l0, l1, l2 = star_locate3(cell[t], lmat, nbr, n_star, d0, d1, d2)
+        start = np.int64(_bits_from_float(tag[t]) & _STAR_TAG)
+        s, l0, l1, l2 = star_locate3(start if start < n_star else 0, lmat, nbr, n_star,
+                                     d0, d1, d2)  # fmt: skip
         if s >= 0:
             err[0, t], err[1, t], err[2, t] = _err3(dmat, s, l0, l1, l2)
         else:
@@ -3669,7 +3646,7 @@ def _node_gauss(
     Component statistics then merge the scaled in-star tails with the sorted out-of-star values
     (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
     """
-    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, ibuf,
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
      rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
     excess, reach = search[0], search[1]
     d = coords.shape[1]
@@ -3711,7 +3688,7 @@ def _node_gauss(
         g, start_cells[g, 0], simplices, transform, neighbors, values, cells, lmat, dmat, nbr,
         htab,
     )  # fmt: skip
-    if n_star > 0:  # per direction bin, a star cell to start walks from
+    if n_star > 0 and d != 3:  # per direction bin, a star cell to start walks from
         star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
     exact = star_exact(g, cells, n_star, simplices, excess)  # LEAVES_MESH is proven
     n_cand = 0
@@ -3724,8 +3701,8 @@ def _node_gauss(
         for a in range(d):
             wmat[c, a] = basis[c, a] * sigma_axes[c]
     if d == 3 and n_star > 0:
-        n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, bin_start,
-                              comp[kmax], dl, ibuf, rest, code)  # fmt: skip
+        n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, comp[kmax],
+                              dl, tag, rest, code)  # fmt: skip
         kept = 0
         for r in range(n_rest):
             t = rest[r]
@@ -3923,7 +3900,7 @@ def _node_gauss(
 def _gauss_buffers(n_up, n_trials, d):
     """Per-thread work arrays of `_node_gauss`: samples (comp, absb, scratch), normals (zbuf,
     okbuf), star tables (cells, lmat, dmat, nbr, htab, bin_start), merge space (work) and the
-    star pass's work space (dl, ibuf, rest, code, wmat; `star_errors3`) and, per trial in
+    star pass's work space (dl, tag, rest, code, wmat; `star_errors3`) and, per trial in
     ``rest``, the fractions of its largest displacement where it is proven outside (r_in,
     r_out; `star_recheck`), and the star cells and free faces of `star_behind` (cand, free)."""
     return (
@@ -3940,7 +3917,7 @@ def _gauss_buffers(n_up, n_trials, d):
         np.zeros((1 << d) * BIN_LEVELS ** (d - 1), dtype=np.int64),
         np.empty((5, n_trials)),
         np.empty((3, n_trials)),
-        np.empty((2, n_trials), dtype=np.int64),
+        np.empty(n_trials),
         np.empty(n_trials, dtype=np.int64),
         np.empty(n_trials, dtype=np.int64),
         np.empty((3, d)),

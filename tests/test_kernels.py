@@ -242,15 +242,6 @@ def _sweep_normals_from(key, fkey, t0, n):
     return out
 
 
-def test_direction_bin3_equals_the_generic_bin():
-    rng = np.random.default_rng(12)
-    for d in rng.normal(size=(5000, 3)) * rng.choice([1e-3, 1.0, 1e3], (5000, 1)):
-        assert _kernels.direction_bin3(*d) == _kernels.direction_bin(d, 3)
-    for d in ([0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 0.5, -0.5], [0.0, -2.0, 1.0]):
-        d = np.array(d)
-        assert _kernels.direction_bin3(*d) == _kernels.direction_bin(d, 3)
-
-
 @pytest.mark.parametrize("d", [2, 3])
 def test_direction_bins_invert(d):
     n_bins = _kernels.n_direction_bins(d)
@@ -303,8 +294,9 @@ def test_star_tables_locate_like_the_global_walk():
 
 
 def test_star_block_pass_places_trials_like_the_walk():
-    """`star_errors3` (bins, two branch-free tries, then walks) gives, bit for bit, the errors
-    of walking each trial from its bin's start cell, and lists exactly the other trials."""
+    """`star_errors3` (every trial against every star cell, then walks) gives, bit for bit, the
+    errors of walking each trial from its bin's start cell, and lists exactly the other
+    trials, with the same reasons."""
     rng = np.random.default_rng(6)
     pts = rng.uniform(0, 10, (300, 3))  # many nodes on the hull: rays that leave the mesh
     B = np.c_[np.sin(pts[:, 0]), pts[:, 1] ** 2, pts[:, 2]]
@@ -314,7 +306,7 @@ def test_star_block_pass_places_trials_like_the_walk():
     dmat, nbr = np.empty((m, 3, 3)), np.empty((m, 3), np.int64)
     htab = np.full((3, _kernels.STAR_HASH), -1, np.int64)
     starts = np.empty(_kernels.n_direction_bins(3), np.int64)
-    err, dl, ibuf = np.full((3, n), np.nan), np.empty((3, n)), np.empty((2, n), np.int64)
+    err, dl, tag = np.full((3, n), np.nan), np.empty((3, n)), np.empty(n)
     rest, code = np.empty(n, np.int64), np.empty(n, np.int64)
     w = np.diag([1.0, 0.5, 2.0])
     counts = {"in": 0, _kernels.LEAVES_MESH: 0, -1: 0}
@@ -324,14 +316,14 @@ def test_star_block_pass_places_trials_like_the_walk():
         smax = rng.choice([0.05, 0.5])  # 0.5: many trials beyond the star
         _kernels.star_bin_starts(lmat, nbr, k, 3, smax, starts)
         z = rng.normal(size=(3, n))
-        n_rest = _kernels.star_errors3(z, n, w, smax, lmat, dmat, nbr, k, starts, err, dl,
-                                       ibuf, rest, code)  # fmt: skip
+        n_rest = _kernels.star_errors3(z, n, w, smax, lmat, dmat, nbr, k, err, dl, tag, rest,
+                                       code)  # fmt: skip
         listed = dict(zip(rest[:n_rest].tolist(), code[:n_rest].tolist(), strict=True))
         assert list(listed) == sorted(listed)
         for t in range(n):
             z0, z1, z2 = z[:, t]  # the kernel's operation order, scalar by scalar
             delta = [smax * (0.0 + w[0, a] * z0 + w[1, a] * z1 + w[2, a] * z2) for a in range(3)]
-            b = _kernels.direction_bin3(*delta)
+            b = _kernels.direction_bin(np.array(delta), 3)
             s, *lam = _kernels.star_locate3(starts[b], lmat, nbr, k, *delta)
             if s < 0:
                 assert listed.pop(t) == s

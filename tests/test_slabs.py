@@ -385,7 +385,11 @@ def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
 
     mesh, problem, _ = prepare_sweep(read_field(path), _Cfg(up_um=[2000.0], trials=300))
     assert len(exact_search(mesh)[0]) > 0  # the exact search did run
-    edge = np.flatnonzero(np.isclose(mesh.coords[:, 0], -30 / 13) & (mesh.coords[:, 1] == 0))
+    # the nodes beside the notch's face x = 0, y > 0: their trials that cross it end in the
+    # other arm, behind the border
+    edge = np.flatnonzero(
+        np.isclose(mesh.coords[:, 0], -30 / 13) & np.isclose(mesh.coords[:, 1], 10 / 3)
+    )
     _, n_out, _, _, _ = problem.run_nodes(edge)
     plain = dataclasses.replace(problem, search=None).run_nodes(edge)[1]
     assert (n_out <= plain).all() and n_out.sum() < plain.sum()  # trials found across the notch
