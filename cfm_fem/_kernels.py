@@ -2400,21 +2400,11 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
             continue
         _cone_tables(g, c0, ns, star, simplices, transform, values, cone, grad, far, rows)
         x0, x1, x2 = coords[g, 0], coords[g, 1], coords[g, 2]
-        c = _cone_row(cone, 0)
-        # displacements from g, tested against the first cell on the way (vectorised loops:
-        # every point against every cell of the star, the best kept as one tagged float)
-        for i in range(n):
-            x = pts[i, 0] - x0
-            y = pts[i, 1] - x1
-            z = pts[i, 2] - x2
-            d0[i] = x
-            d1[i] = y
-            d2[i] = z
-            best[i] = _tagged_min(c, 0, x, y, z)
-        for k in range(1, ns):
-            c = _cone_row(cone, k)
-            for i in range(n):
-                best[i] = max(best[i], _tagged_min(c, k, d0[i], d1[i], d2[i]))
+        for i in range(n):  # displacements from g
+            d0[i] = pts[i, 0] - x0
+            d1[i] = pts[i, 1] - x1
+            d2[i] = pts[i, 2] - x2
+        _deepest_cells(cone, ns, d0, d1, d2, n, best)
         n_bad = 0
         vg0 = values[g, 0]
         vg1 = values[g, min(1, nc - 1)]
@@ -3505,6 +3495,20 @@ def _unit_disp(w, z, t, a):
     return 0.0 + w[0, a] * z[0, t] + w[1, a] * z[1, t] + w[2, a] * z[2, t]
 
 
+@nb.njit(**FJIT)
+def _deepest_cells(cone, n_star, d0, d1, d2, n, tag):
+    """``tag[t]``: the max over star cells k < n_star of `_tagged_min` of displacement t (the
+    cone rows of cell k in ``cone[k]``, 9 numbers): the deepest cell of each displacement and
+    how deep, in vectorised loops over the displacements."""
+    c = _cone_row(cone, 0)
+    for t in range(n):
+        tag[t] = _tagged_min(c, 0, d0[t], d1[t], d2[t])
+    for k in range(1, n_star):
+        c = _cone_row(cone, k)
+        for t in range(n):
+            tag[t] = max(tag[t], _tagged_min(c, k, d0[t], d1[t], d2[t]))
+
+
 @nb.njit(**JIT)
 def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, err, dl, tag, rest, code):
     """Field errors of n trials located in the star tables of a 3-D node, in blocks.
@@ -3546,14 +3550,7 @@ def star_errors3(z, n, w, smax, lmat, dmat, nbr, n_star, err, dl, tag, rest, cod
     d0s = dl[0]
     d1s = dl[1]
     d2s = dl[2]
-    cone = lmat.reshape((lmat.shape[0], 9))  # row a of cell k at 3 a .. 3 a + 2
-    c = _cone_row(cone, 0)
-    for t in range(n):
-        tag[t] = _tagged_min(c, 0, d0s[t], d1s[t], d2s[t])
-    for k in range(1, n_star):
-        c = _cone_row(cone, k)
-        for t in range(n):
-            tag[t] = max(tag[t], _tagged_min(c, k, d0s[t], d1s[t], d2s[t]))
+    _deepest_cells(lmat.reshape((lmat.shape[0], 9)), n_star, d0s, d1s, d2s, n, tag)
     nf = 0
     for t in range(n):
         d0 = d0s[t]
