@@ -2216,14 +2216,35 @@ _STAR_TAG = np.uint64(STAR_MAX_CELLS - 1)
 
 @intrinsic
 def _bits_from_float(typingctx, x):
-    """The IEEE-754 bits of the float64 ``x`` as a uint64 (a cast that vectorises)."""
-    if x != types.float64:
+    """The IEEE-754 bits of ``x``: a float64 as a uint64, a float32 as a uint32 (a cast that
+    vectorises)."""
+    if x not in (types.float64, types.float32):
         return None
+    width = x.bitwidth
 
     def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(64))
+        return builder.bitcast(args[0], ir.IntType(width))
 
-    return types.uint64(types.float64), codegen
+    return getattr(types, f"uint{width}")(x), codegen
+
+
+@intrinsic
+def _with_bits(typingctx, like, bits):
+    """The float of ``like``'s type whose IEEE-754 bits are the low bits of the integer
+    ``bits`` (a cast that vectorises)."""
+    if like not in (types.float64, types.float32) or not isinstance(bits, types.Integer):
+        return None
+    width = like.bitwidth
+
+    def codegen(context, builder, signature, args):
+        b = args[1]
+        if bits.bitwidth > width:
+            b = builder.trunc(b, ir.IntType(width))
+        elif bits.bitwidth < width:
+            b = builder.zext(b, ir.IntType(width))
+        return builder.bitcast(b, context.get_value_type(like))
+
+    return like(like, bits), codegen
 
 
 @intrinsic
@@ -2278,53 +2299,89 @@ def node_cells(simplices, n_nodes):
     return start, cells
 
 
+@nb.njit(inline="always", **JIT)
+def _place_in_cell(simplices, s, g):
+    """The place (0 .. 3) of node g among the vertices of tetrahedron s, without branches."""
+    return (
+        np.int64(simplices[s, 1] == g)
+        + 2 * np.int64(simplices[s, 2] == g)
+        + 3 * np.int64(simplices[s, 3] == g)
+    )
+
+
+#: Bound on |cone test in float32 - in float64| / (max |cone entry| * sum |d_a|): the
+#: rounding of d and of the cone rows to float32 and of three products summed, 5 * 2**-24,
+#: with a margin of 3.
+_CONE32_TOL = 1e-6
+
+
 @nb.njit(**FJIT)
-def _cone_tables(g, c0, ns, star, simplices, transform, values, cone, grad, far, rows):
+def _cone_tables(g, c0, ns, star, simplices, transform, values, cone, cone32, grad, far):
     """Per cell k of node g's star: ``cone[k]`` (9) the gradients of the barycentric coordinates
     of its three other vertices (their values at g + d are cone @ d, so d is in the cell's cone
-    when all three are >= 0), ``far[k]`` (3) the gradient of g's own (g + d stays on g's side of
-    the opposite face while 1 + far @ d >= 0) and ``grad[k]`` (3 per value column) the
-    gradient of the linear interpolant in the cell. ``rows`` (4, 3) is work space."""
+    when all three are >= 0), ``cone32[k]`` the same in float32, ``far[k]`` (3) the gradient
+    of g's own (g + d stays on g's side of the opposite face while 1 + far @ d >= 0) and
+    ``grad[k]`` (3 per value column) the gradient of the linear interpolant in the cell.
+
+    Returns the tolerance of the float32 cone test per unit of |d|_1 (`_CONE32_TOL` times the
+    largest cone entry) and the squared distance, less 1 %, within which no displacement
+    reaches a far face (0.99 / max |far|^2), both float32.
+    """
     nc = values.shape[1]
+    amax = 0.0
+    fmax = 0.0
     for k in range(ns):
-        s = star[c0 + k]
-        j = (
-            np.int64(simplices[s, 1] == g)
-            + 2 * np.int64(simplices[s, 2] == g)
-            + 3 * np.int64(simplices[s, 3] == g)
-        )  # g's place in the cell, without branches
-        for a in range(3):
-            t0, t1, t2 = transform[s, 0, a], transform[s, 1, a], transform[s, 2, a]
-            rows[0, a] = t0
-            rows[1, a] = t1
-            rows[2, a] = t2
-            rows[3, a] = -(t0 + t1 + t2)
-        for r in range(3):
-            src = r + np.int64(r >= j)
-            for a in range(3):
-                cone[k, 3 * r + a] = rows[src, a]
-        for a in range(3):
-            far[k, a] = rows[j, a]
+        s = np.int64(star[c0 + k])
+        j = _place_in_cell(simplices, s, g)
+        # rows 0-2: grad(lambda_0..2) from the transform; row 3 = -(their sum). The three
+        # rows other than g's, and g's, picked with selects (no indexed work array).
+        a0, a1, a2 = transform[s, 0, 0], transform[s, 0, 1], transform[s, 0, 2]
+        b0, b1, b2 = transform[s, 1, 0], transform[s, 1, 1], transform[s, 1, 2]
+        d0, d1, d2 = transform[s, 2, 0], transform[s, 2, 1], transform[s, 2, 2]
+        h0, h1, h2 = -(a0 + b0 + d0), -(a1 + b1 + d1), -(a2 + b2 + d2)
+        first = j == 0
+        second = j <= 1
+        third = j <= 2
+        row = (
+            b0 if first else a0, b1 if first else a1, b2 if first else a2,
+            d0 if second else b0, d1 if second else b1, d2 if second else b2,
+            h0 if third else d0, h1 if third else d1, h2 if third else d2,
+        )  # fmt: skip
+        for i in range(9):
+            cone[k, i] = row[i]
+            cone32[k, i] = np.float32(row[i])
+            amax = max(amax, abs(row[i]))
+        f0 = a0 if j == 0 else (b0 if j == 1 else (d0 if j == 2 else h0))
+        f1 = a1 if j == 0 else (b1 if j == 1 else (d1 if j == 2 else h1))
+        f2 = a2 if j == 0 else (b2 if j == 1 else (d2 if j == 2 else h2))
+        far[k, 0] = f0
+        far[k, 1] = f1
+        far[k, 2] = f2
+        fmax = max(fmax, f0 * f0 + f1 * f1 + f2 * f2)
         v0, v1, v2, v3 = simplices[s, 0], simplices[s, 1], simplices[s, 2], simplices[s, 3]
         for c in range(nc):
-            b3 = values[v3, c]
-            e0 = values[v0, c] - b3
-            e1 = values[v1, c] - b3
-            e2 = values[v2, c] - b3
-            for a in range(3):
-                grad[k, 3 * c + a] = e0 * rows[0, a] + e1 * rows[1, a] + e2 * rows[2, a]
+            w3 = values[v3, c]
+            e0 = values[v0, c] - w3
+            e1 = values[v1, c] - w3
+            e2 = values[v2, c] - w3
+            grad[k, 3 * c] = e0 * a0 + e1 * b0 + e2 * d0
+            grad[k, 3 * c + 1] = e0 * a1 + e1 * b1 + e2 * d1
+            grad[k, 3 * c + 2] = e0 * a2 + e1 * b2 + e2 * d2
+    return np.float32(_CONE32_TOL * amax), np.float32(0.99 / fmax)
 
 
 @nb.njit(inline="always", **FJIT)
 def _tagged_min(c, k, x, y, z):
     """min of the three cone coordinates (``c``: the 9 numbers of `_cone_tables`' cone row)
     of displacement (x, y, z) in star cell k, its low 8 bits replaced by k: the max over the
-    cells of these is the cell where the point lies deepest, tagged, in one float."""
+    cells of these is the cell where the point lies deepest, tagged, in one float (of the
+    type of x: in float32 the tag moves the value by at most 2**-15 of itself, never its
+    sign)."""
     l0 = c[0] * x + c[1] * y + c[2] * z
     l1 = c[3] * x + c[4] * y + c[5] * z
     l2 = c[6] * x + c[7] * y + c[8] * z
-    bits = _bits_from_float(min(min(l0, l1), l2))
-    return _float_from_bits((bits & ~_STAR_TAG) | np.uint64(k))
+    m = min(min(l0, l1), l2)
+    return _with_bits(m, (_bits_from_float(m) & ~_STAR_TAG) | np.uint64(k))
 
 
 @nb.njit(inline="always", **JIT)
@@ -2336,29 +2393,78 @@ def _cone_row(cone, k):
             cone[k, 6], cone[k, 7], cone[k, 8])  # fmt: skip
 
 
+@nb.njit(inline="always", **JIT)
+def _tag_cell(tagged, ns):
+    """The star cell whose index `_tagged_min` put in the low bits of ``tagged`` (0 for the
+    noise in the tag of a NaN point)."""
+    k = np.int64(_bits_from_float(tagged) & _STAR_TAG)
+    return k if k < ns else 0
+
+
 @nb.njit(inline="always", **FJIT)
 def _deepest_cell(tagged, ns, far, x, y, z):
     """The star cell of a point from its tagged max (`_tagged_min`), and whether the point
     left the star: in no cone, or beyond the cell's face opposite the node."""
-    k = np.int64(_bits_from_float(tagged) & _STAR_TAG)
-    k = k if k < ns else 0  # the tag of a NaN point is noise
+    k = _tag_cell(tagged, ns)
     f = 1.0 + far[k, 0] * x + far[k, 1] * y + far[k, 2] * z
     return k, (tagged < -BARY_EPS) | (f < -BARY_EPS)
 
 
 @nb.njit(**JIT)
-def _prefetch_star(g, star_start, star, simplices, transform, values, with_values):
-    """Start loading the cell data of node g's star (and, once its cells are in cache, the
-    values at their vertices): the next groups' tables then build from cache."""
-    for c in range(star_start[g], star_start[g + 1]):
-        s = np.int64(star[c])
-        if with_values:
-            for j in range(4):
-                _prefetch(values, simplices[s, j] * values.shape[1])
-        else:
+def _prefetch_groups(q, group_node, star_start, star, coords, simplices, transform, values):
+    """Start loading what the tables of the groups after q will read, one hop per group:
+    group q + 4's star offsets, q + 3's star list and node, q + 2's cells, q + 1's vertex
+    values. Each hop reads only what an earlier one fetched, so none waits for memory (a
+    hint: it changes no result)."""
+    n_groups = len(group_node)
+    nc = values.shape[1]
+    if q + 4 < n_groups:
+        _prefetch(star_start, group_node[q + 4])
+    if q + 3 < n_groups:
+        g = group_node[q + 3]
+        _prefetch(star, star_start[g])
+        _prefetch(star, star_start[g + 1] - 1)
+        _prefetch(coords, 3 * g)
+    if q + 2 < n_groups:
+        g = group_node[q + 2]
+        for c in range(star_start[g], star_start[g + 1]):
+            s = np.int64(star[c])
             _prefetch(transform, s * 12)
             _prefetch(transform, s * 12 + 11)
             _prefetch(simplices, s * 4)
+    if q + 1 < n_groups:
+        g = group_node[q + 1]
+        for c in range(star_start[g], star_start[g + 1]):
+            s = np.int64(star[c])
+            for j in range(4):
+                v = simplices[s, j] * nc
+                _prefetch(values, v)
+                _prefetch(values, v + nc - 1)
+
+
+@nb.njit(inline="always", **FJIT)
+def _star_cell_exact(b32, ctol, e0, e1, e2, cone, ns, far, x, y, z):
+    """The star cell of a point and whether it left the star, as `_deepest_cell` finds them
+    in float64, from the point's float32 tagged max ``b32``: taken from it where its sign is
+    sure (beyond ``ctol * |e|_1``, the float32 rounding, and ``2 * BARY_EPS``), else the cone
+    test done again in float64."""
+    if abs(b32) > ctol * (abs(e0) + abs(e1) + abs(e2)) + np.float32(2 * BARY_EPS):
+        k = _tag_cell(b32, ns)
+        f = 1.0 + far[k, 0] * x + far[k, 1] * y + far[k, 2] * z
+        return k, (b32 < 0) | (f < -BARY_EPS)
+    tagged = _tagged_min(_cone_row(cone, 0), 0, x, y, z)
+    for k in range(1, ns):
+        tagged = max(tagged, _tagged_min(_cone_row(cone, k), k, x, y, z))
+    return _deepest_cell(tagged, ns, far, x, y, z)
+
+
+@nb.njit(inline="always", **FJIT)
+def _value_in(res, i, values, g, grad, k, x, y, z):
+    """res[i] = values[g] + grad[k] @ (x, y, z) (``grad[k]``: 3 numbers per value column)."""
+    for c in range(values.shape[1]):
+        res[i, c] = (values[g, c] + grad[k, 3 * c] * x + grad[k, 3 * c + 1] * y) + grad[
+            k, 3 * c + 2
+        ] * z
 
 
 @nb.njit(**FJIT)
@@ -2367,20 +2473,22 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
     """Groups q0 .. q1-1 of `interpolate_groups`; returns how many points were walked."""
     nc = values.shape[1]
     cone = np.empty((s_max, 9))
+    cone32 = np.empty((s_max, 9), dtype=np.float32)
     grad = np.empty((s_max, 3 * nc))
     far = np.empty((s_max, 3))
-    rows = np.empty((4, 3))
-    d0 = np.empty(n_max)
-    d1 = np.empty(n_max)
-    d2 = np.empty(n_max)
-    best = np.empty(n_max)
+    e0 = np.empty(n_max, dtype=np.float32)
+    e1 = np.empty(n_max, dtype=np.float32)
+    e2 = np.empty(n_max, dtype=np.float32)
+    thr = np.empty(n_max, dtype=np.float32)
+    best = np.empty(n_max, dtype=np.float32)
+    out_point = np.empty(n_max, dtype=np.int64)
+    out_cell = np.empty(n_max, dtype=np.int64)
+    out_next = np.empty(n_max, dtype=np.int64)
     bary = np.empty(4)
+    eps2 = np.float32(2 * BARY_EPS)
     walked = 0
     for q in range(q0, q1):
-        if q + 2 < q1:
-            _prefetch_star(group_node[q + 2], star_start, star, simplices, transform, values, False)
-        if q + 1 < q1:
-            _prefetch_star(group_node[q + 1], star_start, star, simplices, transform, values, True)
+        _prefetch_groups(q, group_node, star_start, star, coords, simplices, transform, values)
         g = group_node[q]
         i0 = group_start[q]
         n = group_start[q + 1] - i0
@@ -2398,39 +2506,81 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
                 else:
                     res[i, :] = np.nan
             continue
-        _cone_tables(g, c0, ns, star, simplices, transform, values, cone, grad, far, rows)
+        ctol, r2 = _cone_tables(
+            g, c0, ns, star, simplices, transform, values, cone, cone32, grad, far
+        )
         x0, x1, x2 = coords[g, 0], coords[g, 1], coords[g, 2]
-        for i in range(n):  # displacements from g
-            d0[i] = pts[i, 0] - x0
-            d1[i] = pts[i, 1] - x1
-            d2[i] = pts[i, 2] - x2
-        _deepest_cells(cone, ns, d0, d1, d2, n, best)
-        n_bad = 0
-        vg0 = values[g, 0]
-        vg1 = values[g, min(1, nc - 1)]
-        vg2 = values[g, min(2, nc - 1)]
+        # Flat views: numba's 2-D indexing keeps these loops scalar.
+        pf = pts.reshape(-1)
+        for i in range(n):  # displacements from g, in float32 for the cone test
+            a0 = np.float32(pf[3 * i] - x0)
+            a1 = np.float32(pf[3 * i + 1] - x1)
+            a2 = np.float32(pf[3 * i + 2] - x2)
+            e0[i] = a0
+            e1[i] = a1
+            e2[i] = a2
+            # a tagged max above thr: inside that cell for sure, far face out of reach
+            t = ctol * (abs(a0) + abs(a1) + abs(a2)) + eps2
+            thr[i] = t if a0 * a0 + a1 * a1 + a2 * a2 < r2 else np.float32(np.inf)
+        if q + 1 < len(group_node):  # the next group's points load during the tests
+            for j in range(3 * group_start[q + 1], 3 * group_start[q + 2], 8):
+                _prefetch(points, j)
+        _deepest_cells(cone32, ns, e0, e1, e2, n, best)
+        if nc == 3:  # a field: the values of every point from its deepest cell
+            rf = res.reshape(-1)
+            vg0, vg1, vg2 = values[g, 0], values[g, 1], values[g, 2]
+            for i in range(n):
+                x = pf[3 * i] - x0
+                y = pf[3 * i + 1] - x1
+                z = pf[3 * i + 2] - x2
+                k = _tag_cell(best[i], ns)
+                rf[3 * i] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
+                rf[3 * i + 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
+                rf[3 * i + 2] = vg2 + grad[k, 6] * x + grad[k, 7] * y + grad[k, 8] * z
+        else:
+            for i in range(n):
+                k = _tag_cell(best[i], ns)
+                _value_in(res, i, values, g, grad, k, pf[3 * i] - x0, pf[3 * i + 1] - x1,
+                          pf[3 * i + 2] - x2)  # fmt: skip
+        n_unsure = 0
         for i in range(n):
-            x, y, z = d0[i], d1[i], d2[i]
-            k, left = _deepest_cell(best[i], ns, far, x, y, z)
-            if nc == 3:  # a field: the loop over its components written out
-                res[i, 0] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
-                res[i, 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
-                res[i, 2] = vg2 + grad[k, 6] * x + grad[k, 7] * y + grad[k, 8] * z
-            else:
-                for c in range(nc):
-                    res[i, c] = (values[g, c] + grad[k, 3 * c] * x + grad[k, 3 * c + 1] * y) + grad[
-                        k, 3 * c + 2
-                    ] * z
-            n_bad += left  # a NaN point's values are NaN already
-        if n_bad == 0:
+            n_unsure += best[i] <= thr[i]  # a NaN point's values are NaN already
+        if n_unsure == 0:
             continue
-        # points outside the star: the walk, from the cell they came closest to
+        # The rest: near a cone's border, near a far face, or outside the star. Decided as in
+        # float64; the points outside are walked from the cell they came closest to, after
+        # all their first steps' cells were asked for: their memory latencies overlap.
+        n_out = 0
         for i in range(n):
-            k, left = _deepest_cell(best[i], ns, far, d0[i], d1[i], d2[i])
-            if not left:
+            if not best[i] <= thr[i]:
                 continue
+            x = pf[3 * i] - x0
+            y = pf[3 * i + 1] - x1
+            z = pf[3 * i + 2] - x2
+            k, left = _star_cell_exact(best[i], ctol, e0[i], e1[i], e2[i], cone, ns, far, x, y, z)
+            if not left:
+                if k != _tag_cell(best[i], ns):  # else the value written above stands
+                    _value_in(res, i, values, g, grad, k, x, y, z)
+                continue
+            s = np.int64(star[c0 + k])
+            s1 = neighbors[s, _place_in_cell(simplices, s, g)]  # across the far face
+            out_point[n_out] = i
+            out_cell[n_out] = s
+            out_next[n_out] = s1
+            n_out += 1
+            if s1 >= 0:
+                _prefetch(transform, s1 * 12)
+                _prefetch(transform, s1 * 12 + 11)
+                _prefetch(simplices, s1 * 4)
+        for r in range(n_out):
+            s1 = out_next[r]
+            if s1 >= 0:
+                for j in range(4):
+                    _prefetch(values, simplices[s1, j] * nc)
+        for r in range(n_out):
+            i = out_point[r]
             walked += 1
-            s = locate(pts[i], np.int64(star[c0 + k]), transform, neighbors, bary)
+            s = locate(pts[i], out_cell[r], transform, neighbors, bary)
             if s >= 0:
                 _interp_in(s, bary, simplices, values, res[i])
             else:
@@ -2447,10 +2597,13 @@ def interpolate_groups(points, group_start, group_node, simplices, transform, ne
     ``group_node[q]`` (a perturbation sweep's trials). A point near its node lies in one of the
     cones of the node's star: every point of a group is tested against every cell of the star
     in loops without gathers or branches, which the compiler vectorises (the walk's
-    table-indexed loads keep it scalar). Points outside the star, or in a star of more than
-    `STAR_MAX_CELLS` cells, are walked (`locate`) from the nearest cell. The same values as
-    the walk to rounding (the interpolant taken as value at the node plus the cell's gradient
-    times the displacement); the same cells but on faces, where either side gives the value.
+    table-indexed loads keep it scalar). The test runs in float32, twice the lanes; a point
+    whose result is within the bound of float32 rounding of a cone's border, or that could
+    reach a far face, is decided again in float64, so the cells are those of a float64 test.
+    Points outside the star, or in a star of more than `STAR_MAX_CELLS` cells, are walked
+    (`locate`) from the nearest cell. The same values as the walk to rounding (the
+    interpolant taken as value at the node plus the cell's gradient times the
+    displacement); the same cells but on faces, where either side gives the value.
 
     Parameters
     ----------
