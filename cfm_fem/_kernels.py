@@ -2543,8 +2543,8 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
                 _value_in(res, i, values, g, grad, k, pf[3 * i] - x0, pf[3 * i + 1] - x1,
                           pf[3 * i + 2] - x2)  # fmt: skip
         n_unsure = 0
-        for i in range(n):
-            n_unsure += best[i] <= thr[i]  # a NaN point's values are NaN already
+        for i in range(n):  # (thr is inf for a non-finite point: never > it)
+            n_unsure += not best[i] > thr[i]
         if n_unsure == 0:
             continue
         # The rest: near a cone's border, near a far face, or outside the star. Decided as in
@@ -2552,11 +2552,14 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
         # all their first steps' cells were asked for: their memory latencies overlap.
         n_out = 0
         for i in range(n):
-            if not best[i] <= thr[i]:
+            if best[i] > thr[i]:
                 continue
             x = pf[3 * i] - x0
             y = pf[3 * i + 1] - x1
             z = pf[3 * i + 2] - x2
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                res[i, :] = np.nan  # a cone test at infinity can pick any cell
+                continue
             k, left = _star_cell_exact(best[i], ctol, e0[i], e1[i], e2[i], cone, ns, far, x, y, z)
             if not left:
                 if k != _tag_cell(best[i], ns):  # else the value written above stands

@@ -153,6 +153,20 @@ def test_non_finite_points_give_nan():
     assert np.isfinite(out[0]).all() and np.isnan(out[1:]).all()
 
 
+def test_points_at_infinity_inside_a_cone_give_nan():
+    # towards infinity through the centroid of each star cell: the cone tests see +-inf or
+    # NaN, and a tag on an infinite value is a NaN. Before this test 11 of these 28 points came
+    # out +-inf instead.
+    fm = scattered_map()
+    mesh = build_mesh(fm, "delaunay")
+    g = int(np.argmin(np.abs(mesh.coords - 2.5).sum(1)))
+    cells = mesh.simplices[(mesh.simplices == g).any(axis=1)]
+    with np.errstate(invalid="ignore"):
+        q = mesh.coords[g] + (mesh.coords[cells].mean(axis=1) - mesh.coords[g]) * np.inf
+    out, _ = interpolate_groups(mesh, fm.B, q, [0, len(q)], [g])
+    assert np.isnan(out).all()
+
+
 def test_node_cells_lists_each_nodes_cells():
     mesh = build_mesh(scattered_map(), "delaunay")
     start, cells = mesh.node_stars()
