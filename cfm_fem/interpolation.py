@@ -871,10 +871,9 @@ def interpolate_groups(mesh: SimplexMesh, values, points, group_start, group_nod
 
     Parameters
     ----------
-    mesh : SimplexMesh
-    values : ndarray, shape (n, c)
-        Values at the mesh nodes (T for a field).
-    points : ndarray, shape (k, d), mm, in the mesh frame (`SimplexMesh.to_local`)
+    mesh, values, points
+        As for `interpolate_points`: the mesh, the (n, c) values at its nodes, the (k, d)
+        points (mm, mesh frame).
     group_start : ndarray, shape (n_groups + 1,), int
         Offsets: increasing, from 0 to k.
     group_node : ndarray, shape (n_groups,), int
