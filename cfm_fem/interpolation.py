@@ -762,7 +762,7 @@ def cell_buckets(
     d = dp1 - 1
     if boxes is None:
         boxes = _kernels.cell_boxes(coords, simplices)
-    # the boxes are padded (`cfm_fem._kernels._padded`), so a point a cell holds within the
+    # the boxes are padded (`cfm_fem._kernels.locate._padded`), so a point a cell holds within the
     # barycentric tolerance is inside its box; per cell, on the fly: no (m, d) temporaries
     g_lo, g_hi = _kernels.padded_extent(boxes)
     ext = g_hi - g_lo

@@ -28,9 +28,10 @@ from .sweep import serial_map
 __all__ = ["CODE_MODULES", "code_fingerprint", "describe_sweep", "run_key", "ResumableRun"]
 
 #: Source files whose code decides the numbers of a chunk (readers included: they turn the file
-#: into mm and T). A change in any of them invalidates a store.
+#: into mm and T); a folder stands for every ``.py`` file in it. A change in any of them
+#: invalidates a store.
 CODE_MODULES = (
-    "_kernels.py",
+    "_kernels/",
     "sweep.py",
     "interpolation.py",
     "field.py",
@@ -55,10 +56,17 @@ def code_fingerprint() -> str:
     """SHA-256 over the source of `CODE_MODULES`, hex."""
     h = hashlib.sha256()
     root = resources.files("cfm_fem")
-    for name in CODE_MODULES:
-        h.update(name.encode())
-        f = root.joinpath(name)
-        h.update(f.read_bytes() if f.is_file() else b"<absent>")
+    for entry in CODE_MODULES:
+        folder = root.joinpath(entry)
+        names = (
+            sorted(entry + f.name for f in folder.iterdir() if f.name.endswith(".py"))
+            if entry.endswith("/")
+            else [entry]
+        )
+        for name in names:
+            h.update(name.encode())
+            f = root.joinpath(name)
+            h.update(f.read_bytes() if f.is_file() else b"<absent>")
     return h.hexdigest()
 
 

@@ -51,7 +51,7 @@ def numpy_reference_run(bench, trials, seed=0, batch=50):
 
 
 #: The script's own loops are not cached: numba checks only this file's date, so a cached loop
-#: would keep the generator inlined from an older `_kernels.py`.
+#: would keep the generator inlined from an older `_kernels` module.
 _JIT = dict(K.JIT, cache=False)
 
 
@@ -59,7 +59,7 @@ _JIT = dict(K.JIT, cache=False)
 def _normals_loop(nkey, fkey, n, point):
     s = 0.0
     for t in range(n):
-        z0, z1, z2 = K._three_normals(K.trial_key(nkey, t), fkey, point)
+        z0, z1, z2 = K.rng._three_normals(K.trial_key(nkey, t), fkey, point)
         s += z0 + z1 + z2
     return s
 
@@ -72,7 +72,7 @@ def _hash_loop(keys, reps, point):
     c = np.uint64(point) * np.uint64(4)
     for _ in range(reps):
         for k in range(n):
-            s ^= K._draw(keys[k], c) ^ K._draw(keys[k], c + np.uint64(1))
+            s ^= K.rng._draw(keys[k], c) ^ K.rng._draw(keys[k], c + np.uint64(1))
     return s
 
 

@@ -23,7 +23,7 @@ def test_counter_rng_matches_twin_bit_for_bit():
     tkey = _kernels.trial_key(key, 7)
     assert int(tkey) == twins.trial_key(int(key), 7)
     for c in (0, 1, 12345, 2**40):
-        assert int(_kernels._draw(tkey, c)) == twins.draw(int(tkey), c)
+        assert int(_kernels.rng._draw(tkey, c)) == twins.draw(int(tkey), c)
 
 
 @numba.njit
@@ -32,7 +32,7 @@ def _sweep_normals(seed, node, n):  # a user's own @njit code calling the kernel
     fkey = _kernels.stream_key(seed, _kernels.STREAM_FALLBACK)
     out = np.empty((n, 3))
     for t in range(n):
-        out[t, 0], out[t, 1], out[t, 2] = _kernels._three_normals(key, fkey, t)
+        out[t, 0], out[t, 1], out[t, 2] = _kernels.rng._three_normals(key, fkey, t)
     return out
 
 
@@ -230,7 +230,7 @@ def test_block_normals_equal_scalar_generator():
     keys = np.array([twins.trial_key(int(key), t) for t in range(500)], dtype=np.uint64)
     zk = np.empty((3, 500))
     _kernels.normals_by_key(keys, fkey, 17, 500, zk, np.empty(500, dtype=np.bool_))
-    refk = np.array([_kernels._three_normals(k, fkey, 17) for k in keys])
+    refk = np.array([_kernels.rng._three_normals(k, fkey, 17) for k in keys])
     np.testing.assert_array_equal(zk.T, refk)
 
 
@@ -238,7 +238,7 @@ def test_block_normals_equal_scalar_generator():
 def _sweep_normals_from(key, fkey, t0, n):
     out = np.empty((n, 3))
     for t in range(n):
-        out[t, 0], out[t, 1], out[t, 2] = _kernels._three_normals(key, fkey, t0 + t)
+        out[t, 0], out[t, 1], out[t, 2] = _kernels.rng._three_normals(key, fkey, t0 + t)
     return out
 
 
@@ -248,7 +248,7 @@ def test_direction_bins_invert(d):
     delta = np.empty(d)
     feasible = 0
     for b in range(n_bins):
-        if _kernels._bin_centre(b, d, 0.3, delta):
+        if _kernels.star._bin_centre(b, d, 0.3, delta):
             assert abs(np.abs(delta).sum() - 0.3) < 1e-12
             assert _kernels.direction_bin(delta, d) == b
             feasible += 1
@@ -258,7 +258,7 @@ def test_direction_bins_invert(d):
     # every random direction falls in a feasible bin
     rng = np.random.default_rng(d)
     for v in rng.normal(size=(2000, d)):
-        assert _kernels._bin_centre(_kernels.direction_bin(v, d), d, 1.0, delta)
+        assert _kernels.star._bin_centre(_kernels.direction_bin(v, d), d, 1.0, delta)
 
 
 def test_star_tables_locate_like_the_global_walk():

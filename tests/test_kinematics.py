@@ -235,7 +235,7 @@ def test_normal_generator_is_standard_normal():
     @numba.njit
     def draw(nkey, fkey, n, out):
         for t in range(n):
-            z0, z1, z2 = K._three_normals(K.trial_key(nkey, t), fkey, 17)
+            z0, z1, z2 = K.rng._three_normals(K.trial_key(nkey, t), fkey, 17)
             out[t, 0] = z0
             out[t, 1] = z1
             out[t, 2] = z2

@@ -16,7 +16,7 @@ STREAM_SWEEP = 0x53574550
 STREAM_FALLBACK = 0x46414C4C
 KN, WN, FN = _kernels.ziggurat_tables()
 LAYER_MASK = _kernels.ZIG_LAYERS - 1
-ZIG_R = _kernels._ZIG_R
+ZIG_R = _kernels.rng._ZIG_R
 
 
 def mix64(z: int) -> int:
@@ -288,7 +288,7 @@ def star_height(transform, simplices, n_nodes):
 
 
 def padded_ranges(boxes, box, dims):
-    """Twin of `cfm_fem._kernels._padded_range` for every cell: (i0, span), shape (m, d)."""
+    """Twin of `cfm_fem._kernels.locate._padded_range` for every cell: (i0, span), shape (m, d)."""
     lo, hi = boxes[:, 0], boxes[:, 1]
     pad = 1e-8 * (hi - lo).max(axis=1, keepdims=True)
     i0 = np.clip(np.floor((lo - pad - box[0]) * box[1]).astype(np.int64), 0, dims - 1)
@@ -342,9 +342,9 @@ def trial_keys(nkey: int, t0: int, n: int) -> np.ndarray:
 
 
 def chain(terms, k: int, q, n) -> tuple:
-    """Twin of `cfm_fem._kernels._chain`: E_x, E_y, E_z, |E| (mm) of row k of the collapsed
-    chain ``terms`` at commanded position q and axis noise n, each sum left to right as in
-    the kernel (the same bits)."""
+    """Twin of `cfm_fem._kernels.kinematics_passes._chain`: E_x, E_y, E_z, |E| (mm) of row k
+    of the collapsed chain ``terms`` at commanded position q and axis noise n, each sum left to
+    right as in the kernel (the same bits)."""
     t = [float(x) for x in terms[k]]
     q0, q1, q2 = (float(x) for x in q)
     n0, n1, n2 = (float(x) for x in n)
