@@ -1,7 +1,7 @@
 """cfm_fem: field-mapping uncertainty of Hall-probe benches from FEM field maps."""
 
 from .errors import CfmInputError, CfmInputWarning
-from .field import FieldMap
+from .models.field import FieldMap
 
 __version__ = "0.1.0"
 

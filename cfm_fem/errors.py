@@ -50,7 +50,7 @@ def check_seed(seed, option: str = "--seed") -> None:
     """Check that ``seed`` is an integer in [0, MAX_SEED) (numba kernels take it as int64).
 
     The one seed rule of the command line (`cfm_fem.cli._checks`) and of the Python API
-    (`cfm_fem.sweep`): both give the same message.
+    (`cfm_fem.workflows.sweep.problem`): both give the same message.
 
     Parameters
     ----------

@@ -27,10 +27,10 @@ import numba
 import numpy as np
 
 from cfm_fem import _kernels as K
-from cfm_fem import kinematics as kin
-from cfm_fem.bench import ReadingDelay, error_index
 from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.mc import Pdf, symmetric_interval
+from cfm_fem.models import kinematics as kin
+from cfm_fem.models.bench import ReadingDelay, error_index
+from cfm_fem.models.mc import Pdf, symmetric_interval
 
 
 def numpy_reference_run(bench, trials, seed=0, batch=50):
@@ -100,7 +100,7 @@ def _block_normals_loop(keys, fkey, reps, point):
 def measure_peaks():
     """(ns per normal: counter-based ziggurat one at a time and by blocks (the kernels' way),
     numpy's generator) and GFLOP/s, one core."""
-    _, nkey, fkey = kin._keys(0)
+    _, nkey, fkey = kin.geometry._keys(0)
     _normals_loop(nkey, fkey, 10, 3)
     n = 2_000_000
     t = time.process_time()

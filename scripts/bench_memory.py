@@ -58,7 +58,8 @@ def _child(mode, field, out, pieces, trials, chunk, slabs) -> None:
     if mode == "floor":
         from cfm_fem.io import read_field
         from cfm_fem.io.vtk import write_vtu
-        from cfm_fem.sweep import SweepConfig, node_gradients, prepare_sweep
+        from cfm_fem.models.sweep import SweepConfig
+        from cfm_fem.workflows.sweep.problem import node_gradients, prepare_sweep
 
         fm = read_field(field)
         mesh, _, _ = prepare_sweep(fm, SweepConfig(up_um=[50.0], trials=trials))

@@ -38,15 +38,11 @@ import numpy as np
 from scipy.interpolate import LinearNDInterpolator
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import (
-    build_mesh,
-    interpolate_groups,
-    interpolate_points,
-    kuhn_simplices,
-    morton_order,
-)
 from cfm_fem.io.sweep_out import write_sweep
-from cfm_fem.sweep import SweepConfig, run_sweep
+from cfm_fem.models.interpolation import interpolate_groups, interpolate_points
+from cfm_fem.models.mesh import build_mesh, kuhn_simplices, morton_order
+from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 
 def quadrupole_with_ends(p):
@@ -288,7 +284,7 @@ def bench_trial(n_nodes: int, trials: int):
     from pathlib import Path
 
     from cfm_fem.io import read_field
-    from cfm_fem.sweep import prepare_sweep
+    from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     numba.set_num_threads(1)
     fm = read_field(Path(__file__).resolve().parents[1] / "meshes" / "quadrupole.vtu")

@@ -16,7 +16,8 @@ import warnings
 import numpy as np
 
 from cfm_fem.io import read_field
-from cfm_fem.sweep import SweepConfig, run_sweep
+from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 
 def main():

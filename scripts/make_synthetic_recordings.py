@@ -7,7 +7,8 @@ OUTDIR/tracker.csv: 3 x 3 x 3 grid over the strokes of the reference bench, 5 re
 a bidirectional ISO 230-2 run along X (5 targets, 3 runs per direction, 4 um reversal), tracker
 noise 2 um. OUTDIR/hall_map.csv: QFDp4 (R_ref = 10 mm assumed)
 on the mid-plane y = 0, |x| <= 8 mm, z = -50, 0, 50 mm, 10 repetitions, measured by one simulated
-bench and the paper's S_HP probe. Both come from cfm_fem.synthetic (one draw of the bench errors).
+bench and the paper's S_HP probe. Both come from cfm_fem.workflows.synthetic (one draw of the bench
+errors).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import read_qfdp4
 from cfm_fem.io.recordings import write_hall_map, write_tracker
-from cfm_fem.synthetic import synthetic_hall_map, synthetic_tracker
+from cfm_fem.workflows.synthetic import synthetic_hall_map, synthetic_tracker
 
 
 def main(argv=None) -> int:

@@ -16,8 +16,8 @@ import json
 
 import numpy as np
 
-from cfm_fem.diagnose.twin import hall_twin, tracker_twin
 from cfm_fem.io.recordings import write_hall_map, write_tracker
+from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin
 
 
 def main(argv=None) -> int:

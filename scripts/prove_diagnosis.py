@@ -27,11 +27,11 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from cfm_fem.diagnose.effects import averaging_params  # noqa: E402
-from cfm_fem.diagnose.problem import hall_problem, tracker_problem  # noqa: E402
-from cfm_fem.diagnose.twin import hall_twin, tracker_twin  # noqa: E402
-from cfm_fem.diagnose.workflow import diagnose  # noqa: E402
 from cfm_fem.io.bench_toml import read_reference_bench  # noqa: E402
+from cfm_fem.workflows.diagnose.effects import averaging_params  # noqa: E402
+from cfm_fem.workflows.diagnose.problem import hall_problem, tracker_problem  # noqa: E402
+from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin  # noqa: E402
+from cfm_fem.workflows.diagnose.workflow import diagnose  # noqa: E402
 
 BENCH = read_reference_bench()
 

@@ -20,13 +20,14 @@ import time
 
 import numpy as np
 
-from cfm_fem.coupled import PAPER_TABLE_V, FieldModel, field_budget, run_coupled
-from cfm_fem.fig4 import fig4_summary, run_fig4
 from cfm_fem.io import read_field
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import read_qfdp4
 from cfm_fem.io.kinematics_out import PAPER_TABLE_IV
-from cfm_fem.kinematics import run_kinematics
+from cfm_fem.models.field_model import PAPER_TABLE_V, FieldModel
+from cfm_fem.models.kinematics.monte_carlo import run_kinematics
+from cfm_fem.workflows.coupled import field_budget, run_coupled
+from cfm_fem.workflows.fig4 import fig4_summary, run_fig4
 
 
 def table_iv(bench, trials, seed):

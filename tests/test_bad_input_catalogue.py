@@ -318,7 +318,7 @@ def test_hall_map_in_gauss_is_refused(tmp_path, capsys, command):
 
 
 def test_hall_scale_check():
-    from cfm_fem.recordings import check_hall_scale
+    from cfm_fem.models.recordings import check_hall_scale
 
     ref = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.0], [0.0, 1e-6, 0.0]])
     assert check_hall_scale(ref * 1.01, ref, source="h.csv") == []
@@ -448,8 +448,8 @@ def test_kinematics_refuses_non_finite_positions():
     import dataclasses
 
     from cfm_fem.io.bench_toml import read_reference_bench
-    from cfm_fem.kinematics import run_kinematics
-    from cfm_fem.mc import Pdf
+    from cfm_fem.models.kinematics.monte_carlo import run_kinematics
+    from cfm_fem.models.mc import Pdf
 
     bench = read_reference_bench()
     errors = list(bench.errors)
@@ -553,8 +553,9 @@ def test_up_values_that_name_the_same_map(tmp_path, capsys, command, up):
 
 
 def test_up_values_that_name_the_same_map_from_python():
-    from cfm_fem.field import FieldMap
-    from cfm_fem.sweep import SweepConfig, run_sweep
+    from cfm_fem.models.field import FieldMap
+    from cfm_fem.models.sweep import SweepConfig
+    from cfm_fem.workflows.sweep.in_memory import run_sweep
 
     fm = FieldMap(GRID, np.c_[0.1 * GRID[:, 1], 0.1 * GRID[:, 0], np.ones(len(GRID))])
     with pytest.raises(CfmInputError, match=r"up_um: U_p = 10 um appears twice"):

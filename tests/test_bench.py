@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from cfm_fem import _kernels as K
-from cfm_fem.bench import ERROR_NAMES, error_index
 from cfm_fem.errors import CfmInputError
 from cfm_fem.io.bench_toml import bench_to_toml, parse_bench, read_bench, read_reference_bench
-from cfm_fem.mc import KERNEL_PDF_CODES, Pdf, ppf_numpy
+from cfm_fem.models.bench import ERROR_NAMES, error_index
+from cfm_fem.models.mc import KERNEL_PDF_CODES, Pdf, ppf_numpy
 
 
 @pytest.fixture(scope="module")
@@ -200,8 +200,8 @@ def test_impossible_pdfs_raise(kind, params):
 def test_magnet_placement_round_trip(ref):
     from dataclasses import replace
 
-    from cfm_fem.bench import MagnetPlacement
-    from cfm_fem.kinematics import rotation_zyx
+    from cfm_fem.models.bench import MagnetPlacement
+    from cfm_fem.models.rotations import rotation_zyx
 
     b = replace(
         ref, magnet=MagnetPlacement(np.array([0.01, -0.02, 0.5]), np.array([75.0, -60, 900]))

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cfm_fem.interpolation import LinearInterpolator
 from cfm_fem.io import read_field
+from cfm_fem.models.interpolation import LinearInterpolator
 
 MESHES = Path(__file__).resolve().parents[1] / "meshes"
 

@@ -231,9 +231,9 @@ def test_hull_slivers_option(tmp_path):
 def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monkeypatch):
     """--slabs streams the file in blocks; the "1,250 read with ',' as thousands separator"
     warning was printed once per block. Once per file now."""
-    import cfm_fem.slabs
+    import cfm_fem.workflows.sweep.slabs
 
-    monkeypatch.setattr(cfm_fem.slabs, "BLOCK", 50)  # 216 rows: 5 blocks
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "BLOCK", 50)  # 216 rows: 5 blocks
     ax = np.arange(6.0)
     pts = np.stack(np.meshgrid(ax + 1000.0, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
@@ -497,9 +497,11 @@ def test_python_writers_remove_the_earlier_runs_stale_maps_once_complete(
     user's files stay, and ``remove_stale=False`` leaves everything."""
     import cfm_fem.io.sweep_out as so
     from cfm_fem.io import read_field
-    from cfm_fem.pieces import run_sweep_pieces
-    from cfm_fem.slabs import run_slab_sweep
-    from cfm_fem.sweep import SweepConfig, run_sweep, serial_map
+    from cfm_fem.models.sweep import SweepConfig
+    from cfm_fem.workflows.sweep.in_memory import run_sweep
+    from cfm_fem.workflows.sweep.pieces import run_sweep_pieces
+    from cfm_fem.workflows.sweep.problem import serial_map
+    from cfm_fem.workflows.sweep.slabs import run_slab_sweep
 
     fm = read_field(csv_map)
     out = tmp_path / "res"
@@ -584,7 +586,7 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     summary and index are now removed before any new map is written: what remains has no
     summary, which says the run did not complete."""
     import cfm_fem.io.sweep_out
-    import cfm_fem.slabs
+    import cfm_fem.workflows.sweep.slabs
 
     out = tmp_path / "res"
     base = ["sweep", str(csv_map), "--up", "0,10,20", "--trials", "50", "--out", str(out)]
@@ -600,7 +602,7 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
         return real(*args, **kwargs)
 
     monkeypatch.setattr(cfm_fem.io.sweep_out, "write_vtu", stop_after_one)
-    monkeypatch.setattr(cfm_fem.slabs, "write_vtu", stop_after_one)
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "write_vtu", stop_after_one)
     assert main([*base, *layout, "--seed", "0"]) == 1  # interrupted
     assert len(calls) == 1  # one new map (or piece) was written
     assert not (out / "summary.json").exists() and not (out / "sweep.pvd").exists()

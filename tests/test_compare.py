@@ -9,18 +9,24 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cfm_fem.bench import ReadingDelay
 from cfm_fem.cli import main
-from cfm_fem.compare import compare_hall, compare_tracker, interval_view, iso_lines, per_point_stats
-from cfm_fem.coupled import FieldModel
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import qfdp4_path
 from cfm_fem.io.recordings import read_tracker, write_hall_map, write_tracker
-from cfm_fem.kinematics import run_kinematics
-from cfm_fem.multipole import Multipole
-from cfm_fem.probe import HallProbe
-from cfm_fem.recordings import Recording
-from cfm_fem.synthetic import synthetic_hall_map, synthetic_tracker
+from cfm_fem.models.bench import ReadingDelay
+from cfm_fem.models.field_model import FieldModel
+from cfm_fem.models.kinematics.monte_carlo import run_kinematics
+from cfm_fem.models.multipole import Multipole
+from cfm_fem.models.probe import HallProbe
+from cfm_fem.models.recordings import Recording
+from cfm_fem.workflows.compare import (
+    compare_hall,
+    compare_tracker,
+    interval_view,
+    iso_lines,
+    per_point_stats,
+)
+from cfm_fem.workflows.synthetic import synthetic_hall_map, synthetic_tracker
 
 R_REF, B2 = 10.0, 0.0696
 

@@ -9,22 +9,22 @@ import numpy as np
 import pytest
 
 from cfm_fem import _kernels as K
-from cfm_fem import kinematics as km
-from cfm_fem.bench import ReadingDelay
-from cfm_fem.coupled import (
-    FieldModel,
+from cfm_fem.errors import CfmInputError
+from cfm_fem.io.bench_toml import read_reference_bench
+from cfm_fem.io.harmonics import read_qfdp4
+from cfm_fem.models import kinematics as km
+from cfm_fem.models.bench import ReadingDelay
+from cfm_fem.models.field import FieldMap
+from cfm_fem.models.field_model import FieldModel
+from cfm_fem.models.multipole import Multipole
+from cfm_fem.models.probe import HallProbe
+from cfm_fem.workflows.coupled import (
     centred_on_travel,
     default_region,
     field_budget,
     pool_table_v,
     run_coupled,
 )
-from cfm_fem.errors import CfmInputError
-from cfm_fem.field import FieldMap
-from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.io.harmonics import read_qfdp4
-from cfm_fem.multipole import Multipole
-from cfm_fem.probe import HallProbe
 
 R_REF = 10.0
 B2 = 0.0696  # T at R_ref: gradient G = B2 / R_ref = 6.96e-3 T/mm

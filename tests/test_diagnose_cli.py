@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.diagnose.twin import hall_twin, tracker_twin
 from cfm_fem.io.lock import LOCK_NAME
 from cfm_fem.io.recordings import write_hall_map, write_tracker
+from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin
 
 Q = np.stack(
     np.meshgrid(

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from diagnose_grids import BENCH, P, Q
 
-from cfm_fem.diagnose.problem import hall_problem, tracker_problem
-from cfm_fem.diagnose.twin import hall_twin, tracker_twin
-from cfm_fem.diagnose.workflow import diagnose
+from cfm_fem.workflows.diagnose.problem import hall_problem, tracker_problem
+from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin
+from cfm_fem.workflows.diagnose.workflow import diagnose
 
 
 def run_tracker(effects=None, seed=0, reps=6, speeds=None):
@@ -223,7 +223,7 @@ def test_sensor_volume_averaging_where_the_field_is_curved():
     # a quadrupole with a 2 % 12-pole (b6 at R_ref = 10 mm): d2B/dx2 ~ r^3 reaches 2e-3 B_ref/mm^2
     # at the map corners; a 1.5 x 0.3 x 0.5 mm Hall plate. In a 2-D field only the anisotropy
     # dw_xy = (a_x^2 - a_y^2) / 24 shows (no z curvature; the isotropic part never shows).
-    from cfm_fem.diagnose.effects import averaging_params
+    from cfm_fem.workflows.diagnose.effects import averaging_params
 
     a = {"a_x": 1.5, "a_y": 0.3, "a_z": 0.5}
     s, _ = run_hall_mp(_multipole(b6=0.02), {"sensor_volume_averaging": a})
@@ -238,7 +238,7 @@ def test_sensor_volume_averaging_where_the_field_is_curved():
 def test_sensor_volume_averaging_in_a_pure_quadrupole_cannot_be_revealed():
     # B linear in position: the box average equals the centre value whatever the box. The tool
     # must say it cannot test it, with the measurement that would, and claim nothing.
-    from cfm_fem.diagnose import effects as fx
+    from cfm_fem.workflows.diagnose import effects as fx
 
     s, _ = run_hall_mp(_multipole(pure=True), {"sensor_volume_averaging": {"a_x": 1.5}})
     assert s["mismatch"] is False and s["effects"] == []

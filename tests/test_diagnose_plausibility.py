@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 from diagnose_grids import BENCH, P, Q
 
-from cfm_fem.diagnose import effects as fx
-from cfm_fem.diagnose.problem import hall_problem, tracker_problem
-from cfm_fem.diagnose.select import implausible_reason
-from cfm_fem.diagnose.twin import hall_twin, tracker_twin
-from cfm_fem.diagnose.workflow import diagnose
+from cfm_fem.workflows.diagnose import effects as fx
+from cfm_fem.workflows.diagnose.problem import hall_problem, tracker_problem
+from cfm_fem.workflows.diagnose.select import implausible_reason
+from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin
+from cfm_fem.workflows.diagnose.workflow import diagnose
 
 
 def _problems():

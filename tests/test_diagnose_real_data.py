@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cfm_fem.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
-from cfm_fem.diagnose.problem import hall_problem
-from cfm_fem.diagnose.workflow import diagnose
-from cfm_fem.recordings import Recording
+from cfm_fem.models.recordings import Recording
+from cfm_fem.workflows.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
+from cfm_fem.workflows.diagnose.problem import hall_problem
+from cfm_fem.workflows.diagnose.workflow import diagnose
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "emphatic"
 MAP = DATA / "mfMapMeasured_5mm.txt"

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.field import FieldMap
-from cfm_fem.sweep import SweepConfig, run_sweep
+from cfm_fem.models.field import FieldMap
+from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 distributed = pytest.importorskip("distributed")
 
@@ -45,7 +46,7 @@ def csv_map(tmp_path_factory):
 
 
 def test_dask_chunks_are_bit_identical_to_one_process(cluster):
-    from cfm_fem.distributed import dask_chunk_map
+    from cfm_fem.workflows.sweep.distributed import dask_chunk_map
 
     _, client = cluster
     pts, B = _map()
@@ -111,7 +112,7 @@ def test_bad_scale_out_options_exit_2(csv_map, tmp_path, capsys, monkeypatch):
     base = ["sweep", str(csv_map), "--trials", "50", "--out", str(out)]
     assert main([*base, "--workers", "0"]) == 2
     assert main([*base, "--workers", "2", "--scheduler", "tcp://127.0.0.1:1"]) == 2
-    monkeypatch.setattr("cfm_fem.distributed.CONNECT_TIMEOUT_S", 1)
+    monkeypatch.setattr("cfm_fem.workflows.sweep.distributed.CONNECT_TIMEOUT_S", 1)
     assert main([*base, "--scheduler", "tcp://127.0.0.1:9"]) == 2  # nothing listens there
     err = capsys.readouterr().err
     assert "--workers must be >= 1" in err and "cannot reach the Dask scheduler" in err
@@ -123,9 +124,9 @@ def test_bad_scale_out_options_exit_2(csv_map, tmp_path, capsys, monkeypatch):
 
 
 def test_kinematics_on_dask_matches_one_process(cluster):
-    from cfm_fem.distributed import run_kinematics_dask
     from cfm_fem.io.bench_toml import read_reference_bench
-    from cfm_fem.kinematics import run_kinematics
+    from cfm_fem.models.kinematics.monte_carlo import run_kinematics
+    from cfm_fem.workflows.sweep.distributed import run_kinematics_dask
 
     _, client = cluster
     bench = read_reference_bench()
@@ -153,11 +154,13 @@ def test_cli_kinematics_on_dask(cluster, tmp_path):
 
 
 def test_workers_with_other_code_are_refused(cluster, monkeypatch):
-    from cfm_fem.distributed import check_workers
+    from cfm_fem.workflows.sweep.distributed import check_workers
 
     _, client = cluster
     check_workers(client)  # same code: fine
-    monkeypatch.setattr("cfm_fem.resume.code_fingerprint", lambda: "not-the-workers-code")
+    monkeypatch.setattr(
+        "cfm_fem.workflows.sweep.resume.code_fingerprint", lambda: "not-the-workers-code"
+    )
     with pytest.raises(Exception, match="run other cfm_fem code than this process"):
         check_workers(client)
 
@@ -167,10 +170,10 @@ def test_slabs_on_workers_equal_the_serial_slabs(cluster, tmp_path):
     output folder): every output field and the summary bit for bit as one process."""
     import pyvista as pv
 
-    from cfm_fem.distributed import dask_chunk_map
     from cfm_fem.io.provenance import file_sha256
-    from cfm_fem.resume import describe_sweep
-    from cfm_fem.slabs import run_slab_sweep
+    from cfm_fem.workflows.sweep.distributed import dask_chunk_map
+    from cfm_fem.workflows.sweep.resume import describe_sweep
+    from cfm_fem.workflows.sweep.slabs import run_slab_sweep
 
     pts, B = _map(9)
     path = tmp_path / "m.csv"

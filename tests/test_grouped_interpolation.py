@@ -4,10 +4,11 @@ the interpolant's values, the walk takes over outside the star, NaN outside the 
 import numba
 import numpy as np
 import pytest
-from twins import mesh_interpolant
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import build_mesh, interpolate_groups, interpolate_points
+from cfm_fem.models.interpolation import interpolate_groups, interpolate_points
+from cfm_fem.models.mesh import build_mesh
+from cfm_fem.testing import mesh_interpolant
 
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
 

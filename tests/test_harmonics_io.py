@@ -13,7 +13,7 @@ from cfm_fem.io.harmonics import (
     read_qfdp4,
     write_harmonics,
 )
-from cfm_fem.multipole import Multipole
+from cfm_fem.models.multipole import Multipole
 
 # Paper Table III, as printed: n, Bn, An (n = 1, 2 in T; n >= 3 in units of 1e-4 of B2)
 TABLE_III = [

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from cfm_fem import CfmInputError, FieldMap
-from cfm_fem.interpolation import LinearInterpolator, build_mesh, face_neighbors, kuhn_simplices
+from cfm_fem.models.interpolation import LinearInterpolator
+from cfm_fem.models.mesh import build_mesh, face_neighbors, kuhn_simplices
 
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
 B0 = np.array([0.1, -0.2, 0.5])
@@ -194,7 +195,7 @@ def _random_cube_map(n=3000, seed=1):
 def test_hull_slivers_removed_only_on_request_and_only_flat_cells_at_the_hull():
     import scipy.spatial
 
-    from cfm_fem.interpolation import SLIVER_RATIO
+    from cfm_fem.models.mesh import SLIVER_RATIO
 
     pts, fm = _random_cube_map()
     kept = build_mesh(fm, "delaunay")

@@ -10,9 +10,9 @@ import pytest
 import scipy.spatial
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.interpolation import build_mesh
 from cfm_fem.io import read_field, write_comsol
 from cfm_fem.io._parse import header_names
+from cfm_fem.models.mesh import build_mesh
 
 
 def _sectionwise(path, xyz, elements, data, *, dimension=3, length_unit="mm"):

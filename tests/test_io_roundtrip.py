@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.field import FieldMap
 from cfm_fem.io import read_field, write_field
+from cfm_fem.models.field import FieldMap
 
 HAVE_H5PY = importlib.util.find_spec("h5py") is not None
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.iso230 import evaluate_bidirectional, evaluate_records
+from cfm_fem.models.iso230 import evaluate_bidirectional, evaluate_records
 
 # Hand example: m = 3 targets, n = 3 runs per direction, deviations in um.
 TARGETS = [0.0, 100.0, 200.0]  # mm

@@ -13,17 +13,20 @@ from functools import cache
 
 import numpy as np
 import pytest
-import twins
 
 from cfm_fem import FieldMap
 from cfm_fem import _kernels as K
-from cfm_fem import kinematics as kin
-from cfm_fem.bench import ReadingDelay, error_index
-from cfm_fem.interpolation import build_mesh, exact_search, interpolate_points, no_search
+from cfm_fem import testing as twins
 from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.kinematics import draw_error_sets, point_noise, probe_errors_for_bench
-from cfm_fem.mc import Pdf
-from cfm_fem.sweep import HTM_PARTS, SweepConfig, prepare_sweep
+from cfm_fem.models import kinematics as kin
+from cfm_fem.models.bench import ReadingDelay, error_index
+from cfm_fem.models.interpolation import interpolate_points
+from cfm_fem.models.kinematics.chain import probe_errors_for_bench
+from cfm_fem.models.kinematics.geometry import draw_error_sets, point_noise
+from cfm_fem.models.mc import Pdf
+from cfm_fem.models.mesh import build_mesh, exact_search, no_search
+from cfm_fem.models.sweep import HTM_PARTS, SweepConfig
+from cfm_fem.workflows.sweep.problem import prepare_sweep
 
 
 # ---------------------------------------------------------------------------------------------
@@ -78,7 +81,7 @@ def test_pass_pilot_matches_twin(path):
     the full chain agrees with the numpy HTM chain to rounding (positions ~100 mm, 1e-12 mm)."""
     bench = _bench(path)
     t0, n = 4160, 300
-    eng = kin._Engine(bench, 7, n)
+    eng = kin.monte_carlo._Engine(bench, 7, n)
     assert eng.fast == (path == "hot") and eng.g.linear == (path != "chain")
     eng.prepare(t0, t0 + n)
     q = np.ascontiguousarray(bench.grid_points()[::150])
@@ -106,11 +109,11 @@ def test_pass_pilot_quantiles_match_twin(path):
     brackets are at or below their order statistic, the upper ones at or above (to rounding)."""
     bench = _bench(path)
     n = 400
-    eng = kin._Engine(bench, 5, n)
+    eng = kin.monte_carlo._Engine(bench, 5, n)
     eng.prepare(0, n)
     q = np.ascontiguousarray(bench.grid_points()[::27][:70])
     pidx = np.arange(len(q), dtype=np.int64) * 27
-    kth, _ = kin._pilot_ranks(n, 0.95)
+    kth, _ = kin.monte_carlo._pilot_ranks(n, 0.95)
     got = np.empty((len(q), 4, len(kth) + 1))
     K.pass_pilot_quantiles(eng.model, 0, n, q, pidx, kth, got)
     values = twins.kinematics_values(eng.model, 0, n, q, pidx)

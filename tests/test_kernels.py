@@ -4,17 +4,12 @@ import numba
 import numpy as np
 import pytest
 import scipy.spatial
-import twins
 
 from cfm_fem import FieldMap, _kernels
-from cfm_fem.interpolation import (
-    build_mesh,
-    cell_buckets,
-    exact_search,
-    face_excess,
-    interpolate_points,
-)
-from cfm_fem.mc import coverage_count
+from cfm_fem import testing as twins
+from cfm_fem.models.interpolation import interpolate_points
+from cfm_fem.models.mc import coverage_count
+from cfm_fem.models.mesh import build_mesh, cell_buckets, exact_search, face_excess
 
 
 def test_counter_rng_matches_twin_bit_for_bit():
@@ -381,7 +376,7 @@ def test_abs_b_statistics_on_a_kinked_field():
 
 @pytest.mark.parametrize("planar", [False, True])
 def test_node_gradients_match_twin_and_are_exact_on_a_linear_field(planar):
-    from cfm_fem.sweep import node_gradients
+    from cfm_fem.workflows.sweep.problem import node_gradients
 
     rng = np.random.default_rng(11)
     pts = rng.uniform(-5, 5, (400, 3))

@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 from cfm_fem import _kernels as K
-from cfm_fem import kinematics as kin
-from cfm_fem.bench import ERROR_NAMES, ReadingDelay, error_index
+from cfm_fem import testing as twins
 from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.mc import Pdf, symmetric_interval
+from cfm_fem.models import kinematics as kin
+from cfm_fem.models.bench import ERROR_NAMES, ReadingDelay, error_index
+from cfm_fem.models.mc import Pdf, symmetric_interval
+from cfm_fem.models.rotations import rotation_zyx
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +37,7 @@ def _rz(a):
 
 def test_rotation_is_eq4_zyx_product():
     phi, theta, psi = 0.3, -0.7, 1.1
-    r = kin.rotation_zyx(phi, theta, psi)
+    r = rotation_zyx(phi, theta, psi)
     np.testing.assert_allclose(r, _rz(psi) @ _ry(theta) @ _rx(phi), atol=1e-15)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-15)
     r_k = np.empty((3, 3))
@@ -143,7 +145,7 @@ def test_collapsed_trial_terms_match_the_chain(stack):
 
 def test_the_seam_kernels_are_callable_from_user_njit(bench):
     g = kin.kernel_geometry(bench)
-    _, nkey, fkey = kin._keys(5)
+    _, nkey, fkey = kin.geometry._keys(5)
     params = kin.draw_error_sets(bench, 3, seed=5)
     q = bench.grid_points()[:10]
 
@@ -197,13 +199,13 @@ def test_the_seam_kernels_are_callable_from_user_njit(bench):
 
 def test_draw_error_sets_numba_numpy_twins_and_reproducibility(bench):
     a = kin.draw_error_sets(bench, 300, seed=11)
-    b = kin.draw_error_sets_numpy(bench, 300, seed=11)
+    b = twins.draw_error_sets_numpy(bench, 300, seed=11)
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-18)
     np.testing.assert_array_equal(kin.draw_error_sets(bench, 100, seed=11, start=200), a[200:])
     for start in (200, 2**33 + 7):  # a counter past 32 bits: the numpy twin, not numba itself
         np.testing.assert_allclose(
             kin.draw_error_sets(bench, 50, seed=11, start=start),
-            kin.draw_error_sets_numpy(bench, 50, seed=11, start=start),
+            twins.draw_error_sets_numpy(bench, 50, seed=11, start=start),
             rtol=1e-12,
             atol=1e-18,
         )
@@ -241,7 +243,7 @@ def test_normal_generator_is_standard_normal():
             out[t, 2] = z2
 
     for seed in (0, 2**62 + 1):  # both signs of the boxed key once mattered
-        _, nkey, fkey = kin._keys(seed)
+        _, nkey, fkey = kin.geometry._keys(seed)
         z = np.empty((200_000, 3))
         draw(nkey, fkey, len(z), z)
         se = 1 / np.sqrt(len(z))
@@ -255,9 +257,9 @@ def test_normal_generator_is_standard_normal():
 
 def _all_samples(bench, q, trials, seed):
     """Every (trial, point) sample of the kernels: E_x, E_y, E_z, |E|, shape (n, 4, trials)."""
-    eng = kin._Engine(bench, seed, 4096)
+    eng = kin.monte_carlo._Engine(bench, seed, 4096)
     out = np.empty((len(q), 4, trials))
-    for a, b in kin._blocks(0, trials, 4096):
+    for a, b in kin.monte_carlo._blocks(0, trials, 4096):
         n = eng.prepare(a, b)
         vals = np.empty((len(q), 4, n))
         eng.pilot(a, n, np.ascontiguousarray(q), np.arange(len(q)), vals)
@@ -352,7 +354,7 @@ def test_generic_path_position_dependent_and_speed_tau(bench, monkeypatch):
             "speed_tau", np.zeros(3), np.array([0.0, 0.0, 20.0]), Pdf.uniform(0.0, 2e-4)
         ),
     )
-    assert not kin._Engine(b, 0, 16).fast
+    assert not kin.monte_carlo._Engine(b, 0, 16).fast
     q = b.grid_points()[::117]
     res, v = _check_against_brute_force(b, q, 1500, seed=2)
     params = kin.draw_error_sets(b, 2, seed=2)
@@ -470,7 +472,7 @@ def test_adaptive_run_stops_at_the_numerical_tolerance(bench):
     assert a["batches"] >= 2 and res.trials == a["batches"] * a["batch_trials"]
     assert a["converged"]  # u ~ 13 um: delta = 0.5 um, reached after two batches of 12288
     assert np.all(np.array(a["two_s_um"]) <= np.repeat(a["delta_um"], 3))
-    assert kin.noise_keys(3) == kin._keys(3)[1:]
+    assert kin.noise_keys(3) == kin.geometry._keys(3)[1:]
 
 
 def test_degenerate_constant_bench(bench):
@@ -516,7 +518,7 @@ def test_one_pass_kernels_match_numpy(bench):
     q = np.ascontiguousarray(bench.grid_points()[::41])
     npts = len(q)
     pidx = np.arange(npts) * 41
-    eng = kin._Engine(bench, 11, 4096)
+    eng = kin.monte_carlo._Engine(bench, 11, 4096)
     assert eng.fast
     n = eng.prepare(0, 3000)
     vals = np.empty((npts, 4, n))
@@ -526,7 +528,7 @@ def test_one_pass_kernels_match_numpy(bench):
     shift = np.ascontiguousarray(vals[..., :50].mean(-1))
     acc = np.zeros((npts, 4, 2))
     below = np.zeros((npts, 4, 2), np.int64)
-    store = kin._Store(npts, 200)
+    store = kin.monte_carlo._Store(npts, 200)
     eng.keep(0, n, q, pidx, shift, lo, hi, acc, below, store)
     d = vals - shift[..., None]
     np.testing.assert_allclose(acc[..., 0], d.sum(-1), rtol=1e-11, atol=1e-15)
@@ -602,6 +604,6 @@ def test_kinematics_stream_keys_of_valid_seeds_are_unchanged():
     }
     for seed, keys in expected.items():
         for s in (seed, np.int64(seed)):
-            got = kin._keys(s)
+            got = kin.geometry._keys(s)
             assert all(isinstance(k, np.uint64) for k in got)
             assert tuple(int(k) for k in got) == keys

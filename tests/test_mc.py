@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.mc import (
+from cfm_fem.models.mc import (
     Pdf,
     adaptive_monte_carlo,
     coverage_count,

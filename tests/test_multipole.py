@@ -1,4 +1,4 @@
-"""2-D multipole model: analytic fields, Maxwell, feed-down, roll (cfm_fem.multipole)."""
+"""2-D multipole model: analytic fields, Maxwell, feed-down, roll (cfm_fem.models.multipole)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.multipole import Multipole, feed_down, multipole_field, multipole_gradient, roll
+from cfm_fem.models.multipole import Multipole, feed_down, multipole_field, multipole_gradient, roll
 
 R_REF = 10.0  # mm
 

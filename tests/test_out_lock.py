@@ -194,9 +194,9 @@ def test_python_writers_refuse_a_folder_in_use(tmp_path):
     """`ResumableRun.finish` deleted the store of whatever run used the folder, and
     `run_slab_sweep` replaced its work folder; both now refuse, naming ``out_dir``."""
     from cfm_fem.io.chunk_store import ChunkStore
-    from cfm_fem.resume import ResumableRun
-    from cfm_fem.slabs import run_slab_sweep
-    from cfm_fem.sweep import SweepConfig
+    from cfm_fem.models.sweep import SweepConfig
+    from cfm_fem.workflows.sweep.resume import ResumableRun
+    from cfm_fem.workflows.sweep.slabs import run_slab_sweep
 
     out = tmp_path / "res"
     store = ChunkStore(out)

@@ -48,7 +48,7 @@ def test_nodes_shared_by_pieces_are_counted_once_as_vtk_ghost_points(tmp_path):
     """A node used by cells of several pieces is written in each; every copy but the one in
     the piece whose node range holds it is flagged vtkGhostType = 1, so VTK counts each node
     once, with the values of the one-file output."""
-    from cfm_fem.pieces import piece_bounds
+    from cfm_fem.models.sweep import piece_bounds
 
     path = _write_map(tmp_path / "map.csv")
     base = ["sweep", str(path), "--up", "15", "--trials", "100", "--chunk-nodes", "40"]

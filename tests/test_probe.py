@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cfm_fem.errors import CfmInputError
-from cfm_fem.probe import HallProbe, ProbeDraws, apply_probe, sample_s_hp, sensing_directions
+from cfm_fem.models.probe import HallProbe, ProbeDraws, apply_probe, sample_s_hp, sensing_directions
 
 N = 200_000  # samples for statistical checks
 Z = 5.0  # tolerance in standard errors (a false failure ~ 1 in 1.7 million)

@@ -111,7 +111,7 @@ number = st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)
 @st.composite
 def fieldmaps(draw):
     """A small valid map: a grid or scattered nodes, with or without repeated values."""
-    from cfm_fem.field import FieldMap
+    from cfm_fem.models.field import FieldMap
 
     n = draw(st.integers(1, 4))
     ax = np.sort(np.unique(np.round(draw(st.lists(number, min_size=n, max_size=n)), 3)))

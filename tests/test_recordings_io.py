@@ -22,7 +22,7 @@ from cfm_fem.io.recordings import (
     write_hall_map,
     write_tracker,
 )
-from cfm_fem.recordings import Recording
+from cfm_fem.models.recordings import Recording
 
 TRACKER_HEAD = "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas\n"
 HALL_HEAD = "point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz\n"

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.field import FieldMap
 from cfm_fem.io import write_field
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.recordings import write_tracker
+from cfm_fem.models.field import FieldMap
 from cfm_fem.report.html import HtmlReport, fmt
-from cfm_fem.synthetic import synthetic_tracker
+from cfm_fem.workflows.synthetic import synthetic_tracker
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -19,8 +19,8 @@ from cfm_fem.cli import main
 from cfm_fem.errors import CfmInputError
 from cfm_fem.io import read_field, streaming, write_field
 from cfm_fem.io.provenance import read_xml_provenance
-from cfm_fem.slabs import disk_percentiles, run_slab_sweep, slabs_for_memory
-from cfm_fem.sweep import SweepConfig
+from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.workflows.sweep.slabs import disk_percentiles, run_slab_sweep, slabs_for_memory
 
 HEADER = "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]"
 
@@ -172,7 +172,7 @@ def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
     path = _write_csv(tmp_path / "g.csv", _lattice(5, 8))
     cfg = SweepConfig(up_um=[0.0, 1000.0], trials=200)
     fm = read_field(path)
-    from cfm_fem.sweep import run_sweep
+    from cfm_fem.workflows.sweep.in_memory import run_sweep
 
     ref = run_sweep(fm, cfg)
     s = run_slab_sweep(path, cfg, tmp_path / "sl", n_slabs=2, halo_cells=0.0)
@@ -254,7 +254,7 @@ def test_an_interrupted_slab_run_resumes_to_the_same_numbers(tmp_path):
     """Killed after two of four slabs, the run keeps them in DIR/.cfm_fem_slabs; ``--resume``
     computes the other two and writes the outputs of an uninterrupted run (bit for bit); a
     resume with other options is refused, naming them."""
-    from cfm_fem.resume import describe_sweep
+    from cfm_fem.workflows.sweep.resume import describe_sweep
 
     path = _write_csv(tmp_path / "g.csv", _lattice())
     cfg = SweepConfig(up_um=[0.0, 30.0], trials=200, seed=4)
@@ -379,9 +379,9 @@ def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
         _, a = by_position(pv.read(tmp_path / "one" / f"uf_up{up}um.vtu"))
         _, b = by_position(pv.read(tmp_path / "sl" / f"uf_up{up}um.pvtu"))
         _same_fields(a, b, gradients=("grad", "gum_U95"))
-    from cfm_fem.interpolation import exact_search
-    from cfm_fem.sweep import SweepConfig as _Cfg
-    from cfm_fem.sweep import prepare_sweep
+    from cfm_fem.models.mesh import exact_search
+    from cfm_fem.models.sweep import SweepConfig as _Cfg
+    from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     mesh, problem, _ = prepare_sweep(read_field(path), _Cfg(up_um=[2000.0], trials=300))
     assert len(exact_search(mesh)[0]) > 0  # the exact search did run
@@ -454,9 +454,9 @@ def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path,
     units (and 21 nodes' outside fractions). Now Delaunay always triangulates the nodes moved
     by 1e-6 of the map size (one triangulation, the same in every slab), and the nodes of the
     cells flat without the move keep it, the same in every slab too."""
-    import cfm_fem.slabs
+    import cfm_fem.workflows.sweep.slabs
 
-    monkeypatch.setattr(cfm_fem.slabs, "SMALL_SLAB_ROWS", 0)
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "SMALL_SLAB_ROWS", 0)
     rng = np.random.default_rng(8)
     scattered = rng.uniform([-5, -5, -30], [5, 5, 8], (1200, 3))
     ax = np.linspace(-5, 5, 6)
@@ -482,7 +482,7 @@ def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path,
 def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
     """The API checked the seed only when the first slab was prepared: after staging the file
     into a work folder made in out_dir. Now up front, with the CLI's message."""
-    import cfm_fem.slabs
+    import cfm_fem.workflows.sweep.slabs
     from cfm_fem.errors import check_seed
 
     path = _write_csv(tmp_path / "g.csv", _lattice(4, 6))
@@ -490,8 +490,8 @@ def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, m
     def no_read(*args, **kwargs):
         raise AssertionError("the file was read")
 
-    monkeypatch.setattr(cfm_fem.slabs, "stage", no_read)
-    monkeypatch.setattr(cfm_fem.slabs, "open_stream", no_read)
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "stage", no_read)
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "open_stream", no_read)
     with pytest.raises(CfmInputError) as cli:
         check_seed(seed)
     out = tmp_path / "o"
@@ -510,8 +510,8 @@ def test_staged_planar_map_is_the_map_read_field_gives(tmp_path, ext, zero_rows)
     again): the same points, field, lines, notes and source as `read_field`."""
     import warnings
 
-    from cfm_fem.field import FieldMap
-    from cfm_fem.slabs import stage, staged_fieldmap
+    from cfm_fem.models.field import FieldMap
+    from cfm_fem.workflows.sweep.slabs import stage, staged_fieldmap
 
     ax = np.linspace(-10.0, 10.0, 6)
     pts = np.stack(np.meshgrid(ax, [2.5], ax, indexing="ij"), -1).reshape(-1, 3)
@@ -545,10 +545,10 @@ def test_cylinder_mantle_slivers_do_not_widen_the_halo_to_the_whole_map(
     (`GONE_ROWS_FACTOR`; small maps, here all, may grow further: `SMALL_SLAB_ROWS`, set to 0),
     the faces the uncertified slivers leave become halo borders, and the complete nodes'
     numbers are the in-memory ones."""
-    import cfm_fem.slabs
-    from cfm_fem.slabs import GONE_ROWS_FACTOR
+    import cfm_fem.workflows.sweep.slabs
+    from cfm_fem.workflows.sweep.slabs import GONE_ROWS_FACTOR
 
-    monkeypatch.setattr(cfm_fem.slabs, "SMALL_SLAB_ROWS", 0)
+    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "SMALL_SLAB_ROWS", 0)
     rng = np.random.default_rng(3)
     t, z = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(-30, 30, 31))
     mantle = np.c_[5 * np.cos(t.ravel()), 5 * np.sin(t.ravel()), z.ravel()]

@@ -6,7 +6,8 @@ import pytest
 
 from cfm_fem import CfmInputError, FieldMap
 from cfm_fem.cli.sweep import parse_up_range
-from cfm_fem.sweep import SweepConfig, run_sweep, summarize
+from cfm_fem.models.sweep import SweepConfig, summarize
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 Z = 1.959963984540054
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
@@ -183,7 +184,7 @@ def test_chunks_in_any_order_merge_exactly():
 def test_node_keys_give_whole_map_numbers_from_a_renumbered_map():
     """A node's numbers depend on its key, not on its row: the same map with its nodes stored
     in another order, run with keys = the original indices, gives the original statistics."""
-    from cfm_fem.sweep import prepare_sweep
+    from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     rng = np.random.default_rng(4)
     pts = rng.uniform(-5, 5, (300, 3))
@@ -205,7 +206,7 @@ def test_extrapolation_gives_every_node_the_linear_field_sample_for_sample(plana
     Taylor expansion, which on a linear map is the field itself; every node, surface, edges
     and corners included, then has the statistics of B0 + G (x + s z) over all its trials (the
     twin's normals). 0.4 mm on 1 mm cells also leaves the stars and takes the global walk."""
-    import twins
+    from cfm_fem import testing as twins
 
     fm = grid_map(5)
     if planar:  # the z = 2 mid-plane: a 2-D triangulation, displacements projected into it
@@ -283,8 +284,8 @@ def test_edge_fit_gradients_exact_on_a_linear_field_and_robust_on_a_scattered_hu
     mid-plane for the planar case), and on a curved field within 30 % at the nodes of the
     Delaunay hull (measured: 14 %). With the hull's flat cells kept, the cell average of
     `node_gradients` is off there by up to 4.7x; with them removed, by 18 %."""
-    from cfm_fem.interpolation import build_mesh
-    from cfm_fem.sweep import edge_fit_gradients, node_gradients
+    from cfm_fem.models.mesh import build_mesh
+    from cfm_fem.workflows.sweep.problem import edge_fit_gradients, node_gradients
 
     rng = np.random.default_rng(1)
     pts = rng.uniform(0, 6, (3000, 3))
@@ -385,7 +386,7 @@ def test_outside_fraction_at_a_re_entrant_edge_is_the_geometric_one(up_um, where
     (every trial beyond a border face at the node used to count as out: 0.27-0.29), and next
     to it the Gaussian probability of the removed quadrant and the box (at (0, 0.1) with
     U_p = h: 0.444, where 0.518 used to be counted)."""
-    from cfm_fem.sweep import prepare_sweep
+    from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     fm = _l_shape_map()
     cfg = SweepConfig(up_um=[up_um], trials=4000, seed=5)
@@ -415,8 +416,8 @@ def test_trials_whose_walk_cycles_are_settled_not_lost(mode, shape):
     import dataclasses
 
     from cfm_fem.io.bench_toml import read_reference_bench
-    from cfm_fem.mc import Pdf
-    from cfm_fem.sweep import prepare_sweep
+    from cfm_fem.models.mc import Pdf
+    from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     ax = np.arange(-3.0, 4.0)
     pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
@@ -453,7 +454,7 @@ def test_gum_u_by_blocks_is_the_whole_map_at_once():
     """`_gum_u` takes the nodes in blocks (memory): every block size gives the numbers of the
     whole map in one block, bit for bit, in mode gauss (one sigma per column) and with the
     per-node sigmas and correlations of mode htm; |B| = 0 stays NaN."""
-    from cfm_fem.sweep import _gum_u
+    from cfm_fem.models.sweep import _gum_u
 
     rng = np.random.default_rng(5)
     n = 1001
@@ -474,7 +475,7 @@ def test_an_empty_map_or_a_mesh_of_another_map_is_refused_by_name(mode):
     `FieldMap` (made without `FieldMap.from_arrays`) failed with numpy's "zero-size array to
     reduction operation" (`FieldMap.b_max`, `_gradients4`), and a mesh of another map with a
     broadcast error or not at all."""
-    from cfm_fem.interpolation import build_mesh
+    from cfm_fem.models.mesh import build_mesh
 
     mesh = build_mesh(grid_map(4), "auto", "remove")
     empty = FieldMap(points=np.zeros((0, 3)), B=np.zeros((0, 3)), source="empty.csv")
@@ -488,8 +489,9 @@ def test_an_empty_map_or_a_mesh_of_another_map_is_refused_by_name(mode):
 
 def test_piece_result_refuses_an_empty_piece():
     """An empty node list reached `_gradients4`: numpy's "zero-size array to reduction"."""
-    from cfm_fem.pieces import piece_result, run_sweep_pieces
-    from cfm_fem.sweep import prepare_sweep, serial_map
+    from cfm_fem.models.sweep import piece_result
+    from cfm_fem.workflows.sweep.pieces import run_sweep_pieces
+    from cfm_fem.workflows.sweep.problem import prepare_sweep, serial_map
 
     fm, cfg = grid_map(3), SweepConfig(up_um=[10.0], trials=40)
     compact = run_sweep_pieces(fm, cfg, serial_map)
@@ -504,7 +506,7 @@ def test_abs_b_gradient_of_part_of_a_map_is_the_whole_maps():
     """|B|'s gradient is NaN where |B| < 1e-12 B_ref (not differentiable). The threshold is the
     run's B_ref, not the largest |B| of the nodes given: slabs and pieces, which pass part of
     the map, mark the nodes the whole map marks (they marked relative to their own largest |B|)."""
-    from cfm_fem.sweep import _gradients4
+    from cfm_fem.models.sweep import _gradients4
 
     B = np.array([[1.0, 0, 0], [5e-13, 0, 0], [1e-2, 0, 0], [0, 0, 0]])
     grad = np.random.default_rng(2).normal(size=(4, 3, 3))

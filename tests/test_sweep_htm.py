@@ -5,14 +5,16 @@ from dataclasses import replace
 import numba
 import numpy as np
 import pytest
-import twins
 
 from cfm_fem import FieldMap
-from cfm_fem.bench import ERROR_NAMES, ReadingDelay, error_index
+from cfm_fem import testing as twins
 from cfm_fem.io.bench_toml import read_reference_bench
-from cfm_fem.kinematics import draw_error_sets, point_noise, probe_errors_for_bench
-from cfm_fem.mc import Pdf
-from cfm_fem.sweep import HTM_PARTS, SweepConfig, run_sweep, summarize
+from cfm_fem.models.bench import ERROR_NAMES, ReadingDelay, error_index
+from cfm_fem.models.kinematics.chain import probe_errors_for_bench
+from cfm_fem.models.kinematics.geometry import draw_error_sets, point_noise
+from cfm_fem.models.mc import Pdf
+from cfm_fem.models.sweep import HTM_PARTS, SweepConfig, summarize
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
 Z = 1.959963984540054

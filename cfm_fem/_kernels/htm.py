@@ -140,8 +140,8 @@ def probe_error_mm(params, q_cmd, dq, stack, mounts, tool, strokes, profiles, ou
     Parameters
     ----------
     params : ndarray, shape (21,)
-        Error amplitudes of this trial (mm, rad) in ``cfm_fem.bench.ERROR_NAMES`` order: one row
-        of ``cfm_fem.kinematics.draw_error_sets``.
+        Error amplitudes of this trial (mm, rad) in ``cfm_fem.models.bench.ERROR_NAMES`` order: one
+        row of ``cfm_fem.models.kinematics.geometry.draw_error_sets``.
     q_cmd : ndarray, shape (3,), mm
         Commanded positions of the x, y, z axes (``Bench.axis_positions_for``).
     dq : ndarray, shape (3,), mm

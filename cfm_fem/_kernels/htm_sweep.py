@@ -41,7 +41,7 @@ def htm_sweep(
     q_nodes : ndarray, shape (n, 3), mm
         Commanded axis positions that bring the probe to each node.
     params : ndarray, shape (T, 21)
-        Error amplitudes per trial (`cfm_fem.kinematics.draw_error_sets`).
+        Error amplitudes per trial (`cfm_fem.models.kinematics.geometry.draw_error_sets`).
     terms : ndarray, shape (T, 21) or (1, 21) or (0, 21)
         When the bench's error profiles are constant: `trial_terms` of ``params`` (or of one
         row of zeros when ``use_geometric`` is False), and each sample costs the 18

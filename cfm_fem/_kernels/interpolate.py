@@ -127,7 +127,7 @@ def interpolate_points(points, start, simplices, transform, neighbors, values, o
 
     Notes
     -----
-    The caller allocates the outputs (`cfm_fem.interpolation.interpolate_points`): numpy asks
+    The caller allocates the outputs (`cfm_fem.models.interpolation.interpolate_points`): numpy asks
     for transparent huge pages for large arrays, so their first touch costs fewer page faults
     (here, 5e6 points: 0.02-0.03 s instead of 0.04 s, within the noise of a whole call).
     """
@@ -666,7 +666,7 @@ def interpolate_groups(points, group_start, group_node, simplices, transform, ne
     group_start : ndarray, shape (n_groups + 1,), int64
         Increasing offsets into ``points``, from 0 to k.
     group_node : ndarray, shape (n_groups,), int64
-    simplices, transform, neighbors, coords : the mesh (`cfm_fem.interpolation.SimplexMesh`)
+    simplices, transform, neighbors, coords : the mesh (`cfm_fem.models.mesh.SimplexMesh`)
     values : ndarray, shape (n, c)
     star_start, star : `node_cells` of the mesh
     out : ndarray, shape (k, c)

@@ -101,7 +101,7 @@ def find_cell(p, transform, box, dims, bstart, bcells, bary):
         Buckets along each axis (C order of the flat bucket index).
     bstart : ndarray, int64; bcells : ndarray, int32
         CSR lists: the simplices whose (padded) bounding box meets bucket b are
-        ``bcells[bstart[b]:bstart[b + 1]]`` (`cfm_fem.interpolation.cell_buckets`).
+        ``bcells[bstart[b]:bstart[b + 1]]`` (`cfm_fem.models.mesh.cell_buckets`).
     bary : ndarray, shape (d + 1,)
         Output: barycentric coordinates in the returned simplex (as `locate` computes them).
 
@@ -161,7 +161,7 @@ def settle_walk(p, transform, search, bary):
     mesh (in exact arithmetic the walk is acyclic there), rarely if ever on a native one (none in
     2,000 random non-Delaunay 2-D and 400 3-D meshes tried). Counting its trial as lost took
     the node's U_f away. With search arrays (a non-convex mesh) the bucket search `find_cell`
-    answers. Without (a convex mesh: `cfm_fem.interpolation.no_search`) every simplex is
+    answers. Without (a convex mesh: `cfm_fem.models.mesh.no_search`) every simplex is
     tested: O(m), about 2 ms per 1e5 cells, paid only for a failed walk.
 
     Parameters
@@ -178,7 +178,7 @@ def settle_walk(p, transform, search, bary):
 
     Notes
     -----
-    The out-of-core sweep (`cfm_fem.slabs`) appends a sentinel cell and copies of
+    The out-of-core sweep (`cfm_fem.workflows.sweep.slabs`) appends a sentinel cell and copies of
     uncertified cells to its arrays, which this search does not tell from the mesh; its meshes
     are Delaunay or Kuhn grids, whose walks do not cycle: it does not come here.
     """
@@ -219,7 +219,7 @@ def locate_exact(p, start, transform, neighbors, bary, search):
     p, start, transform, neighbors, bary :
         As in `locate`.
     search : tuple
-        ``(excess, reach, box, dims, bstart, bcells)`` (`cfm_fem.interpolation.exact_search`):
+        ``(excess, reach, box, dims, bstart, bcells)`` (`cfm_fem.models.mesh.exact_search`):
         excess, shape (m, d + 1) or (0, d + 1), the `face_excess` of each border face in
         heights of its cell (0 elsewhere); reach, shape (n,) or (0,), `node_reach` (mm); the
         rest, the bucket lists of `find_cell`.
@@ -440,7 +440,7 @@ def _padded(boxes, c):
 @nb.njit(**JIT)
 def padded_extent(boxes):
     """Lower and upper corner of the union of the padded cell boxes (`_padded`), mm, shape
-    (2, d): the extent of the bucket grid (`cfm_fem.interpolation.cell_buckets`)."""
+    (2, d): the extent of the bucket grid (`cfm_fem.models.mesh.cell_buckets`)."""
     m, _, d = boxes.shape
     out = np.empty((2, d))
     out[0] = np.inf
@@ -512,7 +512,7 @@ def _bucket_pass(boxes, box, dims, slot, out):
 @nb.njit(**JIT)
 def bucket_lists(boxes, box, dims):
     """CSR lists of the buckets each cell's padded box meets
-    (`cfm_fem.interpolation.cell_buckets`), counted, then filled in cell order: no
+    (`cfm_fem.models.mesh.cell_buckets`), counted, then filled in cell order: no
     temporaries per entry or per cell.
 
     Parameters
@@ -625,7 +625,7 @@ def hull_max(points, adj_start, adj, start, grad, shift):
     Climbs the hull's edge graph from ``start[f]`` to a neighbour with a larger value while
     there is one: on a convex polytope a vertex no edge improves is a maximum (the simplex
     method's argument), so the answer is the brute-force maximum over all vertices
-    (`cfm_fem.interpolation.face_excess`: tens of steps per face instead of every vertex).
+    (`cfm_fem.models.mesh.face_excess`: tens of steps per face instead of every vertex).
 
     Parameters
     ----------

@@ -243,7 +243,7 @@ def sample_stats(a, n, q, out, scratch):
     n : int
         Number of samples.
     q : int
-        Samples spanned by the coverage interval, see `cfm_fem.mc.coverage_count`.
+        Samples spanned by the coverage interval, see `cfm_fem.models.mc.coverage_count`.
     out : ndarray, shape (6,)
         mean, std (ddof 1), symmetric low, symmetric high, shortest low, shortest high
         (JCGM 101 7.7); NaN when n < 2.
@@ -364,7 +364,7 @@ def _merged_stats(x, n_in, shift, s1, s2, lo_tail, hi_tail, r, y, m, p, out, low
 
 @nb.njit(**JIT)
 def coverage_count(n, p):
-    """Numba twin of `cfm_fem.mc.coverage_count`."""
+    """Numba twin of `cfm_fem.models.mc.coverage_count`."""
     pm = p * n
     if abs(pm - np.round(pm)) < 1e-9:
         q = int(np.round(pm))

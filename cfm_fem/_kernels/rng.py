@@ -276,7 +276,7 @@ def ndtri(p):
 
 @nb.njit(**JIT)
 def pdf_ppf(code, par, u):
-    """Inverse CDF of the kernel PDFs (codes in ``cfm_fem.mc.KERNEL_PDF_CODES``).
+    """Inverse CDF of the kernel PDFs (codes in ``cfm_fem.models.mc.KERNEL_PDF_CODES``).
 
     Parameters
     ----------

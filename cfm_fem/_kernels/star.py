@@ -101,7 +101,8 @@ def build_star(g, c0, simplices, transform, neighbors, values, cells, lmat, dmat
                 k = _star_slot(htab, g, ns, n)
                 if k < 0:
                     # too large; or a cell without g across a face with g: not a conforming
-                    # star (the sentinel cell a slab's halo border leads to, `cfm_fem.slabs`)
+                    # star (the sentinel cell a slab's halo border leads to,
+                    # `cfm_fem.workflows.sweep.slabs`)
                     if n == cells.shape[0] or not _star_contains(simplices, ns, g):
                         return -1
                     cells[n] = ns

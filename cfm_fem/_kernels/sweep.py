@@ -529,11 +529,11 @@ def gauss_sweep(
         Coverage probability (0.95).
     exit_grad : ndarray, shape (n, 3, d) or (0, 3, d), T/mm, mesh frame
         Empty: trials that leave the mesh are left out of the statistics. Else the node
-        gradients (`cfm_fem.sweep.node_gradients` in the mesh frame): a trial that leaves takes
-        the node's first-order Taylor expansion B_g + grad B_g . delta.
+        gradients (`cfm_fem.workflows.sweep.problem.node_gradients` in the mesh frame): a trial that
+        leaves takes the node's first-order Taylor expansion B_g + grad B_g . delta.
     search : tuple
         Face excess and cell buckets of the mesh (`locate_exact`;
-        `cfm_fem.interpolation.exact_search`): whether a trial left the mesh is then exact on
+        `cfm_fem.models.mesh.exact_search`): whether a trial left the mesh is then exact on
         non-convex meshes too. Empty arrays for a convex mesh (its border faces are
         supporting planes, every exit is a proof).
 

@@ -67,11 +67,11 @@ def run(args) -> int:
 
 
 def _tracker(args, bench, bench_note) -> int:
-    from ..compare import compare_tracker
     from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
     from ..io.provenance import bench_input, provenance
     from ..io.recordings import read_tracker
-    from ..kinematics import uncertainty_budget
+    from ..models.kinematics.budget import uncertainty_budget
+    from ..workflows.compare import compare_tracker
 
     rec = read_tracker(args.tracker)
     print(
@@ -108,13 +108,13 @@ def _tracker(args, bench, bench_note) -> int:
 
 
 def _hall(args, bench, bench_note) -> int:
-    from ..compare import compare_hall
-    from ..coupled import field_budget
     from ..io.compare_out import hall_points_csv, hall_summary, write_run
     from ..io.provenance import bench_input, provenance
     from ..io.recordings import read_hall_map
     from ..io.reference_field import read_reference
-    from ..probe import HallProbe
+    from ..models.probe import HallProbe
+    from ..workflows.compare import compare_hall
+    from ..workflows.coupled import field_budget
 
     rec = read_hall_map(args.hall_map)
     ref = read_reference(

@@ -18,7 +18,7 @@ from ._progress import progress_bar
 from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
 
 if TYPE_CHECKING:
-    from ..coupled import FieldModel
+    from ..models.field_model import FieldModel
 
 NAME = "coupled"
 HELP = "field error E_f from positioning and probe together (eq. 12-14): Table V"
@@ -114,8 +114,8 @@ def check_common(args):
 
 def load_bench(args):
     """The bench (reference bench by default), centred when ``--centre-magnet``; and a note."""
-    from ..coupled import centred_on_travel
     from ..io.bench_toml import read_bench, read_reference_bench
+    from ..workflows.coupled import centred_on_travel
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.centre_magnet:
@@ -137,7 +137,7 @@ MAX_REGION_POINTS = 100_000
 
 
 def _region(args, fm: FieldModel):
-    from ..coupled import default_region
+    from ..workflows.coupled import default_region
 
     z = None if args.z is None else _parse_z(args.z)
     if fm.multipole is not None:
@@ -202,13 +202,14 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..coupled import FieldModel, field_budget, run_coupled
     from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
     from ..io.harmonics import qfdp4_path, read_qfdp4
     from ..io.provenance import bench_input, provenance
     from ..io.reference_field import read_reference
-    from ..kinematics import uncertainty_budget
-    from ..probe import HallProbe
+    from ..models.field_model import FieldModel
+    from ..models.kinematics.budget import uncertainty_budget
+    from ..models.probe import HallProbe
+    from ..workflows.coupled import field_budget, run_coupled
 
     bench, bench_note = load_bench(args)
     if args.field is None:
@@ -274,7 +275,7 @@ def _run(args) -> int:
 
 def print_table_v(s: dict) -> None:
     """Table V of this run beside the paper's, with B_ref, R_ref and the region."""
-    from ..coupled import PAPER_TABLE_V
+    from ..models.field_model import PAPER_TABLE_V
 
     t = s["table_v"]["simulated"]
     print(f"E_f [units of 1e-4 B_ref], B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']})")

@@ -68,7 +68,7 @@ def _reference(spec, rec, r_ref=None, args=None):
 
     import numpy as np
 
-    from ..diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
+    from ..workflows.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
     if spec.startswith(("fit:", "fitz:")):
         if args is not None:
@@ -98,8 +98,8 @@ def _reference(spec, rec, r_ref=None, args=None):
 
         mp = read_harmonics(path, r_ref_mm=r_ref)
         return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
-    from ..interpolation import LinearInterpolator
     from ..io import read_field
+    from ..models.interpolation import LinearInterpolator
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
     interp = LinearInterpolator(fm)
@@ -160,12 +160,12 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..diagnose.problem import hall_problem, tracker_problem
-    from ..diagnose.report import figures, markdown
-    from ..diagnose.workflow import diagnose
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
     from ..io.recordings import read_hall_map, read_tracker
+    from ..workflows.diagnose.problem import hall_problem, tracker_problem
+    from ..workflows.diagnose.report import figures, markdown
+    from ..workflows.diagnose.workflow import diagnose
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:

@@ -53,10 +53,10 @@ def run(args) -> int:
 
 
 def _run(args, up) -> int:
-    from ..fig4 import fig4_summary, plane_nodes, run_fig4
     from ..io import read_field
     from ..io.compare_out import write_run
     from ..io.provenance import provenance
+    from ..workflows.fig4 import fig4_summary, plane_nodes, run_fig4
 
     fm = read_field(args.field, **reader_kwargs(args))
     print(

@@ -61,7 +61,7 @@ def check_options(args) -> None:
         take, ``--workers`` < 1 or Dask missing, ``--adaptive`` with ``--scheduler``/``--workers``,
         or an ``--out`` that cannot be a folder.
     """
-    from ..distributed import check_scale_out
+    from ..workflows.sweep.distributed import check_scale_out
 
     if args.adaptive is None and args.trials < 2:
         raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
@@ -87,11 +87,12 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..distributed import dask_client, run_kinematics_dask
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.kinematics_out import kinematics_summary, write_kinematics
     from ..io.provenance import bench_input, provenance
-    from ..kinematics import gum_check, run_kinematics, uncertainty_budget
+    from ..models.kinematics.budget import gum_check, uncertainty_budget
+    from ..models.kinematics.monte_carlo import run_kinematics
+    from ..workflows.sweep.distributed import dask_client, run_kinematics_dask
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     npts = len(bench.grid_points())
@@ -184,7 +185,7 @@ def print_table_iv(s: dict) -> None:
         )
     b = s.get("budget")
     if b:
-        from ..kinematics import UP_SHARE_MEANING
+        from ..models.kinematics.budget import UP_SHARE_MEANING
 
         print("largest shares of U_p^2 = sys^2 + u^2 (up_share; not variance shares), per axis "
               "X / Y / Z:")  # fmt: skip

@@ -137,7 +137,7 @@ def add_args(p):
 
 
 def add_slab_args(p):
-    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.slabs`."""
+    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.workflows.sweep.slabs`."""
     p.add_argument(
         "--slabs",
         type=int,
@@ -215,12 +215,12 @@ def _run_slabs(args, up):
     staging: the file is read, and its warnings given, once). Options checked
     (`_check_slab_options`); the caller holds the lock of ``--out``, and a run that fails
     leaves the folder as it was (`cfm_fem.io.lock.output_lock`)."""
-    from ..distributed import dask_chunk_map, dask_client
     from ..io.provenance import bench_input, file_sha256, provenance
     from ..io.streaming import is_streamable
-    from ..resume import describe_sweep
-    from ..slabs import SLAB_WORK, run_slab_sweep
-    from ..sweep import SweepConfig
+    from ..models.sweep import SweepConfig
+    from ..workflows.sweep.distributed import dask_chunk_map, dask_client
+    from ..workflows.sweep.resume import describe_sweep
+    from ..workflows.sweep.slabs import SLAB_WORK, run_slab_sweep
 
     budget = _size(args.max_memory) if args.max_memory else None
     kind = is_streamable(args.field, args.fmt)
@@ -345,7 +345,7 @@ def parse_up_range(text: str) -> list[float]:
         raise CfmInputError(
             f"--up gives {len(values)} U_p values; expected at most {MAX_UP_VALUES}"
         )
-    from ..sweep import check_up_distinct
+    from ..workflows.sweep.problem import check_up_distinct
 
     check_up_distinct(values, "--up")
     return values
@@ -380,8 +380,8 @@ def run(args) -> int:
     if args.pieces is not None and args.pieces < 1:
         raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
     # before the map is read and meshed (minutes for a large one), not after
-    from ..distributed import check_scale_out
-    from ..sweep import check_options
+    from ..workflows.sweep.distributed import check_scale_out
+    from ..workflows.sweep.problem import check_options
 
     check_options(args.trials, args.axis_scale, args.b_ref)
     check_scale_out(args.scheduler, args.workers)
@@ -397,14 +397,16 @@ def run(args) -> int:
 
 def _run(args, up) -> int:
     """The sweep, once the options are checked and the lock of ``--out`` is held."""
-    from ..distributed import dask_chunk_map, dask_client
     from ..io import read_field
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.provenance import bench_input, file_sha256, provenance
     from ..io.sweep_out import write_sweep, write_sweep_pieces
-    from ..pieces import run_sweep_pieces
-    from ..resume import ResumableRun, describe_sweep
-    from ..sweep import SweepConfig, chunk_ranges, run_sweep
+    from ..models.sweep import SweepConfig
+    from ..workflows.sweep.distributed import dask_chunk_map, dask_client
+    from ..workflows.sweep.in_memory import run_sweep
+    from ..workflows.sweep.pieces import run_sweep_pieces
+    from ..workflows.sweep.problem import chunk_ranges
+    from ..workflows.sweep.resume import ResumableRun, describe_sweep
 
     fm = None
     if args.slabs is not None or args.max_memory is not None:  # issue 6: out of core

@@ -93,7 +93,8 @@ def _run(args) -> int:
     from ..io._atomic import atomic_paths, json_text, write_text
     from ..io.bench_toml import read_bench, read_reference_bench, write_bench
     from ..io.kinematics_out import bench_description
-    from ..kinematics import design_tolerances, run_kinematics
+    from ..models.kinematics.budget import design_tolerances
+    from ..models.kinematics.monte_carlo import run_kinematics
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     d = design_tolerances(bench, np.asarray(args.target) * 1e-3)
@@ -156,7 +157,7 @@ def _print(d):
         else:
             fs, up = f"{f:9.3g}", _fmt3(r["up_at_factor_um"])
         print(f"{r['name']:14}{r['pdf']:>26}{sh:>26}{fs:>9}   {up}")
-    from ..kinematics import UP_SHARE_MEANING
+    from ..models.kinematics.budget import UP_SHARE_MEANING
 
     print(textwrap.fill(f"{UP_SHARE_MEANING}.", width=100, subsequent_indent="  "))
     print(

@@ -18,7 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import CfmInputError
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ._parse import check_zero_rows, option_hint, read_lines
 from .comsol import looks_like_comsol, read_comsol, write_comsol
 from .meshfile import meshio_format, read_meshfile, write_meshfile

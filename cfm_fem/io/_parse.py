@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ..units import FIELD_TO_T, LENGTH_TO_MM, field_scale, length_scale
 
 COORDS = ("x", "y", "z")

@@ -1,4 +1,4 @@
-"""Bench description files (TOML): read into a :class:`cfm_fem.bench.Bench`, write back.
+"""Bench description files (TOML): read into a :class:`cfm_fem.models.bench.Bench`, write back.
 
 The layout is the shipped ``cfm_fem/data/cfm_reference_bench.toml``, which documents every key.
 Units are converted once, here: lengths to mm, angles to rad, times to s. Unknown keys and
@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bench import (
+from ..errors import CfmInputError
+from ..models.bench import (
     AXES,
     ERROR_NAMES,
     Axis,
@@ -25,8 +26,7 @@ from ..bench import (
     MagnetPlacement,
     ReadingDelay,
 )
-from ..errors import CfmInputError
-from ..mc import PDF_PARAMETERS, Pdf
+from ..models.mc import PDF_PARAMETERS, Pdf
 from ._atomic import write_text
 
 __all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench", "REFERENCE_BENCH"]

@@ -10,7 +10,7 @@ complete. A run killed (SIGKILL) during a write cannot delete its temporary file
 resumes from the store removes it once it is an hour old (`ChunkStore.remove_partial`; a younger
 one may be another run's file still being written), and the store goes as a whole after a
 successful run. What the arrays mean and when a store may be reused is decided by
-:mod:`cfm_fem.resume`; this module only reads and writes files.
+:mod:`cfm_fem.workflows.sweep.resume`; this module only reads and writes files.
 """
 
 from __future__ import annotations

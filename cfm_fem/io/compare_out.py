@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..coupled import PAPER_TABLE_V, QUANTITIES
+from ..models.field_model import PAPER_TABLE_V, QUANTITIES
 from ._atomic import atomic_path, write_json, write_text
 from .kinematics_out import PAPER_TABLE_IV, bench_description
 

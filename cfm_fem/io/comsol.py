@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ._parse import (
     data_rows,
     detect_delimiter,

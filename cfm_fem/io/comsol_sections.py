@@ -34,7 +34,7 @@ import re
 import numpy as np
 
 from ..errors import CfmInputError
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ._parse import (
     DELAUNAY_NOTE,
     FIELDS,

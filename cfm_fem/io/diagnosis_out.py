@@ -34,8 +34,8 @@ def write_diagnosis(out_dir, summary: dict, arrays: dict, report_md: str, figure
     ----------
     out_dir : path-like
     summary : dict
-        The ``diagnosis.json`` document, `cfm_fem.diagnose.workflow.Diagnosis.summary` (keys
-        ``mismatch``, ``located``, ``effects``, ``fit``, ``advice``, plus extra keys).
+        The ``diagnosis.json`` document, `cfm_fem.workflows.diagnose.workflow.Diagnosis.summary`
+        (keys ``mismatch``, ``located``, ``effects``, ``fit``, ``advice``, plus extra keys).
     arrays : dict
         ``point_pos`` (m, 3) mm, ``zp_before``/``zp_after`` (m, 3), ``sig_before`` (m, 3) bool,
         ``pos`` (n, 3), ``resid_before``/``resid_after`` (n, 3), ``z_before`` (n, 3), ``rep``.

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError
-from ..multipole import UNIT, Multipole
+from ..models.multipole import UNIT, Multipole
 from ..units import length_scale
 from ._atomic import write_text
 from ._parse import check_nul, check_utf16, option_hint

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ._atomic import atomic_path
 from ._parse import (
     DELAUNAY_NOTE,

@@ -19,15 +19,8 @@ import warnings
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
-from ..field import FieldMap
-from ._parse import (
-    KNOWN_UNITS,
-    data_rows,
-    describe_column,
-    read_lines,
-    table_fieldmap,
-    write_rows,
-)
+from ..models.field import FieldMap
+from ._parse import KNOWN_UNITS, data_rows, describe_column, read_lines, table_fieldmap, write_rows
 
 __all__ = ["read_opera", "write_opera", "looks_like_opera"]
 

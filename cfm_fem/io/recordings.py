@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
-from ..recordings import Recording
+from ..models.recordings import Recording
 from ._atomic import atomic_path
 from ._parse import data_rows, parse_number, read_lines
 

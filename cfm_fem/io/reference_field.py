@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from ..coupled import FieldModel
+from ..models.field_model import FieldModel
 from . import read_field
 from ._parse import option_hint, read_lines
 from .harmonics import read_harmonics

@@ -9,7 +9,7 @@ functions the in-memory readers use. Line numbers count CR, LF and CRLF ends lik
 `cfm_fem.io._parse.read_lines`.
 
 What is left to the caller (it needs all rows): placeholder rows (B = 0 0 0), duplicate nodes
-and Opera's point-count check (`check_opera_counts`); `cfm_fem.slabs` does them.
+and Opera's point-count check (`check_opera_counts`); `cfm_fem.workflows.sweep.slabs` does them.
 """
 
 from __future__ import annotations

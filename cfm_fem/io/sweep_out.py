@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..sweep import COMPONENTS, SweepResult, summarize
+from ..models.sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
 from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
 from .lock import locks_output
@@ -179,11 +179,11 @@ def write_sweep_pieces(
     Parameters
     ----------
     out_dir : path-like
-    compact : cfm_fem.pieces.CompactSweep
+    compact : cfm_fem.models.sweep.CompactSweep
     n_pieces : int
     load : callable(nodes) -> (stats, n_outside, n_walk_failed, linear_in_up)
         Reads back the statistics of the sorted node indices ``nodes`` (e.g. from the chunk
-        store: `cfm_fem.resume.ResumableRun.gather`).
+        store: `cfm_fem.workflows.sweep.resume.ResumableRun.gather`).
     provenance : dict, optional
     remove_stale : bool
         As in `write_sweep`: an earlier sweep's maps this one does not use (e.g. its one-file
@@ -207,7 +207,7 @@ def write_sweep_pieces(
     flagged as VTK ghost points (``vtkGhostType`` = 1; the piece whose range holds a node owns
     it), so that VTK and ParaView count every node once.
     """
-    from ..pieces import partition, piece_bounds, piece_result
+    from ..models.sweep import partition, piece_bounds, piece_result
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -258,9 +258,10 @@ _HEAD_BYTES = 1 << 20
 
 
 def _written_by_sweep(path: Path) -> bool:
-    """True for a map a sweep writes (`write_sweep`, `write_sweep_pieces`, `cfm_fem.slabs`),
-    told by its contents, not only by its name: a ``.vtu`` whose field data (written before the
-    points) hold ``U_p_um`` and ``provenance_utf8``, or a ``.pvtu`` index of ``U_f_units``."""
+    """True for a map a sweep writes (`write_sweep`, `write_sweep_pieces`,
+    `cfm_fem.workflows.sweep.slabs`), told by its contents, not only by its name: a ``.vtu`` whose
+    field data (written before the points) hold ``U_p_um`` and ``provenance_utf8``, or a ``.pvtu``
+    index of ``U_f_units``."""
     try:
         with open(path, "rb") as f:
             head = f.read(_HEAD_BYTES)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import CfmInputError
-from ..field import FieldMap
+from ..models.field import FieldMap
 from ._parse import (
     data_rows,
     describe_column,

@@ -74,7 +74,7 @@ def interval_figure(rows, unit: str, title: str, labels=("MC", "experiment")) ->
     Parameters
     ----------
     rows : list of dict
-        `cfm_fem.compare.interval_view` rows.
+        `cfm_fem.workflows.compare.interval_view` rows.
     unit : str
         Axis label unit.
     """

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning
 
 __all__ = ["FieldMap"]
 

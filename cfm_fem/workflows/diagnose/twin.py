@@ -2,9 +2,9 @@
 
 The truth is generated with the exact models (full HTM chain with vibration and reading delay,
 the field evaluated at the displaced sensor positions, a 3-D Enge fringe field, box averaging of
-the sensitive volume), not with the linearised signatures of :mod:`cfm_fem.diagnose.effects`, so
-the diagnosis is tested against physics, not against its own equations. Parameters of concealed
-effects use the names and units of the catalogue.
+the sensitive volume), not with the linearised signatures of
+:mod:`cfm_fem.workflows.diagnose.effects`, so the diagnosis is tested against physics, not against
+its own equations. Parameters of concealed effects use the names and units of the catalogue.
 """
 
 from __future__ import annotations
@@ -13,9 +13,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..bench import ERROR_NAMES, Bench, MagnetPlacement
-from ..kinematics import draw_error_sets, probe_errors_for_bench
-from ..recordings import Recording
+from ...models.bench import ERROR_NAMES, Bench, MagnetPlacement
+from ...models.kinematics.chain import probe_errors_for_bench
+from ...models.kinematics.geometry import draw_error_sets
+from ...models.recordings import Recording
 from .effects import fringe_profile
 
 __all__ = ["tracker_twin", "hall_twin", "scan_order", "default_hall_points", "fringe_edges"]
@@ -24,7 +25,7 @@ UM, URAD = 1e-3, 1e-6
 
 
 def _reference_bench():
-    from ..io.bench_toml import read_reference_bench
+    from ...io.bench_toml import read_reference_bench
 
     return read_reference_bench()
 
@@ -156,7 +157,7 @@ def tracker_twin(
     actual = bench.nominal_probe_mm(q) + E
     reg = {"t_mm": np.zeros(3), "rot_rad": np.zeros(3)}
     if registration:
-        from ..kinematics import rotation_zyx
+        from ...models.rotations import rotation_zyx
 
         reg = {"t_mm": rng.normal(0, 0.02, 3), "rot_rad": rng.normal(0, 20e-6, 3)}
         c = bench.nominal_probe_mm(q_pts).mean(0)
@@ -225,7 +226,7 @@ def hall_twin(
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
         ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
         lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
-        profile :func:`~cfm_fem.diagnose.effects.fringe_profile`, with the B_z the 3-D
+        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, with the B_z the 3-D
         potential implies (edges in the magnet body frame: the fitted edges also carry the
         magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.
@@ -239,8 +240,8 @@ def hall_twin(
     context : dict
         ``multipole``, ``bench`` (with the magnet placement used).
     """
-    from ..io.harmonics import read_qfdp4
-    from ..kinematics import rotation_zyx
+    from ...io.harmonics import read_qfdp4
+    from ...models.rotations import rotation_zyx
 
     effects = {k: dict(v) for k, v in (effects or {}).items()}
     mp = read_qfdp4() if multipole is None else multipole

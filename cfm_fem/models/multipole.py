@@ -24,7 +24,7 @@ from math import comb
 
 import numpy as np
 
-from .errors import CfmInputError
+from ..errors import CfmInputError
 
 __all__ = [
     "Multipole",

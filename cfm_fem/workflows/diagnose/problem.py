@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..bench import AXES, ERROR_NAMES, Bench
-from ..kinematics import sensitivities
-from ..recordings import check_hall_scale
+from ...models.bench import AXES, ERROR_NAMES, Bench
+from ...models.kinematics.chain import sensitivities
+from ...models.recordings import check_hall_scale
 from .calibrate import Columns
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning
 
 __all__ = ["KINDS", "Recording", "check_hall_scale"]
 

@@ -28,14 +28,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .bench import AXES, Bench
-from .coupled import QUANTITIES, CoupledResult, FieldModel, pool_table_v, run_coupled
-from .errors import CfmInputError
-from .iso230 import evaluate_records
-from .kinematics import KinematicsResult, pool_table_iv, run_kinematics
-from .multipole import UNIT
-from .probe import HallProbe
-from .recordings import Recording, check_hall_scale
+from ..errors import CfmInputError
+from ..models.bench import AXES, Bench
+from ..models.field_model import QUANTITIES, FieldModel
+from ..models.iso230 import evaluate_records
+from ..models.kinematics.monte_carlo import KinematicsResult, pool_table_iv, run_kinematics
+from ..models.multipole import UNIT
+from ..models.probe import HallProbe
+from ..models.recordings import Recording, check_hall_scale
+from .coupled import CoupledResult, pool_table_v, run_coupled
 
 __all__ = [
     "TrackerComparison",
@@ -392,7 +393,7 @@ def compare_hall(
     probe : HallProbe, optional
     trials, seed : int
     align : {"placement", "probe"}
-        See `cfm_fem.coupled`.
+        See `cfm_fem.workflows.coupled`.
     progress : callable(int), optional
 
     Returns

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .bench import AXES, Bench
-from .kinematics import draw_error_sets, probe_errors_for_bench
-from .multipole import Multipole
-from .probe import HallProbe
-from .recordings import Recording
+from ..models.bench import AXES, Bench
+from ..models.kinematics.chain import probe_errors_for_bench
+from ..models.kinematics.geometry import draw_error_sets
+from ..models.multipole import Multipole
+from ..models.probe import HallProbe
+from ..models.recordings import Recording
 
 __all__ = ["synthetic_tracker", "synthetic_hall_map", "hall_map_points"]
 

@@ -5,8 +5,8 @@ uncertainty (section 7.9.2) and the validation of the GUM uncertainty framework 
 (section 8); PDFs of the input quantities (6.4), plain Monte Carlo propagation for vectorised
 numpy models, the adaptive procedure (7.9.4), the GUM uncertainty framework (first order, with
 Welch-Satterthwaite effective degrees of freedom, JCGM 100 G.4) and linearised variance budgets.
-The paper-scale bench Monte Carlo with its numba kernels is in :mod:`cfm_fem.kinematics`; it uses
-the rank and tolerance helpers here.
+The paper-scale bench Monte Carlo with its numba kernels is in :mod:`cfm_fem.models.kinematics`; it
+uses the rank and tolerance helpers here.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import special
 
-from .errors import CfmInputError
+from ..errors import CfmInputError
 
 __all__ = [
     "coverage_count",
@@ -406,48 +406,6 @@ class Pdf:
         return self.from_uniforms(u)
 
 
-def ppf_numpy(code: int, par, u):
-    """Inverse CDF of the kernel PDFs (plain-numpy twin of ``_kernels.pdf_ppf``).
-
-    Parameters
-    ----------
-    code : int
-        One of ``KERNEL_PDF_CODES``.
-    par : ndarray, shape (4,)
-        Parameters as in ``PDF_PARAMETERS``, zero padded.
-    u : ndarray
-        Uniforms in (0, 1).
-    """
-    u = np.asarray(u, dtype=np.float64)
-    p0, p1, p2 = float(par[0]), float(par[1]), float(par[2])
-    if code == 0:
-        return np.full_like(u, p0)
-    if code == 1:
-        return p0 + (p1 - p0) * u
-    if code == 2:
-        return p0 + p1 * special.ndtri(u)
-    if code == 3:
-        a, c, b = p0, p1, p2
-        fc = (c - a) / (b - a)
-        left = a + np.sqrt(u * (b - a) * (c - a))
-        right = b - np.sqrt((1.0 - u) * (b - a) * (b - c))
-        return np.where(u < fc, left, right)
-    if code == 4:
-        s = np.sin(0.5 * np.pi * u)
-        return p0 + (p1 - p0) * s * s
-    if code == 5:
-        a, b, beta = p0, p1, p2
-        ramp = 0.5 * (b - a) * (1.0 - beta)  # length of each sloping side
-        h = 1.0 / (b - a - ramp)  # height of the top
-        f1 = 0.5 * h * ramp  # probability under one ramp
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lo = a + np.sqrt(2.0 * ramp * u / h)
-            hi = b - np.sqrt(2.0 * ramp * (1.0 - u) / h)
-        mid = a + ramp + (u - f1) / h
-        return np.where(u < f1, lo, np.where(u > 1.0 - f1, hi, mid))
-    raise ValueError(f"unknown pdf code {code}")
-
-
 # ---------------------------------------------------------------------------------------------
 # Monte Carlo propagation, adaptive stopping, GUM comparison, budgets (JCGM 101 sections 7-8)
 # ---------------------------------------------------------------------------------------------
@@ -802,3 +760,45 @@ def variance_shares(sens, stds) -> np.ndarray:
     v = (np.asarray(sens) * np.asarray(stds)) ** 2
     tot = v.sum(axis=-1, keepdims=True)
     return np.divide(v, tot, out=np.zeros_like(v), where=tot > 0)
+
+
+def ppf_numpy(code: int, par, u):
+    """Inverse CDF of the kernel PDFs (plain-numpy twin of ``_kernels.pdf_ppf``).
+
+    Parameters
+    ----------
+    code : int
+        One of ``KERNEL_PDF_CODES``.
+    par : ndarray, shape (4,)
+        Parameters as in ``PDF_PARAMETERS``, zero padded.
+    u : ndarray
+        Uniforms in (0, 1).
+    """
+    u = np.asarray(u, dtype=np.float64)
+    p0, p1, p2 = float(par[0]), float(par[1]), float(par[2])
+    if code == 0:
+        return np.full_like(u, p0)
+    if code == 1:
+        return p0 + (p1 - p0) * u
+    if code == 2:
+        return p0 + p1 * special.ndtri(u)
+    if code == 3:
+        a, c, b = p0, p1, p2
+        fc = (c - a) / (b - a)
+        left = a + np.sqrt(u * (b - a) * (c - a))
+        right = b - np.sqrt((1.0 - u) * (b - a) * (b - c))
+        return np.where(u < fc, left, right)
+    if code == 4:
+        s = np.sin(0.5 * np.pi * u)
+        return p0 + (p1 - p0) * s * s
+    if code == 5:
+        a, b, beta = p0, p1, p2
+        ramp = 0.5 * (b - a) * (1.0 - beta)  # length of each sloping side
+        h = 1.0 / (b - a - ramp)  # height of the top
+        f1 = 0.5 * h * ramp  # probability under one ramp
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo = a + np.sqrt(2.0 * ramp * u / h)
+            hi = b - np.sqrt(2.0 * ramp * (1.0 - u) / h)
+        mid = a + ramp + (u - f1) / h
+        return np.where(u < f1, lo, np.where(u > 1.0 - f1, hi, mid))
+    raise ValueError(f"unknown pdf code {code}")

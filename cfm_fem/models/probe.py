@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CfmInputError
+from ..errors import CfmInputError
 
 __all__ = ["HallProbe", "ProbeDraws", "apply_probe", "sample_s_hp", "sensing_directions"]
 

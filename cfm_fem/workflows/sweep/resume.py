@@ -4,8 +4,8 @@ A run is identified by a key: the SHA-256 of everything that determines a chunk'
 (`describe_sweep`): the input file's bytes, the reader options, U_p values, trials, seed, axis
 scale, interpolation, coverage, mode, bench file, chunk size, the cfm_fem version and a hash of
 the source of the modules that compute the numbers. Chunk results depend only on their node
-range (`cfm_fem.sweep.SweepProblem`), so loading the finished chunks and computing the rest gives
-bit-identical statistics to an uninterrupted run.
+range (`cfm_fem.workflows.sweep.problem.SweepProblem`), so loading the finished chunks and computing
+the rest gives bit-identical statistics to an uninterrupted run.
 
 Every sweep writes its chunks to the store as they finish (`ResumableRun.mapper`); ``--resume``
 reuses those of a run with the same key and refuses, naming what differs, a store made by a
@@ -20,10 +20,10 @@ from importlib import resources
 
 import numpy as np
 
-from .errors import CfmInputError
-from .io.chunk_store import ChunkStore
-from .io.lock import output_lock
-from .sweep import serial_map
+from ...errors import CfmInputError
+from ...io.chunk_store import ChunkStore
+from ...io.lock import output_lock
+from .problem import serial_map
 
 __all__ = ["CODE_MODULES", "code_fingerprint", "describe_sweep", "run_key", "ResumableRun"]
 
@@ -93,7 +93,7 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
     """
     import numba
 
-    from . import __version__
+    from ... import __version__
 
     return {
         "field_sha256": field_sha256,
@@ -196,13 +196,15 @@ class ResumableRun:
         return self.store.completed()
 
     def mapper(self, inner=None):
-        """Chunk mapper for `cfm_fem.sweep.run_sweep` that stores every finished chunk.
+        """Chunk mapper for `cfm_fem.workflows.sweep.in_memory.run_sweep` that stores every finished
+        chunk.
 
         Parameters
         ----------
         inner : callable(problem, chunks) -> iterable of ((start, stop), result), optional
-            Runs the chunks that are not in the store (default `cfm_fem.sweep.serial_map`;
-            e.g. `cfm_fem.distributed.dask_chunk_map`).
+            Runs the chunks that are not in the store (default
+            `cfm_fem.workflows.sweep.problem.serial_map`; e.g.
+            `cfm_fem.workflows.sweep.distributed.dask_chunk_map`).
         """
         inner = serial_map if inner is None else inner
 
@@ -253,13 +255,13 @@ class ResumableRun:
         ----------
         nodes : ndarray, shape (p,), int64, sorted
         chunks : list of (start, stop)
-            The chunk ranges of the run (`cfm_fem.sweep.chunk_ranges`).
+            The chunk ranges of the run (`cfm_fem.workflows.sweep.problem.chunk_ranges`).
 
         Returns
         -------
         tuple
-            The chunk result arrays (`cfm_fem.sweep.SweepProblem.run_chunk`) of those nodes,
-            ``p`` rows each.
+            The chunk result arrays (`cfm_fem.workflows.sweep.problem.SweepProblem.run_chunk`) of
+            those nodes, ``p`` rows each.
         """
         nodes = np.asarray(nodes, dtype=np.int64)
         out = None

@@ -2,9 +2,10 @@
 
 Results do not depend on where they are computed: a sweep chunk's statistics depend only on its
 node range (counter-based random numbers keyed by seed and node), so `dask_chunk_map` yields
-exactly the chunks `cfm_fem.sweep.serial_map` would, in completion order, and `run_sweep` merges
-them into bit-identical arrays. Kinematics points are likewise independent of each other (each
-point's statistics use its own noise stream and its own windows), see `run_kinematics_dask`.
+exactly the chunks `cfm_fem.workflows.sweep.problem.serial_map` would, in completion order, and
+`run_sweep` merges them into bit-identical arrays. Kinematics points are likewise independent of
+each other (each point's statistics use its own noise stream and its own windows), see
+`run_kinematics_dask`.
 
 Dask is an optional dependency (``pip install cfm_fem[dask]``); it is imported only here and
 only when a cluster is asked for.
@@ -16,7 +17,7 @@ import contextlib
 
 import numpy as np
 
-from .errors import CfmInputError
+from ...errors import CfmInputError
 
 __all__ = [
     "check_scale_out",
@@ -147,7 +148,8 @@ def check_workers(client) -> None:
 
 
 def dask_chunk_map(client):
-    """Chunk mapper for `cfm_fem.sweep.run_sweep` that runs the chunks on ``client``'s cluster.
+    """Chunk mapper for `cfm_fem.workflows.sweep.in_memory.run_sweep` that runs the chunks on
+    ``client``'s cluster.
 
     The workers are first checked to run the same cfm_fem code (`check_workers`); the
     `SweepProblem` is then scattered once to every worker (broadcast); each chunk is one task;
@@ -189,7 +191,7 @@ def dask_chunk_map(client):
 
 
 def _kinematics_block(bench, trials, seed, q, index, exact):
-    from .kinematics import run_kinematics
+    from ...models.kinematics.monte_carlo import run_kinematics
 
     return run_kinematics(bench, trials=trials, seed=seed, q_cmd=q, point_index=index, exact=exact)
 
@@ -220,7 +222,7 @@ def run_kinematics_dask(client, bench, trials, seed, *, exact=True, block_points
     KinematicsResult
 
     """
-    from .kinematics import KinematicsResult, pool_table_iv
+    from ...models.kinematics.monte_carlo import KinematicsResult, pool_table_iv
 
     distributed = _import_distributed()
     check_workers(client)

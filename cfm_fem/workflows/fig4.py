@@ -1,8 +1,8 @@
 """Paper Fig. 4 analogue: U_f (95 %) against U_p on an FEM map, with the scaling law.
 
-Runs `cfm_fem.sweep.run_sweep` (paper eq. 16: x_meas = x_nom + N(0, U_p) per coordinate) and
-summarises U_f over the nodes of the magnet body (away from the ends, whose fringe gradients are
-not what the paper's in-body figures describe).
+Runs `cfm_fem.workflows.sweep.in_memory.run_sweep` (paper eq. 16: x_meas = x_nom + N(0, U_p) per
+coordinate) and summarises U_f over the nodes of the magnet body (away from the ends, whose fringe
+gradients are not what the paper's in-body figures describe).
 
 Scaling. For a small isotropic Gaussian U_p the error of |B| is linear,
 delta|B| = grad|B| . delta x, so U_f = 1.96 U_p |grad |B|| / B_ref (in units: x 1e4). In a
@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .field import FieldMap
-from .sweep import SweepConfig, SweepResult, run_sweep
-from .sweep import summarize as sweep_summary
+from ..models.field import FieldMap
+from ..models.sweep import SweepConfig, SweepResult
+from ..models.sweep import summarize as sweep_summary
+from .sweep.in_memory import run_sweep
 
 __all__ = ["PAPER_FIG4", "BODY_HALF_LENGTH_MM", "run_fig4", "fig4_summary", "plane_nodes"]
 

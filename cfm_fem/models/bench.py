@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import CfmInputError
+from ..errors import CfmInputError
 from .mc import Pdf
 
 __all__ = [
@@ -348,7 +348,7 @@ class Bench:
         ndarray, shape (n, 3), mm
             (q_x, q_y, q_z); may fall outside the strokes (check with ``outside_stroke``).
         """
-        from .kinematics import rotation_zyx  # local: kinematics imports bench
+        from .rotations import rotation_zyx  # local: kinematics imports bench
 
         p = np.asarray(points_magnet_mm, dtype=np.float64)
         r = rotation_zyx(*self.magnet.rotation_rad)
@@ -357,7 +357,7 @@ class Bench:
 
     def bench_to_magnet_rotation(self) -> np.ndarray:
         """Rotation (3, 3) that takes a bench-frame vector (a probe error) into the magnet frame."""
-        from .kinematics import rotation_zyx
+        from .rotations import rotation_zyx
 
         return rotation_zyx(*self.magnet.rotation_rad).T
 

@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .errors import CfmInputError
+from ..errors import CfmInputError
 
 __all__ = ["Iso230Result", "evaluate_bidirectional", "evaluate_records"]
 

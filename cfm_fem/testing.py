@@ -1,4 +1,8 @@
-"""Plain-numpy twins of the numba kernels in cfm_fem._kernels, for tests only (slow, obvious)."""
+"""Plain-numpy twins of the numba kernels in `cfm_fem._kernels` (slow, obvious).
+
+Each twin gives the kernel's numbers by the most direct code, for tests: the package's own and
+users' (a kernel and its twin agree to rounding, most of them bit for bit).
+"""
 
 from __future__ import annotations
 
@@ -7,8 +11,11 @@ import math
 import numpy as np
 import scipy.spatial
 
-from cfm_fem import _kernels
-from cfm_fem.mc import coverage_count, ppf_numpy, shortest_interval, symmetric_interval
+from . import _kernels
+from . import _kernels as K
+from .models.bench import ERROR_NAMES, Bench
+from .models.kinematics.geometry import _keys, kernel_geometry
+from .models.mc import coverage_count, ppf_numpy, shortest_interval, symmetric_interval
 
 M64 = (1 << 64) - 1
 GAMMA = 0x9E3779B97F4A7C15
@@ -205,7 +212,8 @@ def coverage_q(n, p=0.95):
 
 
 def node_gradients(mesh, B):
-    """Twin of `cfm_fem.sweep.node_gradients` (numpy: einsum over cells, np.add.at per node)."""
+    """Twin of `cfm_fem.workflows.sweep.problem.node_gradients` (numpy: einsum over cells, np.add.at
+    per node)."""
     d = mesh.dim
     n = len(mesh.coords)
     T = mesh.transform[:, :d, :]  # rows are grad(lambda_j), j < d
@@ -240,7 +248,7 @@ def find_cell(mesh, p):
 
 
 def face_excess(mesh):
-    """Twin of `cfm_fem.interpolation.face_excess`: for each border face, the largest minus
+    """Twin of `cfm_fem.models.mesh.face_excess`: for each border face, the largest minus
     barycentric coordinate of its face over all nodes, brute force (no hull)."""
     d = mesh.dim
     out = np.zeros(mesh.neighbors.shape)
@@ -297,7 +305,7 @@ def padded_ranges(boxes, box, dims):
 
 
 def cell_buckets(coords, simplices, per_bucket=4.0, max_entries=48.0):
-    """Twin of `cfm_fem.interpolation.cell_buckets` in numpy (its code before the kernels)."""
+    """Twin of `cfm_fem.models.mesh.cell_buckets` in numpy (its code before the kernels)."""
     m, dp1 = simplices.shape
     d = dp1 - 1
     v = coords[simplices]
@@ -371,13 +379,13 @@ def kinematics_values(model, t0: int, n: int, q, pidx) -> np.ndarray:
     """Twin of `cfm_fem._kernels.pass_pilot` (and of `fill_values` per point): E_x, E_y, E_z,
     |E| of trials t0 .. t0+n-1 at the points q, shape (npts, 4, n), mm.
 
-    ``model`` as the kernel's (`cfm_fem.kinematics._Engine.model`): row k of its terms and
-    params serves trial t0 + k. The noise of (trial, point) is `axis_noise` keyed by the
+    ``model`` as the kernel's (`cfm_fem.models.kinematics.monte_carlo._Engine.model`): row k of its
+    terms and params serves trial t0 + k. The noise of (trial, point) is `axis_noise` keyed by the
     point's index pidx[i] (the twin derives the trial keys itself; the model's are not read).
     Collapsed chain (`chain`) when the model is linear, else the numpy HTM chain
-    `cfm_fem.kinematics.probe_errors` (equal to the kernel's to rounding only).
+    `cfm_fem.models.kinematics.chain.probe_errors` (equal to the kernel's to rounding only).
     """
-    from cfm_fem.kinematics import probe_errors
+    from .models.kinematics.chain import probe_errors
 
     linear, terms, params, sig, speed, tau_code, tau_par, nkey, _, fkey = model[:10]
     stack, mounts, tool, strokes, profiles = model[10:15]
@@ -493,3 +501,22 @@ def star_recheck(g, cells, n_star, lmat, nbr, simplices, excess, reach, delta):
                 r_out = min(r_out, (ex * (1.0 + _kernels.EXCESS_MARGIN) + eps) / -lam[a])
     r_in = 0.0 if cone else reach / math.sqrt(_ordered_sum(np.asarray(delta) ** 2))
     return -1, r_in, r_out, None
+
+
+def _splitmix_numpy(key, counters):
+    z = (np.uint64(key) + counters.astype(np.uint64) * K.GAMMA).astype(np.uint64)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def draw_error_sets_numpy(bench: Bench, n_trials: int, seed: int, start: int = 0) -> np.ndarray:
+    """Plain-numpy twin of :func:`draw_error_sets` (scipy's ndtri for the normals); for tests."""
+    ekey, _, _ = _keys(seed)
+    t = np.arange(start, start + n_trials, dtype=np.uint64)[:, None]
+    ctr = t * np.uint64(32) + np.arange(len(ERROR_NAMES), dtype=np.uint64)[None, :]
+    with np.errstate(over="ignore"):
+        h = _splitmix_numpy(ekey, ctr)
+    u = ((h >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
+    g = kernel_geometry(bench)
+    return np.stack([ppf_numpy(g.codes[k], g.pars[k], u[:, k]) for k in range(u.shape[1])], -1)

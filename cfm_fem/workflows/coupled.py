@@ -10,9 +10,9 @@ For every trial t and scan point i (magnet frame, mm)::
     E_f[t, i]    = (B_meas - B(p_i)) / B_ref   in units of 1e-4 B_ref
 
 ``B`` is a 2-D `Multipole` (QFDp4 by default) or an FEM map through
-`cfm_fem.interpolation.LinearInterpolator`. Per point and component (Bx, By, Bz, |B|): systematic
-error (mean), standard uncertainty (std), 95 % probabilistically symmetric interval, and U95 =
-max(|low|, |high|). Pooled as in Table V: systematic = RMS over points of the per-point mean,
+`cfm_fem.models.interpolation.LinearInterpolator`. Per point and component (Bx, By, Bz, |B|):
+systematic error (mean), standard uncertainty (std), 95 % probabilistically symmetric interval, and
+U95 = max(|low|, |high|). Pooled as in Table V: systematic = RMS over points of the per-point mean,
 uncertainty = RMS over points of the per-point std, U_f = sqrt(systematic^2 + uncertainty^2).
 
 Why B_ref and not the local field (paper eq. 14 divides by B_nom,i): a field component passes
@@ -40,19 +40,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import _kernels as K
-from .bench import Bench, MagnetPlacement, ReadingDelay
-from .errors import CfmInputError
-from .interpolation import LinearInterpolator
-from .kinematics import draw_error_sets, kernel_geometry, noise_keys
-from .mc import symmetric_interval
-from .multipole import UNIT, Multipole
-from .probe import HallProbe, apply_probe
+from .. import _kernels as K
+from ..errors import CfmInputError
+from ..models.bench import Bench, MagnetPlacement, ReadingDelay
+from ..models.field_model import QUANTITIES, FieldModel
+from ..models.kinematics.geometry import draw_error_sets, kernel_geometry, noise_keys
+from ..models.mc import symmetric_interval
+from ..models.multipole import UNIT
+from ..models.probe import HallProbe, apply_probe
 
 __all__ = [
-    "QUANTITIES",
-    "PAPER_TABLE_V",
-    "FieldModel",
     "CoupledResult",
     "default_region",
     "centred_on_travel",
@@ -61,13 +58,6 @@ __all__ = [
     "field_budget",
 ]
 
-#: Quantities per point: the three field components and |B|.
-QUANTITIES = ("Bx", "By", "Bz", "absB")
-#: Table V of the paper, units (1e-4 of the reference field).
-PAPER_TABLE_V = {
-    "simulation": {"systematic_units": 4.0, "std_units": 5.0, "U_f_units": 6.5},
-    "experiment": {"systematic_units": 4.0, "std_units": 6.0, "U_f_units": 7.5},
-}
 PROBE_STREAM = 0x50524F42
 #: Samples kept per point for the pooled E_f histogram.
 HIST_PER_POINT = 256
@@ -75,91 +65,6 @@ ALIGN_CHOICES = ("placement", "probe")
 
 
 # --------------------------------------------------------------------------- field models
-
-
-@dataclass
-class FieldModel:
-    """The nominal field B(x) of the coupled model, with its reference field.
-
-    Build with `FieldModel.from_multipole` or `FieldModel.from_map`.
-
-    Attributes
-    ----------
-    kind : {"multipole", "fem"}
-    b_ref_T : float, T
-        Reference field of "units".
-    b_ref_rule : str
-        How ``b_ref_T`` was chosen (stated in every output).
-    components : tuple of int
-        Components pooled in the "all" row: (0, 1) for a 2-D multipole (B_z = 0 identically),
-        (0, 1, 2) for a map.
-    source : str
-    multipole : Multipole or None
-    interpolator : LinearInterpolator or None
-    """
-
-    kind: str
-    b_ref_T: float
-    b_ref_rule: str
-    components: tuple
-    source: str
-    multipole: Multipole | None = None
-    interpolator: LinearInterpolator | None = None
-
-    @classmethod
-    def from_multipole(cls, m: Multipole) -> FieldModel:
-        """2-D multipole field; B_ref = |B_main + i A_main| at R_ref."""
-        return cls(
-            kind="multipole",
-            b_ref_T=m.b_ref,
-            b_ref_rule=f"|B{m.main} + i A{m.main}| at R_ref = {m.r_ref:g} mm (main harmonic)",
-            components=(0, 1),
-            source=m.source,
-            multipole=m,
-        )
-
-    @classmethod
-    def from_map(cls, fm, b_ref_T: float | None = None) -> FieldModel:
-        """FEM map, piecewise linear; B_ref given or max |B| over the nodes."""
-        b_ref = fm.b_max if b_ref_T is None else float(b_ref_T)
-        if not (np.isfinite(b_ref) and b_ref > 0):
-            raise CfmInputError(f"B_ref must be a positive field in T; found {b_ref}")
-        return cls(
-            kind="fem",
-            b_ref_T=b_ref,
-            b_ref_rule="max |B| over the map nodes" if b_ref_T is None else "given by the user",
-            components=(0, 1, 2),
-            source=fm.source,
-            interpolator=LinearInterpolator(fm),
-        )
-
-    @property
-    def r_ref_mm(self) -> float | None:
-        return None if self.multipole is None else self.multipole.r_ref
-
-    def field(self, points) -> tuple[np.ndarray, np.ndarray]:
-        """B at ``points`` (shape (k, 3), mm, magnet frame).
-
-        Returns
-        -------
-        B : ndarray, shape (k, 3), T (NaN outside a map)
-        inside : ndarray, shape (k,), bool
-        """
-        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-        if self.multipole is not None:
-            return self.multipole.field(pts), np.ones(len(pts), dtype=bool)
-        return self.interpolator.field_at(pts)
-
-    def describe(self) -> str:
-        if self.multipole is not None:
-            m = self.multipole
-            return (
-                f"2-D multipole, {m.n_orders} orders, main n = {m.main}, R_ref = {m.r_ref:g} mm "
-                f"({m.source})"
-            )
-        return (
-            f"FEM map, linear interpolation ({self.interpolator.mesh.description}; {self.source})"
-        )
 
 
 def default_region(
@@ -205,7 +110,7 @@ def centred_on_travel(bench: Bench) -> Bench:
     )
     note = (
         f"magnet placement moved to mid-travel of X and Y: translation {np.round(t, 6).tolist()} "
-        "mm (cfm_fem.coupled.centred_on_travel)"
+        "mm (cfm_fem.workflows.coupled.centred_on_travel)"
     )
     return replace(bench, magnet=placement, assumptions=tuple(bench.assumptions) + (note,))
 

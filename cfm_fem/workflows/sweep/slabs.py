@@ -1,7 +1,7 @@
 """Out-of-core sweep of maps larger than memory: spatial slabs with a halo, one .pvtu piece each.
 
 ``cfm-fem sweep FIELD --slabs K`` (or ``--max-memory SIZE``, which chooses K) runs the sweep of
-`cfm_fem.sweep` without ever holding the whole map, mesh or statistics in memory:
+`cfm_fem.workflows.sweep.problem` without ever holding the whole map, mesh or statistics in memory:
 
 1. **Stage** (`stage`): the input is streamed once (`cfm_fem.io.streaming`, plain tables and
    Opera tables) into a temporary float64 file of rows (x, y, z mm, Bx, By, Bz T) read back as a
@@ -10,10 +10,10 @@
 2. **Partition**: K slabs along the longest axis, with equal node counts (histogram of that
    coordinate); each slab file (``.npy``) holds its own rows plus those of a halo of width
    ``h`` on both sides.
-3. **Duplicates** are merged per slab as `cfm_fem.field.FieldMap.from_arrays` does, and each kept
-   row gets the node index the in-memory reader would give it (row minus the dropped rows
+3. **Duplicates** are merged per slab as `cfm_fem.models.field.FieldMap.from_arrays` does, and
+   each kept row gets the node index the in-memory reader would give it (row minus the dropped rows
    before it), because the random numbers of a node are a function of that index.
-4. **Per slab**: the mesh is built on slab + halo (`cfm_fem.interpolation.build_mesh`, with the
+4. **Per slab**: the mesh is built on slab + halo (`cfm_fem.models.mesh.build_mesh`, with the
    method decided for the whole map: Kuhn grid or Delaunay), the sweep runs on the slab's own
    nodes only, and the statistics go to disk.
 5. **Output**: every U_p value gets a ``.pvtu`` with one ``.vtu`` piece per slab (the cells
@@ -30,7 +30,7 @@ is checked, not trusted:
   slab + halo is a cell of the whole map's triangulation; for Delaunay, a cell is certified when
   its circumsphere stays inside the slab + halo along the slab axis (then no node outside can
   lie in it, so it is a Delaunay cell of the whole map), on the nodes as Delaunay triangulates
-  them (`cfm_fem.interpolation.delaunay_coords`: moved by 1e-6 of the whole map's size, keyed by
+  them (`cfm_fem.models.mesh.delaunay_coords`: moved by 1e-6 of the whole map's size, keyed by
   their coordinates, so that the triangulation is unique), and when no node of it is in an
   uncertified cell (a node keeps its move when one of its cells is flat without it: only then
   is that decided as in the whole map). Otherwise h is doubled and the slab rebuilt.
@@ -59,12 +59,13 @@ map lives on disk: the staged rows and the per-node U_f file (memory-mapped, wri
 **Mode htm.** The halo takes, in place of 6 sigma_max, the bench's largest probe error near
 the map (`htm_reach_mm`); nodes key their noise streams by their whole-map index as above.
 
-**Resume and workers.** Each slab is a chunk of a `_SlabJob` (`cfm_fem.sweep.serial_map`, or
-`cfm_fem.distributed.dask_chunk_map` on workers that see the work folder: the staged rows are
-pickled as their folder). A finished slab writes its arrays, then a done record; a resumable run
-(``description`` given) keeps them in ``DIR/.cfm_fem_slabs`` under its key, so an interrupted
-run continues from its finished slabs. Records are merged in slab order: the outputs do not
-depend on where or in which order the slabs ran.
+**Resume and workers.** Each slab is a chunk of a `_SlabJob`
+(`cfm_fem.workflows.sweep.problem.serial_map`, or
+`cfm_fem.workflows.sweep.distributed.dask_chunk_map` on workers that see the work folder: the staged
+rows are pickled as their folder). A finished slab writes its arrays, then a done record; a
+resumable run (``description`` given) keeps them in ``DIR/.cfm_fem_slabs`` under its key, so an
+interrupted run continues from its finished slabs. Records are merged in slab order: the outputs do
+not depend on where or in which order the slabs ran.
 
 Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run in memory
 (the caller says so; a planar map from its staged rows, `staged_fieldmap`, not read again).
@@ -86,9 +87,21 @@ from pathlib import Path
 import numpy as np
 import scipy.spatial
 
-from .errors import CfmInputError, CfmInputWarning, check_seed
-from .field import DUPLICATE_TOL_MM, FieldMap
-from .interpolation import (
+from ...errors import CfmInputError, CfmInputWarning, check_seed
+from ...io._atomic import write_json
+from ...io.lock import output_lock
+from ...io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
+from ...io.streaming import check_opera_counts, open_stream
+from ...io.sweep_out import (
+    _point_data,
+    provenance_codes,
+    remove_earlier_outputs,
+    retire_index,
+    vtu_name,
+)
+from ...io.vtk import write_pvd, write_vtu
+from ...models.field import DUPLICATE_TOL_MM, FieldMap
+from ...models.mesh import (
     FLAT_TOL,
     TIE_JITTER,
     build_mesh,
@@ -99,28 +112,8 @@ from .interpolation import (
     sliver_note,
     tie_note,
 )
-from .io._atomic import write_json
-from .io.lock import output_lock
-from .io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
-from .io.streaming import check_opera_counts, open_stream
-from .io.sweep_out import (
-    _point_data,
-    provenance_codes,
-    remove_earlier_outputs,
-    retire_index,
-    vtu_name,
-)
-from .io.vtk import write_pvd, write_vtu
-from .sweep import (
-    HTM_PARTS,
-    SweepConfig,
-    SweepResult,
-    _gum_u,
-    node_gradients,
-    prepare_sweep,
-    serial_map,
-    summarize,
-)
+from ...models.sweep import HTM_PARTS, SweepConfig, SweepResult, _gum_u, summarize
+from .problem import node_gradients, prepare_sweep, serial_map, with_bench
 
 __all__ = [
     "SlabPlan",
@@ -156,7 +149,8 @@ def htm_reach_mm(bench, trials: int, seed: int, lo, hi) -> float:
     A trial that still reaches the halo border is detected and counted, so this only sizes
     the halo.
     """
-    from .kinematics import draw_error_sets, point_noise, probe_errors_for_bench
+    from ...models.kinematics.chain import probe_errors_for_bench
+    from ...models.kinematics.geometry import draw_error_sets, point_noise
 
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     corners = np.array([[(lo, hi)[(k >> a) & 1][a] for a in range(3)] for k in range(8)])
@@ -249,7 +243,7 @@ def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="w
     CfmInputError
         As `cfm_fem.io.read_field` for the same file (file, line, column).
     """
-    from .io._parse import check_zero_rows, zero_rows_dropped, zero_rows_kept
+    from ...io._parse import check_zero_rows, zero_rows_dropped, zero_rows_kept
 
     check_zero_rows(zero_rows)
     stream = open_stream(path, fmt, length_unit=length_unit, field_unit=field_unit)
@@ -610,7 +604,7 @@ def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
 
 
 def _slab_search(search, cert):
-    """The exact-search arrays (`cfm_fem.interpolation.exact_search`) of a slab + halo mesh
+    """The exact-search arrays (`cfm_fem.models.mesh.exact_search`) of a slab + halo mesh
     for its two passes, the sentinel cell (index m) and copies of the uncertified cells
     (m + 1 + i for ``unc[i]``) appended to the mesh arrays.
 
@@ -818,18 +812,18 @@ def run_slab_sweep(
     progress_total : callable(int), optional
         Called once with the number of nodes, when it is known (after staging).
     description : dict, optional
-        Everything that determines the numbers (`cfm_fem.resume.describe_sweep` plus the slab
-        options). Given, the work files live in ``out_dir/.cfm_fem_slabs`` under that run's key
-        and survive an interruption (not a bad input); else in a temporary folder.
+        Everything that determines the numbers (`cfm_fem.workflows.sweep.resume.describe_sweep` plus
+        the slab options). Given, the work files live in ``out_dir/.cfm_fem_slabs`` under that run's
+        key and survive an interruption (not a bad input); else in a temporary folder.
     resume : bool
         Reuse the slabs finished by an interrupted run with the same description; refused,
         naming what differs, for another run.
     keep : bool
         Keep ``out_dir/.cfm_fem_slabs`` after a successful run.
     map_chunks : callable(job, chunks) -> iterable of ((k, k + 1), record), optional
-        Runs the slabs (default `cfm_fem.sweep.serial_map`, one after the other here; e.g.
-        `cfm_fem.distributed.dask_chunk_map` on workers that share ``out_dir``). The outputs do
-        not depend on it.
+        Runs the slabs (default `cfm_fem.workflows.sweep.problem.serial_map`, one after the other
+        here; e.g. `cfm_fem.workflows.sweep.distributed.dask_chunk_map` on workers that share
+        ``out_dir``). The outputs do not depend on it.
     flat_map : callable(FieldMap), optional
         Given, a map that is not 3-D is handed to it as read from the staged rows
         (`staged_fieldmap`), so the caller runs it in memory without reading the file again.
@@ -947,10 +941,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     b_ref = st.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
     extent = float((st.hi - st.lo).min())
     if htm:  # the halo takes "6 sigma" = the bench's largest probe error near the map
-        from .io.bench_toml import read_reference_bench
-
-        if cfg.bench is None:
-            cfg = dataclasses.replace(cfg, bench=read_reference_bench())
+        cfg = with_bench(cfg)
         sigma = htm_reach_mm(cfg.bench, cfg.trials, cfg.seed, st.lo, st.hi) / 6.0
     else:
         sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
@@ -1123,8 +1114,10 @@ class _SlabJob:
         return np.lib.format.open_memmap(self.work / f"{name}.npy", "r+")
 
     def run_chunk(self, a: int, b: int) -> dict:
-        """Sweep slab a (b = a + 1: the chunk interface of `cfm_fem.sweep.serial_map` and
-        `cfm_fem.distributed.dask_chunk_map`), store its arrays and done record, return it."""
+        """Sweep slab a (b = a + 1: the chunk interface of
+        `cfm_fem.workflows.sweep.problem.serial_map` and
+        `cfm_fem.workflows.sweep.distributed.dask_chunk_map`), store its arrays and done record,
+        return it."""
         k = int(a)
         st, plan, dropped, cfg, file = self.st, self.plan, self.dropped, self.cfg, self.file
         kind, halo, b_ref, n_col, htm, span = (self.kind, self.halo, self.b_ref, self.n_col,

@@ -1,0 +1,383 @@
+"""The sweep problem every variant runs: mesh, gradients, kernel arrays and chunked work.
+
+Paper eq. 16: x_meas = x_nom + N(0, U_p) per coordinate; the field is interpolated at x_meas and
+B_meas - B_nom collected over the trials, per node, for each component and for |B|.
+`prepare_sweep` builds a `SweepProblem`, whose chunks of nodes run independently (in memory,
+in pieces, in slabs, resumed or on Dask workers) with the same numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from ... import _kernels
+from ...errors import CfmInputError, check_seed
+from ...models.field import FieldMap
+from ...models.mesh import SimplexMesh, build_mesh, exact_search, morton_order, no_search
+from ...models.sweep import HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
+from ...threads import map_blocks
+
+__all__ = [
+    "SweepProblem",
+    "chunk_ranges",
+    "serial_map",
+    "prepare_sweep",
+    "check_options",
+    "node_gradients",
+    "edge_fit_gradients",
+    "with_bench",
+]
+
+
+def check_up_distinct(up_um, option: str = "up_um") -> None:
+    """Refuse U_p values that name the same map twice (``10,10``, or ``10,10.0000001``, which
+    differ beyond the 6 digits of the name): the second map would overwrite the first.
+    ``option`` names where they came from, for the message."""
+    seen = {}
+    for u in up_um:
+        label = up_label(u)
+        if label in seen:
+            raise CfmInputError(
+                f"{option}: U_p = {u:g} um appears twice ({seen[label]!r} and {u!r} both name "
+                f"the map uf_{label}.vtu); expected distinct values"
+            )
+        seen[label] = u
+
+
+def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
+    """Gradient of the piecewise-linear field at each node, volume-weighted over incident cells.
+
+    Parameters
+    ----------
+    mesh : SimplexMesh
+    B : ndarray, shape (n, 3), T
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3), T/mm
+        ``[i, c, j] = dB_c/dx_j`` in the map frame (zero along the normal of a planar map).
+    """
+    acc, wsum = _kernels.cell_gradient_sums(
+        mesh.simplices, mesh.transform, np.ascontiguousarray(B, dtype=np.float64), len(mesh.coords)
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        acc /= wsum[:, None, None]
+    return acc @ mesh.basis.T  # local -> map frame
+
+
+def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 1 << 18):
+    """Gradient at each node by a least-squares fit of B_j - B_i = G (x_j - x_i) over the edges
+    of its cells, each edge weighted by 1/|x_j - x_i|^2 (and counted once per cell); mesh frame.
+
+    Exact for a linear field. Unlike the cell average of `node_gradients` it does not lean on
+    the shape of the cells: a flat cell (the Delaunay hull of scattered nodes has many) has a
+    gradient far off the field's, but its edges still sample the field. Cells are taken in
+    blocks of ``cells_per_block``: memory O(nodes + block).
+
+    Returns
+    -------
+    ndarray, shape (n, 3, d), T/mm
+        NaN at nodes whose edges do not span d dimensions (nodes in no cell).
+    """
+    d, n = mesh.dim, len(mesh.coords)
+    B = np.asarray(B, dtype=np.float64)
+    i, j = np.triu_indices(d + 1, 1)
+    normal = np.zeros((n, d, d))
+    rhs = np.zeros((n, d, 3))
+    for c0 in range(0, len(mesh.simplices), cells_per_block):
+        simp = mesh.simplices[c0 : c0 + cells_per_block]
+        a, b = simp[:, i].ravel(), simp[:, j].ravel()
+        dx = mesh.coords[b] - mesh.coords[a]  # (m, d)
+        df = B[b] - B[a]  # (m, 3)
+        w = 1.0 / np.einsum("mk,mk->m", dx, dx)
+        for k in range(d):  # both ends: (x_j - x_i) and (B_j - B_i) flip sign together
+            for m in range(d):
+                v = w * dx[:, k] * dx[:, m]
+                normal[:, k, m] += np.bincount(a, v, n) + np.bincount(b, v, n)
+            for c in range(3):
+                v = w * dx[:, k] * df[:, c]
+                rhs[:, k, c] += np.bincount(a, v, n) + np.bincount(b, v, n)
+    scale = np.trace(normal, axis1=1, axis2=2)
+    ok = np.abs(np.linalg.det(normal)) > 1e-12 * np.maximum(scale, 1e-300) ** d
+    grad = np.full((n, 3, d), np.nan)
+    grad[ok] = np.linalg.solve(normal[ok], rhs[ok]).transpose(0, 2, 1)
+    return grad
+
+
+def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
+    """The checks of a `SweepConfig` that need no map: the command line runs them before it
+    reads the map (which can take minutes), `_check_config` again for a Python caller.
+
+    Raises
+    ------
+    CfmInputError
+        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0.
+    """
+    if trials < 20:
+        raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {trials}")
+    if any(not np.isfinite(a) or a < 0 for a in axis_scale) or max(axis_scale) == 0:
+        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {axis_scale}")
+    if b_ref_T is not None and not (np.isfinite(b_ref_T) and b_ref_T > 0):
+        raise CfmInputError(f"B_ref must be a positive field in T; got {b_ref_T}")
+
+
+def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
+    if cfg.mode not in ("gauss", "htm"):
+        raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
+    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T)
+    if not 0.5 < cfg.coverage < 1.0:
+        raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
+    if cfg.outside not in OUTSIDE_RULES:
+        raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
+    check_seed(cfg.seed)  # the CLI's rule and message (numba takes the seed as int64)
+    if cfg.mode == "htm":
+        return
+    check_up_distinct(cfg.up_um)
+    extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
+    up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
+    if up_max_mm * 5.0 > extent:
+        raise CfmInputError(
+            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
+            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            file=fm.source,
+        )
+
+
+@dataclass
+class SweepProblem:
+    """Everything needed to run any chunk of nodes of a sweep: read-only and picklable.
+
+    A chunk's result depends only on the node indices, never on which process computes it or in
+    which order, so chunks can be spread over threads, processes or a Dask cluster and merged
+    exactly (see `run_sweep`'s ``map_chunks``).
+    """
+
+    coords: np.ndarray
+    values: np.ndarray
+    simplices: np.ndarray
+    transform: np.ndarray
+    neighbors: np.ndarray
+    start_cells: np.ndarray
+    basis: np.ndarray
+    axis_scale: np.ndarray
+    scales_mm: np.ndarray
+    trials: int
+    seed: int
+    coverage: float
+    htm: dict | None = None  # mode htm: bench arrays (see `_htm_arrays`)
+    # outside="extrapolate": `edge_fit_gradients` (n, 3, d), mesh frame; else (0, 3, d)
+    exit_grad: np.ndarray | None = None
+    # non-convex mesh: face excess and cell buckets (`exact_search`); None: convex (empty)
+    search: tuple | None = None
+
+    def search_arrays(self) -> tuple:
+        """The kernels' ``search`` argument (`cfm_fem.models.mesh.exact_search`)."""
+        return no_search(self.coords.shape[1]) if self.search is None else self.search
+
+    def run_chunk(self, start: int, stop: int):
+        """Statistics of nodes ``start .. stop-1``.
+
+        Returns
+        -------
+        stats : ndarray, shape (k, n_col, 4, 6), T
+            n_col = number of U_p values (gauss) or 3 (htm: total, geometric, vibration+delay).
+        n_outside, n_walk_failed : ndarray, shape (k, n_col), int64
+        linear_in_up : ndarray, shape (k,), bool
+        positioning : ndarray, shape (k, n_col, 3, 3) (htm) or (k, 0, 3, 3) (gauss)
+            Mean (mm), standard deviation (mm) and correlations xy, xz, yz of the probe
+            position error per map axis (`SweepResult.positioning`).
+        """
+        return self.run_nodes(np.arange(start, stop, dtype=np.int64))
+
+    def run_nodes(self, nodes, keys=None):
+        """Statistics of any list of nodes, in that order (see `run_chunk`).
+
+        Parameters
+        ----------
+        nodes : ndarray, shape (k,), int64
+            Rows of this problem's arrays.
+        keys : ndarray, shape (k,), int64, optional
+            Random-stream id of each node: its index in the whole map (default ``nodes``). A
+            problem built on part of a map (a slab) passes the global indices here and gets the
+            numbers of the whole-map run.
+        """
+        nodes = np.asarray(nodes, dtype=np.int64)
+        keys = nodes if keys is None else np.asarray(keys, dtype=np.int64)
+        if self.htm is not None:
+            return self._run_htm(nodes, keys)
+        # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
+        # each node's numbers depend on its key only, so the order changes no result
+        order = morton_order(self.coords[nodes])
+        nodes, keys = nodes[order], keys[order]
+        search = self.search_arrays()
+
+        def block(i0, i1):
+            return _kernels.gauss_sweep(
+                nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
+                self.transform, self.neighbors, self.start_cells, self.basis, self.axis_scale,
+                self.scales_mm, int(self.trials), int(self.seed), float(self.coverage),
+                self.exit_grad, search,
+            )  # fmt: skip
+
+        s, o, lost, star = map_blocks(block, len(nodes), 32)
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+        return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 3, 3))
+
+    def _run_htm(self, nodes, keys):
+        h = self.htm
+        search = self.search_arrays()
+        parts = []
+        for geo, noise in HTM_PARTS.values():
+
+            def block(i0, i1, geo=geo, noise=noise):
+                return _kernels.htm_sweep(
+                    nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
+                    self.transform, self.neighbors, self.start_cells, self.basis, h["rot"],
+                    h["q_nodes"], h["params"], h["terms" if geo else "terms_zero"], geo, noise,
+                    h["nkey"], h["fkey"], h["sig"], h["speed"], h["tau_code"], h["tau_par"],
+                    h["stack"], h["mounts"], h["tool"],
+                    h["strokes"], h["profiles"], float(self.coverage), self.exit_grad, search,
+                )  # fmt: skip
+
+            parts.append(map_blocks(block, len(nodes), 16))
+        stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
+        pos = pos.reshape(len(nodes), len(HTM_PARTS), 3, 3)
+        return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos
+
+
+def chunk_ranges(n: int, chunk_nodes: int) -> list[tuple[int, int]]:
+    """Node ranges [start, stop) of at most ``chunk_nodes`` nodes covering 0 .. n-1."""
+    return [(a, min(a + chunk_nodes, n)) for a in range(0, n, chunk_nodes)]
+
+
+def serial_map(problem: SweepProblem, chunks):
+    """Run chunks one after the other in this process (numba threads inside each chunk)."""
+    for a, b in chunks:
+        yield (a, b), problem.run_chunk(a, b)
+
+
+def with_bench(cfg: SweepConfig) -> SweepConfig:
+    """``cfg`` with the packaged reference bench filled in for mode htm when it names none."""
+    if cfg.mode != "htm" or cfg.bench is not None:
+        return cfg
+    from ...io.bench_toml import read_reference_bench
+
+    return dataclasses.replace(cfg, bench=read_reference_bench())
+
+
+def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = None):
+    """Check the configuration and build the mesh and the `SweepProblem`.
+
+    Returns
+    -------
+    mesh : SimplexMesh
+    problem : SweepProblem
+    b_ref : float, T
+
+    Raises
+    ------
+    CfmInputError
+        A map without nodes (a `FieldMap` made without `FieldMap.from_arrays`), a ``mesh``
+        whose node count is not the map's, or a bad ``cfg`` (`check_options` and more).
+    """
+    if fm.n_nodes == 0:  # a mesh given: build_mesh, which refuses it, is not called
+        raise CfmInputError(
+            "the map has 0 node(s); expected at least 4 non-coplanar nodes (or 3 in a plane)",
+            file=fm.source,
+        )
+    if mesh is not None and len(mesh.coords) != fm.n_nodes:
+        raise CfmInputError(
+            f"the mesh has {len(mesh.coords)} node(s) and the map {fm.n_nodes}; give the mesh "
+            "built for this map (`build_mesh`), or none",
+            file=fm.source,
+        )
+    mesh = build_mesh(fm, cfg.interpolation, cfg.hull_slivers) if mesh is None else mesh
+    _check_config(cfg, fm, mesh)
+    b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
+    if b_ref <= 0:
+        raise CfmInputError(
+            "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
+        )
+    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
+    start_cells = _kernels.octant_cells(
+        mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
+    )
+    htm = None
+    if cfg.mode == "htm":
+        htm, unreachable = _htm_arrays(cfg, fm)
+        if unreachable.all():
+            raise CfmInputError(
+                "no node of the map is within the strokes of the bench's axes; check the magnet "
+                "placement in the bench file ([magnet] rotation_deg, translation_mm)",
+                file=fm.source,
+            )
+        if unreachable.any():
+            start_cells = start_cells.copy()
+            start_cells[unreachable] = -1
+            mesh.notes.append(
+                f"{int(unreachable.sum())} node(s) lie outside the strokes of the bench's axes: "
+                "no statistics (NaN)"
+            )
+    problem = SweepProblem(
+        coords=mesh.coords,
+        values=np.ascontiguousarray(fm.B),
+        simplices=mesh.simplices,
+        transform=mesh.transform,
+        neighbors=mesh.neighbors,
+        start_cells=start_cells,
+        basis=np.ascontiguousarray(mesh.basis),
+        axis_scale=np.asarray(cfg.axis_scale, dtype=np.float64),
+        scales_mm=np.asarray(cfg.up_um, dtype=np.float64) * 1e-3,
+        trials=int(cfg.trials),
+        seed=int(cfg.seed),
+        coverage=float(cfg.coverage),
+        htm=htm,
+        exit_grad=(
+            np.ascontiguousarray(edge_fit_gradients(mesh, fm.B))
+            if cfg.outside == "extrapolate"
+            else np.empty((0, 3, mesh.dim))
+        ),
+        search=exact_search(mesh),
+    )
+    return mesh, problem, b_ref
+
+
+def _htm_arrays(cfg: SweepConfig, fm: FieldMap):
+    """Bench arrays of mode htm for `SweepProblem`, and the nodes the bench cannot reach."""
+    from ...io.bench_toml import read_reference_bench  # the packaged default bench
+    from ...models.kinematics.geometry import draw_error_sets, kernel_geometry, noise_keys
+
+    bench = cfg.bench if cfg.bench is not None else read_reference_bench()
+    q = np.ascontiguousarray(bench.axis_positions_for(fm.points))
+    g = kernel_geometry(bench)
+    nkey, fkey = noise_keys(cfg.seed)
+    params = np.ascontiguousarray(draw_error_sets(bench, cfg.trials, cfg.seed))
+    # constant error profiles: the chain collapses exactly to 21 numbers per trial
+    n_terms = (len(params), 1) if g.linear else (0, 0)
+    terms, terms_zero = np.empty((n_terms[0], 21)), np.empty((n_terms[1], 21))
+    _kernels.trial_terms(params[: n_terms[0]], g.stack, g.mounts, g.tool, terms)
+    _kernels.trial_terms(np.zeros((n_terms[1], 21)), g.stack, g.mounts, g.tool, terms_zero)
+    arrays = dict(
+        rot=np.ascontiguousarray(bench.bench_to_magnet_rotation()),
+        q_nodes=q,
+        params=params,
+        terms=terms,
+        terms_zero=terms_zero,
+        nkey=nkey,
+        fkey=fkey,
+        sig=g.sig,
+        speed=g.speed,
+        tau_code=g.tau_code,
+        tau_par=g.tau_par,
+        stack=g.stack,
+        mounts=g.mounts,
+        tool=g.tool,
+        strokes=g.strokes,
+        profiles=g.profiles,
+        bench_name=bench.name,
+    )
+    return arrays, bench.outside_stroke(q)
