@@ -231,9 +231,9 @@ def test_hull_slivers_option(tmp_path):
 def test_slabs_say_the_thousands_separator_ambiguity_once(tmp_path, capsys, monkeypatch):
     """--slabs streams the file in blocks; the "1,250 read with ',' as thousands separator"
     warning was printed once per block. Once per file now."""
-    import cfm_fem.workflows.sweep.slabs
+    import cfm_fem.io.slab_files
 
-    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "BLOCK", 50)  # 216 rows: 5 blocks
+    monkeypatch.setattr(cfm_fem.io.slab_files, "BLOCK", 50)  # 216 rows: 5 blocks
     ax = np.arange(6.0)
     pts = np.stack(np.meshgrid(ax + 1000.0, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     B = (pts - [1000.0, 0.0, 0.0]) @ G.T + [0.0, 0.0, 1.0]
@@ -585,8 +585,8 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     and sweep.pvd beside it: a set that contradicts itself (session-14 audit). The earlier
     summary and index are now removed before any new map is written: what remains has no
     summary, which says the run did not complete."""
+    import cfm_fem.io.slab_files
     import cfm_fem.io.sweep_out
-    import cfm_fem.workflows.sweep.slabs
 
     out = tmp_path / "res"
     base = ["sweep", str(csv_map), "--up", "0,10,20", "--trials", "50", "--out", str(out)]
@@ -602,7 +602,7 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
         return real(*args, **kwargs)
 
     monkeypatch.setattr(cfm_fem.io.sweep_out, "write_vtu", stop_after_one)
-    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "write_vtu", stop_after_one)
+    monkeypatch.setattr(cfm_fem.io.slab_files, "write_vtu", stop_after_one)
     assert main([*base, *layout, "--seed", "0"]) == 1  # interrupted
     assert len(calls) == 1  # one new map (or piece) was written
     assert not (out / "summary.json").exists() and not (out / "sweep.pvd").exists()

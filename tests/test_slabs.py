@@ -20,7 +20,8 @@ from cfm_fem.errors import CfmInputError
 from cfm_fem.io import read_field, streaming, write_field
 from cfm_fem.io.provenance import read_xml_provenance
 from cfm_fem.models.sweep import SweepConfig
-from cfm_fem.workflows.sweep.slabs import disk_percentiles, run_slab_sweep, slabs_for_memory
+from cfm_fem.workflows.sweep.slab_plan import slabs_for_memory
+from cfm_fem.workflows.sweep.slabs import disk_percentiles, run_slab_sweep
 
 HEADER = "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]"
 
@@ -482,6 +483,7 @@ def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path,
 def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
     """The API checked the seed only when the first slab was prepared: after staging the file
     into a work folder made in out_dir. Now up front, with the CLI's message."""
+    import cfm_fem.io.slab_files
     import cfm_fem.workflows.sweep.slabs
     from cfm_fem.errors import check_seed
 
@@ -491,7 +493,7 @@ def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, m
         raise AssertionError("the file was read")
 
     monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "stage", no_read)
-    monkeypatch.setattr(cfm_fem.workflows.sweep.slabs, "open_stream", no_read)
+    monkeypatch.setattr(cfm_fem.io.slab_files, "open_stream", no_read)
     with pytest.raises(CfmInputError) as cli:
         check_seed(seed)
     out = tmp_path / "o"
@@ -510,8 +512,8 @@ def test_staged_planar_map_is_the_map_read_field_gives(tmp_path, ext, zero_rows)
     again): the same points, field, lines, notes and source as `read_field`."""
     import warnings
 
+    from cfm_fem.io.slab_files import stage, staged_fieldmap
     from cfm_fem.models.field import FieldMap
-    from cfm_fem.workflows.sweep.slabs import stage, staged_fieldmap
 
     ax = np.linspace(-10.0, 10.0, 6)
     pts = np.stack(np.meshgrid(ax, [2.5], ax, indexing="ij"), -1).reshape(-1, 3)

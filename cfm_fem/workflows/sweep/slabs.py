@@ -35,7 +35,7 @@ is checked, not trusted:
   uncertified cell (a node keeps its move when one of its cells is flat without it: only then
   is that decided as in the whole map). Otherwise h is doubled and the slab rebuilt.
 - with ``hull_slivers="remove"``, every slab tests its cells against the whole map's convex
-  hull (`_hull_points`, so a cell is removed in a slab when the whole map removes it), and the
+  hull (`hull_points`, so a cell is removed in a slab when the whole map removes it), and the
   removed cells within two rings of cells of an own node must be certified too; the faces they
   leave are the map's border.
 - faces through which a walk would leave the certified region (a boundary face of slab + halo
@@ -74,39 +74,36 @@ Limits: 3-D maps of plain or Opera tables; other formats and planar maps are run
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import mmap
-import shutil
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.spatial
 
 from ...errors import CfmInputError, CfmInputWarning, check_seed
-from ...io._atomic import write_json
 from ...io.lock import output_lock
-from ...io.pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
-from ...io.streaming import check_opera_counts, open_stream
-from ...io.sweep_out import (
-    _point_data,
-    provenance_codes,
-    remove_earlier_outputs,
-    retire_index,
-    vtu_name,
+from ...io.slab_files import (
+    SLAB_WORK,
+    SlabStore,
+    Staged,
+    drop_pages,
+    make_per_node_file,
+    new_work_dir,
+    open_per_node,
+    read_manifest,
+    remove_work_dir,
+    stage,
+    staged_fieldmap,
+    temp_work_dir,
+    write_slab_outputs,
 )
-from ...io.vtk import write_pvd, write_vtu
-from ...models.field import DUPLICATE_TOL_MM, FieldMap
+from ...io.sweep_out import (
+    remove_earlier_outputs,
+)
+from ...models.field import FieldMap
 from ...models.mesh import (
-    FLAT_TOL,
-    TIE_JITTER,
     build_mesh,
-    circumspheres,
-    convex_hull_points,
     delaunay_coords,
     morton_order,
     sliver_note,
@@ -114,20 +111,29 @@ from ...models.mesh import (
 )
 from ...models.sweep import HTM_PARTS, SweepConfig, SweepResult, _gum_u, summarize
 from .problem import node_gradients, prepare_sweep, serial_map, with_bench
+from .slab_plan import (
+    SlabPlan,
+    at_cut,
+    beyond_boxes,
+    certify,
+    extract_slab,
+    faces_of,
+    htm_reach_mm,
+    hull_face_ok,
+    hull_points,
+    lattice_keys,
+    merge_duplicates,
+    plan_slabs,
+    settled,
+    slab_search,
+    slabs_for_memory,
+)
 
 __all__ = [
-    "SlabPlan",
-    "stage",
-    "staged_fieldmap",
     "run_slab_sweep",
     "disk_percentiles",
-    "slabs_for_memory",
 ]
 
-#: Distinct values per axis tracked while staging; more means "not a grid".
-MAX_DISTINCT = 1 << 20
-#: Rows per block when streaming or scanning the staged rows.
-BLOCK = 1 << 16
 #: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
 HALO_CELLS = 4.0
 #: A slab's halo is doubled for removed hull slivers it cannot certify only while slab + halo
@@ -139,555 +145,6 @@ GONE_ROWS_FACTOR = 2.0
 #: Rows a slab + halo may always grow to for those slivers (little memory, and the same
 #: numbers as the in-memory run).
 SMALL_SLAB_ROWS = 20_000
-
-
-def htm_reach_mm(bench, trials: int, seed: int, lo, hi) -> float:
-    """Largest probe position error of a mode-htm sweep near a map, mm (for the slab halo).
-
-    The geometric part at the corners and the centre of the map's box (magnet frame) for every
-    trial of the run, plus 1.5 times the largest of 4,000 draws of the vibration and delay.
-    A trial that still reaches the halo border is detected and counted, so this only sizes
-    the halo.
-    """
-    from ...models.kinematics.chain import probe_errors_for_bench
-    from ...models.kinematics.geometry import draw_error_sets, point_noise
-
-    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    corners = np.array([[(lo, hi)[(k >> a) & 1][a] for a in range(3)] for k in range(8)])
-    q = bench.axis_positions_for(np.vstack([corners, (lo + hi) / 2]))
-    q = np.clip(q, 0.0, bench.strokes_mm)
-    params = draw_error_sets(bench, trials, seed)
-    geo = np.linalg.norm(probe_errors_for_bench(bench, params, q, 0.0), axis=-1).max()
-    noise = np.stack([point_noise(bench, t, range(200), seed) for t in range(20)])
-    return float(geo + 1.5 * np.linalg.norm(noise, axis=-1).max())
-
-
-def _drop_pages(mm, start: int = 0, length: int | None = None) -> None:
-    """Drop resident pages of a file mapping from this process (Linux/macOS; no-op elsewhere).
-    Shared file pages stay in the page cache, so nothing is lost and a later access re-reads."""
-    if mm is None or not hasattr(mmap, "MADV_DONTNEED"):
-        return
-    if length is None:
-        mm.madvise(mmap.MADV_DONTNEED)
-    elif length > 0:
-        mm.madvise(mmap.MADV_DONTNEED, start, length)
-
-
-@dataclass
-class Staged:
-    """The streamed map on disk (see `stage`).
-
-    Attributes
-    ----------
-    rows : numpy.memmap, shape (n, 6), float64
-        x, y, z (mm), Bx, By, Bz (T) of every kept row (placeholder rows already dropped if
-        asked), in file order.
-    lines : numpy.memmap, shape (n,), int64
-        1-based source line of each row.
-    lo, hi : ndarray, shape (3,), mm
-        Bounding box.
-    b_max : float, T
-        Largest |B| over the rows (the default B_ref, as `FieldMap.b_max`).
-    b_abs_max : float, T
-        Largest |B component| (the scale of the duplicate-field test of `FieldMap`).
-    distinct : list of ndarray or None
-        Sorted distinct coordinate values per axis, None if more than `MAX_DISTINCT`.
-    dim : int
-        3, or 2 / 1 for planar / collinear maps (left to the in-memory path).
-    spelled : list of str
-    notes : list of str
-    """
-
-    rows: np.ndarray
-    lines: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    b_max: float
-    b_abs_max: float
-    distinct: list
-    dim: int
-    spelled: list
-    notes: list
-    maps: tuple = ()  # the mmap objects behind rows and lines
-    workdir: Path | None = None  # where rows.f8 and lines.i8 are (None: rows held in memory)
-
-    def __getstate__(self):
-        """Pickled as the files' folder: a worker maps the rows itself (never a copy)."""
-        state = dict(self.__dict__)
-        if self.workdir is not None:
-            state.update(rows=None, lines=None, maps=())
-        return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        if self.workdir is not None:
-            self.rows, self.lines, self.maps = _map_rows(self.workdir)
-
-    def release(self, a: int = 0, b: int | None = None) -> None:
-        """Drop the pages of rows a..b-1 from this process (they stay in the page cache and
-        come back on the next access): scans of the whole file then keep RSS at one block."""
-        b = len(self.rows) if b is None else min(b, len(self.rows))
-        for mm, width in zip(self.maps, (48, 8), strict=False):
-            start = (a * width // mmap.PAGESIZE) * mmap.PAGESIZE
-            stop = b * width
-            _drop_pages(mm, start, stop - start)
-
-
-def stage(path, fmt, workdir, *, length_unit=None, field_unit=None, zero_rows="warn") -> Staged:
-    """Stream a table or Opera map once into ``workdir`` (see the module docstring, step 1).
-
-    Memory: one block of rows (`BLOCK`) and the distinct-value sets.
-
-    Raises
-    ------
-    CfmInputError
-        As `cfm_fem.io.read_field` for the same file (file, line, column).
-    """
-    from ...io._parse import check_zero_rows, zero_rows_dropped, zero_rows_kept
-
-    check_zero_rows(zero_rows)
-    stream = open_stream(path, fmt, length_unit=length_unit, field_unit=field_unit)
-    workdir = Path(workdir)
-    n = 0
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    b_max = b_abs = 0.0
-    distinct = [np.empty(0), np.empty(0), np.empty(0)]
-    ref = None
-    scatter = np.zeros((3, 3))
-    total = np.zeros(3)
-    n_zero, first_zero = 0, None
-    with open(workdir / "rows.f8", "wb") as fr, open(workdir / "lines.i8", "wb") as fl:
-        for values, lines in stream.blocks(BLOCK):
-            zero = np.all(values[:, 3:] == 0.0, axis=1)
-            if zero.any():
-                if first_zero is None:
-                    first_zero = int(lines[np.flatnonzero(zero)[0]])
-                n_zero += int(zero.sum())
-                if zero_rows == "drop":
-                    values, lines = values[~zero], lines[~zero]
-            if not len(values):
-                continue
-            p = values[:, :3]
-            lo, hi = np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0))
-            b_max = max(b_max, float(np.sqrt((values[:, 3:] ** 2).sum(axis=1)).max()))
-            b_abs = max(b_abs, float(np.abs(values[:, 3:]).max()))
-            for k in range(3):
-                if distinct[k] is not None:
-                    d = np.union1d(distinct[k], p[:, k])
-                    distinct[k] = d if len(d) <= MAX_DISTINCT else None
-            ref = p[0].copy() if ref is None else ref
-            q = p - ref  # shifted sums: the flatness test needs no second pass
-            scatter += q.T @ q
-            total += q.sum(axis=0)
-            fr.write(np.ascontiguousarray(values).tobytes())
-            fl.write(np.ascontiguousarray(lines, dtype=np.int64).tobytes())
-            n += len(values)
-    notes = list(stream.notes)
-    if stream.fmt == "opera":
-        notes += check_opera_counts(stream, [None if d is None else len(d) for d in distinct])
-    if n_zero:
-        what = (
-            f"{n_zero} row(s) have {', '.join(stream.spelled[3:])} exactly 0 0 0 (first at line "
-            f"{first_zero})"
-        )
-        if zero_rows == "drop":
-            notes.append(zero_rows_dropped(what))
-        else:
-            notes.append(zero_rows_kept(stream.file, what, zero_rows, stacklevel=2))
-    dim = 0
-    if n >= 3:
-        cov = scatter - np.outer(total, total) / n
-        s = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[::-1], 0.0, None))
-        dim = 1 if (s[0] == 0 or s[1] <= FLAT_TOL * s[0]) else 2 if s[2] <= FLAT_TOL * s[0] else 3
-    if not n:
-        return Staged(np.empty((0, 6)), np.empty(0, dtype=np.int64), lo, hi, b_max, b_abs,
-                      distinct, dim, stream.spelled, notes)  # fmt: skip
-    rows, lines, maps = _map_rows(workdir)
-    return Staged(rows, lines, lo, hi, b_max, b_abs, distinct, dim, stream.spelled, notes,
-                  maps, workdir)  # fmt: skip
-
-
-def staged_fieldmap(st: Staged, path) -> FieldMap:
-    """The staged map as the `FieldMap` `cfm_fem.io.read_field` reads from the same file
-    (same points, field, lines, notes; duplicates merged as it does), held in memory.
-
-    For maps that are not 3-D, run in memory: the file is then read once, and its warnings
-    (units, thousands separators, placeholder rows) are given once.
-    """
-    values = np.array(st.rows)  # a copy: the staged files are removed after the run
-    return FieldMap.from_arrays(values[:, :3], values[:, 3:], source=str(path),
-                                lines=np.array(st.lines), notes=list(st.notes),
-                                columns=tuple(st.spelled))  # fmt: skip
-
-
-def _map_rows(workdir: Path):
-    """The staged rows (n, 6) and lines (n,) of ``workdir``, read-only, and their mmaps."""
-    maps = []
-    for name in ("rows.f8", "lines.i8"):  # mapped by hand: `Staged.release` needs the mmap
-        with open(workdir / name, "rb") as f:
-            maps.append(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
-    rows = np.frombuffer(maps[0], dtype=np.float64).reshape(-1, 6)
-    lines = np.frombuffer(maps[1], dtype=np.int64)
-    return rows, lines, tuple(maps)
-
-
-def slabs_for_memory(n_nodes: int, budget_bytes: float, n_up: int) -> int:
-    """Number of slabs for a memory budget.
-
-    Per node of a slab (with its halo) about 1,300 bytes for the map, the Delaunay mesh and the
-    walk tables plus 250 bytes per U_p value of statistics and output arrays; about 350 MB of
-    interpreter, numba and VTK.
-    """
-    fixed = 350e6
-    per_node = 1300.0 + 250.0 * n_up
-    room = budget_bytes - fixed
-    if room <= per_node * 2000:
-        return max(1, n_nodes // 2000)
-    # 1.3: the halo adds nodes to each slab
-    return max(1, math.ceil(1.3 * n_nodes * per_node / room))
-
-
-@dataclass
-class SlabPlan:
-    """Geometry of the partition.
-
-    Attributes
-    ----------
-    axis : int
-        Slab axis (0, 1, 2 = x, y, z): the longest side of the bounding box.
-    edges : ndarray, shape (K + 1,), mm
-        Slab k owns nodes with edges[k] <= x_axis < edges[k + 1] (the last one includes its
-        upper edge); edges[0] and edges[K] are the map's extremes.
-    halo : float, mm
-    """
-
-    axis: int
-    edges: np.ndarray
-    halo: float
-
-    @property
-    def n_slabs(self) -> int:
-        return len(self.edges) - 1
-
-    def owner(self, x) -> np.ndarray:
-        """Slab owning each coordinate ``x`` (along the axis), shape like x."""
-        return np.clip(np.searchsorted(self.edges[1:-1], x, side="right"), 0, self.n_slabs - 1)
-
-
-def _plan(st: Staged, n_slabs: int, halo: float) -> SlabPlan:
-    axis = int(np.argmax(st.hi - st.lo))
-    lo, hi = st.lo[axis], st.hi[axis]
-    nb = 64 * n_slabs
-    edges_h = np.linspace(lo, hi, nb + 1)
-    counts = np.zeros(nb, dtype=np.int64)
-    for a in range(0, len(st.rows), BLOCK):
-        x = st.rows[a : a + BLOCK, axis]
-        counts += np.bincount(
-            np.clip(np.searchsorted(edges_h, x, side="right") - 1, 0, nb - 1), minlength=nb
-        )
-        st.release(a, a + BLOCK)
-    cum = np.cumsum(counts)
-    targets = np.arange(1, n_slabs) * (cum[-1] / n_slabs)
-    inner = edges_h[np.searchsorted(cum, targets) + 1]
-    edges = np.unique(np.concatenate([[lo], inner, [hi]]))
-    if len(edges) < 2:
-        edges = np.array([lo, hi])
-    return SlabPlan(axis, edges, halo)
-
-
-def _extract(st: Staged, plan: SlabPlan, k: int, halo: float):
-    """Rows of slab k and its halo: (staged row index (m,), own mask (m,)); memory O(m)."""
-    a_lo = plan.edges[k] - halo
-    a_hi = plan.edges[k + 1] + halo
-    idx, own = [], []
-    for a in range(0, len(st.rows), BLOCK):
-        x = st.rows[a : a + BLOCK, plan.axis]
-        sel = np.flatnonzero((x >= a_lo) & (x <= a_hi))
-        idx.append(sel + a)
-        own.append(plan.owner(x[sel]) == k)
-        st.release(a, a + BLOCK)
-    return np.concatenate(idx), np.concatenate(own)
-
-
-def _duplicates(st: Staged, rows, file):
-    """Rows to drop as duplicates among ``rows`` (staged indices, sorted), as `FieldMap` does.
-
-    Returns the dropped row indices; raises `CfmInputError` for two nodes at one place with
-    different fields.
-    """
-    pts = np.asarray(st.rows[rows, :3])
-    order = np.lexsort(pts.T[::-1])
-    sp = pts[order]
-    same = np.all(np.abs(np.diff(sp, axis=0)) <= DUPLICATE_TOL_MM, axis=1)
-    if not same.any():
-        return np.empty(0, dtype=np.int64)
-    rep = np.concatenate([[True], ~same])
-    group = np.cumsum(rep) - 1
-    first_of = np.empty(len(rows), dtype=np.int64)
-    first_of[order] = order[np.flatnonzero(rep)[group]]
-    dup = first_of != np.arange(len(rows))
-    B = np.asarray(st.rows[rows, 3:])
-    db = np.abs(B[dup] - B[first_of[dup]]).max(axis=1)
-    conflict = np.flatnonzero(dup)[db > 1e-9 * max(st.b_abs_max, 1e-30)]
-    if conflict.size:
-        i = int(conflict[0])
-        j = int(first_of[i])
-        raise CfmInputError(
-            f"duplicate node at {pts[i].tolist()} mm (also on line {int(st.lines[rows[j]])}) with "
-            f"a different field {B[i].tolist()} T vs {B[j].tolist()} T; expected one field per "
-            f"position",
-            file=file,
-            line=int(st.lines[rows[i]]),
-        )
-    return rows[dup]
-
-
-def _lattice_keys(points, span):
-    return np.round(points / (span * 1e-9))
-
-
-def _circum_ok(coords, simplices, boxes, spheres=False, pad=0.0):
-    """Certified Delaunay cells: the circumsphere meets no part of the map's bounding box beyond
-    the slab + halo (``boxes``, each widened by ``pad``, mm: the move of the nodes that
-    Delaunay triangulates), so no node left out can lie in it.
-
-    With ``spheres``, also return the circumcentres (m, 3) and squared radii (m,), mm.
-    """
-    c, r2 = circumspheres(coords, simplices)
-    with np.errstate(invalid="ignore", over="ignore"):
-        r2 = r2 * (1.0 + 1e-9)
-    ok = np.isfinite(r2)
-    for lo, hi in boxes:
-        lo, hi = lo - pad, hi + pad
-        d2 = (np.maximum(np.maximum(lo - c, c - hi), 0.0) ** 2).sum(-1)
-        ok &= d2 >= r2
-    return (ok, c, r2) if spheres else ok
-
-
-def _empty_spheres(st: Staged, axis, a_lo, a_hi, centers, r2, span):
-    """For circumspheres that reach beyond the slab + halo: True where no staged node outside
-    a_lo..a_hi along ``axis`` lies in (or on) the sphere, so the cell is the whole map's too.
-    The nodes are moved as Delaunay triangulates them (`delaunay_coords`, ``span``: the whole
-    map's size, mm). One scan of the staged rows; hull slivers (huge spheres bulging out of the
-    map) pass here."""
-    hits = np.zeros(len(centers), dtype=np.int64)
-    r = np.sqrt(r2)
-    for a in range(0, len(st.rows), BLOCK):
-        p = np.asarray(st.rows[a : a + BLOCK, :3])
-        p = delaunay_coords(p[(p[:, axis] < a_lo) | (p[:, axis] > a_hi)], span)
-        st.release(a, a + BLOCK)
-        if len(p):
-            tree = scipy.spatial.cKDTree(p)
-            hits += np.asarray(tree.query_ball_point(centers, r, return_length=True))
-    return hits == 0
-
-
-def _hull_face_ok(coords, simplices, s, j, boxes, tol):
-    """Border faces (of cell s[i], opposite its vertex j[i]) provably on the map's own hull: no
-    part of the bounding box beyond the slab + halo (``boxes``) is on their outer side.
-
-    ``tol``: mm.
-    """
-    out = np.ones(len(s), dtype=bool)
-    if not boxes or not len(s):
-        return out
-    d = coords.shape[1]
-    cells = simplices[s]  # (f, d + 1)
-    mask = np.ones_like(cells, dtype=bool)
-    mask[np.arange(len(s)), j] = False
-    fv = coords[cells[mask].reshape(len(s), d)]  # (f, 3, 3): the face's vertices
-    opp = coords[cells[np.arange(len(s)), j]]
-    nrm = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
-    nrm[((opp - fv[:, 0]) * nrm).sum(-1) > 0] *= -1.0  # outward
-    scale = np.linalg.norm(nrm, axis=1)
-    for lo, hi in boxes:
-        corners = np.array([[(lo, hi)[(c >> a) & 1][a] for a in range(3)] for c in range(8)])
-        side = np.einsum("fck,fk->fc", corners[None] - fv[:, :1, :], nrm)
-        out &= side.max(axis=1) <= tol * scale
-    return out
-
-
-def _certify(st: Staged, plan, k, h, coords, simplices, boxes, span):
-    """Cells of slab k + halo h (m,) that are provably cells of the whole map's Delaunay
-    triangulation: by the box test (`_circum_ok`), and for cells away from the cut zone that it
-    could not certify, against the nodes left out (`_empty_spheres`, one scan of the rows).
-
-    ``coords``: the slab + halo's nodes as Delaunay triangulates them (`delaunay_coords` with
-    the whole map's size ``span``): the moved nodes are in general position, so the whole map
-    has the one Delaunay triangulation, whose cells these tests prove.
-    """
-    pad = TIE_JITTER * span  # a node moves less than this along each axis
-    cert, cen, r2 = _circum_ok(coords, simplices, boxes, spheres=True, pad=pad)
-    near = coords[simplices, plan.axis]
-    inner = (near >= plan.edges[k] - h / 2) & (near <= plan.edges[k + 1] + h / 2)
-    cand = np.flatnonzero(~cert & inner.any(axis=1))
-    if len(cand):
-        cert[cand] = _empty_spheres(
-            st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h, cen[cand], r2[cand], span
-        )
-    return cert
-
-
-def _settled(simplices, cert):
-    """Nodes of a slab + halo's Delaunay mesh (n,) in no uncertified cell: their cells are the
-    whole map's (nearly always: a node on a cut face is in an uncertified cell too, whose
-    circumsphere reaches beyond the cut), and so is their Delaunay move, which `build_mesh`
-    keeps when one of a node's cells is flat (co-spherical nodes). The sweep leaves the cells
-    of the other nodes uncertified. Faces left by removed hull slivers that cannot be certified
-    (a cylinder's mantle) are accepted as halo borders (`GONE_ROWS_FACTOR`), and the moves of
-    their nodes with them."""
-    settled = np.ones(simplices.max(initial=-1) + 1, dtype=bool)
-    settled[simplices[~cert]] = False
-    return settled
-
-
-def _at_cut(coords, simplices, s, j, axis, map_lo, map_hi, tol):
-    """Border faces (of cell s[i], opposite its vertex j[i]) of a slab + halo's Kuhn grid that
-    may be cuts: with a vertex on its first or last lattice plane along ``axis`` where the map
-    goes on beyond. A Kuhn cell spans one lattice step, so the map's cell across any other
-    border face would have all its nodes in slab + halo, and be there: the face is the map's
-    own border (a notch, a gap of the grid), not a halo border. ``tol``: mm."""
-    a = coords[:, axis]
-    lo, hi = a.min(), a.max()
-    keep = np.ones((len(s), simplices.shape[1]), dtype=bool)
-    keep[np.arange(len(s)), j] = False
-    fa = a[simplices[s][keep].reshape(len(s), -1)]
-    cut = np.zeros(len(s), dtype=bool)
-    if lo > map_lo + tol:
-        cut |= (fa <= lo + tol).any(axis=1)
-    if hi < map_hi - tol:
-        cut |= (fa >= hi - tol).any(axis=1)
-    return cut
-
-
-def _faces_of(simplices, s, j, cells):
-    """Whether the face of simplices[s[i]] opposite its vertex j[i] is a face of one of
-    ``cells`` (k, d + 1), as a bool array like ``s``."""
-    out = np.zeros(len(s), dtype=bool)
-    if not len(s) or not len(cells):
-        return out
-    dp1 = simplices.shape[1]
-    keep = np.ones((len(s), dp1), dtype=bool)
-    keep[np.arange(len(s)), j] = False
-    border = np.sort(simplices[s][keep].reshape(len(s), dp1 - 1), axis=1)
-    faces = np.sort(np.concatenate([np.delete(cells, c, axis=1) for c in range(dp1)]), axis=1)
-    _, ids = np.unique(np.concatenate([border, faces]), axis=0, return_inverse=True)
-    ids = ids.ravel()
-    return np.isin(ids[: len(s)], ids[len(s) :])
-
-
-def _hull_points(st: Staged) -> np.ndarray:
-    """Vertices of the convex hull of all staged nodes (k, 3), mm, block by block (the hull of
-    a union is the hull of its parts' hull vertices)."""
-    keep = np.empty((0, 3))
-    for a in range(0, len(st.rows), BLOCK):
-        p = np.concatenate([keep, np.asarray(st.rows[a : a + BLOCK, :3])])
-        st.release(a, a + BLOCK)
-        try:
-            keep = convex_hull_points(p)
-        except scipy.spatial.QhullError:  # a flat block (one plane of nodes): kept whole
-            keep = p
-    return convex_hull_points(keep)
-
-
-def _beyond_boxes(st: Staged, axis: int, a_lo: float, a_hi: float):
-    """(lo, hi) corners of the parts of the bounding box beyond a_lo..a_hi along ``axis``."""
-    boxes = []
-    for lo_a, hi_a in ((st.lo[axis], a_lo), (a_hi, st.hi[axis])):
-        if hi_a <= lo_a:
-            continue
-        lo, hi = st.lo.copy(), st.hi.copy()
-        lo[axis], hi[axis] = lo_a, hi_a
-        boxes.append((lo, hi))
-    return boxes
-
-
-def _slab_search(search, cert):
-    """The exact-search arrays (`cfm_fem.models.mesh.exact_search`) of a slab + halo mesh
-    for its two passes, the sentinel cell (index m) and copies of the uncertified cells
-    (m + 1 + i for ``unc[i]``) appended to the mesh arrays.
-
-    The face excess is the slab mesh's own: a point beyond a border face by more than every
-    node of slab + halo lies in none of its cells, which is what the search would find (a cut
-    face, a supporting plane of slab + halo, thus proves its exits at once). Pass 1 (suspect
-    faces lead to the sentinel) lists, in place of each uncertified cell, a copy of it whose
-    field is the sentinel's NaN: a point the search finds there reaches beyond the certified
-    region, as a walk through a suspect face does, and poisons its node. Pass 2 (suspect
-    faces closed) lists the certified cells only: the rest of slab + halo is outside.
-
-    Returns
-    -------
-    search_a, search_b : tuple or None
-        Pass 1 and pass 2 arrays (None: convex slab mesh, nothing to search).
-    unc : ndarray, shape (k,), int64
-        Uncertified cells copied (empty when there is nothing to search).
-    """
-    if search is None or not search[0].shape[0]:
-        return None, None, np.zeros(0, dtype=np.int64)
-    excess, reach, box, dims, bstart, bcells = search
-    m, dp1 = excess.shape
-    unc = np.flatnonzero(~cert)
-    excess = np.concatenate([excess, np.zeros((1 + len(unc), dp1), dtype=excess.dtype)])
-    reach = np.concatenate([reach, [0.0]])  # the sentinel node
-    remap = np.arange(m, dtype=bcells.dtype)
-    remap[unc] = m + 1 + np.arange(len(unc))
-    bucket = np.repeat(np.arange(len(bstart) - 1), np.diff(bstart))
-    keep = cert[bcells]
-    start_b = np.zeros_like(bstart)
-    np.cumsum(np.bincount(bucket[keep], minlength=len(bstart) - 1), out=start_b[1:])
-    return ((excess, reach, box, dims, bstart, remap[bcells]),
-            (excess, reach, box, dims, start_b, bcells[keep]), unc)  # fmt: skip
-
-
-class _SlabStore:
-    """Per-slab results on disk (``.npy``), read back by node id."""
-
-    def __init__(self, root: Path):
-        self.root = root
-        self.ids = []
-
-    def save(self, k, **arrays):
-        d = self.root / f"slab{k:04d}"
-        d.mkdir(parents=True, exist_ok=True)
-        for name, arr in arrays.items():
-            np.save(d / f"{name}.npy", arr)
-
-    def mark_done(self, k, record: dict) -> None:
-        """Slab k is complete: its arrays are saved and ``record`` holds what the merge needs
-        (written last and atomically, so a present record means a usable slab)."""
-        write_json(self.root / f"slab{k:04d}" / "done.json", record)
-
-    def done(self, k) -> dict | None:
-        """The record of a completed slab k, or None."""
-        f = self.root / f"slab{k:04d}" / "done.json"
-        try:
-            return json.loads(f.read_text())
-        except (OSError, ValueError):
-            return None
-
-    def load(self, k, name):
-        return np.load(self.root / f"slab{k:04d}" / f"{name}.npy", mmap_mode="r")
-
-    def gather(self, ids, n_slabs, names):
-        """Arrays ``names`` of the node ids ``ids`` (any slab), in the order of ``ids``."""
-        out = {}
-        found = np.zeros(len(ids), dtype=bool)
-        for k in range(n_slabs):
-            own = self.load(k, "ids")
-            pos = np.clip(np.searchsorted(own, ids), 0, max(len(own) - 1, 0))
-            hit = (own[pos] == ids) if len(own) else np.zeros(len(ids), bool)
-            if not hit.any():
-                continue
-            for name in names:
-                src = self.load(k, name)
-                if name not in out:
-                    out[name] = np.empty((len(ids),) + src.shape[1:], src.dtype)
-                out[name][hit] = src[pos[hit]]
-            found |= hit
-        if not found.all():  # pragma: no cover - every cell vertex is owned by some slab
-            raise RuntimeError(f"{int((~found).sum())} node(s) of the pieces have no results")
-        return out
 
 
 def disk_percentiles(chunks, qs, in_memory_limit: int = 1 << 22):
@@ -853,8 +310,7 @@ def run_slab_sweep(
         log = log or (lambda s: None)
         out = Path(out_dir)
         if description is None:
-            out.mkdir(parents=True, exist_ok=True)
-            work = Path(tempfile.mkdtemp(prefix=".cfm_fem_slabs.", dir=out))
+            work = temp_work_dir(out)
             resume = keep = False
         else:
             work = _slab_work_dir(out, description, resume)
@@ -876,14 +332,10 @@ def run_slab_sweep(
             raise
         finally:  # an interrupted resumable run keeps its finished slabs for --resume
             if description is None or (finished and not keep):
-                shutil.rmtree(work, ignore_errors=True)
+                remove_work_dir(work)
         if remove_stale:  # the new outputs are complete: now the old maps can go
             remove_earlier_outputs(out)
         return summary
-
-
-#: Work folder of a resumable out-of-core run (staged rows, per-slab results, manifest).
-SLAB_WORK = ".cfm_fem_slabs"
 
 
 def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
@@ -894,12 +346,8 @@ def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
 
     work = out / SLAB_WORK
     key = run_key(description)
-    manifest = work / "manifest.json"
     if resume and work.exists():
-        try:
-            made = json.loads(manifest.read_text())
-        except (OSError, ValueError):
-            made = None
+        made = read_manifest(work)
         if made is not None and made.get("key") != key:
             raise CfmInputError(
                 "cannot resume: the slab store was made by a different run ("
@@ -909,10 +357,7 @@ def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
             )
         if made is not None:
             return work
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
-    write_json(manifest, {"key": key, "run": description})
-    return work
+    return new_work_dir(work, {"key": key, "run": description})
 
 
 def _zero_sums(n_col: int) -> dict:
@@ -920,17 +365,6 @@ def _zero_sums(n_col: int) -> dict:
     return dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64), processed=0,
                 star=0, dis=np.zeros((n_col, 4), np.int64), cells=0, halo_nodes=0,
                 unreachable=0, slivers=0, ties=0)  # fmt: skip
-
-
-def _make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
-    """Create a per-node array file (`_SlabJob.per_node`), or keep it when resuming: the
-    finished slabs' rows are in it."""
-    if resume and path.exists():
-        arr = np.lib.format.open_memmap(path, "r")
-        if arr.shape == shape and arr.dtype == dtype:
-            return
-        del arr
-    np.lib.format.open_memmap(path, "w+", dtype, shape).flush()
 
 
 def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
@@ -960,7 +394,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     # interpolation decided for the whole map, as build_mesh would on all nodes
     keys = None
     if cfg.interpolation in ("auto", "grid") and all(d is not None for d in st.distinct):
-        keys = [np.unique(_lattice_keys(d, span)) for d in st.distinct]
+        keys = [np.unique(lattice_keys(d, span)) for d in st.distinct]
     kind = cfg.interpolation
     if kind == "native":
         raise CfmInputError("interpolation 'native' needs tetrahedra in the export; this map has "
@@ -973,7 +407,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     else:
         step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
     halo = halo_cells * step + 6.0 * sigma
-    plan = _plan(st, n_slabs, halo)
+    plan = plan_slabs(st, n_slabs, halo)
     K = plan.n_slabs
     reach = "the bench's largest probe error" if htm else "6 sigma of the largest U_p"
     log(f"slabs: {K} along {'xyz'[plan.axis]}, halo {halo:.4g} mm ({halo_cells:g} cells of "
@@ -981,8 +415,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     # pass A: duplicates (and the grid test: one node per lattice point)
     dropped = []
     for k in range(K):
-        rows, _ = _extract(st, plan, k, 1e-6)  # a group split by an edge is seen by both
-        dropped.append(_duplicates(st, rows, file))
+        rows, _ = extract_slab(st, plan, k, 1e-6)  # a group split by an edge is seen by both
+        dropped.append(merge_duplicates(st, rows, file))
         st.release()
     dropped = np.unique(np.concatenate(dropped)) if dropped else np.empty(0, np.int64)
     n = n_rows - len(dropped)
@@ -999,7 +433,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         kind = "delaunay"
         step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
         halo = halo_cells * step + 6.0 * sigma
-        plan = _plan(st, n_slabs, halo)
+        plan = plan_slabs(st, n_slabs, halo)
         K = plan.n_slabs
     if kind == "grid":
         missing = int(np.prod(grid_shape)) - n
@@ -1008,11 +442,11 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
                          "cells touching a missing point are left out, not bridged")  # fmt: skip
 
     # the whole map's hull: a slab removes the hull slivers the whole map removes
-    hull = _hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
-    store = _SlabStore(work / "results")
+    hull = hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
+    store = SlabStore(work / "results")
     for name, dtype in (("uf", np.float64), ("complete", np.bool_), ("e2", np.float64)):
         if name != "e2" or htm:  # created here, or reopened as they are when resuming
-            _make_per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
+            make_per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
                    hull=hull)  # fmt: skip
@@ -1044,9 +478,9 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
             sums[key] = sums[key] + (np.asarray(v, dtype=np.int64) if np.ndim(v) else v)
         mesh_notes += [m for m in record["mesh_notes"] if m not in mesh_notes]
         template = template or record["template"]
-    e2_all = np.lib.format.open_memmap(work / "e2.npy", "r") if htm else None
-    uf_all = np.lib.format.open_memmap(work / "uf.npy", "r")
-    ok_all = np.lib.format.open_memmap(work / "complete.npy", "r")
+    e2_all = open_per_node(work / "e2.npy", "r") if htm else None
+    uf_all = open_per_node(work / "uf.npy", "r")
+    ok_all = open_per_node(work / "complete.npy", "r")
     if htm:  # as SweepResult.column_up_um, over the whole map
         ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
         if sums["unreachable"]:
@@ -1080,7 +514,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         )
     summary["seconds"] = time.perf_counter() - t0
     summary["provenance"] = prov or {}
-    _write(out, store, K, cfg, b_ref, summary)
+    write_slab_outputs(out, store, K, cfg, b_ref, summary)
     return summary
 
 
@@ -1111,7 +545,7 @@ class _SlabJob:
 
     def per_node(self, name: str):
         """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
-        return np.lib.format.open_memmap(self.work / f"{name}.npy", "r+")
+        return open_per_node(self.work / f"{name}.npy", "r+")
 
     def run_chunk(self, a: int, b: int) -> dict:
         """Sweep slab a (b = a + 1: the chunk interface of
@@ -1122,13 +556,13 @@ class _SlabJob:
         st, plan, dropped, cfg, file = self.st, self.plan, self.dropped, self.cfg, self.file
         kind, halo, b_ref, n_col, htm, span = (self.kind, self.halo, self.b_ref, self.n_col,
                                                 self.htm, self.span)  # fmt: skip
-        store = _SlabStore(self.work / "results")
+        store = SlabStore(self.work / "results")
         sums = _zero_sums(n_col)
         messages = []
         h = halo
         limit = max(GONE_ROWS_FACTOR * len(st.rows) / plan.n_slabs, SMALL_SLAB_ROWS)
         while True:
-            rows, own = _extract(st, plan, k, h)
+            rows, own = extract_slab(st, plan, k, h)
             keep = ~np.isin(rows, dropped)
             rows, own = rows[keep], own[keep]
             ids = rows - np.searchsorted(dropped, rows)
@@ -1138,16 +572,16 @@ class _SlabJob:
             st.release()
             mesh = build_mesh(lfm, kind, cfg.hull_slivers, self.hull, jitter_span=span)
             gone = mesh.hull_slivers
-            boxes = _beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
+            boxes = beyond_boxes(st, plan.axis, plan.edges[k] - h, plan.edges[k + 1] + h)
             if kind == "grid":  # the Kuhn triangulation is local: every cell is the map's own
                 cert = np.ones(len(mesh.simplices), dtype=bool)
                 cert_gone = np.ones(0, dtype=bool)
             else:  # the removed hull slivers too: where the map ends around own nodes
                 both = np.concatenate([mesh.simplices, gone])
                 moved = delaunay_coords(pts, span)  # 3-D: the mesh frame is the map frame
-                cert, cert_gone = np.split(_certify(st, plan, k, h, moved, both, boxes, span),
+                cert, cert_gone = np.split(certify(st, plan, k, h, moved, both, boxes, span),
                                            [len(mesh.simplices)])  # fmt: skip
-                cert &= _settled(mesh.simplices, cert)[mesh.simplices].all(axis=1)
+                cert &= settled(mesh.simplices, cert)[mesh.simplices].all(axis=1)
             own_cells = own[mesh.simplices].any(axis=1)
             # removed cells a walk from an own node can meet: two rings of cells around it
             near = own.copy()
@@ -1158,7 +592,7 @@ class _SlabJob:
             if own_ok and gone_bad == 0 or not boxes:
                 break
             if own_ok:  # only removed slivers left: widen while slab + halo stays in the limit
-                wider = len(_extract(st, plan, k, 2.0 * h)[0])
+                wider = len(extract_slab(st, plan, k, 2.0 * h)[0])
                 st.release()
                 if wider > limit:
                     messages.append(
@@ -1183,10 +617,10 @@ class _SlabJob:
         suspect = np.zeros_like(nb, dtype=bool)
         suspect[nb >= 0] = ~cert[nb[nb >= 0]]
         s_idx, j_idx = np.nonzero(nb < 0)
-        hull = _hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
-        hull |= _faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
+        hull = hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
+        hull |= faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
         if kind == "grid":  # a notch or a gap of the grid: border faces off the cut planes
-            hull |= ~_at_cut(mesh.coords, mesh.simplices, s_idx, j_idx, plan.axis,
+            hull |= ~at_cut(mesh.coords, mesh.simplices, s_idx, j_idx, plan.axis,
                              st.lo[plan.axis], st.hi[plan.axis], 1e-9 * span)  # fmt: skip
         suspect[s_idx[~hull], j_idx[~hull]] = True
         suspect[~cert] = False  # never entered
@@ -1197,7 +631,7 @@ class _SlabJob:
         values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
         start_l = np.concatenate([problem.start_cells,
                                   np.full((1, problem.start_cells.shape[1]), -1)])  # fmt: skip
-        search_a, search_b, unc = _slab_search(problem.search, cert)
+        search_a, search_b, unc = slab_search(problem.search, cert)
         simp = np.concatenate([problem.simplices, np.full((1 + len(unc), dp1), nl)])
         simp = simp.astype(np.int64)
         trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1)),
@@ -1249,7 +683,7 @@ class _SlabJob:
         uf_all[own_ids], ok_all[own_ids] = uf, complete
         for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
             arr.flush()
-            _drop_pages(getattr(arr, "_mmap", None))  # numpy's memmap keeps its mmap here
+            drop_pages(getattr(arr, "_mmap", None))  # numpy's memmap keeps its mmap here
         processed = (n_out + n_lost > 0).any(axis=1) | np.isfinite(stats[:, :, 3, 1]).any(axis=1)
         sums["processed"] += int(processed.sum())
         sums["star"] += int(star[processed].sum())
@@ -1316,7 +750,7 @@ def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
                 ok = np.array(ok_all[a : a + step, k])
                 yield np.array(uf_all[a : a + step, k])[ok]
                 for arr in (uf_all, ok_all):  # one block resident at a time
-                    _drop_pages(getattr(arr, "_mmap", None))
+                    drop_pages(getattr(arr, "_mmap", None))
 
         return chunks
 
@@ -1347,52 +781,3 @@ def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
     s["notes"] = list(notes)
     s["source"] = file
     return s
-
-
-def _write(out: Path, store: _SlabStore, K: int, cfg, b_ref, summary):
-    """One piece per slab and U_p value, the .pvtu indices, sweep.pvd, summary.json."""
-    retire_index(out)  # an interrupted write leaves no earlier run's summary beside new maps
-    prov = summary["provenance"]
-    htm = cfg.mode == "htm"
-    labels = summary["columns"]
-    ups = summary["up_um"]
-    written = {k: [] for k in range(len(labels))}
-    example = {}
-    for p in range(K):
-        ids = np.asarray(store.load(p, "ids"))
-        cells = np.asarray(store.load(p, "cells"))
-        nodes = np.union1d(ids, cells.ravel())
-        names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos"]
-        g = store.gather(nodes, K, names)
-        sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
-        if htm:
-            sigma_mm, corr = g["pos"][:, :, 1], g["pos"][:, :, 2]
-        else:
-            corr = None
-            sigma_mm = (np.asarray(ups)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
-
-        piece_cells = np.searchsorted(nodes, cells)
-        ghost = ghost_flags(np.isin(nodes, ids))  # halo nodes: copies of another slab's nodes
-        res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
-                          n_outside=g["n_out"], n_walk_failed=g["n_lost"],
-                          linear_in_up=g["star"], gradient=g["gradient"],
-                          gum_u=_gum_u(g["gradient"], g["B"], b_ref, sigma_mm, corr), seconds=0.0,
-                          positioning=g["pos"] if htm else None,
-                          n_left_out=g["n_left"])  # fmt: skip
-        for k, label in enumerate(labels):
-            path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
-            data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
-            fields = {"U_p_um": float(ups[k]), "B_ref_T": b_ref, "trials": cfg.trials,
-                      "seed": cfg.seed, "piece": p,
-                      "provenance_utf8": provenance_codes(prov)}  # fmt: skip
-            write_vtu(path, sub.points, piece_cells, data, fields)
-            written[k].append(path)
-            example[k] = {name: v[:1] for name, v in data.items()}
-    entries = []
-    for k, label in enumerate(labels):
-        path = out / vtu_name(label).replace(".vtu", ".pvtu")
-        write_pvtu(path, written[k], example[k], provenance=prov)
-        entries.append((float(k) if htm else float(ups[k]), path))
-    write_pvd(out / "sweep.pvd", entries, provenance=prov)
-    summary["pieces"] = K
-    write_json(out / "summary.json", summary)
