@@ -58,10 +58,7 @@ def test_kernel_matches_numpy_twin(bench):
     q = bench.grid_points()[::131]
     pidx = np.arange(len(q), dtype=np.int64) + 3
     out = np.empty((16, len(q), 3))
-    K.coupled_probe_errors(
-        params, 5, q, pidx, nkey, fkey, g.stack, g.mounts, g.tool, g.strokes, g.profiles,
-        g.sig, g.speed, g.tau_code, g.tau_par, out,
-    )  # fmt: skip
+    K.coupled_probe_errors(params, 5, q, pidx, nkey, fkey, g, out)
     ref = np.stack(
         [
             km.probe_errors_for_bench(

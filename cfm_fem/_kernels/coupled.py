@@ -17,10 +17,7 @@ from .rng import axis_noise_mm
 
 
 @nb.njit(**PJIT)
-def coupled_probe_errors(
-    params, t0, q_cmd, pidx, nkey, fkey, stack, mounts, tool, strokes, profiles, sig, speed,
-    tau_code, tau_par, out,
-):  # fmt: skip
+def coupled_probe_errors(params, t0, q_cmd, pidx, nkey, fkey, geo, out):
     """Probe position errors E_p of trials t0..t0+m-1 at the given points, bench frame, mm.
 
     Parameters
@@ -35,11 +32,15 @@ def coupled_probe_errors(
         Point index of each row of ``q_cmd`` in the noise stream (``axis_noise_mm``).
     nkey, fkey : uint64
         ``kinematics.noise_keys(seed)``.
-    stack, mounts, tool, strokes, profiles, sig, speed, tau_code, tau_par
-        ``kinematics.kernel_geometry(bench)`` fields.
+    geo : KernelGeometry
+        ``cfm_fem.models.kinematics.kernel_geometry(bench)``: the bench geometry of
+        `probe_error_mm` and the noise model of `axis_noise_mm`.
     out : ndarray, shape (m, n, 3), mm
         Receives E_p = P_actual - P_nominal.
     """
+    stack, mounts, tool = geo.stack, geo.mounts, geo.tool
+    strokes, profiles = geo.strokes, geo.profiles
+    sig, speed, tau_code, tau_par = geo.sig, geo.speed, geo.tau_code, geo.tau_par
     m = params.shape[0]
     n = q_cmd.shape[0]
     for t in nb.prange(m):

@@ -153,189 +153,130 @@ def _abs_change(b0, e0, e1, e2, abs0):
     return (2.0 * (b0[0] * e0 + b0[1] * e1 + b0[2] * e2) + e0 * e0 + e1 * e1 + e2 * e2) / den
 
 
-@nb.njit(**JIT)
-def _node_gauss(
-    g,
-    gkey,
-    coords,
-    values,
-    simplices,
-    transform,
-    neighbors,
-    start_cells,
-    basis,
-    sigma_axes,
-    scales,
-    n_trials,
-    skey,
-    fkey,
-    p,
-    exit_grad,
-    search,
-    buffers,
-    stats,
-    n_out,
-    n_lost,
-):
-    """All trials and statistics of node ``g`` (see `gauss_sweep`). ``buffers``: the per-thread
-    work arrays of `_gauss_buffers`.
-
-    With node gradients in ``exit_grad`` (see `gauss_sweep`), a trial that leaves the map takes
-    the node's first-order Taylor expansion B_g + grad B_g . delta (counted in ``n_out`` all the
-    same); one that leaves through a boundary face at the node is then linear in U_p and joins
-    the in-star trials.
-
-    Trials whose largest displacement stays in the node's star are located in the star tables
-    (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their
-    component errors at every U_p are the largest U_p's scaled. They are stored once
-    (comp[kmax]); the few trials that leave the star take the global walk at each U_p and are
-    stored per U_p (comp[k], or the back of comp[kmax]).
-    A trial whose star walk crosses a border face at g is outside at every U_p when that face
-    is a supporting plane of the mesh (`star_exact`); on a non-convex mesh, where it may not
-    be, `star_exit` places it: in a star cell, outside at every U_p (nearer to g than any other
-    cell), or the global walk (`locate_exact`) at the U_p values where nothing proves it.
-    Component statistics then merge the scaled in-star tails with the sorted out-of-star values
-    (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
-    """
+@nb.njit(inline="always", **JIT)
+def _star_pass3(g, n_trials, smax, kmax, n_star, n_cand, n_free, exact, extrapolate, exit_grad,
+                simplices, excess, reach, buffers, delta, lam):  # fmt: skip
+    """3-D: place every trial of node g in its star at the largest U_p (`star_errors3`); the
+    in-star component errors go to the front of comp[kmax] in trial order, the others are
+    listed in ``rest`` (with ``code``, ``r_in``, ``r_out``). Returns (n_in, n_rest, n_exit)."""
     (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
      rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
-    excess, reach = search[0], search[1]
-    d = coords.shape[1]
+    n_in = 0
+    n_exit = 0
+    n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, comp[kmax],
+                          dl, tag, rest, code)  # fmt: skip
+    kept = 0
+    for r in range(n_rest):
+        t = rest[r]
+        r_in[kept] = 0.0
+        r_out[kept] = np.inf
+        if code[r] == LEAVES_MESH and not exact:  # no proof by itself at this node
+            for a in range(3):
+                delta[a] = dl[a, t]
+            s, r_in[kept], r_out[kept] = star_exit(lmat, reach[g], cand, n_cand, free,
+                                                   n_free, delta, lam)  # fmt: skip
+            if s == BEYOND_REACH:
+                s, r_in[kept], r_out[kept] = star_recheck(
+                    g, cells, n_star, lmat, nbr, simplices, excess, reach[g], delta, lam
+                )
+            if s >= 0:  # an in-star trial after all
+                comp[kmax, 0, t], comp[kmax, 1, t], comp[kmax, 2, t] = _err3(
+                    dmat, s, lam[0], lam[1], lam[2]
+                )
+                continue
+            code[r] = s
+        rest[kept] = t  # kept <= r: overwrites only entries already read
+        code[kept] = code[r]
+        kept += 1
+    n_rest = kept
+    if extrapolate:  # exits at the node: the Taylor expansion, linear in U_p (in-star)
+        kept = 0
+        for r in range(n_rest):
+            t = rest[r]
+            if code[r] == LEAVES_MESH:
+                for c in range(3):
+                    comp[kmax, c, t] = _taylor(exit_grad, g, c, dl[0, t], dl[1, t], dl[2, t])
+                n_exit += 1
+            else:
+                rest[kept] = t  # kept <= r: overwrites only entries already read
+                code[kept] = code[r]
+                r_in[kept] = r_in[r]
+                r_out[kept] = r_out[r]
+                kept += 1
+        n_rest = kept
+    if n_rest > 0:  # in-star errors to the front, in trial order
+        r = 0
+        for t in range(n_trials):
+            if r < n_rest and rest[r] == t:
+                r += 1
+                continue
+            for c in range(3):
+                comp[kmax, c, n_in] = comp[kmax, c, t]
+            n_in += 1
+    else:
+        n_in = n_trials
+    return n_in, n_rest, n_exit
+
+
+@nb.njit(inline="always", **JIT)
+def _walk_pass(g, n_trials, smax, kmax, d, n_star, n_cand, n_free, exact, extrapolate, exit_grad,
+               simplices, excess, reach, buffers, delta, lam):  # fmt: skip
+    """`_star_pass3` for 1-D and 2-D maps and nodes without a star: each trial walks the
+    star from the start cell of its direction bin (`star_locate`). Returns (n_in, n_rest,
+    n_exit)."""
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
+    n_in = 0
+    n_exit = 0
+    n_rest = 0
+    for t in range(n_trials):
+        for a in range(d):
+            delta[a] = smax * _unit_disp(wmat, zbuf, t, a)
+        s = -1
+        r_lo = 0.0
+        r_hi = np.inf
+        if n_star > 0:
+            s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
+            if s == LEAVES_MESH and not exact:  # no proof by itself at this node
+                s, r_lo, r_hi = star_exit(lmat, reach[g], cand, n_cand, free, n_free,
+                                          delta, lam)  # fmt: skip
+                if s == BEYOND_REACH:
+                    s, r_lo, r_hi = star_recheck(g, cells, n_star, lmat, nbr, simplices,
+                                                 excess, reach[g], delta, lam)  # fmt: skip
+        taylor = extrapolate and s == LEAVES_MESH  # linear in U_p, as an in-star trial
+        if s >= 0 or taylor:
+            mat, row, vec = (exit_grad, g, delta) if taylor else (dmat, s, lam)
+            for c in range(3):
+                e = 0.0
+                for a in range(d):
+                    e += mat[row, c, a] * vec[a]
+                comp[kmax, c, n_in] = e
+            n_in += 1
+            n_exit += taylor
+        else:
+            rest[n_rest] = t
+            code[n_rest] = s
+            r_in[n_rest] = r_lo
+            r_out[n_rest] = r_hi
+            n_rest += 1
+    return n_in, n_rest, n_exit
+
+
+@nb.njit(inline="always", **JIT)
+def _out_of_star(g, n_rest, n_trials, kmax, d, coords, values, simplices, transform, neighbors,
+                 start_cells, scales, ratio, b0, abs0, extrapolate, exit_grad, search, buffers,
+                 n_out, m_out):  # fmt: skip
+    """Trials of ``rest``: outside at every U_p (counted), or the global walk at each U_p,
+    their errors stored per U_p (comp[k], or the back of comp[kmax]) with their |B| change
+    (back of absb[k]); ``m_out[k]`` counts them."""
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
     n_up = scales.shape[0]
-    kmax = 0
-    for k in range(n_up):
-        if scales[k] > scales[kmax]:
-            kmax = k
-    smax = scales[kmax]
-    ratio = np.empty(n_up)
-    for k in range(n_up):
-        ratio[k] = scales[k] / smax if smax > 0 else 0.0
     disp = np.empty(d)
-    delta = np.empty(d)
-    lam = np.empty(d)
     pt = np.empty(d)
     bary = np.empty(d + 1)
     bi = np.empty(3)
     err = np.empty(3)
-    b0 = values[g]
-    abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-    key = trial_key(skey, gkey)  # one sequence per node: positions 4t, 4t + 1 serve trial t
-    n_abs = np.zeros(n_up, dtype=np.int64)  # |B| samples per U_p
-    m_out = np.zeros(n_up, dtype=np.int64)  # out-of-star component samples per U_p
-    n_in = 0  # in-star trials (components stored at kmax)
-    n_exit = 0  # of which extrapolated (left the map through a boundary face at the node)
-    extrapolate = exit_grad.shape[0] > 0
-    for k in range(n_up):
-        n_out[k] = 0
-        n_lost[k] = 0
-    for k in range(n_up):
-        if scales[k] == 0.0:  # no displacement: every error is exactly zero
-            for c in range(4):
-                for j in range(6):
-                    stats[k, c, j] = 0.0
-    if smax == 0.0:
-        return False
-    n_star = build_star(
-        g, start_cells[g, 0], simplices, transform, neighbors, values, cells, lmat, dmat, nbr,
-        htab,
-    )  # fmt: skip
-    if n_star > 0 and d != 3:  # per direction bin, a star cell to start walks from
-        star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
-    exact = star_exact(g, cells, n_star, simplices, excess)  # LEAVES_MESH is proven
-    n_cand = 0
-    n_free = 0
-    if not exact:
-        n_cand, n_free = star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free)
-    normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
-    # place every trial in the star at the largest U_p; the others are listed in ``rest``
-    for c in range(3):  # mesh-frame displacement per unit normal (projected for planar maps)
-        for a in range(d):
-            wmat[c, a] = basis[c, a] * sigma_axes[c]
-    if d == 3 and n_star > 0:
-        n_rest = star_errors3(zbuf, n_trials, wmat, smax, lmat, dmat, nbr, n_star, comp[kmax],
-                              dl, tag, rest, code)  # fmt: skip
-        kept = 0
-        for r in range(n_rest):
-            t = rest[r]
-            r_in[kept] = 0.0
-            r_out[kept] = np.inf
-            if code[r] == LEAVES_MESH and not exact:  # no proof by itself at this node
-                for a in range(3):
-                    delta[a] = dl[a, t]
-                s, r_in[kept], r_out[kept] = star_exit(lmat, reach[g], cand, n_cand, free,
-                                                       n_free, delta, lam)  # fmt: skip
-                if s == BEYOND_REACH:
-                    s, r_in[kept], r_out[kept] = star_recheck(
-                        g, cells, n_star, lmat, nbr, simplices, excess, reach[g], delta, lam
-                    )
-                if s >= 0:  # an in-star trial after all
-                    comp[kmax, 0, t], comp[kmax, 1, t], comp[kmax, 2, t] = _err3(
-                        dmat, s, lam[0], lam[1], lam[2]
-                    )
-                    continue
-                code[r] = s
-            rest[kept] = t  # kept <= r: overwrites only entries already read
-            code[kept] = code[r]
-            kept += 1
-        n_rest = kept
-        if extrapolate:  # exits at the node: the Taylor expansion, linear in U_p (in-star)
-            kept = 0
-            for r in range(n_rest):
-                t = rest[r]
-                if code[r] == LEAVES_MESH:
-                    for c in range(3):
-                        comp[kmax, c, t] = _taylor(exit_grad, g, c, dl[0, t], dl[1, t], dl[2, t])
-                    n_exit += 1
-                else:
-                    rest[kept] = t  # kept <= r: overwrites only entries already read
-                    code[kept] = code[r]
-                    r_in[kept] = r_in[r]
-                    r_out[kept] = r_out[r]
-                    kept += 1
-            n_rest = kept
-        if n_rest > 0:  # in-star errors to the front, in trial order
-            r = 0
-            for t in range(n_trials):
-                if r < n_rest and rest[r] == t:
-                    r += 1
-                    continue
-                for c in range(3):
-                    comp[kmax, c, n_in] = comp[kmax, c, t]
-                n_in += 1
-        else:
-            n_in = n_trials
-    else:
-        n_rest = 0
-        for t in range(n_trials):
-            for a in range(d):
-                delta[a] = smax * _unit_disp(wmat, zbuf, t, a)
-            s = -1
-            r_lo = 0.0
-            r_hi = np.inf
-            if n_star > 0:
-                s = star_locate(bin_start[direction_bin(delta, d)], lmat, nbr, n_star, delta, lam)
-                if s == LEAVES_MESH and not exact:  # no proof by itself at this node
-                    s, r_lo, r_hi = star_exit(lmat, reach[g], cand, n_cand, free, n_free,
-                                              delta, lam)  # fmt: skip
-                    if s == BEYOND_REACH:
-                        s, r_lo, r_hi = star_recheck(g, cells, n_star, lmat, nbr, simplices,
-                                                     excess, reach[g], delta, lam)  # fmt: skip
-            taylor = extrapolate and s == LEAVES_MESH  # linear in U_p, as an in-star trial
-            if s >= 0 or taylor:
-                mat, row, vec = (exit_grad, g, delta) if taylor else (dmat, s, lam)
-                for c in range(3):
-                    e = 0.0
-                    for a in range(d):
-                        e += mat[row, c, a] * vec[a]
-                    comp[kmax, c, n_in] = e
-                n_in += 1
-                n_exit += taylor
-            else:
-                rest[n_rest] = t
-                code[n_rest] = s
-                r_in[n_rest] = r_lo
-                r_out[n_rest] = r_hi
-                n_rest += 1
     for r in range(n_rest):
         t = rest[r]
         if code[r] == LEAVES_MESH:  # outside the map at every U_p: counted, left out
@@ -386,6 +327,17 @@ def _node_gauss(
                 b0, err[0], err[1], err[2], abs0
             )  # from the back: the front takes the in-star trials below
             m_out[k] = mk + 1
+
+
+@nb.njit(inline="always", **JIT)
+def _node_stats(n_star, n_exit, n_in, n_trials, kmax, scales, ratio, b0, abs0, extrapolate, p,
+                buffers, n_out, m_out, n_abs, stats):  # fmt: skip
+    """Statistics of the node's samples into ``stats``: components merged from the scaled
+    in-star values and the out-of-star ones (`_merged_stats`), or all scaled when every
+    trial stayed in the star; |B| per U_p. Returns whether every trial stayed in the star."""
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
+    n_up = scales.shape[0]
     all_star = n_star > 0
     for k in range(n_up):
         if scales[k] > 0.0:
@@ -445,6 +397,118 @@ def _node_gauss(
         nk = n_abs[k]
         sample_stats(absb[k], nk, coverage_count(nk, p) if nk > 1 else 1, stats[k, 3], scratch)
     return all_star
+
+
+@nb.njit(**JIT)
+def _node_gauss(
+    g,
+    gkey,
+    coords,
+    values,
+    simplices,
+    transform,
+    neighbors,
+    start_cells,
+    basis,
+    sigma_axes,
+    scales,
+    n_trials,
+    skey,
+    fkey,
+    p,
+    exit_grad,
+    search,
+    buffers,
+    stats,
+    n_out,
+    n_lost,
+):
+    """All trials and statistics of node ``g`` (see `gauss_sweep`). ``buffers``: the per-thread
+    work arrays of `_gauss_buffers`.
+
+    With node gradients in ``exit_grad`` (see `gauss_sweep`), a trial that leaves the map takes
+    the node's first-order Taylor expansion B_g + grad B_g . delta (counted in ``n_out`` all the
+    same); one that leaves through a boundary face at the node is then linear in U_p and joins
+    the in-star trials.
+
+    Trials whose largest displacement stays in the node's star are located in the star tables
+    (`build_star`; in 3-D by the block pass `star_errors3`); the field is affine there, so their
+    component errors at every U_p are the largest U_p's scaled. They are stored once
+    (comp[kmax]); the few trials that leave the star take the global walk at each U_p and are
+    stored per U_p (comp[k], or the back of comp[kmax]).
+    A trial whose star walk crosses a border face at g is outside at every U_p when that face
+    is a supporting plane of the mesh (`star_exact`); on a non-convex mesh, where it may not
+    be, `star_exit` places it: in a star cell, outside at every U_p (nearer to g than any other
+    cell), or the global walk (`locate_exact`) at the U_p values where nothing proves it.
+    Component statistics then merge the scaled in-star tails with the sorted out-of-star values
+    (`_merged_stats`); |B| is not linear in U_p and gets its own sample per U_p.
+    """
+    (comp, absb, scratch, zbuf, okbuf, cells, lmat, dmat, nbr, htab, bin_start, work, dl, tag,
+     rest, code, wmat, r_in, r_out, cand, free) = buffers  # fmt: skip
+    excess, reach = search[0], search[1]
+    d = coords.shape[1]
+    n_up = scales.shape[0]
+    kmax = 0
+    for k in range(n_up):
+        if scales[k] > scales[kmax]:
+            kmax = k
+    smax = scales[kmax]
+    ratio = np.empty(n_up)
+    for k in range(n_up):
+        ratio[k] = scales[k] / smax if smax > 0 else 0.0
+    delta = np.empty(d)
+    lam = np.empty(d)
+    b0 = values[g]
+    abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+    key = trial_key(skey, gkey)  # one sequence per node: positions 4t, 4t + 1 serve trial t
+    n_abs = np.zeros(n_up, dtype=np.int64)  # |B| samples per U_p
+    m_out = np.zeros(n_up, dtype=np.int64)  # out-of-star component samples per U_p
+    extrapolate = exit_grad.shape[0] > 0
+    for k in range(n_up):
+        n_out[k] = 0
+        n_lost[k] = 0
+    for k in range(n_up):
+        if scales[k] == 0.0:  # no displacement: every error is exactly zero
+            for c in range(4):
+                for j in range(6):
+                    stats[k, c, j] = 0.0
+    if smax == 0.0:
+        return False
+    n_star = build_star(
+        g, start_cells[g, 0], simplices, transform, neighbors, values, cells, lmat, dmat, nbr,
+        htab,
+    )  # fmt: skip
+    if n_star > 0 and d != 3:  # per direction bin, a star cell to start walks from
+        star_bin_starts(lmat, nbr, n_star, d, smax, bin_start)
+    exact = star_exact(g, cells, n_star, simplices, excess)  # LEAVES_MESH is proven
+    n_cand = 0
+    n_free = 0
+    if not exact:
+        n_cand, n_free = star_behind(g, coords, cells, n_star, lmat, nbr, simplices, cand, free)
+    normals_by_index(key, fkey, 0, n_trials, zbuf, okbuf)
+    # place every trial in the star at the largest U_p; the others are listed in ``rest``
+    for c in range(3):  # mesh-frame displacement per unit normal (projected for planar maps)
+        for a in range(d):
+            wmat[c, a] = basis[c, a] * sigma_axes[c]
+    if d == 3 and n_star > 0:
+        n_in, n_rest, n_exit = _star_pass3(
+            g, n_trials, smax, kmax, n_star, n_cand, n_free, exact, extrapolate, exit_grad,
+            simplices, excess, reach, buffers, delta, lam,
+        )  # fmt: skip
+    else:
+        n_in, n_rest, n_exit = _walk_pass(
+            g, n_trials, smax, kmax, d, n_star, n_cand, n_free, exact, extrapolate, exit_grad,
+            simplices, excess, reach, buffers, delta, lam,
+        )  # fmt: skip
+    _out_of_star(
+        g, n_rest, n_trials, kmax, d, coords, values, simplices, transform, neighbors,
+        start_cells, scales, ratio, b0, abs0, extrapolate, exit_grad, search, buffers, n_out,
+        m_out,
+    )  # fmt: skip
+    return _node_stats(
+        n_star, n_exit, n_in, n_trials, kmax, scales, ratio, b0, abs0, extrapolate, p, buffers,
+        n_out, m_out, n_abs, stats,
+    )  # fmt: skip
 
 
 @nb.njit(**JIT)

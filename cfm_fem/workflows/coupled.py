@@ -263,27 +263,6 @@ def _probe_factors_rng(seed: int, i: int) -> np.random.Generator:
     )
 
 
-def _probe_errors_block(bench, g, params, q, pidx, nkey, fkey, out):
-    K.coupled_probe_errors(
-        params,
-        0,
-        q,
-        pidx,
-        nkey,
-        fkey,
-        g.stack,
-        g.mounts,
-        g.tool,
-        g.strokes,
-        g.profiles,
-        g.sig,
-        g.speed,
-        g.tau_code,
-        g.tau_par,
-        out,
-    )
-
-
 def run_coupled(
     field_model: FieldModel,
     bench: Bench,
@@ -336,6 +315,64 @@ def run_coupled(
     if trials < 2 * max(int(batches), 1):
         raise CfmInputError(f"trials must be at least 2 per batch ({2 * batches}); got {trials}")
     notes = []
+    pts, region = _scan_points(field_model, points, region)
+    n = len(pts)
+    q, B_nom = _nominal(field_model, bench, pts)
+    g = kernel_geometry(bench)
+    nkey, fkey = noise_keys(seed)
+    params = draw_error_sets(bench, trials, seed)
+    e_align = None
+    if align == "probe":
+        e_align = _probe_at_origin(bench, g, params, nkey, fkey)
+        notes.append(
+            "align=probe: per trial the probe error at the magnet-frame origin (no vibration) is "
+            "subtracted (magnet located with the probe, paper III-B); rotations are not re-aligned"
+        )
+    acc = _Accumulator(n, trials, max(int(batches), 1), B_nom)
+    nb = block_points or max(1, min(n, int(4_000_000 // trials)))
+    for a in range(0, n, nb):
+        b = min(n, a + nb)
+        blk = np.empty((trials, b - a, 3))
+        K.coupled_probe_errors(
+            params, 0, q[a:b], np.arange(a, b, dtype=np.int64), nkey, fkey, g, blk
+        )
+        if e_align is not None:
+            blk -= e_align
+        acc.add_block(a, blk, pts, field_model, bench, probe, seed)
+        if progress is not None:
+            progress(b - a)
+    notes += _run_notes(field_model, int((trials - acc.n_valid).sum()), n * trials)
+    return CoupledResult(
+        points=pts,
+        q_cmd=q,
+        B_nom=B_nom,
+        mean=acc.mean,
+        std=acc.std,
+        low=acc.low,
+        high=acc.high,
+        batch_mean=acc.bmean,
+        batch_std=acc.bstd,
+        n_valid=acc.n_valid,
+        ep_mean=acc.ep_mean,
+        ep_std=acc.ep_std,
+        hist_ef=acc.hist[np.isfinite(acc.hist[:, 0])],
+        probe_point=acc.probe_point,
+        samples_ep=acc.samples_ep,
+        samples_ef=acc.samples_ef,
+        field=field_model,
+        trials=trials,
+        seed=int(seed),
+        align=align,
+        probe=probe,
+        region=region or f"{n} user-given points",
+        seconds=time.perf_counter() - t_start,
+        notes=notes,
+    )
+
+
+def _scan_points(field_model: FieldModel, points, region):
+    """The scan points, shape (n, 3) mm, checked, and their description (default region of a
+    multipole when ``points`` is None)."""
     if points is None:
         if field_model.multipole is None:
             raise CfmInputError("give the scan points for a field map (no default region)")
@@ -347,7 +384,12 @@ def run_coupled(
     pts = np.ascontiguousarray(np.atleast_2d(np.asarray(points, dtype=np.float64)))
     if pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise CfmInputError(f"points must be finite, shape (n, 3) in mm; got {pts.shape}")
-    n = len(pts)
+    return pts, region
+
+
+def _nominal(field_model: FieldModel, bench: Bench, pts):
+    """Commanded axis positions (n, 3) mm and nominal field (n, 3) T of the scan points;
+    refuses points outside the strokes or the field map."""
     q = np.ascontiguousarray(bench.axis_positions_for(pts))
     out_of_stroke = bench.outside_stroke(q)
     if out_of_stroke.any():
@@ -361,110 +403,98 @@ def run_coupled(
     if not inside.all():
         i = int(np.argmax(~inside))
         raise CfmInputError(f"scan point {i} at {pts[i].tolist()} mm is outside the field map")
-    absB_nom = np.sqrt((B_nom**2).sum(1))
-    r_bm = bench.bench_to_magnet_rotation()
-    r_mb = r_bm.T
-    g = kernel_geometry(bench)
-    nkey, fkey = noise_keys(seed)
-    params = draw_error_sets(bench, trials, seed)
-    e_align = None
-    if align == "probe":
-        q0 = np.ascontiguousarray(bench.axis_positions_for(np.zeros((1, 3))))
-        e_align = np.empty((trials, 1, 3))
-        K.coupled_probe_errors(
-            params,
-            0,
-            q0,
-            np.zeros(1, dtype=np.int64),
-            nkey,
-            fkey,
-            g.stack,
-            g.mounts,
-            g.tool,
-            g.strokes,
-            g.profiles,
-            np.zeros(3),
-            np.zeros(3),
-            -1,
-            g.tau_par,
-            e_align,
-        )
-        notes.append(
-            "align=probe: per trial the probe error at the magnet-frame origin (no vibration) is "
-            "subtracted (magnet located with the probe, paper III-B); rotations are not re-aligned"
-        )
-    b_ref = field_model.b_ref_T
-    to_units = 1.0 / (UNIT * b_ref)
-    h = max(int(batches), 1)
-    edges = np.linspace(0, trials, h + 1).astype(int)
-    mean = np.zeros((n, 4))
-    std = np.zeros((n, 4))
-    low = np.zeros((n, 4))
-    high = np.zeros((n, 4))
-    bmean = np.zeros((h, n, 4))
-    bstd = np.zeros((h, n, 4))
-    n_valid = np.zeros(n, dtype=np.int64)
-    ep_mean = np.zeros((n, 3))
-    ep_std = np.zeros((n, 3))
-    keep = min(HIST_PER_POINT, trials)
-    hist = np.empty((n * keep, 4))
-    probe_point = int(np.argmax(absB_nom))
-    samples_ep = samples_ef = None
-    nb = block_points or max(1, min(n, int(4_000_000 // trials)))
-    for a in range(0, n, nb):
-        b = min(n, a + nb)
-        k = b - a
-        blk = np.empty((trials, k, 3))
-        _probe_errors_block(
-            bench, g, params, q[a:b], np.arange(a, b, dtype=np.int64), nkey, fkey, blk
-        )
-        if e_align is not None:
-            blk -= e_align
-        ep_mean[a:b] = blk.mean(axis=0)
-        ep_std[a:b] = blk.std(axis=0, ddof=1)
+    return q, B_nom
+
+
+def _probe_at_origin(bench: Bench, g, params, nkey, fkey):
+    """Probe error of every trial at the magnet-frame origin without vibration, (M, 1, 3) mm."""
+    q0 = np.ascontiguousarray(bench.axis_positions_for(np.zeros((1, 3))))
+    e_align = np.empty((len(params), 1, 3))
+    still = g._replace(sig=np.zeros(3), speed=np.zeros(3), tau_code=-1)  # no vibration
+    K.coupled_probe_errors(params, 0, q0, np.zeros(1, dtype=np.int64), nkey, fkey, still, e_align)
+    return e_align
+
+
+class _Accumulator:
+    """Per-point statistics of the field error E_f of `run_coupled`, filled block by block."""
+
+    def __init__(self, n: int, trials: int, h: int, B_nom):
+        self.trials = trials
+        self.B_nom = B_nom
+        self.absB_nom = np.sqrt((B_nom**2).sum(1))
+        self.edges = np.linspace(0, trials, h + 1).astype(int)
+        self.mean = np.zeros((n, 4))
+        self.std = np.zeros((n, 4))
+        self.low = np.zeros((n, 4))
+        self.high = np.zeros((n, 4))
+        self.bmean = np.zeros((h, n, 4))
+        self.bstd = np.zeros((h, n, 4))
+        self.n_valid = np.zeros(n, dtype=np.int64)
+        self.ep_mean = np.zeros((n, 3))
+        self.ep_std = np.zeros((n, 3))
+        self.keep = min(HIST_PER_POINT, trials)
+        self.hist = np.empty((n * self.keep, 4))
+        self.probe_point = int(np.argmax(self.absB_nom))
+        self.samples_ep = self.samples_ef = None
+
+    def add_block(self, a: int, blk, pts, field_model, bench, probe, seed) -> None:
+        """Points a .. a + k - 1 with their probe errors ``blk`` (M, k, 3), bench frame, mm."""
+        trials, k = blk.shape[0], blk.shape[1]
+        b = a + k
+        r_bm = bench.bench_to_magnet_rotation()
+        self.ep_mean[a:b] = blk.mean(axis=0)
+        self.ep_std[a:b] = blk.std(axis=0, ddof=1)
         actual = pts[a:b][None, :, :] + blk @ r_bm.T  # (M, k, 3) magnet frame
         B_act, ok = field_model.field(actual.reshape(-1, 3))
         B_act = B_act.reshape(trials, k, 3)
         ok = ok.reshape(trials, k)
+        to_units = 1.0 / (UNIT * field_model.b_ref_T)
         for j in range(k):
             i = a + j
             draws = probe.sample(_probe_factors_rng(seed, i), (trials,))
             if probe.model == "paper":
                 Bm = draws.gain * B_act[:, j]
             else:  # probe axes = bench axes: rotate into the probe, read, rotate back
-                Bm = apply_probe(B_act[:, j] @ r_mb.T, draws) @ r_mb
+                Bm = apply_probe(B_act[:, j] @ r_bm, draws) @ r_bm.T
             err = np.empty((trials, 4))
-            err[:, :3] = (Bm - B_nom[i]) * to_units
-            err[:, 3] = (np.sqrt((Bm**2).sum(1)) - absB_nom[i]) * to_units
+            err[:, :3] = (Bm - self.B_nom[i]) * to_units
+            err[:, 3] = (np.sqrt((Bm**2).sum(1)) - self.absB_nom[i]) * to_units
             if not ok[:, j].all():
                 err[~ok[:, j]] = np.nan
-            v = ok[:, j]
-            n_valid[i] = int(v.sum())
-            e_ok = err[v] if n_valid[i] < trials else err
-            if len(e_ok) < 2:
-                raise CfmInputError(
-                    f"scan point {i} at {pts[i].tolist()} mm: the perturbed positions leave the "
-                    "field map in (nearly) every trial; choose points farther from its border"
-                )
-            mean[i] = e_ok.mean(axis=0)
-            std[i] = e_ok.std(axis=0, ddof=1)
-            lo, hi = symmetric_interval(e_ok, 0.95, axis=0)
-            low[i], high[i] = lo, hi
-            for s in range(h):
-                e = err[edges[s] : edges[s + 1]]
-                e = e[np.isfinite(e[:, 0])]
-                bmean[s, i] = e.mean(axis=0)
-                bstd[s, i] = e.std(axis=0, ddof=1)
-            hist[i * keep : (i + 1) * keep] = err[:keep]
-            if i == probe_point:
-                samples_ep = blk[:, j].copy()
-                samples_ef = err.copy()
-        if progress is not None:
-            progress(k)
-    lost = int((trials - n_valid).sum())
+            self._point(i, err, ok[:, j], pts)
+            if i == self.probe_point:
+                self.samples_ep = blk[:, j].copy()
+                self.samples_ef = err.copy()
+
+    def _point(self, i: int, err, v, pts) -> None:
+        """Statistics of point i from its errors ``err`` (M, 4) units, ``v`` the valid trials."""
+        trials = self.trials
+        self.n_valid[i] = int(v.sum())
+        e_ok = err[v] if self.n_valid[i] < trials else err
+        if len(e_ok) < 2:
+            raise CfmInputError(
+                f"scan point {i} at {pts[i].tolist()} mm: the perturbed positions leave the "
+                "field map in (nearly) every trial; choose points farther from its border"
+            )
+        self.mean[i] = e_ok.mean(axis=0)
+        self.std[i] = e_ok.std(axis=0, ddof=1)
+        lo, hi = symmetric_interval(e_ok, 0.95, axis=0)
+        self.low[i], self.high[i] = lo, hi
+        for s in range(len(self.edges) - 1):
+            e = err[self.edges[s] : self.edges[s + 1]]
+            e = e[np.isfinite(e[:, 0])]
+            self.bmean[s, i] = e.mean(axis=0)
+            self.bstd[s, i] = e.std(axis=0, ddof=1)
+        keep = self.keep
+        self.hist[i * keep : (i + 1) * keep] = err[:keep]
+
+
+def _run_notes(field_model: FieldModel, lost: int, total: int) -> list[str]:
+    """The notes of a coupled run on what its numbers leave out."""
+    notes = []
     if lost:
         notes.append(
-            f"{lost} of {n * trials} perturbed positions fell outside the field map and were left "
+            f"{lost} of {total} perturbed positions fell outside the field map and were left "
             "out of the statistics of their point"
         )
     if field_model.multipole is not None:
@@ -476,32 +506,7 @@ def run_coupled(
         "probe axes are taken parallel to the bench axes; the carriage rotations (urad) do not "
         "turn the probe in the model"
     )
-    return CoupledResult(
-        points=pts,
-        q_cmd=q,
-        B_nom=B_nom,
-        mean=mean,
-        std=std,
-        low=low,
-        high=high,
-        batch_mean=bmean,
-        batch_std=bstd,
-        n_valid=n_valid,
-        ep_mean=ep_mean,
-        ep_std=ep_std,
-        hist_ef=hist[np.isfinite(hist[:, 0])],
-        probe_point=probe_point,
-        samples_ep=samples_ep,
-        samples_ef=samples_ef,
-        field=field_model,
-        trials=trials,
-        seed=int(seed),
-        align=align,
-        probe=probe,
-        region=region or f"{n} user-given points",
-        seconds=time.perf_counter() - t_start,
-        notes=notes,
-    )
+    return notes
 
 
 def _bench_without_errors(bench: Bench) -> Bench:

@@ -8,7 +8,7 @@ point index).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,9 +17,9 @@ from ...errors import check_seed
 from ..bench import ERROR_NAMES, Bench
 
 
-@dataclass(frozen=True)
-class KernelGeometry:
-    """Bench arrays in the layout the numba kernels take (``kernel_geometry``).
+class KernelGeometry(NamedTuple):
+    """Bench arrays in the layout the numba kernels take (``kernel_geometry``), a named tuple
+    the kernels receive whole (`_kernels.coupled_probe_errors`, `_kernels.htm_sweep`).
 
     Attributes
     ----------

@@ -338,19 +338,8 @@ def run_kinematics(
     KinematicsResult
     """
     timer = _Timer()
-    q = bench.grid_points() if q_cmd is None else np.atleast_2d(np.asarray(q_cmd, dtype=np.float64))
-    q = np.ascontiguousarray(q)
+    q, pidx = _points(bench, q_cmd, point_index, trials, adaptive_digits)
     npts = q.shape[0]
-    if npts >= 2**30:
-        raise CfmInputError(f"at most 2**30 points; found {npts}")
-    if adaptive_digits is None and int(trials) < 2:
-        raise CfmInputError(f"trials must be >= 2; found {trials}")
-    if point_index is None:
-        pidx = np.arange(npts, dtype=np.int64)
-    else:
-        pidx = np.ascontiguousarray(point_index, dtype=np.int64)
-        if pidx.shape != (npts,):
-            raise CfmInputError(f"point_index must have shape ({npts},); found {pidx.shape}")
     eng = _Engine(bench, seed, BLOCK)
     notes = []
 
@@ -375,32 +364,10 @@ def run_kinematics(
         acc[...] = 0.0
     cap = _store_capacity(total, p, kth, n_pilot)
     if npts * 8 * (cap + 1) * 8 <= STORE_BYTES:
-        lo, hi = _value_windows(pil[..., :-1])
-        store = _Store(npts, cap)
-        ends = _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
-        del store
-        _mean_std(shift, acc, total, bench.source)  # refuses NaN positions before any recount
-        timer.mark("pass")
-        low, high = ends[..., 0].copy(), ends[..., 1].copy()
-        redo = np.nonzero(np.isnan(ends).any(axis=(1, 2)))[0]
-        method = (
-            "exact order statistics (JCGM 101 7.7.2 ranks): one pass counting each value below "
-            "its pilot-placed window or keeping it there, the windows narrowing as the trials "
-            "accumulate, the end then selected from the kept values"
-        )
-        if len(redo):
-            sub = np.ascontiguousarray(q[redo])
-            _, r_low, r_high, sub_notes, _ = _two_pass_intervals(
-                eng, sub, pidx[redo], pil[redo], probs, total, p, True, window_slots, None,
-                source=bench.source,
-            )  # fmt: skip
-            low[redo], high[redo] = r_low, r_high
-            notes.append(
-                f"{len(redo)} point(s) whose window lost its interval end were recounted in two "
-                "passes (exact)"
-            )
-            notes += sub_notes
-            timer.mark("recount")
+        low, high, method = _one_pass_intervals(
+            eng, q, pidx, shift, pil, probs, cap, total, p, acc, window_slots, progress, timer,
+            notes, bench.source,
+        )  # fmt: skip
     else:
         acc, low, high, sub_notes, method = _two_pass_intervals(
             eng, q, pidx, pil, probs, total, p, exact, window_slots, progress, timer=timer,
@@ -431,6 +398,65 @@ def run_kinematics(
         notes=notes,
         adaptive=adaptive,
     )
+
+
+def _points(bench: Bench, q_cmd, point_index, trials, adaptive_digits):
+    """Commanded positions (n, 3) mm (default the bench's scan grid) and their point indices,
+    checked with the number of trials."""
+    q = bench.grid_points() if q_cmd is None else np.atleast_2d(np.asarray(q_cmd, dtype=np.float64))
+    q = np.ascontiguousarray(q)
+    npts = q.shape[0]
+    if npts >= 2**30:
+        raise CfmInputError(f"at most 2**30 points; found {npts}")
+    if adaptive_digits is None and int(trials) < 2:
+        raise CfmInputError(f"trials must be >= 2; found {trials}")
+    if point_index is None:
+        return q, np.arange(npts, dtype=np.int64)
+    pidx = np.ascontiguousarray(point_index, dtype=np.int64)
+    if pidx.shape != (npts,):
+        raise CfmInputError(f"point_index must have shape ({npts},); found {pidx.shape}")
+    return q, pidx
+
+
+def _one_pass_intervals(
+    eng, q, pidx, shift, pil, probs, cap, total, p, acc, window_slots, progress, timer, notes,
+    source,
+):  # fmt: skip
+    """Intervals of every point in one pass with kept values (`_one_pass`); points whose window
+    lost an interval end are recounted in two passes. Fills ``acc`` and appends to ``notes``.
+
+    Returns
+    -------
+    low, high : ndarray, shape (n, 4), mm
+    method : str
+    """
+    lo, hi = _value_windows(pil[..., :-1])
+    store = _Store(q.shape[0], cap)
+    ends = _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
+    del store
+    _mean_std(shift, acc, total, source)  # refuses NaN positions before any recount
+    timer.mark("pass")
+    low, high = ends[..., 0].copy(), ends[..., 1].copy()
+    redo = np.nonzero(np.isnan(ends).any(axis=(1, 2)))[0]
+    method = (
+        "exact order statistics (JCGM 101 7.7.2 ranks): one pass counting each value below "
+        "its pilot-placed window or keeping it there, the windows narrowing as the trials "
+        "accumulate, the end then selected from the kept values"
+    )
+    if len(redo):
+        sub = np.ascontiguousarray(q[redo])
+        _, r_low, r_high, sub_notes, _ = _two_pass_intervals(
+            eng, sub, pidx[redo], pil[redo], probs, total, p, True, window_slots, None,
+            source=source,
+        )  # fmt: skip
+        low[redo], high[redo] = r_low, r_high
+        notes.append(
+            f"{len(redo)} point(s) whose window lost its interval end were recounted in two "
+            "passes (exact)"
+        )
+        notes += sub_notes
+        timer.mark("recount")
+    return low, high, method
 
 
 def _mean_std(shift, acc, total, source):

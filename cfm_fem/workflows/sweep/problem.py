@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,6 +23,8 @@ from ...threads import map_blocks
 
 __all__ = [
     "SweepProblem",
+    "SweepMesh",
+    "HtmTrials",
     "chunk_ranges",
     "serial_map",
     "prepare_sweep",
@@ -146,6 +149,43 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         )
 
 
+class SweepMesh(NamedTuple):
+    """Mesh arrays of the sweep kernels (`SweepProblem.mesh_arrays`); see `SweepProblem`."""
+
+    coords: np.ndarray
+    values: np.ndarray
+    simplices: np.ndarray
+    transform: np.ndarray
+    neighbors: np.ndarray
+    start_cells: np.ndarray
+    basis: np.ndarray
+
+
+class HtmTrials(NamedTuple):
+    """Per-trial arrays of the mode-htm kernel (`_kernels.htm_sweep`), built by `_htm_arrays`.
+
+    Attributes
+    ----------
+    rot : ndarray, shape (3, 3)
+        Bench frame -> map (magnet) frame.
+    q_nodes : ndarray, shape (n, 3), mm
+        Commanded axis positions that bring the probe to each node.
+    params : ndarray, shape (T, 21)
+        Error amplitudes per trial (mm, rad).
+    terms : ndarray, shape (T, 21), (1, 21) or (0, 21)
+        The collapsed chain of each trial (constant error profiles), else empty.
+    nkey, fkey : uint64
+        Noise keys of the seed.
+    """
+
+    rot: np.ndarray
+    q_nodes: np.ndarray
+    params: np.ndarray
+    terms: np.ndarray
+    nkey: np.uint64
+    fkey: np.uint64
+
+
 @dataclass
 class SweepProblem:
     """Everything needed to run any chunk of nodes of a sweep: read-only and picklable.
@@ -227,20 +267,23 @@ class SweepProblem:
         back[order] = np.arange(len(order))
         return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 3, 3))
 
+    def mesh_arrays(self) -> SweepMesh:
+        """The mesh arrays the sweep kernels take, as one named tuple."""
+        return SweepMesh(self.coords, self.values, self.simplices, self.transform,
+                         self.neighbors, self.start_cells, self.basis)  # fmt: skip
+
     def _run_htm(self, nodes, keys):
         h = self.htm
         search = self.search_arrays()
+        mesh = self.mesh_arrays()
         parts = []
-        for geo, noise in HTM_PARTS.values():
+        for use_geo, use_noise in HTM_PARTS.values():
+            trials = h["trials"] if use_geo else h["trials"]._replace(terms=h["terms_zero"])
 
-            def block(i0, i1, geo=geo, noise=noise):
+            def block(i0, i1, trials=trials, use_geo=use_geo, use_noise=use_noise):
                 return _kernels.htm_sweep(
-                    nodes[i0:i1], keys[i0:i1], self.coords, self.values, self.simplices,
-                    self.transform, self.neighbors, self.start_cells, self.basis, h["rot"],
-                    h["q_nodes"], h["params"], h["terms" if geo else "terms_zero"], geo, noise,
-                    h["nkey"], h["fkey"], h["sig"], h["speed"], h["tau_code"], h["tau_par"],
-                    h["stack"], h["mounts"], h["tool"],
-                    h["strokes"], h["profiles"], float(self.coverage), self.exit_grad, search,
+                    nodes[i0:i1], keys[i0:i1], mesh, trials, h["geo"], use_geo, use_noise,
+                    float(self.coverage), self.exit_grad, search,
                 )  # fmt: skip
 
             parts.append(map_blocks(block, len(nodes), 16))
@@ -361,23 +404,11 @@ def _htm_arrays(cfg: SweepConfig, fm: FieldMap):
     terms, terms_zero = np.empty((n_terms[0], 21)), np.empty((n_terms[1], 21))
     _kernels.trial_terms(params[: n_terms[0]], g.stack, g.mounts, g.tool, terms)
     _kernels.trial_terms(np.zeros((n_terms[1], 21)), g.stack, g.mounts, g.tool, terms_zero)
+    rot = np.ascontiguousarray(bench.bench_to_magnet_rotation())
     arrays = dict(
-        rot=np.ascontiguousarray(bench.bench_to_magnet_rotation()),
-        q_nodes=q,
-        params=params,
-        terms=terms,
+        trials=HtmTrials(rot, q, params, terms, nkey, fkey),
         terms_zero=terms_zero,
-        nkey=nkey,
-        fkey=fkey,
-        sig=g.sig,
-        speed=g.speed,
-        tau_code=g.tau_code,
-        tau_par=g.tau_par,
-        stack=g.stack,
-        mounts=g.mounts,
-        tool=g.tool,
-        strokes=g.strokes,
-        profiles=g.profiles,
+        geo=g,
         bench_name=bench.name,
     )
     return arrays, bench.outside_stroke(q)

@@ -547,19 +547,13 @@ class _SlabJob:
         """The per-node file ``name`` (uf, complete, e2) of the run, mapped read-write."""
         return open_per_node(self.work / f"{name}.npy", "r+")
 
-    def run_chunk(self, a: int, b: int) -> dict:
-        """Sweep slab a (b = a + 1: the chunk interface of
-        `cfm_fem.workflows.sweep.problem.serial_map` and
-        `cfm_fem.workflows.sweep.distributed.dask_chunk_map`), store its arrays and done record,
-        return it."""
-        k = int(a)
-        st, plan, dropped, cfg, file = self.st, self.plan, self.dropped, self.cfg, self.file
-        kind, halo, b_ref, n_col, htm, span = (self.kind, self.halo, self.b_ref, self.n_col,
-                                                self.htm, self.span)  # fmt: skip
-        store = SlabStore(self.work / "results")
-        sums = _zero_sums(n_col)
-        messages = []
-        h = halo
+    def _certified_slab(self, k: int, messages: list):
+        """Slab k with a halo wide enough that every cell of an own node is certified (or the
+        halo reached the map's ends): its rows, map, mesh and certification flags. Appends a
+        message per widening to ``messages``."""
+        st, plan, dropped, file = self.st, self.plan, self.dropped, self.file
+        kind, span, cfg = self.kind, self.span, self.cfg
+        h = self.halo
         limit = max(GONE_ROWS_FACTOR * len(st.rows) / plan.n_slabs, SMALL_SLAB_ROWS)
         while True:
             rows, own = extract_slab(st, plan, k, h)
@@ -605,42 +599,31 @@ class _SlabJob:
             h *= 2.0
             why = "a cell of an own node" if not own_ok else "a removed hull sliver near one"
             messages.append(f"slab {k}: halo widened to {h:.4g} mm ({why} was not certified)")
+        return own, ids, pts, B, lfm, mesh, gone, boxes, cert, cert_gone
+
+    def run_chunk(self, a: int, b: int) -> dict:
+        """Sweep slab a (b = a + 1: the chunk interface of
+        `cfm_fem.workflows.sweep.problem.serial_map` and
+        `cfm_fem.workflows.sweep.distributed.dask_chunk_map`), store its arrays and done record,
+        return it."""
+        k = int(a)
+        st, plan, cfg, file = self.st, self.plan, self.cfg, self.file
+        kind, b_ref, n_col, htm, span = self.kind, self.b_ref, self.n_col, self.htm, self.span
+        store = SlabStore(self.work / "results")
+        sums = _zero_sums(n_col)
+        messages = []
+        own, ids, pts, B, lfm, mesh, gone, boxes, cert, cert_gone = self._certified_slab(
+            k, messages
+        )
         # per-slab notes left out: grid gaps, strokes, hull slivers and flat cells of
         # co-spherical nodes are counted over slabs
         counted = ("grid point", "outside the strokes", "Delaunay hull", "co-spherical")
         mesh_notes = [m for m in mesh.notes if not any(c in m for c in counted)]
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
-        # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
-        nb = mesh.neighbors
-        m, dp1 = nb.shape
-        suspect = np.zeros_like(nb, dtype=bool)
-        suspect[nb >= 0] = ~cert[nb[nb >= 0]]
-        s_idx, j_idx = np.nonzero(nb < 0)
-        hull = hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
-        hull |= faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
-        if kind == "grid":  # a notch or a gap of the grid: border faces off the cut planes
-            hull |= ~at_cut(mesh.coords, mesh.simplices, s_idx, j_idx, plan.axis,
-                             st.lo[plan.axis], st.hi[plan.axis], 1e-9 * span)  # fmt: skip
-        suspect[s_idx[~hull], j_idx[~hull]] = True
-        suspect[~cert] = False  # never entered
-        # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that
-        # suspect faces lead to; nodes keep their whole-map index as random-stream key
-        nl = len(ids)
-        coords_l = np.concatenate([problem.coords, np.zeros((1, problem.coords.shape[1]))])
-        values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
-        start_l = np.concatenate([problem.start_cells,
-                                  np.full((1, problem.start_cells.shape[1]), -1)])  # fmt: skip
-        search_a, search_b, unc = slab_search(problem.search, cert)
-        simp = np.concatenate([problem.simplices, np.full((1 + len(unc), dp1), nl)])
-        simp = simp.astype(np.int64)
-        trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1)),
-                                problem.transform[unc]])  # fmt: skip
-        nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1 + len(unc), dp1), -1)])
-        nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1 + len(unc), dp1), -1)])
-        gp = dataclasses.replace(problem, coords=coords_l, values=values_l, simplices=simp,
-                                 transform=trans, neighbors=nb_a, start_cells=start_l,
-                                 search=search_a)  # fmt: skip
+        gp, start_l, nb_b, search_b = _sentinel_problem(
+            problem, mesh, cert, gone, cert_gone, boxes, plan, st, kind, span, len(ids)
+        )
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
         stats, n_out, n_lost, star, pos = _run_blocks(gp, own_local, own_ids, cfg.chunk_nodes,
@@ -660,7 +643,7 @@ class _SlabJob:
             # a node with one trial left has NaN statistics too: it reached the halo only if
             # the closed faces turned trials into outside ones
             sums["halo_nodes"] += int((n_out[hit] > first_out).any(axis=1).sum())
-        del coords_l, values_l, start_l, gp
+        del start_l, gp
         grad = node_gradients(mesh, lfm.B)[own]
         sub = FieldMap(points=pts[own], B=B[own], source=file)
         if htm:
@@ -708,6 +691,52 @@ class _SlabJob:
                   "log": messages}  # fmt: skip
         store.mark_done(k, record)
         return record
+
+
+def _sentinel_problem(problem, mesh, cert, gone, cert_gone, boxes, plan, st, kind, span, nl):
+    """The slab's problem with a sentinel node (NaN field) and cell (zero transform) that
+    suspect faces lead to: faces to an uncertified cell, or border faces not provably on the
+    map's hull.
+
+    Returns
+    -------
+    gp : SweepProblem
+        Walks through a suspect face reach the sentinel (their trials poison the node).
+    start_l : ndarray
+        Start cells of the slab's nodes and the sentinel.
+    nb_b, search_b
+        Neighbours and search arrays with the suspect faces closed (the mesh border).
+    """
+    # suspect faces: to an uncertified cell, or a border face not provably on the map's hull
+    nb = mesh.neighbors
+    m, dp1 = nb.shape
+    suspect = np.zeros_like(nb, dtype=bool)
+    suspect[nb >= 0] = ~cert[nb[nb >= 0]]
+    s_idx, j_idx = np.nonzero(nb < 0)
+    hull = hull_face_ok(mesh.coords, mesh.simplices, s_idx, j_idx, boxes, 1e-9 * span)
+    hull |= faces_of(mesh.simplices, s_idx, j_idx, gone[cert_gone])  # left by removal
+    if kind == "grid":  # a notch or a gap of the grid: border faces off the cut planes
+        hull |= ~at_cut(mesh.coords, mesh.simplices, s_idx, j_idx, plan.axis,
+                         st.lo[plan.axis], st.hi[plan.axis], 1e-9 * span)  # fmt: skip
+    suspect[s_idx[~hull], j_idx[~hull]] = True
+    suspect[~cert] = False  # never entered
+    # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that
+    # suspect faces lead to; nodes keep their whole-map index as random-stream key
+    coords_l = np.concatenate([problem.coords, np.zeros((1, problem.coords.shape[1]))])
+    values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
+    start_l = np.concatenate([problem.start_cells,
+                              np.full((1, problem.start_cells.shape[1]), -1)])  # fmt: skip
+    search_a, search_b, unc = slab_search(problem.search, cert)
+    simp = np.concatenate([problem.simplices, np.full((1 + len(unc), dp1), nl)])
+    simp = simp.astype(np.int64)
+    trans = np.concatenate([problem.transform, np.zeros((1, dp1, dp1 - 1)),
+                            problem.transform[unc]])  # fmt: skip
+    nb_a = np.concatenate([np.where(suspect, m, nb), np.full((1 + len(unc), dp1), -1)])
+    nb_b = np.concatenate([np.where(suspect, -1, nb), np.full((1 + len(unc), dp1), -1)])
+    gp = dataclasses.replace(problem, coords=coords_l, values=values_l, simplices=simp,
+                             transform=trans, neighbors=nb_a, start_cells=start_l,
+                             search=search_a)  # fmt: skip
+    return gp, start_l, nb_b, search_b
 
 
 def _run_blocks(problem, nodes, keys, block: int, progress=None):
