@@ -1,7 +1,9 @@
-"""Plain-numpy twins of the numba kernels in `cfm_fem._kernels` (slow, obvious).
+"""Plain-numpy twins of the numba kernels in `cfm_fem._kernels` (slow, obvious), and analytic
+cases with closed-form answers.
 
 Each twin gives the kernel's numbers by the most direct code, for tests: the package's own and
-users' (a kernel and its twin agree to rounding, most of them bit for bit).
+users' (a kernel and its twin agree to rounding, most of them bit for bit). The analytic cases
+(`linear_field_map`, `gauss_linear_std`) are fields whose sweep statistics are known exactly.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import scipy.spatial
 from . import _kernels
 from . import _kernels as K
 from .models.bench import ERROR_NAMES, Bench
+from .models.field import FieldMap
 from .models.kinematics.geometry import _keys, kernel_geometry
 from .models.mc import coverage_count, ppf_numpy, shortest_interval, symmetric_interval
 
@@ -520,3 +523,43 @@ def draw_error_sets_numpy(bench: Bench, n_trials: int, seed: int, start: int = 0
     u = ((h >> np.uint64(11)).astype(np.float64) + 0.5) * 2.0**-53
     g = kernel_geometry(bench)
     return np.stack([ppf_numpy(g.codes[k], g.pars[k], u[:, k]) for k in range(u.shape[1])], -1)
+
+
+#: Gradient (T/mm, row i = grad B_i) and value at the origin (T) of `linear_field_map`.
+LINEAR_GRADIENT = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])
+LINEAR_OFFSET = np.array([0.1, -0.2, 0.5])
+
+
+def linear_field_map(n=9, h=1.0, centred=False, field=None, gradient=LINEAR_GRADIENT,
+                     offset=LINEAR_OFFSET) -> FieldMap:  # fmt: skip
+    """A cubic grid map of n^3 nodes, step h (mm), of the linear field B = G x + B0 (T).
+
+    Parameters
+    ----------
+    n : int
+        Nodes per axis.
+    h : float, mm
+        Grid step.
+    centred : bool
+        Grid centred on the origin (else its corner is).
+    field : callable(ndarray (m, 3) mm) -> ndarray (m, 3) T, optional
+        Another field on the same grid.
+    gradient : ndarray, shape (3, 3), T/mm
+    offset : ndarray, shape (3,), T
+    """
+    ax = np.arange(n) * h - ((n - 1) * h / 2 if centred else 0.0)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = pts @ np.asarray(gradient).T + offset if field is None else field(pts)
+    return FieldMap.from_arrays(pts, B)
+
+
+def gauss_linear_std(up_um: float, gradient=LINEAR_GRADIENT) -> np.ndarray:
+    """Exact standard deviation (T) of each component of B(x + d) - B(x) for a linear field
+    and an isotropic normal displacement d of standard deviation U_p per axis (paper eq. 16):
+    U_p |grad B_i|. The 95 % half-width is 1.96 times it.
+
+    Returns
+    -------
+    ndarray, shape (3,), T
+    """
+    return up_um * 1e-3 * np.linalg.norm(np.asarray(gradient), axis=1)

@@ -7,20 +7,18 @@ import pytest
 from cfm_fem import CfmInputError, FieldMap
 from cfm_fem.cli.sweep import parse_up_range
 from cfm_fem.models.sweep import SweepConfig, summarize
+from cfm_fem.testing import LINEAR_GRADIENT, LINEAR_OFFSET, gauss_linear_std, linear_field_map
 from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 Z = 1.959963984540054
-G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
-B0 = np.array([0.1, -0.2, 0.5])
+G = LINEAR_GRADIENT  # T/mm
+B0 = LINEAR_OFFSET
 #: normal-theory standard error of a 2.5 % or 97.5 % sample quantile, in sigma, times sqrt(N)
 SE_Q = np.sqrt(0.025 * 0.975) / 0.05844
 
 
 def grid_map(n=9, h=1.0, field=None):
-    ax = np.arange(n) * h
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = pts @ G.T + B0 if field is None else field(pts)
-    return FieldMap.from_arrays(pts, B)
+    return linear_field_map(n, h, field=field)
 
 
 def interior(fm, margin):
@@ -33,7 +31,7 @@ def test_linear_field_half_width_is_1_96_up_grad():
     up_um, n = 40.0, 4000
     res = run_sweep(fm, SweepConfig(up_um=[up_um], trials=n, seed=1))
     inner = interior(fm, 0.5)
-    sigma = up_um * 1e-3 * np.linalg.norm(G, axis=1)  # exact std of B_i, T
+    sigma = gauss_linear_std(up_um)  # exact std of B_i, T
     st = res.stats[inner, 0, :3]
     half = (st[..., 3] - st[..., 2]) / 2  # 95 % half-width per node, (nodes, 3)
     # every node is an independent Monte Carlo of the same value; the two interval ends are

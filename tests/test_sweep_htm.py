@@ -6,7 +6,6 @@ import numba
 import numpy as np
 import pytest
 
-from cfm_fem import FieldMap
 from cfm_fem import testing as twins
 from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.models.bench import ERROR_NAMES, ReadingDelay, error_index
@@ -14,16 +13,15 @@ from cfm_fem.models.kinematics.chain import probe_errors_for_bench
 from cfm_fem.models.kinematics.geometry import draw_error_sets, point_noise
 from cfm_fem.models.mc import Pdf
 from cfm_fem.models.sweep import HTM_PARTS, SweepConfig, summarize
+from cfm_fem.testing import LINEAR_GRADIENT, linear_field_map
 from cfm_fem.workflows.sweep.in_memory import run_sweep
 
-G = np.array([[0.3, -0.1, 0.02], [0.05, 0.2, -0.4], [0.0, 0.1, 0.7]])  # T/mm
+G = LINEAR_GRADIENT  # T/mm
 Z = 1.959963984540054
 
 
 def grid_map(n=7, h=1.0):
-    ax = np.arange(n) * h - (n - 1) * h / 2
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    return FieldMap.from_arrays(pts, pts @ G.T + [0.1, -0.2, 0.5])
+    return linear_field_map(n, h, centred=True)
 
 
 def quiet_bench(vibration_mm=0.0, constant=None):

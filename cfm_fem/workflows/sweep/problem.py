@@ -9,6 +9,7 @@ in pieces, in slabs, resumed or on Dask workers) with the same numbers.
 from __future__ import annotations
 
 import dataclasses
+from collections import namedtuple
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -149,16 +150,9 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         )
 
 
-class SweepMesh(NamedTuple):
-    """Mesh arrays of the sweep kernels (`SweepProblem.mesh_arrays`); see `SweepProblem`."""
-
-    coords: np.ndarray
-    values: np.ndarray
-    simplices: np.ndarray
-    transform: np.ndarray
-    neighbors: np.ndarray
-    start_cells: np.ndarray
-    basis: np.ndarray
+#: Mesh arrays of the sweep kernels (`SweepProblem.mesh_arrays`), the `SweepProblem` fields of
+#: the same names.
+SweepMesh = namedtuple("SweepMesh", "coords values simplices transform neighbors start_cells basis")
 
 
 class HtmTrials(NamedTuple):
@@ -269,8 +263,7 @@ class SweepProblem:
 
     def mesh_arrays(self) -> SweepMesh:
         """The mesh arrays the sweep kernels take, as one named tuple."""
-        return SweepMesh(self.coords, self.values, self.simplices, self.transform,
-                         self.neighbors, self.start_cells, self.basis)  # fmt: skip
+        return SweepMesh(*(getattr(self, name) for name in SweepMesh._fields))
 
     def _run_htm(self, nodes, keys):
         h = self.htm
