@@ -1,4 +1,4 @@
-"""Kernels that no workflow test pins down, each against its plain-numpy twin (tests/twins.py).
+"""Kernels that no workflow test pins down, each against its plain-numpy twin (`cfm_fem.testing`).
 
 The kinematics pilot (`pass_pilot`, `fill_values`, `pass_pilot_quantiles`) and its trial keys;
 the star searches of the sweep (`star_locate`, `star_find`, `star_recheck`), whose cells a

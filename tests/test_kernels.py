@@ -1,4 +1,4 @@
-"""Each numba kernel against its plain-numpy twin (tests/twins.py) or scipy."""
+"""Each numba kernel against its plain-numpy twin (`cfm_fem.testing`) or scipy."""
 
 import numba
 import numpy as np

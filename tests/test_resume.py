@@ -309,3 +309,19 @@ def test_resume_refuses_the_store_of_another_comsol_solution(tmp_path, capsys):
     assert 'read_options.solution: "I0=100" in the store, "I0=200" now' in err, err
     assert main([*base, "--solution", "I0=100", "--out", str(out), "--resume"]) == 0
     assert "resumed: 3 chunk(s) read from" in capsys.readouterr().err
+
+
+def test_code_fingerprint_reads_files_that_exist():
+    """Every entry of CODE_MODULES is a file of the package or a folder of .py files: an entry
+    left behind by a move would hash "<absent>" and let a store outlive the code it came from."""
+    from importlib import resources
+
+    from cfm_fem.workflows.sweep.resume import CODE_MODULES
+
+    root = resources.files("cfm_fem")
+    for entry in CODE_MODULES:
+        path = root.joinpath(entry)
+        if entry.endswith("/"):
+            assert any(f.name.endswith(".py") for f in path.iterdir()), entry
+        else:
+            assert path.is_file(), entry

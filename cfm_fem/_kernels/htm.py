@@ -49,7 +49,8 @@ def rotation_zyx_into(phi, theta, psi, r):
 
 @nb.njit(inline="always", **JIT)
 def _squareness_into(stack, a_xy, a_xz, a_yz, ang):
-    """Zyx angles per bench axis (ang[a, :]) for the squareness convention of kinematics.py."""
+    """Zyx angles per bench axis (ang[a, :]) for the squareness convention of
+    `cfm_fem.models.kinematics.chain`."""
     for a in range(3):
         for c in range(3):
             ang[a, c] = 0.0

@@ -32,9 +32,11 @@ __all__ = ["CODE_MODULES", "code_fingerprint", "describe_sweep", "run_key", "Res
 #: invalidates a store.
 CODE_MODULES = (
     "_kernels/",
-    "sweep.py",
-    "interpolation.py",
-    "field.py",
+    "workflows/sweep/problem.py",
+    "models/sweep.py",
+    "models/mesh.py",
+    "models/interpolation.py",
+    "models/field.py",
     "units.py",
     "io/__init__.py",
     "io/_parse.py",
@@ -44,9 +46,10 @@ CODE_MODULES = (
     "io/table.py",
     "io/meshfile.py",
     # mode htm: the bench model
-    "kinematics.py",
-    "bench.py",
-    "mc.py",
+    "models/kinematics/",
+    "models/rotations.py",
+    "models/bench.py",
+    "models/mc.py",
     "io/bench_toml.py",
     "data/cfm_reference_bench.toml",
 )
