@@ -292,7 +292,9 @@ def test_streaming_statistics_are_exact(bench):
 
 def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     q = bench.grid_points()[::37]
-    monkeypatch.setattr(kin, "NARROW_FIRST", 4096)  # narrowings at 4096, 8192, 16384 trials
+    monkeypatch.setattr(
+        kin.monte_carlo, "NARROW_FIRST", 4096
+    )  # narrowings at 4096, 8192, 16384 trials
     seen = []
 
     def spy(values, off, cap, fill, below, lo, hi, klo, khi):
@@ -310,7 +312,7 @@ def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     assert not any("recounted" in n for n in res.notes)
     # ranks that cannot hold the ends: every window loses its end, every point is recounted
     # in two passes, still exact
-    monkeypatch.setattr(kin, "NARROW_SIGMAS", -1e9)
+    monkeypatch.setattr(kin.monte_carlo, "NARROW_SIGMAS", -1e9)
     res, _ = _check_against_brute_force(bench, q, 6 * 4096, seed=3, pilot=1024)
     assert (
         f"{len(q)} point(s) whose window lost its interval end were recounted in two passes"
@@ -322,7 +324,7 @@ def test_a_store_too_large_takes_the_generic_path(bench, monkeypatch):
     """A run whose window store would pass STORE_BYTES counts and regenerates (two passes),
     exact all the same; an adaptive run there keeps the trial count its batches chose."""
     q = bench.grid_points()[::61]
-    monkeypatch.setattr(kin, "STORE_BYTES", 1)
+    monkeypatch.setattr(kin.monte_carlo, "STORE_BYTES", 1)
     res, _ = _check_against_brute_force(bench, q, 3000, seed=2)
     assert "second pass that regenerates every sample" in res.interval_method
     ad = kin.run_kinematics(bench, seed=2, q_cmd=q, adaptive_digits=1, max_trials=40_000)
@@ -332,7 +334,9 @@ def test_a_store_too_large_takes_the_generic_path(bench, monkeypatch):
 
 def test_overflowing_stores_are_recounted_exactly(bench, monkeypatch):
     q = bench.grid_points()[::53]
-    monkeypatch.setattr(kin, "_margin", lambda expect: np.ceil(0.5 * np.asarray(expect)))
+    monkeypatch.setattr(
+        kin.monte_carlo, "_margin", lambda expect: np.ceil(0.5 * np.asarray(expect))
+    )
     res, _ = _check_against_brute_force(bench, q, 3 * 4096, seed=6)
     assert f"{len(q)} point(s) whose window lost" in " ".join(res.notes)
 
@@ -364,7 +368,7 @@ def test_generic_path_position_dependent_and_speed_tau(bench, monkeypatch):
         np.testing.assert_allclose(v[:, :3, t], ref, atol=1e-12)
     assert "one pass" in res.interval_method
     # the one pass over `fill_values` with its windows narrowing (at 4096, 8192, 16384 trials)
-    monkeypatch.setattr(kin, "NARROW_FIRST", 4096)
+    monkeypatch.setattr(kin.monte_carlo, "NARROW_FIRST", 4096)
     res, _ = _check_against_brute_force(b, q, 6 * 4096, seed=4, pilot=1024)
     assert not any("recounted" in n for n in res.notes)
 
