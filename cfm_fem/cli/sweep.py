@@ -137,7 +137,7 @@ def add_args(p):
 
 
 def add_slab_args(p):
-    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.workflows.sweep.slabs`."""
+    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.slabs`."""
     p.add_argument(
         "--slabs",
         type=int,

@@ -2,9 +2,9 @@
 
 The truth is generated with the exact models (full HTM chain with vibration and reading delay,
 the field evaluated at the displaced sensor positions, a 3-D Enge fringe field, box averaging of
-the sensitive volume), not with the linearised signatures of
-:mod:`cfm_fem.workflows.diagnose.effects`, so the diagnosis is tested against physics, not against
-its own equations. Parameters of concealed effects use the names and units of the catalogue.
+the sensitive volume), not with the linearised signatures of :mod:`cfm_fem.diagnose.effects`, so
+the diagnosis is tested against physics, not against its own equations. Parameters of concealed
+effects use the names and units of the catalogue.
 """
 
 from __future__ import annotations
@@ -226,7 +226,7 @@ def hall_twin(
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
         ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
         lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
-        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, with the B_z the 3-D
+        profile :func:`~cfm_fem.diagnose.effects.fringe_profile`, with the B_z the 3-D
         potential implies (edges in the magnet body frame: the fitted edges also carry the
         magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.
