@@ -19,6 +19,7 @@ from ..bench import AXES, ERROR_NAMES, Bench
 from ..kinematics import sensitivities
 from ..recordings import check_hall_scale
 from .calibrate import Columns
+from .motion import axis_velocities
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]
 
@@ -44,6 +45,10 @@ class Problem:
     t_h, speed, temp : ndarray, shape (n,), or None
         Time (h), speed (mm/s), temperature (degC).
     dir : ndarray, shape (n, 3), or None
+        Each axis's own last approach direction (-1, +1; 0 unknown).
+    vel : ndarray, shape (n, 3), mm/s, or None
+        Signed axis velocities at acquisition (recorded, or inferred by
+        :func:`~cfm_fem.diagnose.motion.axis_velocities`).
     to_display : float
         Factor from the unit of ``y`` to the reported unit (``unit``).
     unit : str
@@ -71,6 +76,7 @@ class Problem:
     baseline: list
     ctx: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    vel: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -89,6 +95,17 @@ def _aux(rec):
     t_h = None if rec.t_s is None else rec.t_s / 3600.0
     d = None if rec.dir is None else rec.dir.astype(np.float64)
     return t_h, d, rec.speed, rec.temp_C
+
+
+def _velocities(rec, notes):
+    """Axis velocities at acquisition (recorded or inferred), with a note on their source."""
+    vel, source = axis_velocities(rec.cmd, rec.speed, rec.t_s, rec.vel)
+    if source == "inferred" and rec.speed is not None and np.any(rec.speed > 0):
+        notes.append(
+            "axis velocities at acquisition inferred from the commanded positions, t_s and "
+            "speed (no v_x, v_y, v_z columns)"
+        )
+    return vel
 
 
 def bench_columns(bench: Bench, q, lever_to=None) -> Columns:
@@ -163,6 +180,7 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: flo
         baseline=[base, regc],
         ctx={"bench": bench, "nominal": nominal, "point_ids": ids},
         notes=notes,
+        vel=_velocities(rec, notes),
     )
 
 
@@ -326,17 +344,17 @@ def hall_problem(
         baseline=blocks,
         ctx=ctx,
         notes=notes,
+        vel=_velocities(rec, notes),
     )
 
 
 def noise_sigma(
     prob: Problem, resid, edf: float = 0.0, var_known=None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-observation sigma from the within-point scatter of the residuals.
+    """Per-observation sigma from the noise model fitted to ``resid``
+    (:func:`~cfm_fem.diagnose.noise.estimate_noise`: a floor per component plus the bench
+    model's vibration, scaled by the data).
 
-    sigma_ic**2 = a_c + var_known_ic, a_c from the pooled within-point variance of ``resid``
-    (pure error; model independent for effects that do not vary between repetitions). With one
-    repetition per point, a_c comes from the residuals themselves (dof n - edf).
     ``var_known``: in place of ``prob.var_known`` (a model whose effects change the gradient
     the vibration is seen through, :attr:`Columns.var_known`).
 
@@ -344,25 +362,13 @@ def noise_sigma(
     -------
     sigma : ndarray, shape (n, 3)
     a : ndarray, shape (3,)
-        The estimated white-noise variance per component (y units^2).
+        The estimated floor (instrument noise variance) per component (y units^2).
     """
+    from .noise import estimate_noise
+
     vk = prob.var_known if var_known is None else var_known
-    cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
-    a = np.zeros(3)
-    if prob.n_reps >= 2:
-        for c in range(3):
-            m = np.bincount(prob.point, resid[:, c], prob.n_points) / np.maximum(cnt, 1)
-            dev = resid[:, c] - m[prob.point]
-            dof = np.sum(cnt - 1)
-            known = np.sum(vk[:, c] * (cnt[prob.point] - 1) / cnt[prob.point])
-            a[c] = (dev @ dev - known) / dof
-    else:
-        dof = max(prob.n - edf / 3.0, 1.0)
-        for c in range(3):
-            a[c] = (resid[:, c] @ resid[:, c] - vk[:, c].sum()) / dof
-    floor = 1e-6 * max(float(np.mean(np.abs(prob.y))) ** 2, 1e-30)
-    a = np.maximum(a, floor)
-    return np.sqrt(a[None, :] + vk), a
+    model = estimate_noise(prob, resid, edf, vk)
+    return model.sigma(vk), model.floor
 
 
 __all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]

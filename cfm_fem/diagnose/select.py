@@ -18,9 +18,9 @@ current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
-plausible (else: implausible fit, with the reason) and, for a new signature, its held-out RMS
-improves significantly (paired z > ``cv_z``). A pure prior release changes the fit only where the
-data already decide, so its held-out RMS is reported but not required to drop.
+plausible (else: implausible fit, with the reason) and its held-out RMS improves significantly
+(paired z > ``cv_z``; folds of whole repetitions in time order, :func:`folds_of`), a prior
+release too: nothing is claimed that does not predict data it was not fitted to.
 """
 
 from __future__ import annotations
@@ -68,6 +68,7 @@ class Candidate:
     conflict: list = field(default_factory=list)
     has_new: bool = True
     reason: str = ""
+    family: str | None = None
 
 
 @dataclass
@@ -79,23 +80,68 @@ class Selection:
 
 
 def folds_of(prob: Problem, k: int = 5) -> np.ndarray:
-    """Fold index of each row: whole repetitions (rep rank modulo k); single-rep maps: points."""
+    """Fold index of each row for the held-out test.
+
+    With repetitions: whole repetitions in contiguous blocks of their time order (a model
+    trained on the other blocks must predict a block it never saw, so a ramp cannot fit a step
+    from its neighbours). One repetition: points, interleaved (point index modulo k).
+    """
     reps = np.unique(prob.rep)
     if reps.size >= 2:
-        rank = np.searchsorted(reps, prob.rep)
-        return rank % min(k, reps.size)
+        if prob.t_h is not None:
+            t0 = np.array([prob.t_h[prob.rep == r].min() for r in reps])
+            reps = reps[np.argsort(t0, kind="stable")]
+        kk = min(k, reps.size)
+        block = np.arange(reps.size) * kk // reps.size
+        out = np.empty(prob.n, dtype=np.int64)
+        for r, b in zip(reps, block, strict=True):
+            out[prob.rep == r] = b
+        return out
     return prob.point % k
 
 
 def cv_rms(prob: Problem, sigma, cols: Columns, folds) -> tuple[float, np.ndarray]:
-    """Held-out RMS (display units) and the per-row held-out squared error (for paired tests)."""
-    out = np.empty(prob.n)
+    """Held-out RMS (display units) and the per-row held-out chi2 (sum over the components of
+    the squared residual in units of its sigma), for paired tests: weighting by the noise keeps
+    the quiet readings from being drowned by the noisy ones."""
+    rms = np.empty(prob.n)
+    chi2 = np.empty(prob.n)
     for f in np.unique(folds):
         test = folds == f
         fit = fit_map(prob.y, sigma, cols, mask=~test)
-        r = fit.resid[test] * prob.to_display
-        out[test] = (r**2).mean(1)
-    return float(np.sqrt(out.mean())), out
+        r = fit.resid[test]
+        rms[test] = ((r * prob.to_display) ** 2).mean(1)
+        chi2[test] = ((r / sigma[test]) ** 2).sum(1)
+    return float(np.sqrt(rms.mean())), chi2
+
+
+def _replicated_conflict(prob, sigma, trial, released, model, folds) -> float:
+    """Held-out evidence of a prior-data conflict: Stouffer's z of the conflict of the released
+    parameter estimated from each fold alone.
+
+    Where the data outweigh the prior, releasing it changes the predictions little, so a
+    held-out RMS cannot show the conflict; but a real conflict shows in every fold on its own,
+    on the same side of the prior. The parameter is the released one in strongest conflict;
+    each fold's z = (theta_f - m) / sqrt(var_f + s^2), signed by the conflict of all the data.
+    """
+    if not released:
+        return -np.inf
+    full = fit_map(prob.y, sigma, trial)
+    best, sign = None, 1.0
+    for nm in released:
+        i = trial.names.index(nm)
+        j = model.names.index(nm)
+        zz = (full.theta[i] - model.prior_mean[j]) / model.prior_std[j]
+        if best is None or abs(zz) > abs(best[1]):
+            best, sign = (nm, zz), np.sign(zz) or 1.0
+    i = trial.names.index(best[0])
+    j = model.names.index(best[0])
+    m, s = model.prior_mean[j], model.prior_std[j]
+    zs = []
+    for f in np.unique(folds):
+        fit = fit_map(prob.y, sigma, trial, mask=folds == f)
+        zs.append(sign * (fit.theta[i] - m) / np.sqrt(fit.cov[i, i] + s**2))
+    return float(np.sum(zs) / np.sqrt(len(zs)))
 
 
 def _survival(prob, sigma, model: Columns, eff: Columns, theta_e) -> float:
@@ -236,10 +282,12 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         f = fit_map(prob.y, sigma, trial)
         d = current.objective - f.objective
         k = max(f.edf - current.edf, 1e-9)
+        mult = max(float(blk.multiplicity), 1.0)
         parts["new"] = {
             "d": d,
             "k": k,
-            "p": float(stats.chi2.sf(max(d, 0.0), max(k, 0.5))),
+            "p": min(1.0, mult * float(stats.chi2.sf(max(d, 0.0), max(k, 0.5)))),
+            "pen": 2.0 * np.log(mult),  # the choice among mult alternatives (BIC prior)
             "fit": f,
             "surv": _survival(prob, sigma, model, blk, f.theta[model.p :]),
         }
@@ -264,12 +312,15 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         return None
     n_parts = len(parts)
 
+    def bic(pt):
+        return pt["d"] - pt["k"] * log_n - pt.get("pen", 0.0)
+
     def passes(pt):
-        return pt["d"] - pt["k"] * log_n > bic_min and n_parts * pt["p"] < alpha
+        return bic(pt) > bic_min and n_parts * pt["p"] < alpha
 
     use = [nm for nm, pt in parts.items() if passes(pt)]
     if not use:  # report the stronger part
-        use = [max(parts, key=lambda nm: parts[nm]["d"] - parts[nm]["k"] * log_n)]
+        use = [max(parts, key=lambda nm: bic(parts[nm]))]
     rel = parts["release"]["shown"] if "release" in use else []
     trial = released_in(model, rel)
     if "new" in use:
@@ -277,12 +328,13 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
     f = fit_map(prob.y, sigma, trial)
     d = current.objective - f.objective
     k = sum(parts[nm]["k"] for nm in use)
+    pen = sum(parts[nm].get("pen", 0.0) for nm in use)
     p = min(1.0, n_parts * min(parts[nm]["p"] for nm in use))
     return Candidate(
         name=name,
         delta_chi2=float(d),
         k=float(k),
-        delta_bic=float(d - k * log_n),
+        delta_bic=float(d - k * log_n - pen),
         p_value=float(p),
         survival=parts["new"]["surv"] if "new" in use else float("nan"),
         fit=f,
@@ -293,6 +345,23 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         conflict=conflict,
         has_new="new" in use,
     )
+
+
+def _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
+    """Evidence of a candidate; an effect made of several error functions (``families``) is
+    the best of its functions tested one by one, corrected for the choice among them."""
+    if not blk.families:
+        return _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+    best = None
+    m = len(blk.families)
+    for label, idx in blk.families:
+        sub = blk.subset(idx)
+        sub.families = None
+        sub.multiplicity = blk.multiplicity * m
+        c = _evaluate(prob, sigma, model, current, sub, name, alpha, bic_min, log_n)
+        if c is not None and (best is None or c.delta_bic > best.delta_bic):
+            best, best.family = c, label
+    return best
 
 
 def _plausibility(c: Candidate, model_p: int) -> str:
@@ -360,12 +429,14 @@ def select_effects(
     log_n = np.log(current.n_obs)
     selected, cands, rounds, accepted_c = [], {}, [], []
     absorbed = set(absorbed)
+    blocks = dict(blocks)
+    done = set()
     for rnd in range(max_effects):
         round_c = []
         for name, blk in blocks.items():
-            if name in selected:
+            if name in done:
                 continue
-            c = _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+            c = _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
             if progress:
                 progress(1)
             if c is None:
@@ -404,8 +475,10 @@ def select_effects(
             cva, ea = cv_rms(prob, sigma, c.trial, folds)
             diff = eb - ea
             z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
+            if not c.has_new:  # a prior conflict: replicated in every fold on its own
+                z = max(z, _replicated_conflict(prob, sigma, c.trial, c.released, model, folds))
             c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            if z > cv_z or not c.has_new:
+            if z > cv_z:
                 accepted = c
                 break
             c.status = "fails held-out test"
@@ -415,6 +488,16 @@ def select_effects(
         accepted.status = "found"
         selected.append(accepted.name)
         accepted_c.append(accepted)
+        blk = blocks[accepted.name]
+        if accepted.family is not None:  # the effect's other functions stay candidates
+            rest = sorted({k for lb, idx in blk.families if lb != accepted.family for k in idx})
+            blocks[accepted.name] = blk.subset(rest) if rest else blk
+            if rest:
+                blocks[accepted.name].families = [
+                    f for f in blocks[accepted.name].families if f[0] != accepted.family
+                ]
+        if accepted.family is None or not rest:
+            done.add(accepted.name)
         model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
         sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)

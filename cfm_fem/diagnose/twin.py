@@ -56,6 +56,18 @@ def scan_order(n_points: int, n_reps: int, q):
     return rep, pidx, dirs
 
 
+def _scan_velocities(q, speed):
+    """Velocity at acquisition (mm/s) of the twin's scan: ``speed`` along the largest axis
+    move from the previous point (the first row: towards the next one)."""
+    d = np.diff(q, axis=0)
+    d = np.vstack([d[:1], d])
+    axis = np.abs(d).argmax(1)
+    vel = np.zeros_like(q)
+    rows = np.arange(len(q))
+    vel[rows, axis] = np.sign(d[rows, axis]) * speed
+    return vel
+
+
 def _pdg_displacement(bench: Bench, q, amps: dict):
     """Displacement of position-dependent geometric errors {'eps_y(z)_u2': urad, ...}, mm."""
     out = np.zeros((len(q), 3))
@@ -130,9 +142,10 @@ def tracker_twin(
     q = q_pts[pidx]
     t_s = np.arange(n) * dt_s
     speed = np.zeros(n) if speeds is None else np.asarray(speeds, float)[rep % len(speeds)]
+    vel = _scan_velocities(q, speed)
     dq = rng.normal(size=(n, 3)) * bench.noise_std_mm()
     if "reading_delay" in effects:
-        dq = dq + effects["reading_delay"]["tau"] * 1e-3 * speed[:, None] * dirs
+        dq = dq + effects["reading_delay"]["tau"] * 1e-3 * vel
     E = probe_errors_for_bench(bench, params[None], q, dq[None])[0]
     pdg = effects.get("position_dependent_geometric")
     if pdg:
@@ -172,6 +185,7 @@ def tracker_twin(
         t_s=t_s,
         dir=dirs,
         speed=speed,
+        vel=vel,
         source=f"twin(seed={seed}, effects={effects})",
     )
     return rec, {"errors": params, "effects": effects, "registration": reg}
