@@ -73,6 +73,9 @@ class Columns:
         points); the evidence is corrected for it (Bonferroni). 1: none.
     info : dict, optional
         Per-parameter facts reported with the estimate (``step_event``: where the step is).
+    bounds_why : list of str, optional
+        Reason of each bound in place of the catalogue's (``fringe_field_3d``: an edge must lie
+        in the z range the data cover); '' keeps the catalogue's.
     """
 
     J: np.ndarray
@@ -90,6 +93,7 @@ class Columns:
     families: list | None = None
     multiplicity: float = 1.0
     info: dict | None = None
+    bounds_why: list | None = None
 
     @property
     def p(self) -> int:
@@ -124,6 +128,7 @@ class Columns:
             fams,
             self.multiplicity,
             self.info,
+            None if self.bounds_why is None else [self.bounds_why[k] for k in keep],
         )
 
     def released(self, group: str) -> Columns:

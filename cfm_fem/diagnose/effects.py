@@ -119,7 +119,7 @@ PLAUSIBLE = {
     "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
     "sensor_offset": [("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart")],
     "magnet_misalignment": [
-        ("magnet_d", -2000.0, 2000.0, "a magnet 2 mm off its survey"),
+        ("magnet_d", -10000.0, 10000.0, "a magnet 10 mm off its survey or nominal placement"),
         ("magnet_", -10000.0, 10000.0, "a magnet rotated 10 mrad off its survey"),
     ],
     "planar_hall": [("k_", -0.1, 0.1, "a planar Hall term beyond 10 % at 1 T")],
@@ -584,7 +584,9 @@ def fringe_field_3d(prob):
         options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600},
     )
     zi, zo, lam = res.x[0], res.x[1], float(np.exp(res.x[2]))
-    inside = [zmin - 10 * lam < zi < zmax, zmin < zo < zmax + 10 * lam]
+    # an end is estimated only inside the z range the data cover: beyond it the data see a
+    # tail, and an edge placed there would be an extrapolation, not a finding
+    inside = [zmin < zi < zmax, zmin < zo < zmax]
     if not any(inside):  # no end in or near the map: test for a soft end just outside it
         lam = span / 20.0
         zi, zo = zmin - 3 * lam, zmax + 3 * lam
@@ -612,6 +614,14 @@ def fringe_field_3d(prob):
             e[k] = 1e-3 * th[2]
             cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
         blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
+        blk.bounds_why = [""] * len(names)
+        for j, k in enumerate(free):
+            if k < 2:  # the edge (th + increment / a, a ~ 1) must stay in the data's z range
+                blk.bounds[1 + j] = (zmin - th[k], zmax - th[k])
+                blk.bounds_why[1 + j] = (
+                    f"the magnet end would lie outside the z range the data cover "
+                    f"[{zmin:g}, {zmax:g}] mm"
+                )
         blk.replaces = {nm: J3[..., i] for i, nm in enumerate(base.names)}
         blk.var_known = vk
         return blk

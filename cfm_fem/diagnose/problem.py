@@ -11,7 +11,7 @@ magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from ..recordings import check_hall_scale
 from .calibrate import Columns
 from .motion import axis_velocities
 
-__all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]
+__all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian", "subset_rows"]
 
 UM, URAD = 1e-3, 1e-6  # display units of the bench errors (mm, rad per unit)
 
@@ -89,6 +89,56 @@ class Problem:
     @property
     def n_reps(self) -> int:
         return int(np.bincount(self.point).max())
+
+
+def subset_rows(prob: Problem, keep) -> Problem:
+    """The problem restricted to the rows ``keep`` (bool (n,)): every per-row array, the
+    baseline columns and the per-row model pieces of ``ctx`` sliced, points renumbered."""
+    keep = np.asarray(keep, dtype=bool)
+    n = prob.n
+
+    def take(a):
+        return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
+
+    _, point = np.unique(prob.point[keep], return_inverse=True)
+    ctx = {k: take(v) for k, v in prob.ctx.items() if k not in ("upts", "V", "point_ids")}
+    ctx["upts"] = prob.ctx.get("upts")
+    if "V" in prob.ctx:
+        ctx["V"] = prob.ctx["V"]
+    if "point_ids" in prob.ctx:
+        ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
+    if ctx["upts"] is None:
+        del ctx["upts"]
+    return replace(
+        prob,
+        y=prob.y[keep],
+        pos=prob.pos[keep],
+        q=prob.q[keep],
+        point=point.reshape(-1),
+        rep=prob.rep[keep],
+        t_h=take(prob.t_h),
+        dir=take(prob.dir),
+        speed=take(prob.speed),
+        temp=take(prob.temp),
+        var_known=prob.var_known[keep],
+        baseline=[
+            Columns(
+                b.J[keep],
+                b.names,
+                b.units,
+                b.prior_mean,
+                b.prior_std,
+                b.group,
+                b.bounds,
+                b.release,
+                b.release_bounds,
+            )
+            for b in prob.baseline
+        ],
+        ctx=ctx,
+        notes=list(prob.notes),
+        vel=take(prob.vel),
+    )
 
 
 def _aux(rec):
@@ -185,12 +235,27 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: flo
 
 
 def field_jacobian(f, p, h: float = 0.5) -> np.ndarray:
-    """Central-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm."""
+    """Finite-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm.
+
+    Central differences; one-sided ones at points on the border of a reference map, where one
+    neighbour lies outside it (``f`` gives NaN there); 0 where neither neighbour is inside.
+    """
+    b0 = None
     out = np.empty((len(p), 3, 3))
     for j in range(3):
         e = np.zeros(3)
         e[j] = h
-        out[:, :, j] = (f(p + e) - f(p - e)) / (2 * h)
+        fp, fm = f(p + e), f(p - e)
+        d = (fp - fm) / (2 * h)
+        bad = ~np.isfinite(d).all(1)
+        if bad.any():
+            b0 = f(p) if b0 is None else b0
+            fwd = (fp - b0) / h
+            bwd = (b0 - fm) / h
+            ok_f = np.isfinite(fwd).all(1)
+            d[bad] = np.where(ok_f[bad, None], fwd[bad], bwd[bad])
+            d[~np.isfinite(d).all(1)] = 0.0
+        out[:, :, j] = d
     return out
 
 

@@ -18,9 +18,11 @@ current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
-plausible (else: implausible fit, with the reason) and its held-out RMS improves significantly
-(paired z > ``cv_z``; folds of whole repetitions in time order, :func:`folds_of`), a prior
-release too: nothing is claimed that does not predict data it was not fitted to.
+plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
+(folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
+RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``); for a
+prior release, whose data already steer the calibration, the conflict is replicated in every
+fold on its own (Stouffer z > ``cv_z``) and the held-out error is not significantly worse.
 """
 
 from __future__ import annotations
@@ -388,6 +390,9 @@ def _plausibility(c: Candidate, model_p: int) -> str:
     from .effects import bounds_for
 
     why = bounds_for(c.name, names)[1]
+    if c.has_new and blk.bounds_why is not None:
+        own = [w or why[len(why) - blk.p + j] for j, w in enumerate(blk.bounds_why)]
+        why = why[: len(why) - blk.p] + own
     return implausible_reason(names, np.array(est), np.array(sd), np.array(bnd), why, unit)
 
 
@@ -475,10 +480,13 @@ def select_effects(
             cva, ea = cv_rms(prob, sigma, c.trial, folds)
             diff = eb - ea
             z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
-            if not c.has_new:  # a prior conflict: replicated in every fold on its own
-                z = max(z, _replicated_conflict(prob, sigma, c.trial, c.released, model, folds))
+            better = cva < cvb
+            if not c.has_new:  # a prior conflict: replicated in every fold on its own, and
+                # the held-out error not significantly worse
+                better = z > -cv_z
+                z = _replicated_conflict(prob, sigma, c.trial, c.released, model, folds)
             c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            if z > cv_z:
+            if z > cv_z and better:
                 accepted = c
                 break
             c.status = "fails held-out test"

@@ -19,9 +19,9 @@ from . import effects as fx
 from .advice import advise
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .conflicts import prior_conflicts
-from .locate import locate
+from .locate import isolated_planes, locate
 from .noise import estimate_noise
-from .problem import Problem, noise_sigma
+from .problem import Problem, noise_sigma, subset_rows
 from .select import cv_rms, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
@@ -289,16 +289,15 @@ def _arrays(prob, cal, fit1, loc0, loc1) -> dict:
     }
 
 
-def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
-    t0 = time.perf_counter()
-    o = {**DEFAULTS, **opts}
+def _attribute(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
+    """Calibrate, locate, select the effects and fit them together (steps 1-4)."""
 
     def sigma_fn(resid, edf, var_known=None):
         return noise_sigma(prob, resid, edf, var_known)[0]
 
-    cal = _calibrate(prob)  # 1. what the model already contains
-    loc0 = locate(prob, cal.fit_b.resid, cal.sigma0, q=o["fdr_q"], edf=cal.fit_b.edf)  # 2.
-    blocks, untestable, absorption, absorbed = _candidates(prob, cal)  # 3. attribute
+    cal = _calibrate(prob)
+    loc0 = locate(prob, cal.fit_b.resid, cal.sigma0, q=o["fdr_q"], edf=cal.fit_b.edf)
+    blocks, untestable, absorption, absorbed = _candidates(prob, cal)
     sel = select_effects(
         prob,
         sigma_fn,
@@ -309,43 +308,111 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         absorbed=absorbed,
         progress=progress,
     )
-    fit1 = fit_map(prob.y, sel.sigma, sel.model)  # 4. model: the selected effects together
+    fit1 = fit_map(prob.y, sel.sigma, sel.model)
     loc1 = locate(prob, fit1.resid, sel.sigma, q=o["fdr_q"], edf=fit1.edf)
-    cv_b, _ = cv_rms(prob, cal.sigma0, cal.base, sel.folds)
-    cv_a, _ = cv_rms(prob, sel.sigma, sel.model, sel.folds) if sel.selected else (cv_b, None)
+    return SimpleNamespace(
+        prob=prob,
+        cal=cal,
+        loc0=loc0,
+        blocks=blocks,
+        untestable=untestable,
+        absorption=absorption,
+        absorbed=absorbed,
+        sel=sel,
+        fit1=fit1,
+        loc1=loc1,
+    )
+
+
+def _outlier_entries(isolated) -> list:
+    return [
+        {
+            "component": d["component"],
+            "where": f"isolated plane {d['axis']} = {d['position_mm']:.6g} mm (outlier: left out "
+            "of the attribution)",
+            "n_points": int(d["rows"].sum()),
+            "max_abs_z": abs(d["z_mean"]),
+            "mean_z": d["z_mean"],
+        }
+        for d in isolated
+    ]
+
+
+def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
+    """Leave out planes that depart from their neighbours after the effects (bad readings, not
+    physics), strongest first, one at a time with the attribution done again, while one is
+    found and they stay under a fifth of the rows."""
+    a, isolated = full, []
+    idx = np.arange(prob.n)
+    out = np.zeros(prob.n, dtype=bool)
+    for _ in range(max_planes):
+        iso = isolated_planes(a.prob, a.loc1["z_row"], q=o["fdr_q"])
+        if not iso:
+            break
+        top = dict(iso[0])
+        rows = np.zeros(prob.n, dtype=bool)
+        rows[idx[top["rows"]]] = True
+        if (out | rows).sum() > 0.2 * prob.n:
+            break
+        out |= rows
+        top["rows"] = rows
+        isolated.append(top)
+        idx = np.flatnonzero(~out)
+        a = _attribute(subset_rows(prob, ~out), o, progress)
+    return a, isolated
+
+
+def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
+    t0 = time.perf_counter()
+    o = {**DEFAULTS, **opts}
+    full = _attribute(prob, o, progress)
+    a, isolated = _without_bad_planes(prob, full, o, progress)
+    sel, cal, fit1, loc1 = a.sel, a.cal, a.fit1, a.loc1
+    p = a.prob
+    cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
+    cv_a, _ = cv_rms(p, sel.sigma, sel.model, sel.folds) if sel.selected else (cv_b, None)
     eff_out = _effects_out(sel, fit1, cal.base)
-    cand_out = _candidate_table(sel, absorbed, absorption)
+    cand_out = _candidate_table(sel, a.absorbed, a.absorption)
     implausible = [
         {"name": c["name"], "reason": c["reason"], "delta_bic": c["delta_bic"]}
         for c in cand_out
         if c["status"] == "implausible fit"
     ]
     released = {n for c in sel.accepted for n in c.released}
-    conflicts = prior_conflicts(
-        sel.model, fit1, cal.base, released, o["alpha"], prob.baseline, prob.kind
-    )
+    conflicts = prior_conflicts(sel.model, fit1, cal.base, released, o["alpha"], p.baseline, p.kind)
     advice, ov = advise(
-        prob, o, cal, sel, blocks, absorption, absorbed, implausible, untestable, conflicts, loc1
-    )
+        p, o, cal, sel, a.blocks, a.absorption, a.absorbed, implausible, a.untestable,
+        conflicts, loc1,
+    )  # fmt: skip
+    outliers = _outlier_entries(isolated)
+    if outliers:
+        advice.insert(
+            0,
+            f"{len(outliers)} plane(s) depart from their neighbours beyond the noise (see "
+            "'located'): bad readings, not a field or bench effect; they are left out of the "
+            "attribution. Check those acquisitions (settling at the start of a line, a glitch)",
+        )
+    located = sorted(full.loc0["located"] + outliers, key=lambda d: -d["max_abs_z"])
     # an implausible fit or a prior conflict is still a difference between recording and model
-    mismatch = bool(sel.selected or loc0["located"] or implausible or conflicts)
+    mismatch = bool(sel.selected or located or implausible or conflicts)
     summary = {
         "mismatch": mismatch,
-        "located": loc0["located"][:20],
+        "located": located[:20],
         "effects": eff_out,
-        "fit": _fit_doc(prob, cal, sel, fit1, cv_b, cv_a, loc0, loc1),
+        "fit": _fit_doc(p, cal, sel, fit1, cv_b, cv_a, a.loc0, loc1),
         "advice": advice,
         "located_after": loc1["located"][:20],
         "candidates": cand_out,
         "implausible": implausible,
         "prior_conflicts": conflicts,
-        "untestable": untestable,
-        "overlaps": [{"a": a, "b": b, "overlap": round(v, 3)} for a, b, v in ov],
+        "outliers": [{k: v for k, v in d.items() if k != "rows"} for d in isolated],
+        "untestable": a.untestable,
+        "overlaps": [{"a": x, "b": y, "overlap": round(v, 3)} for x, y, v in ov],
         "calibration": cal.calib,
         "thresholds": o,
         "kind": prob.kind,
-        "notes": prob.notes,
+        "notes": p.notes,
     }
     dt = time.perf_counter() - t0
     summary["seconds"] = round(dt, 2)
-    return Diagnosis(summary=summary, arrays=_arrays(prob, cal, fit1, loc0, loc1), seconds=dt)
+    return Diagnosis(summary=summary, arrays=_arrays(p, cal, fit1, a.loc0, loc1), seconds=dt)
