@@ -537,6 +537,13 @@ def fringe_field_3d(prob):
     z = upts[:, 2]
     if np.ptp(z) <= 0:
         return "a single z plane: no z-dependence to see"
+    G = ctx["G"]
+    dz = np.abs(G[:, :, 2]).max()
+    if dz > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300):
+        return (
+            "the reference field varies along z (a 3-D map): the magnet ends are part of it, "
+            "and the effect describes ends missing from a 2-D reference"
+        )
     if "V" not in ctx:
         ctx["V"] = _scalar_potential(ctx["field_fn"], upts)
     B0u = ctx["field_fn"](upts)

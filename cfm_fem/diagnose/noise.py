@@ -9,7 +9,9 @@ the field gradient (``var_known``, from the bench model). The variance of an obs
 with the floor ``a_c`` and the scale ``b_c`` of the bench model's vibration both estimated from
 the data, per component, and both >= 0. The floor holds where the gradient vanishes (beyond the
 magnet ends), the scale lets the data say how much vibration the bench really has (the bench
-file may describe another bench).
+file may describe another bench). Against a piecewise-linear reference (an FEM or measured map),
+the variance of its interpolation error is added (:func:`reference_error_var`): the reference
+is not exact between its nodes, and that error is no effect of the bench or the probe.
 
 Where the data come from:
 
@@ -30,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
-__all__ = ["NoiseModel", "estimate_noise", "line_triples"]
+__all__ = ["NoiseModel", "estimate_noise", "line_triples", "reference_error_var"]
 
 #: Second differences beyond this many model standard deviations are gross outliers (a bad
 #: plane, a glitch), left out of the noise estimate; they are for `locate` to find.
@@ -60,9 +62,11 @@ class NoiseModel:
     source: str
     dof: float
 
-    def sigma(self, var_known) -> np.ndarray:
-        """Standard deviation of each observation, shape (n, 3)."""
-        return np.sqrt(self.floor[None, :] + self.scale[None, :] * var_known)
+    def sigma(self, var_known, var_ref=None) -> np.ndarray:
+        """Standard deviation of each observation, shape (n, 3); ``var_ref`` (n, 3): the
+        reference map's own interpolation error variance, added as it is."""
+        v = self.floor[None, :] + self.scale[None, :] * var_known
+        return np.sqrt(v if var_ref is None else v + var_ref)
 
 
 def _fit_floor_scale(s2, v, w_dof, mult=1.0):
@@ -205,3 +209,34 @@ def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
     tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)
     floor = np.maximum(floor, tiny)
     return NoiseModel(floor=floor, scale=scale, source=source, dof=dof)
+
+
+def reference_error_var(field_fn, pts, h: float) -> np.ndarray:
+    """Variance of the linear interpolation error of a reference map at points, T^2.
+
+    Along a direction with node spacing ``h`` and curvature c, linear interpolation errs by
+    c t (h - t) / 2 at a distance t from a node: rms c h^2 / sqrt(120) over a cell, the points
+    falling anywhere between nodes. The curvature per component and direction is the second
+    difference of ``field_fn`` at step ``h``; the three directions add in variance.
+
+    Parameters
+    ----------
+    field_fn : callable
+        ``field_fn(points (k, 3) mm) -> B (k, 3) T``; NaN outside the map.
+    pts : ndarray, shape (m, 3), mm
+    h : float, mm
+        Typical node spacing of the map.
+
+    Returns
+    -------
+    ndarray, shape (m, 3)
+    """
+    b0 = field_fn(pts)
+    var = np.zeros_like(b0)
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        d2 = field_fn(pts + e) - 2 * b0 + field_fn(pts - e)
+        d2 = np.where(np.isfinite(d2), d2, 0.0)  # a border node: no estimate along j
+        var += d2**2 / 120.0  # (c h^2)^2 / 120 with c h^2 = d2
+    return var

@@ -49,6 +49,9 @@ class Problem:
     vel : ndarray, shape (n, 3), mm/s, or None
         Signed axis velocities at acquisition (recorded, or inferred by
         :func:`~cfm_fem.diagnose.motion.axis_velocities`).
+    var_ref : ndarray, shape (n, 3), or None
+        Variance of the reference's own interpolation error (y units^2), added to the noise;
+        None for an exact reference.
     to_display : float
         Factor from the unit of ``y`` to the reported unit (``unit``).
     unit : str
@@ -77,6 +80,7 @@ class Problem:
     ctx: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     vel: np.ndarray | None = None
+    var_ref: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -138,6 +142,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         ctx=ctx,
         notes=list(prob.notes),
         vel=take(prob.vel),
+        var_ref=take(prob.var_ref),
     )
 
 
@@ -286,6 +291,7 @@ def hall_problem(
     gain_std_pct: float = 0.15,
     smooth: bool = True,
     h: float = 0.5,
+    ref_spacing_mm: float | None = None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -306,6 +312,9 @@ def hall_problem(
         False for piecewise-linear references (second derivatives not used).
     h : float, mm
         Step of the finite-difference gradient.
+    ref_spacing_mm : float, optional
+        Node spacing of a piecewise-linear reference map: its interpolation error is estimated
+        (:func:`~cfm_fem.diagnose.noise.reference_error_var`) and added to the noise.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -379,6 +388,17 @@ def hall_problem(
         f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
         f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
     )
+    var_ref = None
+    if ref_spacing_mm is not None and not smooth:
+        from .noise import reference_error_var
+
+        var_ref = reference_error_var(field_fn, upts, ref_spacing_mm)[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        notes.append(
+            f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
+            f"its interpolation error (rms {rms:.3g} units over the readings, from its "
+            "curvature) is added to the noise"
+        )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
         "B0": B0,
@@ -410,6 +430,7 @@ def hall_problem(
         ctx=ctx,
         notes=notes,
         vel=_velocities(rec, notes),
+        var_ref=var_ref,
     )
 
 
@@ -433,7 +454,7 @@ def noise_sigma(
 
     vk = prob.var_known if var_known is None else var_known
     model = estimate_noise(prob, resid, edf, vk)
-    return model.sigma(vk), model.floor
+    return model.sigma(vk, prob.var_ref), model.floor
 
 
 __all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]

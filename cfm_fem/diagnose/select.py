@@ -23,6 +23,8 @@ plausible (else: implausible fit, with the reason) and it predicts data it was n
 RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``); for a
 prior release, whose data already steer the calibration, the conflict is replicated in every
 fold on its own (Stouffer z > ``cv_z``) and the held-out error is not significantly worse.
+Last, it must show in either half of the map (:mod:`~cfm_fem.diagnose.stability`; else:
+unstable, with the reason).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from scipy import stats
 
 from .calibrate import Columns, Fit, fit_map, released_in, stack
 from .problem import Problem
+from .stability import unstable_in
 
 __all__ = [
     "Candidate",
@@ -482,14 +485,21 @@ def select_effects(
             z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
             better = cva < cvb
             if not c.has_new:  # a prior conflict: replicated in every fold on its own, and
-                # the held-out error not significantly worse
+                # the held-out error not significantly worse (where the data outweigh the
+                # prior, the predictions barely change)
                 better = z > -cv_z
                 z = _replicated_conflict(prob, sigma, c.trial, c.released, model, folds)
             c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            if z > cv_z and better:
-                accepted = c
-                break
-            c.status = "fails held-out test"
+            if not (z > cv_z and better):
+                c.status = "fails held-out test"
+                continue
+            why = unstable_in(prob, sigma, model, c.trial, c.k)
+            if why:
+                c.status = "unstable"
+                c.reason = why
+                continue
+            accepted = c
+            break
         rounds.append([(c.name, c.delta_bic) for c in sorted(round_c, key=lambda c: -c.delta_bic)])
         if accepted is None:
             break

@@ -238,7 +238,9 @@ def _candidate_table(sel, absorbed, absorption) -> list:
 
 def _noise_doc(prob, noise) -> dict:
     d = prob.to_display
+    ref = None if prob.var_ref is None else float(np.sqrt(prob.var_ref.mean()) * d)
     return {
+        "reference_error_rms": ref,
         "source": noise.source,
         "floor_std": [float(v) for v in np.sqrt(noise.floor) * d],
         "vibration_scale": [float(v) for v in noise.scale],
@@ -260,7 +262,9 @@ def _fit_doc(prob, cal, sel, fit1, cv_b, cv_a, loc0, loc1) -> dict:
         "chi2_dof_after": _chi2_dof(fit1.resid, sel.sigma, fit1.edf),
         "cv_rms_before": cv_b,
         "cv_rms_after": cv_a,
-        "noise_std": [float(v) for v in np.median(noise.sigma(vk), axis=0) * prob.to_display],
+        "noise_std": [
+            float(v) for v in np.median(noise.sigma(vk, prob.var_ref), axis=0) * prob.to_display
+        ],
         "noise_model": _noise_doc(prob, noise),
         "n_obs": int(prob.n * 3),
         "n_points": prob.n_points,
