@@ -222,6 +222,7 @@ class Fit:
     singular_values: np.ndarray
     vt: np.ndarray
     scale: np.ndarray
+    q_data: np.ndarray | None = None  # cache of the selection's screening (select._screen)
 
     @property
     def objective(self) -> float:
