@@ -41,7 +41,12 @@ IN = 25.4
 
 pytestmark = pytest.mark.skipif(not BODY.exists(), reason="shared data folder absent")
 
-#: Magnet shift t (um) the owners' stitching implies (module docstring).
+#: Magnet shift t (um) the owners' stitching implies (module docstring). Their own fits of the
+#: downstream offsets spread by up to 30 um (x 347-375, y 71-81 um over three fit variants);
+#: with the diagnosis' own std (about 20 um), 100 um is three combined standard deviations.
+TOL_XY_UM = 100.0
+#: Along z a shift trades against a common Hall gain in a fringe field: 150 um.
+TOL_Z_UM = 150.0
 OWNERS_UP = {"magnet_dx": -144.0, "magnet_dy": -411.0, "magnet_dz": -1509.0}
 OWNERS_DOWN = {"magnet_dx": 375.0, "magnet_dy": 81.0, "magnet_dz": -1959.0}
 
@@ -98,7 +103,9 @@ def _diagnose(rec, body):
 
     b_ref = float(np.nanmax(np.linalg.norm(body.B, axis=1)))
     h = node_spacing_mm(body.points)
-    return diagnose(hall_problem(rec, field, b_ref, None, smooth=False, ref_spacing_mm=h)).summary
+    return diagnose(
+        hall_problem(rec, field, b_ref, None, smooth=False, ref_spacing_mm=h, ref_nodes=body.points)
+    ).summary
 
 
 def _shift_close(s, owners, tol_xy_um, tol_z_um):
@@ -115,8 +122,7 @@ def test_upstream_fringe_is_a_registration_shift_near_the_owners_fit(upstream):
     first = s["effects"][0]
     assert first["name"] == "magnet_misalignment", s["candidates"]
     assert {"magnet_dy", "magnet_dz"} <= set(first["params"])
-    # transverse within tens of um; z trades against a common gain in a fringe field
-    _shift_close(s, OWNERS_UP, 60.0, 150.0)
+    _shift_close(s, OWNERS_UP, TOL_XY_UM, TOL_Z_UM)
     names = {e["name"] for e in s["effects"]}
     assert not names & {"sensor_offset", "fringe_field_3d", "planar_hall"}
 
@@ -144,7 +150,7 @@ def test_downstream_fringe_is_a_registration_shift_near_the_owners_fit(body):
     s = _diagnose(_overlap(points, B, body), body)
     first = s["effects"][0]
     assert first["name"] == "magnet_misalignment", s["candidates"]
-    _shift_close(s, OWNERS_DOWN, 60.0, 150.0)
+    _shift_close(s, OWNERS_DOWN, TOL_XY_UM, TOL_Z_UM)
     names = {e["name"] for e in s["effects"]}
     assert not names & {"sensor_offset", "fringe_field_3d", "planar_hall"}
     # the scan's first plane (the start of every z line) departs from its neighbours

@@ -135,6 +135,7 @@ def _reference(spec, rec, r_ref=None, args=None):
         )
     spacing = node_spacing_mm(fm.points)
     desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
+    fn.nodes = fm.points  # the interpolation is exact there
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 
 
@@ -193,7 +194,10 @@ def _run(args) -> int:
         fn, b_ref, spacing, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
             b_ref = args.b_ref
-        prob = hall_problem(rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing)
+        nodes = getattr(fn, "nodes", None)
+        prob = hall_problem(
+            rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes
+        )
         prob.notes.append(f"reference: {desc}")
         src = args.hall_map
     print(f"cfm-fem diagnose: {len(rec)} rows from {src}", file=sys.stderr)

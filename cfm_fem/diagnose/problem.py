@@ -292,6 +292,7 @@ def hall_problem(
     smooth: bool = True,
     h: float = 0.5,
     ref_spacing_mm: float | None = None,
+    ref_nodes=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -315,6 +316,9 @@ def hall_problem(
     ref_spacing_mm : float, optional
         Node spacing of a piecewise-linear reference map: its interpolation error is estimated
         (:func:`~cfm_fem.diagnose.noise.reference_error_var`) and added to the noise.
+    ref_nodes : ndarray, shape (k, 3), mm, optional
+        Nodes of that map: the error vanishes at a node and grows to its full size half a
+        spacing away, so it is scaled by the distance to the nearest node.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -392,7 +396,13 @@ def hall_problem(
     if ref_spacing_mm is not None and not smooth:
         from .noise import reference_error_var
 
-        var_ref = reference_error_var(field_fn, upts, ref_spacing_mm)[uinv]
+        var_u = reference_error_var(field_fn, upts, ref_spacing_mm)
+        if ref_nodes is not None:  # exact at the nodes, largest half-way between them
+            from scipy.spatial import cKDTree
+
+            d, _ = cKDTree(ref_nodes).query(upts)
+            var_u *= np.clip(2.0 * d / ref_spacing_mm, 0.0, 1.0)[:, None] ** 2
+        var_ref = var_u[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         notes.append(
             f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
