@@ -40,17 +40,19 @@ def test_implausible_reason_uses_the_reported_uncertainty():
     assert implausible_reason(["drift_x"], [-40.0], [1.0], b, ["why"], ["um/h"]) == ""
 
 
-def test_tracker_bump_is_not_a_thermal_drift_of_millimetres_per_hour():
-    # the tracker was knocked 0.5 mm in x half-way through a 1 h run: outside the catalogue.
-    # A drift fits it, but only at hundreds of um/h: reported as implausible, not found.
+def test_tracker_knock_is_a_step_event_not_a_thermal_drift():
+    # the tracker was knocked 0.5 mm in x half-way through a 1 h run: a step at the
+    # repetition where it happened, its size within 3 reported std, and no drift claimed
     rec, _ = tracker_twin(0, {}, n_reps=6, points=Q, dt_s=4.0)
-    rec.meas[rec.t_s > rec.t_s.max() / 2, 0] += 0.5
+    after = rec.t_s > rec.t_s.max() / 2
+    rec.meas[after, 0] += 0.5
     s = diagnose(tracker_problem(rec, BENCH)).summary
     assert s["mismatch"] is True
     assert all(e["name"] != "thermal_drift" for e in s["effects"])
-    imp = {c["name"]: c["reason"] for c in s["implausible"]}
-    assert "drift_x" in imp["thermal_drift"] and "um/h" in imp["thermal_drift"]
-    assert any("implausible" in a and "thermal_drift" in a for a in s["advice"])
+    e = s["effects"][0]
+    assert e["name"] == "step_event", s["candidates"]
+    assert abs(e["params"]["step_x"] - 500.0) < 3 * e["param_std"]["step_x"]
+    assert e["where"]["step_x"]["from_repetition"] == rec.rep[after].min()
 
 
 def test_hall_gain_of_fifty_percent_is_not_a_hall_gain_error():

@@ -47,6 +47,11 @@ def test_emphatic_map_diagnosis():
     s = diagnose(prob).summary
     assert set(s) >= {"mismatch", "located", "effects", "fit", "advice"}
     assert np.isfinite(s["fit"]["rms_before"])
-    # whatever it finds must improve the held-out error
+    # whatever it finds must predict data it was not fitted to: a new signature lowers the
+    # held-out RMS; a prior release (the data outweigh the prior, the predictions barely
+    # change) has its conflict replicated in every held-out fold on its own
     for e in s["effects"]:
-        assert e["cv_rms_after"] <= e["cv_rms_before"]
+        if e["evidence"] == "new signature":
+            assert e["cv_rms_after"] <= e["cv_rms_before"]
+        else:
+            assert e["cv_z"] > 2.0

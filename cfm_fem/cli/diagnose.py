@@ -61,9 +61,21 @@ def _check_enough(rec):
         )
 
 
+def node_spacing_mm(points) -> float:
+    """Typical node spacing of a map (median distance to the nearest other node), mm."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=2)
+    d = d[:, 1]
+    return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
+
+
 def _reference(spec, rec, r_ref=None, args=None):
-    """(field function, b_ref, smooth, description); ``r_ref`` (mm) for a harmonics file;
-    ``args``: the command line's reader options (`_reader`), for a field map."""
+    """(field function, b_ref, node spacing, description); node spacing (mm) None for a smooth
+    reference (harmonics, fitted polynomial), else the map's, whose linear interpolation error
+    the diagnosis adds to the noise; ``r_ref`` (mm) for a harmonics file; ``args``: the
+    command line's reader options (`_reader`), for a field map."""
     from pathlib import Path
 
     import numpy as np
@@ -82,7 +94,7 @@ def _reference(spec, rec, r_ref=None, args=None):
         fn = (fit_harmonic_field if spec.startswith("fit:") else fit_piecewise_harmonic)(
             rec.cmd, rec.B, deg
         )
-        return fn, float(np.abs(rec.B).max()), True, f"harmonic polynomial fit ({spec})"
+        return fn, float(np.abs(rec.B).max()), None, f"harmonic polynomial fit ({spec})"
     path = Path(spec)
     if not path.exists():
         raise CfmInputError(f"--reference: no such file '{spec}'")
@@ -97,7 +109,7 @@ def _reference(spec, rec, r_ref=None, args=None):
             refuse_reader_options(args, f"--reference {spec} is a harmonics file (n, Bn, An)")
 
         mp = read_harmonics(path, r_ref_mm=r_ref)
-        return mp.field, mp.b_ref, True, f"2-D multipole {path.name}"
+        return mp.field, mp.b_ref, None, f"2-D multipole {path.name}"
     from ..io import read_field
     from ..models.interpolation import LinearInterpolator
 
@@ -121,7 +133,10 @@ def _reference(spec, rec, r_ref=None, args=None):
             file=rec.source,
             line=int(rec.lines[i]) or None,
         )
-    return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), False, f"FEM map {path.name}"
+    spacing = node_spacing_mm(fm.points)
+    desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
+    fn.nodes = fm.points  # the interpolation is exact there
+    return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 
 
 def _provenance(args) -> dict:
@@ -176,10 +191,13 @@ def _run(args) -> int:
     else:
         rec = read_hall_map(args.hall_map)
         _check_enough(rec)
-        fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref, args)
+        fn, b_ref, spacing, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
             b_ref = args.b_ref
-        prob = hall_problem(rec, fn, b_ref, bench, smooth=smooth)
+        nodes = getattr(fn, "nodes", None)
+        prob = hall_problem(
+            rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes
+        )
         prob.notes.append(f"reference: {desc}")
         src = args.hall_map
     print(f"cfm-fem diagnose: {len(rec)} rows from {src}", file=sys.stderr)

@@ -10,8 +10,11 @@ tracker    ``point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas``              
 hall       ``point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz``                            mm, T
 =========  ====================================================================  =======
 
-Optional: ``t_s`` (s), ``dir_x,dir_y,dir_z`` (-1, 0, +1; a missing one of the three is 0),
-``speed`` (mm/s, >= 0), ``temp_C``. Other columns are kept in ``Recording.extra`` and ignored.
+Optional: ``t_s`` (s), ``dir_x,dir_y,dir_z`` (each axis's own last approach direction: -1, +1;
+an axis that stood still keeps the direction of its earlier move; 0 when unknown; a missing one of
+the three is 0), ``speed`` (mm/s of the move at acquisition, >= 0, 0 for stop-and-go),
+``v_x,v_y,v_z`` (signed axis velocities at acquisition, mm/s; the three together), ``temp_C``.
+Other columns are kept in ``Recording.extra`` and ignored.
 
 Rejected with a `CfmInputError` naming file, line and column: a missing required column, a
 repeated column, a field that is not a number, NaN or infinity, a non-integer ``point_id``/``rep``,
@@ -46,7 +49,7 @@ __all__ = [
 _KEY = ("point_id", "rep", "x_cmd", "y_cmd", "z_cmd")
 TRACKER_COLUMNS = _KEY + ("x_meas", "y_meas", "z_meas")
 HALL_COLUMNS = _KEY + ("Bx", "By", "Bz")
-OPTIONAL_COLUMNS = ("t_s", "dir_x", "dir_y", "dir_z", "speed", "temp_C")
+OPTIONAL_COLUMNS = ("t_s", "dir_x", "dir_y", "dir_z", "speed", "v_x", "v_y", "v_z", "temp_C")
 _REQUIRED = {"tracker": TRACKER_COLUMNS, "hall": HALL_COLUMNS}
 _WHAT = {"tracker": "a laser-tracker recording", "hall": "a Hall map"}
 #: Two rows of one point whose commands differ by more than this (mm) trigger a warning.
@@ -189,6 +192,17 @@ def _read(path, kind, lines=None) -> Recording:
             line=int(row_lines[i]),
             column=names[index["speed"]],
         )
+    vel = None
+    if any(c in index for c in ("v_x", "v_y", "v_z")):
+        missing = [c for c in ("v_x", "v_y", "v_z") if c not in index]
+        if missing:
+            raise CfmInputError(
+                f"columns v_x, v_y, v_z come together (signed axis velocities, mm/s); "
+                f"missing {', '.join(missing)}",
+                file=path,
+                line=hline,
+            )
+        vel = np.column_stack([num(c) for c in ("v_x", "v_y", "v_z")])
     known = set(index.values())
     extra = {}
     for j, name in enumerate(names):
@@ -207,6 +221,7 @@ def _read(path, kind, lines=None) -> Recording:
         t_s=opt("t_s"),
         dir=direction,
         speed=speed,
+        vel=vel,
         temp_C=opt("temp_C"),
         extra=extra,
         source=source,
@@ -374,6 +389,9 @@ def write_recording(path, rec: Recording, comments=()) -> None:
             cols.append((c, [str(v) for v in rec.dir[:, j].astype(int).tolist()]))
     if rec.speed is not None:
         cols.append(("speed", _floats(rec.speed)))
+    if rec.vel is not None:
+        for j, c in enumerate(("v_x", "v_y", "v_z")):
+            cols.append((c, _floats(rec.vel[:, j])))
     if rec.temp_C is not None:
         cols.append(("temp_C", _floats(rec.temp_C)))
     for name, v in rec.extra.items():

@@ -55,9 +55,13 @@ class Recording:
     t_s : ndarray, shape (n,), s, or None
         Time since the start of the recording.
     dir : ndarray, shape (n, 3), int8, or None
-        Approach direction of the last move per axis: -1, 0 (no move), +1.
+        Approach direction of each axis's own last move: -1, +1 (an axis that stood still
+        keeps the direction of its earlier move), 0 when unknown.
     speed : ndarray, shape (n,), mm/s, or None
         Speed at acquisition, 0 for stop-and-go.
+    vel : ndarray, shape (n, 3), mm/s, or None
+        Signed axis velocities at acquisition (``v_x, v_y, v_z``); None when not recorded
+        (the diagnosis then infers them from ``cmd``, ``t_s`` and ``speed``).
     temp_C : ndarray, shape (n,), degC, or None
     extra : dict of str to ndarray, shape (n,)
         Other columns, kept (float64 when every value is a number, else str) and ignored.
@@ -76,6 +80,7 @@ class Recording:
     t_s: np.ndarray | None = None
     dir: np.ndarray | None = None
     speed: np.ndarray | None = None
+    vel: np.ndarray | None = None
     temp_C: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
     source: str = "<memory>"
@@ -99,6 +104,8 @@ class Recording:
         for name in ("t_s", "speed", "temp_C"):
             if getattr(self, name) is not None:
                 setattr(self, name, _col(getattr(self, name), name, n))
+        if self.vel is not None:
+            self.vel = _vec(self.vel, "vel", n)
         if self.dir is not None:
             d = _vec(self.dir, "dir", n, np.int64)
             if np.any(np.abs(d) > 1):
@@ -170,6 +177,7 @@ class Recording:
             t_s=take(self.t_s),
             dir=take(self.dir),
             speed=take(self.speed),
+            vel=take(self.vel),
             temp_C=take(self.temp_C),
             extra={k: v[idx] for k, v in self.extra.items()},
             source=self.source,

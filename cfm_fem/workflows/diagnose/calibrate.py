@@ -62,6 +62,20 @@ class Columns:
         Variance of the observations known from the bench model (vibration through the
         gradient) when this effect is in the model, in place of the problem's (``fringe_field_3d``:
         through the 3-D gradient); :func:`stack` keeps the last one given. None: the problem's.
+    families : list of (str, list of int), optional
+        Error functions within the effect, each a label and its column indices
+        (``position_dependent_geometric``: one per axis error, ``eps_z(z)`` with its linear
+        and quadratic profile). The selection tests each function on its own, with the
+        multiplicity of the choice accounted for, and may take several in turn. None: the
+        block is one function.
+    multiplicity : float
+        Number of alternatives searched to build the columns (``step_event``: candidate change
+        points); the evidence is corrected for it (Bonferroni). 1: none.
+    info : dict, optional
+        Per-parameter facts reported with the estimate (``step_event``: where the step is).
+    bounds_why : list of str, optional
+        Reason of each bound in place of the catalogue's (``fringe_field_3d``: an edge must lie
+        in the z range the data cover); '' keeps the catalogue's.
     """
 
     J: np.ndarray
@@ -76,15 +90,28 @@ class Columns:
     physical: object = None
     replaces: dict | None = None
     var_known: np.ndarray | None = None
+    families: list | None = None
+    multiplicity: float = 1.0
+    info: dict | None = None
+    bounds_why: list | None = None
 
     @property
     def p(self) -> int:
         return self.J.shape[-1]
 
     def subset(self, keep) -> Columns:
-        """The block restricted to the columns ``keep`` (indices; release kept)."""
+        """The block restricted to the columns ``keep`` (indices; release kept, families
+        renumbered and emptied ones dropped)."""
         keep = list(keep)
         rb = self.release_bounds
+        fams = None
+        if self.families is not None:
+            where = {k: i for i, k in enumerate(keep)}
+            fams = [
+                (label, [where[k] for k in idx if k in where])
+                for label, idx in self.families
+                if any(k in where for k in idx)
+            ]
         return Columns(
             self.J[..., keep],
             [self.names[k] for k in keep],
@@ -98,6 +125,10 @@ class Columns:
             self.physical,
             self.replaces,
             self.var_known,
+            fams,
+            self.multiplicity,
+            self.info,
+            None if self.bounds_why is None else [self.bounds_why[k] for k in keep],
         )
 
     def released(self, group: str) -> Columns:
@@ -191,6 +222,7 @@ class Fit:
     singular_values: np.ndarray
     vt: np.ndarray
     scale: np.ndarray
+    q_data: np.ndarray | None = None  # cache of the selection's screening (select._screen)
 
     @property
     def objective(self) -> float:

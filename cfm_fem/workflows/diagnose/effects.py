@@ -1,7 +1,7 @@
 """The catalogue of physical effects: each a small parametric model, linear in its parameters.
 
-Every builder takes a :class:`~cfm_fem.diagnose.problem.Problem` and returns either a
-:class:`~cfm_fem.diagnose.calibrate.Columns` block (change of the residual per unit of each
+Every builder takes a :class:`~cfm_fem.workflows.diagnose.problem.Problem` and returns either a
+:class:`~cfm_fem.workflows.diagnose.calibrate.Columns` block (change of the residual per unit of each
 physical parameter) or a string saying why the recording cannot test it (which is then turned into
 advice). The names are those of ``effects[].name`` in ``diagnosis.json``: keep their spelling.
 
@@ -10,17 +10,26 @@ Positioning (tracker), displacement of the probe in the bench frame:
 * ``thermal_drift``: screw/frame expansion growing with time (or temperature when logged):
   E_a += tau (d_a + s_a q_a), d in um/h (um/K), s in ppm/h (ppm/K).
 * ``reversal``: backlash, E_a += b_a dir_a / 2 (b = full hysteresis width, um).
-* ``reading_delay``: position read late in on-the-fly scans, E_a += tau_ms 1e-3 speed dir_a.
+* ``reading_delay``: position read late in on-the-fly scans, E_a += tau_ms 1e-3 v_a, v_a the
+  signed velocity of axis a at acquisition (recorded, or inferred from the scan: only the
+  moving axes carry it).
 * ``position_dependent_geometric``: the 18 axis errors with linear and quadratic profiles in
-  the normalised axis position, through the HTM chain (um or urad at full stroke).
+  the normalised axis position, through the HTM chain (um or urad at full stroke). Each error
+  function (``eps_z(z)``: its linear term ``_u1``, or ``_u1`` and the quadratic ``_u2``
+  together) is tested on its own, the choice among the 36 alternatives accounted for, so one
+  identifiable function is found and named by itself.
 * ``arm_deflection``: load-dependent sag of the probe: E_y -= c_x s(u_x) + c_z s(u_z),
   s(u) = 16 u^2 (1 - u)^2 (moving load on a beam; c in um at mid-stroke).
 * ``parameter_bias``: the 21 errors free of their Table II PDFs (prior release).
+* ``step_event`` (also for Hall maps): an abrupt shift from a change point in time or
+  repetition on, per axis or component (:mod:`cfm_fem.workflows.diagnose.step_event`).
 
 Field (Hall map), change of the measured field in the magnet frame:
 
 * ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad).
-* ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um).
+* ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um), d_ij
+  the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
+  common to all three is the magnet's registration, ``magnet_misalignment``).
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
 * ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components.
 * ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %).
@@ -66,6 +75,7 @@ from ...models.bench import ERROR_NAMES
 from ...models.kinematics.chain import probe_errors_for_bench
 from .calibrate import Columns
 from .problem import UM, URAD, field_hessian_diag
+from .step_event import step_event
 
 __all__ = [
     "EFFECTS",
@@ -109,7 +119,7 @@ PLAUSIBLE = {
     "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
     "sensor_offset": [("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart")],
     "magnet_misalignment": [
-        ("magnet_d", -2000.0, 2000.0, "a magnet 2 mm off its survey"),
+        ("magnet_d", -10000.0, 10000.0, "a magnet 10 mm off its survey or nominal placement"),
         ("magnet_", -10000.0, 10000.0, "a magnet rotated 10 mrad off its survey"),
     ],
     "planar_hall": [("k_", -0.1, 0.1, "a planar Hall term beyond 10 % at 1 T")],
@@ -126,6 +136,10 @@ PLAUSIBLE = {
     ],
     "sensor_volume_averaging": [
         ("dw_", -1042.0, 1042.0, "differences of a^2/24 with a sensitive size a <= 5 mm"),
+    ],
+    "step_event": [
+        ("step_", -2000.0, 2000.0, "a jump of the probe position beyond 2 mm"),
+        ("offset_step_", -2000.0, 2000.0, "a jump of a Hall offset beyond 2 mT"),
     ],
 }
 
@@ -220,10 +234,12 @@ def reversal(prob):
 
 
 def reading_delay(prob):
-    if prob.speed is None or prob.dir is None or not np.any(prob.speed > 0):
-        return "no on-the-fly acquisition (speed and dir columns): a delay has no signature"
+    if prob.vel is None or not np.any(prob.vel != 0):
+        return (
+            "no on-the-fly acquisition (speed or v_x, v_y, v_z columns): a delay has no signature"
+        )
     J = np.zeros((prob.n, 3, 1))
-    J[:, :, 0] = prob.speed[:, None] * prob.dir * 1e-3  # tau in ms -> mm
+    J[:, :, 0] = prob.vel * 1e-3  # tau in ms -> mm
     return _cols(J, ["tau"], ["ms"], "reading_delay")
 
 
@@ -253,7 +269,13 @@ def position_dependent_geometric(prob):
         names += [f"{ERROR_NAMES[k]}_u{order}" for k in idx]
         units += ["urad" if u == URAD else "um" for u in unit]
     J = np.concatenate(cols, axis=-1)
-    return _cols(J, names, units, "position_dependent_geometric")
+    blk = _cols(J, names, units, "position_dependent_geometric")
+    m = len(idx)
+    # per error function: its linear term alone, or linear and quadratic together
+    blk.families = [(ERROR_NAMES[k], [i]) for i, k in enumerate(idx)] + [
+        (ERROR_NAMES[k], [i, m + i]) for i, k in enumerate(idx)
+    ]
+    return blk
 
 
 def _sag(u):
@@ -293,14 +315,39 @@ def probe_misalignment(prob):
 
 
 def sensor_offset(prob):
+    """Hall elements displaced relative to one another (their centroid held fixed: a shift
+    common to the three elements is a registration shift, ``magnet_misalignment``)."""
     G = prob.ctx["G"]
-    J = np.zeros((prob.n, 3, 9))
+    # free parameters: elements x and y along each direction j relative to the centroid;
+    # element z = -(x + y), so its column enters both with a minus sign
+    J = np.zeros((prob.n, 3, 6))
     names = []
-    for i in range(3):
-        for j in range(3):
-            J[:, i, 3 * i + j] = G[:, i, j] * UM
+    for j in range(3):
+        for k, i in enumerate((0, 1)):
+            J[:, i, 2 * j + k] = G[:, i, j] * UM
+            J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
             names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
-    return _cols(J, names, ["um"] * 9, "sensor_offset")
+    blk = _cols(J, names, ["um"] * 6, "sensor_offset")
+    blk.physical = _element_offsets
+    return blk
+
+
+def _element_offsets(names, theta, cov):
+    """All three elements' offsets from their centroid (um), from the free ones (x and y
+    elements per direction), uncertainty propagated."""
+    names = list(names)
+    out = {}
+    for j in "xyz":
+        idx = [names.index(f"d_{i}_{j}") for i in "xy" if f"d_{i}_{j}" in names]
+        for i in "xy":
+            if f"d_{i}_{j}" in names:
+                k = names.index(f"d_{i}_{j}")
+                out[f"d_{i}_{j}"] = (float(theta[k]), float(np.sqrt(max(cov[k, k], 0.0))), "um")
+        if len(idx) == 2:  # the z element follows only when both free ones are determined
+            g = np.zeros(len(names))
+            g[idx] = -1.0
+            out[f"d_z_{j}"] = (float(g @ theta), float(np.sqrt(max(g @ cov @ g, 0.0))), "um")
+    return out
 
 
 def magnet_misalignment(prob):
@@ -406,7 +453,7 @@ def _fringe_profile_d2(z, z_entry, z_exit, lam):
     return g, dg, d2g
 
 
-#: Registration columns of :func:`~cfm_fem.diagnose.problem.hall_problem` that move the probe
+#: Registration columns of :func:`~cfm_fem.workflows.diagnose.problem.hall_problem` that move the probe
 #: relative to the magnet (translation axis) or rotate it (rotation axis). ``magnet_dz`` moves
 #: both ends together, exactly as a common shift of the edges: it is left as it is (no
 #: signature in a 2-D reference), so the edges come out in the map frame (they carry the
@@ -490,6 +537,13 @@ def fringe_field_3d(prob):
     z = upts[:, 2]
     if np.ptp(z) <= 0:
         return "a single z plane: no z-dependence to see"
+    G = ctx["G"]
+    dz = np.abs(G[:, :, 2]).max()
+    if dz > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300):
+        return (
+            "the reference field varies along z (a 3-D map): the magnet ends are part of it, "
+            "and the effect describes ends missing from a 2-D reference"
+        )
     if "V" not in ctx:
         ctx["V"] = _scalar_potential(ctx["field_fn"], upts)
     B0u = ctx["field_fn"](upts)
@@ -537,7 +591,9 @@ def fringe_field_3d(prob):
         options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600},
     )
     zi, zo, lam = res.x[0], res.x[1], float(np.exp(res.x[2]))
-    inside = [zmin - 10 * lam < zi < zmax, zmin < zo < zmax + 10 * lam]
+    # an end is estimated only inside the z range the data cover: beyond it the data see a
+    # tail, and an edge placed there would be an extrapolation, not a finding
+    inside = [zmin < zi < zmax, zmin < zo < zmax]
     if not any(inside):  # no end in or near the map: test for a soft end just outside it
         lam = span / 20.0
         zi, zo = zmin - 3 * lam, zmax + 3 * lam
@@ -565,6 +621,14 @@ def fringe_field_3d(prob):
             e[k] = 1e-3 * th[2]
             cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
         blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
+        blk.bounds_why = [""] * len(names)
+        for j, k in enumerate(free):
+            if k < 2:  # the edge (th + increment / a, a ~ 1) must stay in the data's z range
+                blk.bounds[1 + j] = (zmin - th[k], zmax - th[k])
+                blk.bounds_why[1 + j] = (
+                    f"the magnet end would lie outside the z range the data cover "
+                    f"[{zmin:g}, {zmax:g}] mm"
+                )
         blk.replaces = {nm: J3[..., i] for i, nm in enumerate(base.names)}
         blk.var_known = vk
         return blk
@@ -651,6 +715,7 @@ POSITIONING = {
     "position_dependent_geometric": position_dependent_geometric,
     "arm_deflection": arm_deflection,
     "parameter_bias": parameter_bias,
+    "step_event": step_event,
 }
 FIELD = {
     "probe_misalignment": probe_misalignment,
@@ -661,6 +726,7 @@ FIELD = {
     "magnet_temperature": magnet_temperature,
     "fringe_field_3d": fringe_field_3d,
     "sensor_volume_averaging": sensor_volume_averaging,
+    "step_event": step_event,
 }
 EFFECTS = {**POSITIONING, **FIELD}
 
@@ -695,6 +761,9 @@ ADVICE = {
     "sensor_volume_averaging": "map where the field curvature is large (near the magnet ends, "
     "or at a larger radius where the higher harmonics dominate), or repeat with a probe of a "
     "different sensitive volume",
+    "step_event": "log the time (t_s) of every acquisition and repeat a reference point through "
+    "the run; check the bench log for a collision, a re-homing or a loose fixture at the change "
+    "point",
 }
 
 DESCRIPTION = {
@@ -712,6 +781,7 @@ DESCRIPTION = {
     "magnet_temperature": "field scale following temperature (or time)",
     "fringe_field_3d": "z-dependence near magnet ends absent from a 2-D model",
     "sensor_volume_averaging": "field averaged over the sensitive volume (curvature terms)",
+    "step_event": "an abrupt shift from one moment on (a slip, a knock, a re-homing)",
 }
 
 

@@ -14,7 +14,7 @@ from scipy import stats
 
 from .problem import Problem
 
-__all__ = ["standardised", "locate", "benjamini_hochberg"]
+__all__ = ["standardised", "locate", "benjamini_hochberg", "planes", "isolated_planes"]
 
 COMP = "xyz"
 
@@ -82,7 +82,75 @@ def _groups(prob: Problem):
         if sp.size > 1:
             for s in sp:
                 out.append((f"speed {s:g} mm/s", prob.speed == s))
+    for a, _, vals, inv in planes(prob.pos):
+        for k, v in enumerate(vals):
+            out.append((f"plane {COMP[a]} = {v:.6g} mm", inv == k))
     return out
+
+
+#: Planes are tested as groups along an axis with this many distinct positions at most.
+MAX_PLANES = 400
+
+
+def planes(pos):
+    """Planes of the scan: (axis, label, distinct positions (k,), row -> plane index (n,)).
+
+    Only axes with 3 to :data:`MAX_PLANES` distinct positions, each plane holding at least two
+    rows (a grid, not a scatter)."""
+    out = []
+    for a in range(3):
+        vals, inv = np.unique(np.round(pos[:, a], 6), return_inverse=True)
+        inv = inv.reshape(-1)
+        if 3 <= vals.size <= MAX_PLANES and np.bincount(inv).min() >= 2:
+            out.append((a, COMP[a], vals, inv))
+    return out
+
+
+def isolated_planes(prob, z_row, q: float = 0.01) -> list:
+    """Planes whose mean residual departs from what their neighbours predict: a bad plane
+    (a settling artefact at the start of every line, a glitch), not a smooth effect.
+
+    Per axis and component, the standardised plane means m_k are compared with the line
+    through their neighbours (interior planes: (m_{k-1} + m_{k+1}) / 2, variance 3/2; end
+    planes: 2 m_1 - m_2 extrapolated, variance 6); the p-values of all planes form one family
+    (Benjamini-Hochberg at ``q``) and a plane must also be significant on its own mean.
+
+    Returns
+    -------
+    list of dict
+        ``axis``, ``position_mm``, ``component``, ``z_isolated``, ``z_mean``, ``rows`` (bool
+        (n,)), strongest first.
+    """
+    cand = []
+    for a, _, vals, inv in planes(prob.pos):
+        cnt = np.bincount(inv).astype(float)
+        for c in range(3):
+            m = np.bincount(inv, z_row[:, c]) / np.sqrt(cnt)
+            k = vals.size
+            d = np.empty(k)
+            d[1:-1] = (m[1:-1] - 0.5 * (m[:-2] + m[2:])) / np.sqrt(1.5)
+            d[0] = (m[0] - 2 * m[1] + m[2]) / np.sqrt(6.0)
+            d[-1] = (m[-1] - 2 * m[-2] + m[-3]) / np.sqrt(6.0)
+            for j in range(k):
+                cand.append((a, float(vals[j]), c, float(d[j]), float(m[j]), inv == j))
+    if not cand:
+        return []
+    p_iso = np.array([2 * stats.norm.sf(abs(t[3])) for t in cand])
+    p_mean = np.array([2 * stats.norm.sf(abs(t[4])) for t in cand])
+    hit = benjamini_hochberg(p_iso, q) & benjamini_hochberg(p_mean, q)
+    out = [
+        {
+            "axis": COMP[t[0]],
+            "position_mm": t[1],
+            "component": COMP[t[2]],
+            "z_isolated": round(t[3], 2),
+            "z_mean": round(t[4], 2),
+            "rows": t[5],
+        }
+        for t, h in zip(cand, hit, strict=True)
+        if h
+    ]
+    return sorted(out, key=lambda d: -abs(d["z_isolated"]))
 
 
 def locate(prob: Problem, resid, sigma, q: float = 0.01, frame: str = "", edf: float = 0.0) -> dict:

@@ -11,7 +11,7 @@ magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,8 +19,9 @@ from ...models.bench import AXES, ERROR_NAMES, Bench
 from ...models.kinematics.chain import sensitivities
 from ...models.recordings import check_hall_scale
 from .calibrate import Columns
+from .motion import axis_velocities
 
-__all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian"]
+__all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian", "subset_rows"]
 
 UM, URAD = 1e-3, 1e-6  # display units of the bench errors (mm, rad per unit)
 
@@ -44,6 +45,13 @@ class Problem:
     t_h, speed, temp : ndarray, shape (n,), or None
         Time (h), speed (mm/s), temperature (degC).
     dir : ndarray, shape (n, 3), or None
+        Each axis's own last approach direction (-1, +1; 0 unknown).
+    vel : ndarray, shape (n, 3), mm/s, or None
+        Signed axis velocities at acquisition (recorded, or inferred by
+        :func:`~cfm_fem.workflows.diagnose.motion.axis_velocities`).
+    var_ref : ndarray, shape (n, 3), or None
+        Variance of the reference's own interpolation error (y units^2), added to the noise;
+        None for an exact reference.
     to_display : float
         Factor from the unit of ``y`` to the reported unit (``unit``).
     unit : str
@@ -71,6 +79,8 @@ class Problem:
     baseline: list
     ctx: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    vel: np.ndarray | None = None
+    var_ref: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -85,10 +95,72 @@ class Problem:
         return int(np.bincount(self.point).max())
 
 
+def subset_rows(prob: Problem, keep) -> Problem:
+    """The problem restricted to the rows ``keep`` (bool (n,)): every per-row array, the
+    baseline columns and the per-row model pieces of ``ctx`` sliced, points renumbered."""
+    keep = np.asarray(keep, dtype=bool)
+    n = prob.n
+
+    def take(a):
+        return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
+
+    _, point = np.unique(prob.point[keep], return_inverse=True)
+    ctx = {k: take(v) for k, v in prob.ctx.items() if k not in ("upts", "V", "point_ids")}
+    ctx["upts"] = prob.ctx.get("upts")
+    if "V" in prob.ctx:
+        ctx["V"] = prob.ctx["V"]
+    if "point_ids" in prob.ctx:
+        ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
+    if ctx["upts"] is None:
+        del ctx["upts"]
+    return replace(
+        prob,
+        y=prob.y[keep],
+        pos=prob.pos[keep],
+        q=prob.q[keep],
+        point=point.reshape(-1),
+        rep=prob.rep[keep],
+        t_h=take(prob.t_h),
+        dir=take(prob.dir),
+        speed=take(prob.speed),
+        temp=take(prob.temp),
+        var_known=prob.var_known[keep],
+        baseline=[
+            Columns(
+                b.J[keep],
+                b.names,
+                b.units,
+                b.prior_mean,
+                b.prior_std,
+                b.group,
+                b.bounds,
+                b.release,
+                b.release_bounds,
+            )
+            for b in prob.baseline
+        ],
+        ctx=ctx,
+        notes=list(prob.notes),
+        vel=take(prob.vel),
+        var_ref=take(prob.var_ref),
+    )
+
+
 def _aux(rec):
     t_h = None if rec.t_s is None else rec.t_s / 3600.0
     d = None if rec.dir is None else rec.dir.astype(np.float64)
     return t_h, d, rec.speed, rec.temp_C
+
+
+def _velocities(rec, notes):
+    """Axis velocities at acquisition (recorded or inferred), with a note on their source."""
+    vel, source = axis_velocities(rec.cmd, rec.speed, rec.t_s, rec.vel)
+    if source == "inferred" and rec.speed is not None and np.any(rec.speed > 0):
+        notes.append(
+            "axis velocities at acquisition inferred from the commanded positions, t_s and "
+            "speed (no v_x, v_y, v_z columns)"
+        )
+    return vel
 
 
 def bench_columns(bench: Bench, q, lever_to=None) -> Columns:
@@ -163,16 +235,32 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: flo
         baseline=[base, regc],
         ctx={"bench": bench, "nominal": nominal, "point_ids": ids},
         notes=notes,
+        vel=_velocities(rec, notes),
     )
 
 
 def field_jacobian(f, p, h: float = 0.5) -> np.ndarray:
-    """Central-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm."""
+    """Finite-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm.
+
+    Central differences; one-sided ones at points on the border of a reference map, where one
+    neighbour lies outside it (``f`` gives NaN there); 0 where neither neighbour is inside.
+    """
+    b0 = None
     out = np.empty((len(p), 3, 3))
     for j in range(3):
         e = np.zeros(3)
         e[j] = h
-        out[:, :, j] = (f(p + e) - f(p - e)) / (2 * h)
+        fp, fm = f(p + e), f(p - e)
+        d = (fp - fm) / (2 * h)
+        bad = ~np.isfinite(d).all(1)
+        if bad.any():
+            b0 = f(p) if b0 is None else b0
+            fwd = (fp - b0) / h
+            bwd = (b0 - fm) / h
+            ok_f = np.isfinite(fwd).all(1)
+            d[bad] = np.where(ok_f[bad, None], fwd[bad], bwd[bad])
+            d[~np.isfinite(d).all(1)] = 0.0
+        out[:, :, j] = d
     return out
 
 
@@ -203,6 +291,8 @@ def hall_problem(
     gain_std_pct: float = 0.15,
     smooth: bool = True,
     h: float = 0.5,
+    ref_spacing_mm: float | None = None,
+    ref_nodes=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -223,6 +313,12 @@ def hall_problem(
         False for piecewise-linear references (second derivatives not used).
     h : float, mm
         Step of the finite-difference gradient.
+    ref_spacing_mm : float, optional
+        Node spacing of a piecewise-linear reference map: its interpolation error is estimated
+        (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and added to the noise.
+    ref_nodes : ndarray, shape (k, 3), mm, optional
+        Nodes of that map: the error vanishes at a node and grows to its full size half a
+        spacing away, so it is scaled by the distance to the nearest node.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -296,6 +392,23 @@ def hall_problem(
         f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
         f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
     )
+    var_ref = None
+    if ref_spacing_mm is not None and not smooth:
+        from .noise import reference_error_var
+
+        var_u = reference_error_var(field_fn, upts, ref_spacing_mm)
+        if ref_nodes is not None:  # exact at the nodes, largest half-way between them
+            from scipy.spatial import cKDTree
+
+            d, _ = cKDTree(ref_nodes).query(upts)
+            var_u *= np.clip(2.0 * d / ref_spacing_mm, 0.0, 1.0)[:, None] ** 2
+        var_ref = var_u[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        notes.append(
+            f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
+            f"its interpolation error (rms {rms:.3g} units over the readings, from its "
+            "curvature) is added to the noise"
+        )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
         "B0": B0,
@@ -326,17 +439,18 @@ def hall_problem(
         baseline=blocks,
         ctx=ctx,
         notes=notes,
+        vel=_velocities(rec, notes),
+        var_ref=var_ref,
     )
 
 
 def noise_sigma(
     prob: Problem, resid, edf: float = 0.0, var_known=None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-observation sigma from the within-point scatter of the residuals.
+    """Per-observation sigma from the noise model fitted to ``resid``
+    (:func:`~cfm_fem.workflows.diagnose.noise.estimate_noise`: a floor per component plus the bench
+    model's vibration, scaled by the data).
 
-    sigma_ic**2 = a_c + var_known_ic, a_c from the pooled within-point variance of ``resid``
-    (pure error; model independent for effects that do not vary between repetitions). With one
-    repetition per point, a_c comes from the residuals themselves (dof n - edf).
     ``var_known``: in place of ``prob.var_known`` (a model whose effects change the gradient
     the vibration is seen through, :attr:`Columns.var_known`).
 
@@ -344,25 +458,13 @@ def noise_sigma(
     -------
     sigma : ndarray, shape (n, 3)
     a : ndarray, shape (3,)
-        The estimated white-noise variance per component (y units^2).
+        The estimated floor (instrument noise variance) per component (y units^2).
     """
+    from .noise import estimate_noise
+
     vk = prob.var_known if var_known is None else var_known
-    cnt = np.bincount(prob.point, minlength=prob.n_points).astype(float)
-    a = np.zeros(3)
-    if prob.n_reps >= 2:
-        for c in range(3):
-            m = np.bincount(prob.point, resid[:, c], prob.n_points) / np.maximum(cnt, 1)
-            dev = resid[:, c] - m[prob.point]
-            dof = np.sum(cnt - 1)
-            known = np.sum(vk[:, c] * (cnt[prob.point] - 1) / cnt[prob.point])
-            a[c] = (dev @ dev - known) / dof
-    else:
-        dof = max(prob.n - edf / 3.0, 1.0)
-        for c in range(3):
-            a[c] = (resid[:, c] @ resid[:, c] - vk[:, c].sum()) / dof
-    floor = 1e-6 * max(float(np.mean(np.abs(prob.y))) ** 2, 1e-30)
-    a = np.maximum(a, floor)
-    return np.sqrt(a[None, :] + vk), a
+    model = estimate_noise(prob, resid, edf, vk)
+    return model.sigma(vk, prob.var_ref), model.floor
 
 
 __all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]

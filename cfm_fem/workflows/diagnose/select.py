@@ -18,9 +18,13 @@ current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
-plausible (else: implausible fit, with the reason) and, for a new signature, its held-out RMS
-improves significantly (paired z > ``cv_z``). A pure prior release changes the fit only where the
-data already decide, so its held-out RMS is reported but not required to drop.
+plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
+(folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
+RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``); for a
+prior release, whose data already steer the calibration, the conflict is replicated in every
+fold on its own (Stouffer z > ``cv_z``) and the held-out error is not significantly worse.
+Last, it must show in either half of the map (:mod:`~cfm_fem.workflows.diagnose.stability`; else:
+unstable, with the reason).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from scipy import stats
 
 from .calibrate import Columns, Fit, fit_map, released_in, stack
 from .problem import Problem
+from .stability import unstable_in
 
 __all__ = [
     "Candidate",
@@ -68,6 +73,7 @@ class Candidate:
     conflict: list = field(default_factory=list)
     has_new: bool = True
     reason: str = ""
+    family: str | None = None
 
 
 @dataclass
@@ -79,23 +85,68 @@ class Selection:
 
 
 def folds_of(prob: Problem, k: int = 5) -> np.ndarray:
-    """Fold index of each row: whole repetitions (rep rank modulo k); single-rep maps: points."""
+    """Fold index of each row for the held-out test.
+
+    With repetitions: whole repetitions in contiguous blocks of their time order (a model
+    trained on the other blocks must predict a block it never saw, so a ramp cannot fit a step
+    from its neighbours). One repetition: points, interleaved (point index modulo k).
+    """
     reps = np.unique(prob.rep)
     if reps.size >= 2:
-        rank = np.searchsorted(reps, prob.rep)
-        return rank % min(k, reps.size)
+        if prob.t_h is not None:
+            t0 = np.array([prob.t_h[prob.rep == r].min() for r in reps])
+            reps = reps[np.argsort(t0, kind="stable")]
+        kk = min(k, reps.size)
+        block = np.arange(reps.size) * kk // reps.size
+        out = np.empty(prob.n, dtype=np.int64)
+        for r, b in zip(reps, block, strict=True):
+            out[prob.rep == r] = b
+        return out
     return prob.point % k
 
 
 def cv_rms(prob: Problem, sigma, cols: Columns, folds) -> tuple[float, np.ndarray]:
-    """Held-out RMS (display units) and the per-row held-out squared error (for paired tests)."""
-    out = np.empty(prob.n)
+    """Held-out RMS (display units) and the per-row held-out chi2 (sum over the components of
+    the squared residual in units of its sigma), for paired tests: weighting by the noise keeps
+    the quiet readings from being drowned by the noisy ones."""
+    rms = np.empty(prob.n)
+    chi2 = np.empty(prob.n)
     for f in np.unique(folds):
         test = folds == f
         fit = fit_map(prob.y, sigma, cols, mask=~test)
-        r = fit.resid[test] * prob.to_display
-        out[test] = (r**2).mean(1)
-    return float(np.sqrt(out.mean())), out
+        r = fit.resid[test]
+        rms[test] = ((r * prob.to_display) ** 2).mean(1)
+        chi2[test] = ((r / sigma[test]) ** 2).sum(1)
+    return float(np.sqrt(rms.mean())), chi2
+
+
+def _replicated_conflict(prob, sigma, trial, released, model, folds) -> float:
+    """Held-out evidence of a prior-data conflict: Stouffer's z of the conflict of the released
+    parameter estimated from each fold alone.
+
+    Where the data outweigh the prior, releasing it changes the predictions little, so a
+    held-out RMS cannot show the conflict; but a real conflict shows in every fold on its own,
+    on the same side of the prior. The parameter is the released one in strongest conflict;
+    each fold's z = (theta_f - m) / sqrt(var_f + s^2), signed by the conflict of all the data.
+    """
+    if not released:
+        return -np.inf
+    full = fit_map(prob.y, sigma, trial)
+    best, sign = None, 1.0
+    for nm in released:
+        i = trial.names.index(nm)
+        j = model.names.index(nm)
+        zz = (full.theta[i] - model.prior_mean[j]) / model.prior_std[j]
+        if best is None or abs(zz) > abs(best[1]):
+            best, sign = (nm, zz), np.sign(zz) or 1.0
+    i = trial.names.index(best[0])
+    j = model.names.index(best[0])
+    m, s = model.prior_mean[j], model.prior_std[j]
+    zs = []
+    for f in np.unique(folds):
+        fit = fit_map(prob.y, sigma, trial, mask=folds == f)
+        zs.append(sign * (fit.theta[i] - m) / np.sqrt(fit.cov[i, i] + s**2))
+    return float(np.sum(zs) / np.sqrt(len(zs)))
 
 
 def _survival(prob, sigma, model: Columns, eff: Columns, theta_e) -> float:
@@ -236,10 +287,12 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         f = fit_map(prob.y, sigma, trial)
         d = current.objective - f.objective
         k = max(f.edf - current.edf, 1e-9)
+        mult = max(float(blk.multiplicity), 1.0)
         parts["new"] = {
             "d": d,
             "k": k,
-            "p": float(stats.chi2.sf(max(d, 0.0), max(k, 0.5))),
+            "p": min(1.0, mult * float(stats.chi2.sf(max(d, 0.0), max(k, 0.5)))),
+            "pen": 2.0 * np.log(mult),  # the choice among mult alternatives (BIC prior)
             "fit": f,
             "surv": _survival(prob, sigma, model, blk, f.theta[model.p :]),
         }
@@ -264,12 +317,15 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         return None
     n_parts = len(parts)
 
+    def bic(pt):
+        return pt["d"] - pt["k"] * log_n - pt.get("pen", 0.0)
+
     def passes(pt):
-        return pt["d"] - pt["k"] * log_n > bic_min and n_parts * pt["p"] < alpha
+        return bic(pt) > bic_min and n_parts * pt["p"] < alpha
 
     use = [nm for nm, pt in parts.items() if passes(pt)]
     if not use:  # report the stronger part
-        use = [max(parts, key=lambda nm: parts[nm]["d"] - parts[nm]["k"] * log_n)]
+        use = [max(parts, key=lambda nm: bic(parts[nm]))]
     rel = parts["release"]["shown"] if "release" in use else []
     trial = released_in(model, rel)
     if "new" in use:
@@ -277,12 +333,13 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
     f = fit_map(prob.y, sigma, trial)
     d = current.objective - f.objective
     k = sum(parts[nm]["k"] for nm in use)
+    pen = sum(parts[nm].get("pen", 0.0) for nm in use)
     p = min(1.0, n_parts * min(parts[nm]["p"] for nm in use))
     return Candidate(
         name=name,
         delta_chi2=float(d),
         k=float(k),
-        delta_bic=float(d - k * log_n),
+        delta_bic=float(d - k * log_n - pen),
         p_value=float(p),
         survival=parts["new"]["surv"] if "new" in use else float("nan"),
         fit=f,
@@ -293,6 +350,64 @@ def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
         conflict=conflict,
         has_new="new" in use,
     )
+
+
+def _screen(sigma, model, current, J):
+    """Drop of the MAP objective when columns ``J`` (n, 3, k) join ``model`` (vague priors on
+    them), from the current fit alone: g' (W'W - W'QQ'W)^-1 g with W the whitened columns, Q an
+    orthonormal basis of the whitened, prior-augmented model and g = W' r (the current
+    whitened residual r is orthogonal to Q)."""
+    W = (J / sigma[..., None]).reshape(-1, J.shape[-1])
+    r = (current.resid / sigma).reshape(-1)
+    ok = np.isfinite(r)
+    W, r = W[ok], r[ok]
+    QW = current.q_data[ok].T @ W if current.q_data is not None else np.zeros((0, W.shape[1]))
+    M = W.T @ W - QW.T @ QW
+    g = W.T @ r
+    try:
+        return float(g @ np.linalg.lstsq(M, g, rcond=1e-10)[0])
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
+def _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
+    """Evidence of a candidate; an effect made of several error functions (``families``) is
+    the best of its functions tested one by one, corrected for the choice among them. The
+    functions are ranked by the drop of the objective each gives on its own (one projection
+    each), and the best is evaluated in full."""
+    if not blk.families:
+        return _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+    m = len(blk.families)
+    if current.q_data is None:
+        current.q_data = _model_basis(sigma, model)
+    score = [
+        _screen(sigma, model, current, blk.J[..., idx]) - len(idx) * log_n
+        for _, idx in blk.families
+    ]
+    label, idx = blk.families[int(np.argmax(score))]
+    sub = blk.subset(idx)
+    sub.families = None
+    sub.multiplicity = blk.multiplicity * m
+    c = _evaluate(prob, sigma, model, current, sub, name, alpha, bic_min, log_n)
+    if c is not None:
+        c.family = label
+    return c
+
+
+def _model_basis(sigma, model):
+    """Data rows of an orthonormal basis of the whitened, prior-augmented model columns."""
+    A = (model.J / sigma[..., None]).reshape(-1, model.p)
+    ok = np.isfinite(A).all(1)
+    has = np.isfinite(model.prior_std) & (model.prior_std > 0)
+    P = np.diag(1.0 / np.where(has, model.prior_std, 1.0))[has]
+    sc = np.sqrt(
+        (A[ok] ** 2).sum(0) + np.where(has, 1.0 / np.where(has, model.prior_std, 1), 0) ** 2
+    )
+    sc[sc == 0] = 1.0
+    Aa = np.vstack([np.where(ok[:, None], A, 0.0), P]) / sc
+    u, s, _ = np.linalg.svd(Aa, full_matrices=False)
+    u = u[:, s > 1e-10 * s[0]]
+    return u[: A.shape[0]]
 
 
 def _plausibility(c: Candidate, model_p: int) -> str:
@@ -319,6 +434,9 @@ def _plausibility(c: Candidate, model_p: int) -> str:
     from .effects import bounds_for
 
     why = bounds_for(c.name, names)[1]
+    if c.has_new and blk.bounds_why is not None:
+        own = [w or why[len(why) - blk.p + j] for j, w in enumerate(blk.bounds_why)]
+        why = why[: len(why) - blk.p] + own
     return implausible_reason(names, np.array(est), np.array(sd), np.array(bnd), why, unit)
 
 
@@ -360,12 +478,14 @@ def select_effects(
     log_n = np.log(current.n_obs)
     selected, cands, rounds, accepted_c = [], {}, [], []
     absorbed = set(absorbed)
+    blocks = dict(blocks)
+    done = set()
     for rnd in range(max_effects):
         round_c = []
         for name, blk in blocks.items():
-            if name in selected:
+            if name in done:
                 continue
-            c = _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+            c = _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
             if progress:
                 progress(1)
             if c is None:
@@ -404,17 +524,39 @@ def select_effects(
             cva, ea = cv_rms(prob, sigma, c.trial, folds)
             diff = eb - ea
             z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
+            better = cva < cvb
+            if not c.has_new:  # a prior conflict: replicated in every fold on its own, and
+                # the held-out error not significantly worse (where the data outweigh the
+                # prior, the predictions barely change)
+                better = z > -cv_z
+                z = _replicated_conflict(prob, sigma, c.trial, c.released, model, folds)
             c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            if z > cv_z or not c.has_new:
-                accepted = c
-                break
-            c.status = "fails held-out test"
+            if not (z > cv_z and better):
+                c.status = "fails held-out test"
+                continue
+            why = unstable_in(prob, sigma, model, c.trial, c.k)
+            if why:
+                c.status = "unstable"
+                c.reason = why
+                continue
+            accepted = c
+            break
         rounds.append([(c.name, c.delta_bic) for c in sorted(round_c, key=lambda c: -c.delta_bic)])
         if accepted is None:
             break
         accepted.status = "found"
         selected.append(accepted.name)
         accepted_c.append(accepted)
+        blk = blocks[accepted.name]
+        if accepted.family is not None:  # the effect's other functions stay candidates
+            rest = sorted({k for lb, idx in blk.families if lb != accepted.family for k in idx})
+            blocks[accepted.name] = blk.subset(rest) if rest else blk
+            if rest:
+                blocks[accepted.name].families = [
+                    f for f in blocks[accepted.name].families if f[0] != accepted.family
+                ]
+        if accepted.family is None or not rest:
+            done.add(accepted.name)
         model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
         sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)

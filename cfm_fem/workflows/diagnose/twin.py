@@ -2,7 +2,7 @@
 
 The truth is generated with the exact models (full HTM chain with vibration and reading delay,
 the field evaluated at the displaced sensor positions, a 3-D Enge fringe field, box averaging of
-the sensitive volume), not with the linearised signatures of :mod:`cfm_fem.diagnose.effects`, so
+the sensitive volume), not with the linearised signatures of :mod:`cfm_fem.workflows.diagnose.effects`, so
 the diagnosis is tested against physics, not against its own equations. Parameters of concealed
 effects use the names and units of the catalogue.
 """
@@ -55,6 +55,18 @@ def scan_order(n_points: int, n_reps: int, q):
         dirs[i] = last
         prev = qq[i]
     return rep, pidx, dirs
+
+
+def _scan_velocities(q, speed):
+    """Velocity at acquisition (mm/s) of the twin's scan: ``speed`` along the largest axis
+    move from the previous point (the first row: towards the next one)."""
+    d = np.diff(q, axis=0)
+    d = np.vstack([d[:1], d])
+    axis = np.abs(d).argmax(1)
+    vel = np.zeros_like(q)
+    rows = np.arange(len(q))
+    vel[rows, axis] = np.sign(d[rows, axis]) * speed
+    return vel
 
 
 def _pdg_displacement(bench: Bench, q, amps: dict):
@@ -131,9 +143,10 @@ def tracker_twin(
     q = q_pts[pidx]
     t_s = np.arange(n) * dt_s
     speed = np.zeros(n) if speeds is None else np.asarray(speeds, float)[rep % len(speeds)]
+    vel = _scan_velocities(q, speed)
     dq = rng.normal(size=(n, 3)) * bench.noise_std_mm()
     if "reading_delay" in effects:
-        dq = dq + effects["reading_delay"]["tau"] * 1e-3 * speed[:, None] * dirs
+        dq = dq + effects["reading_delay"]["tau"] * 1e-3 * vel
     E = probe_errors_for_bench(bench, params[None], q, dq[None])[0]
     pdg = effects.get("position_dependent_geometric")
     if pdg:
@@ -173,6 +186,7 @@ def tracker_twin(
         t_s=t_s,
         dir=dirs,
         speed=speed,
+        vel=vel,
         source=f"twin(seed={seed}, effects={effects})",
     )
     return rec, {"errors": params, "effects": effects, "registration": reg}
@@ -226,7 +240,7 @@ def hall_twin(
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
         ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
         lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
-        profile :func:`~cfm_fem.diagnose.effects.fringe_profile`, with the B_z the 3-D
+        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, with the B_z the 3-D
         potential implies (edges in the magnet body frame: the fitted edges also carry the
         magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.

@@ -1,0 +1,242 @@
+"""The noise model of the observations: a floor per component plus the bench's vibration.
+
+Every reading scatters by the instrument's own noise (the Hall probe's, the tracker's), which
+does not depend on where the probe is, plus the bench's vibration and reading jitter seen through
+the field gradient (``var_known``, from the bench model). The variance of an observation is
+
+    sigma_ic**2 = a_c + b_c * var_known_ic
+
+with the floor ``a_c`` and the scale ``b_c`` of the bench model's vibration both estimated from
+the data, per component, and both >= 0. The floor holds where the gradient vanishes (beyond the
+magnet ends), the scale lets the data say how much vibration the bench really has (the bench
+file may describe another bench). Against a piecewise-linear reference (an FEM or measured map),
+the variance of its interpolation error is added (:func:`reference_error_var`): the reference
+is not exact between its nodes, and that error is no effect of the bench or the probe.
+
+Where the data come from:
+
+* repeated readings of the same point: the within-point sample variances (model independent,
+  ``R - 1`` degrees of freedom per point), fitted by iteratively reweighted least squares with
+  Var(s^2) = 2 sigma^4 / (R - 1);
+* one reading per point: second differences of the residuals along straight scan lines of
+  equally spaced points (r_{k-1} - 2 r_k + r_{k+1} has variance 6 a for white noise, and a
+  smooth misfit cancels to second order), with gross outliers excluded;
+* too few such triples: the residuals themselves (degrees of freedom n - edf), as a last
+  resort, said so in ``source``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+__all__ = ["NoiseModel", "estimate_noise", "line_triples", "reference_error_var"]
+
+#: Second differences beyond this many model standard deviations are gross outliers (a bad
+#: plane, a glitch), left out of the noise estimate; they are for `locate` to find.
+_OUTLIER_Z = 5.0
+_MIN_TRIPLES = 10
+
+
+@dataclass
+class NoiseModel:
+    """Variance model sigma_ic^2 = floor_c + scale_c var_known_ic (units of ``y`` squared).
+
+    Attributes
+    ----------
+    floor : ndarray, shape (3,)
+        Instrument noise variance per component.
+    scale : ndarray, shape (3,)
+        Multiplier of the bench model's vibration variance per component (1: as the bench file
+        says; 0: none seen).
+    source : str
+        What the estimate rests on (repeated readings, second differences, residuals).
+    dof : float
+        Degrees of freedom of the estimate (per component).
+    """
+
+    floor: np.ndarray
+    scale: np.ndarray
+    source: str
+    dof: float
+
+    def sigma(self, var_known, var_ref=None) -> np.ndarray:
+        """Standard deviation of each observation, shape (n, 3); ``var_ref`` (n, 3): the
+        reference map's own interpolation error variance, added as it is."""
+        v = self.floor[None, :] + self.scale[None, :] * var_known
+        return np.sqrt(v if var_ref is None else v + var_ref)
+
+
+def _fit_floor_scale(s2, v, w_dof, mult=1.0):
+    """IRLS fit of E[s2] = mult * (a + b v), a, b >= 0; s2, v, w_dof shape (k,).
+
+    The scale b has a weak prior N(1, 1) (the bench file's vibration as stated): it decides
+    only when the data cannot tell the floor from the vibration (v nearly the same at every
+    point), and then splits the variance as the bench file says.
+    """
+    if s2.size == 0:
+        return 0.0, 0.0
+    use_b = bool(np.any(v > 0))
+    cols = [np.full(s2.size, mult)] + ([mult * v] if use_b else [])
+    X = np.column_stack(cols)
+    m = np.full(s2.size, max(float(np.mean(s2)), 1e-300))
+    coef = np.zeros(X.shape[1])
+    for _ in range(20):
+        sw = np.sqrt(w_dof / (2.0 * m**2))
+        A, y = X * sw[:, None], s2 * sw
+        if use_b:
+            A = np.vstack([A, [0.0, 1.0]])
+            y = np.r_[y, 1.0]
+        coef, _ = nnls(A, y)
+        m_new = np.maximum(X @ coef, 1e-12 * float(np.mean(s2)) + 1e-300)
+        if np.allclose(m_new, m, rtol=1e-6):
+            break
+        m = m_new
+    a = float(coef[0])
+    b = float(coef[1]) if use_b else 0.0
+    return a, b
+
+
+def line_triples(pos, tol: float = 1e-3):
+    """Triples of points (k-1, k, k+1) consecutive and equally spaced on straight axis lines.
+
+    Parameters
+    ----------
+    pos : ndarray, shape (m, 3), mm
+        Distinct points.
+    tol : float
+        Relative tolerance of equal spacing.
+
+    Returns
+    -------
+    ndarray, shape (t, 3), int
+        Indices into ``pos``, middle point in column 1.
+    """
+    out = []
+    key = np.round(pos, 6)
+    for a in range(3):
+        others = [b for b in range(3) if b != a]
+        _, line = np.unique(key[:, others], axis=0, return_inverse=True)
+        line = line.reshape(-1)
+        order = np.lexsort((pos[:, a], line))
+        ln, x = line[order], pos[order, a]
+        same = (ln[:-2] == ln[1:-1]) & (ln[1:-1] == ln[2:])
+        h1, h2 = x[1:-1] - x[:-2], x[2:] - x[1:-1]
+        ok = same & (h1 > 0) & (np.abs(h2 - h1) <= tol * h1)
+        k = np.flatnonzero(ok)
+        if k.size:
+            out.append(np.column_stack([order[k], order[k + 1], order[k + 2]]))
+    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int64)
+
+
+def _from_repeats(point, resid, vk, n_points):
+    cnt = np.bincount(point, minlength=n_points).astype(float)
+    rep_ok = cnt >= 2
+    floor, scale = np.zeros(3), np.zeros(3)
+    for c in range(3):
+        mean = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
+        dev2 = np.bincount(point, (resid[:, c] - mean[point]) ** 2, n_points)
+        v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
+        s2 = dev2[rep_ok] / (cnt[rep_ok] - 1)
+        floor[c], scale[c] = _fit_floor_scale(s2, v[rep_ok], cnt[rep_ok] - 1)
+    return floor, scale, float(np.sum(cnt[rep_ok] - 1))
+
+
+def _from_lines(point, pos_pt, resid, vk, n_points):
+    tri = line_triples(pos_pt)
+    if len(tri) < _MIN_TRIPLES:
+        return None
+    cnt = np.bincount(point, minlength=n_points).astype(float)
+    floor, scale = np.zeros(3), np.zeros(3)
+    for c in range(3):
+        r = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
+        v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
+        e2 = (r[tri[:, 0]] - 2 * r[tri[:, 1]] + r[tri[:, 2]]) ** 2
+        # per-triple weights of the floor and of the vibration (point means of one reading each)
+        vv = (v[tri[:, 0]] + 4 * v[tri[:, 1]] + v[tri[:, 2]]) / 6.0
+        keep = np.ones(e2.size, dtype=bool)
+        for _ in range(3):  # exclude gross outliers against the current model
+            a, b = _fit_floor_scale(e2[keep], vv[keep], np.ones(keep.sum()), 6.0)
+            model = 6.0 * (a + b * vv)
+            new = e2 <= _OUTLIER_Z**2 * np.maximum(model, 1e-300)
+            if np.array_equal(new, keep):
+                break
+            keep = new
+        floor[c], scale[c] = a, b
+    return floor, scale, float(len(tri))
+
+
+def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
+    """Fit the noise model to the residuals of a problem (module docstring).
+
+    Parameters
+    ----------
+    prob : Problem
+    resid : ndarray, shape (n, 3)
+        Residuals of the current model (y units).
+    edf : float
+        Effective number of fitted parameters (used only by the last-resort estimate).
+    var_known : ndarray, shape (n, 3), optional
+        Bench-model vibration variance in place of ``prob.var_known``.
+
+    Returns
+    -------
+    NoiseModel
+    """
+    vk = prob.var_known if var_known is None else var_known
+    m = prob.n_points
+    if prob.n_reps >= 2:
+        floor, scale, dof = _from_repeats(prob.point, resid, vk, m)
+        source = "repeated readings of the same points (within-point scatter)"
+    else:
+        cnt = np.bincount(prob.point, minlength=m).astype(float)
+        pos_pt = np.zeros((m, 3))
+        np.add.at(pos_pt, prob.point, prob.pos)
+        pos_pt /= np.maximum(cnt, 1)[:, None]
+        got = _from_lines(prob.point, pos_pt, resid, vk, m)
+        if got is not None:
+            floor, scale, dof = got
+            source = "one reading per point: second differences of the residuals along scan lines"
+        else:
+            dof = max(prob.n - edf / 3.0, 1.0)
+            floor, scale = np.zeros(3), np.zeros(3)
+            for c in range(3):
+                floor[c], scale[c] = _fit_floor_scale(resid[:, c] ** 2, vk[:, c], np.ones(prob.n))
+            floor, scale = floor * prob.n / dof, scale * prob.n / dof
+            source = "one reading per point, no scan lines: the residuals themselves (n - edf)"
+    tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)
+    floor = np.maximum(floor, tiny)
+    return NoiseModel(floor=floor, scale=scale, source=source, dof=dof)
+
+
+def reference_error_var(field_fn, pts, h: float) -> np.ndarray:
+    """Variance of the linear interpolation error of a reference map at points, T^2.
+
+    Along a direction with node spacing ``h`` and curvature c, linear interpolation errs by
+    c t (h - t) / 2 at a distance t from a node: rms c h^2 / sqrt(120) over a cell, the points
+    falling anywhere between nodes. The curvature per component and direction is the second
+    difference of ``field_fn`` at step ``h``; the three directions add in variance.
+
+    Parameters
+    ----------
+    field_fn : callable
+        ``field_fn(points (k, 3) mm) -> B (k, 3) T``; NaN outside the map.
+    pts : ndarray, shape (m, 3), mm
+    h : float, mm
+        Typical node spacing of the map.
+
+    Returns
+    -------
+    ndarray, shape (m, 3)
+    """
+    b0 = field_fn(pts)
+    var = np.zeros_like(b0)
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        d2 = field_fn(pts + e) - 2 * b0 + field_fn(pts - e)
+        d2 = np.where(np.isfinite(d2), d2, 0.0)  # a border node: no estimate along j
+        var += d2**2 / 120.0  # (c h^2)^2 / 120 with c h^2 = d2
+    return var
