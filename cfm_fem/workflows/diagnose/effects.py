@@ -1,9 +1,10 @@
 """The catalogue of physical effects: each a small parametric model, linear in its parameters.
 
-Every builder takes a :class:`~cfm_fem.workflows.diagnose.problem.Problem` and returns either a
-:class:`~cfm_fem.workflows.diagnose.calibrate.Columns` block (change of the residual per unit of each
-physical parameter) or a string saying why the recording cannot test it (which is then turned into
-advice). The names are those of ``effects[].name`` in ``diagnosis.json``: keep their spelling.
+Every builder takes a :class:`~cfm_fem.workflows.diagnose.problem.Problem` and returns
+either a :class:`~cfm_fem.workflows.diagnose.calibrate.Columns` block (change of the residual
+per unit of each physical parameter) or a string saying why the recording cannot test it
+(which is then turned into advice). The names are those of ``effects[].name`` in
+``diagnosis.json``: keep their spelling.
 
 Positioning (tracker), displacement of the probe in the bench frame:
 
@@ -453,11 +454,11 @@ def _fringe_profile_d2(z, z_entry, z_exit, lam):
     return g, dg, d2g
 
 
-#: Registration columns of :func:`~cfm_fem.workflows.diagnose.problem.hall_problem` that move the probe
-#: relative to the magnet (translation axis) or rotate it (rotation axis). ``magnet_dz`` moves
-#: both ends together, exactly as a common shift of the edges: it is left as it is (no
-#: signature in a 2-D reference), so the edges come out in the map frame (they carry the
-#: magnet's z offset).
+#: Registration columns of :func:`~cfm_fem.workflows.diagnose.problem.hall_problem` that move
+#: the probe relative to the magnet (translation axis) or rotate it (rotation axis).
+#: ``magnet_dz`` moves both ends together, exactly as a common shift of the edges: it is left
+#: as it is (no signature in a 2-D reference), so the edges come out in the map frame (they
+#: carry the magnet's z offset).
 _REG_T = {"magnet_dx": 0, "magnet_dy": 1}
 _REG_R = {"magnet_rot_x": 0, "magnet_rot_y": 1, "magnet_roll": 2}
 _GAIN = {"gain_x": 0, "gain_y": 1, "gain_z": 2}

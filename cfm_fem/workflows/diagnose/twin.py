@@ -2,9 +2,10 @@
 
 The truth is generated with the exact models (full HTM chain with vibration and reading delay,
 the field evaluated at the displaced sensor positions, a 3-D Enge fringe field, box averaging of
-the sensitive volume), not with the linearised signatures of :mod:`cfm_fem.workflows.diagnose.effects`, so
-the diagnosis is tested against physics, not against its own equations. Parameters of concealed
-effects use the names and units of the catalogue.
+the sensitive volume), not with the linearised signatures of
+:mod:`cfm_fem.workflows.diagnose.effects`, so the diagnosis is tested against physics, not
+against its own equations. Parameters of concealed effects use the names and units of the
+catalogue.
 """
 
 from __future__ import annotations
