@@ -1,7 +1,7 @@
 """Find what the simulation left out: calibrate the bench model to tracker or Hall-map
 recordings, locate significant residuals, attribute them to catalogued physical effects by nested
 model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
-DIR/report.md with PNG plots, and residual maps DIR/residual_*.vtu.
+DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
@@ -139,6 +139,17 @@ def _provenance(args) -> dict:
     return provenance(inputs, getattr(args, "command_line", None))
 
 
+def _report(summary, arrays, source):
+    """(report.html text, PNG figures by file name) of a diagnosis."""
+    from ..diagnose.report import figures
+    from ..report.diagnosis import diagnosis_report
+    from ..report.plots import png_bytes
+
+    images = {f"{name}.png": png_bytes(fig) for name, fig in figures(summary, arrays).items()}
+    rep = diagnosis_report(summary, images, source)
+    return rep.render(), rep.images
+
+
 def run(args) -> int:
     check_out_dir(args.out)
     if args.tracker:
@@ -161,7 +172,6 @@ def run(args) -> int:
 
 def _run(args) -> int:
     from ..diagnose.problem import hall_problem, tracker_problem
-    from ..diagnose.report import figures, markdown
     from ..diagnose.workflow import diagnose
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
@@ -188,7 +198,7 @@ def _run(args) -> int:
     s = d.summary
     s["source"] = str(src)
     s["provenance"] = _provenance(args)
-    paths = write_diagnosis(args.out, s, d.arrays, markdown(s, str(src)), figures(s, d.arrays))
+    paths = write_diagnosis(args.out, s, d.arrays, *_report(s, d.arrays, str(src)))
     fit = s["fit"]
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:
