@@ -15,7 +15,13 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
+from ._reader import (
+    add_reader_args,
+    add_recording_args,
+    read_recording_args,
+    reader_kwargs,
+    refuse_reader_options,
+)
 from .coupled import add_common, check_common, load_bench
 
 NAME = "compare"
@@ -70,10 +76,9 @@ def _tracker(args, bench, bench_note) -> int:
     from ..compare import compare_tracker
     from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
     from ..io.provenance import bench_input, provenance
-    from ..io.recordings import read_tracker
     from ..kinematics import uncertainty_budget
 
-    rec = read_tracker(args.tracker)
+    rec = read_recording_args(args)
     print(
         f"cfm-fem compare: {args.tracker}: {len(rec)} readings; {args.trials} trials",
         file=sys.stderr,
@@ -112,11 +117,10 @@ def _hall(args, bench, bench_note) -> int:
     from ..coupled import field_budget
     from ..io.compare_out import hall_points_csv, hall_summary, write_run
     from ..io.provenance import bench_input, provenance
-    from ..io.recordings import read_hall_map
     from ..io.reference_field import read_reference
     from ..probe import HallProbe
 
-    rec = read_hall_map(args.hall_map)
+    rec = read_recording_args(args)
     ref = read_reference(
         args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
     )

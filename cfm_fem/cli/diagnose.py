@@ -15,7 +15,13 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
+from ._reader import (
+    add_reader_args,
+    add_recording_args,
+    read_recording_args,
+    reader_kwargs,
+    refuse_reader_options,
+)
 
 NAME = "diagnose"
 HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or Hall map)"
@@ -175,16 +181,15 @@ def _run(args) -> int:
     from ..diagnose.workflow import diagnose
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
-    from ..io.recordings import read_hall_map, read_tracker
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:
-        rec = read_tracker(args.tracker)
+        rec = read_recording_args(args)
         _check_enough(rec)
         prob = tracker_problem(rec, bench)
         src = args.tracker
     else:
-        rec = read_hall_map(args.hall_map)
+        rec = read_recording_args(args)
         _check_enough(rec)
         fn, b_ref, smooth, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
