@@ -25,6 +25,7 @@ __all__ = ["main"]
 #: Subcommand modules, in the order ``--help`` lists them.
 _COMMANDS = [
     "sweep",
+    "design",
     "kinematics",
     "tolerance",
     "coupled",

@@ -67,7 +67,27 @@ def _gum_table(rep: HtmlReport, s: dict) -> None:
     )
 
 
-def sweep_report(summary: dict, digest: SweepDigest, command_line: str | None = None):
+def _design(rep: HtmlReport, d: dict) -> None:
+    rep.heading("Design answer")
+    rep.paragraph(d["answer"])
+    region = "whole map" if d["region_mm"] is None else f"box {d['region_mm']} mm"
+    rep.table(
+        ["U_p [um]", f"p{100 * d['coverage']:g} of U_f [units]", "u [units]", "nodes"],
+        [
+            [u, p, s, n]
+            for u, p, s, n in zip(
+                d["up_um"], d["percentile_units"], d["u_percentile_units"], d["nodes"], strict=True
+            )
+        ],
+        table_id="design",
+        digits=4,
+    )
+    rep.paragraph(f"Region: {region} ({d['region_nodes']} nodes). {d['definition']}.", "note")
+
+
+def sweep_report(
+    summary: dict, digest: SweepDigest, command_line: str | None = None, design: dict | None = None
+):
     """Report of ``cfm-fem sweep``.
 
     Parameters
@@ -78,6 +98,8 @@ def sweep_report(summary: dict, digest: SweepDigest, command_line: str | None = 
         Histograms and plane nodes of its maps.
     command_line : str, optional
         Default: the one in the provenance.
+    design : dict, optional
+        The ``design.json`` document of ``cfm-fem design``: its answer goes on top.
 
     Returns
     -------
@@ -95,6 +117,8 @@ def sweep_report(summary: dict, digest: SweepDigest, command_line: str | None = 
         f"known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo). Mode "
         f"{s['mode']}: {s['perturbation']}."
     )
+    if design is not None:
+        _design(rep, design)
     rep.heading("Design curve: U_f against U_p")
     _design_table(rep, s)
     pct = s["uf_units"]
@@ -136,9 +160,10 @@ def sweep_report(summary: dict, digest: SweepDigest, command_line: str | None = 
     return rep
 
 
-def write_sweep_report(out_dir, command_line: str | None = None) -> list:
+def write_sweep_report(out_dir, command_line: str | None = None, design: dict | None = None):
     """Write ``report.html`` and its PNG figures beside a written sweep (its ``summary.json``
-    and maps, read back one file at a time: bounded memory also for maps written as pieces).
+    and maps, read back one file at a time: bounded memory also for maps written as pieces);
+    ``design``: the answer of ``cfm-fem design``, shown on top.
 
     Returns
     -------
@@ -152,5 +177,5 @@ def write_sweep_report(out_dir, command_line: str | None = None) -> list:
     digest = SweepDigest(summary["uf_units"]["max"])
     for k, points, arrays in iter_map_nodes(out_dir):
         digest.add(k, points, arrays["U_f_units"], arrays["complete"] == 1)
-    rep = sweep_report(summary, digest, command_line)
+    rep = sweep_report(summary, digest, command_line, design)
     return write_run(out_dir, {**rep.images, "report.html": rep.render()})
