@@ -121,3 +121,11 @@ def test_cli_design_bad_input_exits_2_and_writes_nothing(grid_csv, tmp_path, cap
     assert main(["design", str(grid_csv), "--trials", "100", *extra, "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not (out / "design.json").exists() and not (out / "summary.json").exists()
+
+
+def test_design_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["design", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "--uf-max X" in out and "--coverage P" in out and "--region" in out

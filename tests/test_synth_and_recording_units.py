@@ -114,3 +114,19 @@ def test_bad_recording_units_exit_2(tmp_path, capsys, command, extra, message):
     assert main([command, "--tracker", str(tmp_path / "t.csv"), *extra, "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not (out / "compare.json").exists() and not (out / "diagnosis.json").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["synth", "--help"], ["{tracker,hall}", "--seed S", "--reversal-um", "--harmonics"]),
+        (["compare", "--help"], ["--recording-length-unit", "--recording-field-unit"]),
+        (["diagnose", "--help"], ["--recording-length-unit", "--recording-field-unit"]),
+    ],
+)
+def test_help_names_the_options(capsys, argv, words):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert all(w in out for w in words), out
