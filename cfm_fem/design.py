@@ -43,6 +43,9 @@ class DesignAnswer:
         The answer, um (NaN when no U_p > 0 of the sweep gives U_f > 0).
     u_up_max_um : float
         Its Monte Carlo standard uncertainty, um.
+    low_bias_bound_um : float
+        The finite trial count biases the answer low (the safe side) by up to this, um:
+        r ``up_max_um``, r the relative standard error of one interval end.
     uf_max_units, coverage : float
         The question.
     method : str
@@ -59,6 +62,7 @@ class DesignAnswer:
 
     up_max_um: float
     u_up_max_um: float
+    low_bias_bound_um: float
     uf_max_units: float
     coverage: float
     method: str
@@ -75,7 +79,8 @@ class DesignAnswer:
         return (
             f"U_p <= {self.up_max_um:.4g} +- {self.u_up_max_um:.2g} um keeps U_f <= "
             f"{self.uf_max_units:g} units over {100 * self.coverage:g} % of the nodes "
-            f"({self.method}; +- is the Monte Carlo standard uncertainty)"
+            f"({self.method}; +- is the Monte Carlo standard uncertainty; the finite trial count "
+            f"biases the answer low by up to {self.low_bias_bound_um:.2g} um)"
         )
 
 
@@ -160,6 +165,7 @@ def admissible_up(
     return DesignAnswer(
         up_max_um=float(answer),
         u_up_max_um=float(np.nanstd(boot_a, ddof=1)),
+        low_bias_bound_um=float(rel_mc_std * answer),
         uf_max_units=float(uf_max),
         coverage=float(coverage),
         method=method,
