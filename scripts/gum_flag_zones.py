@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import argparse
 
-import meshio
 import numpy as np
+import pyvista as pv
 
 BANDS = [(0, 30), (30, 38), (38, 45), (45, 60), (60, 80), (80, np.inf)]
 
@@ -46,15 +46,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("vtu", help="a map written by cfm-fem sweep (uf_up<U_p>um.vtu)")
     a = ap.parse_args()
-    m = meshio.read(a.vtu)
-    tets = m.cells_dict.get("tetra")
+    m = pv.read(a.vtu)  # VTK's reader: the maps' provenance is a string array meshio refuses
+    tets = m.cells_dict.get(pv.CellType.TETRA)
     if tets is None:
         raise SystemExit(f"{a.vtu}: no tetrahedra; this script needs a map on native cells")
-    d = m.point_data
-    dev = cell_gradient_deviation(m.points, tets, d["B_nominal_T"])
+    d = {k: np.asarray(v) for k, v in m.point_data.items()}
+    points = np.asarray(m.points, dtype=np.float64)
+    dev = cell_gradient_deviation(points, tets, d["B_nominal_T"].astype(np.float64))
     done = d["complete"] == 1
     flag = d["absB_gum_disagree"] == 1
-    z = np.abs(m.points[:, 2])
+    z = np.abs(points[:, 2])
     print(f"{a.vtu}: {done.sum()} of {len(done)} nodes kept every trial")
     print("  |z| band [mm]    nodes   flagged   median cell-gradient deviation")
     for lo, hi in BANDS:

@@ -398,8 +398,10 @@ def test_bench_without_errors(tmp_path, capsys):
     assert "U_p = 0 on axis x" in summary["budget"]["notes"][0]
     assert sorted(p.name for p in out.iterdir()) == [
         LOCK_NAME,
+        "fig10.png",
         "points.csv",
         "points.vtu",
+        "report.html",
         "summary.json",
     ]
     out = tmp_path / "t"

@@ -2,9 +2,9 @@
 
 import json
 
-import meshio
 import numpy as np
 import pytest
+import pyvista as pv
 
 from cfm_fem.cli import main
 
@@ -35,7 +35,11 @@ def test_kinematics_writes_contract_outputs(tmp_path, capsys):
     np.testing.assert_allclose(up_x, np.hypot(sys_x, std_x), rtol=1e-5)
     assert np.all(table[:, cols.index("x_low_um")] < sys_x)
     assert np.all(table[:, cols.index("x_high_um")] > sys_x)
-    mesh = meshio.read(out / "points.vtu")
+    html = (out / "report.html").read_text()
+    assert 'id="table_iv"' in html and 'data-file="fig10.png"' in html
+    assert f"<td>{s['axes']['z']['U_p_um']:.3g}</td>" in html  # the summary's numbers
+    assert s["provenance"]["command_line"] in html
+    mesh = pv.read(out / "points.vtu")
     assert mesh.points.shape == (936, 3)
     assert mesh.point_data["U_p_um"].shape == (936, 3)
     text = capsys.readouterr().out

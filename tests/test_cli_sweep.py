@@ -6,6 +6,7 @@ import xml.etree.ElementTree as ET
 import meshio
 import numpy as np
 import pytest
+import pyvista as pv
 
 from cfm_fem.cli import main
 
@@ -57,12 +58,19 @@ def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
         float(d.get("timestep")) for d in ET.parse(out / "sweep.pvd").getroot().iter("DataSet")
     ]
     assert timesteps == [0.0, 10.0, 20.0]
-    m = meshio.read(out / "uf_up20um.vtu")
-    assert len(m.points) == 216 and m.cells[0].type == "tetra"
+    m = pv.read(out / "uf_up20um.vtu")
+    assert m.n_points == 216 and set(m.celltypes) == {pv.CellType.TETRA}
     uf = m.point_data["U_f_units"]
-    np.testing.assert_allclose(
-        np.nanmax(uf[m.point_data["complete"] == 1]), s["uf_units"]["max"][2]
-    )
+    complete = m.point_data["complete"] == 1
+    np.testing.assert_allclose(np.nanmax(uf), s["uf_units"]["max"][2])
+    # a node that lost trials has no U_f: NaN, its half-space figure kept under its own name
+    assert np.isnan(uf[~complete]).all() and np.isfinite(uf[complete]).all()
+    inside = m.point_data["absB_U95_inside_trials_units"]
+    assert np.isfinite(inside[~complete]).all() and np.isnan(inside[complete]).all()
+    assert np.isnan(m.point_data["Bx_u_units"][~complete]).all()
+    assert "absB_U95_units" not in m.point_data and "Bx_Uk2_T" not in m.point_data
+    assert m.field_data["column"][0] == "up20um" and m.field_data["U_p_um"][0] == 20
+    assert json.loads(m.field_data["provenance"][0]) == s["provenance"]
     assert "Bz_gum_disagree" in m.point_data and "grad_B_T_per_mm" in m.point_data
     printed = capsys.readouterr().out
     assert "U_f p50" in printed and "Kuhn" in printed
@@ -74,7 +82,7 @@ def test_outside_extrapolate_gives_surface_nodes_a_figure_and_says_so(csv_map, t
     s = json.loads((tmp_path / "x" / "summary.json").read_text())
     assert s["outside"] == "extrapolate" and s["uf_nodes"] == [216, 216]
     assert s["outside_fraction"][1] > 0.1  # the 152 surface nodes of 216 lost trials
-    m = meshio.read(tmp_path / "x" / "uf_up30um.vtu")
+    m = pv.read(tmp_path / "x" / "uf_up30um.vtu")
     assert (m.point_data["complete"] == 1).all()
     # a linear map: U_f / (linear GUM figure) at the surface as inside, within the Monte Carlo
     # tolerance of the two means (both carry the upward bias of max(|low|, |high|), ~+5 %);
@@ -409,7 +417,7 @@ def test_slab_progress_advances_within_a_slab_and_changes_no_number(csv_map, tmp
     pieces = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").glob("*/*.vtu"))
     assert len(pieces) == 6
     for rel in pieces:
-        ma, mb = meshio.read(tmp_path / "one" / rel), meshio.read(tmp_path / "blocks" / rel)
+        ma, mb = pv.read(tmp_path / "one" / rel), pv.read(tmp_path / "blocks" / rel)
         np.testing.assert_array_equal(ma.points, mb.points)
         assert set(ma.point_data) == set(mb.point_data)
         for name in ma.point_data:

@@ -41,8 +41,11 @@ def test_cli_tracker(tmp_path, capsys):
     assert {"name", "params", "param_std", "delta_bic", "cv_rms_before", "cv_rms_after"} <= set(e)
     for k in ("rms_before", "rms_after", "chi2_dof_before", "chi2_dof_after"):
         assert np.isfinite(d["fit"][k])
-    for name in ("report.md", "fit.png", "residuals.png", "residual_points.vtu"):
+    for name in ("report.html", "fit.png", "residuals.png", "residual_points.vtu"):
         assert (out / name).stat().st_size > 0
+    html = (out / "report.html").read_text()
+    assert "<h3>reversal" in html and 'data-file="fit.png"' in html
+    assert d["provenance"]["inputs"]["tracker"]["sha256"] in html
     # what produced it, as every other command records it: the recording and the packaged bench
     inputs = d["provenance"]["inputs"]
     assert inputs["tracker"]["sha256"] == hashlib.sha256(f.read_bytes()).hexdigest()

@@ -66,7 +66,7 @@ def test_dask_chunks_are_bit_identical_to_one_process(cluster):
 
 
 def test_cli_scheduler_gives_the_single_process_outputs(cluster, csv_map, tmp_path):
-    import meshio
+    import pyvista as pv
 
     c, _ = cluster
     common = ["sweep", str(csv_map), "--up", "0:20:10", "--trials", "200", "--seed", "5"]
@@ -88,8 +88,8 @@ def test_cli_scheduler_gives_the_single_process_outputs(cluster, csv_map, tmp_pa
     for key in ("uf_units", "outside_fraction", "uf_nodes", "gum_disagree_fraction"):
         assert one[key] == dsk[key]
     assert dsk["provenance"]["backend"].startswith("dask scheduler tcp://127.0.0.1")
-    a = meshio.read(tmp_path / "one" / "uf_up20um.vtu").point_data
-    b = meshio.read(tmp_path / "dask" / "uf_up20um.vtu").point_data
+    a = pv.read(tmp_path / "one" / "uf_up20um.vtu").point_data
+    b = pv.read(tmp_path / "dask" / "uf_up20um.vtu").point_data
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
     assert not (tmp_path / "dask" / ".cfm_fem_chunks").exists()

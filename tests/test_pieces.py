@@ -6,6 +6,7 @@ import json
 import xml.etree.ElementTree as ET
 
 import numpy as np
+import pytest
 import pyvista as pv
 from vtk_points import by_position, owned_points, vtk_histogram_count
 
@@ -104,6 +105,13 @@ def test_pieces_in_mode_htm_give_the_numbers_of_the_single_file(tmp_path):
     g2, b = by_position(pv.read(tmp_path / "pc" / "uf_htm_geometric.pvtu"))
     assert g1.n_points == g2.n_points == 125 and g1.n_cells == g2.n_cells
     assert "positioning_std_um" in b
+    # the time axis of mode htm (0, 1, 2) is named by each map's field data
+    for k, col in enumerate(("htm_total", "htm_geometric", "htm_vibration_delay")):
+        m = pv.read(tmp_path / "one" / f"uf_{col}.vtu")
+        assert m.field_data["column"][0] == col
+        assert m.field_data["U_p_um"][0] == pytest.approx(one["up_um"][k])
+        piece = pv.read(tmp_path / "pc" / f"uf_{col}" / "piece_0001.vtu")
+        assert piece.field_data["column"][0] == col and piece.field_data["piece"][0] == 1
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 

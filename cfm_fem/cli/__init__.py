@@ -23,7 +23,17 @@ from ..errors import CfmInputError, CfmInputWarning
 __all__ = ["main"]
 
 #: Subcommand modules, in the order ``--help`` lists them.
-_COMMANDS = ["sweep", "kinematics", "tolerance", "coupled", "fig4", "compare", "diagnose"]
+_COMMANDS = [
+    "sweep",
+    "design",
+    "kinematics",
+    "tolerance",
+    "coupled",
+    "fig4",
+    "compare",
+    "diagnose",
+    "synth",
+]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1

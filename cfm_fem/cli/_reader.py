@@ -9,10 +9,12 @@ a map takes them under these names, with these help texts: ``sweep`` and ``fig4`
 from __future__ import annotations
 
 from ..errors import CfmInputError
+from . import option_type
 
 __all__ = [
     "add_reader_args",
     "add_recording_args",
+    "read_recording_args",
     "reader_kwargs",
     "given_reader_options",
     "refuse_reader_options",
@@ -90,6 +92,44 @@ def add_recording_args(p) -> None:
         "--hall-map",
         metavar="REC.csv",
         help="Hall-probe map recording: point_id,rep,x_cmd,y_cmd,z_cmd,Bx,By,Bz (mm, T)",
+    )
+    g = p.add_argument_group("how the recording is read")
+    g.add_argument(
+        "--recording-length-unit",
+        metavar="UNIT",
+        type=option_type(_check_unit("length"), "--recording-length-unit"),
+        help="unit of the recording's positions and speed (mm, m, in, ...; default mm)",
+    )
+    g.add_argument(
+        "--recording-field-unit",
+        metavar="UNIT",
+        type=option_type(_check_unit("field"), "--recording-field-unit"),
+        help="unit of a Hall map's Bx, By, Bz (T, mT, G, kG; default T)",
+    )
+
+
+def _check_unit(kind):
+    def unit(text):
+        from ..units import field_scale, length_scale
+
+        (length_scale if kind == "length" else field_scale)(text)
+        return text
+
+    unit.__name__ = f"{kind} unit"
+    return unit
+
+
+def read_recording_args(args):
+    """The recording named by ``--tracker`` or ``--hall-map``, converted to mm and T from the
+    ``--recording-*-unit`` options."""
+    from ..io.recording_units import read_recording_in_units
+
+    if args.tracker and args.recording_field_unit is not None:
+        raise CfmInputError("--recording-field-unit applies to --hall-map only (a tracker "
+                            "recording has no field)")  # fmt: skip
+    kind, path = ("tracker", args.tracker) if args.tracker else ("hall", args.hall_map)
+    return read_recording_in_units(
+        path, kind, args.recording_length_unit, args.recording_field_unit
     )
 
 

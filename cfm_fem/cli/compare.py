@@ -15,7 +15,13 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
+from ._reader import (
+    add_reader_args,
+    add_recording_args,
+    read_recording_args,
+    reader_kwargs,
+    refuse_reader_options,
+)
 from .coupled import add_common, check_common, load_bench
 
 NAME = "compare"
@@ -69,11 +75,10 @@ def run(args) -> int:
 def _tracker(args, bench, bench_note) -> int:
     from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
     from ..io.provenance import bench_input, provenance
-    from ..io.recordings import read_tracker
     from ..models.kinematics.budget import uncertainty_budget
     from ..workflows.compare import compare_tracker
 
-    rec = read_tracker(args.tracker)
+    rec = read_recording_args(args)
     print(
         f"cfm-fem compare: {args.tracker}: {len(rec)} readings; {args.trials} trials",
         file=sys.stderr,
@@ -110,13 +115,12 @@ def _tracker(args, bench, bench_note) -> int:
 def _hall(args, bench, bench_note) -> int:
     from ..io.compare_out import hall_points_csv, hall_summary, write_run
     from ..io.provenance import bench_input, provenance
-    from ..io.recordings import read_hall_map
     from ..io.reference_field import read_reference
     from ..models.probe import HallProbe
     from ..workflows.compare import compare_hall
     from ..workflows.coupled import field_budget
 
-    rec = read_hall_map(args.hall_map)
+    rec = read_recording_args(args)
     ref = read_reference(
         args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
     )

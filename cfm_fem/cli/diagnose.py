@@ -1,7 +1,7 @@
 """Find what the simulation left out: calibrate the bench model to tracker or Hall-map
 recordings, locate significant residuals, attribute them to catalogued physical effects by nested
 model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
-DIR/report.md with PNG plots, and residual maps DIR/residual_*.vtu.
+DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
@@ -15,7 +15,13 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
-from ._reader import add_reader_args, add_recording_args, reader_kwargs, refuse_reader_options
+from ._reader import (
+    add_reader_args,
+    add_recording_args,
+    read_recording_args,
+    reader_kwargs,
+    refuse_reader_options,
+)
 
 NAME = "diagnose"
 HELP = "sim vs real: locate the mismatch, name the physics, model it (tracker or Hall map)"
@@ -154,6 +160,17 @@ def _provenance(args) -> dict:
     return provenance(inputs, getattr(args, "command_line", None))
 
 
+def _report(summary, arrays, source):
+    """(report.html text, PNG figures by file name) of a diagnosis."""
+    from ..report.diagnosis import diagnosis_report
+    from ..report.plots import png_bytes
+    from ..workflows.diagnose.report import figures
+
+    images = {f"{name}.png": png_bytes(fig) for name, fig in figures(summary, arrays).items()}
+    rep = diagnosis_report(summary, images, source)
+    return rep.render(), rep.images
+
+
 def run(args) -> int:
     check_out_dir(args.out)
     if args.tracker:
@@ -177,19 +194,17 @@ def run(args) -> int:
 def _run(args) -> int:
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
-    from ..io.recordings import read_hall_map, read_tracker
     from ..workflows.diagnose.problem import hall_problem, tracker_problem
-    from ..workflows.diagnose.report import figures, markdown
     from ..workflows.diagnose.workflow import diagnose
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:
-        rec = read_tracker(args.tracker)
+        rec = read_recording_args(args)
         _check_enough(rec)
         prob = tracker_problem(rec, bench)
         src = args.tracker
     else:
-        rec = read_hall_map(args.hall_map)
+        rec = read_recording_args(args)
         _check_enough(rec)
         fn, b_ref, spacing, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
@@ -206,7 +221,7 @@ def _run(args) -> int:
     s = d.summary
     s["source"] = str(src)
     s["provenance"] = _provenance(args)
-    paths = write_diagnosis(args.out, s, d.arrays, markdown(s, str(src)), figures(s, d.arrays))
+    paths = write_diagnosis(args.out, s, d.arrays, *_report(s, d.arrays, str(src)))
     fit = s["fit"]
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:

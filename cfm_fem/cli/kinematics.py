@@ -2,8 +2,8 @@
 
 Each trial draws the 21 geometric errors once (common to all points) and, per point, vibration
 and reading delay; the exact HTM chain gives the probe error. Writes DIR/summary.json (pooled per
-axis as in Table IV, with the assumptions), DIR/points.csv and DIR/points.vtu (per point), and
-prints the result beside the paper's simulated Table IV.
+axis as in Table IV, with the assumptions), DIR/points.csv and DIR/points.vtu (per point) and
+DIR/report.html, and prints the result beside the paper's simulated Table IV.
 """
 
 from __future__ import annotations
@@ -147,8 +147,13 @@ def _run(args) -> int:
     )
     summary = kinematics_summary(res, bench, budget=budget, gum=gum, extra={"provenance": prov})
     paths = write_kinematics(args.out, res, bench, summary)
+    from ..io.compare_out import write_run
+    from ..report.kinematics import kinematics_report  # matplotlib: loaded only when used
+
+    rep = kinematics_report(res, summary)
+    report = write_run(args.out, {**rep.images, "report.html": rep.render()})
     print_table_iv(summary)
-    print(f"wrote {paths['summary']}, {paths['csv']}, {paths['vtu']}")
+    print(f"wrote {paths['summary']}, {paths['csv']}, {paths['vtu']}, {report[-1]}")
     return 0
 
 

@@ -1,9 +1,11 @@
 """Per-node field uncertainty U_f of an FEM map for a sweep of positioning uncertainties U_p.
 
 Writes DIR/uf_up<U_p>um.vtu per U_p value, DIR/sweep.pvd (open it in ParaView; U_p is the time
-axis) and DIR/summary.json. Maps an earlier sweep left in DIR that this run does not write (other
-U_p values, pieces instead of one file or the reverse) are removed once the new outputs are
-complete, and named on stderr; files a sweep did not write are never deleted.
+axis), DIR/open_in_paraview.py (pvpython: the slice through the axis, nodes with a U_f figure),
+DIR/summary.json and DIR/report.html (design curve, slices, histograms, GUM flags). Maps an
+earlier sweep left in DIR that this run does not write (other U_p values, pieces instead of one
+file or the reverse) are removed once the new outputs are complete, and named on stderr; files a
+sweep did not write are never deleted.
 """
 
 from __future__ import annotations
@@ -137,7 +139,7 @@ def add_args(p):
 
 
 def add_slab_args(p):
-    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.slabs`."""
+    """``--slabs`` and ``--max-memory``: the out-of-core path of `cfm_fem.workflows.sweep.slabs`."""
     p.add_argument(
         "--slabs",
         type=int,
@@ -295,6 +297,7 @@ def _run_slabs(args, up):
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
         return None, (flat[0] if flat else None)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
+    _write_report(args.out)
     _print_summary(summary, args.out)
     return 0, None
 
@@ -510,8 +513,16 @@ def _run(args, up) -> int:
         summary = write_sweep(args.out, res, prov, remove_stale=False)
     runner.finish(keep=args.keep_chunks)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
+    _write_report(args.out)
     _print_summary(summary, args.out)
     return 0
+
+
+def _write_report(out) -> None:
+    """``report.html`` and its figures, from the outputs just written."""
+    from ..report.sweep import write_sweep_report  # matplotlib: loaded only when used
+
+    write_sweep_report(out)
 
 
 def _backend(args) -> str:
@@ -576,4 +587,5 @@ def _print_summary(s, out):
         if "pieces" in s
         else (f"{len(s['up_um'])} .vtu maps")
     )
-    print(f"{s['seconds']:.1f} s; wrote {Path(out) / 'sweep.pvd'}, {maps} and summary.json")
+    print(f"{s['seconds']:.1f} s; wrote {Path(out) / 'sweep.pvd'}, {maps}, summary.json, "
+          "report.html and open_in_paraview.py")  # fmt: skip

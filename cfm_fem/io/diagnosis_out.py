@@ -1,4 +1,4 @@
-"""Outputs of ``cfm-fem diagnose``: diagnosis.json, report.md, PNG plots, residual .vtu maps."""
+"""Outputs of ``cfm-fem diagnose``: diagnosis.json, report.html, PNG plots, residual .vtu maps."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def _clean(obj):
     return obj
 
 
-def write_diagnosis(out_dir, summary: dict, arrays: dict, report_md: str, figures: dict) -> dict:
+def write_diagnosis(out_dir, summary: dict, arrays: dict, report_html: str, images: dict) -> dict:
     """Write every output atomically; return the paths written.
 
     Parameters
@@ -39,20 +39,19 @@ def write_diagnosis(out_dir, summary: dict, arrays: dict, report_md: str, figure
     arrays : dict
         ``point_pos`` (m, 3) mm, ``zp_before``/``zp_after`` (m, 3), ``sig_before`` (m, 3) bool,
         ``pos`` (n, 3), ``resid_before``/``resid_after`` (n, 3), ``z_before`` (n, 3), ``rep``.
-    report_md : str
-    figures : dict name -> matplotlib Figure
+    report_html : str
+        The report (`cfm_fem.report.diagnosis.diagnosis_report`), written as ``report.html``.
+    images : dict of file name -> bytes
+        PNG figures (``fit.png``, ...), written beside it.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
-    for name, fig in figures.items():
-        p = out / f"{name}.png"
+    for name, png in images.items():
+        p = out / name
         with atomic_path(p) as tmp:
-            fig.savefig(tmp, dpi=110)
-        paths[name] = p
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
+            tmp.write_bytes(png)
+        paths[name.removesuffix(".png")] = p
     unit = summary["fit"]["unit"]
     pts = arrays["point_pos"]
     write_vtu(
@@ -77,8 +76,8 @@ def write_diagnosis(out_dir, summary: dict, arrays: dict, report_md: str, figure
     )
     paths["vtu_points"] = out / "residual_points.vtu"
     paths["vtu_rows"] = out / "residual_rows.vtu"
-    write_text(out / "report.md", report_md)
-    paths["report"] = out / "report.md"
+    write_text(out / "report.html", report_html)
+    paths["report"] = out / "report.html"
     write_json(out / "diagnosis.json", _clean(summary))  # last: its presence means complete
     paths["json"] = out / "diagnosis.json"
     return paths

@@ -148,8 +148,8 @@ def write_points_csv(path, result, bench, provenance: dict | None = None) -> Non
 def write_points_vtu(path, result, bench, provenance: dict | None = None) -> None:
     """Point cloud at the nominal probe positions (bench frame, mm) with the statistics (um).
 
-    ``provenance`` goes into the field data ``provenance_utf8`` (JSON as UTF-8 byte values,
-    `cfm_fem.io.sweep_out.read_provenance` decodes it)."""
+    ``provenance`` goes into the field data ``provenance`` (JSON text, a VTK string array that
+    ParaView shows; `cfm_fem.io.sweep_out.read_provenance` decodes it)."""
     pd = {
         "E_systematic_um": 1e3 * result.mean[:, :3],
         "E_std_um": 1e3 * result.std[:, :3],
@@ -161,11 +161,10 @@ def write_points_vtu(path, result, bench, provenance: dict | None = None) -> Non
         "norm_high95_um": 1e3 * result.high[:, 3],
         "q_cmd_mm": result.q_cmd,
     }
-    # numbers only (the bench and its assumptions are in summary.json and points.csv)
+    # the bench and its assumptions are in summary.json and points.csv
     fd = {"trials": result.trials, "seed": result.seed, "coverage_probability": result.p}
     if provenance:
-        text = json.dumps(provenance, sort_keys=True).encode("utf-8")
-        fd["provenance_utf8"] = np.frombuffer(text, dtype=np.uint8).astype(np.float64)
+        fd["provenance"] = json.dumps(provenance, sort_keys=True)
     write_vtu(path, result.nominal, point_data=pd, field_data=fd)
 
 

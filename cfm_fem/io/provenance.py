@@ -1,9 +1,9 @@
 """What produced an output: input hashes, version, command line.
 
 The same record goes into ``summary.json`` (key ``provenance``), into every ``.vtu`` (field data
-``provenance_utf8``, see `cfm_fem.io.sweep_out.provenance_codes`) and, as an XML comment that
-ParaView skips, into ``sweep.pvd`` and every ``.pvtu`` index (`xml_comment`, read back with
-`read_xml_provenance`).
+``provenance``, JSON text in a VTK string array, see `cfm_fem.io.sweep_out.provenance_text`)
+and, as an XML comment that ParaView skips, into ``sweep.pvd`` and every ``.pvtu`` index
+(`xml_comment`, read back with `read_xml_provenance`).
 """
 
 from __future__ import annotations

@@ -24,11 +24,12 @@ from ..models.mesh import (
 )
 from ..models.sweep import SweepResult, _gum_u
 from ._atomic import write_json
+from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .streaming import check_opera_counts, open_stream
 from .sweep_out import (
     _point_data,
-    provenance_codes,
+    map_field_data,
     retire_index,
     vtu_name,
 )
@@ -325,9 +326,7 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
-            fields = {"U_p_um": float(ups[k]), "B_ref_T": b_ref, "trials": cfg.trials,
-                      "seed": cfg.seed, "piece": p,
-                      "provenance_utf8": provenance_codes(prov)}  # fmt: skip
+            fields = map_field_data(ups[k], label, b_ref, cfg, prov, piece=p)
             write_vtu(path, sub.points, piece_cells, data, fields)
             written[k].append(path)
             example[k] = {name: v[:1] for name, v in data.items()}
@@ -337,6 +336,7 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
         write_pvtu(path, written[k], example[k], provenance=prov)
         entries.append((float(k) if htm else float(ups[k]), path))
     write_pvd(out / "sweep.pvd", entries, provenance=prov)
+    write_paraview_script(out)
     summary["pieces"] = K
     write_json(out / "summary.json", summary)
 

@@ -14,6 +14,7 @@ from ..models.sweep import COMPONENTS, SweepResult, summarize
 from ..threads import map_threads
 from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
 from .lock import locks_output
+from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import write_pvd, write_vtu
 
@@ -21,8 +22,9 @@ __all__ = [
     "write_sweep",
     "write_sweep_pieces",
     "vtu_name",
-    "provenance_codes",
+    "provenance_text",
     "read_provenance",
+    "map_field_data",
     "remove_stale_maps",
     "remove_leftover_temporaries",
     "remove_earlier_outputs",
@@ -34,35 +36,50 @@ def vtu_name(label: str) -> str:
     return f"uf_{label}.vtu"
 
 
-def provenance_codes(provenance: dict | None) -> np.ndarray:
-    """The provenance as JSON, UTF-8 byte values in a float array (VTK field data readable by
-    ParaView, VTK and meshio alike; `read_provenance` turns it back)."""
-    text = json.dumps(provenance or {}, sort_keys=True)
-    return np.frombuffer(text.encode("utf-8"), dtype=np.uint8).astype(np.float64)
+def provenance_text(provenance: dict | None) -> str:
+    """The provenance as JSON text: the field data ``provenance`` of every map (a VTK string
+    array: ParaView shows it in the Information panel; `read_provenance` turns it back)."""
+    return json.dumps(provenance or {}, sort_keys=True)
 
 
-def read_provenance(codes) -> dict:
-    """Inverse of `provenance_codes`: the field data ``provenance_utf8`` of an output back to
-    a dict."""
-    return json.loads(bytes(np.asarray(codes, dtype=np.uint8).ravel()).decode("utf-8"))
+def read_provenance(value) -> dict:
+    """Inverse of `provenance_text`: the field data ``provenance`` of a map (a string, or the
+    one-element array VTK readers give) back to a dict."""
+    if not isinstance(value, str):
+        value = str(np.asarray(value).ravel()[0])
+    return json.loads(value)
 
 
 def _point_data(res: SweepResult, k: int) -> dict:
-    """Per-node arrays for U_p index ``k``; names say the quantity and the unit."""
+    """Per-node arrays for column ``k``; names say the quantity and the unit.
+
+    A statistic of the error is a node's figure only where every trial has a value
+    (``complete`` = 1); elsewhere (a node on the map's surface whose perturbed positions partly
+    left the map) the per-component statistics are NaN, and the |B| figures of the trials that
+    stayed inside are kept apart, under ``absB_*_inside_trials_units``.
+    """
     st = res.stats[:, k]  # (n, 4, 6)
     units = res.to_units
     U95 = res.expanded_95(k)  # one column at a time: no map-sized temporaries per column
     _, _, disagree = res.gum_check(k)
+    complete = res.complete()[:, k]
+    partial = ~complete & np.isfinite(st[:, 3, 1])  # truncated sample: not a U_f
     absb = np.sqrt((res.fieldmap.B**2).sum(axis=1))
     f32 = np.float32  # Monte Carlo noise is ~1e-2 relative: float32 loses nothing, halves the files
+
+    def only(mask, values):
+        return np.where(mask, values, np.nan).astype(f32)
+
     data = {
         "B_nominal_T": res.fieldmap.B,
         "absB_nominal_T": absb,
         "grad_B_T_per_mm": res.gradient.reshape(len(absb), 9),
-        "U_f_units": units(U95[:, 3]).astype(f32),
+        "U_f_units": only(complete, units(U95[:, 3])),
+        "absB_U95_inside_trials_units": only(partial, units(U95[:, 3])),
+        "absB_systematic_inside_trials_units": only(partial, units(st[:, 3, 0])),
         "outside_fraction": (res.n_outside[:, k] / res.config.trials).astype(f32),
         "walk_failed_fraction": (res.n_walk_failed[:, k] / res.config.trials).astype(f32),
-        "complete": res.complete()[:, k].astype(np.uint8),
+        "complete": complete.astype(np.uint8),
         "linear_in_up": res.linear_in_up.astype(np.uint8),
     }
     if res.positioning is not None:
@@ -78,17 +95,36 @@ def _point_data(res: SweepResult, k: int) -> dict:
             "sym95_high_units": units(st[:, c, 3]),
             "short95_low_units": units(st[:, c, 4]),
             "short95_high_units": units(st[:, c, 5]),
-            "U95_units": units(U95[:, c]),
             "Uk2_units": units(2.0 * st[:, c, 1]),
-            "Uk2_T": 2.0 * st[:, c, 1],
-            "gum_U95_units": units(1.959963984540054 * res.gum_u[:, k, c]),
         }
-        if res.positioning is not None:  # GUM interval: systematic +- gum_U95
-            per["gum_systematic_units"] = units(gum_mean[:, c])
+        if c != 3:  # |B|: its U95 is U_f_units
+            per["U95_units"] = units(U95[:, c])
         for key, values in per.items():
-            data[f"{name}_{key}"] = values.astype(f32)
-        data[f"{name}_gum_disagree"] = disagree[:, c].astype(np.uint8)
+            data[f"{name}_{key}"] = only(complete, values)
+        # the GUM figures come from the gradient, not from the trials: defined at every node
+        data[f"{name}_gum_U95_units"] = units(1.959963984540054 * res.gum_u[:, k, c]).astype(f32)
+        if res.positioning is not None:  # GUM interval: systematic +- gum_U95
+            data[f"{name}_gum_systematic_units"] = units(gum_mean[:, c]).astype(f32)
+        data[f"{name}_gum_disagree"] = (disagree[:, c] & complete).astype(np.uint8)
     return data
+
+
+def map_field_data(
+    up_um: float, label: str, b_ref_T: float, config, provenance: dict | None, **extra
+) -> dict:
+    """Field data of one map: U_p (um), the column's name (``up20um``, ``htm_geometric``: mode
+    htm's time steps 0, 1, 2 are its columns), B_ref (T), trials, seed, ``extra`` (``piece``)
+    and the provenance as JSON text (a VTK string array, shown by ParaView's Information
+    panel)."""
+    return {
+        "U_p_um": float(up_um),
+        "column": str(label),
+        "B_ref_T": float(b_ref_T),
+        "trials": int(config.trials),
+        "seed": int(config.seed),
+        **extra,
+        "provenance": provenance_text(provenance),
+    }
 
 
 #: Memory that maps written side by side may take in all (each map: its grid and point data).
@@ -140,16 +176,12 @@ def write_sweep(
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
-    common = {
-        "B_ref_T": res.b_ref_T,
-        "trials": res.config.trials,
-        "seed": res.config.seed,
-        "provenance_utf8": provenance_codes(summary["provenance"]),
-    }  # numbers only: meshio rejects VTK string arrays; the text is in summary.json
 
     def write_map(k):
         path = out / vtu_name(res.labels[k])
-        fields = {"U_p_um": ups[k], **common}
+        fields = map_field_data(
+            ups[k], res.labels[k], res.b_ref_T, res.config, summary["provenance"]
+        )
         write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
         return (ups[k] if res.config.mode == "gauss" else float(k), path)
 
@@ -157,7 +189,8 @@ def write_sweep(
     n = len(res.fieldmap.points)
     per_map = n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16  # points, data, cells
     entries = map_threads(write_map, range(len(res.labels)), max(1, _WRITE_BYTES // per_map))
-    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])  # issue 6
+    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
+    write_paraview_script(out)
     write_json(out / "summary.json", summary)
     if remove_stale:
         remove_earlier_outputs(out)
@@ -215,7 +248,7 @@ def write_sweep_pieces(
     summary["provenance"] = provenance or {}
     summary["pieces"] = int(n_pieces)
     retire_index(out)
-    # issue 6: columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
+    # columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
     labels = compact.labels
     ups = compact.column_up_um()
     names = {}
@@ -228,14 +261,9 @@ def write_sweep_pieces(
         for k, label in enumerate(labels):
             folder = out / vtu_name(label).removesuffix(".vtu")
             path = folder / f"piece_{p:04d}.vtu"
-            fields = {
-                "U_p_um": ups[k],
-                "B_ref_T": compact.b_ref_T,
-                "trials": compact.config.trials,
-                "seed": compact.config.seed,
-                "piece": p,
-                "provenance_utf8": provenance_codes(summary["provenance"]),
-            }
+            fields = map_field_data(
+                ups[k], label, compact.b_ref_T, compact.config, summary["provenance"], piece=p
+            )
             data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
             write_vtu(path, res.fieldmap.points, cells, data, fields)
             written[k].append(path)
@@ -247,6 +275,7 @@ def write_sweep_pieces(
         write_pvtu(path, written[k], names[k], provenance=summary["provenance"])
         entries.append((ups[k] if compact.config.mode == "gauss" else float(k), path))
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
+    write_paraview_script(out)
     write_json(out / "summary.json", summary)
     if remove_stale:
         remove_earlier_outputs(out)
@@ -259,9 +288,9 @@ _HEAD_BYTES = 1 << 20
 
 def _written_by_sweep(path: Path) -> bool:
     """True for a map a sweep writes (`write_sweep`, `write_sweep_pieces`,
-    `cfm_fem.workflows.sweep.slabs`), told by its contents, not only by its name: a ``.vtu`` whose
-    field data (written before the points) hold ``U_p_um`` and ``provenance_utf8``, or a ``.pvtu``
-    index of ``U_f_units``."""
+    `cfm_fem.workflows.sweep.slabs`), told by its contents, not only by its name: a ``.vtu``
+    whose field data (written before the points) hold ``U_p_um`` and ``provenance``
+    (``provenance_utf8`` in maps of earlier versions), or a ``.pvtu`` index of ``U_f_units``."""
     try:
         with open(path, "rb") as f:
             head = f.read(_HEAD_BYTES)
@@ -272,7 +301,7 @@ def _written_by_sweep(path: Path) -> bool:
     return (
         b'<VTKFile type="UnstructuredGrid"' in head
         and b'Name="U_p_um"' in head
-        and b'Name="provenance_utf8"' in head
+        and (b'Name="provenance"' in head or b'Name="provenance_utf8"' in head)
     )
 
 

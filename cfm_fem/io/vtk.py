@@ -25,8 +25,9 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         Tetrahedra or triangles; None writes one vertex cell per point (a point cloud).
     point_data : dict of str -> ndarray, shape (n,) or (n, k), optional
         Arrays are written with their own dtype (float32 keeps large maps small).
-    field_data : dict of str -> number, optional
-        Dataset-level metadata (B_ref, U_p, seed, ...).
+    field_data : dict of str -> number or str, optional
+        Dataset-level metadata (B_ref, U_p, seed, ...); a string is written as a VTK string
+        array (ParaView shows it; meshio cannot read a file that has one).
     """
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
@@ -39,7 +40,10 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     for name, values in (point_data or {}).items():
         grid.point_data[name] = np.ascontiguousarray(values)
     for name, value in (field_data or {}).items():
-        grid.field_data[name] = np.atleast_1d(np.asarray(value, dtype=np.float64))
+        if isinstance(value, str):
+            grid.field_data[name] = np.array([value])
+        else:
+            grid.field_data[name] = np.atleast_1d(np.asarray(value, dtype=np.float64))
     from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter
 
     writer = vtkXMLUnstructuredGridWriter()

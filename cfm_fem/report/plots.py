@@ -23,6 +23,8 @@ __all__ = [
     "fig4_plane",
     "fig10_systematic",
     "residual_figure",
+    "uf_slices",
+    "count_histograms",
 ]
 
 DPI = 110
@@ -146,25 +148,35 @@ def fig4_plane(points, uf, up_um, title: str) -> bytes:
     uf : ndarray, shape (k, n_up), units
     up_um : sequence of float
     """
-    n = len(up_um)
+    panels = [(points, uf[:, k], f"U_p = {up:g} um") for k, up in enumerate(up_um)]
+    return _xz_panels(panels, title)
+
+
+def _xz_panels(panels, title: str) -> bytes:
+    """Nodes on z (across) and x (up) coloured by U_f on one scale, one panel per
+    (points (k, 3) mm, uf (k,) units, title); NaN (no U_f figure) drawn grey."""
+    n = len(panels)
     cols = min(3, n)
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(
-        rows, cols, figsize=(4.2 * cols, 2.6 * rows), squeeze=False, constrained_layout=True
+        rows, cols, figsize=(4.2 * cols, 2.8 * rows), squeeze=False, constrained_layout=True
     )
-    vmax = float(np.nanmax(uf)) if np.isfinite(uf).any() else 1.0
-    for k, up in enumerate(up_um):
+    finite = [uf[np.isfinite(uf)] for _, uf, _ in panels]
+    vmax = max((float(v.max()) for v in finite if v.size), default=1.0) or 1.0
+    sc = None
+    for k, (pts, uf, label) in enumerate(panels):
         ax = axes[k // cols][k % cols]
-        sc = ax.scatter(
-            points[:, 2], points[:, 0], c=uf[:, k], s=4, cmap="viridis", vmin=0, vmax=vmax
-        )
-        ax.set_title(f"U_p = {up:g} um", fontsize=8)
+        bad = ~np.isfinite(uf)
+        ax.scatter(pts[bad, 2], pts[bad, 0], s=3, color="0.8")
+        sc = ax.scatter(pts[~bad, 2], pts[~bad, 0], c=uf[~bad], s=4, vmin=0, vmax=vmax)
+        ax.set_title(label, fontsize=8)
         ax.set_xlabel("z [mm]", fontsize=7)
         ax.set_ylabel("x [mm]", fontsize=7)
         ax.tick_params(labelsize=6)
     for k in range(n, rows * cols):
         axes[k // cols][k % cols].set_visible(False)
-    fig.colorbar(sc, ax=axes.ravel().tolist(), label="U_f [units]")
+    if sc is not None:
+        fig.colorbar(sc, ax=axes.ravel().tolist(), label="U_f [units]")
     fig.suptitle(title, fontsize=9)
     return png_bytes(fig)
 
@@ -209,6 +221,46 @@ def residual_figure(z, labels, title: str) -> bytes:
         ax.plot(grid, np.exp(-0.5 * grid**2) / np.sqrt(2 * np.pi), "k--", lw=1)
         ax.set_title(f"{lab}: {np.mean(np.abs(v) > 2) * 100:.0f} % beyond |z| > 2", fontsize=8)
         ax.tick_params(labelsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def uf_slices(slices, labels, title: str) -> bytes:
+    """U_f on a plane y = const, one panel per column (z across, x up; one colour scale;
+    grey: nodes without a U_f figure).
+
+    Parameters
+    ----------
+    slices : sequence of `cfm_fem.report.sweep_digest.PlaneSlice`
+    labels : sequence of str
+        Panel titles (``U_p = 20 um``).
+    """
+    panels = [(s.points, s.uf, f"{label} (y = {s.y_mm:.3g} mm)")
+              for s, label in zip(slices, labels, strict=True)]  # fmt: skip
+    return _xz_panels(panels, title)
+
+
+def count_histograms(histograms, labels, title: str, unit: str = "units") -> bytes:
+    """Histograms given as counts, one panel each.
+
+    Parameters
+    ----------
+    histograms : sequence of (edges (b + 1,), counts (b,))
+    labels : sequence of str
+    """
+    n = len(histograms)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.5 * rows), squeeze=False)
+    for k, ((edges, counts), label) in enumerate(zip(histograms, labels, strict=True)):
+        ax = axes[k // cols][k % cols]
+        ax.stairs(counts, edges, fill=True, color=f"C{k % 10}", alpha=0.75)
+        ax.set_title(f"{label}: {int(np.sum(counts))} nodes", fontsize=8)
+        ax.set_xlabel(unit, fontsize=7)
+        ax.tick_params(labelsize=6)
+    for k in range(n, rows * cols):
+        axes[k // cols][k % cols].set_visible(False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     return png_bytes(fig)

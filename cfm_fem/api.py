@@ -1,0 +1,271 @@
+"""The Python API: what the command line does, for a notebook, with the command line's defaults.
+
+Every function takes paths or objects already read, returns a labelled result
+(`cfm_fem.workflows.results`) or the documented result object, and writes nothing unless asked
+(``.write(out_dir)``). Numerics are imported when a function runs: ``import cfm_fem`` stays
+fast. The names say ``run_*`` because ``cfm_fem.workflows.sweep.problem``,
+``cfm_fem.models.kinematics``, ... are the modules behind them.
+
+Examples
+--------
+>>> import cfm_fem
+>>> maps = cfm_fem.run_sweep("meshes/quadrupole.vtu", up_um=[10, 20])  # doctest: +SKIP
+>>> maps.uf("absB", up_um=20)  # U_f per node, NaN where the node has none  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .errors import CfmInputError
+
+__all__ = [
+    "read_map",
+    "read_bench",
+    "read_recording",
+    "run_sweep",
+    "run_kinematics",
+    "run_coupled",
+    "run_compare",
+    "run_diagnose",
+    "run_design",
+    "SWEEP_TRIALS",
+]
+
+#: Trials per node and U_p of `sweep`, as ``cfm-fem sweep`` (U_f of a node to +-1.4 %).
+SWEEP_TRIALS = 10_000
+#: Trials of the kinematic Monte Carlo, as ``cfm-fem kinematics`` (the paper's 1e6).
+KINEMATICS_TRIALS = 1_000_000
+#: Trials of the coupled and comparison Monte Carlo, as ``cfm-fem coupled`` / ``compare``.
+COUPLED_TRIALS = 100_000
+
+
+def read_map(path, **options):
+    """Read a field map (VTU/VTK/MSH..., COMSOL text, Opera .table, CSV) into a `FieldMap`.
+
+    ``options``: ``fmt``, ``length_unit``, ``field_unit``, ``zero_rows``, ``solution``, as the
+    command line's ``--format``, ``--length-unit``, ... (`cfm_fem.io.read_field`).
+    """
+    from .io import read_field
+
+    return read_field(path, **options)
+
+
+def read_bench(path=None):
+    """A bench description (TOML); None: the packaged CFM reference bench."""
+    from .io.bench_toml import read_bench as read
+    from .io.bench_toml import read_reference_bench
+
+    return read_reference_bench() if path is None else read(path)
+
+
+def read_recording(path, kind: str | None = None, *, length_unit=None, field_unit=None):
+    """A tracker recording or Hall map (CSV contract), converted to mm and T.
+
+    Parameters
+    ----------
+    path : path-like
+    kind : {"tracker", "hall"}, optional
+        Default: told by the columns.
+    length_unit, field_unit : str, optional
+        Units of the file when not mm and T (``--recording-length-unit`` ...).
+    """
+    from .io.recording_units import convert_recording
+    from .io.recordings import read_hall_map, read_tracker
+    from .io.recordings import read_recording as read_any
+
+    readers = {None: read_any, "tracker": read_tracker, "hall": read_hall_map}
+    if kind not in readers:
+        raise CfmInputError(f"kind must be 'tracker' or 'hall'; got {kind!r}")
+    return convert_recording(readers[kind](path), length_unit, field_unit)
+
+
+def _field_map(field):
+    from .models.field import FieldMap
+
+    return field if isinstance(field, FieldMap) else read_map(field)
+
+
+def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIALS, seed: int = 0,
+          mode: str = "gauss", bench=None, progress=None, **config):  # fmt: skip
+    """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory.
+
+    Parameters
+    ----------
+    field : path-like or FieldMap
+    up_um : sequence of float
+        U_p values, um (mode gauss).
+    trials, seed : int
+    mode : {"gauss", "htm"}
+    bench : Bench or path-like, optional
+        Mode htm: the bench (default the reference bench).
+    progress : callable(int), optional
+        Called with the nodes finished.
+    **config
+        Other `cfm_fem.models.sweep.SweepConfig` fields: ``b_ref_T``, ``axis_scale``, ``outside``,
+        ``interpolation``, ``hull_slivers``, ``chunk_nodes``.
+
+    Returns
+    -------
+    cfm_fem.models.results.SweepMaps
+    """
+    from .workflows.results import SweepMaps
+    from .workflows.sweep.problem import SweepConfig, summarize
+    from .workflows.sweep.problem import run_sweep as run
+
+    if isinstance(bench, str | Path):
+        bench = read_bench(bench)
+    if mode == "htm" and bench is None:
+        bench = read_bench()
+    cfg = SweepConfig(up_um=[float(u) for u in up_um], trials=int(trials), seed=int(seed),
+                      mode=mode, bench=bench, **config)  # fmt: skip
+    res = run(_field_map(field), cfg, progress=progress)
+    return SweepMaps(res, summarize(res))
+
+
+def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0, progress=None,
+               **options):  # fmt: skip
+    """Probe positioning error over the scan grid (``cfm-fem kinematics``, Table IV).
+
+    ``bench``: a `Bench`, a path, or None (the reference bench); ``options``: other arguments
+    of `cfm_fem.models.kinematics.monte_carlo.run_kinematics` (``q_cmd``, ``adaptive_digits``, ...).
+
+    Returns
+    -------
+    cfm_fem.models.results.KinematicsTable
+    """
+    from .models.kinematics import run_kinematics as run
+    from .workflows.results import KinematicsTable
+
+    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
+    res = run(b, int(trials), int(seed), progress=progress, **options)
+    return KinematicsTable(res, b)
+
+
+def _reference(field, b_ref_T=None, r_ref_mm=None):
+    """A `FieldModel` from a FieldMap, a path (harmonics or map) or None (QFDp4)."""
+    from .models.field import FieldMap
+    from .workflows.coupled import FieldModel
+
+    if field is None:
+        from .io.harmonics import read_qfdp4
+
+        return FieldModel.from_multipole(read_qfdp4())
+    if isinstance(field, FieldMap):
+        return FieldModel.from_map(field, b_ref_T)
+    from .io.reference_field import read_reference
+
+    return read_reference(field, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm)
+
+
+def run_coupled(points, field=None, bench=None, *, trials: int = COUPLED_TRIALS, seed: int = 0,
+            b_ref_T=None, r_ref_mm=None, progress=None, **options):  # fmt: skip
+    """Coupled Monte Carlo of the field error at scan points (``cfm-fem coupled``, Table V).
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), mm
+        Scan points, magnet frame (e.g. `cfm_fem.workflows.coupled.default_region`).
+    field : FieldMap, path-like or None
+        Harmonics file or field map; None: the paper's QFDp4.
+    bench : Bench, path-like or None
+    **options
+        ``probe``, ``align``, ``batches`` of `cfm_fem.workflows.coupled.run_coupled`.
+
+    Returns
+    -------
+    cfm_fem.models.results.CoupledTable
+    """
+    import numpy as np
+
+    from .workflows.coupled import run_coupled as run
+    from .workflows.results import CoupledTable
+
+    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
+    model = _reference(field, b_ref_T, r_ref_mm)
+    pts = np.asarray(points, dtype=np.float64)
+    res = run(model, b, pts, trials=int(trials), seed=int(seed), progress=progress,
+                      **options)  # fmt: skip
+    return CoupledTable(res, b)
+
+
+def _recording(recording):
+    from .models.recordings import Recording
+
+    return recording if isinstance(recording, Recording) else read_recording(recording)
+
+
+def run_compare(recording, reference=None, bench=None, *, trials: int = COUPLED_TRIALS,
+            seed: int = 0, progress=None, **options):  # fmt: skip
+    """A recording against the simulation (``cfm-fem compare``).
+
+    A tracker recording gives a `cfm_fem.workflows.compare.TrackerComparison` (Table IV both sides,
+    ``pooled_exp`` / ``pooled_sim`` per axis); a Hall map, with ``reference`` (harmonics file,
+    field map or FieldMap; None: QFDp4), a `cfm_fem.workflows.compare.HallComparison` (Table V).
+    """
+    from .workflows.compare import compare_hall, compare_tracker
+
+    rec = _recording(recording)
+    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
+    if rec.kind == "tracker":
+        return compare_tracker(rec, b, trials=int(trials), seed=int(seed), progress=progress,
+                               **options)  # fmt: skip
+    return compare_hall(rec, _reference(reference), b, trials=int(trials), seed=int(seed),
+                        progress=progress, **options)  # fmt: skip
+
+
+def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, progress=None):
+    """What the simulation leaves out of a recording (``cfm-fem diagnose``).
+
+    ``reference`` (Hall maps): a harmonics file, a field map or FieldMap, or None for QFDp4.
+    Returns a `cfm_fem.workflows.diagnose.workflow.Diagnosis`; its ``summary`` is
+    ``diagnosis.json``.
+    """
+    import numpy as np
+
+    from .workflows.diagnose.problem import hall_problem, tracker_problem
+    from .workflows.diagnose.workflow import diagnose as run
+
+    rec = _recording(recording)
+    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
+    if rec.kind == "tracker":
+        return run(tracker_problem(rec, b), progress=progress)
+    model = _reference(reference)
+    b_ref = model.b_ref_T if b_ref_T is None else float(b_ref_T)
+    smooth = model.multipole is not None
+
+    def field_fn(p):
+        return model.field(np.asarray(p, dtype=np.float64))[0]
+
+    prob = hall_problem(rec, field_fn, b_ref, b, smooth=smooth)
+    prob.notes.append(f"reference: {model.describe()}")
+    return run(prob, progress=progress)
+
+
+def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0):
+    """Largest U_p that keeps U_f <= ``uf_max`` units over ``coverage`` of the nodes of a
+    sweep (``cfm-fem design``), with its Monte Carlo standard uncertainty.
+
+    Parameters
+    ----------
+    maps : cfm_fem.models.results.SweepMaps
+        A mode-gauss sweep with increasing U_p.
+    uf_max : float
+        Units of 1e-4 B_ref.
+    coverage : float
+    region : str or ndarray (3, 2), optional
+        ``"xmin:xmax,ymin:ymax,zmin:zmax"`` (mm) or bounds; default every node.
+
+    Returns
+    -------
+    cfm_fem.workflows.design.DesignAnswer
+    """
+    from .workflows.design import admissible_up, parse_region, region_mask
+
+    box = parse_region(region) if isinstance(region, str) else region
+    res = maps.result
+    inside = region_mask(maps.points, box)
+    ends = res.to_units(res.stats[inside][:, :, 3, 2:4])
+    return admissible_up(maps.up_um, ends[..., 0], ends[..., 1], res.complete()[inside], uf_max,
+                         coverage=coverage, rel_mc_std=maps.summary["uf_relative_mc_std"],
+                         seed=seed)  # fmt: skip

@@ -1,0 +1,132 @@
+"""The design question of the paper: which U_p keeps U_f at or below X units over a share of the
+nodes (default 95 %), in the whole map or a region?
+
+Runs a sweep over U_p (Gaussian, paper eq. 16), takes the coverage percentile of U_f over the
+nodes with a U_f figure per U_p, and interpolates where it crosses X; the Monte Carlo standard
+uncertainty of the answer comes from a bootstrap of the nodes' U_f. Writes the sweep's outputs
+(maps, sweep.pvd, summary.json), DIR/design.json and DIR/report.html with the answer on top.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from ..errors import CfmInputError
+from . import option_type
+from ._checks import check_out_dir, check_seed, trial_count_type
+from ._progress import note_first_compile, progress_bar
+from ._reader import add_reader_args, reader_kwargs
+
+NAME = "design"
+HELP = "largest U_p that keeps U_f <= X units over 95 %% of the nodes (or a region)"
+
+
+def _region(text):
+    from ..workflows.design import parse_region
+
+    return parse_region(text)
+
+
+def add_args(p):
+    p.add_argument("field", metavar="FIELD", help="field map (any format cfm-fem sweep reads)")
+    p.add_argument("--uf-max", type=float, required=True, metavar="X",
+                   help="target U_f, units of 1e-4 B_ref")  # fmt: skip
+    p.add_argument("--coverage", type=float, default=0.95, metavar="P",
+                   help="share of the nodes that must meet it (default 0.95)")  # fmt: skip
+    p.add_argument("--region", type=option_type(_region, "--region"),
+                   metavar="XMIN:XMAX,YMIN:YMAX,ZMIN:ZMAX",
+                   help="only the nodes in this box, mm (an empty end is unbounded, e.g. "
+                   "-10:10,-10:10,:)")  # fmt: skip
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument("--up", default="0:50:10", metavar="START:STOP:STEP",
+                   help="U_p values of the sweep, um (default 0:50:10); a target beyond the "
+                   "largest is extrapolated by the proportional law, and said so")  # fmt: skip
+    p.add_argument("--trials", type=trial_count_type(), default=10000, metavar="N",
+                   help="trials per node and U_p (default 10000)")  # fmt: skip
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
+    p.add_argument("--b-ref", type=float, metavar="T",
+                   help="reference field for units (default: max |B| of the map)")  # fmt: skip
+    p.add_argument(
+        "--outside",
+        choices=["exclude", "extrapolate"],
+        default="exclude",
+        help="trials that leave the map: as in cfm-fem sweep (default exclude)",
+    )
+    add_reader_args(p)
+
+
+def run(args) -> int:
+    from .sweep import parse_up_range
+
+    check_out_dir(args.out)
+    check_seed(args.seed)
+    up = parse_up_range(args.up)
+    if any(b <= a for a, b in zip(up, up[1:], strict=False)):
+        raise CfmInputError(f"--up values must increase; got {args.up!r}")
+    if not args.uf_max > 0:
+        raise CfmInputError(f"--uf-max must be > 0 units; got {args.uf_max}")
+    if not 0 < args.coverage <= 1:
+        raise CfmInputError(f"--coverage must be in (0, 1]; got {args.coverage}")
+    from ..workflows.sweep.problem import check_options
+
+    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref)
+    from ..io.lock import output_lock
+
+    with output_lock(args.out, args.command_line):
+        return _run(args, up)
+
+
+def _run(args, up) -> int:
+    from .. import _kernels
+    from ..io import read_field
+    from ..io.compare_out import write_run
+    from ..io.provenance import provenance
+    from ..io.sweep_out import write_sweep
+    from ..report.sweep import write_sweep_report
+    from ..workflows.design import admissible_up, region_mask
+    from ..workflows.sweep.problem import SweepConfig, run_sweep
+
+    fm = read_field(args.field, **reader_kwargs(args))
+    inside = region_mask(fm.points, args.region)
+    if not inside.any():
+        raise CfmInputError(f"--region holds none of the {fm.n_nodes} nodes of {args.field}")
+    cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
+                      outside=args.outside)  # fmt: skip
+    print(f"cfm-fem design: {fm.n_nodes} nodes from {fm.source} ({int(inside.sum())} in the "
+          f"region); U_p = {', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node",
+          file=sys.stderr)  # fmt: skip
+    note_first_compile(_kernels.gauss_sweep)
+    with progress_bar(fm.n_nodes, "nodes") as bar:
+        res = run_sweep(fm, cfg, progress=bar.update)
+    prov = provenance({"field": args.field}, args.command_line)
+    prov.update(seed=cfg.seed, trials=cfg.trials)
+    summary = write_sweep(args.out, res, prov, remove_stale=True)
+    ends = res.to_units(res.stats[inside][:, :, 3, 2:4])  # |B|: symmetric 95 % interval
+    ans = admissible_up(
+        up, ends[..., 0], ends[..., 1], res.complete()[inside], args.uf_max,
+        coverage=args.coverage, rel_mc_std=summary["uf_relative_mc_std"], seed=args.seed,
+    )  # fmt: skip
+    doc = {
+        "answer": ans.sentence(),
+        **ans.to_dict(),
+        "region_mm": None if args.region is None else args.region.tolist(),
+        "region_nodes": int(inside.sum()),
+        "b_ref_T": summary["b_ref_T"],
+        "trials": cfg.trials,
+        "seed": cfg.seed,
+        "definition": "largest U_p whose coverage quantile of U_f over the region's nodes with "
+        "a U_f figure is <= uf_max (cfm_fem.workflows.design); u_up_max_um: standard deviation "
+        "of a "
+        "bootstrap that redraws both interval ends of every node within their Monte Carlo "
+        "standard errors. At finite trials U_f is biased slightly high (the larger of two "
+        "noisy ends), so the answer errs low, on the safe side",
+        "provenance": prov,
+    }
+    write_run(args.out, {"design.json": doc})
+    write_sweep_report(args.out, design=doc)
+    print(ans.sentence())
+    for u, p, s in zip(ans.up_um, ans.percentile_units, ans.u_percentile_units, strict=True):
+        text = "-" if p is None else f"{p:.4g} +- {s:.2g}"
+        print(f"  U_p = {u:g} um: p{100 * args.coverage:g} of U_f = {text} units")
+    print(f"wrote {args.out}/design.json, report.html, sweep.pvd and the maps")
+    return 0

@@ -1,0 +1,111 @@
+"""Write a synthetic recording of one simulated bench (a CSV in the recording contract).
+
+tracker: a laser-tracker recording of a grid over the strokes (and a bidirectional ISO 230-2
+run along one axis); hall: a Hall map of a multipole (QFDp4 by default) on the mid-plane y = 0,
+measured by the simulated bench and the paper's S_HP probe. The bench's errors are one draw from
+its PDFs; the same seed gives the same file. Feed the file to `cfm-fem compare` or
+`cfm-fem diagnose`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..errors import CfmInputError
+from ._checks import check_seed
+
+NAME = "synth"
+HELP = "write a synthetic tracker recording or Hall map of a simulated bench (CSV)"
+
+
+def add_args(p):
+    p.add_argument("kind", choices=["tracker", "hall"], help="which recording")
+    p.add_argument("--out", required=True, metavar="FILE.csv", help="the CSV to write")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
+    p.add_argument("--bench", metavar="B.toml", help="bench file (default: the reference bench)")
+    p.add_argument("--reps", type=int, metavar="N", help="repetitions (default 5 / 10)")
+    g = p.add_argument_group("tracker")
+    g.add_argument("--grid", default="3,3,3", metavar="NX,NY,NZ",
+                   help="grid points per axis over the strokes (default 3,3,3)")  # fmt: skip
+    g.add_argument("--tracker-std-um", type=float, default=0.0, metavar="UM",
+                   help="tracker noise per coordinate, um (default 0)")  # fmt: skip
+    g.add_argument("--iso-axis", choices=["x", "y", "z", "none"], default="x",
+                   help="axis of the bidirectional ISO 230-2 run (default x)")  # fmt: skip
+    g.add_argument("--reversal-um", type=float, default=0.0, metavar="UM",
+                   help="reversal added to the ISO run, um (default 0)")  # fmt: skip
+    g.add_argument("--drift-um-per-s", type=float, default=0.0, metavar="R",
+                   help="thermal drift along z, um per s of recording (default 0)")  # fmt: skip
+    g = p.add_argument_group("hall")
+    g.add_argument("--harmonics", metavar="H.csv",
+                   help="magnet as a harmonics file (default: the paper's QFDp4)")  # fmt: skip
+    g.add_argument("--r-ref", type=float, metavar="MM",
+                   help="R_ref of a harmonics file that does not state it")  # fmt: skip
+    g.add_argument("--magnet-offset", default="0,0", metavar="DX,DY",
+                   help="true transverse offset of the magnet, mm (default 0,0)")  # fmt: skip
+
+
+def _numbers(text, count, option, kind=float):
+    try:
+        v = [kind(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != count:
+        raise CfmInputError(f"{option} must be {count} comma-separated numbers; got {text!r}")
+    return v
+
+
+def _check(args):
+    check_seed(args.seed)
+    out = Path(args.out)
+    if out.is_dir():
+        raise CfmInputError(f"--out {args.out!r} is a folder; expected a file name (FILE.csv)")
+    if not out.parent.is_dir():
+        raise CfmInputError(f"--out {args.out!r}: folder {str(out.parent)!r} does not exist")
+    if args.reps is not None and args.reps < 1:
+        raise CfmInputError(f"--reps must be >= 1; got {args.reps}")
+    given = {"tracker": [("--harmonics", args.harmonics), ("--r-ref", args.r_ref)],
+             "hall": [("--tracker-std-um", args.tracker_std_um or None),
+                      ("--reversal-um", args.reversal_um or None),
+                      ("--drift-um-per-s", args.drift_um_per_s or None)]}  # fmt: skip
+    wrong = [o for o, v in given[args.kind] if v is not None]
+    if wrong:
+        raise CfmInputError(f"{', '.join(wrong)}: not an option of 'synth {args.kind}'")
+    if args.tracker_std_um < 0:
+        raise CfmInputError(f"--tracker-std-um must be >= 0; got {args.tracker_std_um}")
+    grid = _numbers(args.grid, 3, "--grid", int)
+    if min(grid) < 1:
+        raise CfmInputError(f"--grid counts must be >= 1; got {args.grid!r}")
+    return grid, _numbers(args.magnet_offset, 2, "--magnet-offset")
+
+
+def run(args) -> int:
+    grid, offset = _check(args)
+    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.harmonics import read_harmonics, read_qfdp4
+    from ..io.recordings import write_hall_map, write_tracker
+    from ..workflows.synthetic import synthetic_hall_map, synthetic_tracker
+
+    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    if args.kind == "tracker":
+        rec = synthetic_tracker(
+            bench, seed=args.seed, reps=args.reps or 5, grid=grid,
+            tracker_std_um=args.tracker_std_um,
+            iso_axis=None if args.iso_axis == "none" else args.iso_axis,
+            reversal_um=args.reversal_um, drift_um_per_s=args.drift_um_per_s,
+        )  # fmt: skip
+        write = write_tracker
+    else:
+        magnet = (
+            read_qfdp4()
+            if args.harmonics is None
+            else read_harmonics(args.harmonics, r_ref_mm=args.r_ref)
+        )
+        rec = synthetic_hall_map(
+            magnet, bench, seed=args.seed, reps=args.reps or 10, magnet_offset_mm=offset
+        )
+        write = write_hall_map
+    comments = [f"synthetic: {rec.source}", f"written by: {args.command_line}"]
+    write(args.out, rec, comments=comments)
+    print(f"wrote {args.out} ({len(rec)} rows; {rec.source})", file=sys.stderr)
+    return 0
