@@ -11,12 +11,12 @@ said so).
 Monte Carlo uncertainty: U_f of a node is max(|low|, |high|) of the estimated 2.5 % and 97.5 %
 quantiles of its error, each with relative standard error r = 1.363 / sqrt(N) (normal theory,
 `cfm_fem.models.sweep.summarize`'s ``uf_relative_mc_std``). A parametric bootstrap redraws
-both ends of every node as end (1 + r z), z ~ N(0, 1) per node and end, the same z for every U_p (the sweep
-uses common random numbers, so a node's errors at different U_p move together), and repeats the
-percentile and the interpolation; the standard deviation of the replicates is the answer's
-standard uncertainty. The larger of two noisy ends is biased upward (by ~0.56 r U_f where the
-ends are equal), so at finite N the U_f figures are slightly high and the answer slightly low:
-on the safe side, by a fraction that shrinks as 1 / sqrt(N).
+both ends of every node as end (1 + r z), z ~ N(0, 1) per node and end, the same z for every
+U_p (the sweep uses common random numbers, so a node's errors at different U_p move together),
+and repeats the percentile and the interpolation; the standard deviation of the replicates is
+the answer's standard uncertainty. The larger of two noisy ends is biased upward (by ~0.56 r U_f
+where the ends are equal), so at finite N the U_f figures are slightly high and the answer
+slightly low: on the safe side, by a fraction that shrinks as 1 / sqrt(N).
 """
 
 from __future__ import annotations
