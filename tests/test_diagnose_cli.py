@@ -53,6 +53,16 @@ def test_cli_tracker(tmp_path, capsys):
     assert d["provenance"]["command_line"].startswith("cfm-fem diagnose --tracker")
 
 
+def test_cli_no_report_writes_the_diagnosis_and_maps_only(tmp_path):
+    rec, _ = tracker_twin(4, {}, n_reps=4, points=Q)
+    f = tmp_path / "rec.csv"
+    write_tracker(f, rec)
+    out = tmp_path / "diag"
+    assert main(["diagnose", "--tracker", str(f), "--no-report", "--out", str(out)]) == 0
+    names = {p.name for p in out.iterdir()} - {LOCK_NAME}
+    assert names == {"diagnosis.json", "residual_points.vtu", "residual_rows.vtu"}
+
+
 @pytest.mark.parametrize(
     "args",
     [

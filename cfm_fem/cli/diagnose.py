@@ -44,6 +44,12 @@ def add_args(p):
         help="R_ref for a harmonics file that does not state it",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument(
+        "--no-report",
+        action="store_true",
+        help="write diagnosis.json and the residual maps only, no report.html and plots "
+        "(batch runs)",
+    )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
 
 
@@ -221,7 +227,8 @@ def _run(args) -> int:
     s = d.summary
     s["source"] = str(src)
     s["provenance"] = _provenance(args)
-    paths = write_diagnosis(args.out, s, d.arrays, *_report(s, d.arrays, str(src)))
+    report = (None, {}) if args.no_report else _report(s, d.arrays, str(src))
+    paths = write_diagnosis(args.out, s, d.arrays, *report)
     fit = s["fit"]
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:

@@ -27,7 +27,7 @@ def _clean(obj):
     return obj
 
 
-def write_diagnosis(out_dir, summary: dict, arrays: dict, report_html: str, images: dict) -> dict:
+def write_diagnosis(out_dir, summary: dict, arrays: dict, report_html, images: dict) -> dict:
     """Write every output atomically; return the paths written.
 
     Parameters
@@ -39,8 +39,9 @@ def write_diagnosis(out_dir, summary: dict, arrays: dict, report_html: str, imag
     arrays : dict
         ``point_pos`` (m, 3) mm, ``zp_before``/``zp_after`` (m, 3), ``sig_before`` (m, 3) bool,
         ``pos`` (n, 3), ``resid_before``/``resid_after`` (n, 3), ``z_before`` (n, 3), ``rep``.
-    report_html : str
-        The report (`cfm_fem.report.diagnosis.diagnosis_report`), written as ``report.html``.
+    report_html : str or None
+        The report (`cfm_fem.report.diagnosis.diagnosis_report`), written as ``report.html``;
+        None: no report (``--no-report``).
     images : dict of file name -> bytes
         PNG figures (``fit.png``, ...), written beside it.
     """
@@ -76,8 +77,9 @@ def write_diagnosis(out_dir, summary: dict, arrays: dict, report_html: str, imag
     )
     paths["vtu_points"] = out / "residual_points.vtu"
     paths["vtu_rows"] = out / "residual_rows.vtu"
-    write_text(out / "report.html", report_html)
-    paths["report"] = out / "report.html"
+    if report_html is not None:
+        write_text(out / "report.html", report_html)
+        paths["report"] = out / "report.html"
     write_json(out / "diagnosis.json", _clean(summary))  # last: its presence means complete
     paths["json"] = out / "diagnosis.json"
     return paths
