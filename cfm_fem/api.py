@@ -107,11 +107,11 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
 
     Returns
     -------
-    cfm_fem.models.results.SweepMaps
+    cfm_fem.workflows.results.SweepMaps
     """
+    from .models.sweep import SweepConfig, summarize
     from .workflows.results import SweepMaps
-    from .workflows.sweep.problem import SweepConfig, summarize
-    from .workflows.sweep.problem import run_sweep as run
+    from .workflows.sweep.in_memory import run_sweep as run
 
     if isinstance(bench, str | Path):
         bench = read_bench(bench)
@@ -132,7 +132,7 @@ def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0
 
     Returns
     -------
-    cfm_fem.models.results.KinematicsTable
+    cfm_fem.workflows.results.KinematicsTable
     """
     from .models.kinematics import run_kinematics as run
     from .workflows.results import KinematicsTable
@@ -174,7 +174,7 @@ def run_coupled(points, field=None, bench=None, *, trials: int = COUPLED_TRIALS,
 
     Returns
     -------
-    cfm_fem.models.results.CoupledTable
+    cfm_fem.workflows.results.CoupledTable
     """
     import numpy as np
 
@@ -248,7 +248,7 @@ def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed
 
     Parameters
     ----------
-    maps : cfm_fem.models.results.SweepMaps
+    maps : cfm_fem.workflows.results.SweepMaps
         A mode-gauss sweep with increasing U_p.
     uf_max : float
         Units of 1e-4 B_ref.

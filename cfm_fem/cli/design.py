@@ -82,9 +82,10 @@ def _run(args, up) -> int:
     from ..io.compare_out import write_run
     from ..io.provenance import provenance
     from ..io.sweep_out import write_sweep
+    from ..models.sweep import SweepConfig
     from ..report.sweep import write_sweep_report
     from ..workflows.design import admissible_up, region_mask
-    from ..workflows.sweep.problem import SweepConfig, run_sweep
+    from ..workflows.sweep.in_memory import run_sweep
 
     fm = read_field(args.field, **reader_kwargs(args))
     inside = region_mask(fm.points, args.region)
