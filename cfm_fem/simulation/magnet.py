@@ -104,18 +104,18 @@ def fringe_edges() -> tuple:
     return tuple(float(v) for v in fit.x)
 
 
-def harmonics_2d(r_ref_mm: float = 10.0, n_max: int = 15, z_mm: float = 0.0) -> np.ndarray:
+def harmonics_2d(r_ref_mm: float = 10.0, n_max: int = 40, z_mm: float = 0.0) -> np.ndarray:
     """2-D multipole coefficients of the body field at ``z_mm`` (the magnet's centre).
 
     B_y + i B_x = sum_n (B_n + i A_n) ((x + i y) / r_ref)^(n - 1), from the field on a circle
-    of radius ``r_ref_mm`` (Fourier analysis, 128 points).
+    of radius ``r_ref_mm`` (Fourier analysis, 256 points; the 16 blocks allow n = 2, 18, 34).
 
     Returns
     -------
     ndarray, shape (n_max, 3)
         Rows (n, B_n, A_n), T at r_ref.
     """
-    m = 128
+    m = 256
     th = 2.0 * np.pi * np.arange(m) / m
     p = np.stack([r_ref_mm * np.cos(th), r_ref_mm * np.sin(th), np.full(m, z_mm)], -1)
     b = field(p)
