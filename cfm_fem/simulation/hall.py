@@ -28,10 +28,11 @@ __all__ = ["simulate", "GRIDS", "HALL_NOISE_UT", "map_to_travel"]
 HALL_NOISE_UT = 7.0
 SURVEY_STD = (20.0, 50.0)  # magnet placement after the survey: um, urad (1 sigma)
 GAIN_HALF_WIDTH_PCT = 0.15 * np.sqrt(3.0)  # uniform S_HP with 0.15 % std
-#: Map grid (magnet frame, mm): lines in x, y through the bore, points along z through both ends.
+#: Map grid (magnet frame, mm): lines in x, y within half the bore radius (the good-field region;
+#: nearer the blocks the field bends sharply at the ends), points along z through both ends.
 GRIDS = {
-    "full": (np.linspace(-6, 6, 6), np.linspace(-6, 6, 6), np.linspace(-300, 300, 26)),
-    "small": (np.linspace(-6, 6, 3), np.linspace(-6, 6, 3), np.linspace(-300, 300, 25)),
+    "full": (np.linspace(-4, 4, 6), np.linspace(-4, 4, 6), np.linspace(-300, 300, 26)),
+    "small": (np.linspace(-4, 4, 3), np.linspace(-4, 4, 3), np.linspace(-300, 300, 25)),
 }
 REPS = {"full": 10, "small": 4}
 TRAVEL_OFFSET_MM = B.MAGNET_ORIGIN_MM - B.TOOL_MM  # (75, 75, 400)
