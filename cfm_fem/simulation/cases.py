@@ -39,7 +39,7 @@ CASES = {
         "magnet_misalignment",
     ),
     "magnet_shift_z": (
-        "hall", {"magnet_misalignment": {"magnet_dz": 150.0}}, "magnet_misalignment"),
+        "hall", {"magnet_misalignment": {"magnet_dz": 300.0}}, "magnet_misalignment"),
     "planar_hall": ("hall", {"planar_hall": {"k_z": 0.002}}, "planar_hall"),
     "hall_offset_gain": (
         "hall", {"hall_offset_gain": {"offset_z": 20.0, "gain_y": 1.0}}, "hall_offset_gain"),
@@ -100,7 +100,7 @@ def write_case(case: str, seed: int, folder, size: str = "full", velocities: boo
     sim = tracker if kind == "tracker" else hall
     if case == "step_event" and size != "full":
         reps = sim.REPS[size] if n_reps is None else n_reps
-        effects = {"step_event": {"dx_um": 12.0, "from_rep": reps // 2 + 1}}
+        effects = {"step_event": {"dx_um": 12.0, "from_rep": reps // 2}}
     cols, truth = sim.simulate(seed, effects, size=size, n_reps=n_reps)
     truth |= {"case": case, "expected": expected, "velocities_written": bool(velocities)}
     stem = folder / f"{case}_{seed}"

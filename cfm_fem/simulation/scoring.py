@@ -33,19 +33,22 @@ def known_truth(truth: dict, effect: str, param: str):
 
 
 def _step(summary, truth, names) -> dict:
-    """Was the step located (a step effect, or the x residual located in the repetitions from
-    the step on and in none before), and was it claimed as drift?"""
+    """Was the step located (a step effect named, or the x residual located by repetition with
+    one sign from the step on and the other sign, or nothing, before), and was it claimed as
+    drift?"""
     step = truth["effects"]["step_event"]
-    reps = set()
+    reps = {}
     for loc in summary.get("located", []):
         w = str(loc.get("where", ""))
         if loc.get("component") == "x" and w.startswith("repetition "):
-            reps.add(int(w.split()[1]))
-    after = {r for r in reps if r >= step["from_rep"]}
+            reps[int(w.split()[1])] = float(loc.get("mean_z", 0.0))
+    after = {np.sign(z) for r, z in reps.items() if r >= step["from_rep"]}
+    before = {np.sign(z) for r, z in reps.items() if r < step["from_rep"]}
+    split = len(after) == 1 and not (before & after) and 0.0 not in after
     return {
         "named": "step_event" in names,
         "located_reps": sorted(reps),
-        "located": "step_event" in names or (bool(after) and after == reps),
+        "located": "step_event" in names or split,
         "claimed_drift": "thermal_drift" in names,
     }
 
