@@ -84,6 +84,23 @@ def run_one(job) -> dict:
     return result
 
 
+def rescore(out: Path) -> list:
+    """Score again the runs recorded in OUT/results.json from their kept diagnosis.json and
+    truth files (after a change of the scoring, without diagnosing again)."""
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    results = []
+    for r in runs:
+        diag = out / "runs" / f"{r['case']}_{r['seed']}" / "diagnosis.json"
+        truth = out / "sim" / r["case"] / f"{r['case']}_{r['seed']}.truth.json"
+        if "error" in r or not diag.exists():
+            results.append(r)
+            continue
+        summary = json.loads(diag.read_text())
+        new = score(summary, json.loads(truth.read_text()))
+        results.append(new | {"seconds": r["seconds"], "effects": summary["effects"]})
+    return results
+
+
 def _pct(pair):
     k, n = pair
     return f"{k}/{n} ({100.0 * k / n:.0f} %)" if n else "-"
@@ -131,6 +148,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", help="comma-separated case names (default: all)")
     ap.add_argument("--no-velocities", action="store_true", help="leave out v_x, v_y, v_z")
     ap.add_argument("--keep", action="store_true", help="keep recordings and full outputs")
+    ap.add_argument(
+        "--rescore", action="store_true", help="score the runs in --out again (same options)"
+    )
     a = ap.parse_args(argv)
     cases = list(CASES) if not a.cases else [c.strip() for c in a.cases.split(",")]
     unknown = [c for c in cases if c not in CASES]
@@ -145,9 +165,9 @@ def main(argv=None) -> int:
     size = "small" if a.small else "full (936 points x 10 repetitions)"
     print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)
     t0 = time.perf_counter()
-    results = []
+    results = rescore(out) if a.rescore else []
     with multiprocessing.get_context("spawn").Pool(a.jobs) as pool:
-        for i, r in enumerate(pool.imap_unordered(run_one, jobs), 1):
+        for i, r in enumerate([] if a.rescore else pool.imap_unordered(run_one, jobs), 1):
             results.append(r)
             what = r.get("error", "")[-200:] or f"claimed {r['claimed']}"
             print(f"[{i}/{len(jobs)}] {r['case']} seed {r['seed']}: {r['seconds']:.1f} s; {what}",

@@ -110,7 +110,8 @@ def summarise(scores: list) -> dict:
     -------
     dict
         case -> {runs, kind, expected, detected, rank1, false_alarms, cp95_upper,
-        other_claims, pulls {effect.param: (n, mean, std)}, pull_mean, pull_std, step, goals}.
+        other_claims, pulls {effect.param: (n, mean, std)} of every claimed effect, pull_mean
+        and pull_std pooled over the concealed effect's parameters, step, goals}.
     """
     by_case = {}
     for s in scores:
@@ -136,12 +137,14 @@ def summarise(scores: list) -> dict:
                 goals["rank1"] = bool(n) and k / n >= GOALS["rank1_min"]
         per, pooled = {}, []
         for r in ok:
-            for p, v in r["pulls"].get(row["expected"], {}).items():
-                per.setdefault(p, []).append(v)
-                pooled.append(v)
+            for effect, pulls in r["pulls"].items():
+                for p, v in pulls.items():
+                    per.setdefault(f"{effect}.{p}", []).append(v)
+                    if effect == row["expected"]:
+                        pooled.append(v)
         row["pulls"] = {
             p: [len(v), float(np.mean(v)), float(np.std(v, ddof=1)) if len(v) > 1 else None]
-            for p, v in per.items()
+            for p, v in sorted(per.items())
         }
         row["pull_mean"] = float(np.mean(pooled)) if pooled else None
         row["pull_std"] = float(np.std(pooled, ddof=1)) if len(pooled) > 1 else None
