@@ -14,15 +14,6 @@ from cfm_fem.simulation import bench as sb  # noqa: E402
 from cfm_fem.simulation import hall, magnet, scan, tracker, write_case  # noqa: E402
 
 
-def _jacobian(f, p, h):
-    J = np.empty((len(p), 3, 3))
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        J[:, :, j] = (f(p + e) - f(p - e)) / (2 * h)
-    return J
-
-
 @pytest.fixture(scope="module")
 def probe_points():
     """Points in the bore: body, both ends and field-free space (mm)."""
@@ -33,7 +24,9 @@ def probe_points():
 
 
 def test_field_is_div_and_curl_free(probe_points):
-    J = _jacobian(magnet.field, probe_points, 0.01)  # T/mm
+    from cfm_fem.diagnose.problem import field_jacobian
+
+    J = field_jacobian(magnet.field, probe_points, 0.01)  # T/mm
     scale = np.abs(J).max()
     div = np.trace(J, axis1=1, axis2=2)
     curl = np.stack([J[:, 2, 1] - J[:, 1, 2], J[:, 0, 2] - J[:, 2, 0], J[:, 1, 0] - J[:, 0, 1]], -1)

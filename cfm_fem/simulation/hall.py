@@ -117,10 +117,7 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
         "point_id": scan.point, "rep": scan.rep,
         "x_cmd": p_map[:, 0], "y_cmd": p_map[:, 1], "z_cmd": p_map[:, 2],
         "Bx": b[:, 0], "By": b[:, 1], "Bz": b[:, 2],
-        "t_s": scan.t_s, "dir_x": scan.dir[:, 0], "dir_y": scan.dir[:, 1],
-        "dir_z": scan.dir[:, 2], "speed": scan.speed,
-        "v_x": scan.v[:, 0], "v_y": scan.v[:, 1], "v_z": scan.v[:, 2], "temp_C": t_log,
-    }  # fmt: skip
+    } | scan.columns(t_log)  # fmt: skip
     params = dict(errors) | reg
     params |= {f"gain_{c}": float(g) for c, g in zip("xyz", gains, strict=True)}
     params |= {f"offset_{c}": float(o) for c, o in zip("xyz", offsets, strict=True)}

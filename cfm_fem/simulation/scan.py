@@ -55,6 +55,14 @@ class Scan:
     speed: np.ndarray
     v: np.ndarray
 
+    def columns(self, temp_c) -> dict:
+        """The optional recording columns (t_s, dir_*, speed, v_*, temp_C) of these rows."""
+        out = {"t_s": self.t_s}
+        out |= {f"dir_{c}": self.dir[:, a] for a, c in enumerate("xyz")}
+        out["speed"] = self.speed
+        out |= {f"v_{c}": self.v[:, a] for a, c in enumerate("xyz")}
+        return out | {"temp_C": temp_c}
+
 
 def move_time(dist_mm, v_max: float = V_MAX, acc: float = ACC) -> np.ndarray:
     """Duration (s) of a trapezoidal (or triangular) move over ``dist_mm`` from rest to rest."""

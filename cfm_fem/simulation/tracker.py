@@ -116,10 +116,7 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
         "point_id": scan.point, "rep": scan.rep,
         "x_cmd": q[:, 0], "y_cmd": q[:, 1], "z_cmd": q[:, 2],
         "x_meas": meas[:, 0], "y_meas": meas[:, 1], "z_meas": meas[:, 2],
-        "t_s": scan.t_s, "dir_x": scan.dir[:, 0], "dir_y": scan.dir[:, 1],
-        "dir_z": scan.dir[:, 2], "speed": scan.speed,
-        "v_x": scan.v[:, 0], "v_y": scan.v[:, 1], "v_z": scan.v[:, 2], "temp_C": t_log,
-    }  # fmt: skip
+    } | scan.columns(t_log)  # fmt: skip
     params = dict(errors)  # the 21 amplitudes as built (um, urad)
     for name, block in eff.items():
         if name == "thermal_drift":  # diagnosis: scale about the mean travel of the recording
