@@ -181,3 +181,20 @@ def test_hall_effects_act_as_their_catalogue_formulas():
     np.testing.assert_allclose((c["Bz"] - base["Bz"]) / g[2], 0.5e-3 * bx / g[0], atol=3e-8)
     np.testing.assert_allclose((c["Bx"] - bx) / g[0], 0.01 * by * base["Bz"] / g[1] / g[2],
                                atol=1e-7)  # fmt: skip
+
+
+def test_simulator_imports_no_model_code_of_the_tool():
+    import ast
+    from pathlib import Path
+
+    import cfm_fem.simulation as pkg
+
+    for path in Path(pkg.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                name = ("." * node.level) + (node.module or "")
+                outside = node.level >= 2 or name.startswith("cfm_fem")
+                assert not outside or name in ("..errors", "cfm_fem.errors"), (path.name, name)
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    assert not alias.name.startswith("cfm_fem"), (path.name, alias.name)
