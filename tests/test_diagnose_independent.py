@@ -30,18 +30,21 @@ def shortcoming(reason: str):
 
 @pytest.fixture(scope="module")
 def diagnosed(tmp_path_factory):
-    """case, seed -> score of the diagnosis of that small simulated recording (cached)."""
+    """(case, seed, velocities) -> score of the diagnosis of that small simulated recording
+    (cached); velocities=False leaves v_x, v_y, v_z out of the recording."""
     root = tmp_path_factory.mktemp("independent")
     cache = {}
 
-    def run(case, seed=SEED):
-        if (case, seed) not in cache:
-            files = write_case(case, seed, root / "sim", size="small")
-            out = root / f"{case}_{seed}"
+    def run(case, seed=SEED, velocities=True):
+        key = case, seed, velocities
+        if key not in cache:
+            sim = root / ("sim" if velocities else "sim_no_v")
+            files = write_case(case, seed, sim, size="small", velocities=velocities)
+            out = root / f"{case}_{seed}_{velocities}"
             assert main(["diagnose", *files["args"], "--out", str(out)]) == 0
             summary = json.loads((out / "diagnosis.json").read_text())
-            cache[case, seed] = score(summary, json.loads(files["truth"].read_text()))
-        return cache[case, seed]
+            cache[key] = score(summary, json.loads(files["truth"].read_text()))
+        return cache[key]
 
     return run
 
@@ -76,6 +79,13 @@ def test_reversal_is_named_with_its_backlash(diagnosed):
 )
 def test_reading_delay_on_the_fly_is_not_named_reversal(diagnosed):
     s = diagnosed("reading_delay")
+    assert "reversal" not in s["claimed"]
+    _first_with_pulls(s)
+
+
+@shortcoming("without velocity columns the delay is again also claimed as reversal (ranked first)")
+def test_reading_delay_without_velocity_columns(diagnosed):
+    s = diagnosed("reading_delay", velocities=False)
     assert "reversal" not in s["claimed"]
     _first_with_pulls(s)
 
