@@ -84,6 +84,18 @@ def run_one(job) -> dict:
     return result
 
 
+def run_all(jobs: list, workers: int) -> list:
+    """Run the jobs on a pool of ``workers`` processes, printing each result as it comes."""
+    results = []
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        for i, r in enumerate(pool.imap_unordered(run_one, jobs), 1):
+            results.append(r)
+            what = r.get("error", "")[-200:] or f"claimed {r['claimed']}"
+            print(f"[{i}/{len(jobs)}] {r['case']} seed {r['seed']}: {r['seconds']:.1f} s; {what}",
+                  flush=True)  # fmt: skip
+    return results
+
+
 def rescore(out: Path) -> list:
     """Score again the runs recorded in OUT/results.json from their kept diagnosis.json and
     truth files (after a change of the scoring, without diagnosing again)."""
@@ -165,13 +177,7 @@ def main(argv=None) -> int:
     size = "small" if a.small else "full (936 points x 10 repetitions)"
     print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)
     t0 = time.perf_counter()
-    results = rescore(out) if a.rescore else []
-    with multiprocessing.get_context("spawn").Pool(a.jobs) as pool:
-        for i, r in enumerate([] if a.rescore else pool.imap_unordered(run_one, jobs), 1):
-            results.append(r)
-            what = r.get("error", "")[-200:] or f"claimed {r['claimed']}"
-            print(f"[{i}/{len(jobs)}] {r['case']} seed {r['seed']}: {r['seconds']:.1f} s; {what}",
-                  flush=True)  # fmt: skip
+    results = rescore(out) if a.rescore else run_all(jobs, a.jobs)
     results.sort(key=lambda r: (r["case"], r["seed"]))
     summary = summarise(results)
     seconds = {c: sum(r["seconds"] for r in results if r["case"] == c) / summary[c]["runs"]
