@@ -1,0 +1,140 @@
+"""`cfm-fem diagnose` on recordings simulated independently of it (:mod:`cfm_fem.simulation`).
+
+A scaled-down version of ``scripts/prove_diagnosis.py``: small grids, a few nulls of each kind
+and one seed per key effect, each diagnosed through the command line as a user would. The goals:
+nothing claimed on a null; the concealed effect ranked first with its parameters within
+4 standard uncertainties of the truth; a slip located in the repetitions from the step on and
+not taken for thermal drift. Goals the diagnosis does not meet yet are strict xfails naming the
+shortcoming, so they show when it is fixed.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("magpylib")
+
+from cfm_fem.cli import main  # noqa: E402
+from cfm_fem.simulation import write_case  # noqa: E402
+from cfm_fem.simulation.scoring import score  # noqa: E402
+
+SEED = 20260101
+
+
+def shortcoming(reason: str):
+    """A goal the diagnosis does not meet yet: a strict xfail, so that a fix shows."""
+    return pytest.mark.xfail(strict=True, reason=reason)
+
+
+@pytest.fixture(scope="module")
+def diagnosed(tmp_path_factory):
+    """(case, seed, velocities) -> score of the diagnosis of that small simulated recording
+    (cached); velocities=False leaves v_x, v_y, v_z out of the recording."""
+    root = tmp_path_factory.mktemp("independent")
+    cache = {}
+
+    def run(case, seed=SEED, velocities=True):
+        key = case, seed, velocities
+        if key not in cache:
+            sim = root / ("sim" if velocities else "sim_no_v")
+            files = write_case(case, seed, sim, size="small", velocities=velocities)
+            out = root / f"{case}_{seed}_{velocities}"
+            assert main(["diagnose", *files["args"], "--out", str(out)]) == 0
+            summary = json.loads((out / "diagnosis.json").read_text())
+            cache[key] = score(summary, json.loads(files["truth"].read_text()))
+        return cache[key]
+
+    return run
+
+
+def _first_with_pulls(s, limit=4.0):
+    assert s["claimed"][:1] == [s["expected"]], f"claimed {s['claimed']}"
+    pulls = s["pulls"].get(s["expected"], {})
+    assert pulls, "no reported parameter with a known truth"
+    bad = {p: round(v, 2) for p, v in pulls.items() if abs(v) >= limit}
+    assert not bad, f"pulls beyond {limit}: {bad}"
+
+
+@pytest.mark.parametrize("seed", [SEED, SEED + 1])
+def test_null_tracker_claims_nothing(diagnosed, seed):
+    s = diagnosed("null_tracker", seed)
+    assert s["claimed"] == []
+
+
+@pytest.mark.parametrize("seed", [SEED, SEED + 1])
+def test_null_hall_through_both_ends_claims_nothing(diagnosed, seed):
+    s = diagnosed("null_hall", seed)
+    assert s["claimed"] == []
+
+
+def test_reversal_is_named_with_its_backlash(diagnosed):
+    _first_with_pulls(diagnosed("reversal"))
+
+
+@shortcoming(
+    "reading delay of the moving axis only is also claimed as reversal (the delay model "
+    "moves every axis by speed x dir, a standing axis included)",
+)
+def test_reading_delay_on_the_fly_is_not_named_reversal(diagnosed):
+    s = diagnosed("reading_delay")
+    assert "reversal" not in s["claimed"]
+    _first_with_pulls(s)
+
+
+@shortcoming("without velocity columns the delay is again also claimed as reversal (ranked first)")
+def test_reading_delay_without_velocity_columns(diagnosed):
+    s = diagnosed("reading_delay", velocities=False)
+    assert "reversal" not in s["claimed"]
+    _first_with_pulls(s)
+
+
+@shortcoming(
+    "one position-dependent error is tested only as a block of 36 profile parameters: "
+    "its evidence does not pay their BIC penalty",
+)
+def test_single_z_roll_profile_is_found(diagnosed):
+    _first_with_pulls(diagnosed("position_dependent_geometric"))
+
+
+@shortcoming("no step_event in the catalogue: a slip is claimed as thermal drift")
+def test_slip_is_located_and_not_taken_for_drift(diagnosed):
+    step = diagnosed("step_event")["step"]
+    assert not step["claimed_drift"]
+    assert step["located"], f"x residual located in repetitions {step['located_reps']}"
+
+
+@shortcoming(
+    "on a small map through both ends (3 x 3 lines) probe misalignment is reported "
+    "'absorbed' and nothing is named although the mismatch is large (chi2/dof 182)",
+)
+def test_probe_misalignment_is_named(diagnosed):
+    _first_with_pulls(diagnosed("probe_misalignment"))
+
+
+@shortcoming(
+    "a 300 um z shift of the magnet against a 3-D reference is fitted inside the "
+    "registration prior and not named magnet_misalignment",
+)
+def test_common_z_shift_is_the_magnet_not_the_elements(diagnosed):
+    s = diagnosed("magnet_shift_z")
+    assert "sensor_offset" not in s["claimed"]
+    _first_with_pulls(s)
+
+
+@shortcoming(
+    "the soft ends are named first, but amplitude and fringe length come with stds far below "
+    "the misfit of the Enge profile to a real magnet end (pulls about -27 and -66)"
+)
+def test_soft_ends_against_a_2d_reference_are_named(diagnosed):
+    _first_with_pulls(diagnosed("fringe_field_3d"))
+
+
+@shortcoming(
+    "a full-size map through both ends against a 2-D reference is refused by the unit check "
+    "(most readings lie where the reference has its full field and the magnet none)"
+)
+def test_full_map_through_both_ends_passes_the_unit_check(tmp_path):
+    files = write_case("fringe_field_3d", SEED, tmp_path, size="full")
+    assert main(["diagnose", *files["args"], "--out", str(tmp_path / "out")]) == 0
