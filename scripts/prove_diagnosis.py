@@ -3,8 +3,9 @@
 Recordings come from :mod:`cfm_fem.simulation` (its own HTM chain with Table II draws, a magpylib
 permanent-magnet quadrupole through both ends, scan timing and speeds), which shares no model code
 with the diagnosis. Each recording is diagnosed the way a user does, with the command line
-(``cfm-fem diagnose --tracker REC | --hall-map REC --reference FIELD --out DIR``), and the
-``diagnosis.json`` is scored against the truth written beside the recording:
+(``cfm-fem diagnose --tracker REC | --hall-map REC --reference FIELD --no-report --out DIR``,
+its entry point called in the worker process), and the ``diagnosis.json`` is scored against the
+truth written beside the recording:
 
 * nulls (no concealed effect): a false alarm is any effect claimed; the rate with its exact
   (Clopper-Pearson, one-sided) 95 % upper bound;
@@ -38,8 +39,6 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import multiprocessing  # noqa: E402
 import shutil  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 import zlib  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -58,6 +57,23 @@ def tasks(cases, nulls: int, seeds: int) -> list:
     return out
 
 
+def _cli(argv) -> tuple[int, str]:
+    """``cfm-fem ARGV`` in this worker process (the command line's own entry point, imported
+    once per worker instead of once per run): exit code and what it wrote to stderr."""
+    import contextlib
+    import io
+
+    from cfm_fem.cli import main as cli_main
+
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        try:
+            code = cli_main(argv)
+        except SystemExit as e:  # argparse errors
+            code = e.code if isinstance(e.code, int) else 2
+    return int(code or 0), err.getvalue()
+
+
 def run_one(job) -> dict:
     """Simulate one case, diagnose it with the command line, score it."""
     case, seed, out, small, velocities, keep = job
@@ -66,13 +82,13 @@ def run_one(job) -> dict:
     truth = json.loads(Path(files["truth"]).read_text())
     if run_dir.exists():
         shutil.rmtree(run_dir)
-    cmd = [sys.executable, "-m", "cfm_fem", "diagnose", *files["args"], "--out", str(run_dir)]
+    argv = ["diagnose", *files["args"], "--no-report", "--out", str(run_dir)]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **_THREADS})
+    code, err = _cli(argv)
     seconds = time.perf_counter() - t0
     base = {"case": case, "seed": seed, "kind": files["kind"], "expected": files["expected"]}
-    if proc.returncode != 0:
-        return base | {"error": proc.stderr.strip()[-2000:], "seconds": seconds}
+    if code != 0:
+        return base | {"error": err.strip()[-2000:], "seconds": seconds}
     summary = json.loads((run_dir / "diagnosis.json").read_text())
     result = score(summary, truth) | {"seconds": seconds}
     result["effects"] = summary["effects"]  # as reported, for the record

@@ -24,7 +24,7 @@ def probe_points():
 
 
 def test_field_is_div_and_curl_free(probe_points):
-    from cfm_fem.diagnose.problem import field_jacobian
+    from cfm_fem.workflows.diagnose.problem import field_jacobian
 
     J = field_jacobian(magnet.field, probe_points, 0.01)  # T/mm
     scale = np.abs(J).max()

@@ -14,9 +14,9 @@ from cfm_fem.simulation import hall, write_case  # noqa: E402
 
 
 def test_bench_errors_move_the_probe_as_the_tools_columns():
-    from cfm_fem.bench import ERROR_NAMES
     from cfm_fem.io.bench_toml import read_reference_bench
-    from cfm_fem.kinematics import sensitivities
+    from cfm_fem.models.bench import ERROR_NAMES
+    from cfm_fem.models.kinematics import sensitivities
 
     assert sb.NAMES == ERROR_NAMES
     q = np.random.default_rng(0).uniform(0, 1, (60, 3)) * [150, 150, 800]
@@ -30,9 +30,9 @@ def test_bench_errors_move_the_probe_as_the_tools_columns():
 @pytest.fixture(scope="module")
 def hall_problem_small(tmp_path_factory):
     from cfm_fem.cli.diagnose import _reference
-    from cfm_fem.diagnose.problem import hall_problem
     from cfm_fem.io.bench_toml import read_reference_bench
     from cfm_fem.io.recordings import read_hall_map
+    from cfm_fem.workflows.diagnose.problem import hall_problem
 
     f = write_case("null_hall", 11, tmp_path_factory.mktemp("conv"), size="small")
     rec = read_hall_map(f["recording"])
@@ -47,7 +47,7 @@ def _change(effects):
 
 
 def _column(prob, rec, name, block=None):
-    from cfm_fem.diagnose import effects as E
+    from cfm_fem.workflows.diagnose import effects as E
 
     blocks = prob.baseline if block is None else [getattr(E, block)(prob)]
     for b in blocks:

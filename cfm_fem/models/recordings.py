@@ -197,8 +197,8 @@ _UNIT_SLIPS = {
 def check_hall_scale(B_meas, B_ref, *, source, reference: str | None = None) -> list:
     """Refuse a Hall map whose field is a power of ten off the reference field (a unit slip).
 
-    The median of |B_meas| / |B_ref| over the readings where the reference field is not small
-    (|B_ref| > 1 % of its largest value) is compared with the ratios a unit slip produces:
+    The median of |B_meas| / |B_ref| over the readings where neither field is small (each above
+    1 % of its largest value) is compared with the ratios a unit slip produces:
     1e4 for gauss, 1e3 for mT, 10 for kG, 1e6 for uT (and their inverses for a reference in the
     wrong unit). Within 12 % of one of them it is an error: no magnet or bench effect scales the
     whole map by a power of ten, and every number downstream (millions of units) would be
@@ -226,7 +226,11 @@ def check_hall_scale(B_meas, B_ref, *, source, reference: str | None = None) -> 
     """
     bm = np.linalg.norm(np.asarray(B_meas, dtype=float), axis=1)
     br = np.linalg.norm(np.asarray(B_ref, dtype=float), axis=1)
-    use = br > 0.01 * br.max() if br.size and br.max() > 0 else np.zeros(br.shape, bool)
+    # readings where both fields are not small: a scan that runs out of a magnet the
+    # reference does not end (a 2-D reference) reads ~0 there, which is no unit slip
+    if not (br.size and br.max() > 0 and bm.max() > 0):
+        return []
+    use = (br > 0.01 * br.max()) & (bm > 0.01 * bm.max())
     if not use.any():
         return []
     ratio = float(np.median(bm[use] / br[use]))

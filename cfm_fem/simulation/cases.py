@@ -44,7 +44,7 @@ CASES = {
     "hall_offset_gain": (
         "hall", {"hall_offset_gain": {"offset_z": 20.0, "gain_y": 1.0}}, "hall_offset_gain"),
     "magnet_temperature": (
-        "hall", {"magnet_temperature": {"beta": -300.0}}, "magnet_temperature"),
+        "hall", {"magnet_temperature": {"beta": -1000.0}}, "magnet_temperature"),  # NdFeB
     "fringe_field_3d": ("hall", {"fringe_field_3d": {}}, "fringe_field_3d"),
 }  # fmt: skip
 

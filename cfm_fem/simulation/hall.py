@@ -122,7 +122,12 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
     params |= {f"gain_{c}": float(g) for c, g in zip("xyz", gains, strict=True)}
     params |= {f"offset_{c}": float(o) for c, o in zip("xyz", offsets, strict=True)}
     for name, block in eff.items():
-        if name not in ("magnet_misalignment", "hall_offset_gain"):
+        if name == "sensor_offset":  # diagnosis: each element from the elements' centroid
+            for j in "xyz":
+                d = {i: block.get(f"d_{i}_{j}", 0.0) for i in "xyz"}
+                mean = sum(d.values()) / 3.0
+                params |= {f"d_{i}_{j}": d[i] - mean for i in "xyz"}
+        elif name not in ("magnet_misalignment", "hall_offset_gain"):
             params.update(block)
     if "fringe_field_3d" in eff:  # edges in the map frame: they carry the magnet's z offset
         z_in, z_out, lam = magnet.fringe_edges()

@@ -124,7 +124,9 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
                 s = block.get(f"scale_drift_{c}", 0.0)
                 params[f"drift_{c}"] = block.get(f"drift_{c}", 0.0) + s * 1e-3 * q[:, a].mean()
                 params[f"scale_drift_{c}"] = s
-        elif name != "step_event":
+        elif name == "step_event":  # diagnosis: the step of the x axis, um
+            params["step_x"] = block["dx_um"]
+        else:
             params.update(block)
     truth = {
         "kind": "tracker",
