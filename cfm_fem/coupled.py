@@ -39,6 +39,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import _kernels as K
 from .bench import Bench, MagnetPlacement, ReadingDelay
@@ -379,6 +380,7 @@ def _probe_errors_block(bench, g, params, q, pidx, nkey, fkey, out):
     )
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def run_coupled(
     field_model: FieldModel,
     bench: Bench,

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.spatial
+from threadpoolctl import threadpool_limits
 
 from . import _kernels
 from .errors import CfmInputError
@@ -252,6 +253,7 @@ def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
     return nb.reshape(m, k)
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def barycentric_transforms(coords, simplices):
     """scipy-layout barycentric transforms and signed measures (volume or area) of simplices."""
     d = coords.shape[1]
@@ -445,6 +447,7 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def circumspheres(coords, simplices):
     """Circumcentres (m, d) and squared circumradii (m,) of simplices (m, d + 1), in the units
     of ``coords`` (n, d); NaN or inf for a flat simplex."""

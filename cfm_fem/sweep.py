@@ -10,6 +10,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import _kernels
 from .errors import CfmInputError, check_seed
@@ -262,6 +263,7 @@ class SweepResult:
         return d_max, tol, disagree
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     """Gradient of the piecewise-linear field at each node, volume-weighted over incident cells.
 
@@ -283,6 +285,7 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     return acc @ mesh.basis.T  # local -> map frame
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 1 << 18):
     """Gradient at each node by a least-squares fit of B_j - B_i = G (x_j - x_i) over the edges
     of its cells, each edge weighted by 1/|x_j - x_i|^2 (and counted once per cell); mesh frame.
