@@ -801,7 +801,7 @@ def exact_search(mesh: SimplexMesh) -> tuple:
         at nodes whose cells are not all face-connected, `cfm_fem._kernels.star_sizes`) and
         `cell_buckets` (`cfm_fem._kernels.locate_exact`, `cfm_fem._kernels.star_recheck`);
         `no_search` when every border face is a supporting plane of the mesh (convex: nothing
-        to search, the kernels' old path).
+        to search).
     """
     excess = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
     if not (excess > 0.0).any():

@@ -1,4 +1,4 @@
-"""Blind proof of `cfm-fem diagnose` on twins (issue 5), at realistic size by default.
+"""Blind proof of `cfm-fem diagnose` on twins, at realistic size by default.
 
 1. False-discovery rate over N null datasets (no concealed effect, different seeds, half tracker,
    half Hall map): a dataset is a false discovery when `mismatch` is true or `effects` is not

@@ -270,7 +270,7 @@ TRIAL_OPTIONS = {
 @pytest.mark.parametrize("text, value", [("1e6", 10**6), ("2.5e5", 250_000), ("3000", 3000),
                                          ("1E3", 1000), ("20.0", 20)])  # fmt: skip
 def test_trial_counts_written_with_an_exponent(command, text, value):
-    """kinematics --help says 'default 1e6'; --trials 1e6 was 'invalid int value'."""
+    """Trial counts may be written as kinematics --help writes its default: 1e6."""
     args = build_parser().parse_args([*TRIAL_OPTIONS[command], text])
     got = args.check if command == "tolerance" else args.trials
     assert got == value and type(got) is int
@@ -316,7 +316,7 @@ def test_a_subcommand_option_error_names_the_subcommand_once(capsys):
 )
 def test_sweep_checks_its_options_before_reading_the_map(tmp_path, capsys, monkeypatch, extra,
                                                          message):  # fmt: skip
-    """They were checked after the map was read and meshed: minutes on a large map."""
+    """Bad options stop the sweep before the map is read and meshed (minutes on a large map)."""
     import cfm_fem.io
     import cfm_fem.io.streaming
 
@@ -347,8 +347,8 @@ def test_sweep_checks_its_options_before_reading_the_map(tmp_path, capsys, monke
 )
 def test_kinematics_checks_its_options_before_reading_the_bench(tmp_path, capsys, monkeypatch,
                                                                 extra, message):  # fmt: skip
-    """--workers (and --adaptive with it) were checked after the bench was read: a bad bench
-    was then reported instead of the bad option."""
+    """--workers (and --adaptive with it) are checked before the bench is read, so a bad
+    option is reported as such."""
     import cfm_fem.io.bench_toml
 
     def no_reading(*args, **kwargs):

@@ -376,9 +376,8 @@ class _Bars:
 
 @pytest.mark.parametrize("option", [["--slabs", "2"], ["--max-memory", "1G"]])
 def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, option):
-    """--slabs/--max-memory ran without a progress bar (the in-memory path has one): the bar
-    now counts the nodes as the slabs finish, against the total the slab run sets once the
-    file is staged."""
+    """--slabs/--max-memory show progress: the bar counts the nodes as the slabs finish,
+    against the total the slab run sets once the file is staged."""
     import cfm_fem.cli.sweep
 
     bars = _Bars()
@@ -579,10 +578,9 @@ def test_leftover_temporaries_modified_within_the_hour_are_left(tmp_path):
 def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     csv_map, tmp_path, monkeypatch, layout
 ):
-    """A re-run stopped (Ctrl-C) after its first new map left the earlier run's summary.json
-    and sweep.pvd beside it: a set that contradicts itself (session-14 audit). The earlier
-    summary and index are now removed before any new map is written: what remains has no
-    summary, which says the run did not complete."""
+    """A re-run stopped (Ctrl-C) after its first new map leaves no summary.json or sweep.pvd
+    of the earlier run beside it: they are removed before any new map is written, so a
+    folder without a summary says the run did not complete."""
     import cfm_fem.io.sweep_out
     import cfm_fem.slabs
 

@@ -79,8 +79,7 @@ def _hold(out: Path, record: dict | None = HOLDER) -> int:
 def test_second_sweep_into_a_folder_in_use_exits_2_and_changes_nothing(
     small_map, tmp_path, capsys, layout
 ):
-    """The live run's chunk store, maps and lock record stay byte for byte (the old code
-    deleted the store and rewrote the maps)."""
+    """The live run's chunk store, maps and lock record stay byte for byte."""
     out = tmp_path / "res"
     assert _sweep(small_map, out, "--keep-chunks") == 0  # maps and a chunk store, as mid-run
     (out / "uf_up5um.vtu").write_bytes((out / "uf_up1um.vtu").read_bytes())  # a map of its own
@@ -177,8 +176,8 @@ def test_the_lock_file_is_left_by_reruns_and_clean_ups(small_map, tmp_path, caps
 
 
 def test_a_run_that_fails_leaves_no_lock_file_and_no_folder(small_map, tmp_path):
-    """A guard, not a defect of the old code (it passes there too): the lock file and the
-    folders made for it go again when the run fails, as the outputs never appeared."""
+    """The lock file and the folders made for it go again when the run fails, as the outputs
+    never appeared."""
     bad = tmp_path / "bad.csv"
     bad.write_text(small_map.read_text().replace("\n1,", "\nx,", 1))
     new = tmp_path / "a" / "b" / "res"

@@ -233,7 +233,7 @@ def test_mutation_helper():
 
 
 def test_harmonics_not_utf8_found_by_hypothesis(tmp_path):
-    # a Latin-1 byte at the start raised UnicodeDecodeError before: now read as Latin-1
+    # a file that is not UTF-8 (a Latin-1 byte at the start) is read as Latin-1
     path = tmp_path / "h.csv"
     path.write_bytes(b"\x80" + HARMONICS[1:])
     _check("harmonics", read_harmonics, path)

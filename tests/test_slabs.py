@@ -480,8 +480,8 @@ def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path,
 
 @pytest.mark.parametrize("seed", [-1, 2**63, True], ids=["negative", "too_large", "bool"])
 def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
-    """The API checked the seed only when the first slab was prepared: after staging the file
-    into a work folder made in out_dir. Now up front, with the CLI's message."""
+    """A bad seed is refused with the CLI's message before the file is staged or anything is
+    made in out_dir."""
     import cfm_fem.slabs
     from cfm_fem.errors import check_seed
 

@@ -1,4 +1,4 @@
-"""The diagnosis workflow: calibrate, locate, attribute, model, advise (issue 5).
+"""The diagnosis workflow: calibrate, locate, attribute, model, advise.
 
 ``diagnose(problem)`` returns a :class:`Diagnosis` whose ``summary`` is the ``diagnosis.json``
 document (``mismatch``, ``located``, ``effects`` sorted by evidence, strongest first, ``fit``,

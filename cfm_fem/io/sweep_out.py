@@ -157,7 +157,7 @@ def write_sweep(
     n = len(res.fieldmap.points)
     per_map = n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16  # points, data, cells
     entries = map_threads(write_map, range(len(res.labels)), max(1, _WRITE_BYTES // per_map))
-    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])  # issue 6
+    write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_json(out / "summary.json", summary)
     if remove_stale:
         remove_earlier_outputs(out)
@@ -215,7 +215,7 @@ def write_sweep_pieces(
     summary["provenance"] = provenance or {}
     summary["pieces"] = int(n_pieces)
     retire_index(out)
-    # issue 6: columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
+    # columns by label, so that mode htm (3 columns, no U_p list) works as gauss does
     labels = compact.labels
     ups = compact.column_up_um()
     names = {}
