@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import cfm_fem.io.recordings as recordings_io
 from cfm_fem.errors import CfmInputError
 from cfm_fem.io import read_comsol, read_field, read_meshfile, read_opera, read_table
 from cfm_fem.io.bench_toml import parse_bench
@@ -211,7 +212,7 @@ def recordings(draw):
 @SETTINGS
 @given(rec=recordings(), ops=st.lists(mutation, max_size=4))
 def test_recording_readers(folder, rec, ops):
-    mod = pytest.importorskip("cfm_fem.io.recordings")
+    mod = recordings_io
     kind, text = rec
     path = folder / "rec.csv"
     path.write_bytes(_mutate(text.encode(), ops))
