@@ -24,7 +24,7 @@ class LogProgress:
         self.total, self.unit, self.file, self.interval = total, unit, file, interval
         self.n = 0
         self._start = self._last = time.monotonic()
-        self._said = False
+        self._said = None  # (n, total) of the last line written
         self._lock = threading.Lock()  # chunks may finish on worker threads
 
     def _line(self, now: float) -> str:
@@ -40,7 +40,7 @@ class LogProgress:
             self.n += n
             now = time.monotonic()
             if now - self._last >= self.interval:
-                self._last, self._said = now, True
+                self._last, self._said = now, (self.n, self.total)
                 print(self._line(now), file=self.file, flush=True)
 
     def refresh(self) -> None:
@@ -51,9 +51,10 @@ class LogProgress:
 
     def close(self) -> None:
         with self._lock:
-            if self._said:  # close the series of lines with the final count
+            # a series of lines ends with the final count, unless its last line gave it
+            if self._said is not None and self._said != (self.n, self.total):
                 print(self._line(time.monotonic()), file=self.file, flush=True)
-                self._said = False
+            self._said = None
 
 
 def _is_terminal(stream) -> bool:
