@@ -5,14 +5,14 @@ the map is read."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED_DATA
 
 from cfm_fem.cli import build_parser, main
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 BODY_SCAN = DATA / "emphatic" / "EMPHATIC_body_scan_5280148.csv"
 MF_MAP = DATA / "emphatic" / "mfMapMeasured_5mm.txt"
 

@@ -13,14 +13,8 @@ G = np.array([[0.2, 0.0, 0.0], [0.0, -0.2, 0.0], [0.0, 0.0, 0.1]])
 
 
 @pytest.fixture
-def csv_map(tmp_path):
-    ax = np.arange(6.0)
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = pts @ G.T + [0.0, 0.0, 1.0]
-    path = tmp_path / "map.csv"
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+def csv_map(grid_csv):
+    return grid_csv(6, lambda pts: pts @ G.T + [0.0, 0.0, 1.0])
 
 
 def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):

@@ -13,7 +13,6 @@ from cfm_fem.bench import ReadingDelay
 from cfm_fem.cli import main
 from cfm_fem.compare import compare_hall, compare_tracker, interval_view, iso_lines, per_point_stats
 from cfm_fem.coupled import FieldModel
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import qfdp4_path
 from cfm_fem.io.recordings import read_tracker, write_hall_map, write_tracker
 from cfm_fem.kinematics import run_kinematics
@@ -23,11 +22,6 @@ from cfm_fem.recordings import Recording
 from cfm_fem.synthetic import synthetic_hall_map, synthetic_tracker
 
 R_REF, B2 = 10.0, 0.0696
-
-
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
 
 
 def no_noise(bench):

@@ -21,18 +21,12 @@ from cfm_fem.coupled import (
 )
 from cfm_fem.errors import CfmInputError
 from cfm_fem.field import FieldMap
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import read_qfdp4
 from cfm_fem.multipole import Multipole
 from cfm_fem.probe import HallProbe
 
 R_REF = 10.0
 B2 = 0.0696  # T at R_ref: gradient G = B2 / R_ref = 6.96e-3 T/mm
-
-
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
 
 
 def quiet(bench):

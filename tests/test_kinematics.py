@@ -9,13 +9,7 @@ import pytest
 from cfm_fem import _kernels as K
 from cfm_fem import kinematics as kin
 from cfm_fem.bench import ERROR_NAMES, ReadingDelay, error_index
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.mc import Pdf, symmetric_interval
-
-
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
 
 
 def _rx(a):

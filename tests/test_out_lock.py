@@ -37,15 +37,9 @@ IN_USE = (
 
 
 @pytest.fixture
-def small_map(tmp_path):
+def small_map(grid_csv):
     """A 4 x 4 x 4 grid with a linear field (64 nodes: a sweep of it takes well under 1 s)."""
-    ax = np.arange(4.0)
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = pts @ np.diag([0.2, -0.2, 0.1]) + [0.0, 0.0, 1.0]
-    path = tmp_path / "map.csv"
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+    return grid_csv(4, lambda pts: pts @ np.diag([0.2, -0.2, 0.1]) + [0.0, 0.0, 1.0])
 
 
 def _sweep(field, out, *extra):
