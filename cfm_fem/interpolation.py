@@ -269,6 +269,7 @@ def barycentric_transforms(coords, simplices):
     return T, det / (2.0 if d == 2 else 6.0)
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def build_mesh(
     fm: FieldMap,
     method: str = "auto",
@@ -471,6 +472,7 @@ def convex_hull_points(points) -> np.ndarray:
     return points[np.sort(scipy.spatial.ConvexHull(points).vertices)]
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # scipy's find_simplex: 3x3 solves
 def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int = 1 << 18):
     """Flat cells on the hull of a Delaunay triangulation.
 
