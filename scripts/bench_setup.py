@@ -2,8 +2,10 @@
 
 A sweep spends its set-up (everything before the Monte Carlo kernel) reading the map,
 triangulating it, removing hull slivers, tabulating the cells and preparing the kernels'
-search arrays. Each phase is timed once with the machine as it is ("quiet") and once while
-competing processes keep every core busy ("busy"); the table gives both and their ratio.
+search arrays. Each phase is timed with the machine as it is ("quiet") and while competing
+processes keep every core busy ("busy"), ``--repeat`` times each, alternating, and the shortest
+wall time of each phase is kept; the table gives both, their ratio, and the CPU time of the
+process in each (threads that spin instead of working show as CPU time that grows when busy).
 
     python scripts/bench_setup.py                          # bundled map as COMSOL text
     python scripts/bench_setup.py --field my_export.txt    # any scattered map
@@ -44,13 +46,13 @@ COMPETITORS = {
 
 
 def phases(path):
-    """Run the set-up phases of a sweep of ``path`` once; return [(name, seconds)]."""
+    """Run the set-up phases of a sweep of ``path`` once; return [(name, wall s, CPU s)]."""
     out = []
 
     def timed(name, fn, *args):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         value = fn(*args)
-        out.append((name, time.perf_counter() - t))
+        out.append((name, time.perf_counter() - t, time.process_time() - c))
         return value
 
     fm = timed("read the map", read_field, path)
@@ -77,34 +79,46 @@ def phases(path):
     return out
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--field", default="meshes/quadrupole_comsol.txt")
-    p.add_argument("--busy", type=int, default=os.cpu_count() or 2)
-    p.add_argument("--competitor", choices=sorted(COMPETITORS), default="python")
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore")
-    print(f"{args.field}: warm-up pass (compiles the kernels)", flush=True)
-    phases(args.field)
-    quiet = phases(args.field)
+def _busy_pass(args):
+    """`phases` while ``args.busy`` competing processes run."""
     procs = [
         subprocess.Popen([sys.executable, "-c", COMPETITORS[args.competitor]])
         for _ in range(args.busy)
     ]
     try:
         time.sleep(1.0)  # let the competitors reach their loops
-        busy = phases(args.field)
+        return phases(args.field)
     finally:
         for proc in procs:
             proc.kill()
             proc.wait()
-    print(f"{args.busy} busy '{args.competitor}' process(es) on {os.cpu_count()} core(s)")
-    print(f"{'phase':32s} {'quiet s':>8s} {'busy s':>8s} {'ratio':>6s}")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--field", default="meshes/quadrupole_comsol.txt")
+    p.add_argument("--busy", type=int, default=os.cpu_count() or 2)
+    p.add_argument("--competitor", choices=sorted(COMPETITORS), default="python")
+    p.add_argument("--repeat", type=int, default=1, help="quiet and busy passes, alternating")
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore")
+    print(f"{args.field}: warm-up pass (compiles the kernels)", flush=True)
+    phases(args.field)
+    quiet, busy = [], []
+    for _ in range(args.repeat):
+        quiet.append(phases(args.field))
+        busy.append(_busy_pass(args))
+    print(f"{args.busy} busy '{args.competitor}' process(es) on {os.cpu_count()} core(s), "
+          f"best of {args.repeat}; CPU: time of this process, all its threads")  # fmt: skip
+    print(f"{'phase':32s} {'quiet s':>8s} {'busy s':>8s} {'ratio':>6s} {'CPU quiet':>10s} "
+          f"{'CPU busy':>9s}")  # fmt: skip
     worst = 0.0
-    for (name, tq), (_, tb) in zip(quiet, busy, strict=True):
+    for k, (name, _, _) in enumerate(quiet[0]):
+        tq, cq = min((run[k][1], run[k][2]) for run in quiet)
+        tb, cb = min((run[k][1], run[k][2]) for run in busy)
         ratio = tb / tq if tq > 0 else float("nan")
         worst = max(worst, ratio) if tq >= 0.05 else worst
-        print(f"{name:32s} {tq:8.2f} {tb:8.2f} {ratio:6.1f}")
+        print(f"{name:32s} {tq:8.2f} {tb:8.2f} {ratio:6.1f} {cq:10.2f} {cb:9.2f}")
     print(f"worst ratio of the phases of 0.05 s or more: {worst:.1f}")
 
 
