@@ -275,6 +275,7 @@ def test_recording_case(tmp_path, capsys, case):
     assert str(info.value).startswith(f"{path}:{line}: ") and what in str(info.value)
 
 
+@pytest.mark.slow
 def test_hall_map_outside_the_reference_field(tmp_path, capsys):
     ref = tmp_path / "ref.csv"
     ref.write_text(_map_text(GRID))
@@ -379,6 +380,7 @@ def _zero_bench_text():
     return "\n".join(lines) + "\n"
 
 
+@pytest.mark.slow
 def test_bench_without_errors(tmp_path, capsys):
     """A bench with every error zero runs: kinematics says U_p = 0 in a note instead of budget
     shares of 0/0 and writes every output; tolerance gives the common factor 'inf'."""

@@ -103,6 +103,7 @@ def test_fig4_drops_the_placeholder_rows_when_asked(tmp_path, capsys):
     assert "7200 nodes from" in capsys.readouterr().err  # 7840 rows less the 640 placeholders
 
 
+@pytest.mark.slow
 def test_coupled_field_map_gets_the_reader_options(tmp_path, capsys):
     ref = _no_unit_map(tmp_path / "map.csv")
     base = ["coupled", "--field", ref, "--radius", 1, "--step", 1, "--z", 0, "--trials", 20,
@@ -217,6 +218,7 @@ def test_sweep_refuses_solution_for_a_map_that_is_not_comsol(tmp_path, capsys, e
     assert err.count("error:") == 1 and not out.exists()
 
 
+@pytest.mark.slow
 def test_solution_reaches_the_reader_of_coupled_and_compare(tmp_path, capsys):
     ref = _current_sweep(tmp_path / "map.txt")
     base = ["coupled", "--field", ref, "--radius", 1, "--step", 1, "--z", 0, "--trials", 20,

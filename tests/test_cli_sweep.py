@@ -204,6 +204,7 @@ def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch,
         main(["kinematics", "--out", "unused"])
 
 
+@pytest.mark.slow
 def test_hull_slivers_option(tmp_path):
     """The hull's flat cells are removed by default and the summary's notes say so (with
     --slabs: tests/test_slabs.py); --hull-slivers keep keeps them and counts them in a note."""

@@ -134,6 +134,7 @@ def test_compare_hall_known_offset(bench):
     assert set(rows) == {"Bx", "By", "all"} and rows["By"]["overlap"] is False
 
 
+@pytest.mark.slow
 def test_cli_compare_tracker_and_bad_input(tmp_path, bench, capsys):
     rec = synthetic_tracker(bench, seed=3, reps=3, grid=(2, 2, 2), reversal_um=4.0)
     path = tmp_path / "tracker.csv"

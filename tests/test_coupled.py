@@ -45,6 +45,7 @@ def quad():
 PTS = np.array([[0.0, 0.0, 0.0], [R_REF, 0.0, 0.0], [3.0, -4.0, 50.0], [-6.0, 2.0, -80.0]])
 
 
+@pytest.mark.slow
 def test_kernel_matches_numpy_twin(bench):
     g = km.kernel_geometry(bench)
     nkey, fkey = km.noise_keys(7)

@@ -89,6 +89,7 @@ def test_cli_scheduler_gives_the_single_process_outputs(cluster, csv_map, tmp_pa
     assert not (tmp_path / "dask" / ".cfm_fem_chunks").exists()
 
 
+@pytest.mark.slow
 def test_cli_workers_starts_a_local_cluster(csv_map, tmp_path, capsys):
     common = ["sweep", str(csv_map), "--up", "10", "--trials", "100", "--seed", "2"]
     assert main([*common, "--out", str(tmp_path / "one")]) == 0

@@ -71,6 +71,7 @@ def test_trial_keys_match_twin():
 
 
 @pytest.mark.parametrize("path", ["hot", "speed_tau", "chain"])
+@pytest.mark.slow
 def test_pass_pilot_matches_twin(path):
     """Every sample (E_x, E_y, E_z, |E|) of trials t0 .. t0+n-1 at points keyed by their
     index in the whole grid. The collapsed chain promises the reference path's bits (hot
@@ -215,6 +216,7 @@ def test_star_locate_matches_twin_walk(which):
     assert min(seen.values()) > 20, seen
 
 
+@pytest.mark.slow
 def test_star_find_matches_brute_force():
     """On the L-shaped map (star_find's use: a non-convex mesh), points around nodes: the first
     star cell holding the point, as every star cell's coordinates say, or OUTSIDE; nearer to g
@@ -249,6 +251,7 @@ def test_star_find_matches_brute_force():
     assert min(seen.values()) > 20, seen
 
 
+@pytest.mark.slow
 def test_star_recheck_matches_twin_and_its_proofs_hold():
     """Displacements beyond the reach of nodes whose border faces prove nothing (`star_exact`
     False): the twin's cell, coordinates and proven-outside fractions bit for bit; a cell

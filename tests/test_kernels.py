@@ -440,6 +440,7 @@ def test_face_excess_matches_brute_force_over_all_nodes(seed):
 
 
 @pytest.mark.parametrize("seed", [None, 3])
+@pytest.mark.slow
 def test_exact_search_finds_the_cell_brute_force_finds(seed):
     """`find_cell` (bucket lists) against every cell; `locate_exact` from a walk blocked by the
     notch gives the brute-force verdict too, where `locate` says outside."""
@@ -577,6 +578,7 @@ def _faceted_cylinder(n=700, seed=5):
 
 
 @pytest.mark.parametrize("which", ["l_shape", "cylinder"])
+@pytest.mark.slow
 def test_star_exit_verdicts_match_brute_force(which):
     """Trials the star walk finds leaving the star at a node whose border faces are no proof
     (`star_exact` False), within the node's reach: `star_exit` says outside (LEAVES_MESH) only

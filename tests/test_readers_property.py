@@ -138,6 +138,7 @@ READERS = {
 @pytest.mark.parametrize("fmt", list(READERS))
 @SETTINGS
 @given(fm=fieldmaps(), ops=st.lists(mutation, max_size=4))
+@pytest.mark.slow
 def test_text_readers(folder, fmt, fm, ops):
     read, name = READERS[fmt]
     path = folder / name

@@ -58,6 +58,7 @@ def _same_outputs(a, b, ups):
     return sa, sb
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_numbers(big_map, tmp_path, capsys):
     args = ["sweep", str(big_map), "--up", "0:40:20", "--trials", "4000", "--seed", "9",
             "--chunk-nodes", "24"]  # fmt: skip

@@ -151,6 +151,7 @@ def _cylinder_nodes(n=3000, seed=5):
 
 
 @pytest.mark.parametrize("outside", ["exclude", "extrapolate"])
+@pytest.mark.slow
 def test_hull_slivers_removed_by_slabs_as_by_the_whole_map(tmp_path, outside):
     """--hull-slivers remove with --slabs: every slab removes, from the cells around its own
     nodes, the cells the whole map removes (given the whole map's hull, the test is local), and
@@ -396,6 +397,7 @@ def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
 
 
 @pytest.mark.parametrize("k", [3, 4])
+@pytest.mark.slow
 def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
     """--hull-slivers keep with --slabs on random nodes: a suspect border face that holds an
     own node led that node's star into the halo sentinel cell (tables written past their end)
@@ -422,6 +424,7 @@ def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
         np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     """Scattered nodes beside a block of lattice nodes (co-spherical sets: their cells are flat
     unless the nodes are jittered). The jitter is keyed by each node's coordinates and scaled
