@@ -11,8 +11,9 @@ process in each (threads that spin instead of working show as CPU time that grow
     python scripts/bench_setup.py --field my_export.txt    # any scattered map
     python scripts/bench_setup.py --competitor blas        # competitors run numpy matmuls
 
-Competitors (``--busy N`` processes, default one per core): ``python`` runs a pure Python
-loop, ``blas`` multiplies 400 x 400 matrices with numpy's default BLAS threads. The numba
+Competitors (``--busy N`` processes, default one per core, each in a session of its own):
+``python`` runs a pure Python loop, ``blas`` multiplies 400 x 400 matrices with numpy's default
+BLAS threads. The numba
 kernels are compiled by a warm-up pass before the timed passes.
 """
 
@@ -81,8 +82,12 @@ def phases(path):
 
 def _busy_pass(args):
     """`phases` while ``args.busy`` competing processes run."""
+    # each in a session of its own, as the programs of other users are: Linux shares the CPU
+    # between sessions first (autogroup), so competitors in this session would split its share
     procs = [
-        subprocess.Popen([sys.executable, "-c", COMPETITORS[args.competitor]])
+        subprocess.Popen(
+            [sys.executable, "-c", COMPETITORS[args.competitor]], start_new_session=True
+        )  # fmt: skip
         for _ in range(args.busy)
     ]
     try:
