@@ -1,4 +1,4 @@
-"""Performance of the paper-scale kinematics Monte Carlo (issue 3); prints figures, asserts nothing.
+"""Performance of the paper-scale kinematics Monte Carlo; prints figures, asserts nothing.
 
     python scripts/bench_kinematics.py [--trials 1000000] [--numpy-trials 1000] [--threads N]
                                        [--variant reference|profile|speed_tau]

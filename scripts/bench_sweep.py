@@ -268,7 +268,7 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
     print(f"  writing {len(ups)} .vtu + pvd + json: {t_write:8.1f} s")
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
-    peak = peak_rss_bytes()  # both units: the "4 GB" could be read either way
+    peak = peak_rss_bytes()  # both units: "4 GB" can be read either way
     print(f"  peak resident memory       : {peak / 1e9:8.2f} GB ({peak / 2**30:.2f} GiB)")
     print(
         f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "

@@ -79,7 +79,7 @@ def test_tolerance_design_in_reverse(tmp_path, capsys):
 
 
 def test_tolerance_check_shows_progress_over_the_trials(tmp_path, monkeypatch):
-    """tolerance --check N ran its Monte Carlo without a progress bar (kinematics has one)."""
+    """tolerance --check N shows a progress bar over the trials of its Monte Carlo."""
     import contextlib
 
     import cfm_fem.cli.tolerance

@@ -5,14 +5,14 @@ the map is read."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED_DATA
 
 from cfm_fem.cli import build_parser, main
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 BODY_SCAN = DATA / "emphatic" / "EMPHATIC_body_scan_5280148.csv"
 MF_MAP = DATA / "emphatic" / "mfMapMeasured_5mm.txt"
 
@@ -103,6 +103,7 @@ def test_fig4_drops_the_placeholder_rows_when_asked(tmp_path, capsys):
     assert "7200 nodes from" in capsys.readouterr().err  # 7840 rows less the 640 placeholders
 
 
+@pytest.mark.slow
 def test_coupled_field_map_gets_the_reader_options(tmp_path, capsys):
     ref = _no_unit_map(tmp_path / "map.csv")
     base = ["coupled", "--field", ref, "--radius", 1, "--step", 1, "--z", 0, "--trials", 20,
@@ -217,6 +218,7 @@ def test_sweep_refuses_solution_for_a_map_that_is_not_comsol(tmp_path, capsys, e
     assert err.count("error:") == 1 and not out.exists()
 
 
+@pytest.mark.slow
 def test_solution_reaches_the_reader_of_coupled_and_compare(tmp_path, capsys):
     ref = _current_sweep(tmp_path / "map.txt")
     base = ["coupled", "--field", ref, "--radius", 1, "--step", 1, "--z", 0, "--trials", 20,
@@ -270,7 +272,7 @@ TRIAL_OPTIONS = {
 @pytest.mark.parametrize("text, value", [("1e6", 10**6), ("2.5e5", 250_000), ("3000", 3000),
                                          ("1E3", 1000), ("20.0", 20)])  # fmt: skip
 def test_trial_counts_written_with_an_exponent(command, text, value):
-    """kinematics --help says 'default 1e6'; --trials 1e6 was 'invalid int value'."""
+    """Trial counts may be written as kinematics --help writes its default: 1e6."""
     args = build_parser().parse_args([*TRIAL_OPTIONS[command], text])
     got = args.check if command == "tolerance" else args.trials
     assert got == value and type(got) is int
@@ -316,7 +318,7 @@ def test_a_subcommand_option_error_names_the_subcommand_once(capsys):
 )
 def test_sweep_checks_its_options_before_reading_the_map(tmp_path, capsys, monkeypatch, extra,
                                                          message):  # fmt: skip
-    """They were checked after the map was read and meshed: minutes on a large map."""
+    """Bad options stop the sweep before the map is read and meshed (minutes on a large map)."""
     import cfm_fem.io
     import cfm_fem.io.streaming
 
@@ -347,8 +349,8 @@ def test_sweep_checks_its_options_before_reading_the_map(tmp_path, capsys, monke
 )
 def test_kinematics_checks_its_options_before_reading_the_bench(tmp_path, capsys, monkeypatch,
                                                                 extra, message):  # fmt: skip
-    """--workers (and --adaptive with it) were checked after the bench was read: a bad bench
-    was then reported instead of the bad option."""
+    """--workers (and --adaptive with it) are checked before the bench is read, so a bad
+    option is reported as such."""
     import cfm_fem.io.bench_toml
 
     def no_reading(*args, **kwargs):

@@ -14,14 +14,8 @@ G = np.array([[0.2, 0.0, 0.0], [0.0, -0.2, 0.0], [0.0, 0.0, 0.1]])
 
 
 @pytest.fixture
-def csv_map(tmp_path):
-    ax = np.arange(6.0)
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = pts @ G.T + [0.0, 0.0, 1.0]
-    path = tmp_path / "map.csv"
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+def csv_map(grid_csv):
+    return grid_csv(6, lambda pts: pts @ G.T + [0.0, 0.0, 1.0])
 
 
 def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
@@ -218,6 +212,7 @@ def test_ctrl_c_inside_numba_is_a_clean_interrupt_for_every_command(monkeypatch,
         main(["kinematics", "--out", "unused"])
 
 
+@pytest.mark.slow
 def test_hull_slivers_option(tmp_path):
     """The hull's flat cells are removed by default and the summary's notes say so (with
     --slabs: tests/test_slabs.py); --hull-slivers keep keeps them and counts them in a note."""
@@ -384,9 +379,8 @@ class _Bars:
 
 @pytest.mark.parametrize("option", [["--slabs", "2"], ["--max-memory", "1G"]])
 def test_slab_runs_show_progress_over_the_nodes(csv_map, tmp_path, monkeypatch, option):
-    """--slabs/--max-memory ran without a progress bar (the in-memory path has one): the bar
-    now counts the nodes as the slabs finish, against the total the slab run sets once the
-    file is staged."""
+    """--slabs/--max-memory show progress: the bar counts the nodes as the slabs finish,
+    against the total the slab run sets once the file is staged."""
     import cfm_fem.cli.sweep
 
     bars = _Bars()
@@ -589,10 +583,9 @@ def test_leftover_temporaries_modified_within_the_hour_are_left(tmp_path):
 def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     csv_map, tmp_path, monkeypatch, layout
 ):
-    """A re-run stopped (Ctrl-C) after its first new map left the earlier run's summary.json
-    and sweep.pvd beside it: a set that contradicts itself (session-14 audit). The earlier
-    summary and index are now removed before any new map is written: what remains has no
-    summary, which says the run did not complete."""
+    """A re-run stopped (Ctrl-C) after its first new map leaves no summary.json or sweep.pvd
+    of the earlier run beside it: they are removed before any new map is written, so a
+    folder without a summary says the run did not complete."""
     import cfm_fem.io.slab_files
     import cfm_fem.io.sweep_out
 

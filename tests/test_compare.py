@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import qfdp4_path
 from cfm_fem.io.recordings import read_tracker, write_hall_map, write_tracker
 from cfm_fem.models.bench import ReadingDelay
@@ -29,11 +28,6 @@ from cfm_fem.workflows.compare import (
 from cfm_fem.workflows.synthetic import synthetic_hall_map, synthetic_tracker
 
 R_REF, B2 = 10.0, 0.0696
-
-
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
 
 
 def no_noise(bench):
@@ -146,6 +140,7 @@ def test_compare_hall_known_offset(bench):
     assert set(rows) == {"Bx", "By", "all"} and rows["By"]["overlap"] is False
 
 
+@pytest.mark.slow
 def test_cli_compare_tracker_and_bad_input(tmp_path, bench, capsys):
     rec = synthetic_tracker(bench, seed=3, reps=3, grid=(2, 2, 2), reversal_um=4.0)
     path = tmp_path / "tracker.csv"

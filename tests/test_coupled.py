@@ -10,7 +10,6 @@ import pytest
 
 from cfm_fem import _kernels as K
 from cfm_fem.errors import CfmInputError
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.io.harmonics import read_qfdp4
 from cfm_fem.models import kinematics as km
 from cfm_fem.models.bench import ReadingDelay
@@ -30,11 +29,6 @@ R_REF = 10.0
 B2 = 0.0696  # T at R_ref: gradient G = B2 / R_ref = 6.96e-3 T/mm
 
 
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
-
-
 def quiet(bench):
     """The bench with no geometric error, vibration or delay."""
     return replace(
@@ -51,6 +45,7 @@ def quad():
 PTS = np.array([[0.0, 0.0, 0.0], [R_REF, 0.0, 0.0], [3.0, -4.0, 50.0], [-6.0, 2.0, -80.0]])
 
 
+@pytest.mark.slow
 def test_kernel_matches_numpy_twin(bench):
     g = km.kernel_geometry(bench)
     nkey, fkey = km.noise_keys(7)

@@ -22,6 +22,7 @@ Q = np.stack(
 ).reshape(-1, 3)
 
 
+@pytest.mark.slow
 def test_cli_tracker(tmp_path, capsys):
     rec, _ = tracker_twin(3, {"reversal": {"backlash_z": 10.0}}, n_reps=6, points=Q)
     f = tmp_path / "rec.csv"
@@ -147,6 +148,7 @@ def test_b_ref_with_tracker_is_refused(tmp_path, capsys):
     assert "--b-ref is for --hall-map only" in err, err
 
 
+@pytest.mark.slow
 def test_r_ref_for_a_harmonics_reference_that_does_not_state_it(tmp_path, capsys):
     """The harmonics reader asks for --r-ref when the file gives no R_ref; diagnose had none."""
     from importlib import resources

@@ -1,4 +1,4 @@
-"""Issue 5: one concealed effect per test on small twins (moderate SNR), null cases, hard cases."""
+"""One concealed effect per test on small twins (moderate SNR), null cases, hard cases."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 5: physically implausible fits are reported as such, never as found; bounds live with
+"""Physically implausible fits are reported as such, never as found; bounds live with
 every effect of the catalogue."""
 
 from __future__ import annotations

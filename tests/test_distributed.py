@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import curved_field, grid_nodes
 
 from cfm_fem.cli import main
 from cfm_fem.models.field import FieldMap
@@ -30,19 +31,13 @@ def cluster():
 
 
 def _map(n=7):
-    ax = np.arange(float(n))
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = np.c_[0.03 * pts[:, 0] ** 2, -0.02 * pts[:, 1] * pts[:, 2], 1.0 + 0.1 * pts[:, 2]]
-    return pts, B
+    pts = grid_nodes(n)
+    return pts, curved_field(pts)
 
 
 @pytest.fixture(scope="module")
-def csv_map(tmp_path_factory):
-    pts, B = _map(6)
-    path = tmp_path_factory.mktemp("map") / "map.csv"
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+def csv_map(grid_csv):
+    return grid_csv(6, curved_field)
 
 
 def test_dask_chunks_are_bit_identical_to_one_process(cluster):
@@ -95,6 +90,7 @@ def test_cli_scheduler_gives_the_single_process_outputs(cluster, csv_map, tmp_pa
     assert not (tmp_path / "dask" / ".cfm_fem_chunks").exists()
 
 
+@pytest.mark.slow
 def test_cli_workers_starts_a_local_cluster(csv_map, tmp_path, capsys):
     common = ["sweep", str(csv_map), "--up", "10", "--trials", "100", "--seed", "2"]
     assert main([*common, "--out", str(tmp_path / "one")]) == 0

@@ -33,6 +33,7 @@ def groups(coords, nodes, sizes, scales, seed=1):
     return np.concatenate(pts), np.r_[0, np.cumsum(sizes)]
 
 
+@pytest.mark.slow
 def test_grouped_values_match_the_brute_force_twin_in_and_out_of_the_star():
     fm = scattered_map()
     mesh = build_mesh(fm, "delaunay")

@@ -221,8 +221,8 @@ def test_hull_slivers_removed_only_on_request_and_only_flat_cells_at_the_hull():
 
 def test_points_next_to_removed_hull_cells_are_found():
     """Removing hull cells makes the border non-convex, and walks from the nearest nodes can be
-    blocked by a notch; the cells around the point are then searched (they were not found by
-    the walks alone: 2 of 200 points here)."""
+    blocked by a notch; the cells around the point are then searched (the walks alone miss
+    2 of 200 points here)."""
     pts, fm = _random_cube_map(300)
     interp = LinearInterpolator(fm, "delaunay", "remove")
     rng = np.random.default_rng(2)

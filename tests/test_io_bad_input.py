@@ -101,7 +101,7 @@ CASES = {
         "Bx [T]",
         "column 'Bx [T]' must be a finite number; found inf",
     ),
-    "decimal comma": (  # read as 1000x the values before: "0,125" was taken for 125
+    "decimal comma": (  # "0,125" must not be taken for 125 (a thousands separator)
         "m.csv",
         CSV_HEADER + '"1,000","0,000","2,000","0,100","0,200","0,300"\n',
         2,

@@ -274,7 +274,7 @@ def test_one_solution_and_a_solution_given(tmp_path, cloud):
 
 @pytest.mark.parametrize("tag", ["@t=0", "@ t=0", " @t=0", "@t=0, p=2"])
 def test_a_tag_without_blanks_around_its_at_is_a_tag(tmp_path, cloud, tag):
-    """'mf.Bx(T)@t=0' was one name with no role: "missing column(s) 'Bx', 'By', 'Bz'"."""
+    """'mf.Bx(T)@t=0' is the column Bx of solution t=0, also without blanks around the @."""
     xyz, tets, B = cloud
     names = [f"mf.B{a}(T){tag}" for a in "xyz"]
     header = "% Length unit: mm\n% X Y Z " + " ".join(names) + "\n"

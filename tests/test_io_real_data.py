@@ -11,11 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED_DATA
 
 from cfm_fem.errors import CfmInputError, CfmInputWarning
 from cfm_fem.io import read_field
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 MF_MAP = DATA / "emphatic" / "mfMapMeasured_5mm.txt"
 CYLINDER = DATA / "emphatic" / "CylinderGrid_Section1_231025-112209.txt"
 BODY_SCAN = DATA / "emphatic" / "EMPHATIC_body_scan_5280148.csv"

@@ -74,6 +74,7 @@ def test_trial_keys_match_twin():
 
 
 @pytest.mark.parametrize("path", ["hot", "speed_tau", "chain"])
+@pytest.mark.slow
 def test_pass_pilot_matches_twin(path):
     """Every sample (E_x, E_y, E_z, |E|) of trials t0 .. t0+n-1 at points keyed by their
     index in the whole grid. The collapsed chain promises the reference path's bits (hot
@@ -218,6 +219,7 @@ def test_star_locate_matches_twin_walk(which):
     assert min(seen.values()) > 20, seen
 
 
+@pytest.mark.slow
 def test_star_find_matches_brute_force():
     """On the L-shaped map (star_find's use: a non-convex mesh), points around nodes: the first
     star cell holding the point, as every star cell's coordinates say, or OUTSIDE; nearer to g
@@ -252,6 +254,7 @@ def test_star_find_matches_brute_force():
     assert min(seen.values()) > 20, seen
 
 
+@pytest.mark.slow
 def test_star_recheck_matches_twin_and_its_proofs_hold():
     """Displacements beyond the reach of nodes whose border faces prove nothing (`star_exact`
     False): the twin's cell, coordinates and proven-outside fractions bit for bit; a cell
@@ -302,7 +305,7 @@ def _field(p):
     return np.c_[np.sin(x) * y, np.cos(z) + 0.5 * x * y, 0.3 * x**2 + 1.0]
 
 
-@cache  # built once per session (the scattered cylinder's Delaunay takes ~1 s)
+@cache  # built once per test run (the scattered cylinder's Delaunay takes ~1 s)
 def _notched(which, scale=1.0):
     """Non-convex maps (lengths in mm times ``scale``, non-linear fields of the unscaled
     positions) and the nodes to sweep. ``l_grid``: a 7^3 grid of step 0.5 mm with the
@@ -415,12 +418,9 @@ def test_htm_sweep_on_a_non_convex_mesh_matches_a_brute_force_twin(which, path, 
 
 @pytest.mark.parametrize("mode", ["gauss", "htm"])
 def test_a_node_listed_twice_gets_the_same_numbers_twice(mode):
-    """The star's hash table (`_star_slot`) took a slot whose owner is another node for free,
-    and was never cleared: a node whose star was built again in the same kernel call found its
-    own entries of the first build and got a star of one cell (mode htm: `star_find` then
-    tried that cell alone and counted trials in the others outside; gauss: the walks ran on
-    tables left by other nodes). Every node listed twice in a row, on the faceted cylinder:
-    the numbers of the nodes listed once, bit for bit."""
+    """A node whose star is built twice in one kernel call (`_star_slot`'s hash table holds
+    entries of other nodes) gets its whole star both times. Every node listed twice in a row,
+    on the faceted cylinder: the numbers of the nodes listed once, bit for bit."""
     scale, cfg = (1.0, SweepConfig(up_um=[50.0, 500.0], trials=120, seed=5))
     if mode == "htm":
         scale, cfg = (0.04, SweepConfig(trials=120, seed=5, mode="htm", bench=_bench("chain")))

@@ -435,6 +435,7 @@ def test_face_excess_matches_brute_force_over_all_nodes(seed):
 
 
 @pytest.mark.parametrize("seed", [None, 3])
+@pytest.mark.slow
 def test_exact_search_finds_the_cell_brute_force_finds(seed):
     """`find_cell` (bucket lists) against every cell; `locate_exact` from a walk blocked by the
     notch gives the brute-force verdict too, where `locate` says outside."""
@@ -459,7 +460,7 @@ def test_exact_search_finds_the_cell_brute_force_finds(seed):
             assert twins.barycentric_all(mesh, p)[cell].min() >= -_kernels.BARY_EPS
         plain = _kernels.locate(p, start, mesh.transform, mesh.neighbors, bary)
         blocked += plain < 0 <= want
-    # the plain walk was blocked by the notch that often (Delaunay fills the notch: only the
+    # the plain walk is blocked by the notch that often (Delaunay fills the notch: only the
     # faces the removed hull slivers leave are not supporting planes there)
     assert blocked > 50 if seed is None else (excess > 0).any()
 
@@ -508,9 +509,9 @@ def test_node_reach_matches_twin_and_only_star_cells_come_nearer():
             assert c < 0 or g in mesh.simplices[c]
 
 
-def test_convex_faces_take_the_old_path_bit_for_bit():
+def test_convex_faces_give_the_empty_search_bit_for_bit():
     """Search arrays whose excess is all 0 (every border face a supporting plane, as on a
-    convex map) give the numbers of the empty search, which is the kernels' old path."""
+    convex map) give the numbers of the empty search."""
     rng = np.random.default_rng(5)
     pts = rng.uniform(0, 3, (150, 3))
     B = np.c_[np.sin(pts[:, 0]) * pts[:, 1], np.cos(pts[:, 2]), pts[:, 0] * 0.3 + 1]
@@ -572,6 +573,7 @@ def _faceted_cylinder(n=700, seed=5):
 
 
 @pytest.mark.parametrize("which", ["l_shape", "cylinder"])
+@pytest.mark.slow
 def test_star_exit_verdicts_match_brute_force(which):
     """Trials the star walk finds leaving the star at a node whose border faces are no proof
     (`star_exact` False), within the node's reach: `star_exit` says outside (LEAVES_MESH) only

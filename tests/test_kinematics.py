@@ -8,16 +8,10 @@ import pytest
 
 from cfm_fem import _kernels as K
 from cfm_fem import testing as twins
-from cfm_fem.io.bench_toml import read_reference_bench
 from cfm_fem.models import kinematics as kin
 from cfm_fem.models.bench import ERROR_NAMES, ReadingDelay, error_index
 from cfm_fem.models.mc import Pdf, symmetric_interval
 from cfm_fem.models.rotations import rotation_zyx
-
-
-@pytest.fixture(scope="module")
-def bench():
-    return read_reference_bench()
 
 
 def _rx(a):
@@ -45,6 +39,7 @@ def test_rotation_is_eq4_zyx_product():
     np.testing.assert_array_equal(r_k, r)
 
 
+@pytest.mark.slow
 def test_zero_errors_give_zero_error(bench):
     q = bench.grid_points()
     e = kin.probe_errors_for_bench(bench, np.zeros((1, 21)), q)
@@ -143,6 +138,7 @@ def test_collapsed_trial_terms_match_the_chain(stack):
     assert np.abs(e - ref).max() < 1e-12
 
 
+@pytest.mark.slow
 def test_the_seam_kernels_are_callable_from_user_njit(bench):
     g = kin.kernel_geometry(bench)
     _, nkey, fkey = kin.geometry._keys(5)
@@ -290,6 +286,7 @@ def test_streaming_statistics_are_exact(bench):
         np.testing.assert_allclose(v[:, :3, t], ref, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     q = bench.grid_points()[::37]
     monkeypatch.setattr(
@@ -347,6 +344,7 @@ def test_windows_missed_by_a_tiny_pilot_are_recounted(bench):
     assert any("widened" in n for n in res.notes)
 
 
+@pytest.mark.slow
 def test_generic_path_position_dependent_and_speed_tau(bench, monkeypatch):
     errors = list(bench.errors)
     k = error_index("delta_z(z)")

@@ -37,15 +37,9 @@ IN_USE = (
 
 
 @pytest.fixture
-def small_map(tmp_path):
+def small_map(grid_csv):
     """A 4 x 4 x 4 grid with a linear field (64 nodes: a sweep of it takes well under 1 s)."""
-    ax = np.arange(4.0)
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = pts @ np.diag([0.2, -0.2, 0.1]) + [0.0, 0.0, 1.0]
-    path = tmp_path / "map.csv"
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+    return grid_csv(4, lambda pts: pts @ np.diag([0.2, -0.2, 0.1]) + [0.0, 0.0, 1.0])
 
 
 def _sweep(field, out, *extra):
@@ -79,8 +73,7 @@ def _hold(out: Path, record: dict | None = HOLDER) -> int:
 def test_second_sweep_into_a_folder_in_use_exits_2_and_changes_nothing(
     small_map, tmp_path, capsys, layout
 ):
-    """The live run's chunk store, maps and lock record stay byte for byte (the old code
-    deleted the store and rewrote the maps)."""
+    """The live run's chunk store, maps and lock record stay byte for byte."""
     out = tmp_path / "res"
     assert _sweep(small_map, out, "--keep-chunks") == 0  # maps and a chunk store, as mid-run
     (out / "uf_up5um.vtu").write_bytes((out / "uf_up1um.vtu").read_bytes())  # a map of its own
@@ -177,8 +170,8 @@ def test_the_lock_file_is_left_by_reruns_and_clean_ups(small_map, tmp_path, caps
 
 
 def test_a_run_that_fails_leaves_no_lock_file_and_no_folder(small_map, tmp_path):
-    """A guard, not a defect of the old code (it passes there too): the lock file and the
-    folders made for it go again when the run fails, as the outputs never appeared."""
+    """The lock file and the folders made for it go again when the run fails, as the outputs
+    never appeared."""
     bad = tmp_path / "bad.csv"
     bad.write_text(small_map.read_text().replace("\n1,", "\nx,", 1))
     new = tmp_path / "a" / "b" / "res"

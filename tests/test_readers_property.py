@@ -15,6 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import cfm_fem.io.recordings as recordings_io
 from cfm_fem.errors import CfmInputError
 from cfm_fem.io import read_comsol, read_field, read_meshfile, read_opera, read_table
 from cfm_fem.io.bench_toml import parse_bench
@@ -137,6 +138,7 @@ READERS = {
 @pytest.mark.parametrize("fmt", list(READERS))
 @SETTINGS
 @given(fm=fieldmaps(), ops=st.lists(mutation, max_size=4))
+@pytest.mark.slow
 def test_text_readers(folder, fmt, fm, ops):
     read, name = READERS[fmt]
     path = folder / name
@@ -211,7 +213,7 @@ def recordings(draw):
 @SETTINGS
 @given(rec=recordings(), ops=st.lists(mutation, max_size=4))
 def test_recording_readers(folder, rec, ops):
-    mod = pytest.importorskip("cfm_fem.io.recordings")
+    mod = recordings_io
     kind, text = rec
     path = folder / "rec.csv"
     path.write_bytes(_mutate(text.encode(), ops))
@@ -233,7 +235,7 @@ def test_mutation_helper():
 
 
 def test_harmonics_not_utf8_found_by_hypothesis(tmp_path):
-    # a Latin-1 byte at the start raised UnicodeDecodeError before: now read as Latin-1
+    # a file that is not UTF-8 (a Latin-1 byte at the start) is read as Latin-1
     path = tmp_path / "h.csv"
     path.write_bytes(b"\x80" + HARMONICS[1:])
     _check("harmonics", read_harmonics, path)

@@ -125,6 +125,7 @@ def test_tracker_report(tmp_path):
     assert row(p.tables["iso230"], p.tables["iso230"][1][0])[7] == fmt(iso["B"])
 
 
+@pytest.mark.slow
 def test_fig4_report_linear_law(tmp_path, capsys):
     """Linear quadrupole map: U_f = 1.96 U_p G / B_ref at every body node."""
     g = np.linspace(-8.0, 8.0, 9)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import pyvista as pv
+from conftest import curved_field, grid_nodes, write_map_csv
 
 from cfm_fem.cli import main
 from cfm_fem.io._atomic import TEMPORARY_AGE_S
@@ -23,12 +24,8 @@ from cfm_fem.io.sweep_out import read_provenance
 
 
 def _write_map(path, n):
-    ax = np.arange(float(n))
-    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    B = np.c_[0.03 * pts[:, 0] ** 2, -0.02 * pts[:, 1] * pts[:, 2], 1.0 + 0.1 * pts[:, 2]]
-    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
-    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
-    return path
+    pts = grid_nodes(n)
+    return write_map_csv(path, pts, curved_field(pts))
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +58,7 @@ def _same_outputs(a, b, ups):
     return sa, sb
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_numbers(big_map, tmp_path, capsys):
     args = ["sweep", str(big_map), "--up", "0:40:20", "--trials", "4000", "--seed", "9",
             "--chunk-nodes", "24"]  # fmt: skip

@@ -152,6 +152,7 @@ def _cylinder_nodes(n=3000, seed=5):
 
 
 @pytest.mark.parametrize("outside", ["exclude", "extrapolate"])
+@pytest.mark.slow
 def test_hull_slivers_removed_by_slabs_as_by_the_whole_map(tmp_path, outside):
     """--hull-slivers remove with --slabs: every slab removes, from the cells around its own
     nodes, the cells the whole map removes (given the whole map's hull, the test is local), and
@@ -399,6 +400,7 @@ def test_l_shaped_map_slabs_equal_the_in_memory_run_bit_for_bit(tmp_path):
 
 
 @pytest.mark.parametrize("k", [3, 4])
+@pytest.mark.slow
 def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
     """--hull-slivers keep with --slabs on random nodes: a suspect border face that holds an
     own node led that node's star into the halo sentinel cell (tables written past their end)
@@ -425,6 +427,7 @@ def test_kept_hull_slivers_slabs_agree_with_the_in_memory_run(tmp_path, k):
         np.testing.assert_allclose(a["U_f_units"], b["U_f_units"], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_jittered_maps_slabs_equal_the_in_memory_run(tmp_path):
     """Scattered nodes beside a block of lattice nodes (co-spherical sets: their cells are flat
     unless the nodes are jittered). The jitter is keyed by each node's coordinates and scaled
@@ -483,8 +486,8 @@ def test_slabs_of_co_spherical_nodes_triangulate_them_as_the_whole_map(tmp_path,
 
 @pytest.mark.parametrize("seed", [-1, 2**63, True], ids=["negative", "too_large", "bool"])
 def test_run_slab_sweep_refuses_a_bad_seed_before_reading_or_writing(tmp_path, monkeypatch, seed):
-    """The API checked the seed only when the first slab was prepared: after staging the file
-    into a work folder made in out_dir. Now up front, with the CLI's message."""
+    """A bad seed is refused with the CLI's message before the file is staged or anything is
+    made in out_dir."""
     import cfm_fem.io.slab_files
     import cfm_fem.workflows.sweep.slabs
     from cfm_fem.errors import check_seed

@@ -264,8 +264,8 @@ def test_bad_outside_rule():
 )
 @pytest.mark.parametrize("mode", ["gauss", "htm"])
 def test_bad_seed_refused_by_the_api_as_by_the_cli(seed, message, mode):
-    """The API checked trials, mode, coverage but not the seed: a float was truncated, a
-    negative or too large one reached numba. Now the CLI's rule and message (one function)."""
+    """The API refuses a float, negative or too large seed with the CLI's rule and message
+    (one function)."""
     from cfm_fem.cli._checks import check_seed as cli_check_seed
 
     with pytest.raises(CfmInputError) as api:
@@ -381,9 +381,9 @@ def _l_shape_outside(p, sigma, half=0.5):
 def test_outside_fraction_at_a_re_entrant_edge_is_the_geometric_one(up_um, where):
     """Trials that cross the notch of an L-shaped map (x > 0, y > 0 removed) into its other
     arm are inside: on the edge x = y = 0, far from other faces, 1/4 of them leave the map
-    (every trial beyond a border face at the node used to count as out: 0.27-0.29), and next
-    to it the Gaussian probability of the removed quadrant and the box (at (0, 0.1) with
-    U_p = h: 0.444, where 0.518 used to be counted)."""
+    (counting every trial beyond a border face at the node as out would give 0.27-0.29), and
+    next to it the Gaussian probability of the removed quadrant and the box (at (0, 0.1) with
+    U_p = h: 0.444, not 0.518)."""
     from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     fm = _l_shape_map()
@@ -406,11 +406,10 @@ def test_outside_fraction_at_a_re_entrant_edge_is_the_geometric_one(up_um, where
 @pytest.mark.parametrize("shape", ["box", "notch"])
 @pytest.mark.parametrize("mode", ["gauss", "htm"])
 def test_trials_whose_walk_cycles_are_settled_not_lost(mode, shape):
-    """A trial whose walk cycles (`WALK_FAILED`, non-Delaunay native meshes) was counted lost:
-    its node had no U_f (`complete` false) and ``walk_failed_fraction`` said so. The kernels now
-    settle it exactly (`cfm_fem._kernels.settle_walk`: the bucket search on a non-convex map,
-    every cell on a convex one): with walks made to cycle in some cells, the statistics are
-    those of the intact mesh, bit for bit."""
+    """A trial whose walk cycles (`WALK_FAILED`, non-Delaunay native meshes) is not lost: the
+    kernels settle it exactly (`cfm_fem._kernels.settle_walk`: the bucket search on a
+    non-convex map, every cell on a convex one): with walks made to cycle in some cells, the
+    statistics are those of the intact mesh, bit for bit."""
     import dataclasses
 
     from cfm_fem.io.bench_toml import read_reference_bench

@@ -1,8 +1,8 @@
 """Option checks shared by the commands, run before any computation or output.
 
-An output folder that cannot be made, or a seed numba cannot take, used to surface as a traceback
-(``FileExistsError``, numba's ``TypingError``) after the whole computation, sometimes with part of
-the output written. Each command calls these first instead.
+An output folder that cannot be made, or a seed numba cannot take, would otherwise surface as a
+traceback (``FileExistsError``, numba's ``TypingError``) after the whole computation, sometimes
+with part of the output written. Each command calls these first.
 """
 
 from __future__ import annotations

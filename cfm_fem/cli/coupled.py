@@ -132,7 +132,7 @@ def _parse_z(text):
 
 #: Most scan points of --radius/--step: each point is a full Monte Carlo of --trials (default
 #: 1e5) probe positions, so 100,000 points are already hours; --step 0.002 (metres typed as mm)
-#: asked for 78.5 million points and a 1.2 GB array before the run.
+#: would ask for 78.5 million points and a 1.2 GB array before the run.
 MAX_REGION_POINTS = 100_000
 
 

@@ -134,7 +134,7 @@ def add_args(p):
         "map), holding one piece's statistics in memory at a time; for maps whose statistics "
         "do not fit in memory",
     )
-    add_slab_args(p)  # issue 6: maps larger than memory
+    add_slab_args(p)  # maps larger than memory
     add_reader_args(p)
 
 
@@ -412,7 +412,7 @@ def _run(args, up) -> int:
     from ..workflows.sweep.resume import ResumableRun, describe_sweep
 
     fm = None
-    if args.slabs is not None or args.max_memory is not None:  # issue 6: out of core
+    if args.slabs is not None or args.max_memory is not None:  # out of core
         rc, fm = _run_slabs(args, up)  # fm: a map that is not 3-D, read while staging
         if rc is not None:
             return rc

@@ -664,7 +664,7 @@ def table_fieldmap(
 
 @dataclass
 class TableLayout:
-    """Which header column gives each of x, y, z, Bx, By, Bz and the unit scales (issue 6).
+    """Which header column gives each of x, y, z, Bx, By, Bz and the unit scales.
 
     Attributes
     ----------

@@ -35,11 +35,11 @@ __all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench",
 REFERENCE_BENCH = "cfm_reference_bench.toml"
 
 #: Most scan points of a bench grid: kinematics needs about 30 kB per point (100,800 points
-#: with 1,000 trials: 3.1 GB, 40 s), so 100,000 is a few GB; num = 1e8 asked for 54 GB at once.
+#: with 1,000 trials: 3.1 GB, 40 s), so 100,000 is a few GB; num = 1e8 would ask for 54 GB at once.
 MAX_GRID_POINTS = 100_000
 #: Largest stroke, and largest error a bench may describe (|mean| + 10 std, times the largest
 #: profile value): 1e5 mm and 1e3 mm (1 m) for a translation, 1 rad for an angle, 1e6 um for
-#: vibration and reading delay. Larger values are typos or overflow: std = 1e300 um made the
+#: vibration and reading delay. Larger values are typos or overflow: std = 1e300 um would make the
 #: kinematics Monte Carlo loop for ever on NaN positions.
 MAX_STROKE_MM = 1e5
 MAX_ERROR = {"length": 1e3, "angle": 1.0}

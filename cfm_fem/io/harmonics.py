@@ -36,8 +36,8 @@ __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "re
 
 CONVENTIONS = ("tesla", "paper_units")
 #: Highest harmonic order read. Rotating coils give n <= ~30 and FEM harmonic analyses rarely go
-#: past 100; every order up to the highest is stored and summed at each point, so n = 1e8 ran for
-#: more than 5 minutes before any output.
+#: past 100; every order up to the highest is stored and summed at each point, so n = 1e8 would run
+#: for more than 5 minutes before any output.
 MAX_ORDER = 1000
 _REQUIRED = ("n", "bn", "an")
 _SPELLING = {"n": "n", "bn": "Bn", "an": "An"}

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.spatial
+from threadpoolctl import threadpool_limits
 
 from .. import _kernels
 from ..errors import CfmInputError
@@ -252,6 +253,7 @@ def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
     return nb.reshape(m, k)
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def barycentric_transforms(coords, simplices):
     """scipy-layout barycentric transforms and signed measures (volume or area) of simplices."""
     d = coords.shape[1]
@@ -267,6 +269,7 @@ def barycentric_transforms(coords, simplices):
     return T, det / (2.0 if d == 2 else 6.0)
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def build_mesh(
     fm: FieldMap,
     method: str = "auto",
@@ -445,6 +448,7 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def circumspheres(coords, simplices):
     """Circumcentres (m, d) and squared circumradii (m,) of simplices (m, d + 1), in the units
     of ``coords`` (n, d); NaN or inf for a flat simplex."""
@@ -468,6 +472,7 @@ def convex_hull_points(points) -> np.ndarray:
     return points[np.sort(scipy.spatial.ConvexHull(points).vertices)]
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # scipy's find_simplex: 3x3 solves
 def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int = 1 << 18):
     """Flat cells on the hull of a Delaunay triangulation.
 
@@ -798,7 +803,7 @@ def exact_search(mesh: SimplexMesh) -> tuple:
         at nodes whose cells are not all face-connected, `cfm_fem._kernels.star_sizes`) and
         `cell_buckets` (`cfm_fem._kernels.locate_exact`, `cfm_fem._kernels.star_recheck`);
         `no_search` when every border face is a supporting plane of the mesh (convex: nothing
-        to search, the kernels' old path).
+        to search).
     """
     excess = face_excess(mesh.coords, mesh.simplices, mesh.transform, mesh.neighbors)
     if not (excess > 0.0).any():

@@ -139,6 +139,12 @@ def fig4_curve(up_um, series: dict, paper=None, analytic=None) -> bytes:
     return png_bytes(fig)
 
 
+def _marker_size(n_points: int, area_pts: float) -> float:
+    """Scatter marker area (pt^2) that fills about a third of ``area_pts`` (pt^2) for
+    ``n_points`` points, between 6 and 60: dense maps stay readable, sparse ones visible."""
+    return float(np.clip(area_pts / 3.0 / max(n_points, 1), 6.0, 60.0))
+
+
 def fig4_plane(points, uf, up_um, title: str) -> bytes:
     """U_f on the longitudinal x-z plane, one panel per U_p (nodes near y = 0).
 
@@ -156,28 +162,34 @@ def _xz_panels(panels, title: str) -> bytes:
     """Nodes on z (across) and x (up) coloured by U_f on one scale, one panel per
     (points (k, 3) mm, uf (k,) units, title); NaN (no U_f figure) drawn grey."""
     n = len(panels)
-    cols = min(3, n)
+    cols = min(2, n)
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(
-        rows, cols, figsize=(4.2 * cols, 2.8 * rows), squeeze=False, constrained_layout=True
+        rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False, constrained_layout=True
     )
     finite = [uf[np.isfinite(uf)] for _, uf, _ in panels]
     vmax = max((float(v.max()) for v in finite if v.size), default=1.0) or 1.0
     sc = None
     for k, (pts, uf, label) in enumerate(panels):
         ax = axes[k // cols][k % cols]
+        size = _marker_size(len(pts), 6.0 * 72 * 2.9 * 72 * 0.6)
         bad = ~np.isfinite(uf)
-        ax.scatter(pts[bad, 2], pts[bad, 0], s=3, color="0.8")
-        sc = ax.scatter(pts[~bad, 2], pts[~bad, 0], c=uf[~bad], s=4, vmin=0, vmax=vmax)
-        ax.set_title(label, fontsize=8)
-        ax.set_xlabel("z [mm]", fontsize=7)
-        ax.set_ylabel("x [mm]", fontsize=7)
-        ax.tick_params(labelsize=6)
+        ax.scatter(pts[bad, 2], pts[bad, 0], s=size, marker="s", linewidths=0, color="0.8")
+        sc = ax.scatter(
+            pts[~bad, 2], pts[~bad, 0], c=uf[~bad], s=size, marker="s", linewidths=0,
+            cmap="viridis", vmin=0, vmax=vmax,
+        )  # fmt: skip
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("z [mm]", fontsize=9)
+        ax.set_ylabel("x [mm]", fontsize=9)
+        ax.tick_params(labelsize=8)
     for k in range(n, rows * cols):
         axes[k // cols][k % cols].set_visible(False)
     if sc is not None:
-        fig.colorbar(sc, ax=axes.ravel().tolist(), label="U_f [units]")
-    fig.suptitle(title, fontsize=9)
+        cb = fig.colorbar(sc, ax=axes.ravel().tolist(), shrink=0.9)
+        cb.set_label("U_f (95 %) [units of 1e-4 B_ref]", fontsize=9)
+        cb.ax.tick_params(labelsize=8)
+    fig.suptitle(title, fontsize=11)
     return png_bytes(fig)
 
 
@@ -191,20 +203,25 @@ def fig10_systematic(points, mean_um, title: str) -> bytes:
     mean_um : ndarray, shape (m, 3), um
         Systematic error per point and axis.
     """
-    fig = plt.figure(figsize=(12.5, 3.2))
+    fig = plt.figure(figsize=(11.0, 8.6))
     norm = np.sqrt((mean_um**2).sum(1))
     panels = [(f"E_{a}", mean_um[:, k]) for k, a in enumerate("xyz")] + [("|E|", norm)]
+    size = _marker_size(len(points), 150.0 * 150.0)
     for k, (name, v) in enumerate(panels):
-        ax = fig.add_subplot(1, 4, k + 1, projection="3d")
-        sc = ax.scatter(points[:, 0], points[:, 2], points[:, 1], c=v, cmap="coolwarm", s=12)
-        ax.set_xlabel("x", fontsize=7)
-        ax.set_ylabel("z", fontsize=7)
-        ax.set_zlabel("y", fontsize=7)
-        ax.tick_params(labelsize=6)
-        ax.set_title(f"systematic {name} [um]", fontsize=8)
-        cb = fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12)
-        cb.ax.tick_params(labelsize=6)
-    fig.suptitle(title, fontsize=9)
+        ax = fig.add_subplot(2, 2, k + 1, projection="3d")
+        sc = ax.scatter(
+            points[:, 0], points[:, 2], points[:, 1], c=v, cmap="coolwarm", s=size, depthshade=False
+        )
+        ax.set_xlabel("x [mm]", fontsize=9, labelpad=6)
+        ax.set_ylabel("z [mm]", fontsize=9, labelpad=6)
+        ax.set_zlabel("y [mm]", fontsize=9, labelpad=6)
+        ax.tick_params(labelsize=8)
+        ax.set_title(f"systematic {name}", fontsize=10)
+        cb = fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.14)
+        cb.set_label(f"{name} [um]", fontsize=9)
+        cb.ax.tick_params(labelsize=8)
+    fig.suptitle(title, fontsize=11)
+    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.92, wspace=0.15, hspace=0.15)
     return png_bytes(fig)
 
 

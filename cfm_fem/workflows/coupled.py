@@ -39,6 +39,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .. import _kernels as K
 from ..errors import CfmInputError
@@ -263,6 +264,7 @@ def _probe_factors_rng(seed: int, i: int) -> np.random.Generator:
     )
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def run_coupled(
     field_model: FieldModel,
     bench: Bench,

@@ -136,15 +136,20 @@ def figures(summary: dict, arrays: dict) -> dict:
     ax[0].set_xticks(x, labels)
     ax[0].set_ylabel(u)
     ax[0].set_title(
-        f"chi2/dof {fit['chi2_dof_before']:.3g} -> {fit['chi2_dof_after']:.3g}", fontsize=9
+        f"RMS of the residuals; chi2/dof {fit['chi2_dof_before']:.3g} -> "
+        f"{fit['chi2_dof_after']:.3g}",
+        fontsize=10,
     )
-    ax[0].legend()
+    ax[0].set_ylim(0, 1.35 * max(max(before), max(after), 1e-300))  # room for the legend
+    ax[0].legend(loc="upper right", ncol=2)
     rb, ra = arrays["resid_before"].ravel(), arrays["resid_after"].ravel()
     lim = np.quantile(np.abs(rb), 0.999)
     bins = np.linspace(-lim, lim, 80)
-    ax[1].hist(rb, bins, histtype="step", label="baseline")
-    ax[1].hist(ra, bins, histtype="step", label="with effects")
+    ax[1].hist(rb, bins, histtype="step", lw=2.5, alpha=0.6, label="baseline")
+    ax[1].hist(ra, bins, histtype="step", lw=1.2, ls="--", label="with effects")
     ax[1].set_xlabel(f"residual [{u}]")
+    ax[1].set_ylabel("count")
+    ax[1].set_title("residuals of every reading", fontsize=10)
     ax[1].legend()
     f1.tight_layout()
     f2, ax = plt.subplots(3, 3, figsize=(11, 8), sharey="row")
@@ -152,12 +157,13 @@ def figures(summary: dict, arrays: dict) -> dict:
     za = arrays["zp_after"]
     for c in range(3):
         for a in range(3):
-            ax[c, a].plot(pp[:, a], zp[:, c], ".", ms=2, label="baseline")
-            ax[c, a].plot(pp[:, a], za[:, c], ".", ms=2, label="with effects")
+            ax[c, a].plot(pp[:, a], zp[:, c], "o", ms=5, mfc="none", label="baseline")
+            ax[c, a].plot(pp[:, a], za[:, c], ".", ms=4, label="with effects")
             ax[c, a].axhline(0, color="k", lw=0.5)
             if c == 2:
                 ax[c, a].set_xlabel(f"{'xyz'[a]} [mm]")
-        ax[c, 0].set_ylabel(f"z of mean {'xyz'[c]}")
-    ax[0, 0].legend(fontsize=7)
+        ax[c, 0].set_ylabel(f"mean residual {'xyz'[c]} / its std")
+    ax[0, 0].legend(fontsize=8)
+    f2.suptitle("standardised mean residual per point against the point's position", fontsize=11)
     f2.tight_layout()
     return {"fit": f1, "residuals": f2}

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ... import _kernels
 from ...errors import CfmInputError, check_seed
@@ -51,6 +52,7 @@ def check_up_distinct(up_um, option: str = "up_um") -> None:
         seen[label] = u
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     """Gradient of the piecewise-linear field at each node, volume-weighted over incident cells.
 
@@ -72,6 +74,7 @@ def node_gradients(mesh: SimplexMesh, B: np.ndarray) -> np.ndarray:
     return acc @ mesh.basis.T  # local -> map frame
 
 
+@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 1 << 18):
     """Gradient at each node by a least-squares fit of B_j - B_i = G (x_j - x_i) over the edges
     of its cells, each edge weighted by 1/|x_j - x_i|^2 (and counted once per cell); mesh frame.

@@ -1,0 +1,128 @@
+"""Write docs/commands.md: every cfm-fem command with its ``--help`` text, taken from the parser.
+
+    python scripts/make_commands_doc.py            # rewrite docs/commands.md
+    python scripts/make_commands_doc.py --check    # exit 1 if docs/commands.md is out of date
+
+The option lists are the parser's own help, formatted at 100 columns, so the page cannot drift
+from the command line; the short text above each list and the examples are kept here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "commands.md"
+
+INTRO = """\
+# Commands
+
+`cfm-fem COMMAND --help` prints the options of a command; this page holds the same text for
+every command (generated from the parser by `python scripts/make_commands_doc.py`), with an
+example above each list. `python -m cfm_fem` is the same program as `cfm-fem`.
+
+Every command: exit code 0 on success, 2 on bad input (one message naming the file, line and
+column and what was expected; nothing written), 1 when interrupted (Ctrl-C). A command that
+writes into `--out DIR` holds a lock on `DIR/.cfm_fem.lock` while it runs; a second run into the
+same folder stops at once with exit code 2, naming the run that holds it. Long work shows a
+progress bar on a terminal and a plain progress line every few seconds when the output goes to
+a file. What each command writes is described in [outputs.md](outputs.md); the input files in
+[formats.md](formats.md).
+"""
+
+#: (command, example, summary, what it is for), in the order ``cfm-fem --help`` lists them.
+COMMANDS = [
+    (
+        "sweep",
+        "cfm-fem sweep meshes/quadrupole.vtu --up 0:50:10 --out results/",
+        "U_f maps of a field map for a sweep of U_p",
+        "Per-node U_f maps of a field map for a sweep of positioning uncertainties U_p "
+        "(Monte Carlo, GUM Supplement 1). `--mode htm` draws the probe error from the bench "
+        "model instead of N(0, U_p). `--pieces`, `--slabs`/`--max-memory`, `--workers`/"
+        "`--scheduler` and `--resume` change how the work is split, never the numbers.",
+    ),
+    (
+        "kinematics",
+        "cfm-fem kinematics --trials 100000 --out kin/",
+        "positioning error of the bench (Table IV)",
+        "The probe positioning error of the bench at the 936 points of the scan grid: the 21 "
+        "geometric errors, vibration and reading delay through the exact HTM chain (paper "
+        "Table IV), with the uncertainty budget per error and axis.",
+    ),
+    (
+        "tolerance",
+        "cfm-fem tolerance --target 15 --out tol/",
+        "tolerances for a target U_p",
+        "Design in reverse: how far each of the 21 tolerances may be loosened, or must be "
+        "tightened, to meet a target U_p per axis.",
+    ),
+    (
+        "coupled",
+        "cfm-fem coupled --out coupled/",
+        "field error of positioning and probe together (Table V)",
+        "Field error from positioning and Hall probe together on a multipole or a field map "
+        "(paper eq. 12-14, pooled as Table V), with an HTML report.",
+    ),
+    (
+        "fig4",
+        "cfm-fem fig4 meshes/quadrupole.vtu --out fig4/",
+        "U_f against U_p (Fig. 4)",
+        "U_f against U_p on a field map as a table and plots (paper Fig. 4).",
+    ),
+    (
+        "compare",
+        "cfm-fem compare --tracker rec/tracker.csv --out cmp/",
+        "recordings against the simulation",
+        "Recordings (laser tracker or Hall-probe map) against the simulation: experimental "
+        "Table IV / V, standardised residuals per point, interval views (paper Fig. 12, 13), "
+        "ISO 230-2 of single-axis bidirectional runs.",
+    ),
+    (
+        "diagnose",
+        "cfm-fem diagnose --tracker rec/tracker.csv --out diag/",
+        "why simulation and recording disagree",
+        "Where simulation and recording disagree, and why: calibrates the bench, locates "
+        "significant residuals, attributes them to a catalogue of physical effects, refits "
+        "and advises. Method and validation: [diagnosis.md](diagnosis.md).",
+    ),
+]
+
+
+def help_text(name: str) -> str:
+    """``cfm-fem NAME --help`` at 100 columns."""
+    os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal width: fixed for the page
+    from cfm_fem.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name].format_help().rstrip() + "\n"
+
+
+def page() -> str:
+    parts = [INTRO]
+    parts.append("| command | what for |\n|---|---|\n")
+    parts.append("".join(f"| [`{name}`](#{name}) | {short} |\n" for name, _, short, _ in COMMANDS))
+    for name, example, _, what in COMMANDS:
+        parts.append(f"\n## {name}\n\n{what}\n\n    {example}\n\n```text\n{help_text(name)}```\n")
+    return "\n".join(parts[:1]) + "\n" + "".join(parts[1:])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--check", action="store_true", help="exit 1 if the page is out of date")
+    args = p.parse_args(argv)
+    text = page()
+    if args.check:
+        if PAGE.read_text(encoding="utf-8") != text:
+            print(f"{PAGE} is out of date: run python scripts/make_commands_doc.py")
+            return 1
+        return 0
+    PAGE.write_text(text, encoding="utf-8")
+    print(f"wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
