@@ -29,6 +29,7 @@ import warnings
 import numpy as np
 
 from cfm_fem import _kernels
+from cfm_fem.io import read_field
 from cfm_fem.models.interpolation import (
     _delaunay,
     barycentric_transforms,
@@ -37,7 +38,6 @@ from cfm_fem.models.interpolation import (
     face_neighbors,
     hull_sliver_cells,
 )
-from cfm_fem.io import read_field
 from cfm_fem.workflows.sweep.problem import edge_fit_gradients, node_gradients
 
 COMPETITORS = {
