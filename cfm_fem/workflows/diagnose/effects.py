@@ -527,9 +527,47 @@ def _baseline_3d(prob, base):
     return j3
 
 
-def fringe_field_3d(prob):
+def _search_edges(obj, delta, zmin, zmax):
+    """Edges and fringe length of the soft ends that best explain the residual: a grid search
+    of each end alone (the other far away), then Nelder-Mead on both together.
+
+    ``obj(D)``: the MAP objective of the residual less D against the calibrated baseline;
+    ``delta(th)``: D of the soft-end model with edges and length ``th`` (mm).
+    """
     from scipy.optimize import minimize
 
+    zc, span = 0.5 * (zmin + zmax), zmax - zmin
+    lams = np.geomspace(1.0, span / 4.0, 12)
+    far = 30.0  # edge this many fringe lengths outside the map: no signature
+    best = []
+    for side in (1.0, -1.0):  # exit end, then entry end, the other one far away
+        top = (np.inf, None)
+        for lam in lams:
+            for u in np.linspace(0.0, 1.0, 41):
+                ze = zc + side * (u * (0.5 * span + 10 * lam))
+                th = (
+                    (zmin - far * lams[-1], ze, lam)
+                    if side > 0
+                    else (ze, zmax + far * lams[-1], lam)
+                )
+                v = obj(delta(th))
+                top = min(top, (v, th), key=lambda t: t[0])
+        best.append(top[1])
+    th0 = (best[1][0], best[0][1], np.sqrt(best[0][2] * best[1][2]))
+
+    def f(x):
+        return obj(delta((x[0], x[1], np.exp(x[2]))))
+
+    res = minimize(
+        f,
+        [th0[0], th0[1], np.log(th0[2])],
+        method="Nelder-Mead",
+        options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600},
+    )
+    return res.x[0], res.x[1], float(np.exp(res.x[2]))
+
+
+def fringe_field_3d(prob):
     from .calibrate import fit_map, stack
     from .problem import noise_sigma
 
@@ -563,35 +601,8 @@ def fringe_field_3d(prob):
     sigma = noise_sigma(prob, resid0)[0]
     obj = _Projector(prob, sigma, base, uinv, len(upts))
     zmin, zmax = z.min(), z.max()
-    zc, span = 0.5 * (zmin + zmax), zmax - zmin
-    lams = np.geomspace(1.0, span / 4.0, 12)
-    far = 30.0  # edge this many fringe lengths outside the map: no signature
-    best = []
-    for side in (1.0, -1.0):  # exit end, then entry end, the other one far away
-        top = (np.inf, None)
-        for lam in lams:
-            for u in np.linspace(0.0, 1.0, 41):
-                ze = zc + side * (u * (0.5 * span + 10 * lam))
-                th = (
-                    (zmin - far * lams[-1], ze, lam)
-                    if side > 0
-                    else (ze, zmax + far * lams[-1], lam)
-                )
-                v = obj(delta(th))
-                top = min(top, (v, th), key=lambda t: t[0])
-        best.append(top[1])
-    th0 = (best[1][0], best[0][1], np.sqrt(best[0][2] * best[1][2]))
-
-    def f(x):
-        return obj(delta((x[0], x[1], np.exp(x[2]))))
-
-    res = minimize(
-        f,
-        [th0[0], th0[1], np.log(th0[2])],
-        method="Nelder-Mead",
-        options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600},
-    )
-    zi, zo, lam = res.x[0], res.x[1], float(np.exp(res.x[2]))
+    span = zmax - zmin
+    zi, zo, lam = _search_edges(obj, delta, zmin, zmax)
     # an end is estimated only inside the z range the data cover: beyond it the data see a
     # tail, and an edge placed there would be an extrapolation, not a finding
     inside = [zmin < zi < zmax, zmin < zo < zmax]

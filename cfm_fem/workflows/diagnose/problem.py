@@ -281,6 +281,53 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
     return out
 
 
+def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> list:
+    """The magnet-to-bench registration (translation, small rotation about the magnet origin)
+    and the Hall gains as baseline columns of a Hall map, with their priors."""
+    n = len(p)
+    reg = np.zeros((n, 3, 6))
+    reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = URAD
+        reg[:, :, 3 + a] = np.cross(e, B0) - np.einsum("nij,nj->ni", G, np.cross(e, p))
+    gain = np.zeros((n, 3, 3))
+    for i in range(3):
+        gain[:, i, i] = B0[:, i] * 1e-2
+    return [
+        Columns(
+            reg,
+            ["magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll"],
+            ["um"] * 3 + ["urad"] * 3,
+            np.zeros(6),
+            np.r_[np.full(3, reg_std_mm / UM), np.full(3, reg_std_rad / URAD)],
+            "registration",
+        ),
+        Columns(
+            gain,
+            ["gain_x", "gain_y", "gain_z"],
+            ["%"] * 3,
+            np.zeros(3),
+            np.full(3, gain_std_pct),
+            "probe",
+        ),  # fmt: skip
+    ]
+
+
+def _reference_error(field_fn, upts, spacing_mm, nodes):
+    """Interpolation error variance of a linear reference map at the distinct points, T^2: zero
+    at a node, its full size half a spacing away."""
+    from .noise import reference_error_var
+
+    var = reference_error_var(field_fn, upts, spacing_mm)
+    if nodes is not None:
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(nodes).query(upts)
+        var *= np.clip(2.0 * d / spacing_mm, 0.0, 1.0)[:, None] ** 2
+    return var
+
+
 def hall_problem(
     rec,
     field_fn,
@@ -330,7 +377,6 @@ def hall_problem(
     B0, G = B0u[uinv], Gu[uinv]
     scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
     y = rec.B - B0
-    n = len(rec)
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
@@ -359,50 +405,14 @@ def hall_problem(
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         nv = bench.noise_std_mm() ** 2
         var_known = np.einsum("nik,k->ni", lever**2, nv)
-    reg = np.zeros((n, 3, 6))
-    reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
-    for a in range(3):
-        e = np.zeros(3)
-        e[a] = URAD
-        reg[:, :, 3 + a] = np.cross(e, B0) - np.einsum("nij,nj->ni", G, np.cross(e, p))
-    blocks.append(
-        Columns(
-            reg,
-            ["magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll"],
-            ["um"] * 3 + ["urad"] * 3,
-            np.zeros(6),
-            np.r_[np.full(3, reg_std_mm / UM), np.full(3, reg_std_rad / URAD)],
-            "registration",
-        )
-    )
-    gain = np.zeros((n, 3, 3))
-    for i in range(3):
-        gain[:, i, i] = B0[:, i] * 1e-2
-    blocks.append(
-        Columns(
-            gain,
-            ["gain_x", "gain_y", "gain_z"],
-            ["%"] * 3,
-            np.zeros(3),
-            np.full(3, gain_std_pct),
-            "probe",
-        )
-    )
+    blocks += _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct)
     notes.append(
         f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
         f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
     )
     var_ref = None
     if ref_spacing_mm is not None and not smooth:
-        from .noise import reference_error_var
-
-        var_u = reference_error_var(field_fn, upts, ref_spacing_mm)
-        if ref_nodes is not None:  # exact at the nodes, largest half-way between them
-            from scipy.spatial import cKDTree
-
-            d, _ = cKDTree(ref_nodes).query(upts)
-            var_u *= np.clip(2.0 * d / ref_spacing_mm, 0.0, 1.0)[:, None] ** 2
-        var_ref = var_u[uinv]
+        var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         notes.append(
             f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
