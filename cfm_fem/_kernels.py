@@ -4111,7 +4111,7 @@ def gauss_sweep(
         Node indices (rows of the arrays below) to process; results do not depend on how nodes
         are chunked.
     keys : ndarray, shape (k,), int64
-        Random-stream id of each node (its index in the whole map): a node's numbers depend on
+        Random-stream id of each node (`cfm_fem.sweep.node_keys`): a node's numbers depend on
         its key only, so a part of a map held in its own arrays gives the whole map's numbers.
     coords : ndarray, shape (n, d), mm, mesh frame
     values : ndarray, shape (n, 3), T
@@ -4236,8 +4236,7 @@ def htm_sweep(
     ----------
     nodes : ndarray, shape (k,), int64
     keys : ndarray, shape (k,), int64
-        Noise-stream id (point index) of each node: its index in the whole map, as in
-        `gauss_sweep`.
+        Noise-stream id of each node, as in `gauss_sweep`.
     coords, values, simplices, transform, neighbors, start_cells, basis :
         As in `gauss_sweep`.
     rot : ndarray, shape (3, 3)

@@ -449,11 +449,10 @@ def circumspheres(coords, simplices):
     """Circumcentres (m, d) and squared circumradii (m,) of simplices (m, d + 1), in the units
     of ``coords`` (n, d); NaN or inf for a flat simplex."""
     v = coords[simplices]  # (m, d + 1, d)
-    A = 2.0 * (v[:, 1:] - v[:, :1])
-    rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
+    w = v[:, 1:] - v[:, :1]  # relative to a vertex: no round-off from the map's offset
     with np.errstate(all="ignore"):
-        c = np.linalg.solve(A, rhs[..., None])[..., 0]
-        return c, ((c - v[:, 0]) ** 2).sum(-1)
+        c = np.linalg.solve(2.0 * w, (w**2).sum(-1)[..., None])[..., 0]
+        return v[:, 0] + c, (c**2).sum(-1)
 
 
 def convex_hull_points(points) -> np.ndarray:
@@ -465,7 +464,7 @@ def convex_hull_points(points) -> np.ndarray:
         For points that span fewer than d dimensions.
     """
     points = np.asarray(points, dtype=np.float64)
-    return points[np.sort(scipy.spatial.ConvexHull(points).vertices)]
+    return points[np.sort(scipy.spatial.ConvexHull(centred(points)).vertices)]
 
 
 def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int = 1 << 18):
@@ -511,10 +510,11 @@ def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int 
     cand = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
     if not len(cand):
         return out
-    hull = scipy.spatial.Delaunay(
-        convex_hull_points(coords if hull_points is None else hull_points)
-    )
-    out[cand] = hull.find_simplex(np.concatenate(centres)) < 0
+    corners = convex_hull_points(coords if hull_points is None else hull_points)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    mid, size = (lo + hi) / 2, float((hi - lo).max()) or 1.0  # the frame of `centred`
+    hull = scipy.spatial.Delaunay((corners - mid) / size)
+    out[cand] = hull.find_simplex((np.concatenate(centres) - mid) / size) < 0
     # a node whose every cell would go keeps them all
     left = np.bincount(simplices[~out].ravel(), minlength=len(coords))
     orphan = np.zeros(len(coords), dtype=bool)
@@ -541,6 +541,25 @@ def _splitmix64(x):
     return x ^ (x >> np.uint64(31))
 
 
+def coordinate_keys(coords):
+    """A 64-bit hash per node of its coordinates' float64 bits (-0.0 hashes as 0.0): an id of
+    the node that neither the order of the rows nor the other nodes change.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+
+    Returns
+    -------
+    ndarray, shape (n,), uint64
+    """
+    bits = np.ascontiguousarray(coords + 0.0).view(np.uint64)  # + 0.0: -0.0 keys as 0.0
+    key = np.zeros(len(coords), dtype=np.uint64)
+    for a in range(coords.shape[1]):
+        key = _splitmix64(key ^ bits[:, a])
+    return key
+
+
 def node_jitter(coords):
     """A pseudo-random offset in [-1, 1) per node and axis, keyed by the node's coordinates
     (their float64 bits): the same for a node whatever other nodes are triangulated with it,
@@ -554,15 +573,20 @@ def node_jitter(coords):
     -------
     ndarray, shape (n, d)
     """
-    bits = np.ascontiguousarray(coords + 0.0).view(np.uint64)  # + 0.0: -0.0 keys as 0.0
-    key = np.zeros(len(coords), dtype=np.uint64)
-    for a in range(coords.shape[1]):
-        key = _splitmix64(key ^ bits[:, a])
+    key = coordinate_keys(coords)
     out = np.empty(coords.shape)
     for a in range(coords.shape[1]):
         h = _splitmix64(key + np.uint64(a + 1))
         out[:, a] = (h >> np.uint64(11)).astype(np.float64) * 2.0**-52 - 1.0
     return out
+
+
+def centred(coords):
+    """``coords`` (n, d), mm, moved to the centre of their bounding box and divided by its
+    largest side: what Qhull and the circumsphere tests see, so that their round-off is the
+    same wherever the map's origin is."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    return (coords - (lo + hi) / 2) / (float((hi - lo).max()) or 1.0)
 
 
 def delaunay_coords(coords, span):
@@ -639,8 +663,8 @@ def _delaunay(coords, source, span):
     """
     notes = []
     moved = delaunay_coords(coords, span)
-    try:
-        tri = scipy.spatial.Delaunay(moved)
+    try:  # centred and scaled: Qhull's round-off then does not grow with the map's offset
+        tri = scipy.spatial.Delaunay(centred(moved))
     except scipy.spatial.QhullError as exc:  # pragma: no cover - _frame catches flat sets first
         raise CfmInputError(
             f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source
@@ -661,7 +685,11 @@ def _delaunay(coords, source, span):
     if np.any(np.abs(on_moved) <= 1e-12 * scale):
         raise _too_degenerate(source)
     if len(tri.coplanar):
-        notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
+        raise CfmInputError(
+            f"{len(tri.coplanar)} node(s) merge with others in the Delaunay triangulation "
+            "(nodes closer than the round-off of their coordinates); expected distinct nodes",
+            file=source,
+        )
     return simplices, "delaunay", moved, flat, notes
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import CfmInputError, CfmInputWarning
 from ..field import FieldMap
 from ..units import FIELD_TO_T, LENGTH_TO_MM, field_scale, length_scale
+from ._files import open_regular
 
 COORDS = ("x", "y", "z")
 FIELDS = ("Bx", "By", "Bz")
@@ -96,7 +97,7 @@ def read_lines(path, max_bytes: int | None = None, what: str = "a field map") ->
     should hold, for the message on an empty file. UTF-16/32 text and NUL bytes are refused.
     """
     try:
-        with open(path, "rb") as stream:
+        with open_regular(path, what) as stream:
             raw = stream.read(-1 if max_bytes is None else max_bytes)
     except OSError as exc:
         raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None

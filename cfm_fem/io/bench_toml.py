@@ -28,6 +28,7 @@ from ..bench import (
 from ..errors import CfmInputError
 from ..mc import PDF_PARAMETERS, Pdf
 from ._atomic import write_text
+from ._files import open_regular
 
 __all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench", "REFERENCE_BENCH"]
 
@@ -273,7 +274,8 @@ def read_bench(path) -> Bench:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")  # Windows Notepad writes a BOM
+        with open_regular(path, "a bench TOML file", "the bench file") as f:
+            text = f.read().decode("utf-8-sig")  # Windows Notepad writes a BOM
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the bench file: {exc.strerror or exc}", file=path

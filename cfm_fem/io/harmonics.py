@@ -30,6 +30,7 @@ from ..errors import CfmInputError
 from ..multipole import UNIT, Multipole
 from ..units import length_scale
 from ._atomic import write_text
+from ._files import open_regular
 from ._parse import check_nul, check_utf16, option_hint
 
 __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "read_qfdp4"]
@@ -234,7 +235,8 @@ def read_harmonics(
     """
     source = str(path)
     try:
-        raw = Path(path).read_bytes()
+        with open_regular(path, "a harmonics table", "the harmonics file") as f:
+            raw = f.read()
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the harmonics file: {exc.strerror or exc}", file=source

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
+from ._files import open_regular
 from ._parse import _check_finite, describe_column, detect_delimiter, header_names, parse_block
 from ._parse import table_layout as _layout
 from .opera import count_mismatch
@@ -43,7 +44,7 @@ def iter_lines(path, start_line: int = 1):
     from ._parse import check_nul, check_utf16
 
     try:
-        stream = open(path, "rb")  # noqa: SIM115 - closed below, also on early exit
+        stream = open_regular(path, "a field map")  # closed below, also on early exit
     except OSError as exc:
         raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
     line = 1
