@@ -18,7 +18,7 @@ import sys
 import warnings
 
 from .. import __version__
-from ..errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning, printable
 
 __all__ = ["main"]
 
@@ -89,6 +89,22 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     tqdm.write(f"warning: {message}", file=sys.stderr)
 
 
+class EscapingStream:
+    """A text stream that writes through `cfm_fem.errors.printable`: column names, tokens
+    and file names a run prints (notes, warnings, summaries) cannot reach the terminal as
+    control characters or ANSI escapes. Line feeds, tabs and carriage returns pass. The
+    stream wrapped is ``wrapped`` (progress bars draw on it)."""
+
+    def __init__(self, stream):
+        self.wrapped = stream
+
+    def write(self, text):
+        return self.wrapped.write(printable(text).replace("\\x0d", "\r"))
+
+    def __getattr__(self, name):
+        return getattr(self.wrapped, name)
+
+
 def interrupted(exc) -> bool:
     """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
     seen = set()
@@ -110,6 +126,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     old_show = warnings.showwarning
     warnings.showwarning = _show_warning
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = EscapingStream(sys.stdout), EscapingStream(sys.stderr)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", CfmInputWarning)
@@ -133,6 +151,7 @@ def main(argv=None) -> int:
         return EXIT_FAILURE
     finally:
         warnings.showwarning = old_show
+        sys.stdout, sys.stderr = streams
 
 
 if __name__ == "__main__":  # pragma: no cover

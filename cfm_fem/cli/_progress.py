@@ -11,9 +11,8 @@ from tqdm import tqdm
 @contextlib.contextmanager
 def progress_bar(total: int, unit: str):
     """A tqdm bar; ``bar.update(n)`` advances it."""
-    bar = tqdm(
-        total=total, unit=unit, file=sys.stderr, disable=None, dynamic_ncols=True, leave=False
-    )
+    stream = getattr(sys.stderr, "wrapped", sys.stderr)  # the terminal, not `EscapingStream`
+    bar = tqdm(total=total, unit=unit, file=stream, disable=None, dynamic_ncols=True, leave=False)
     try:
         yield bar
     finally:

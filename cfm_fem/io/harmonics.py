@@ -31,7 +31,7 @@ from ..multipole import UNIT, Multipole
 from ..units import length_scale
 from ._atomic import write_text
 from ._files import open_regular
-from ._parse import check_nul, check_utf16, option_hint
+from ._parse import check_nul, check_utf16, decode_text, option_hint
 
 __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "read_qfdp4"]
 
@@ -242,10 +242,7 @@ def read_harmonics(
             f"cannot read the harmonics file: {exc.strerror or exc}", file=source
         ) from exc
     check_utf16(raw, source)
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:  # not UTF-8: read as Latin-1 like the field-map readers
-        text = raw.decode("latin-1")
+    text = decode_text(raw, source)
     if "\x00" in text:
         check_nul(text.replace("\r\n", "\n").replace("\r", "\n").split("\n"), source)
     return parse_harmonics(text, source=source, r_ref_mm=r_ref_mm, convention=convention, main=main)
