@@ -130,3 +130,194 @@ def test_hashing_a_fifo_is_a_bad_input(tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(CfmInputError, match="FIFO"):
         file_sha256(fifo)
+
+
+# --------------------------------------------------------------------------- cut last line
+
+
+@pytest.mark.skipif(not OPERA.exists(), reason="real data folder absent")
+@pytest.mark.parametrize("cut", [2, 3, 5, 9])
+def test_a_file_cut_inside_its_last_number_is_refused(tmp_path, capsys, cut):
+    """``head -c -2`` of the Opera table: the last Bz read -0.503 T instead of -5.03e-6 T and
+    B_ref jumped from 0.0036 to 0.503 T, exit 0."""
+    path = tmp_path / "c.table"
+    path.write_bytes(OPERA.read_bytes()[:-cut])
+    out = tmp_path / "out"
+    err = _refused(["sweep", path, "--trials", 20, "--out", out], capsys, out)
+    assert f"{path}:9479: column 'BZ': the last value" in err and "cut short" in err, err
+
+
+@pytest.mark.skipif(not OPERA.exists(), reason="real data folder absent")
+def test_a_complete_last_line_without_a_line_end_is_read(tmp_path):
+    from cfm_fem.io import read_field
+
+    path = tmp_path / "c.table"
+    path.write_bytes(OPERA.read_bytes().rstrip(b"\r\n"))
+    whole = read_field(OPERA)
+    np.testing.assert_array_equal(read_field(path).B, whole.B)
+
+
+@pytest.mark.parametrize(
+    "last, what",
+    [
+        ("4,4,4,0.5,0.25,0.12", "shorter than every value above it"),
+        ("4,4,4,0.512500,0.256250,10.12500", "fewer decimals than the 6"),
+        ("4,4,4,5.125000e-01,2.562500e-01,1.250000e-0", "an exponent with fewer digits"),
+    ],
+)
+def test_cut_csv_and_comsol_last_lines(tmp_path, last, what):
+    from cfm_fem.io import read_field
+
+    fixed = "e" in last
+    rows = "".join(
+        f"{x},{y},{z},{0.1 + x / 8:.6e},{0.2 + y / 16:.6e},{0.125:.6e}\n"
+        if fixed
+        else f"{x},{y},{z},{0.1 + x / 8:.6f},{0.2 + y / 16:.6f},{0.125 + z / 64:.6f}\n"
+        for x in range(4) for y in range(4) for z in range(4)
+    )  # fmt: skip
+    for name, head in (
+        ("m.csv", HEADER),
+        ("m.txt", "% Length unit: mm\n% X Y Z Bx (T) By (T) Bz (T)\n"),
+    ):
+        text = head + rows + last
+        if name.endswith(".txt"):
+            text = text.replace(",", " ")
+        path = tmp_path / name
+        path.write_text(text, encoding="utf-8")
+        with pytest.raises(CfmInputError, match="cut short") as exc:
+            read_field(path)
+        assert what in str(exc.value)
+        path.write_text(text + "\n", encoding="utf-8")  # ended: a value like any other
+        read_field(path)
+
+
+# --------------------------------------------------------------------------- numbers
+
+
+@pytest.mark.parametrize(
+    "token, what", [("1_000", "digit separator '_'"), ("\u0661\u0662", "other than ASCII")]
+)
+@pytest.mark.parametrize("kind", ["map", "recording"])
+def test_numbers_python_reads_but_files_do_not_hold(tmp_path, token, what, kind):
+    from cfm_fem.io import read_field
+    from cfm_fem.io.recordings import read_tracker
+
+    path = tmp_path / "f.csv"
+    if kind == "map":
+        pts, B = _scattered(20)
+        _csv(path, pts, B)
+        text = path.read_text().replace("\n", f"\n{token},", 1)
+        text = text.replace(f"\n{token},", "\n", 1).splitlines()
+        text[2] = token + text[2][text[2].index(",") :]
+        read = read_field
+    else:
+        text = ["point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas"]
+        text += [f"{i},0,1,2,3,1,2,3" for i in range(5)]
+        text[2] = f"1,0,{token},2,3,1,2,3"
+        read = read_tracker
+    path.write_text("\n".join(text) + "\n", encoding="utf-8")
+    with pytest.raises(CfmInputError, match=what) as exc:
+        read(path)
+    assert f"{path}:3:" in str(exc.value)
+
+
+def test_point_ids_above_2_53_are_read_exactly(tmp_path):
+    from cfm_fem.io.recordings import read_tracker
+
+    big = 2**53 + 1
+    rows = [f"{big + i},0,1,2,3,1,2,3" for i in range(3)]
+    path = tmp_path / "t.csv"
+    path.write_text(
+        "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas\n" + "\n".join(rows) + "\n"
+    )
+    assert read_tracker(path).point_id.tolist() == [big, big + 1, big + 2]
+
+
+@pytest.mark.parametrize(
+    "value, what", [("1e308", "within +-1e+06 T"), ("1e300", "within +-1e+12 mm")]
+)
+def test_implausible_map_values_are_refused_before_anything_is_written(
+    tmp_path, capsys, value, what
+):
+    """1e308 T overflowed after the maps were written (a JSON ValueError, exit 1, maps and
+    chunk store left)."""
+    pts, B = _scattered(60)
+    path = _csv(tmp_path / "m.csv", pts, B)
+    lines = path.read_text().splitlines()
+    fields = lines[5].split(",")
+    fields[5 if "T" in what else 0] = value
+    lines[5] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    err = _refused(["sweep", path, "--trials", 20, "--out", out], capsys, out)
+    assert f"{path}:6: column" in err and what in err, err
+
+
+@pytest.mark.parametrize(
+    "column, value", [("z_meas", "1e308"), ("x_cmd", "1e300"), ("t_s", "1e300")]
+)
+def test_implausible_recording_values_are_refused(tmp_path, column, value):
+    from cfm_fem.io.recordings import read_tracker
+
+    names = "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas,t_s".split(",")
+    rows = [[str(i), "0", "1", "2", "3", "1", "2", "3", str(i)] for i in range(4)]
+    rows[2][names.index(column)] = value
+    path = tmp_path / "t.csv"
+    path.write_text(",".join(names) + "\n" + "".join(",".join(r) + "\n" for r in rows))
+    with pytest.raises(CfmInputError, match=f"column '{column}' must be within") as exc:
+        read_tracker(path)
+    assert exc.value.line == 4
+
+
+def test_opera_counts_line_with_a_superscript_digit(tmp_path):
+    """``int('2¹')`` raised ValueError (a traceback): '¹'.isdigit() is True."""
+    from cfm_fem.io import read_opera
+
+    path = tmp_path / "m.table"
+    path.write_text("2 2 2\u00b9\n1 X [MM]\n0\n", encoding="latin-1")
+    with pytest.raises(CfmInputError, match="point counts") as exc:
+        read_opera(path)
+    assert exc.value.line == 1
+
+
+# --------------------------------------------------------------------------- what the file is
+
+
+@pytest.mark.parametrize(
+    "data, what",
+    [
+        (b"\x00" * 5000, "NUL bytes (zeros), not text"),
+        (bytes(range(256)) * 20, "this is a binary file, not text"),
+        (
+            HEADER.encode() + b"0,0,0,1,1,1\n0,1,0,1,1\x851\n",
+            ":3: the file is not UTF-8 text: byte 0x85 at column 10",
+        ),
+    ],
+)
+def test_binary_and_damaged_files_are_named(tmp_path, capsys, data, what):
+    path = tmp_path / "m.csv"
+    path.write_bytes(data)
+    out = tmp_path / "out"
+    err = _refused(["sweep", path, "--out", out], capsys, out)
+    assert what in err and "UTF-16" not in err, err
+
+
+def test_latin1_text_is_read_with_a_warning_naming_the_byte(tmp_path):
+    from cfm_fem.errors import CfmInputWarning
+    from cfm_fem.io import read_field
+
+    pts, B = _scattered(30)
+    path = _csv(tmp_path / "m.csv", pts, B)
+    path.write_bytes(b"# magnet \xe9t\xe9\n" + path.read_bytes())
+    with pytest.warns(CfmInputWarning, match=r"m.csv:1: not UTF-8 \(byte 0xe9 at column 10\)"):
+        fm = read_field(path)
+    assert fm.n_nodes == 30
+
+
+def test_control_characters_from_files_are_escaped(tmp_path, capsys):
+    path = tmp_path / "m\x1b[2J.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],B\x1b[31mz\x07 [T]\n0,0,0,1,1,1\n")
+    out = tmp_path / "out"
+    err = _refused(["sweep", path, "--out", out], capsys, out)
+    assert "\x1b" not in err and "\x07" not in err
+    assert "m\\x1b[2J.csv" in err and "B\\x1b[31mz\\x07 [T]" in err, err
