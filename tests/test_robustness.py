@@ -321,3 +321,75 @@ def test_control_characters_from_files_are_escaped(tmp_path, capsys):
     err = _refused(["sweep", path, "--out", out], capsys, out)
     assert "\x1b" not in err and "\x07" not in err
     assert "m\\x1b[2J.csv" in err and "B\\x1b[31mz\\x07 [T]" in err, err
+
+
+# --------------------------------------------------------------------------- bench and diagnose
+
+
+def _bench_text():
+    from importlib import resources
+
+    return resources.files("cfm_fem.data").joinpath("cfm_reference_bench.toml").read_text()
+
+
+@pytest.mark.parametrize(
+    "edit, what",
+    [
+        (
+            ("mount_offset_mm = [0.0, 0.0, 0.0]", "mount_offset_mm = [1e300, 0.0, 0.0]"),
+            "must be within +-100000 mm",
+        ),
+        (
+            ("rotation_deg = [0.0, 0.0, 0.0]", "rotation_deg = [0.0, 1e300, 0.0]"),
+            "within +-360 deg",
+        ),
+        (("version = 1", "version = " + "7" * 5000), "a value the bench cannot hold"),
+        (("version = 1", "version = 1\nname = " + "[" * 3000 + "]" * 3000), "nested too deep"),
+    ],
+)
+def test_implausible_bench_files_are_refused(tmp_path, capsys, edit, what):
+    """A mount offset of 1e300 mm or a rotation of 1e300 deg was accepted; 3,000 nested
+    arrays gave a RecursionError and a 5,000-digit integer a ValueError (tracebacks)."""
+    text = _bench_text()
+    assert edit[0] in text
+    bench = tmp_path / "b.toml"
+    bench.write_text(text.replace(edit[0], edit[1], 1))
+    out = tmp_path / "out"
+    err = _refused(["kinematics", "--bench", bench, "--trials", 20, "--out", out], capsys, out)
+    assert f"{bench}" in err and what in err, err
+
+
+@pytest.fixture(scope="module")
+def tracker_rows():
+    from cfm_fem.diagnose.twin import tracker_twin
+
+    q = np.stack(np.meshgrid(np.linspace(0, 150, 3), np.linspace(0, 150, 3),
+                             np.linspace(0, 800, 4), indexing="ij"), -1).reshape(-1, 3)  # fmt: skip
+    rec, _ = tracker_twin(3, {}, n_reps=3, points=q)
+    return rec
+
+
+@pytest.mark.parametrize(
+    "column, value, what",
+    [
+        ("x_cmd", 1e4, "outside the strokes"),
+        ("x_cmd", 1e300, "must be within +-1e+06 mm"),
+        ("z_meas", 1e308, "must be within +-1e+06 mm"),
+    ],
+)
+def test_diagnose_refuses_what_compare_refuses(tmp_path, capsys, tracker_rows, column, value, what):
+    """Commanded positions outside the strokes gave an RMS of 5.8e11 um in diagnose (compare
+    refused them); z_meas = 1e308 an OverflowError, x_cmd = 1e300 'SVD did not converge'."""
+    from dataclasses import replace
+
+    from cfm_fem.io.recordings import write_tracker
+
+    rec = tracker_rows
+    arrays = {"cmd": rec.cmd.copy(), "meas": rec.meas.copy()}
+    which, axis = ("cmd", 0) if column == "x_cmd" else ("meas", 2)
+    arrays[which][4, axis] = value
+    path = tmp_path / "t.csv"
+    write_tracker(path, replace(rec, **arrays))
+    out = tmp_path / "out"
+    err = _refused(["diagnose", "--tracker", path, "--out", out], capsys, out)
+    assert f"{path}:6:" in err and what in err, err
