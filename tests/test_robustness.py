@@ -393,3 +393,31 @@ def test_diagnose_refuses_what_compare_refuses(tmp_path, capsys, tracker_rows, c
     out = tmp_path / "out"
     err = _refused(["diagnose", "--tracker", path, "--out", out], capsys, out)
     assert f"{path}:6:" in err and what in err, err
+
+
+# --------------------------------------------------------------------------- symbolic links
+
+
+def test_a_symlinked_lock_is_not_followed(tmp_path, capsys):
+    """With ``DIR/.cfm_fem.lock`` a link to a file the user owns, a run truncated that file."""
+    from cfm_fem.io.lock import LOCK_NAME
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_NAME).symlink_to(victim)
+    err = _refused(["kinematics", "--trials", 20, "--out", out], capsys)
+    assert "is a symbolic link; not followed" in err, err
+    assert victim.read_text() == "precious\n"
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]
+
+
+def test_a_symlinked_chunk_store_is_refused(tmp_path):
+    from cfm_fem.io.chunk_store import STORE_NAME, ChunkStore
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / STORE_NAME).symlink_to(elsewhere)
+    with pytest.raises(CfmInputError, match="is a symbolic link"):
+        ChunkStore(tmp_path)
