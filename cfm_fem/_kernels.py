@@ -39,10 +39,11 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
+from ._numba_cache import CACHE
 from .threads import map_blocks
 
 #: One place for numba options. ``cache`` keeps compile time out of repeated runs.
-JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+JIT = dict(nogil=True, cache=CACHE, fastmath=False, error_model="numpy")
 PJIT = dict(JIT, parallel=True)
 #: Multiply-adds fused where the hardware has them: for loops whose results only need to agree
 #: with their twins to rounding (same bits on a given machine, whatever the threads).

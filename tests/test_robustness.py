@@ -421,3 +421,37 @@ def test_a_symlinked_chunk_store_is_refused(tmp_path):
     (tmp_path / STORE_NAME).symlink_to(elsewhere)
     with pytest.raises(CfmInputError, match="is a symbolic link"):
         ChunkStore(tmp_path)
+
+
+# --------------------------------------------------------------------------- numba's cache
+
+
+def test_numba_cache_falls_back_to_a_private_temporary_folder(tmp_path, monkeypatch):
+    """A user who can write neither the package folder nor HOME: every run died with "cannot
+    cache function 'mix64': no locator available"."""
+    from cfm_fem import _numba_cache
+
+    monkeypatch.setattr(_numba_cache, "NOTE", None)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    env = {"HOME": str(blocker / "home")}  # nothing can be made under a file
+    note = _numba_cache.configure(package_dir=blocker / "pkg", env=env, temp_dir=tmp_path)
+    folder = tmp_path / f"cfm_fem-numba-{os.getuid()}"
+    assert env["NUMBA_CACHE_DIR"] == str(folder) and folder.is_dir()
+    assert str(folder) in note and (folder.stat().st_mode & 0o077) == 0
+    # a folder of that name that is not this user's own (here: a link) is not used
+    env = {"HOME": str(blocker / "home")}
+    folder.rmdir()
+    folder.symlink_to(tmp_path)
+    monkeypatch.setattr(_numba_cache, "CACHE", True)
+    note = _numba_cache.configure(package_dir=blocker / "pkg", env=env, temp_dir=tmp_path)
+    assert "NUMBA_CACHE_DIR" not in env and "compiled on each run" in note
+    assert _numba_cache.CACHE is False
+
+
+def test_numba_cache_is_left_alone_where_numba_can_write(tmp_path):
+    from cfm_fem import _numba_cache
+
+    env = {"HOME": str(tmp_path)}
+    assert _numba_cache.configure(package_dir=tmp_path / "pkg", env=env) is None
+    assert "NUMBA_CACHE_DIR" not in env

@@ -137,6 +137,10 @@ def main(argv=None) -> int:
                 parser.print_help()
                 return EXIT_BAD_INPUT
             args.command_line = "cfm-fem " + " ".join(shlex.quote(a) for a in argv)
+            from .._numba_cache import NOTE
+
+            if NOTE:
+                print(f"cfm-fem: note: {NOTE}", file=sys.stderr)
             return int(args._run(args) or EXIT_OK)
     except CfmInputError as exc:
         print(f"cfm-fem: error: {exc}", file=sys.stderr)
