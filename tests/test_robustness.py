@@ -455,3 +455,67 @@ def test_numba_cache_is_left_alone_where_numba_can_write(tmp_path):
     env = {"HOME": str(tmp_path)}
     assert _numba_cache.configure(package_dir=tmp_path / "pkg", env=env) is None
     assert "NUMBA_CACHE_DIR" not in env
+
+
+# --------------------------------------------------------------------------- a full disk
+
+
+def _no_space(*args, **kwargs):
+    raise OSError(28, "No space left on device", "/somewhere/chunk.npz")
+
+
+@pytest.mark.parametrize("where", ["chunk", "vtu"])
+def test_a_full_disk_removes_the_run_and_says_so(tmp_path, capsys, monkeypatch, where):
+    """A full disk while saving a chunk gave a chained OSError traceback; VTK's writer
+    aborted the process (exit 134) or crashed (139)."""
+    import shutil
+
+    from cfm_fem.io import _atomic
+    from cfm_fem.io.chunk_store import ChunkStore
+
+    pts, B = _scattered(80)
+    field = _csv(tmp_path / "m.csv", pts, B)
+    if where == "chunk":
+        monkeypatch.setattr(ChunkStore, "save", _no_space)
+        what = "the disk is full (No space left on device)"
+    else:  # the .vtu does not fit: refused before VTK or Python writes a byte of it
+        usage = shutil.disk_usage(tmp_path)
+        monkeypatch.setattr(_atomic.shutil, "disk_usage", lambda p: usage._replace(free=4096))
+        what = "uf_up10um.vtu needs"
+    out = tmp_path / "out"
+    err = _refused(["sweep", field, "--trials", 20, "--up", 10, "--out", out], capsys, out)
+    assert what in err and "were removed" in err and "now free" in err, err
+
+
+def _tmpfs(path, size):
+    import subprocess
+
+    path.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+                          capture_output=True)  # fmt: skip
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
+
+
+def test_a_full_tmpfs(tmp_path):
+    """The sweep on a 2 MB file system: exit 2 with the message, the output folder removed."""
+    import subprocess
+    import sys
+
+    small = tmp_path / "small"
+    _tmpfs(small, "2m")
+    try:
+        out = small / "out"
+        env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+        run = subprocess.run(
+            [sys.executable, "-m", "cfm_fem", "sweep", str(Path(__file__).resolve().parents[1] /
+             "meshes" / "quadrupole.vtu"), "--trials", "20", "--up", "10", "--out", str(out)],
+            capture_output=True, text=True, env=env, timeout=600,
+        )  # fmt: skip
+        assert run.returncode == 2, run.stderr
+        assert "the disk is full" in run.stderr and "Traceback" not in run.stderr, run.stderr
+        assert not out.exists() and os.listdir(small) == []
+    finally:
+        subprocess.run(["umount", str(small)], check=False)
