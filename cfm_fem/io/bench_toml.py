@@ -280,13 +280,22 @@ def read_bench(path) -> Bench:
     path = Path(path)
     try:
         with open_regular(path, "a bench TOML file", "the bench file") as f:
-            text = f.read().decode("utf-8-sig")  # Windows Notepad writes a BOM
+            raw = f.read()
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the bench file: {exc.strerror or exc}", file=path
         ) from None
-    except UnicodeDecodeError:
-        raise CfmInputError("the bench file is not UTF-8 text", file=path) from None
+    try:
+        text = raw.decode("utf-8-sig")  # Windows Notepad writes a BOM
+    except UnicodeDecodeError as exc:  # TOML is UTF-8: say where it is not
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - raw.rfind(b"\n", 0, exc.start)
+        raise CfmInputError(
+            f"the bench file is not UTF-8 text: byte 0x{raw[exc.start]:02x} at column {column} "
+            "is not valid UTF-8 (TOML files are UTF-8); save it as UTF-8",
+            file=path,
+            line=line,
+        ) from None
     return parse_bench(text, source=str(path))
 
 
