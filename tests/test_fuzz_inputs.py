@@ -164,17 +164,14 @@ def test_bench_toml(ops):
     check(lambda t: parse_bench(t, source="bench.toml"), text)
 
 
-@SETTINGS
-@given(ops=st.lists(mutation, min_size=1, max_size=3))
-def test_harmonics(folder, ops):
-    path = folder / "h.csv"
-    path.write_bytes(mutate(HARMONICS, ops))
-    check(read_harmonics, path)
+FILE_READERS = {"harmonics": (HARMONICS, read_harmonics), "recording": (RECORDING, read_recording)}
 
 
+@pytest.mark.parametrize("kind", sorted(FILE_READERS))
 @SETTINGS
 @given(ops=st.lists(mutation, min_size=1, max_size=3))
-def test_recordings(folder, ops):
-    path = folder / "rec.csv"
-    path.write_bytes(mutate(RECORDING, ops))
-    check(read_recording, path)
+def test_harmonics_and_recordings(folder, kind, ops):
+    seed, read = FILE_READERS[kind]
+    path = folder / f"{kind}.csv"
+    path.write_bytes(mutate(seed, ops))
+    check(read, path)
