@@ -792,7 +792,7 @@ def cell_buckets(
         boxes = _kernels.cell_boxes(coords, simplices)
     # the boxes are padded (`cfm_fem._kernels._padded`), so a point a cell holds within the
     # barycentric tolerance is inside its box; per cell, on the fly: no (m, d) temporaries
-    g_lo, g_hi = _kernels.padded_extent(boxes)
+    g_lo, g_hi = grid_extent(boxes, *_kernels.padded_extent(boxes))
     ext = g_hi - g_lo
     while True:
         step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
@@ -806,6 +806,29 @@ def cell_buckets(
     # 1e6-node map), and the cells of a bucket stay increasing
     bstart, bcells = _kernels.bucket_lists(boxes, box, dims)
     return box, dims, bstart, bcells
+
+
+def grid_extent(boxes, lo, hi, quantile: float = 1e-3, ratio: float = 64.0):
+    """The extent of the bucket grid: the cells' padded extent (``lo``, ``hi``), shrunk along
+    an axis where a few cells reach far beyond the others (a node at 1e9 mm of a map 30 mm
+    wide put every other cell into one bucket, and the search took minutes).
+
+    Along such an axis (extent over ``ratio`` times that of the cells' centres between the
+    ``quantile`` and ``1 - quantile`` quantiles) the grid covers those centres with a margin of
+    half their range; cells beyond it are listed in the border buckets, where
+    `cfm_fem._kernels.find_cell` looks for the points beyond it.
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (d,), mm
+    """
+    centres = boxes.mean(axis=1)
+    q_lo, q_hi = np.quantile(centres, [quantile, 1.0 - quantile], axis=0)
+    span = q_hi - q_lo
+    wide = (hi - lo) > ratio * np.maximum(span, 1e-300)
+    lo = np.where(wide, np.maximum(lo, q_lo - span / 2), lo)
+    hi = np.where(wide, np.minimum(hi, q_hi + span / 2), hi)
+    return lo, hi
 
 
 def no_search(dim: int) -> tuple:

@@ -269,6 +269,7 @@ def test_implausible_recording_values_are_refused(tmp_path, column, value):
     assert exc.value.line == 4
 
 
+@pytest.mark.filterwarnings("ignore::cfm_fem.errors.CfmInputWarning")  # Latin-1 text
 def test_opera_counts_line_with_a_superscript_digit(tmp_path):
     """``int('2¹')`` raised ValueError (a traceback): '¹'.isdigit() is True."""
     from cfm_fem.io import read_opera
@@ -519,3 +520,29 @@ def test_a_full_tmpfs(tmp_path):
         assert not out.exists() and os.listdir(small) == []
     finally:
         subprocess.run(["umount", str(small)], check=False)
+
+
+def test_a_native_mesh_with_an_outlier_node_is_searched_quickly(tmp_path):
+    """One node of a native tetrahedral mesh moved to x = 1e9 mm: the bucket grid of the exact
+    search spanned 1e9 mm and held every other cell in one bucket (minutes of searching).
+    The grid now covers the cells' centres; the far cells sit in its border buckets, and the
+    search finds every point the cells hold, beyond the grid too."""
+    from cfm_fem import _kernels
+    from cfm_fem.interpolation import barycentric_transforms, cell_buckets, kuhn_simplices
+
+    g = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    simplices = kuhn_simplices((12, 12, 12), np.arange(len(g)))
+    coords = g.copy()
+    coords[0] = [1e9, 0.0, 0.0]  # cells of node 0 now reach to 1e9 mm
+    boxes = _kernels.cell_boxes(coords, simplices)
+    box, dims, bstart, bcells = cell_buckets(coords, simplices, boxes=boxes)
+    assert box[0, 0] + dims[0] / box[1, 0] < 100.0  # the grid ends near the other cells
+    assert np.diff(bstart).max() < 2000  # of 7,986 cells: not all in one bucket
+    T, _ = barycentric_transforms(coords, simplices)
+    rng = np.random.default_rng(3)
+    far = simplices[(simplices == 0).any(axis=1)][:5]
+    points = [coords[c].mean(axis=0) for c in far] + list(rng.uniform(1, 10, (50, 3)))
+    bary = np.empty(4)
+    for p in points:
+        c = _kernels.find_cell(np.asarray(p), T, box, dims, bstart, bcells, bary)
+        assert c >= 0 and (bary > -1e-9).all(), p
