@@ -794,13 +794,17 @@ def cell_buckets(
     # barycentric tolerance is inside its box; per cell, on the fly: no (m, d) temporaries
     g_lo, g_hi = grid_extent(boxes, *_kernels.padded_extent(boxes))
     ext = g_hi - g_lo
+    last = None
     while True:
         step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
         dims = np.maximum(np.ceil(ext / step), 1).astype(np.int64)
+        if last is not None and np.array_equal(dims, last):  # no coarser grid: one bucket
+            dims = np.ones(d, dtype=np.int64)
         inv = dims / ext
         box = np.ascontiguousarray(np.stack([g_lo, inv]))
         if _kernels.bucket_entries(boxes, box, dims) <= max_entries * m or dims.prod() == 1:
             break
+        last = dims
         per_bucket *= 4.0
     # counted, then filled in cell order: no per-entry temporaries (a few GB on a
     # 1e6-node map), and the cells of a bucket stay increasing

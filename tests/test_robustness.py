@@ -546,3 +546,28 @@ def test_a_native_mesh_with_an_outlier_node_is_searched_quickly(tmp_path):
     for p in points:
         c = _kernels.find_cell(np.asarray(p), T, box, dims, bstart, bcells, bary)
         assert c >= 0 and (bary > -1e-9).all(), p
+
+
+BODY = DATA / "emphatic" / "EMPHATIC_body_scan_5280148.csv"
+
+
+@pytest.mark.skipif(not BODY.exists(), reason="real data folder absent")
+def test_a_far_node_of_a_small_scan_does_not_hang(tmp_path, capsys):
+    """Found by scripts/fuzz_inputs.py: x of one row of 299 read as -5,905,512 in (the
+    decimal point lost): the bucket grid could not get coarser (m / per_bucket < 1) and
+    `cell_buckets` looped for ever. It now falls back to one bucket."""
+    import signal
+
+    lines = BODY.read_bytes().splitlines(keepends=True)[:300]
+    lines[102] = lines[102].replace(b"-0.5905512,", b"-005905512,", 1)
+    path = tmp_path / "scan.csv"
+    path.write_bytes(b"".join(lines))
+    out = tmp_path / "out"
+    signal.signal(signal.SIGALRM, lambda *a: pytest.fail("no answer in 120 s"))
+    signal.alarm(120)
+    try:
+        argv = ["sweep", str(path), "--length-unit", "in", "--trials", "20", "--up", "10"]
+        rc = main([*argv, "--out", str(out)])
+    finally:
+        signal.alarm(0)
+    assert rc == 0, capsys.readouterr().err
