@@ -8,6 +8,7 @@ The command line is ``cfm-fem``; from Python, the same runs with the same defaul
     maps.uf("absB", up_um=20)  # U_f per node, units of 1e-4 B_ref
 """
 
+from . import _numba_cache  # noqa: F401 - chooses numba's cache folder before numba loads
 from .api import (
     read_bench,
     read_map,

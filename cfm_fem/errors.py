@@ -2,7 +2,36 @@
 
 from __future__ import annotations
 
-__all__ = ["CfmInputError", "CfmInputWarning", "location", "MAX_SEED", "check_seed"]
+import re
+
+__all__ = [
+    "CfmInputError",
+    "CfmInputWarning",
+    "location",
+    "MAX_SEED",
+    "check_seed",
+    "printable",
+    "shown",
+]
+
+#: Control characters (C0 but tab and line feed, DEL, C1) and the bidirectional overrides that
+#: reorder what a terminal shows: file contents and names quoted in messages escape them.
+_CONTROLS = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+
+
+def printable(text) -> str:
+    """``text`` with control characters and ANSI escape sequences made visible (``\\x1b``),
+    so that what a file holds cannot move the cursor, recolour or clear a terminal."""
+    return _CONTROLS.sub(lambda m: f"\\x{ord(m[0]):02x}" if ord(m[0]) < 256
+                         else f"\\u{ord(m[0]):04x}", str(text))  # fmt: skip
+
+
+def shown(token: str, limit: int = 60) -> str:
+    """A token from a file, quoted for a message: escaped (`printable`) and cut to ``limit``
+    characters."""
+    s = printable(token)
+    return f"'{s[:limit]}...'" if len(s) > limit else f"'{s}'"
+
 
 #: Seeds go to numpy's SeedSequence and to numba kernels as int64: [0, MAX_SEED).
 MAX_SEED = 2**63
@@ -34,8 +63,9 @@ class CfmInputError(ValueError):
     """
 
     def __init__(self, what: str, *, file=None, line: int | None = None, column: str | None = None):
+        what = printable(what)
         self.what = what
-        self.file = None if file is None else str(file)
+        self.file = None if file is None else printable(file)
         self.line = line
         self.column = column
         loc = location(self.file, line)

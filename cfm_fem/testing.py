@@ -99,6 +99,21 @@ def three_normals(tkey: int, fkey: int, index: int):
     )
 
 
+def node_key(point) -> int:
+    """`cfm_fem.workflows.sweep.problem.node_keys` of one node (x, y, z) mm: SplitMix64 over
+    its coordinates' float64 bits (-0.0 as 0.0), halved to fit int64."""
+    key = 0
+    for v in point:
+        bits = int(np.float64(float(v) + 0.0).view(np.uint64))
+        key = mix64(((key ^ bits) + GAMMA) & M64)
+    return key >> 1
+
+
+def node_keys(points) -> list[int]:
+    """`node_key` of each row of ``points`` (n, 3) mm."""
+    return [node_key(p) for p in np.asarray(points, dtype=np.float64)]
+
+
 def sweep_normals(seed: int, node: int, n_trials: int) -> np.ndarray:
     """The (n_trials, 3) standard normals the sweep kernel draws for ``node``."""
     key = trial_key(stream_key(seed, STREAM_SWEEP), node)

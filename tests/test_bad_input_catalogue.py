@@ -533,7 +533,7 @@ def test_hashing_an_unreadable_input_is_a_bad_input(tmp_path):
     (exit 1) for a file without read permission."""
     from cfm_fem.io.provenance import file_sha256
 
-    with pytest.raises(CfmInputError, match=r"cannot read the file: Is a directory"):
+    with pytest.raises(CfmInputError, match=r"this is a folder"):
         file_sha256(tmp_path)
 
 

@@ -387,7 +387,8 @@ def test_htm_sweep_on_a_non_convex_mesh_matches_a_brute_force_twin(which, path, 
     assert n_lost.sum() == 0
     q = bench.axis_positions_for(fm.points[nodes])
     params = draw_error_sets(bench, n, seed)
-    dq = np.stack([point_noise(bench, t, nodes, seed) for t in range(n)])  # (n, k, 3)
+    keys = twins.node_keys(fm.points[nodes])  # the nodes' random-stream keys
+    dq = np.stack([point_noise(bench, t, keys, seed) for t in range(n)])  # (n, k, 3)
     rot = bench.bench_to_magnet_rotation()
     interp = twins.mesh_interpolant(mesh, fm.B)
     grad = problem.exit_grad if outside == "extrapolate" else None

@@ -179,9 +179,9 @@ def test_chunks_in_any_order_merge_exactly():
         run_sweep(fm, cfg, map_chunks=lossy_map)
 
 
-def test_node_keys_give_whole_map_numbers_from_a_renumbered_map():
-    """A node's numbers depend on its key, not on its row: the same map with its nodes stored
-    in another order, run with keys = the original indices, gives the original statistics."""
+def test_a_node_gets_the_same_numbers_whatever_the_row_order():
+    """A node's random stream is keyed by its coordinates, not by its row: the same map with
+    its rows shuffled gives every node the same statistics, bit for bit."""
     from cfm_fem.workflows.sweep.problem import prepare_sweep
 
     rng = np.random.default_rng(4)
@@ -193,9 +193,22 @@ def test_node_keys_give_whole_map_numbers_from_a_renumbered_map():
     perm = rng.permutation(len(pts))  # row i of the new map is node perm[i] of the original
     _, moved, _ = prepare_sweep(FieldMap.from_arrays(pts[perm], B[perm]), cfg)
     rows = rng.permutation(len(pts))[:120]
-    got = moved.run_nodes(rows, keys=perm[rows])
+    got = moved.run_nodes(rows)
     for g, w in zip(got[:4], want[:4], strict=True):
         np.testing.assert_allclose(g, w[perm[rows]], rtol=1e-9, atol=1e-15)
+    assert not np.array_equal(want[0][perm[rows]], want[0][rows])  # the test can tell
+
+
+def test_node_keys_match_their_twin():
+    import twins
+
+    from cfm_fem.workflows.sweep.problem import node_keys
+
+    pts = np.array([[0.0, -0.0, 1.5], [-0.0, 0.0, 1.5], [1e9, -3.25, 7.0]])
+    keys = node_keys(pts)
+    assert keys[0] == keys[1]  # -0.0 is 0.0
+    assert keys.dtype == np.int64 and (keys >= 0).all()
+    assert [int(k) for k in keys] == [twins.node_key(p) for p in pts]
 
 
 @pytest.mark.parametrize("planar", [False, True])
@@ -224,7 +237,7 @@ def test_extrapolation_gives_every_node_the_linear_field_sample_for_sample(plana
     assert (res.n_outside[~surface, 1] == 0).all()  # 0.1 mm: only surface nodes lose trials
     assert res.n_outside[~surface, 2].sum() > 0  # 0.4 mm: the next layer too (global walk)
     for g in range(fm.n_nodes):
-        z = twins.sweep_normals(6, g, 300) * keep
+        z = twins.sweep_normals(6, twins.node_key(fm.points[g]), 300) * keep
         for k, s in enumerate(up):
             if s == 0.0:
                 continue

@@ -125,7 +125,8 @@ def test_htm_kernel_matches_a_numpy_twin(variant):
     res = run_sweep(fm, SweepConfig(trials=n, seed=seed, mode="htm", bench=bench))
     q = bench.axis_positions_for(fm.points)
     params = draw_error_sets(bench, n, seed)
-    dq = np.stack([point_noise(bench, t, range(len(q)), seed) for t in range(n)])  # (n, k, 3)
+    keys = twins.node_keys(fm.points)
+    dq = np.stack([point_noise(bench, t, keys, seed) for t in range(n)])  # (n, k, 3)
     rot = bench.bench_to_magnet_rotation()
     lo, hi = fm.points.min(0), fm.points.max(0)
     b0 = fm.B
@@ -212,7 +213,7 @@ def test_htm_extrapolation_gives_surface_nodes_the_linear_field():
     )
     q = bench.axis_positions_for(fm.points)
     params = draw_error_sets(bench, n, seed)
-    dq = np.stack([point_noise(bench, t, range(len(q)), seed) for t in range(n)])
+    dq = np.stack([point_noise(bench, t, twins.node_keys(fm.points), seed) for t in range(n)])
     dm = probe_errors_for_bench(bench, params, q, dq) @ bench.bench_to_magnet_rotation().T
     lo, hi = fm.points.min(0), fm.points.max(0)
     p = fm.points + dm

@@ -114,8 +114,11 @@ def find_cell(p, transform, box, dims, bstart, bcells, bary):
     b = 0
     for a in range(d):
         x = (p[a] - box[0, a]) * box[1, a]
-        if not (x >= 0.0 and x < dims[a]):  # beyond every cell's box (NaN too)
+        if not (x == x):  # NaN
             return OUTSIDE
+        # beyond the grid: its border bucket lists every cell that reaches beyond it
+        # (`cfm_fem.models.mesh.grid_extent`), or none when the grid covers every cell
+        x = min(max(x, 0.0), dims[a] - 0.5)
         b = b * dims[a] + np.int64(x)
     return _deepest(p, transform, bcells, bstart[b], bstart[b + 1], bary)
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from .._numba_cache import CACHE
+
 #: One place for numba options. ``cache`` keeps compile time out of repeated runs.
-JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+JIT = dict(nogil=True, cache=CACHE, fastmath=False, error_model="numpy")
 
 
 PJIT = dict(JIT, parallel=True)

@@ -11,14 +11,18 @@ option errors then answer in ~0.2 s instead of ~1 s.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import importlib
 import re
 import shlex
+import shutil
 import sys
 import warnings
+from pathlib import Path
 
 from .. import __version__
-from ..errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning, printable
 
 __all__ = ["main"]
 
@@ -99,6 +103,76 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     tqdm.write(f"warning: {message}", file=sys.stderr)
 
 
+class EscapingStream:
+    """A text stream that writes through `cfm_fem.errors.printable`: column names, tokens
+    and file names a run prints (notes, warnings, summaries) cannot reach the terminal as
+    control characters or ANSI escapes. Line feeds, tabs and carriage returns pass. The
+    stream wrapped is ``wrapped`` (progress bars draw on it)."""
+
+    def __init__(self, stream):
+        self.wrapped = stream
+
+    def write(self, text):
+        return self.wrapped.write(printable(text).replace("\\x0d", "\r"))
+
+    def __getattr__(self, name):
+        return getattr(self.wrapped, name)
+
+
+def _disk_full(exc) -> OSError | None:
+    """The "no space left" (or quota) error in ``exc``'s chain, if there is one."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _entries(out) -> set | None:
+    """Names in the output folder ``out`` before a run; None if it does not exist (yet)."""
+    try:
+        return {p.name for p in Path(out).iterdir()} if out is not None else None
+    except OSError:
+        return None
+
+
+def _remove_new(out, before) -> int:
+    """Remove what a run added to ``out`` (all of it if the run made the folder); bytes freed."""
+    if out is None or not Path(out).is_dir():
+        return 0
+    new = [p for p in Path(out).iterdir() if before is None or p.name not in before]
+    size = sum(f.stat().st_size for p in new for f in ([p] if p.is_file() else p.rglob("*"))
+               if f.is_file() and not f.is_symlink())  # fmt: skip
+    for p in new:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                p.unlink()
+    if before is None:
+        with contextlib.suppress(OSError):
+            Path(out).rmdir()
+    return size
+
+
+def _disk_full_message(full: OSError, out, freed: int) -> str:
+    from ..io._atomic import mb
+
+    where = Path(full.filename).parent if full.filename else Path(out or ".")
+    existing = next((p for p in (where, *where.parents) if p.exists()), Path("."))
+    try:
+        free = mb(shutil.disk_usage(existing).free)
+    except OSError:
+        free = "an unknown amount"
+    return (
+        f"{where}: the disk is full ({full.strerror or full}); the {mb(freed)} this run had "
+        f"written there were removed, and it needs more than the {free} now free: free some "
+        "space or write to another folder"
+    )
+
+
 def interrupted(exc) -> bool:
     """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
     seen = set()
@@ -120,6 +194,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     old_show = warnings.showwarning
     warnings.showwarning = _show_warning
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = EscapingStream(sys.stdout), EscapingStream(sys.stderr)
+    out = before = None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", CfmInputWarning)
@@ -129,6 +206,12 @@ def main(argv=None) -> int:
                 parser.print_help()
                 return EXIT_BAD_INPUT
             args.command_line = "cfm-fem " + " ".join(shlex.quote(a) for a in argv)
+            out = getattr(args, "out", None)
+            before = _entries(out)
+            from .._numba_cache import NOTE
+
+            if NOTE:
+                print(f"cfm-fem: note: {NOTE}", file=sys.stderr)
             return int(args._run(args) or EXIT_OK)
     except CfmInputError as exc:
         print(f"cfm-fem: error: {exc}", file=sys.stderr)
@@ -141,8 +224,16 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
+    except Exception as exc:  # a full disk, wherever it is met: clean up and say so
+        full = _disk_full(exc)
+        if full is None:
+            raise
+        freed = _remove_new(out, before)
+        print(f"cfm-fem: error: {_disk_full_message(full, out, freed)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     finally:
         warnings.showwarning = old_show
+        sys.stdout, sys.stderr = streams
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -70,10 +70,11 @@ def progress_bar(total: int | None, unit: str, interval: float = LOG_INTERVAL_S)
 
     A tqdm bar when stderr is a terminal, else `LogProgress` lines every ``interval`` s.
     """
-    if _is_terminal(sys.stderr):
-        bar = tqdm(total=total, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=False)
+    stream = getattr(sys.stderr, "wrapped", sys.stderr)  # the terminal, not `EscapingStream`
+    if _is_terminal(stream):
+        bar = tqdm(total=total, unit=unit, file=stream, dynamic_ncols=True, leave=False)
     else:
-        bar = LogProgress(total, unit, sys.stderr, interval)
+        bar = LogProgress(total, unit, stream, interval)
     try:
         yield bar
     finally:

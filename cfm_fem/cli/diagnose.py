@@ -205,8 +205,11 @@ def _run(args) -> int:
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
     if args.tracker:
+        from ..workflows.compare import check_within_strokes
+
         rec = read_recording_args(args)
         _check_enough(rec)
+        check_within_strokes(rec, bench)
         prob = tracker_problem(rec, bench)
         src = args.tracker
     else:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ..errors import CfmInputError
 from ..models.field import FieldMap
+from ._files import check_regular
 from ._parse import check_zero_rows, option_hint, read_lines
 from .comsol import looks_like_comsol, read_comsol, write_comsol
 from .meshfile import meshio_format, read_meshfile, write_meshfile
@@ -61,6 +62,7 @@ def detect_format(path) -> str:
         raise CfmInputError("this is a folder; expected a field-map file", file=path)
     if not Path(path).exists():  # before the extension: a typo'd name has the wrong one
         raise CfmInputError("cannot read the file: it does not exist", file=path)
+    check_regular(path, "a field-map file")
     suffix = Path(path).suffix.lower()
     if suffix == ".table":
         return "opera"

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
+import shutil
 import stat
 import tempfile
 import time
@@ -49,6 +51,31 @@ def atomic_path(path, suffix: str | None = None):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def check_free_space(folder, nbytes: int, what: str) -> None:
+    """Refuse to write ``nbytes`` into ``folder`` when its file system has less free space
+    (with a 1 MB margin): a full disk met before writing rather than in the middle.
+
+    Raises
+    ------
+    OSError
+        ``ENOSPC``, naming the file, the space needed and the space free; nothing written.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    free = shutil.disk_usage(folder).free
+    if free < nbytes + (1 << 20):
+        raise OSError(
+            errno.ENOSPC,
+            f"{what} needs {mb(nbytes)}, {mb(free)} free",
+            str(folder / what),
+        )
+
+
+def mb(nbytes: int) -> str:
+    """``nbytes`` in MB for messages (``'12.3 MB'``)."""
+    return f"{nbytes / 1e6:,.1f} MB" if nbytes >= 1e5 else f"{nbytes / 1e6:.2g} MB"
 
 
 def temp_target(name: str) -> str | None:

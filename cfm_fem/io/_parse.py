@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning, shown
 from ..models.field import FieldMap
 from ..units import FIELD_TO_T, LENGTH_TO_MM, field_scale, length_scale
+from ._files import open_regular
 
 COORDS = ("x", "y", "z")
 FIELDS = ("Bx", "By", "Bz")
@@ -68,11 +69,82 @@ def check_utf16(raw: bytes, path) -> None:
     elif raw.startswith((b"\xff\xfe", b"\xfe\xff")):
         kind = "UTF-16"
     else:
+        check_binary(raw, path)
         head = raw[:64]  # UTF-16 without a BOM: every other byte of ASCII text is 0
-        if len(head) < 8 or max(head[0::2].count(0), head[1::2].count(0)) < len(head) // 4:
+        zeros = sorted((head[0::2].count(0), head[1::2].count(0)))
+        if len(head) < 8 or zeros[1] < len(head) // 4 or zeros[0] > len(head) // 16:
             return
         kind = "UTF-16 (no BOM)"
     raise CfmInputError(f"the file is {kind} text; save it as UTF-8 and read it again", file=path)
+
+
+#: Bytes that text files do not hold (C0 controls but tab, line feed, form feed and carriage
+#: return, and DEL); a file whose start has more than `BINARY_SHARE` of them is binary.
+_CONTROL_BYTES = bytes(b for b in range(32) if b not in b"\t\n\x0c\r") + b"\x7f"
+BINARY_SHARE = 0.05
+
+
+def check_binary(raw: bytes, path) -> None:
+    """Refuse a binary file (an image, an archive, a file of zeros) by its first 4 KiB, naming
+    what it looks like and where the first byte that text does not hold is."""
+    head = raw[:4096]
+    if not head:
+        return
+    if head.count(0) == len(head):
+        raise CfmInputError(
+            f"the file starts with {len(head)} NUL bytes (zeros), not text; expected a text "
+            "file (damaged by a crash or a disk fault?)",
+            file=path,
+        )
+    bad = sum(head.count(b) for b in _CONTROL_BYTES)
+    zeros = sorted((head[0::2].count(0), head[1::2].count(0)))
+    utf16 = zeros[1] >= len(head) // 4 and zeros[0] <= len(head) // 16
+    if bad > BINARY_SHARE * len(head) and not utf16:
+        first = next(i for i, b in enumerate(head) if b in _CONTROL_BYTES)
+        raise CfmInputError(
+            f"this is a binary file, not text: {bad} of its first {len(head)} bytes are control "
+            f"bytes (the first, 0x{head[first]:02x}, at byte {first}); expected a text file",
+            file=path,
+        )
+
+
+def decode_text(raw: bytes, path, first_line: int = 1, warn: bool = True) -> str:
+    """Text of ``raw``: UTF-8 (a BOM skipped), else Latin-1 when every byte that is not UTF-8
+    is a printable Latin-1 character (a legacy export: ``µT``, ``°C``), with a
+    `CfmInputWarning` naming the first one's line and column.
+
+    Raises
+    ------
+    CfmInputError
+        Bytes that are neither UTF-8 nor printable Latin-1 (a damaged file): the first one's
+        line and column (``first_line`` is the line ``raw`` starts on).
+    """
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        start = exc.start
+    line = (
+        first_line
+        + raw.count(b"\n", 0, start)
+        + raw.count(b"\r", 0, start)
+        - raw.count(b"\r\n", 0, start)
+    )
+    column = start - max(raw.rfind(b"\n", 0, start), raw.rfind(b"\r", 0, start))
+    where = f"byte 0x{raw[start]:02x} at column {column}"
+    if any(0x80 <= b < 0xA0 for b in raw):  # C1 controls: not Latin-1 text either
+        raise CfmInputError(
+            f"the file is not UTF-8 text: {where} is not valid UTF-8; save the file as UTF-8",
+            file=path,
+            line=line,
+        )
+    if warn:
+        warnings.warn(
+            f"{path}:{line}: not UTF-8 ({where}); the file is read as Latin-1: if that "
+            "character is not what the file means, save it as UTF-8",
+            CfmInputWarning,
+            stacklevel=3,
+        )
+    return raw.decode("latin-1")
 
 
 def check_nul(lines, path, first_line: int = 1) -> None:
@@ -96,7 +168,7 @@ def read_lines(path, max_bytes: int | None = None, what: str = "a field map") ->
     should hold, for the message on an empty file. UTF-16/32 text and NUL bytes are refused.
     """
     try:
-        with open(path, "rb") as stream:
+        with open_regular(path, what) as stream:
             raw = stream.read(-1 if max_bytes is None else max_bytes)
     except OSError as exc:
         raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
@@ -106,7 +178,10 @@ def read_lines(path, max_bytes: int | None = None, what: str = "a field map") ->
     except UnicodeDecodeError as exc:
         # a multi-byte character cut at max_bytes is not a reason to leave UTF-8
         cut = max_bytes is not None and exc.start >= len(raw) - 3
-        text = raw[: exc.start].decode("utf-8-sig") if cut else raw.decode("latin-1")
+        if cut or max_bytes is not None:  # a look at the start, to guess the format: quietly
+            text = raw[: exc.start].decode("utf-8-sig") if cut else raw.decode("latin-1")
+        else:
+            text = decode_text(raw, path)
     if not text.strip():
         raise CfmInputError(f"the file is empty; expected {what}", file=path)
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
@@ -230,6 +305,14 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
     s = token.strip()
     was_quoted = was_quoted or s[:1] in "\"'"
     s = s.strip("\"'").strip()
+    if "_" in s or not s.isascii():  # Python's float() reads "1_000" and "١٢" (Arabic digits)
+        what = "a digit separator '_'" if "_" in s else "characters other than ASCII"
+        raise CfmInputError(
+            f"column '{column}' must be a number; found {shown(s)}, which holds {what}",
+            file=file,
+            line=line,
+            column=column,
+        )
     try:
         return float(s)
     except ValueError:
@@ -263,7 +346,81 @@ def parse_number(token: str, *, column: str, file, line, was_quoted: bool = Fals
     )
 
 
-def parse_block(rows, row_lines, names, usecols, *, delimiter, file, warned=None) -> np.ndarray:
+def unterminated(lines, row_lines) -> bool:
+    """True when the last data row is the file's last line and has no line end after it (a
+    file cut short, or a writer that never ended it): `check_cut_row` then looks at it."""
+    return len(row_lines) > 0 and lines[-1] != "" and int(row_lines[-1]) == len(lines)
+
+
+_EXPONENT = re.compile(r"[eEdD][+-]?(\d*)$")
+#: Rows before the last one that `check_cut_row` compares it with.
+CUT_CONTEXT = 200
+
+
+def _shape(token: str):
+    """(length without sign, has '.', exponent digits or None, digits after '.', is zero) of a
+    number as written."""
+    s = token.strip().strip("\"'").lstrip("+-")
+    m = _EXPONENT.search(s)
+    mantissa = s[: m.start()] if m else s
+    decimals = len(mantissa) - mantissa.index(".") - 1 if "." in mantissa else 0
+    zero = not mantissa.strip("0.")
+    return len(s), "." in mantissa, (len(m[1]) if m else None), decimals, zero
+
+
+def check_cut_row(rows, row_lines, names, usecols, *, delimiter, file) -> None:
+    """Refuse a last row, written without a line end, whose numbers look cut short.
+
+    A file cut inside its last number still parses (``-0.503488323577E-0`` for
+    ``-0.503488323577E-05``, 1e5 times too large), so each value of that row is compared with
+    the same column in the rows before it: shorter than every one of them, an exponent with
+    fewer digits, no exponent or no decimal point where all have one, or fewer decimals than a
+    column written with a fixed number of them, is taken for a cut.
+
+    Raises
+    ------
+    CfmInputError
+        Naming the line, the column and the value, and what the others look like.
+    """
+    if len(rows) < 2:
+        return
+    context = [split_fields(r, delimiter) for r in rows[-CUT_CONTEXT - 1 : -1]]
+    last = split_fields(rows[-1], delimiter)
+    for c in usecols:
+        if c >= len(last) or not all(c < len(f) for f in context):
+            return  # a short row: the field count check names it
+        t = _shape(last[c])
+        others = [_shape(f[c]) for f in context]
+        # values written in the same form (with or without an exponent): "0.0" among
+        # "-0.503488323577E-05" is a zero, not a cut; a non-zero value is not compared with
+        # zeros (often written in a form of their own)
+        same = [o for o in others if (o[2] is None) == (t[2] is None) and (o[4] <= t[4])]
+        why = None
+        if t[2] is None and not same:
+            why = "written without the exponent the values above it have"
+        elif not same:
+            pass
+        elif t[2] is not None and t[2] < min(o[2] for o in same):
+            why = "an exponent with fewer digits than every value above it"
+        elif t[0] < min(o[0] for o in same):
+            why = "shorter than every value above it"
+        elif not t[1] and all(o[1] for o in same):
+            why = "written without the decimal point every value above it has"
+        elif len({o[3] for o in same}) == 1 and t[3] < same[0][3]:
+            why = f"fewer decimals than the {same[0][3]} of every value above it"
+        if why:
+            raise CfmInputError(
+                f"column '{names[c]}': the last value {shown(last[c].strip())} is {why}, and the "
+                "file ends without a line end after it: it looks cut short (a copy or a write "
+                "that did not finish); if the value is complete, end the file with a line end",
+                file=file,
+                line=int(row_lines[-1]),
+                column=names[c],
+            )
+
+
+def parse_block(rows, row_lines, names, usecols, *, delimiter, file, warned=None,
+                cut=False) -> np.ndarray:  # fmt: skip
     """Numbers of the columns ``usecols`` of the data rows.
 
     Fast path: numpy parses the whole block at once. Only if that fails (a bad field, quoted
@@ -283,11 +440,15 @@ def parse_block(rows, row_lines, names, usecols, *, delimiter, file, warned=None
         The warnings already given for this file, shared by the blocks of one file read in
         blocks (`cfm_fem.io.streaming.TableStream`): each is then given once per file, not once
         per block; updated in place.
+    cut : bool
+        The last row ends the file without a line end (`unterminated`): `check_cut_row`.
 
     Returns
     -------
     ndarray, shape (n, len(usecols)), float64
     """
+    if cut:
+        check_cut_row(rows, row_lines, names, usecols, delimiter=delimiter, file=file)
     try:
         block = np.loadtxt(rows, delimiter=delimiter, comments=None, ndmin=2, dtype=np.float64)
     except ValueError:
@@ -600,6 +761,7 @@ def table_fieldmap(
     optional=(),
     notes=(),
     check_points=None,
+    cut=False,
 ) -> FieldMap:
     """Pick columns, resolve units, parse the block and build the `FieldMap` (all text readers).
 
@@ -618,6 +780,8 @@ def table_fieldmap(
     check_points : callable, optional
         ``check_points(points)`` with points (n, 3) mm of every row, returning notes; for
         format-specific checks such as Opera's point counts.
+    cut : bool
+        The last row has no line end after it (`unterminated`): checked by `check_cut_row`.
     """
     check_zero_rows(zero_rows)
     names = [c.name for c in header_columns]
@@ -640,7 +804,7 @@ def table_fieldmap(
     notes = list(notes) + layout.notes
     chosen = layout.chosen
     values = layout.values(parse_block(rows, row_lines, names, layout.usecols,
-                                       delimiter=delimiter, file=file))  # fmt: skip
+                                       delimiter=delimiter, file=file, cut=cut))  # fmt: skip
     for role in ROLES:
         if chosen[role] is None:
             notes.append(f"no '{role}' column: {role} = 0 at every node")
@@ -760,19 +924,33 @@ def build_fieldmap(
     )
 
 
+#: Largest coordinate (mm) and field (T) a map may hold: 1e9 km and 1e6 T are beyond any
+#: bench and any magnet; larger values are damage or a unit mix-up, and their squares overflow
+#: float64 on the way (a value of 1e308 gave inf statistics after the outputs were written).
+MAX_COORD_MM = 1e12
+MAX_FIELD_T = 1e6
+
+
 def _check_finite(points, B, columns, lines, source):
-    """NaN or inf: name the first one's line and column (as the file spells it)."""
-    for values, names in ((points, columns[:3]), (B, columns[3:])):
-        bad = ~np.isfinite(values)
+    """NaN, inf or an implausible magnitude (`MAX_COORD_MM`, `MAX_FIELD_T`): name the first
+    one's line and column (as the file spells it)."""
+    for values, names, limit, unit in ((points, columns[:3], MAX_COORD_MM, "mm"),
+                                       (B, columns[3:], MAX_FIELD_T, "T")):  # fmt: skip
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.abs(values) <= limit)
         if bad.any():
             i, j = np.argwhere(bad)[0]
             where = {"line": int(lines[i])} if lines is not None else {}
             node = "" if lines is not None else f" at node {i} (0-based)"
+            v = float(values[i, j])
+            what = (
+                f"must be a finite number; found {v}"
+                if not np.isfinite(v)
+                else f"must be within +-{limit:g} {unit}; found {v:g} {unit} (a unit mix-up or "
+                "a damaged value?)"
+            )
             raise CfmInputError(
-                f"column '{names[j]}' must be a finite number; found {float(values[i, j])}{node}",
-                file=source,
-                column=names[j],
-                **where,
+                f"column '{names[j]}' {what}{node}", file=source, column=names[j], **where
             )
 
 

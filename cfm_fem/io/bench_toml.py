@@ -28,6 +28,7 @@ from ..models.bench import (
 )
 from ..models.mc import PDF_PARAMETERS, Pdf
 from ._atomic import write_text
+from ._files import open_regular
 
 __all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench", "REFERENCE_BENCH"]
 
@@ -42,6 +43,11 @@ MAX_GRID_POINTS = 100_000
 #: vibration and reading delay. Larger values are typos or overflow: std = 1e300 um would make the
 #: kinematics Monte Carlo loop for ever on NaN positions.
 MAX_STROKE_MM = 1e5
+#: Largest mount, tool or magnet offset (mm), magnet rotation (deg) and axis speed (mm/s) a
+#: bench may state: larger is a typo (1e300 mm was accepted and overflowed downstream).
+MAX_OFFSET_MM = 1e5
+MAX_ROTATION_DEG = 360.0
+MAX_SPEED_MM_S = 1e6
 MAX_ERROR = {"length": 1e3, "angle": 1.0}
 MAX_NOISE_UM = 1e6
 
@@ -147,7 +153,7 @@ def _get(doc, table, key, prefix, kind, default=None, required=False):
         return float(v)
     if kind == "integer":
         if isinstance(v, bool) or not isinstance(v, int):
-            raise doc.error(full, f"must be an integer; found {v!r}")
+            raise doc.error(full, f"must be an integer; found {_shown(v)}")
         return v
     if kind == "string":
         if not isinstance(v, str):
@@ -273,13 +279,23 @@ def read_bench(path) -> Bench:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")  # Windows Notepad writes a BOM
+        with open_regular(path, "a bench TOML file", "the bench file") as f:
+            raw = f.read()
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the bench file: {exc.strerror or exc}", file=path
         ) from None
-    except UnicodeDecodeError:
-        raise CfmInputError("the bench file is not UTF-8 text", file=path) from None
+    try:
+        text = raw.decode("utf-8-sig")  # Windows Notepad writes a BOM
+    except UnicodeDecodeError as exc:  # TOML is UTF-8: say where it is not
+        line = raw.count(b"\n", 0, exc.start) + 1
+        column = exc.start - raw.rfind(b"\n", 0, exc.start)
+        raise CfmInputError(
+            f"the bench file is not UTF-8 text: byte 0x{raw[exc.start]:02x} at column {column} "
+            "is not valid UTF-8 (TOML files are UTF-8); save it as UTF-8",
+            file=path,
+            line=line,
+        ) from None
     return parse_bench(text, source=str(path))
 
 
@@ -295,43 +311,123 @@ def read_reference_bench() -> Bench:
 def parse_bench(text: str, source: str = "<string>") -> Bench:
     """Parse bench TOML text (``source`` names it in messages)."""
     doc = _Doc(source, text)
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        m = re.search(r"line (\d+)", str(exc))
-        line = int(m.group(1)) if m else None
-        if line is None and "end of document" in str(exc):  # a file cut short: its last line
-            line = max(len(text.rstrip().splitlines()), 1)
-        raise CfmInputError(f"not valid TOML: {exc}", file=source, line=line) from None
-    top = {
-        "format",
-        "version",
-        "name",
-        "frame",
-        "axes",
-        "grid",
-        "errors",
-        "vibration",
-        "reading_delay",
-        "magnet",
-        "assumptions",
-    }
-    _check_keys(doc, data, top, "")
+    data = _load_toml(text, source)
+    _check_keys(doc, data, _TOP_KEYS, "")
     fmt = _get(doc, data, "format", "", "string", default="cfm-bench")
     if fmt != "cfm-bench":
-        raise doc.error("format", f"must be 'cfm-bench'; found {fmt!r}")
+        raise doc.error("format", f"must be 'cfm-bench'; found {_shown(fmt)}")
     version = _get(doc, data, "version", "", "integer", default=1)
     if version != 1:
-        raise doc.error("version", f"must be 1 (the only bench format version); found {version}")
+        raise doc.error(
+            "version", f"must be 1 (the only bench format version); found {_shown(version)}"
+        )
     name = _get(doc, data, "name", "", "string", default=Path(source).stem)
 
     frame = _get(doc, data, "frame", "", "table", required=True)
     _check_keys(doc, frame, {"stack", "tool_offset_mm", "description"}, "frame")
     stack = frame.get("stack", ["z", "x", "y"])
     if not (isinstance(stack, list) and sorted(map(str, stack)) == sorted(AXES)):
-        raise doc.error("frame.stack", f"must list 'x', 'y' and 'z' once each; found {stack!r}")
-    tool = _get(doc, frame, "tool_offset_mm", "frame", "vector3", required=True)
+        raise doc.error(
+            "frame.stack", f"must list 'x', 'y' and 'z' once each; found {_shown(stack)}"
+        )
+    tool = _offset(doc, frame, "tool_offset_mm", "frame", required=True)
+    axes = _read_axes(doc, data)
+    grid_args = _read_grid(doc, data, axes)
 
+    err_t = _get(doc, data, "errors", "", "table", required=True)
+    _check_keys(doc, err_t, set(_ERROR_GROUPS), "errors")
+    specs = {}
+    for group, keys in _ERROR_GROUPS.items():
+        gt = _get(doc, err_t, group, "errors", "table", required=True)
+        _check_keys(doc, gt, set(keys), f"errors.{group}")
+        for key in keys:
+            t = _get(doc, gt, key, f"errors.{group}", "table", required=True)
+            spec = _read_error(doc, t, group, key)
+            specs[spec.name] = spec
+    errors = tuple(specs[n] for n in ERROR_NAMES)
+
+    vib_t = _get(doc, data, "vibration", "", "table", default={})
+    _check_keys(doc, vib_t, {"std_um"}, "vibration")
+    vib = _std_or_vector(doc, vib_t, "std_um", "vibration", 0.0)
+    delay = _read_delay(doc, data)
+
+    mag_t = _get(doc, data, "magnet", "", "table", default={})
+    _check_keys(doc, mag_t, {"rotation_deg", "translation_mm"}, "magnet")
+    rot = _get(doc, mag_t, "rotation_deg", "magnet", "vector3", default=np.zeros(3))
+    if np.any(np.abs(rot) > MAX_ROTATION_DEG):
+        raise doc.error(
+            "magnet.rotation_deg",
+            f"must be within +-{MAX_ROTATION_DEG:g} deg per angle; found {_shown(rot.tolist())}",
+        )
+    trans = _offset(doc, mag_t, "translation_mm", "magnet")
+
+    ass_t = _get(doc, data, "assumptions", "", "table", default={})
+    _check_keys(doc, ass_t, {"notes"}, "assumptions")
+    notes = ass_t.get("notes", [])
+    if not (isinstance(notes, list) and all(isinstance(n, str) for n in notes)):
+        raise doc.error("assumptions.notes", "must be a list of strings")
+
+    try:
+        return Bench(
+            name=name,
+            stack=tuple(str(s) for s in stack),
+            axes=axes,
+            tool_offset_mm=tool,
+            errors=errors,
+            vibration_std_mm=vib,
+            delay=delay,
+            magnet=MagnetPlacement(np.deg2rad(rot), trans),
+            grid=Grid(**grid_args),
+            assumptions=tuple(notes),
+            source=source,
+        )
+    except CfmInputError as exc:  # model-level checks: name the file, the key is in the text
+        key = exc.what.split(" ")[0].strip("'")
+        raise CfmInputError(exc.what, file=source, line=doc.line_of(key)) from None
+
+
+_TOP_KEYS = {"format", "version", "name", "frame", "axes", "grid", "errors", "vibration",
+             "reading_delay", "magnet", "assumptions"}  # fmt: skip
+
+
+def _load_toml(text: str, source: str) -> dict:
+    """``tomllib.loads`` with every failure a `CfmInputError`: syntax (with its line), arrays
+    nested thousands deep (Python's recursion limit) and integers of thousands of digits."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        m = re.search(r"line (\d+)", str(exc))
+        line = int(m.group(1)) if m else None
+        if line is None and "end of document" in str(exc):  # a file cut short: its last line
+            line = max(len(text.rstrip().splitlines()), 1)
+        raise CfmInputError(f"not valid TOML: {exc}", file=source, line=line) from None
+    except RecursionError:
+        raise CfmInputError(
+            "arrays or tables nested too deep to read; expected a bench description (at most "
+            "a few levels)",
+            file=source,
+        ) from None
+    except ValueError as exc:  # an integer beyond Python's digit limit for conversions
+        raise CfmInputError(
+            f"a value the bench cannot hold ({str(exc).split(':')[0]}); expected numbers of "
+            "plausible size",
+            file=source,
+        ) from None
+
+
+def _offset(doc, table, key, prefix, required=False) -> np.ndarray:
+    """A vector3 of mm within `MAX_OFFSET_MM` (a mount offset of 1e300 mm is a typo)."""
+    v = _get(doc, table, key, prefix, "vector3", default=np.zeros(3), required=required)
+    if np.any(np.abs(v) > MAX_OFFSET_MM):
+        raise doc.error(
+            f"{prefix}.{key}",
+            f"must be within +-{MAX_OFFSET_MM:g} mm per component; found {_shown(v.tolist())}",
+        )
+    return v
+
+
+def _read_axes(doc, data) -> dict:
+    """``[axes.x]``, ``[axes.y]``, ``[axes.z]``: stroke and mount offset of each axis."""
     axes_t = _get(doc, data, "axes", "", "table", required=True)
     _check_keys(doc, axes_t, set(AXES), "axes")
     axes = {}
@@ -343,9 +439,12 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
             raise doc.error(
                 f"axes.{a}.stroke_mm", f"must be > 0 and <= {MAX_STROKE_MM:g} mm; found {stroke:g}"
             )
-        mount = _get(doc, t, "mount_offset_mm", f"axes.{a}", "vector3", default=np.zeros(3))
-        axes[a] = Axis(a, stroke, mount)
+        axes[a] = Axis(a, stroke, _offset(doc, t, "mount_offset_mm", f"axes.{a}"))
+    return axes
 
+
+def _read_grid(doc, data, axes) -> dict:
+    """``[grid]``: (start, stop, num) per axis, within its stroke (defaults: `Grid`)."""
     grid_t = _get(doc, data, "grid", "", "table", default={})
     _check_keys(doc, grid_t, {f"{a}_mm" for a in AXES}, "grid")
     grid_args = {}
@@ -377,23 +476,11 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
             f"has {n_grid:,} points; expected at most {MAX_GRID_POINTS:,} (about 30 kB "
             "of memory per point in kinematics)",
         )
+    return grid_args
 
-    err_t = _get(doc, data, "errors", "", "table", required=True)
-    _check_keys(doc, err_t, set(_ERROR_GROUPS), "errors")
-    specs = {}
-    for group, keys in _ERROR_GROUPS.items():
-        gt = _get(doc, err_t, group, "errors", "table", required=True)
-        _check_keys(doc, gt, set(keys), f"errors.{group}")
-        for key in keys:
-            t = _get(doc, gt, key, f"errors.{group}", "table", required=True)
-            spec = _read_error(doc, t, group, key)
-            specs[spec.name] = spec
-    errors = tuple(specs[n] for n in ERROR_NAMES)
 
-    vib_t = _get(doc, data, "vibration", "", "table", default={})
-    _check_keys(doc, vib_t, {"std_um"}, "vibration")
-    vib = _std_or_vector(doc, vib_t, "std_um", "vibration", 0.0)
-
+def _read_delay(doc, data) -> ReadingDelay:
+    """``[reading_delay]``: model 'normal' (std_um) or 'speed_tau' (speed_mm_s and tau)."""
     del_t = _get(doc, data, "reading_delay", "", "table", default={})
     _check_keys(doc, del_t, {"model", "std_um", "speed_mm_s", "tau"}, "reading_delay")
     model = _get(doc, del_t, "model", "reading_delay", "string", default="normal")
@@ -401,50 +488,27 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
         for k in ("speed_mm_s", "tau"):
             if k in del_t:
                 raise doc.error(f"reading_delay.{k}", "is only used with model = 'speed_tau'")
-        delay = ReadingDelay("normal", _std_or_vector(doc, del_t, "std_um", "reading_delay", 0.0))
-    elif model == "speed_tau":
-        if "std_um" in del_t:
-            raise doc.error("reading_delay.std_um", "is only used with model = 'normal'")
-        speed = _get(doc, del_t, "speed_mm_s", "reading_delay", "vector3", required=True)
-        tau_t = _get(doc, del_t, "tau", "reading_delay", "table", required=True)
-        _check_keys(doc, tau_t, _ERROR_KEYS - {"profile", "note"}, "reading_delay.tau")
-        unit = _get(doc, tau_t, "unit", "reading_delay.tau", "string", default="s")
-        scales = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
-        if unit not in scales:
-            raise doc.error("reading_delay.tau.unit", f"must be one of s, ms, us; found {unit!r}")
-        tau = _pdf(doc, tau_t, "reading_delay.tau", scales[unit], "time")
-        delay = ReadingDelay("speed_tau", np.zeros(3), speed, tau)
-    else:
-        raise doc.error("reading_delay.model", f"must be 'normal' or 'speed_tau'; found {model!r}")
-
-    mag_t = _get(doc, data, "magnet", "", "table", default={})
-    _check_keys(doc, mag_t, {"rotation_deg", "translation_mm"}, "magnet")
-    rot = _get(doc, mag_t, "rotation_deg", "magnet", "vector3", default=np.zeros(3))
-    trans = _get(doc, mag_t, "translation_mm", "magnet", "vector3", default=np.zeros(3))
-
-    ass_t = _get(doc, data, "assumptions", "", "table", default={})
-    _check_keys(doc, ass_t, {"notes"}, "assumptions")
-    notes = ass_t.get("notes", [])
-    if not (isinstance(notes, list) and all(isinstance(n, str) for n in notes)):
-        raise doc.error("assumptions.notes", "must be a list of strings")
-
-    try:
-        return Bench(
-            name=name,
-            stack=tuple(str(s) for s in stack),
-            axes=axes,
-            tool_offset_mm=tool,
-            errors=errors,
-            vibration_std_mm=vib,
-            delay=delay,
-            magnet=MagnetPlacement(np.deg2rad(rot), trans),
-            grid=Grid(**grid_args),
-            assumptions=tuple(notes),
-            source=source,
+        return ReadingDelay("normal", _std_or_vector(doc, del_t, "std_um", "reading_delay", 0.0))
+    if model != "speed_tau":
+        raise doc.error(
+            "reading_delay.model", f"must be 'normal' or 'speed_tau'; found {_shown(model)}"
         )
-    except CfmInputError as exc:  # model-level checks: name the file, the key is in the text
-        key = exc.what.split(" ")[0].strip("'")
-        raise CfmInputError(exc.what, file=source, line=doc.line_of(key)) from None
+    if "std_um" in del_t:
+        raise doc.error("reading_delay.std_um", "is only used with model = 'normal'")
+    speed = _get(doc, del_t, "speed_mm_s", "reading_delay", "vector3", required=True)
+    if np.any(np.abs(speed) > MAX_SPEED_MM_S):
+        raise doc.error(
+            "reading_delay.speed_mm_s",
+            f"must be within +-{MAX_SPEED_MM_S:g} mm/s; found {_shown(speed.tolist())}",
+        )
+    tau_t = _get(doc, del_t, "tau", "reading_delay", "table", required=True)
+    _check_keys(doc, tau_t, _ERROR_KEYS - {"profile", "note"}, "reading_delay.tau")
+    unit = _get(doc, tau_t, "unit", "reading_delay.tau", "string", default="s")
+    scales = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+    if unit not in scales:
+        raise doc.error("reading_delay.tau.unit", f"must be one of s, ms, us; found {_shown(unit)}")
+    tau = _pdf(doc, tau_t, "reading_delay.tau", scales[unit], "time")
+    return ReadingDelay("speed_tau", np.zeros(3), speed, tau)
 
 
 def _fmt(v) -> str:

@@ -46,6 +46,12 @@ class ChunkStore:
 
     def __init__(self, out_dir):
         self.path = Path(out_dir) / STORE_NAME
+        if self.path.is_symlink():  # its files would be written, read and removed elsewhere
+            raise CfmInputError(
+                "is a symbolic link; the chunk store must be a folder of the output folder "
+                "(remove the link)",
+                file=self.path,
+            )
 
     def exists(self) -> bool:
         """True if the store folder is there."""

@@ -32,6 +32,7 @@ from ._parse import (
     header_names,
     read_lines,
     table_fieldmap,
+    unterminated,
     write_rows,
 )
 from .comsol_sections import is_coordinates_line, read_sections, solution_columns
@@ -131,6 +132,7 @@ def read_comsol(
         header_line=header_line,
         optional=optional,
         notes=notes,
+        cut=unterminated(lines, row_lines),
         **shared,
     )
 

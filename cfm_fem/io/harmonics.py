@@ -30,7 +30,8 @@ from ..errors import CfmInputError
 from ..models.multipole import UNIT, Multipole
 from ..units import length_scale
 from ._atomic import write_text
-from ._parse import check_nul, check_utf16, option_hint
+from ._files import open_regular
+from ._parse import check_nul, check_utf16, decode_text, option_hint
 
 __all__ = ["CONVENTIONS", "read_harmonics", "write_harmonics", "qfdp4_path", "read_qfdp4"]
 
@@ -234,16 +235,14 @@ def read_harmonics(
     """
     source = str(path)
     try:
-        raw = Path(path).read_bytes()
+        with open_regular(path, "a harmonics table", "the harmonics file") as f:
+            raw = f.read()
     except OSError as exc:
         raise CfmInputError(
             f"cannot read the harmonics file: {exc.strerror or exc}", file=source
         ) from exc
     check_utf16(raw, source)
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:  # not UTF-8: read as Latin-1 like the field-map readers
-        text = raw.decode("latin-1")
+    text = decode_text(raw, source)
     if "\x00" in text:
         check_nul(text.replace("\r\n", "\n").replace("\r", "\n").split("\n"), source)
     return parse_harmonics(text, source=source, r_ref_mm=r_ref_mm, convention=convention, main=main)

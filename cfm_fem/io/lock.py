@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import functools
 import json
 import os
@@ -197,16 +198,16 @@ def _acquire(out: Path, option: str, command: str | None):
     for _ in range(_ATTEMPTS):
         created = False
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o666)
             created = True
         except FileExistsError:
             try:
-                fd = os.open(path, os.O_RDWR)
+                fd = os.open(path, os.O_RDWR | _NOFOLLOW)
             except FileNotFoundError:
                 continue  # removed by a run that failed: make it again
             except PermissionError:  # a read-only lock file locks as well
-                fd = _open(path, os.O_RDONLY, out, option)
-            except OSError as exc:  # a folder of that name, ...
+                fd = _open(path, os.O_RDONLY | _NOFOLLOW, out, option)
+            except OSError as exc:  # a folder of that name, a symbolic link, ...
                 raise _cannot(out, option, exc) from None
         except OSError as exc:
             raise _cannot(out, option, exc) from None
@@ -246,7 +247,17 @@ def _open(path: Path, flags: int, out: Path, option: str) -> int:
         raise _cannot(out, option, exc) from None
 
 
+#: Open the lock without following a symbolic link: a link planted in the output folder would
+#: otherwise have the run truncate and write whatever file it points to.
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
 def _cannot(out: Path, option: str, exc: OSError) -> CfmInputError:
+    if exc.errno == errno.ELOOP or (out / LOCK_NAME).is_symlink():
+        return CfmInputError(
+            f"{option} {str(out)!r}: the lock file {LOCK_NAME} in it is a symbolic link; not "
+            "followed (remove the link)"
+        )
     return CfmInputError(
         f"{option} {str(out)!r}: cannot create the lock file {LOCK_NAME} in it: "
         f"{exc.strerror or exc}"

@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import CfmInputError
 from ..models.field import FieldMap
 from ._atomic import atomic_path
+from ._files import check_regular
 from ._parse import (
     DELAUNAY_NOTE,
     Column,
@@ -80,8 +81,9 @@ def read_meshfile(
     file = str(path)
     if Path(path).is_dir():
         raise CfmInputError("this is a folder; expected a field-map file", file=file)
-    if not Path(path).is_file():
+    if not Path(path).exists():
         raise CfmInputError("cannot read the file: it does not exist", file=file)
+    check_regular(path, "a field-map file")
     fmt = meshio_format(path, file_format)
     try:
         mesh = _meshio_read(path, fmt)

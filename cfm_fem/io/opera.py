@@ -20,7 +20,15 @@ import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
 from ..models.field import FieldMap
-from ._parse import KNOWN_UNITS, data_rows, describe_column, read_lines, table_fieldmap, write_rows
+from ._parse import (
+    KNOWN_UNITS,
+    data_rows,
+    describe_column,
+    read_lines,
+    table_fieldmap,
+    unterminated,
+    write_rows,
+)
 
 __all__ = ["read_opera", "write_opera", "looks_like_opera"]
 
@@ -99,12 +107,13 @@ def read_opera(path, *, length_unit=None, field_unit=None, zero_rows="warn") -> 
         field_unit=field_unit,
         zero_rows=zero_rows,
         check_points=lambda points: _check_counts(counts, points, file, first + 1),
+        cut=unterminated(lines, row_lines),
     )
 
 
 def _point_counts(text, file, line) -> list[int]:
     tokens = text.split()
-    if len(tokens) < 2 or not all(t.isdigit() for t in tokens):
+    if len(tokens) < 2 or not all(t.isascii() and t.isdigit() and len(t) < 19 for t in tokens):
         raise CfmInputError(
             f"line 1 of an Opera table must hold the point counts and a trailing flag "
             f"(e.g. '41 11 21 2'); found '{text.strip()}'",

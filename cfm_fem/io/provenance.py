@@ -15,6 +15,7 @@ import re
 from pathlib import Path
 
 from ..errors import CfmInputError
+from ._files import open_regular
 
 __all__ = ["file_sha256", "bench_input", "provenance", "xml_comment", "read_xml_provenance"]
 
@@ -27,7 +28,7 @@ def file_sha256(path) -> str:
     out-of-core sweep hashes its input before it reads it)."""
     h = hashlib.sha256()
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "an input file") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
     except OSError as exc:

@@ -29,10 +29,17 @@ import warnings
 
 import numpy as np
 
-from ..errors import CfmInputError, CfmInputWarning
+from ..errors import CfmInputError, CfmInputWarning, shown
 from ..models.recordings import Recording
 from ._atomic import atomic_path
-from ._parse import data_rows, parse_number, read_lines
+from ._parse import (
+    MAX_FIELD_T,
+    check_cut_row,
+    data_rows,
+    parse_number,
+    read_lines,
+    unterminated,
+)
 
 __all__ = [
     "TRACKER_COLUMNS",
@@ -54,6 +61,18 @@ _REQUIRED = {"tracker": TRACKER_COLUMNS, "hall": HALL_COLUMNS}
 _WHAT = {"tracker": "a laser-tracker recording", "hall": "a Hall map"}
 #: Two rows of one point whose commands differ by more than this (mm) trigger a warning.
 CMD_TOLERANCE_MM = 1e-3
+#: Largest magnitude a value may have, by column (larger is damage or a unit mix-up: 1e300 mm
+#: made the fits fail to converge, 1e308 overflowed): positions 1e6 mm (1 km), fields
+#: `MAX_FIELD_T`, time 1e10 s (three centuries), speed 1e6 mm/s.
+LIMITS = {
+    **{c: (1e6, "mm") for c in ("x_cmd", "y_cmd", "z_cmd", "x_meas", "y_meas", "z_meas")},
+    **{c: (MAX_FIELD_T, "T") for c in ("Bx", "By", "Bz")},
+    "t_s": (1e10, "s"),
+    "speed": (1e6, "mm/s"),
+    "temp_C": (1e4, "degC"),
+}
+#: A point_id or rep is an integer of int64 (read exactly, never through a float).
+_INT_DIGITS = 18
 
 
 # --------------------------------------------------------------------------- reading
@@ -144,20 +163,26 @@ def _read(path, kind, lines=None) -> Recording:
             line=hline,
         )
     table = _split(rows, row_lines, names, path)  # list of columns of str
+    if unterminated(lines, row_lines):
+        check_cut_row(rows, row_lines, names, sorted(index.values()), delimiter=",", file=path)
 
     def num(col, *, finite=True):
-        return _numbers(table[index[col]], row_lines, names[index[col]], path, finite=finite)
+        v = _numbers(table[index[col]], row_lines, names[index[col]], path, finite=finite)
+        if col in LIMITS:
+            _check_limit(v, table[index[col]], row_lines, names[index[col]], path, *LIMITS[col])
+        return v
 
     def integer(col, lo=None, hi=None, what="an integer"):
-        v = num(col)
-        bad = (v != np.round(v)) | (np.abs(v) > 2**53)
+        texts = table[index[col]]
+        exact = _exact_integers(texts)
+        v = num(col) if exact is None else exact
+        bad = (v != np.round(v)) | (np.abs(v) > 2**53) if exact is None else np.zeros(len(v), bool)
         if lo is not None:
             bad |= (v < lo) | (v > hi)
         if bad.any():
             i = int(np.argmax(bad))
-            found = table[index[col]][i].strip()
             raise CfmInputError(
-                f"column '{names[index[col]]}' must be {what}; found {found!r}",
+                f"column '{names[index[col]]}' must be {what}; found {shown(texts[i].strip())}",
                 file=path,
                 line=int(row_lines[i]),
                 column=names[index[col]],
@@ -290,8 +315,39 @@ def _split(rows, row_lines, names, path) -> list[list[str]]:
     return [list(c) for c in zip(*fields, strict=True)]
 
 
+def _exact_integers(texts):
+    """The integers written in ``texts`` as int64, exactly (ids above 2**53 are not rounded
+    through a float); None when one is not written as a plain integer of at most 18 digits."""
+    out = np.empty(len(texts), dtype=np.int64)
+    for i, t in enumerate(texts):
+        s = t.strip()
+        digits = s[1:] if s[:1] in "+-" else s
+        if not (digits.isascii() and digits.isdigit() and len(digits) <= _INT_DIGITS):
+            return None
+        out[i] = int(s)
+    return out
+
+
+def _check_limit(v, texts, row_lines, column, path, limit, unit) -> None:
+    """Refuse a value beyond ``limit`` (`LIMITS`), as written, with its line."""
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(v) > limit
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise CfmInputError(
+            f"column '{column}' must be within +-{limit:g} {unit}; found {shown(texts[i].strip())}"
+            " (a unit mix-up or a damaged value?)",
+            file=path,
+            line=int(row_lines[i]),
+            column=column,
+        )
+
+
 def _numbers(texts, row_lines, column, path, *, finite=True) -> np.ndarray:
+    joined = "".join(texts)
     try:
+        if "_" in joined or not joined.isascii():  # numpy reads "1_000"; parse_number refuses
+            raise ValueError
         v = np.asarray(texts, dtype=np.float64)
     except ValueError:
         v = np.array(
@@ -303,7 +359,7 @@ def _numbers(texts, row_lines, column, path, *, finite=True) -> np.ndarray:
     if finite and not np.all(np.isfinite(v)):
         i = int(np.argmax(~np.isfinite(v)))
         raise CfmInputError(
-            f"column '{column}' must be a finite number; found {texts[i].strip()}",
+            f"column '{column}' must be a finite number; found {shown(texts[i].strip())}",
             file=path,
             line=int(row_lines[i]),
             column=column,

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
+from ._files import open_regular
 from ._parse import _check_finite, describe_column, detect_delimiter, header_names, parse_block
 from ._parse import table_layout as _layout
 from .opera import count_mismatch
@@ -40,15 +41,16 @@ def iter_lines(path, start_line: int = 1):
     numbers are those of `cfm_fem.io._parse.read_lines`. Blocks are cut after a line end, so
     neither a multi-byte character nor a CRLF pair is ever split.
     """
-    from ._parse import check_nul, check_utf16
+    from ._parse import check_nul, check_utf16, decode_text
 
     try:
-        stream = open(path, "rb")  # noqa: SIM115 - closed below, also on early exit
+        stream = open_regular(path, "a field map")  # closed below, also on early exit
     except OSError as exc:
         raise CfmInputError(f"cannot read the file: {exc.strerror or exc}", file=path) from None
     line = 1
     carry = b""
     first = True
+    latin1 = False  # a block was read as Latin-1 (said once per file)
     try:
         while True:
             raw = stream.read(READ_BYTES)
@@ -67,7 +69,8 @@ def iter_lines(path, start_line: int = 1):
             try:
                 text = block.decode("utf-8-sig" if first else "utf-8")
             except UnicodeDecodeError:
-                text = block.decode("latin-1")
+                text = decode_text(block, path, line, warn=not latin1)
+                latin1 = True
             first = False
             parts = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
             if "\x00" in text:
@@ -157,7 +160,7 @@ class TableStream:
         if rows:
             n += len(rows)
             self.n_rows = n
-            yield self._parse(rows, lines)
+            yield self._parse(rows, lines, cut=_ends_with(self.file, rows[-1]))
         if n == 0:
             raise CfmInputError(
                 f"no data rows after the header (line {self.header_line}); expected one row "
@@ -166,15 +169,25 @@ class TableStream:
                 line=self.header_line,
             )
 
-    def _parse(self, rows, lines):
+    def _parse(self, rows, lines, cut=False):
         row_lines = np.asarray(lines, dtype=np.int64)
         block = parse_block(
             rows, row_lines, self.names, self.layout.usecols, delimiter=self.delimiter,
-            file=self.file, warned=self.warned,
+            file=self.file, warned=self.warned, cut=cut,
         )  # fmt: skip
         values = self.layout.values(block)
         _check_finite(values[:, :3], values[:, 3:], self.spelled, row_lines, self.file)
         return values, row_lines
+
+
+def _ends_with(path, row: str) -> bool:
+    """True when the file ends with ``row`` and no line end after it (`_parse.unterminated`
+    of a file read in blocks)."""
+    with open_regular(path, "a field map") as f:
+        size = f.seek(0, 2)
+        f.seek(max(size - 4096, 0))
+        tail = f.read()
+    return bool(row) and not tail.endswith((b"\n", b"\r")) and tail.endswith(row.encode())
 
 
 def open_stream(path, fmt: str, *, length_unit=None, field_unit=None) -> TableStream:

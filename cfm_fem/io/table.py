@@ -18,6 +18,7 @@ from ._parse import (
     header_names,
     read_lines,
     table_fieldmap,
+    unterminated,
     write_rows,
 )
 
@@ -88,6 +89,7 @@ def read_table(path, *, length_unit=None, field_unit=None, zero_rows="warn") -> 
         length_unit=length_unit,
         field_unit=field_unit,
         zero_rows=zero_rows,
+        cut=unterminated(lines, row_lines),
     )
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pyvista as pv
 from pyvista import CellType
 
-from ._atomic import atomic_path, write_text
+from ._atomic import atomic_path, check_free_space, write_text
 
 __all__ = ["write_vtu", "write_pvd"]
 
@@ -55,10 +55,15 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     # level 1: Monte Carlo statistics barely compress further, and level 5 takes 1.5x longer
     writer.SetCompressorTypeToZLib()
     writer.SetCompressionLevel(1)
+    # into memory, then to disk from Python: VTK's own file output aborts or crashes the
+    # process when the disk fills up; here that is an OSError, and the space is checked first
+    writer.WriteToOutputStringOn()
+    if writer.Write() != 1:
+        raise OSError(f"VTK could not write {path}")
+    data = writer.GetOutputString().encode("ascii")  # inline base64: ASCII
+    check_free_space(Path(path).parent, len(data), Path(path).name)
     with atomic_path(path) as tmp:
-        writer.SetFileName(str(tmp))
-        if writer.Write() != 1:
-            raise OSError(f"VTK could not write {path}")
+        tmp.write_bytes(data)
 
 
 def write_pvd(path, entries, provenance: dict | None = None) -> None:

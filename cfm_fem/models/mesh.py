@@ -453,11 +453,10 @@ def circumspheres(coords, simplices):
     """Circumcentres (m, d) and squared circumradii (m,) of simplices (m, d + 1), in the units
     of ``coords`` (n, d); NaN or inf for a flat simplex."""
     v = coords[simplices]  # (m, d + 1, d)
-    A = 2.0 * (v[:, 1:] - v[:, :1])
-    rhs = (v[:, 1:] ** 2).sum(-1) - (v[:, :1] ** 2).sum(-1)
+    w = v[:, 1:] - v[:, :1]  # relative to a vertex: no round-off from the map's offset
     with np.errstate(all="ignore"):
-        c = np.linalg.solve(A, rhs[..., None])[..., 0]
-        return c, ((c - v[:, 0]) ** 2).sum(-1)
+        c = np.linalg.solve(2.0 * w, (w**2).sum(-1)[..., None])[..., 0]
+        return v[:, 0] + c, (c**2).sum(-1)
 
 
 def convex_hull_points(points) -> np.ndarray:
@@ -469,7 +468,7 @@ def convex_hull_points(points) -> np.ndarray:
         For points that span fewer than d dimensions.
     """
     points = np.asarray(points, dtype=np.float64)
-    return points[np.sort(scipy.spatial.ConvexHull(points).vertices)]
+    return points[np.sort(scipy.spatial.ConvexHull(centred(points)).vertices)]
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")  # scipy's find_simplex: 3x3 solves
@@ -516,10 +515,11 @@ def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int 
     cand = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
     if not len(cand):
         return out
-    hull = scipy.spatial.Delaunay(
-        convex_hull_points(coords if hull_points is None else hull_points)
-    )
-    out[cand] = hull.find_simplex(np.concatenate(centres)) < 0
+    corners = convex_hull_points(coords if hull_points is None else hull_points)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    mid, size = (lo + hi) / 2, float((hi - lo).max()) or 1.0  # the frame of `centred`
+    hull = scipy.spatial.Delaunay((corners - mid) / size)
+    out[cand] = hull.find_simplex((np.concatenate(centres) - mid) / size) < 0
     # a node whose every cell would go keeps them all
     left = np.bincount(simplices[~out].ravel(), minlength=len(coords))
     orphan = np.zeros(len(coords), dtype=bool)
@@ -546,6 +546,25 @@ def _splitmix64(x):
     return x ^ (x >> np.uint64(31))
 
 
+def coordinate_keys(coords):
+    """A 64-bit hash per node of its coordinates' float64 bits (-0.0 hashes as 0.0): an id of
+    the node that neither the order of the rows nor the other nodes change.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d), mm
+
+    Returns
+    -------
+    ndarray, shape (n,), uint64
+    """
+    bits = np.ascontiguousarray(coords + 0.0).view(np.uint64)  # + 0.0: -0.0 keys as 0.0
+    key = np.zeros(len(coords), dtype=np.uint64)
+    for a in range(coords.shape[1]):
+        key = _splitmix64(key ^ bits[:, a])
+    return key
+
+
 def node_jitter(coords):
     """A pseudo-random offset in [-1, 1) per node and axis, keyed by the node's coordinates
     (their float64 bits): the same for a node whatever other nodes are triangulated with it,
@@ -559,15 +578,20 @@ def node_jitter(coords):
     -------
     ndarray, shape (n, d)
     """
-    bits = np.ascontiguousarray(coords + 0.0).view(np.uint64)  # + 0.0: -0.0 keys as 0.0
-    key = np.zeros(len(coords), dtype=np.uint64)
-    for a in range(coords.shape[1]):
-        key = _splitmix64(key ^ bits[:, a])
+    key = coordinate_keys(coords)
     out = np.empty(coords.shape)
     for a in range(coords.shape[1]):
         h = _splitmix64(key + np.uint64(a + 1))
         out[:, a] = (h >> np.uint64(11)).astype(np.float64) * 2.0**-52 - 1.0
     return out
+
+
+def centred(coords):
+    """``coords`` (n, d), mm, moved to the centre of their bounding box and divided by its
+    largest side: what Qhull and the circumsphere tests see, so that their round-off is the
+    same wherever the map's origin is."""
+    lo, hi = coords.min(axis=0), coords.max(axis=0)
+    return (coords - (lo + hi) / 2) / (float((hi - lo).max()) or 1.0)
 
 
 def delaunay_coords(coords, span):
@@ -644,8 +668,8 @@ def _delaunay(coords, source, span):
     """
     notes = []
     moved = delaunay_coords(coords, span)
-    try:
-        tri = scipy.spatial.Delaunay(moved)
+    try:  # centred and scaled: Qhull's round-off then does not grow with the map's offset
+        tri = scipy.spatial.Delaunay(centred(moved))
     except scipy.spatial.QhullError as exc:  # pragma: no cover - _frame catches flat sets first
         raise CfmInputError(
             f"cannot triangulate the nodes: {str(exc).splitlines()[0]}", file=source
@@ -666,7 +690,11 @@ def _delaunay(coords, source, span):
     if np.any(np.abs(on_moved) <= 1e-12 * scale):
         raise _too_degenerate(source)
     if len(tri.coplanar):
-        notes.append(f"{len(tri.coplanar)} node(s) left out of the Delaunay triangulation by Qhull")
+        raise CfmInputError(
+            f"{len(tri.coplanar)} node(s) merge with others in the Delaunay triangulation "
+            "(nodes closer than the round-off of their coordinates); expected distinct nodes",
+            file=source,
+        )
     return simplices, "delaunay", moved, flat, notes
 
 
@@ -769,20 +797,47 @@ def cell_buckets(
         boxes = _kernels.cell_boxes(coords, simplices)
     # the boxes are padded (`cfm_fem._kernels.locate._padded`), so a point a cell holds within the
     # barycentric tolerance is inside its box; per cell, on the fly: no (m, d) temporaries
-    g_lo, g_hi = _kernels.padded_extent(boxes)
+    g_lo, g_hi = grid_extent(boxes, *_kernels.padded_extent(boxes))
     ext = g_hi - g_lo
+    last = None
     while True:
         step = (np.prod(ext) / max(m / per_bucket, 1.0)) ** (1.0 / d)
         dims = np.maximum(np.ceil(ext / step), 1).astype(np.int64)
+        if last is not None and np.array_equal(dims, last):  # no coarser grid: one bucket
+            dims = np.ones(d, dtype=np.int64)
         inv = dims / ext
         box = np.ascontiguousarray(np.stack([g_lo, inv]))
         if _kernels.bucket_entries(boxes, box, dims) <= max_entries * m or dims.prod() == 1:
             break
+        last = dims
         per_bucket *= 4.0
     # counted, then filled in cell order: no per-entry temporaries (a few GB on a
     # 1e6-node map), and the cells of a bucket stay increasing
     bstart, bcells = _kernels.bucket_lists(boxes, box, dims)
     return box, dims, bstart, bcells
+
+
+def grid_extent(boxes, lo, hi, quantile: float = 1e-3, ratio: float = 64.0):
+    """The extent of the bucket grid: the cells' padded extent (``lo``, ``hi``), shrunk along
+    an axis where a few cells reach far beyond the others (a node at 1e9 mm of a map 30 mm
+    wide put every other cell into one bucket, and the search took minutes).
+
+    Along such an axis (extent over ``ratio`` times that of the cells' centres between the
+    ``quantile`` and ``1 - quantile`` quantiles) the grid covers those centres with a margin of
+    half their range; cells beyond it are listed in the border buckets, where
+    `cfm_fem._kernels.find_cell` looks for the points beyond it.
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (d,), mm
+    """
+    centres = boxes.mean(axis=1)
+    q_lo, q_hi = np.quantile(centres, [quantile, 1.0 - quantile], axis=0)
+    span = q_hi - q_lo
+    wide = (hi - lo) > ratio * np.maximum(span, 1e-300)
+    lo = np.where(wide, np.maximum(lo, q_lo - span / 2), lo)
+    hi = np.where(wide, np.minimum(hi, q_hi + span / 2), hi)
+    return lo, hi
 
 
 def no_search(dim: int) -> tuple:

@@ -163,6 +163,20 @@ def _with_norm(e: np.ndarray) -> np.ndarray:
     return np.column_stack([e, np.sqrt((e**2).sum(1))])
 
 
+def check_within_strokes(rec: Recording, bench: Bench) -> None:
+    """Refuse a tracker recording with a commanded position outside the bench's strokes (the
+    bench model has no errors there); the first such row is named."""
+    outside = bench.outside_stroke(rec.cmd)
+    if outside.any():
+        i = int(np.argmax(outside))
+        raise CfmInputError(
+            f"commanded position {rec.cmd[i].tolist()} mm is outside the strokes "
+            f"{bench.strokes_mm.tolist()} mm of the bench",
+            file=rec.source,
+            line=int(rec.lines[i]) or None,
+        )
+
+
 def compare_tracker(
     rec: Recording,
     bench: Bench,
@@ -192,15 +206,7 @@ def compare_tracker(
     """
     if rec.kind != "tracker":
         raise CfmInputError(f"{rec.source}: expected a tracker recording; got a {rec.kind} map")
-    outside = bench.outside_stroke(rec.cmd)
-    if outside.any():
-        i = int(np.argmax(outside))
-        raise CfmInputError(
-            f"commanded position {rec.cmd[i].tolist()} mm is outside the strokes "
-            f"{bench.strokes_mm.tolist()} mm of the bench",
-            file=rec.source,
-            line=int(rec.lines[i]) or None,
-        )
+    check_within_strokes(rec, bench)
     e = rec.meas - bench.nominal_probe_mm(rec.cmd)
     ids, count, mean, std = per_point_stats(rec, _with_norm(e))
     _, cmd = rec.point_cmd()

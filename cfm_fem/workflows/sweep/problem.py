@@ -19,11 +19,19 @@ from threadpoolctl import threadpool_limits
 from ... import _kernels
 from ...errors import CfmInputError, check_seed
 from ...models.field import FieldMap
-from ...models.mesh import SimplexMesh, build_mesh, exact_search, morton_order, no_search
+from ...models.mesh import (
+    SimplexMesh,
+    build_mesh,
+    coordinate_keys,
+    exact_search,
+    morton_order,
+    no_search,
+)
 from ...models.sweep import HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
 from ...threads import map_blocks
 
 __all__ = [
+    "node_keys",
     "SweepProblem",
     "SweepMesh",
     "HtmTrials",
@@ -209,6 +217,8 @@ class SweepProblem:
     exit_grad: np.ndarray | None = None
     # non-convex mesh: face excess and cell buckets (`exact_search`); None: convex (empty)
     search: tuple | None = None
+    # random-stream key of each node (`node_keys`); None: the node's row
+    keys: np.ndarray | None = None
 
     def search_arrays(self) -> tuple:
         """The kernels' ``search`` argument (`cfm_fem.models.mesh.exact_search`)."""
@@ -237,12 +247,13 @@ class SweepProblem:
         nodes : ndarray, shape (k,), int64
             Rows of this problem's arrays.
         keys : ndarray, shape (k,), int64, optional
-            Random-stream id of each node: its index in the whole map (default ``nodes``). A
-            problem built on part of a map (a slab) passes the global indices here and gets the
-            numbers of the whole-map run.
+            Random-stream id of each node (default: the problem's `node_keys` of these nodes,
+            or ``nodes`` if it has none).
         """
         nodes = np.asarray(nodes, dtype=np.int64)
-        keys = nodes if keys is None else np.asarray(keys, dtype=np.int64)
+        if keys is None:
+            keys = nodes if self.keys is None else self.keys[nodes]
+        keys = np.asarray(keys, dtype=np.int64)
         if self.htm is not None:
             return self._run_htm(nodes, keys)
         # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
@@ -381,8 +392,24 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
             else np.empty((0, 3, mesh.dim))
         ),
         search=exact_search(mesh),
+        keys=node_keys(fm.points),
     )
     return mesh, problem, b_ref
+
+
+def node_keys(points) -> np.ndarray:
+    """Random-stream key of each node: a hash of its coordinates (`coordinate_keys`), so a node
+    gets the same numbers whatever the order of the map's rows and in any part of the map.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), mm
+
+    Returns
+    -------
+    ndarray, shape (n,), int64, >= 0
+    """
+    return (coordinate_keys(np.asarray(points, dtype=np.float64)) >> np.uint64(1)).astype(np.int64)
 
 
 def _htm_arrays(cfg: SweepConfig, fm: FieldMap):

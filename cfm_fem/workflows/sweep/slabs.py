@@ -52,12 +52,13 @@ orders the vertices of a simplex by its insertion order, so barycentric coordina
 rounded differently and values agree to ~1e-15 relative, not bit for bit.
 
 **Memory.** Bounded by one slab + halo (map rows, mesh, statistics): the kernel runs on the
-slab's own arrays and takes each node's whole-map index as its random-stream key
-(`SweepProblem.run_nodes`), so the numbers are those of the whole-map run. What grows with the
-map lives on disk: the staged rows and the per-node U_f file (memory-mapped, written once).
+slab's own arrays and keys each node's random stream by a hash of its coordinates
+(`cfm_fem.workflows.sweep.problem.node_keys`), so the numbers are those of the whole-map run.
+What grows with the map lives on disk: the staged rows and the per-node U_f file
+(memory-mapped, written once).
 
 **Mode htm.** The halo takes, in place of 6 sigma_max, the bench's largest probe error near
-the map (`htm_reach_mm`); nodes key their noise streams by their whole-map index as above.
+the map (`htm_reach_mm`); nodes key their noise streams by their coordinates as above.
 
 **Resume and workers.** Each slab is a chunk of a `_SlabJob`
 (`cfm_fem.workflows.sweep.problem.serial_map`, or
@@ -626,7 +627,8 @@ class _SlabJob:
         )
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
-        stats, n_out, n_lost, star, pos = _run_blocks(gp, own_local, own_ids, cfg.chunk_nodes,
+        own_keys = problem.keys[own_local]  # hashes of the coordinates, as the whole map's
+        stats, n_out, n_lost, star, pos = _run_blocks(gp, own_local, own_keys, cfg.chunk_nodes,
                                                       self.progress)  # fmt: skip
         lost_all = (n_out + n_lost) >= cfg.trials
         skipped = start_l[own_local, 0] < 0  # in no cell, or out of the bench's strokes: NaN
@@ -636,7 +638,7 @@ class _SlabJob:
             no_exit = np.empty((0,) + gp.exit_grad.shape[1:])
             redo = dataclasses.replace(gp, neighbors=nb_b, exit_grad=no_exit,
                                        search=search_b).run_nodes(own_local[hit],
-                                                                  keys=own_ids[hit])  # fmt: skip
+                                                                  keys=own_keys[hit])  # fmt: skip
             first_out = n_out[hit]
             stats[hit], n_out[hit], n_lost[hit], star[hit], pos[hit] = redo
             n_left[hit] = n_out[hit]
@@ -721,7 +723,7 @@ def _sentinel_problem(problem, mesh, cert, gone, cert_gone, boxes, plan, st, kin
     suspect[s_idx[~hull], j_idx[~hull]] = True
     suspect[~cert] = False  # never entered
     # the slab's own arrays plus a sentinel node (NaN field) and cell (zero transform) that
-    # suspect faces lead to; nodes keep their whole-map index as random-stream key
+    # suspect faces lead to
     coords_l = np.concatenate([problem.coords, np.zeros((1, problem.coords.shape[1]))])
     values_l = np.concatenate([problem.values, np.full((1, 3), np.nan)])
     start_l = np.concatenate([problem.start_cells,
