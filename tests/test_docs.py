@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 #: Pages written alongside this documentation set; their links are checked once they exist.
@@ -54,6 +56,8 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     monkeypatch.chdir(ROOT)
     namespace: dict = {}
     exec(compile(blocks[0], "README.md", "exec"), namespace)  # noqa: S102
-    assert namespace["uf"].shape == (namespace["fm"].n_nodes, 2)
-    p50 = namespace["summary"]["uf_units"]["p50"]
+    maps = namespace["maps"]
+    assert namespace["uf"].shape == (namespace["fm"].n_nodes,)
+    p50 = maps.summary["uf_units"]["p50"]
     assert 0 < p50[0] < p50[1]  # U_f grows with U_p
+    assert maps.percentile(50, up_um=20) == pytest.approx(p50[1])

@@ -66,14 +66,18 @@ def _column(prob, rec, name, block=None):
         ("magnet_misalignment", "magnet_dz", 30.0, None),
         ("magnet_misalignment", "magnet_roll", 200.0, None),
         ("magnet_misalignment", "magnet_rot_x", 200.0, None),
-        ("sensor_offset", "d_z_x", 30.0, "sensor_offset"),
+        ("sensor_offset", "d_y_x", 30.0, "sensor_offset"),
         ("sensor_offset", "d_x_y", 30.0, "sensor_offset"),
         ("probe_misalignment", "m_zx", 0.3, "probe_misalignment"),
     ],
 )
 def test_hall_parameters_match_the_tools_columns(hall_problem_small, effect, name, value, block):
     prob, rec = hall_problem_small
-    change = _change({effect: {name: value}})
+    params = {name: value}
+    if effect == "sensor_offset":  # the tool's offsets are from the elements' centroid:
+        # element x or y moved by +value along j, element z by -value (their sum stays 0)
+        params[f"d_z_{name[-1]}"] = -value
+    change = _change({effect: params})
     col = value * _column(prob, rec, name, block)
     scale = np.abs(col).max()
     assert scale > 1e-5  # the parameter has a signature at this size (10 uT and more)
