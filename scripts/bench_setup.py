@@ -30,7 +30,7 @@ import numpy as np
 
 from cfm_fem import _kernels
 from cfm_fem.io import read_field
-from cfm_fem.models.interpolation import (
+from cfm_fem.models.mesh import (
     _delaunay,
     barycentric_transforms,
     build_mesh,

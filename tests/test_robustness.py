@@ -14,7 +14,8 @@ import pytest
 from cfm_fem.cli import main
 from cfm_fem.errors import CfmInputError
 from cfm_fem.models.field import FieldMap
-from cfm_fem.workflows.sweep.problem import SweepConfig, run_sweep
+from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 OPERA = DATA / "cctpy" / "test_opera_field_table.table"
@@ -528,7 +529,7 @@ def test_a_native_mesh_with_an_outlier_node_is_searched_quickly(tmp_path):
     The grid now covers the cells' centres; the far cells sit in its border buckets, and the
     search finds every point the cells hold, beyond the grid too."""
     from cfm_fem import _kernels
-    from cfm_fem.models.interpolation import barycentric_transforms, cell_buckets, kuhn_simplices
+    from cfm_fem.models.mesh import barycentric_transforms, cell_buckets, kuhn_simplices
 
     g = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
     simplices = kuhn_simplices((12, 12, 12), np.arange(len(g)))
