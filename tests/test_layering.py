@@ -29,9 +29,10 @@ ALLOWED = {
     "errors": set(),
     "units": set(),
     "threads": set(),
+    "_numba_cache": set(),
 }
 #: Shared utilities every part may import (``""`` is the package root, for ``__version__``).
-SHARED = {"errors", "units", "threads", ""}
+SHARED = {"errors", "units", "threads", "_numba_cache", ""}
 #: Parts restricted further: they may import only these shared utilities.
 SHARED_ONLY = {"simulation": {"errors"}}
 #: The public API (``cfm_fem/__init__.py`` and the functions of ``cfm_fem/api.py``) may import
