@@ -200,8 +200,7 @@ def test_a_node_gets_the_same_numbers_whatever_the_row_order():
 
 
 def test_node_keys_match_their_twin():
-    import twins
-
+    from cfm_fem import testing as twins
     from cfm_fem.workflows.sweep.problem import node_keys
 
     pts = np.array([[0.0, -0.0, 1.5], [-0.0, 0.0, 1.5], [1e9, -3.25, 7.0]])
