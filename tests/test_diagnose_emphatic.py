@@ -39,7 +39,10 @@ SMALL = DATA / "EMPHATIC_smallApertureFringe_cleaned.csv"
 LARGE = DATA / "EMPHATIC_largeApertureFringe_cleaned.csv"
 IN = 25.4
 
-pytestmark = pytest.mark.skipif(not BODY.exists(), reason="shared data folder absent")
+pytestmark = [
+    pytest.mark.skipif(not BODY.exists(), reason="shared data folder absent"),
+    pytest.mark.slow,
+]
 
 #: Magnet shift t (um) the owners' stitching implies (module docstring). Their own fits of the
 #: downstream offsets spread by up to 30 um (x 347-375, y 71-81 um over three fit variants);

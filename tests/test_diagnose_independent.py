@@ -22,6 +22,8 @@ from cfm_fem.simulation.scoring import score  # noqa: E402
 
 SEED = 20260101
 
+pytestmark = pytest.mark.slow  # a few minutes: full command-line runs
+
 
 def shortcoming(reason: str):
     """A goal the diagnosis does not meet yet: a strict xfail, so that a fix shows."""
