@@ -7,12 +7,22 @@ Modules: `rng` (counter-based random numbers), `htm` (the 21-error HTM chain),
 `kinematics_passes` (the kinematics Monte Carlo and its streamed statistics), `order_stats`
 (selection and per-node statistics), `locate` (point location in a simplex mesh), `interpolate`
 (linear interpolation at many points), `star` (star tables of a node), `sweep` (the Gaussian
-sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep).
+sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep),
+`harmonic` (evaluation of local harmonic field models), `harmonic_sweep` (both sweeps under
+them).
 This namespace re-exports the public names of every module.
 """
 
 from .coupled import (
     coupled_probe_errors,
+)
+from .harmonic import (
+    expand_node,
+    poly_errors,
+)
+from .harmonic_sweep import (
+    harmonic_gauss_sweep,
+    harmonic_htm_sweep,
 )
 from .htm import (
     probe_error_mm,
@@ -231,4 +241,8 @@ __all__ = [
     "gauss_sweep",
     "coupled_probe_errors",
     "htm_sweep",
+    "expand_node",
+    "poly_errors",
+    "harmonic_gauss_sweep",
+    "harmonic_htm_sweep",
 ]

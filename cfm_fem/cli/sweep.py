@@ -89,6 +89,15 @@ def add_args(p):
         help="auto: the export's cells if any, Kuhn triangulation of a grid, else Delaunay",
     )
     p.add_argument(
+        "--field-model",
+        choices=["linear", "harmonic"],  # models.sweep.FIELD_MODELS; --help stays fast
+        default="linear",
+        help="the field between nodes: linear interpolation in the mesh's cells (default), or "
+        "per node a least-squares fit of a harmonic potential's gradient (div B = curl B = 0) to "
+        "its nearest nodes, right where the field bends (3-D maps; nodes where the fit shows "
+        "Laplace's equation violated keep the linear model)",
+    )
+    p.add_argument(
         "--outside",
         choices=["exclude", "extrapolate"],
         default="exclude",
@@ -245,7 +254,7 @@ def _run_slabs(args, up):
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
                       b_ref_T=args.b_ref, interpolation=args.interpolation, mode=args.mode,
                       bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside,
-                      hull_slivers=args.hull_slivers)  # fmt: skip
+                      hull_slivers=args.hull_slivers, field_model=args.field_model)  # fmt: skip
     bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None  # packaged or given
     prov = provenance({"field": args.field, "bench": bench_entry}, args.command_line)
     prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
@@ -436,6 +445,7 @@ def _run(args, up) -> int:
         chunk_nodes=args.chunk_nodes,
         outside=args.outside,
         hull_slivers=args.hull_slivers,
+        field_model=args.field_model,
     )
     what = (
         f"U_p = {', '.join(f'{u:g}' for u in up)} um"
@@ -551,7 +561,17 @@ def _explain_outside(s):
 
 
 def _print_summary(s, out):
-    print(f"interpolation: {s['interpolation']}")
+    h = s.get("harmonic")
+    if h is None:
+        print(f"interpolation: {s['interpolation']}")
+    else:
+        degrees = ", ".join(f"{n} of degree {d}" for d, n in h["nodes_by_degree"].items())
+        print(
+            f"field model: harmonic fit per node to its {h['neighbours']} nearest nodes "
+            f"({degrees}); RMS residual p95 {h['residual_units']['p95']:.3g} units; "
+            f"{h['linear_fallback_nodes']} node(s) on the linear interpolant "
+            f"({s['interpolation']})"
+        )
     print(
         f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {s['trials']} trials per node, "
         f"U_f of one node known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo)"

@@ -307,6 +307,9 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
         cells = np.asarray(store.load(p, "cells"))
         nodes = np.union1d(ids, cells.ravel())
         names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos"]
+        harmonic = "harmonic" in summary
+        if harmonic:
+            names += ["fit_degree", "fit_residual"]
         g = store.gather(nodes, K, names)
         sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
         if htm:
@@ -322,7 +325,9 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
                           linear_in_up=g["star"], gradient=g["gradient"],
                           gum_u=_gum_u(g["gradient"], g["B"], b_ref, sigma_mm, corr), seconds=0.0,
                           positioning=g["pos"] if htm else None,
-                          n_left_out=g["n_left"])  # fmt: skip
+                          n_left_out=g["n_left"],
+                          field_fit=({"degree": g["fit_degree"], "residual_T": g["fit_residual"]}
+                                     if harmonic else None))  # fmt: skip
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})

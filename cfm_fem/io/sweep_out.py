@@ -82,6 +82,9 @@ def _point_data(res: SweepResult, k: int) -> dict:
         "complete": complete.astype(np.uint8),
         "linear_in_up": res.linear_in_up.astype(np.uint8),
     }
+    if res.field_fit is not None:  # harmonic model: what each node's fit is worth
+        data["field_fit_degree"] = res.field_fit["degree"].astype(np.uint8)
+        data["field_fit_residual_units"] = units(res.field_fit["residual_T"]).astype(f32)
     if res.positioning is not None:
         data["positioning_mean_um"] = (res.positioning[:, k, 0] * 1e3).astype(f32)
         data["positioning_std_um"] = (res.positioning[:, k, 1] * 1e3).astype(f32)

@@ -20,7 +20,7 @@ power of x, then of y, so the monomials of degree <= L are the first `n_monomial
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from math import factorial
 
 import numpy as np
@@ -47,7 +47,7 @@ def n_monomials(degree: int) -> int:
     return (degree + 1) * (degree + 2) * (degree + 3) // 6
 
 
-@lru_cache(maxsize=None)
+@cache
 def _exponents(degree: int) -> tuple:
     return tuple(
         (i, j, n - i - j)
@@ -116,7 +116,7 @@ def _sphere_points(n: int = 256) -> np.ndarray:
     return np.c_[r * np.cos(phi), r * np.sin(phi), z]
 
 
-@lru_cache(maxsize=None)
+@cache
 def _basis(degree: int) -> np.ndarray:
     exps = _exponents(degree)
     index = {e: m for m, e in enumerate(exps)}

@@ -21,6 +21,9 @@ from .mesh import SimplexMesh
 __all__ = [
     "HTM_PARTS",
     "OUTSIDE_RULES",
+    "FIELD_MODELS",
+    "field_model_summary",
+    "harmonic_summary",
     "SweepConfig",
     "COMPONENTS",
     "STAT_NAMES",
@@ -39,6 +42,10 @@ HTM_PARTS = {
     "htm_geometric": (True, False),
     "htm_vibration_delay": (False, True),
 }
+
+
+#: Field models between the nodes (`SweepConfig.field_model`).
+FIELD_MODELS = ("linear", "harmonic")
 
 
 #: What happens to a trial whose perturbed position leaves the map (`SweepConfig.outside`).
@@ -82,6 +89,10 @@ class SweepConfig:
         Delaunay maps: remove the flat cells of the convex hull (default) or keep them
         (`cfm_fem.models.mesh.hull_sliver_cells`); trials in a removed cell are outside. Kept,
         they put U_f and the gradient (so the GUM figure) of the nodes on the hull far off.
+    field_model : {"linear", "harmonic"}
+        The field between nodes: the piecewise-linear interpolant of the mesh, or per node the
+        local harmonic fit (`cfm_fem.models.harmonic`; 3-D maps), with the linear interpolant
+        where the fit finds Laplace's equation violated.
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -96,6 +107,7 @@ class SweepConfig:
     chunk_nodes: int = 20000
     outside: str = "exclude"
     hull_slivers: str = "remove"
+    field_model: str = "linear"
 
 
 def _bench_named(cfg) -> dict | None:
@@ -158,6 +170,10 @@ class SweepResult:
         Trials whose position left the map and that are not in the statistics. None: all of
         ``n_outside`` with ``outside="exclude"``, none with ``"extrapolate"`` (the out-of-core
         run leaves out, also then, the trials of nodes whose walks reached a slab's halo).
+    field_fit : dict or None
+        Field model "harmonic": per node ``degree`` (n,) int64, the polynomial degree of its
+        harmonic fit (0 where the node uses the linear interpolant), and ``residual_T`` (n,),
+        the fit's RMS residual over its neighbours' field values, T. None: linear.
     """
 
     fieldmap: FieldMap
@@ -173,6 +189,7 @@ class SweepResult:
     seconds: float
     positioning: np.ndarray | None = None
     n_left_out: np.ndarray | None = None
+    field_fit: dict | None = None
 
     @property
     def gum_mean(self) -> np.ndarray:
@@ -336,13 +353,14 @@ def summarize(res: SweepResult) -> dict:
         for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
             pct[name].append(float(np.percentile(vals, q)) if vals.size else None)
     n_samples = max(int(processed.sum()), 1) * cfg.trials
-    dis_frac = []
+    dis_frac, dis_nodes = [], []
     for k in range(n_col):  # one column at a time: no map-sized temporaries for every column
         disagree = res.gum_check(k)[2][complete[:, k]]
         dis_frac.append(
             {name: float(disagree[:, c].mean()) if len(disagree) else None
              for c, name in enumerate(COMPONENTS)}
         )  # fmt: skip
+        dis_nodes.append({name: int(disagree[:, c].sum()) for c, name in enumerate(COMPONENTS)})
     notes = list(res.fieldmap.notes) + list(res.mesh.notes)
     if res.mesh.dim == 2:
         notes.append(
@@ -368,6 +386,7 @@ def summarize(res: SweepResult) -> dict:
         ],
         "uf_relative_mc_std": float(1.363 / np.sqrt(cfg.trials)),
         "gum_disagree_fraction": dis_frac,
+        "gum_disagree_nodes": dis_nodes,
         "linear_in_up_fraction": float(res.linear_in_up[processed].mean())
         if processed.any()
         else None,
@@ -389,6 +408,7 @@ def summarize(res: SweepResult) -> dict:
         "axis_scale": list(cfg.axis_scale),
         "coverage": cfg.coverage,
         "interpolation": res.mesh.description,
+        **field_model_summary(res),
         "perturbation": (
             "x_meas = x_nom + N(0, U_p) per coordinate (paper eq. 16); the same standard normals "
             "serve every U_p value of the sweep (common random numbers)"
@@ -400,6 +420,53 @@ def summarize(res: SweepResult) -> dict:
         ),
         "notes": notes,
         "source": res.fieldmap.source,
+    }
+
+
+def field_model_summary(res: SweepResult) -> dict:
+    """``field_model`` and, for the harmonic model, what its fits did (summary.json)."""
+    ff = res.field_fit
+    if ff is None:
+        return {"field_model": "linear"}
+    deg = np.asarray(ff["degree"])
+    pts = res.fieldmap.points[deg == 0]
+    box = [pts.min(axis=0).tolist(), pts.max(axis=0).tolist()] if len(pts) else None
+    return harmonic_summary(deg, res.to_units(np.asarray(ff["residual_T"])), box, ff)
+
+
+def harmonic_summary(degree, residual_units, fallback_box, info) -> dict:
+    """summary.json entries of the harmonic field model.
+
+    Parameters
+    ----------
+    degree : ndarray, shape (n,), int
+        Degree of each node's fit, 0 where the node uses the linear interpolant.
+    residual_units : ndarray, shape (n,)
+        RMS residual of each node's fit, units.
+    fallback_box : [min (3,), max (3,)] or None
+        Box of the nodes on the linear interpolant, mm.
+    info : dict
+        ``neighbours``, ``fallback_rule``, ``reach_rule`` (`SweepResult.field_fit`).
+    """
+    degree = np.asarray(degree)
+    fit = degree > 0
+    resid = np.asarray(residual_units)[fit]
+    return {
+        "field_model": "harmonic",
+        "harmonic": {
+            "neighbours": int(info["neighbours"]),
+            "nodes_by_degree": {str(d): int((degree == d).sum()) for d in np.unique(degree[fit])},
+            "residual_units": {
+                name: float(np.percentile(resid, q)) if resid.size else None
+                for name, q in (("p50", 50), ("p95", 95), ("max", 100))
+            },
+            "linear_fallback_nodes": int((~fit).sum()),
+            "linear_fallback_box_mm": (
+                None if fallback_box is None else {"min": fallback_box[0], "max": fallback_box[1]}
+            ),
+            "fallback_rule": info["fallback_rule"],
+            "reach_rule": info["reach_rule"],
+        },
     }
 
 
@@ -450,6 +517,11 @@ def _part_result(compact, nodes, parts) -> SweepResult:
     sigma = compact.sigma_mm if positioning is None else positioning[:, :, 1]
     corr = None if positioning is None else positioning[:, :, 2]
     extra = {} if positioning is None else {"positioning": positioning}
+    if compact.field_fit is not None:
+        extra["field_fit"] = {
+            key: v[nodes] if isinstance(v, np.ndarray) else v
+            for key, v in compact.field_fit.items()
+        }
     return SweepResult(
         fieldmap=sub,
         mesh=compact.mesh,

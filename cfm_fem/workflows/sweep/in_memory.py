@@ -11,9 +11,10 @@ from ...models.mesh import SimplexMesh
 from ...models.sweep import HTM_PARTS, SweepConfig, SweepResult, _gum_u
 from .problem import (
     chunk_ranges,
-    node_gradients,
+    field_fit_info,
     prepare_sweep,
     serial_map,
+    sweep_gradients,
     with_bench,
 )
 
@@ -68,10 +69,11 @@ def run_sweep(
     if not done.all():
         raise RuntimeError(f"{int((~done).sum())} nodes were not computed by the chunk mapper")
     sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]  # (n_up, 3)
+    fit = problem.harmonic
     # the kernels' own arrays (octant start cells, exact-search buckets and face excess: 0.4 GB
     # on a 1e6-node non-convex map) are done with: freed before the gradients' temporaries
     del problem
-    gradient = node_gradients(mesh, fm.B)
+    gradient = sweep_gradients(mesh, fm.B, fit)
     if positioning is None:
         gum_u = _gum_u(gradient, fm.B, b_ref, sigma_mm[None])
     else:
@@ -89,4 +91,5 @@ def run_sweep(
         gum_u=gum_u,
         seconds=time.perf_counter() - t0,
         positioning=positioning,
+        field_fit=field_fit_info(fit),
     )

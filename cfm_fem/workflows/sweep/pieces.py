@@ -19,7 +19,7 @@ import numpy as np
 
 from ...models.field import FieldMap
 from ...models.sweep import HTM_PARTS, CompactSweep, SweepConfig, _part_result
-from .problem import chunk_ranges, node_gradients, prepare_sweep, with_bench
+from .problem import chunk_ranges, field_fit_info, prepare_sweep, sweep_gradients, with_bench
 
 __all__ = ["run_sweep_pieces"]
 
@@ -63,12 +63,13 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         n_outside=np.zeros((n, n_col), dtype=np.int32),
         n_walk_failed=np.zeros((n, n_col), dtype=np.int32),
         linear_in_up=np.zeros(n, dtype=bool),
-        gradient=node_gradients(mesh, fm.B),
+        gradient=sweep_gradients(mesh, fm.B, problem.harmonic),
         gum_u=None,
         seconds=0.0,
         uf=np.full((n, n_col), np.nan),
         complete_=np.zeros((n, n_col), dtype=bool),
         disagree=np.zeros((n, n_col, 4), dtype=bool),
+        field_fit=field_fit_info(problem.harmonic),
     )
     compact.sigma_mm = None if htm else _sigma_mm(problem)
     u_abs = np.full((n, n_col), np.nan)

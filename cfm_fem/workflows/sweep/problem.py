@@ -27,7 +27,7 @@ from ...models.mesh import (
     morton_order,
     no_search,
 )
-from ...models.sweep import HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
+from ...models.sweep import FIELD_MODELS, HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
 from ...threads import map_blocks
 
 __all__ = [
@@ -40,6 +40,8 @@ __all__ = [
     "prepare_sweep",
     "check_options",
     "node_gradients",
+    "sweep_gradients",
+    "field_fit_info",
     "edge_fit_gradients",
     "with_bench",
 ]
@@ -147,6 +149,15 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
         raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
     if cfg.outside not in OUTSIDE_RULES:
         raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
+    if cfg.field_model not in FIELD_MODELS:
+        raise CfmInputError(f"--field-model must be linear or harmonic; got {cfg.field_model!r}")
+    if cfg.field_model == "harmonic" and mesh.dim != 3:
+        raise CfmInputError(
+            "--field-model harmonic needs a 3-D map (Laplace's equation ties the field's "
+            "derivative across the plane of a planar map to nothing it records); use "
+            "--field-model linear",
+            file=fm.source,
+        )
     check_seed(cfg.seed)  # the CLI's rule and message (numba takes the seed as int64)
     if cfg.mode == "htm":
         return
@@ -219,6 +230,8 @@ class SweepProblem:
     search: tuple | None = None
     # random-stream key of each node (`node_keys`); None: the node's row
     keys: np.ndarray | None = None
+    # field model "harmonic": the per-node fits (`cfm_fem.models.harmonic.HarmonicFit`)
+    harmonic: object | None = None
 
     def search_arrays(self) -> tuple:
         """The kernels' ``search`` argument (`cfm_fem.models.mesh.exact_search`)."""
@@ -254,6 +267,11 @@ class SweepProblem:
         if keys is None:
             keys = nodes if self.keys is None else self.keys[nodes]
         keys = np.asarray(keys, dtype=np.int64)
+        if self.harmonic is not None:
+            return self._run_harmonic(nodes, keys)
+        return self._run_linear(nodes, keys)
+
+    def _run_linear(self, nodes, keys):
         if self.htm is not None:
             return self._run_htm(nodes, keys)
         # visit the nodes along a Z-order curve (neighbours share cells that are then in cache);
@@ -274,6 +292,59 @@ class SweepProblem:
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
         return s[back], o[back], lost[back], star[back], np.empty((len(nodes), 0, 3, 3))
+
+    def _run_harmonic(self, nodes, keys):
+        """Nodes whose harmonic fit holds run under it, the others (`HarmonicFit.use` False)
+        under the linear interpolant; results in the order of ``nodes``."""
+        fit = self.harmonic
+        use = fit.use[nodes]
+        parts = [None, None]
+        if (~use).any():
+            parts[0] = self._run_linear(nodes[~use], keys[~use])
+        if use.any():
+            parts[1] = self._harmonic_kernel(nodes[use], keys[use])
+        ref = parts[1] if parts[1] is not None else parts[0]
+        out = [np.empty((len(nodes),) + a.shape[1:], dtype=a.dtype) for a in ref]
+        for part, sel in ((parts[0], ~use), (parts[1], use)):
+            if part is not None:
+                for o, a in zip(out, part, strict=True):
+                    o[sel] = a
+        return tuple(out)
+
+    def _harmonic_kernel(self, nodes, keys):
+        from ...models.harmonic_basis import field_basis, monomial_exponents
+
+        fit = self.harmonic
+        model = (
+            self.coords, fit.coef, fit.degree, fit.scale, fit.reach_mm,
+            np.ascontiguousarray(field_basis()), monomial_exponents(),
+        )  # fmt: skip
+        extrapolate = self.exit_grad is not None and self.exit_grad.shape[0] > 0
+        if self.htm is None:
+
+            def block(i0, i1):
+                return _kernels.harmonic_gauss_sweep(
+                    nodes[i0:i1], keys[i0:i1], model, self.axis_scale, self.scales_mm,
+                    int(self.trials), int(self.seed), float(self.coverage), extrapolate,
+                )  # fmt: skip
+
+            s, o, lost, star = map_blocks(block, len(nodes), 32)
+            return s, o, lost, star, np.empty((len(nodes), 0, 3, 3))
+        h = self.htm
+        parts = []
+        for use_geo, use_noise in HTM_PARTS.values():
+            trials = h["trials"] if use_geo else h["trials"]._replace(terms=h["terms_zero"])
+
+            def block(i0, i1, trials=trials, use_geo=use_geo, use_noise=use_noise):
+                return _kernels.harmonic_htm_sweep(
+                    nodes[i0:i1], keys[i0:i1], model, self.start_cells, trials, h["geo"],
+                    use_geo, use_noise, float(self.coverage), extrapolate,
+                )  # fmt: skip
+
+            parts.append(map_blocks(block, len(nodes), 16))
+        stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
+        pos = pos.reshape(len(nodes), len(HTM_PARTS), 3, 3)
+        return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos
 
     def mesh_arrays(self) -> SweepMesh:
         """The mesh arrays the sweep kernels take, as one named tuple."""
@@ -393,8 +464,59 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
         ),
         search=exact_search(mesh),
         keys=node_keys(fm.points),
+        harmonic=_harmonic_fit(fm, cfg, mesh),
     )
     return mesh, problem, b_ref
+
+
+def _harmonic_fit(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh):
+    """The per-node harmonic fits of field model "harmonic" (else None), with a note of how
+    many nodes fall back to the linear interpolant."""
+    if cfg.field_model != "harmonic":
+        return None
+    from ...models.harmonic import fit_harmonic
+
+    fit = fit_harmonic(fm.points, fm.B, source=fm.source)
+    n_lin = int((~fit.use).sum())
+    if n_lin:
+        mesh.notes.append(
+            f"{n_lin} node(s) of {len(fit.use)} use the linear interpolant: their harmonic fit "
+            f"fails ({fit.fallback_rule})"
+        )
+    return fit
+
+
+def field_fit_info(fit) -> dict | None:
+    """`SweepResult.field_fit` of the harmonic fits ``fit`` (None: the linear model)."""
+    if fit is None:
+        return None
+    return {
+        "degree": np.where(fit.use, fit.degree, 0).astype(np.int64),
+        "residual_T": np.asarray(fit.residual_T, dtype=np.float64),
+        "neighbours": int(fit.k),
+        "fallback_rule": fit.fallback_rule,
+        "reach_rule": getattr(fit, "reach_rule", "a trial beyond the node's reach is outside"),
+    }
+
+
+def sweep_gradients(mesh: SimplexMesh, B: np.ndarray, fit=None) -> np.ndarray:
+    """Node gradients of the field model (the GUM figure's): `node_gradients` of the linear
+    interpolant, or the linear term of each node's harmonic fit where it holds.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3), T/mm, ``[i, c, j] = dB_c/dx_j``
+    """
+    grad = node_gradients(mesh, B)
+    if fit is not None:
+        from ...models.harmonic_basis import field_basis
+
+        lin = np.ascontiguousarray(field_basis()[:, 1:4, :])  # monomials x, y, z
+        use = np.flatnonzero(fit.use)
+        for a in range(0, len(use), 1 << 16):
+            i = use[a : a + (1 << 16)]
+            grad[i] = np.einsum("caj,nj->nca", lin, fit.coef[i]) / fit.scale[i, None, None]
+    return grad
 
 
 def node_keys(points) -> np.ndarray:

@@ -110,8 +110,15 @@ from ...models.mesh import (
     sliver_note,
     tie_note,
 )
-from ...models.sweep import HTM_PARTS, SweepConfig, SweepResult, _gum_u, summarize
-from .problem import node_gradients, prepare_sweep, serial_map, with_bench
+from ...models.sweep import (
+    HTM_PARTS,
+    SweepConfig,
+    SweepResult,
+    _gum_u,
+    harmonic_summary,
+    summarize,
+)
+from .problem import field_fit_info, prepare_sweep, serial_map, sweep_gradients, with_bench
 from .slab_plan import (
     SlabPlan,
     at_cut,
@@ -445,9 +452,11 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     # the whole map's hull: a slab removes the hull slivers the whole map removes
     hull = hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
     store = SlabStore(work / "results")
-    for name, dtype in (("uf", np.float64), ("complete", np.bool_), ("e2", np.float64)):
-        if name != "e2" or htm:  # created here, or reopened as they are when resuming
-            make_per_node_file(work / f"{name}.npy", dtype, (n, n_col), resume)
+    harmonic = cfg.field_model == "harmonic"
+    for name, dtype, cols in (("uf", np.float64, n_col), ("complete", np.bool_, n_col),
+                              ("e2", np.float64, n_col), ("fit", np.float64, 2)):  # fmt: skip
+        if name not in ("e2", "fit") or (htm if name == "e2" else harmonic):
+            make_per_node_file(work / f"{name}.npy", dtype, (n, cols), resume)
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
                    b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
                    hull=hull)  # fmt: skip
@@ -494,6 +503,17 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     if sums["slivers"]:
         mesh_notes.append(sliver_note(int(sums["slivers"])))
     summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
+    if harmonic:  # the whole map's fits, from the per-node file and the slabs' boxes
+        boxes = [records[k]["fit_box"] for k in range(K) if records[k].get("fit_box")]
+        box = None
+        if boxes:
+            box = [np.min([b[0] for b in boxes], axis=0).tolist(),
+                   np.max([b[1] for b in boxes], axis=0).tolist()]  # fmt: skip
+        fit_all = open_per_node(work / "fit.npy", "r")
+        summary.update(harmonic_summary(fit_all[:, 0].astype(np.int64),
+                                        fit_all[:, 1] / b_ref * 1e4, box,
+                                        template["harmonic"]))  # fmt: skip
+        del fit_all
     summary["slabs"] = {
         "count": K,
         "axis": "xyz"[plan.axis],
@@ -646,7 +666,17 @@ class _SlabJob:
             # the closed faces turned trials into outside ones
             sums["halo_nodes"] += int((n_out[hit] > first_out).any(axis=1).sum())
         del start_l, gp
-        grad = node_gradients(mesh, lfm.B)[own]
+        grad = sweep_gradients(mesh, lfm.B, problem.harmonic)[own]
+        fit = field_fit_info(problem.harmonic)
+        fit_box = None
+        if fit is not None:  # degree and residual per node; the box of the linear ones
+            fit = {key: v[own] if isinstance(v, np.ndarray) else v for key, v in fit.items()}
+            fit_all = self.per_node("fit")
+            fit_all[own_ids] = np.c_[fit["degree"], fit["residual_T"]]
+            fit_all.flush()
+            del fit_all
+            lin = pts[own][fit["degree"] == 0]
+            fit_box = [lin.min(axis=0).tolist(), lin.max(axis=0).tolist()] if len(lin) else None
         sub = FieldMap(points=pts[own], B=B[own], source=file)
         if htm:
             sigma_mm, corr = pos[:, :, 1], pos[:, :, 2]  # per-node std and correlations
@@ -662,7 +692,8 @@ class _SlabJob:
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
                           gradient=grad, seconds=0.0,
                           gum_u=_gum_u(grad, sub.B, b_ref, sigma_mm, corr),
-                          positioning=pos if htm else None, n_left_out=n_left)  # fmt: skip
+                          positioning=pos if htm else None, n_left_out=n_left,
+                          field_fit=fit)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
         uf_all[own_ids], ok_all[own_ids] = uf, complete
@@ -687,12 +718,19 @@ class _SlabJob:
             sums["slivers"] += int(own[gone[cert_gone].max(axis=1)].sum())
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
                    n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
-                   cells=cells)  # fmt: skip
+                   cells=cells, **_fit_arrays(fit))  # fmt: skip
         record = {"sums": {key: np.asarray(v).tolist() for key, v in sums.items()},
                   "mesh_notes": mesh_notes, "template": summarize(res), "nodes": len(own_ids),
-                  "log": messages}  # fmt: skip
+                  "log": messages, "fit_box": fit_box}  # fmt: skip
         store.mark_done(k, record)
         return record
+
+
+def _fit_arrays(fit) -> dict:
+    """The per-node harmonic-fit arrays a slab stores (none for the linear model)."""
+    if fit is None:
+        return {}
+    return {"fit_degree": fit["degree"], "fit_residual": fit["residual_T"]}
 
 
 def _sentinel_problem(problem, mesh, cert, gone, cert_gone, boxes, plan, st, kind, span, nl):
@@ -805,6 +843,10 @@ def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
          for c, name in enumerate(("Bx", "By", "Bz", "absB"))}
         for k in range(n_col)
     ]  # fmt: skip
+    s["gum_disagree_nodes"] = [
+        {name: int(sums["dis"][k, c]) for c, name in enumerate(("Bx", "By", "Bz", "absB"))}
+        for k in range(n_col)
+    ]
     s["linear_in_up_fraction"] = (
         float(sums["star"] / sums["processed"]) if sums["processed"] else None
     )
