@@ -11,7 +11,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .harmonic import expand_node, poly_errors
+from .harmonic import expand_node, poly_errors, poly_parts
 from .htm_sweep import _position_moments, _probe_points
 from .options import JIT
 from .order_stats import coverage_count, sample_stats
@@ -36,13 +36,10 @@ def _node_model(g, hcoef, hdeg, gmat, cexp):
 
 
 @nb.njit(inline="always", **JIT)
-def _errors_to_stats(n, u, d2, reach2, extrapolate, cexp, n_mono, exps, pw, err, absb,
-                     scratch, p, out, n_out_k):  # fmt: skip
-    """Statistics of the field changes at the ``n`` scaled displacements ``u`` into ``out``
-    (4, 6); trials whose squared displacement ``d2`` exceeds ``reach2`` are counted in
-    ``n_out_k[0]`` and left out unless ``extrapolate``."""
-    poly_errors(cexp, n_mono, exps, u, n, pw, err)
-    b0 = cexp[:, 0]
+def _stats_of_errors(n, d2, reach2, extrapolate, b0, err, absb, scratch, p, out, n_out_k):
+    """Statistics of the field changes ``err`` (3, n) into ``out`` (4, 6); trials whose squared
+    displacement ``d2`` exceeds ``reach2`` are counted in ``n_out_k[0]`` and left out unless
+    ``extrapolate``. ``b0``: the model's field at the node."""
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
     nv = 0
     for t in range(n):
@@ -109,6 +106,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)
     pw = np.empty((3, 6, n_trials))
+    parts = np.empty((5, 3, n_trials))
     err = np.empty((3, n_trials))
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
@@ -120,12 +118,20 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             w[c, a] = sigma_axes[c] if a == c else 0.0
     for i in range(k_nodes):
         g = nodes[i]
-        n_mono = _node_model(g, hcoef, hdeg, gmat, cexp)
+        _node_model(g, hcoef, hdeg, gmat, cexp)
         normals_by_index(trial_key(skey, keys[i]), fkey, 0, n_trials, z, ok)
         for t in range(n_trials):
             for a in range(3):
                 unit[a, t] = _unit_disp(w, z, t, a)
         inv = 1.0 / hscale[g]
+        for t in range(n_trials):
+            r2 = 0.0
+            for a in range(3):
+                u[a, t] = unit[a, t] * inv
+                r2 += unit[a, t] * unit[a, t]
+            d2[t] = r2
+        deg = hdeg[g]
+        poly_parts(cexp, deg, exps, u, n_trials, pw, parts)  # every U_p from one evaluation
         for k in range(n_up):
             s = scales[k]
             if s == 0.0:  # no displacement: every error is exactly zero
@@ -133,15 +139,15 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                     for j in range(6):
                         stats[i, k, c, j] = 0.0
                 continue
-            for t in range(n_trials):
-                d0, d1, d2t = s * unit[0, t], s * unit[1, t], s * unit[2, t]
-                d2[t] = d0 * d0 + d1 * d1 + d2t * d2t
-                u[0, t] = d0 * inv
-                u[1, t] = d1 * inv
-                u[2, t] = d2t * inv
+            for c in range(3):
+                for t in range(n_trials):  # Horner in s over the homogeneous parts
+                    acc = parts[deg - 1, c, t]
+                    for q in range(deg - 2, -1, -1):
+                        acc = acc * s + parts[q, c, t]
+                    err[c, t] = acc * s
             cnt[0] = 0
-            _errors_to_stats(n_trials, u, d2, hreach[g] ** 2, extrapolate, cexp, n_mono, exps,
-                             pw, err, absb, scratch, p, stats[i, k], cnt)  # fmt: skip
+            _stats_of_errors(n_trials, d2, (hreach[g] / s) ** 2, extrapolate, cexp[:, 0], err,
+                             absb, scratch, p, stats[i, k], cnt)  # fmt: skip
             n_out[i, k] = cnt[0]
     return stats, n_out, n_lost, star
 
@@ -206,7 +212,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
                 u[a, t] = da * inv
                 r2 += da * da
             d2[t] = r2
-        _errors_to_stats(n_trials, u, d2, hreach[g] ** 2, extrapolate, cexp, n_mono, exps, pw,
-                         err, absb, scratch, p, stats[i, 0], n_out[i])  # fmt: skip
+        poly_errors(cexp, n_mono, exps, u, n_trials, pw, err)
+        _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err, absb,
+                         scratch, p, stats[i, 0], n_out[i])  # fmt: skip
         _position_moments(n_trials, s1, s2, sx, pos[i])
     return stats, n_out, n_lost, pos

@@ -133,6 +133,18 @@ def read_recording_args(args):
     )
 
 
+def add_field_model_arg(p, what: str) -> None:
+    """Add ``--field-model linear|harmonic``: how the map ``what`` is modelled between nodes."""
+    p.add_argument(
+        "--field-model",
+        choices=["linear", "harmonic"],
+        default="linear",
+        help=f"the field of {what} between its nodes: linear interpolation in its cells "
+        "(default), or per node a least-squares fit of a harmonic potential's gradient "
+        "(div B = curl B = 0) to its nearest nodes (3-D maps)",
+    )
+
+
 def reader_kwargs(args) -> dict:
     """The reader options of ``args`` as keyword arguments of `cfm_fem.io.read_field`."""
     return {k: getattr(args, k) for k in _DEFAULTS}

@@ -16,6 +16,7 @@ from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
 from ._reader import (
+    add_field_model_arg,
     add_reader_args,
     add_recording_args,
     read_recording_args,
@@ -50,6 +51,7 @@ def add_args(p):
     )
     add_common(p)
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv)")
+    add_field_model_arg(p, "--reference")
 
 
 def run(args) -> int:
@@ -122,8 +124,9 @@ def _hall(args, bench, bench_note) -> int:
 
     rec = read_recording_args(args)
     ref = read_reference(
-        args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
-    )
+        args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
+        field_model=args.field_model, **reader_kwargs(args),
+    )  # fmt: skip
     probe = HallProbe(model=args.probe)
     _, pts = rec.point_cmd()
     print(

@@ -15,7 +15,12 @@ import numpy as np
 from ..errors import CfmInputError
 from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
-from ._reader import add_reader_args, reader_kwargs, refuse_reader_options
+from ._reader import (
+    add_field_model_arg,
+    add_reader_args,
+    reader_kwargs,
+    refuse_reader_options,
+)
 
 if TYPE_CHECKING:
     from ..models.field_model import FieldModel
@@ -104,6 +109,7 @@ def add_args(p):
     )
     add_common(p)
     add_reader_args(p, "--field", "when it is a field map (not a harmonics .csv)")
+    add_field_model_arg(p, "--field")
 
 
 def check_common(args):
@@ -195,6 +201,11 @@ def run(args) -> int:
     check_common(args)
     if args.field is None:
         refuse_reader_options(args, "without --field the bundled QFDp4 harmonics are used")
+        if args.field_model != "linear":
+            raise CfmInputError(
+                "--field-model applies to a field map given with --field; without --field the "
+                "bundled QFDp4 harmonics are used"
+            )
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):  # one run at a time in --out
@@ -217,8 +228,9 @@ def _run(args) -> int:
         field_path = qfdp4_path()
     else:
         fm = read_reference(
-            args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref, **reader_kwargs(args)
-        )
+            args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
+            field_model=args.field_model, **reader_kwargs(args),
+        )  # fmt: skip
         field_path = args.field
     points, region = _region(args, fm)
     _check_region_inside(args, fm, points, field_path)

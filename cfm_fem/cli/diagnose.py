@@ -16,6 +16,7 @@ from ..errors import CfmInputError
 from ._checks import check_out_dir
 from ._progress import progress_bar
 from ._reader import (
+    add_field_model_arg,
     add_reader_args,
     add_recording_args,
     read_recording_args,
@@ -51,6 +52,7 @@ def add_args(p):
         "(batch runs)",
     )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
+    add_field_model_arg(p, "--reference")
 
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
@@ -83,6 +85,14 @@ def node_spacing_mm(points) -> float:
     return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
 
 
+def _is_harmonics(spec) -> bool:
+    from pathlib import Path
+
+    from ..io.reference_field import is_harmonics_file
+
+    return Path(spec).is_file() and is_harmonics_file(Path(spec))
+
+
 def _reference(spec, rec, r_ref=None, args=None):
     """(field function, b_ref, node spacing, description); node spacing (mm) None for a smooth
     reference (harmonics, fitted polynomial), else the map's, whose linear interpolation error
@@ -94,6 +104,11 @@ def _reference(spec, rec, r_ref=None, args=None):
 
     from ..workflows.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
+    field_model = "linear" if args is None else args.field_model
+    if field_model != "linear" and (spec.startswith(("fit:", "fitz:")) or _is_harmonics(spec)):
+        raise CfmInputError(
+            f"--field-model applies to a field map; --reference {spec} is a field model of its own"
+        )
     if spec.startswith(("fit:", "fitz:")):
         if args is not None:
             refuse_reader_options(args, f"--reference {spec} is fitted to the recording")
@@ -126,7 +141,12 @@ def _reference(spec, rec, r_ref=None, args=None):
     from ..models.interpolation import LinearInterpolator
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
-    interp = LinearInterpolator(fm)
+    if field_model == "harmonic":
+        from ..models.harmonic import fit_harmonic
+
+        interp = fit_harmonic(fm.points, fm.B, source=fm.source)
+    else:
+        interp = LinearInterpolator(fm)
 
     def fn(p):
         b, inside = interp.field_at(p)
@@ -147,6 +167,13 @@ def _reference(spec, rec, r_ref=None, args=None):
         )
     spacing = node_spacing_mm(fm.points)
     desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
+    if field_model == "harmonic":  # smooth between nodes: no interpolation error to add
+        return (
+            fn,
+            float(np.nanmax(np.linalg.norm(fm.B, axis=1))),
+            None,
+            (desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"),
+        )
     fn.nodes = fm.points  # the interpolation is exact there
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 

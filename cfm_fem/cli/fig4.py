@@ -12,7 +12,7 @@ import sys
 from ..errors import CfmInputError
 from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
-from ._reader import add_reader_args, reader_kwargs
+from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
 from .sweep import parse_up_range
 
 NAME = "fig4"
@@ -38,6 +38,7 @@ def add_args(p):
     p.add_argument("--b-ref", type=float, metavar="T", help="B_ref (default max |B| of the map)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     add_reader_args(p)
+    add_field_model_arg(p, "FIELD")
 
 
 def run(args) -> int:
@@ -66,8 +67,9 @@ def _run(args, up) -> int:
     )
     with progress_bar(fm.n_nodes, "nodes") as bar:
         res = run_fig4(
-            fm, up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref, progress=bar.update
-        )
+            fm, up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
+            field_model=args.field_model, progress=bar.update,
+        )  # fmt: skip
     summary = fig4_summary(res)
     summary["provenance"] = provenance({"field": args.field}, args.command_line)
     pts, uf = plane_nodes(res)

@@ -34,6 +34,7 @@ CLI_OPTIONS = {
     "solution": ("--solution", "TAG"),
     "r_ref_mm": ("--r-ref", "MM"),
     "b_ref_T": ("--b-ref", "T"),
+    "field_model": ("--field-model", "MODEL"),
 }
 
 

@@ -39,6 +39,7 @@ def read_reference(
     field_unit: str | None = None,
     zero_rows: str = "warn",
     solution: str | None = None,
+    field_model: str = "linear",
 ):
     """The reference field as a `FieldModel`.
 
@@ -53,6 +54,9 @@ def read_reference(
         R_ref for a harmonics file that does not state it.
     fmt, length_unit, field_unit, zero_rows, solution
         How a field map is read (`cfm_fem.io.read_field`); refused for a harmonics file.
+    field_model : {"linear", "harmonic"}
+        How a map is modelled between its nodes (`FieldModel.from_map`); a harmonics file is
+        a field model of its own (``"harmonic"`` refused).
 
     Returns
     -------
@@ -69,7 +73,8 @@ def read_reference(
             )
         reader = {"fmt": fmt, "length_unit": length_unit, "field_unit": field_unit,
                   "zero_rows": None if zero_rows == "warn" else zero_rows,
-                  "solution": solution}  # fmt: skip
+                  "solution": solution,
+                  "field_model": None if field_model == "linear" else field_model}  # fmt: skip
         given = [option_hint(k, v) for k, v in reader.items() if v is not None]
         if given:
             verb = "applies" if len(given) == 1 else "apply"
@@ -83,4 +88,4 @@ def read_reference(
         path, fmt=fmt, length_unit=length_unit, field_unit=field_unit, zero_rows=zero_rows,
         solution=solution,
     )  # fmt: skip
-    return FieldModel.from_map(fm, b_ref_T)
+    return FieldModel.from_map(fm, b_ref_T, field_model)

@@ -43,7 +43,10 @@ class FieldModel:
         (0, 1, 2) for a map.
     source : str
     multipole : Multipole or None
-    interpolator : LinearInterpolator or None
+    interpolator : LinearInterpolator, HarmonicFit or None
+        The map's field between nodes: anything with ``field_at(points) -> (B, inside)``.
+    field_model : {"linear", "harmonic"}
+        How a map is modelled between its nodes (`cfm_fem.models.sweep.FIELD_MODELS`).
     """
 
     kind: str
@@ -52,7 +55,8 @@ class FieldModel:
     components: tuple
     source: str
     multipole: Multipole | None = None
-    interpolator: LinearInterpolator | None = None
+    interpolator: object | None = None
+    field_model: str = "linear"
 
     @classmethod
     def from_multipole(cls, m: Multipole) -> FieldModel:
@@ -67,18 +71,28 @@ class FieldModel:
         )
 
     @classmethod
-    def from_map(cls, fm, b_ref_T: float | None = None) -> FieldModel:
-        """FEM map, piecewise linear; B_ref given or max |B| over the nodes."""
+    def from_map(cls, fm, b_ref_T: float | None = None, field_model: str = "linear") -> FieldModel:
+        """FEM map, piecewise linear or the per-node harmonic fits (3-D maps; nodes where the
+        fit fails use the linear interpolant); B_ref given or max |B| over the nodes."""
         b_ref = fm.b_max if b_ref_T is None else float(b_ref_T)
         if not (np.isfinite(b_ref) and b_ref > 0):
             raise CfmInputError(f"B_ref must be a positive field in T; found {b_ref}")
+        if field_model not in ("linear", "harmonic"):
+            raise CfmInputError(f"--field-model must be linear or harmonic; got {field_model!r}")
+        if field_model == "harmonic":
+            from .harmonic import fit_harmonic
+
+            interp = fit_harmonic(fm.points, fm.B, source=fm.source)
+        else:
+            interp = LinearInterpolator(fm)
         return cls(
             kind="fem",
             b_ref_T=b_ref,
             b_ref_rule="max |B| over the map nodes" if b_ref_T is None else "given by the user",
             components=(0, 1, 2),
             source=fm.source,
-            interpolator=LinearInterpolator(fm),
+            interpolator=interp,
+            field_model=field_model,
         )
 
     @property
@@ -104,6 +118,12 @@ class FieldModel:
             return (
                 f"2-D multipole, {m.n_orders} orders, main n = {m.main}, R_ref = {m.r_ref:g} mm "
                 f"({m.source})"
+            )
+        if self.field_model == "harmonic":
+            fit = self.interpolator
+            return (
+                f"FEM map, harmonic fit per node to its {fit.k} nearest nodes "
+                f"({int((~fit.use).sum())} node(s) on the linear interpolant; {self.source})"
             )
         return (
             f"FEM map, linear interpolation ({self.interpolator.mesh.description}; {self.source})"

@@ -31,10 +31,19 @@ Z95 = 1.959963984540054
 
 
 def run_fig4(
-    fm: FieldMap, up_um, *, trials: int = 2000, seed: int = 0, b_ref_T=None, progress=None
+    fm: FieldMap,
+    up_um,
+    *,
+    trials: int = 2000,
+    seed: int = 0,
+    b_ref_T=None,
+    field_model: str = "linear",
+    progress=None,
 ) -> SweepResult:
-    """The sweep behind Fig. 4 (isotropic Gaussian U_p, paper eq. 16)."""
-    cfg = SweepConfig(up_um=list(up_um), trials=int(trials), seed=int(seed), b_ref_T=b_ref_T)
+    """The sweep behind Fig. 4 (isotropic Gaussian U_p, paper eq. 16), under the field model
+    ``field_model`` (`cfm_fem.models.sweep.FIELD_MODELS`)."""
+    cfg = SweepConfig(up_um=list(up_um), trials=int(trials), seed=int(seed), b_ref_T=b_ref_T,
+                      field_model=field_model)  # fmt: skip
     return run_sweep(fm, cfg, progress=progress)
 
 
