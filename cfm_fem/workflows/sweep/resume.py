@@ -2,7 +2,7 @@
 
 A run is identified by a key: the SHA-256 of everything that determines a chunk's numbers
 (`describe_sweep`): the input file's bytes, the reader options, U_p values, trials, seed, axis
-scale, interpolation, coverage, mode, bench file, chunk size, the cfm_fem version and a hash of
+scale, interpolation, field model, coverage, mode, bench file, chunk size, the cfm_fem version and a hash of
 the source of the modules that compute the numbers. Chunk results depend only on their node
 range (`cfm_fem.workflows.sweep.problem.SweepProblem`), so loading the finished chunks and computing
 the rest gives bit-identical statistics to an uninterrupted run.
@@ -36,6 +36,8 @@ CODE_MODULES = (
     "models/sweep.py",
     "models/mesh.py",
     "models/interpolation.py",
+    "models/harmonic.py",
+    "models/harmonic_basis.py",
     "models/field.py",
     "units.py",
     "io/__init__.py",
@@ -111,6 +113,7 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
         "mode": cfg.mode,
         "outside": cfg.outside,
         "hull_slivers": cfg.hull_slivers,
+        "field_model": cfg.field_model,
         "chunk_nodes": int(cfg.chunk_nodes),
         "cfm_fem_version": __version__,
         "code_sha256": code_fingerprint(),
