@@ -3,9 +3,9 @@
 A run is identified by a key: the SHA-256 of everything that determines a chunk's numbers
 (`describe_sweep`): the input file's bytes, the reader options, U_p values, trials, seed, axis
 scale, interpolation, field model, coverage, mode, bench file, chunk size, the cfm_fem version
-and a hash of the source of the modules that compute the numbers. Chunk results depend only on their node
-range (`cfm_fem.workflows.sweep.problem.SweepProblem`), so loading the finished chunks and computing
-the rest gives bit-identical statistics to an uninterrupted run.
+and a hash of the source of the modules that compute the numbers. Chunk results depend only on
+their node range (`cfm_fem.workflows.sweep.problem.SweepProblem`), so loading the finished chunks
+and computing the rest gives bit-identical statistics to an uninterrupted run.
 
 Every sweep writes its chunks to the store as they finish (`ResumableRun.mapper`); ``--resume``
 reuses those of a run with the same key and refuses, naming what differs, a store made by a
