@@ -151,7 +151,7 @@ def _region(args, fm: FieldModel):
         z = [-100.0, -50.0, 0.0, 50.0, 100.0] if z is None else z
         what = f"R_ref = {fm.multipole.r_ref:g} mm" if args.radius is None else "--radius"
     else:
-        pts = fm.interpolator.fieldmap.points
+        pts = fm.fieldmap.points
         half = min(np.abs(pts[:, 0]).max(), np.abs(pts[:, 1]).max())
         r = 0.8 * half if args.radius is None else args.radius
         if z is None:
@@ -184,7 +184,7 @@ def _check_region_inside(args, fm, points, field_path) -> None:
     if inside.all():
         return
     i = int(np.argmax(~inside))
-    pts = fm.interpolator.fieldmap.points
+    pts = fm.fieldmap.points
     span = ", ".join(
         f"{a} {lo:g}..{hi:g}" for a, lo, hi in zip("xyz", pts.min(0), pts.max(0), strict=True)
     )

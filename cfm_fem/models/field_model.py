@@ -47,6 +47,8 @@ class FieldModel:
         The map's field between nodes: anything with ``field_at(points) -> (B, inside)``.
     field_model : {"linear", "harmonic"}
         How a map is modelled between its nodes (`cfm_fem.models.sweep.FIELD_MODELS`).
+    fieldmap : FieldMap or None
+        The map of a ``"fem"`` model.
     """
 
     kind: str
@@ -57,6 +59,7 @@ class FieldModel:
     multipole: Multipole | None = None
     interpolator: object | None = None
     field_model: str = "linear"
+    fieldmap: object | None = None
 
     @classmethod
     def from_multipole(cls, m: Multipole) -> FieldModel:
@@ -93,6 +96,7 @@ class FieldModel:
             source=fm.source,
             interpolator=interp,
             field_model=field_model,
+            fieldmap=fm,
         )
 
     @property
