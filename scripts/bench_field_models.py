@@ -38,8 +38,9 @@ from cfm_fem.models.harmonic import fit_harmonic  # noqa: E402
 
 from cfm_fem import _kernels  # noqa: E402
 from cfm_fem.io import read_field  # noqa: E402
+from cfm_fem.models.mc import symmetric_interval  # noqa: E402
 from cfm_fem.models.sweep import SweepConfig  # noqa: E402
-from cfm_fem.workflows.sweep.problem import prepare_sweep  # noqa: E402
+from cfm_fem.workflows.sweep.problem import node_keys, prepare_sweep  # noqa: E402
 
 BANDS = [(0, 30), (30, 38), (38, 45), (45, 60), (60, 80), (80, np.inf)]
 FD_STEP_MM = 0.05
@@ -87,7 +88,9 @@ def node_normals(key, seed, n):
 
 
 def symmetric_uf(x, p=Z95):
-    lo, hi = np.quantile(x, [(1 - p) / 2, (1 + p) / 2])
+    """U_f of the samples x: the tool's own probabilistically symmetric interval (order
+    statistics, JCGM 101 7.7), so that the comparison measures the field model only."""
+    lo, hi = symmetric_interval(np.asarray(x), p)
     return max(abs(lo), abs(hi))
 
 
@@ -129,6 +132,40 @@ def accuracy(fm, nodes, band, ups, trials, seed, src, problems):
         uf = np.maximum(np.abs(stats[:, :, 3, 2]), np.abs(stats[:, :, 3, 3]))
         out[name] = uf / exact - 1.0
     return out, trunc, b_ref, exact
+
+
+def evaluation_cost(fm, fit, nodes, trials, seed):
+    """CPU seconds per point of the field evaluation alone, one thread: each node's trial
+    points (U_p = 20 um) through the linear interpolant (`LinearInterpolator.field_at`: cell
+    location and interpolation) and through the node's harmonic polynomial (`poly_parts`)."""
+    from cfm_fem.models.harmonic_basis import field_basis, monomial_exponents
+    from cfm_fem.models.interpolation import LinearInterpolator
+
+    interp = LinearInterpolator(fm)
+    keys = node_keys(fm.points)
+    gmat, exps = np.ascontiguousarray(field_basis()), monomial_exponents()
+    unit = [node_normals(int(keys[g]), seed, trials) for g in nodes]
+    pts = np.concatenate([fm.points[g] + 0.02 * z.T for g, z in zip(nodes, unit, strict=True)])
+    interp.field_at(pts[:1000])  # compiled
+    numba.set_num_threads(1)
+    try:
+        t = time.process_time()
+        interp.field_at(pts)
+        linear = (time.process_time() - t) / len(pts)
+        cexp = np.empty((3, gmat.shape[1]))
+        pw, parts = np.empty((3, 6, trials)), np.empty((5, 3, trials))
+        us = [
+            np.ascontiguousarray(0.02 * z / fit.scale[g]) for g, z in zip(nodes, unit, strict=True)
+        ]
+        t = time.process_time()
+        for g, u in zip(nodes, us, strict=True):
+            deg = int(fit.degree[g])
+            _kernels.expand_node(fit.coef[g], (deg + 1) * (deg + 3), gmat, gmat.shape[1], cexp)
+            _kernels.poly_parts(cexp, deg, exps, u, trials, pw, parts)
+        harmonic = (time.process_time() - t) / len(pts)
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    return {"linear": linear, "harmonic": harmonic}
 
 
 def per_trial_cost(problems, nodes):

@@ -19,6 +19,7 @@ from .coupled import (
 from .harmonic import (
     expand_node,
     poly_errors,
+    poly_parts,
 )
 from .harmonic_sweep import (
     harmonic_gauss_sweep,
@@ -243,6 +244,7 @@ __all__ = [
     "htm_sweep",
     "expand_node",
     "poly_errors",
+    "poly_parts",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
 ]
