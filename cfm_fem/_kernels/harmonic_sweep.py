@@ -41,17 +41,22 @@ def _stats_of_errors(n, d2, reach2, extrapolate, b0, err, absb, scratch, p, out,
     displacement ``d2`` exceeds ``reach2`` are counted in ``n_out_k[0]`` and left out unless
     ``extrapolate``. ``b0``: the model's field at the node."""
     abs0 = np.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
-    nv = 0
+    n_beyond = 0
     for t in range(n):
-        beyond = d2[t] > reach2
-        if beyond:
-            n_out_k[0] += 1
-        err[0, nv] = err[0, t]
-        err[1, nv] = err[1, t]
-        err[2, nv] = err[2, t]
-        absb[nv] = _abs_change(b0, err[0, t], err[1, t], err[2, t], abs0)
-        if extrapolate or not beyond:
-            nv += 1
+        n_beyond += d2[t] > reach2
+    n_out_k[0] += n_beyond
+    if n_beyond == 0 or extrapolate:  # every trial kept: one vectorised pass
+        for t in range(n):
+            absb[t] = _abs_change(b0, err[0, t], err[1, t], err[2, t], abs0)
+        nv = n
+    else:
+        nv = 0
+        for t in range(n):
+            err[0, nv] = err[0, t]
+            err[1, nv] = err[1, t]
+            err[2, nv] = err[2, t]
+            absb[nv] = _abs_change(b0, err[0, t], err[1, t], err[2, t], abs0)
+            nv += d2[t] <= reach2
     q = coverage_count(nv, p) if nv > 1 else 1
     for c in range(3):
         sample_stats(err[c], nv, q, out[c], scratch)
@@ -139,12 +144,21 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                     for j in range(6):
                         stats[i, k, c, j] = 0.0
                 continue
-            for c in range(3):
-                for t in range(n_trials):  # Horner in s over the homogeneous parts
-                    acc = parts[deg - 1, c, t]
-                    for q in range(deg - 2, -1, -1):
-                        acc = acc * s + parts[q, c, t]
-                    err[c, t] = acc * s
+            if deg == 5:  # Horner in s over the homogeneous parts, components together
+                for t in range(n_trials):
+                    for c in range(3):
+                        acc = parts[4, c, t]
+                        acc = acc * s + parts[3, c, t]
+                        acc = acc * s + parts[2, c, t]
+                        acc = acc * s + parts[1, c, t]
+                        err[c, t] = (acc * s + parts[0, c, t]) * s
+            else:
+                for c in range(3):
+                    for t in range(n_trials):
+                        acc = parts[deg - 1, c, t]
+                        for q in range(deg - 2, -1, -1):
+                            acc = acc * s + parts[q, c, t]
+                        err[c, t] = acc * s
             cnt[0] = 0
             _stats_of_errors(n_trials, d2, (hreach[g] / s) ** 2, extrapolate, cexp[:, 0], err,
                              absb, scratch, p, stats[i, k], cnt)  # fmt: skip
