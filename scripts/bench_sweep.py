@@ -6,6 +6,7 @@
     python scripts/bench_sweep.py big --nodes 200000 --trials 2000   # smaller, same code path
     python scripts/bench_sweep.py big --outside extrapolate   # surface nodes extrapolated
     python scripts/bench_sweep.py big --notch        # a quadrant removed: non-convex map
+    python scripts/bench_sweep.py big --field-model harmonic   # per-node harmonic fits
     python scripts/bench_sweep.py trial              # CPU ns per trial, one thread, bundled map
 
 ``ratio``: perturbed-interpolation samples per second of the numba kernels against
@@ -246,13 +247,14 @@ def fem_like_map(n_target: int, seed: int = 0, notch: bool = False) -> FieldMap:
 
 
 def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outside="exclude",
-              notch=False):  # fmt: skip
+              notch=False, field_model="linear"):  # fmt: skip
     t0 = time.perf_counter()
     fm = fem_like_map(n_nodes, notch=notch)
     t_map = time.perf_counter() - t0
-    cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside)
+    cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside, field_model=field_model)
     # compile outside the timing
-    run_sweep(fem_like_map(2000, notch=notch), SweepConfig(up_um=ups, trials=20, outside=outside))
+    run_sweep(fem_like_map(2000, notch=notch),
+              SweepConfig(up_um=ups, trials=20, outside=outside, field_model=field_model))  # fmt: skip
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg)
     t_run = time.perf_counter() - t0
@@ -264,7 +266,9 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"map: {fm.n_nodes} nodes, {len(fm.cells)} native tetrahedra (made in {t_map:.1f} s)"
           + (", quadrant x > 0, y > 0 removed (non-convex)" if notch else ""))  # fmt: skip
     print(f"sweep: {trials} trials per node, U_p = {ups} um, {numba.get_num_threads()} threads, "
-          f"--outside {outside}")  # fmt: skip
+          f"--outside {outside}, --field-model {field_model}")  # fmt: skip
+    if res.field_fit is not None:
+        print(f"  nodes on the linear interpolant: {int((res.field_fit['degree'] == 0).sum())}")
     print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
     print(f"  writing {len(ups)} .vtu + pvd + json: {t_write:8.1f} s")
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
@@ -317,6 +321,8 @@ def main():
         action="store_true",
         help="'big': remove a quadrant (a non-convex map: the exact search runs)",
     )
+    ap.add_argument("--field-model", choices=["linear", "harmonic"], default="linear",
+                    help="'big': the field model between nodes")  # fmt: skip
     a = ap.parse_args()
     if a.what == "ratio":
         per_node = a.trials or 1000
@@ -334,6 +340,7 @@ def main():
             a.out,
             a.outside,
             a.notch,
+            a.field_model,
         )
 
 
