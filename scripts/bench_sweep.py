@@ -253,8 +253,8 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     t_map = time.perf_counter() - t0
     cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside, field_model=field_model)
     # compile outside the timing
-    run_sweep(fem_like_map(2000, notch=notch),
-              SweepConfig(up_um=ups, trials=20, outside=outside, field_model=field_model))  # fmt: skip
+    small = SweepConfig(up_um=ups, trials=20, outside=outside, field_model=field_model)
+    run_sweep(fem_like_map(2000, notch=notch), small)
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg)
     t_run = time.perf_counter() - t0
