@@ -7,12 +7,27 @@ Modules: `rng` (counter-based random numbers), `htm` (the 21-error HTM chain),
 `kinematics_passes` (the kinematics Monte Carlo and its streamed statistics), `order_stats`
 (selection and per-node statistics), `locate` (point location in a simplex mesh), `interpolate`
 (linear interpolation at many points), `star` (star tables of a node), `sweep` (the Gaussian
-sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep).
+sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep),
+`harmonic_fit` (local harmonic field fits).
 This namespace re-exports the public names of every module.
 """
 
 from .coupled import (
     coupled_probe_errors,
+)
+from .harmonic_fit import (
+    CHECK_FREE,
+    CHECK_HARMONIC,
+    CHECK_LEVEL,
+    CHECK_SPREAD,
+    FIT_CAPPED_EQUATIONS,
+    FIT_CAPPED_PIVOT,
+    FIT_CHECK_DEGREE,
+    FIT_EQ_PER_UNKNOWN,
+    FIT_FAILED,
+    FIT_LEVERAGE_DET_MIN,
+    FIT_PIVOT_MIN,
+    harmonic_fit_block,
 )
 from .htm import (
     probe_error_mm,
@@ -231,4 +246,16 @@ __all__ = [
     "gauss_sweep",
     "coupled_probe_errors",
     "htm_sweep",
+    "FIT_PIVOT_MIN",
+    "FIT_EQ_PER_UNKNOWN",
+    "FIT_LEVERAGE_DET_MIN",
+    "FIT_CAPPED_EQUATIONS",
+    "FIT_CAPPED_PIVOT",
+    "FIT_FAILED",
+    "FIT_CHECK_DEGREE",
+    "CHECK_SPREAD",
+    "CHECK_LEVEL",
+    "CHECK_HARMONIC",
+    "CHECK_FREE",
+    "harmonic_fit_block",
 ]

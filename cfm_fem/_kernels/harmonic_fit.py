@@ -1,0 +1,375 @@
+"""Least-squares fit of local harmonic field models (`cfm_fem.models.harmonic`), one node at a time.
+
+A node's model is B(x) = sum_j coef[j] F_j(u), u = (x - x_node) / scale, with F_j the harmonic
+basis fields (`cfm_fem.models.harmonic_basis`, ordered by degree), fitted to the three field
+components at the node's k nearest nodes. The normal matrix of degree L is the leading block of
+that of the highest degree, and so is its Cholesky factor: one factorisation gives the fit of
+every degree, and one triangular solve of the design rows gives every degree's hat matrix
+(leave-one-node-out residuals). Columns are scaled to unit norm before the factorisation, so
+its pivots measure how well each basis field is determined by the neighbourhood.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .options import JIT
+
+#: A Cholesky pivot of the column-scaled normal matrix (unit diagonal) below this means the
+#: neighbourhood cannot tell the basis field from the lower ones: that degree and higher are
+#: not fitted.
+FIT_PIVOT_MIN = 1e-10
+
+#: A degree needs at least this many equations (3 per neighbour) per unknown.
+FIT_EQ_PER_UNKNOWN = 2.0
+
+#: Leave-one-node-out needs I - H_node invertible; below this determinant the node decides
+#: its own fit alone and the degree is not eligible.
+FIT_LEVERAGE_DET_MIN = 1e-12
+
+#: Degree of the Laplace check: the harmonic fit against an unconstrained polynomial fit.
+FIT_CHECK_DEGREE = 2
+
+#: Columns of the ``checks`` output of `harmonic_fit_block`.
+CHECK_SPREAD, CHECK_LEVEL, CHECK_HARMONIC, CHECK_FREE = 0, 1, 2, 3
+
+#: Flag bits of `harmonic_fit_block`.
+FIT_CAPPED_EQUATIONS = 1  # the highest degree was lowered for want of equations
+FIT_CAPPED_PIVOT = 2  # the highest degree was lowered by a small pivot
+FIT_FAILED = 4  # no degree >= the lowest asked for could be fitted: coefficients are 0
+
+
+@nb.njit(inline="always", **JIT)
+def _n_basis(degree):
+    return (degree + 1) * (degree + 3)
+
+
+@nb.njit(**JIT)
+def _sparse_basis(gmat):
+    """Non-zero entries of ``gmat`` (3, M, NB), ordered by basis field: (start per field,
+    component, monomial, value)."""
+    nbf = gmat.shape[2]
+    count = 0
+    for j in range(nbf):
+        for c in range(3):
+            for m in range(gmat.shape[1]):
+                if gmat[c, m, j] != 0.0:
+                    count += 1
+    start = np.zeros(nbf + 1, dtype=np.int64)
+    comp = np.empty(count, dtype=np.int64)
+    mono = np.empty(count, dtype=np.int64)
+    val = np.empty(count)
+    e = 0
+    for j in range(nbf):
+        for c in range(3):
+            for m in range(gmat.shape[1]):
+                if gmat[c, m, j] != 0.0:
+                    comp[e] = c
+                    mono[e] = m
+                    val[e] = gmat[c, m, j]
+                    e += 1
+        start[j + 1] = e
+    return start, comp, mono, val
+
+
+@nb.njit(**JIT)
+def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
+    """Fit the harmonic field model of each node of a block to its neighbours' field values.
+
+    Per node: the design of the highest degree, scaled columns, one Cholesky factorisation;
+    the degree is the one of lowest leave-one-node-out residual (PRESS) among ``lmin`` ..
+    the highest the neighbourhood supports (`FIT_EQ_PER_UNKNOWN`, `FIT_PIVOT_MIN`).
+
+    Parameters
+    ----------
+    centers : ndarray, shape (n, 3), mm
+        The nodes whose models are fitted.
+    scale : ndarray, shape (n,), mm
+        Length scale of each node: u = (x - centers[g]) / scale[g]; > 0.
+    nbr : ndarray, shape (n, k), int64
+        Indices into ``points`` of each node's neighbours (the node itself included), in an
+        order that does not depend on the map's row order.
+    points : ndarray, shape (N, 3), mm
+    B : ndarray, shape (N, 3), T
+    gmat : ndarray, shape (3, M, NB)
+        `field_basis` of degree ``lmax``.
+    exps : ndarray, shape (M, 3), int64
+        `monomial_exponents` of degree ``lmax``.
+    lmin, lmax : int
+        Degrees allowed, 0 <= lmin <= lmax <= 5.
+
+    Returns
+    -------
+    coef : ndarray, shape (n, NB), T
+        Coefficients of the basis fields; zero past the node's degree.
+    degree : ndarray, shape (n,), int64
+    resid : ndarray, shape (n,), T
+        RMS residual of the fit over the neighbours' 3 k components.
+    flag : ndarray, shape (n,), int64
+        Bits `FIT_CAPPED_EQUATIONS`, `FIT_CAPPED_PIVOT`, `FIT_FAILED`.
+    checks : ndarray, shape (n, 4), T
+        RMS over the same components of: B minus its mean over the neighbourhood
+        (`CHECK_SPREAD`); B (`CHECK_LEVEL`); the residual of the harmonic fit of degree
+        `FIT_CHECK_DEGREE` (`CHECK_HARMONIC`) and of the unconstrained polynomial fit of that
+        degree, each component apart (`CHECK_FREE`); NaN where a fit is not determined.
+    """
+    n, k = nbr.shape
+    nbf = _n_basis(lmax)
+    n_mono = exps.shape[0]
+    rows = 3 * k
+    start, comp, mono_of, val = _sparse_basis(gmat)
+    coef = np.zeros((n, nbf))
+    degree = np.full(n, lmin, dtype=np.int64)
+    resid = np.full(n, np.nan)
+    flag = np.zeros(n, dtype=np.int64)
+    checks = np.full((n, 4), np.nan)
+    n_free = (FIT_CHECK_DEGREE + 1) * (FIT_CHECK_DEGREE + 2) * (FIT_CHECK_DEGREE + 3) // 6
+    free_at = np.empty((n_free, k))
+    free_work = np.empty((n_free, n_free + 2))
+
+    at = np.empty((nbf, rows))  # design, transposed: basis field x (neighbour, component)
+    arow = np.empty((rows, nbf))  # the same, row-major
+    zt = np.empty((nbf, rows))  # L^-1 at: leverages of every degree
+    b = np.empty(rows)
+    colnorm = np.empty(nbf)
+    chol = np.empty((nbf, nbf))
+    y = np.empty(nbf)
+    cs = np.empty(nbf)
+    best = np.empty(nbf)
+    e = np.empty(rows)
+    hat = np.zeros((k, 6))  # running leverage blocks of each neighbour: xx yy zz xy xz yz
+    mono = np.empty(n_mono)
+    pw = np.empty((3, 6))
+
+    # highest degree the equations support
+    lcap = lmax
+    while lcap >= 0 and rows < FIT_EQ_PER_UNKNOWN * _n_basis(lcap):
+        lcap -= 1
+
+    for g in range(n):
+        inv = 1.0 / scale[g]
+        mean = np.zeros(3)
+        for i in range(k):
+            p = nbr[g, i]
+            for a in range(3):
+                pw[a, 0] = 1.0
+                ua = (points[p, a] - centers[g, a]) * inv
+                for q in range(1, 6):
+                    pw[a, q] = pw[a, q - 1] * ua
+                b[3 * i + a] = B[p, a]
+                mean[a] += B[p, a]
+            for m in range(n_mono):
+                mono[m] = pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
+            for m in range(n_free):
+                free_at[m, i] = mono[m]
+            for j in range(nbf):
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                for q in range(start[j], start[j + 1]):
+                    v = val[q] * mono[mono_of[q]]
+                    if comp[q] == 0:
+                        s0 += v
+                    elif comp[q] == 1:
+                        s1 += v
+                    else:
+                        s2 += v
+                at[j, 3 * i] = s0
+                at[j, 3 * i + 1] = s1
+                at[j, 3 * i + 2] = s2
+        ss = 0.0
+        s2 = 0.0
+        for i in range(k):
+            for a in range(3):
+                d = b[3 * i + a] - mean[a] / k
+                ss += d * d
+                s2 += b[3 * i + a] * b[3 * i + a]
+        checks[g, CHECK_SPREAD] = np.sqrt(ss / rows)
+        checks[g, CHECK_LEVEL] = np.sqrt(s2 / rows)
+        checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work)
+
+        # scaled columns, normal matrix, Cholesky up to the first small pivot
+        for j in range(nbf):
+            s = 0.0
+            for r in range(rows):
+                s += at[j, r] * at[j, r]
+            colnorm[j] = np.sqrt(s)
+            sc = 1.0 / colnorm[j] if s > 0.0 else 0.0
+            for r in range(rows):
+                at[j, r] *= sc
+        # normal matrix by rank-1 updates (contiguous, vectorised), then Cholesky in place
+        for j in range(nbf):
+            for r in range(rows):
+                arow[r, j] = at[j, r]
+        chol[:, :] = 0.0
+        for r in range(rows):
+            for j in range(nbf):
+                f = arow[r, j]
+                for col in range(j + 1):
+                    chol[j, col] += f * arow[r, col]
+        n_ok = 0
+        for j in range(nbf):
+            for col in range(j + 1):
+                s = chol[j, col]
+                for q in range(col):
+                    s -= chol[j, q] * chol[col, q]
+                if col < j:
+                    chol[j, col] = s / chol[col, col]
+                elif s > FIT_PIVOT_MIN:
+                    chol[j, j] = np.sqrt(s)
+                else:
+                    chol[j, j] = 0.0
+            if chol[j, j] == 0.0:
+                break
+            n_ok = j + 1
+        lhi = lcap
+        while lhi >= 0 and _n_basis(lhi) > n_ok:
+            lhi -= 1
+        if lcap < lmax:
+            flag[g] |= FIT_CAPPED_EQUATIONS
+        if lhi < lcap:
+            flag[g] |= FIT_CAPPED_PIVOT
+        if lhi < lmin:
+            flag[g] |= FIT_FAILED
+            continue
+        nhi = _n_basis(lhi)
+
+        # y = L^-1 A^T b and Z = L^-1 A^T (forward substitution, rows of Z as axpys)
+        for j in range(nhi):
+            s = 0.0
+            for r in range(rows):
+                s += at[j, r] * b[r]
+            for q in range(j):
+                s -= chol[j, q] * y[q]
+            y[j] = s / chol[j, j]
+        for j in range(nhi):
+            for r in range(rows):
+                zt[j, r] = at[j, r]
+            for q in range(j):
+                f = chol[j, q]
+                for r in range(rows):
+                    zt[j, r] -= f * zt[q, r]
+            f = 1.0 / chol[j, j]
+            for r in range(rows):
+                zt[j, r] *= f
+
+        hat[:, :] = 0.0
+        j0 = 0
+        best_press = np.inf
+        best_rss = np.nan
+        for lev in range(min(lmin, FIT_CHECK_DEGREE), lhi + 1):
+            nb_l = _n_basis(lev)
+            for i in range(k):
+                r0 = 3 * i
+                for j in range(j0, nb_l):
+                    zx, zy, zz = zt[j, r0], zt[j, r0 + 1], zt[j, r0 + 2]
+                    hat[i, 0] += zx * zx
+                    hat[i, 1] += zy * zy
+                    hat[i, 2] += zz * zz
+                    hat[i, 3] += zx * zy
+                    hat[i, 4] += zx * zz
+                    hat[i, 5] += zy * zz
+            j0 = nb_l
+            # coefficients of degree lev (scaled columns): L^T cs = y, leading block
+            for j in range(nb_l - 1, -1, -1):
+                s = y[j]
+                for q in range(j + 1, nb_l):
+                    s -= chol[q, j] * cs[q]
+                cs[j] = s / chol[j, j]
+            for r in range(rows):
+                e[r] = -b[r]
+            for j in range(nb_l):
+                f = cs[j]
+                for r in range(rows):
+                    e[r] += f * at[j, r]
+            rss = 0.0
+            for r in range(rows):
+                rss += e[r] * e[r]
+            press = 0.0
+            for i in range(k):
+                r0 = 3 * i
+                ex, ey, ez = e[r0], e[r0 + 1], e[r0 + 2]
+                # (I - H_i)^-1 e_i by the adjugate of the symmetric 3x3 block
+                a00, a11, a22 = 1.0 - hat[i, 0], 1.0 - hat[i, 1], 1.0 - hat[i, 2]
+                a01, a02, a12 = -hat[i, 3], -hat[i, 4], -hat[i, 5]
+                c00 = a11 * a22 - a12 * a12
+                c01 = a02 * a12 - a01 * a22
+                c02 = a01 * a12 - a02 * a11
+                c11 = a00 * a22 - a02 * a02
+                c12 = a01 * a02 - a00 * a12
+                c22 = a00 * a11 - a01 * a01
+                det = a00 * c00 + a01 * c01 + a02 * c02
+                if det < FIT_LEVERAGE_DET_MIN:
+                    press = np.inf
+                    break
+                qx = (c00 * ex + c01 * ey + c02 * ez) / det
+                qy = (c01 * ex + c11 * ey + c12 * ez) / det
+                qz = (c02 * ex + c12 * ey + c22 * ez) / det
+                press += qx * qx + qy * qy + qz * qz
+            if lev == FIT_CHECK_DEGREE:
+                checks[g, CHECK_HARMONIC] = np.sqrt(rss / rows)
+            if lev < lmin:
+                continue
+            if press < best_press or lev == lmin:
+                best_press = press
+                best_rss = rss
+                degree[g] = lev
+                for j in range(nb_l):
+                    best[j] = cs[j]
+        for j in range(_n_basis(degree[g])):
+            coef[g, j] = best[j] / colnorm[j]
+        resid[g] = np.sqrt(best_rss / rows)
+    return coef, degree, resid, flag, checks
+
+
+@nb.njit(**JIT)
+def _free_fit_rms(ft, b, work):
+    """RMS residual of the least-squares polynomial fit of each field component apart.
+
+    ``ft`` (P, k): the P monomials at the k neighbours; ``b`` (3 k,): their field values;
+    ``work``: (P, P + 2) scratch. Normal equations with scaled columns; NaN if a pivot
+    is below `FIT_PIVOT_MIN`.
+    """
+    npar, k = ft.shape
+    norm = np.empty(npar)
+    for j in range(npar):
+        s = 0.0
+        for i in range(k):
+            s += ft[j, i] * ft[j, i]
+        norm[j] = np.sqrt(s) if s > 0.0 else 1.0
+    for j in range(npar):  # Cholesky factor of the scaled Gram matrix in work[:, :npar]
+        for col in range(j + 1):
+            s = 0.0
+            for i in range(k):
+                s += ft[j, i] * ft[col, i]
+            s /= norm[j] * norm[col]
+            for q in range(col):
+                s -= work[j, q] * work[col, q]
+            if col < j:
+                work[j, col] = s / work[col, col]
+            elif s > FIT_PIVOT_MIN:
+                work[j, j] = np.sqrt(s)
+            else:
+                return np.nan
+    rss = 0.0
+    for c in range(3):
+        for j in range(npar):  # forward: w = L^-1 (scaled A^T b_c)
+            s = 0.0
+            for i in range(k):
+                s += ft[j, i] * b[3 * i + c]
+            s /= norm[j]
+            for q in range(j):
+                s -= work[j, q] * work[q, npar]
+            work[j, npar] = s / work[j, j]
+        for j in range(npar - 1, -1, -1):  # back: L^T x = w
+            s = work[j, npar]
+            for q in range(j + 1, npar):
+                s -= work[q, j] * work[q, npar + 1]
+            work[j, npar + 1] = s / work[j, j]
+        for i in range(k):
+            s = -b[3 * i + c]
+            for j in range(npar):
+                s += work[j, npar + 1] / norm[j] * ft[j, i]
+            rss += s * s
+    return np.sqrt(rss / (3 * k))
