@@ -592,7 +592,8 @@ def harmonic_design(u, degree: int) -> np.ndarray:
 def harmonic_fit_twin(centers, scale, nbr, points, B, lmin: int, lmax: int) -> tuple:
     """`_kernels.harmonic_fit_block` by `np.linalg.lstsq` and explicit hat matrices.
 
-    Per node and degree: the least-squares fit with column-scaled design, its residuals and
+    Per node and degree: the weighted least-squares fit (weights (1 - `FIT_TAPER` |u|^2)^4)
+    with column-scaled design, its residuals and
     the leave-one-node-out residuals (I - H_ii)^-1 e_i from the 3 x 3 diagonal blocks of
     H = Q Q^T; the degree of least PRESS among those the equations and the pivots (squared
     diagonal of R in A = Q R) allow; the Laplace checks by `harmonic_fit_checks`. Returns
@@ -610,9 +611,10 @@ def harmonic_fit_twin(centers, scale, nbr, points, B, lmin: int, lmax: int) -> t
                default=-1)  # fmt: skip
     for g in range(n):
         u = (points[nbr[g]] - centers[g]) / scale[g]
-        b = B[nbr[g]].reshape(-1)
+        sw = np.repeat((1.0 - K.FIT_TAPER * np.sum(u**2, axis=1)) ** 2, 3)
+        b = B[nbr[g]].reshape(-1) * sw
         checks[g] = harmonic_fit_checks(u, B[nbr[g]])
-        a = harmonic_design(u, lmax)
+        a = harmonic_design(u, lmax) * sw[:, None]
         norms = np.linalg.norm(a, axis=0)
         a = a / np.where(norms > 0, norms, 1.0)
         pivots = np.diag(np.linalg.qr(a, mode="r")) ** 2
@@ -635,7 +637,7 @@ def harmonic_fit_twin(centers, scale, nbr, points, B, lmin: int, lmax: int) -> t
             else:
                 press = np.sum(np.linalg.solve(eye_h, e[..., None]) ** 2)
             if best is None or press < best[0]:
-                best = (press, L, c, np.sqrt(np.mean(e**2)))
+                best = (press, L, c, np.sqrt(np.sum(e**2) / np.sum(sw**2)))
         _, degree[g], c, resid[g] = best
         coef[g, : c.size] = c / norms[: c.size]
     return coef, degree, resid, flag, checks
@@ -644,14 +646,18 @@ def harmonic_fit_twin(centers, scale, nbr, points, B, lmin: int, lmax: int) -> t
 def harmonic_fit_checks(u, b) -> np.ndarray:
     """The ``checks`` row of `_kernels.harmonic_fit_block` for one neighbourhood: RMS over the
     components of B - mean(B), of B, and of the residuals of the harmonic and of the
-    unconstrained polynomial fits of degree `FIT_CHECK_DEGREE` (``u`` (k, 3), ``b`` (k, 3))."""
+    unconstrained polynomial fits of degree `FIT_CHECK_DEGREE`, weighted (``u`` (k, 3),
+    ``b`` (k, 3))."""
     L = K.FIT_CHECK_DEGREE
     out = [np.sqrt(np.mean((b - b.mean(axis=0)) ** 2)), np.sqrt(np.mean(b**2))]
-    for a, rhs in ((harmonic_design(u, L), b.reshape(-1)),
-                   (np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2), b)):  # fmt: skip
+    sw = (1.0 - K.FIT_TAPER * np.sum(u**2, axis=1)) ** 2
+    mono = np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2)
+    for a, rhs in ((harmonic_design(u, L) * np.repeat(sw, 3)[:, None], (b * sw[:, None]).reshape(-1)),
+                   (mono * sw[:, None], b * sw[:, None])):  # fmt: skip
         a = a / np.linalg.norm(a, axis=0)
         if np.min(np.diag(np.linalg.qr(a, mode="r")) ** 2) <= K.FIT_PIVOT_MIN:
             out.append(np.nan)
             continue
-        out.append(np.sqrt(np.mean((a @ np.linalg.lstsq(a, rhs, rcond=None)[0] - rhs) ** 2)))
+        rss = np.sum((a @ np.linalg.lstsq(a, rhs, rcond=None)[0] - rhs) ** 2)
+        out.append(np.sqrt(rss / (3 * np.sum(sw**2))))
     return np.array(out)

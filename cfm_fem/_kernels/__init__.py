@@ -27,6 +27,7 @@ from .harmonic_fit import (
     FIT_FAILED,
     FIT_LEVERAGE_DET_MIN,
     FIT_PIVOT_MIN,
+    FIT_TAPER,
     harmonic_fit_block,
 )
 from .htm import (
@@ -247,6 +248,7 @@ __all__ = [
     "coupled_probe_errors",
     "htm_sweep",
     "FIT_PIVOT_MIN",
+    "FIT_TAPER",
     "FIT_EQ_PER_UNKNOWN",
     "FIT_LEVERAGE_DET_MIN",
     "FIT_CAPPED_EQUATIONS",

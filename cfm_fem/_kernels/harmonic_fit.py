@@ -34,6 +34,11 @@ FIT_CHECK_DEGREE = 2
 #: Columns of the ``checks`` output of `harmonic_fit_block`.
 CHECK_SPREAD, CHECK_LEVEL, CHECK_HARMONIC, CHECK_FREE = 0, 1, 2, 3
 
+#: Weight of a neighbour at scaled distance |u| <= 1: (1 - FIT_TAPER |u|^2)^4, from 1 at the
+#: node to 1e-4 at the k-th neighbour. A local model serves points near its node: tapered
+#: weights let the far neighbours steady the fit without bending it near the node.
+FIT_TAPER = 0.9
+
 #: Flag bits of `harmonic_fit_block`.
 FIT_CAPPED_EQUATIONS = 1  # the highest degree was lowered for want of equations
 FIT_CAPPED_PIVOT = 2  # the highest degree was lowered by a small pivot
@@ -77,9 +82,10 @@ def _sparse_basis(gmat):
 def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     """Fit the harmonic field model of each node of a block to its neighbours' field values.
 
-    Per node: the design of the highest degree, scaled columns, one Cholesky factorisation;
-    the degree is the one of lowest leave-one-node-out residual (PRESS) among ``lmin`` ..
-    the highest the neighbourhood supports (`FIT_EQ_PER_UNKNOWN`, `FIT_PIVOT_MIN`).
+    Per node: the weighted design of the highest degree (weights `FIT_TAPER`), scaled
+    columns, one Cholesky factorisation; the degree is the one of lowest weighted
+    leave-one-node-out residual (PRESS) among ``lmin`` .. the highest the neighbourhood
+    supports (`FIT_EQ_PER_UNKNOWN`, `FIT_PIVOT_MIN`).
 
     Parameters
     ----------
@@ -105,14 +111,16 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         Coefficients of the basis fields; zero past the node's degree.
     degree : ndarray, shape (n,), int64
     resid : ndarray, shape (n,), T
-        RMS residual of the fit over the neighbours' 3 k components.
+        RMS residual of the fit over the neighbours' 3 k components, weighted by the fit's
+        weights (normalised to sum 1).
     flag : ndarray, shape (n,), int64
         Bits `FIT_CAPPED_EQUATIONS`, `FIT_CAPPED_PIVOT`, `FIT_FAILED`.
     checks : ndarray, shape (n, 4), T
         RMS over the same components of: B minus its mean over the neighbourhood
         (`CHECK_SPREAD`); B (`CHECK_LEVEL`); the residual of the harmonic fit of degree
         `FIT_CHECK_DEGREE` (`CHECK_HARMONIC`) and of the unconstrained polynomial fit of that
-        degree, each component apart (`CHECK_FREE`); NaN where a fit is not determined.
+        degree, each component apart (`CHECK_FREE`), both weighted as ``resid``; NaN where a
+        fit is not determined.
     """
     n, k = nbr.shape
     nbf = _n_basis(lmax)
@@ -131,7 +139,9 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     at = np.empty((nbf, rows))  # design, transposed: basis field x (neighbour, component)
     arow = np.empty((rows, nbf))  # the same, row-major
     zt = np.empty((nbf, rows))  # L^-1 at: leverages of every degree
-    b = np.empty(rows)
+    b = np.empty(rows)  # weighted field values
+    braw = np.empty(rows)
+    sw = np.empty(k)  # square roots of the weights
     colnorm = np.empty(nbf)
     chol = np.empty((nbf, nbf))
     y = np.empty(nbf)
@@ -150,17 +160,25 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     for g in range(n):
         inv = 1.0 / scale[g]
         mean = np.zeros(3)
+        sumw = 0.0
         for i in range(k):
             p = nbr[g, i]
+            u2 = 0.0
             for a in range(3):
                 pw[a, 0] = 1.0
                 ua = (points[p, a] - centers[g, a]) * inv
+                u2 += ua * ua
                 for q in range(1, 6):
                     pw[a, q] = pw[a, q - 1] * ua
-                b[3 * i + a] = B[p, a]
+            t = 1.0 - FIT_TAPER * u2
+            sw[i] = t * t
+            sumw += sw[i] * sw[i]
+            for a in range(3):
+                braw[3 * i + a] = B[p, a]
+                b[3 * i + a] = sw[i] * B[p, a]
                 mean[a] += B[p, a]
             for m in range(n_mono):
-                mono[m] = pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
+                mono[m] = sw[i] * pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
             for m in range(n_free):
                 free_at[m, i] = mono[m]
             for j in range(nbf):
@@ -182,12 +200,12 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         s2 = 0.0
         for i in range(k):
             for a in range(3):
-                d = b[3 * i + a] - mean[a] / k
+                d = braw[3 * i + a] - mean[a] / k
                 ss += d * d
-                s2 += b[3 * i + a] * b[3 * i + a]
+                s2 += braw[3 * i + a] * braw[3 * i + a]
         checks[g, CHECK_SPREAD] = np.sqrt(ss / rows)
         checks[g, CHECK_LEVEL] = np.sqrt(s2 / rows)
-        checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work)
+        checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work) / np.sqrt(3.0 * sumw)
 
         # scaled columns, normal matrix, Cholesky up to the first small pivot
         for j in range(nbf):
@@ -308,7 +326,7 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
                 qz = (c02 * ex + c12 * ey + c22 * ez) / det
                 press += qx * qx + qy * qy + qz * qz
             if lev == FIT_CHECK_DEGREE:
-                checks[g, CHECK_HARMONIC] = np.sqrt(rss / rows)
+                checks[g, CHECK_HARMONIC] = np.sqrt(rss / (3.0 * sumw))
             if lev < lmin:
                 continue
             if press < best_press or lev == lmin:
@@ -319,13 +337,13 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
                     best[j] = cs[j]
         for j in range(_n_basis(degree[g])):
             coef[g, j] = best[j] / colnorm[j]
-        resid[g] = np.sqrt(best_rss / rows)
+        resid[g] = np.sqrt(best_rss / (3.0 * sumw))
     return coef, degree, resid, flag, checks
 
 
 @nb.njit(**JIT)
 def _free_fit_rms(ft, b, work):
-    """RMS residual of the least-squares polynomial fit of each field component apart.
+    """Residual norm of the least-squares polynomial fit of each field component apart.
 
     ``ft`` (P, k): the P monomials at the k neighbours; ``b`` (3 k,): their field values;
     ``work``: (P, P + 2) scratch. Normal equations with scaled columns; NaN if a pivot
@@ -372,4 +390,4 @@ def _free_fit_rms(ft, b, work):
             for j in range(npar):
                 s += work[j, npar + 1] / norm[j] * ft[j, i]
             rss += s * s
-    return np.sqrt(rss / (3 * k))
+    return np.sqrt(rss)

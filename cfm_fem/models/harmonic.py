@@ -3,7 +3,8 @@
 Around each node g the field is modelled as B(x) = sum_j coef[g, j] F_j((x - x_g) / scale_g),
 with F_j the gradients of harmonic polynomials (`cfm_fem.models.harmonic_basis`), so div B and
 curl B are exactly zero. The coefficients are the least-squares fit to the three components at
-the node's k nearest nodes (the node included), of the degree 2 .. 5 that the neighbourhood
+the node's k nearest nodes (the node included), weighted from 1 at the node to 1e-4 at the
+k-th neighbour (`cfm_fem._kernels.FIT_TAPER`), of the degree 2 .. 5 that the neighbourhood
 supports and that predicts left-out neighbours best (`cfm_fem._kernels.harmonic_fit`).
 
 Neighbourhoods are the k nearest nodes ordered by (distance, x, y, z), ties at the k-th
@@ -16,17 +17,17 @@ Reach: a node's model is used up to half the distance to its k-th nearest node
 
 Fallback: Laplace's equation fails where currents or iron lie inside the neighbourhood, or
 the export is noisy; there the node falls back to the linear interpolant (``use`` False). The
-rule (`FALLBACK_RULE`), with r the RMS over the neighbours' components:
+rule (`FALLBACK_RULE`), with r the weighted RMS residual over the neighbours' components:
 
 * curl check: r of the harmonic fit of degree 2 exceeds `CURL_RATIO` times r of an
   unconstrained quadratic fit of each component (3 x 10 free coefficients against the
   harmonic 15) of the same neighbourhood. A harmonic field gives a ratio of about 1 (at most
-  1.5 over the bundled quadrupole map); a current density of 3 A/mm^2 inside the neighbourhood
-  of a 0.7 T quadrupole field gives more than 8.
+  1.47 over the 46,051 nodes of the bundled quadrupole map); a uniform current density of
+  0.8 A/mm^2 (3.2 A/mm^2) in a conductor holding the neighbourhood, on top of the bundled
+  map's field, gives at least 4.4 (17).
 * misfit check: r of the chosen fit exceeds `MISFIT_REL` of the RMS variation of B over the
-  neighbourhood (at most 4e-3 over the bundled map, where the 16 magnet segments make the
-  field vary on the scale of the mesh): a field jump at an iron surface or noise the smooth
-  model cannot follow.
+  neighbourhood (at most 6.5e-4 over the bundled map): a field jump at an iron surface, or
+  noise comparable with the field's variation, that the smooth model cannot follow.
 * or no degree >= ``min_degree`` could be fitted (too few or coplanar neighbours).
 
 Residuals below `ROUNDING_FLOOR` of the RMS field over the neighbourhood are rounding and never
