@@ -202,8 +202,8 @@ def _check_map(points, B, k, min_degree, max_degree, source):
 def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k nearest nodes of nodes ``idx``, in an order independent of the map's row order.
 
-    Sorted by squared distance, then x, y, z; where ties at the k-th distance reach past the
-    queried candidates, every node at that distance is collected and the same order decides.
+    Sorted by squared distance, then x, y, z. Where ties at the k-th distance (a grid's
+    shells) may run past the queried candidates, the query is repeated with twice as many.
 
     Parameters
     ----------
@@ -222,21 +222,24 @@ def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
         Distance to the k-th.
     """
     n = len(points)
+    nbr = np.empty((len(idx), k), dtype=np.int64)
+    d2k = np.empty(len(idx))
+    todo = np.arange(len(idx))
     kq = min(k + _NBR_MARGIN, n)
-    _, cand = tree.query(points[idx], kq, workers=numba.get_num_threads())
-    cand = cand.reshape(len(idx), kq)
-    nbr, d2 = _canonical(points, idx, cand, k)
-    # ties at the k-th distance running through the last candidate: collect them all
-    more = np.flatnonzero(d2[:, kq - 1] <= d2[:, k - 1]) if kq < n else []
-    for row in more:
-        radius = np.sqrt(d2[row, k - 1]) * (1.0 + 1e-9)
-        ball = np.array(sorted(tree.query_ball_point(points[idx[row]], radius)))
-        nbr[row, :k] = _canonical(points, idx[row : row + 1], ball[None], k)[0][0, :k]
-    d2k = np.sum((points[nbr[:, k - 1]] - points[idx]) ** 2, axis=1)
-    return np.ascontiguousarray(nbr[:, :k]), np.sqrt(d2k)
+    while todo.size:
+        _, cand = tree.query(points[idx[todo]], kq, workers=numba.get_num_threads())
+        cand, d2 = _canonical(points, idx[todo], cand.reshape(len(todo), kq))
+        # complete unless the last candidate ties with the k-th (to rounding: the tree's
+        # distances may round otherwise)
+        done = d2[:, kq - 1] > d2[:, k - 1] * (1.0 + 1e-12) if kq < n else np.ones(todo.size, bool)
+        nbr[todo[done]] = cand[done, :k]
+        d2k[todo[done]] = d2[done, k - 1]
+        todo = todo[~done]
+        kq = min(2 * kq, n)
+    return nbr, np.sqrt(d2k)
 
 
-def _canonical(points, idx, cand, k):
+def _canonical(points, idx, cand):
     """Candidates ``cand`` (m, c) sorted by (squared distance, x, y, z): (nbr (m, c), d2)."""
     p = points[cand]
     d2 = np.sum((p - points[idx][:, None, :]) ** 2, axis=2)
