@@ -52,30 +52,29 @@ def _n_basis(degree):
 
 @nb.njit(**JIT)
 def _sparse_basis(gmat):
-    """Non-zero entries of ``gmat`` (3, M, NB), ordered by basis field: (start per field,
-    component, monomial, value)."""
+    """Non-zero entries of ``gmat`` (3, M, NB) by component, then basis field: (start of the
+    entries of component c and field j at ``start[c, j]``, their monomials, their values)."""
     nbf = gmat.shape[2]
+    start = np.zeros((3, nbf + 1), dtype=np.int64)
     count = 0
-    for j in range(nbf):
-        for c in range(3):
+    for c in range(3):
+        for j in range(nbf):
             for m in range(gmat.shape[1]):
                 if gmat[c, m, j] != 0.0:
                     count += 1
-    start = np.zeros(nbf + 1, dtype=np.int64)
-    comp = np.empty(count, dtype=np.int64)
     mono = np.empty(count, dtype=np.int64)
     val = np.empty(count)
     e = 0
-    for j in range(nbf):
-        for c in range(3):
+    for c in range(3):
+        start[c, 0] = e
+        for j in range(nbf):
             for m in range(gmat.shape[1]):
                 if gmat[c, m, j] != 0.0:
-                    comp[e] = c
                     mono[e] = m
                     val[e] = gmat[c, m, j]
                     e += 1
-        start[j + 1] = e
-    return start, comp, mono, val
+            start[c, j + 1] = e
+    return start, mono, val
 
 
 @nb.njit(**JIT)
@@ -126,7 +125,7 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     nbf = _n_basis(lmax)
     n_mono = exps.shape[0]
     rows = 3 * k
-    start, comp, mono_of, val = _sparse_basis(gmat)
+    start, mono_of, val = _sparse_basis(gmat)
     coef = np.zeros((n, nbf))
     degree = np.full(n, lmin, dtype=np.int64)
     resid = np.full(n, np.nan)
@@ -181,21 +180,12 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
                 mono[m] = sw[i] * pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
             for m in range(n_free):
                 free_at[m, i] = mono[m]
-            for j in range(nbf):
-                s0 = 0.0
-                s1 = 0.0
-                s2 = 0.0
-                for q in range(start[j], start[j + 1]):
-                    v = val[q] * mono[mono_of[q]]
-                    if comp[q] == 0:
-                        s0 += v
-                    elif comp[q] == 1:
-                        s1 += v
-                    else:
-                        s2 += v
-                at[j, 3 * i] = s0
-                at[j, 3 * i + 1] = s1
-                at[j, 3 * i + 2] = s2
+            for c in range(3):
+                for j in range(nbf):
+                    s = 0.0
+                    for q in range(start[c, j], start[c, j + 1]):
+                        s += val[q] * mono[mono_of[q]]
+                    arow[3 * i + c, j] = s
         ss = 0.0
         s2 = 0.0
         for i in range(k):
@@ -207,19 +197,20 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         checks[g, CHECK_LEVEL] = np.sqrt(s2 / rows)
         checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work) / np.sqrt(3.0 * sumw)
 
-        # scaled columns, normal matrix, Cholesky up to the first small pivot
+        # scaled columns, normal matrix by rank-1 updates (contiguous rows: vectorised),
+        # Cholesky in place up to the first small pivot
         for j in range(nbf):
-            s = 0.0
-            for r in range(rows):
-                s += at[j, r] * at[j, r]
-            colnorm[j] = np.sqrt(s)
-            sc = 1.0 / colnorm[j] if s > 0.0 else 0.0
-            for r in range(rows):
-                at[j, r] *= sc
-        # normal matrix by rank-1 updates (contiguous, vectorised), then Cholesky in place
+            colnorm[j] = 0.0
+        for r in range(rows):
+            for j in range(nbf):
+                colnorm[j] += arow[r, j] * arow[r, j]
         for j in range(nbf):
-            for r in range(rows):
-                arow[r, j] = at[j, r]
+            colnorm[j] = np.sqrt(colnorm[j])
+            cs[j] = 1.0 / colnorm[j] if colnorm[j] > 0.0 else 0.0
+        for r in range(rows):
+            for j in range(nbf):
+                arow[r, j] *= cs[j]
+                at[j, r] = arow[r, j]
         chol[:, :] = 0.0
         for r in range(rows):
             for j in range(nbf):

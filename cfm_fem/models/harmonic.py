@@ -59,6 +59,7 @@ __all__ = [
     "MISFIT_REL",
     "ROUNDING_FLOOR",
     "MIN_NODES",
+    "time_fit",
 ]
 
 #: Reach of a node's model, as a fraction of the distance to its k-th nearest node.
@@ -331,3 +332,33 @@ def fit_harmonic(
         centers=points, scale=scale, coef=coef, degree=degree, residual_T=resid,
         reach_mm=REACH_FRACTION * scale, use=use, k=k,
     )  # fmt: skip
+
+
+def time_fit(points, B, *, k=40) -> dict:
+    """Time `fit_harmonic` on a map, its kernel compiled beforehand (on the first nodes).
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3), mm
+    B : array_like, shape (n, 3), T
+    k : int
+
+    Returns
+    -------
+    dict
+        ``nodes``, ``k``, ``threads`` (numba's), ``seconds`` (wall time of the fit),
+        ``fallback_nodes`` and ``degrees`` (nodes per degree).
+    """
+    import time
+
+    points = np.asarray(points, dtype=np.float64)
+    fit_harmonic(points[: max(MIN_NODES, min(len(points), 200))], np.asarray(B)[:200], k=k)
+    t0 = time.perf_counter()
+    fit = fit_harmonic(points, B, k=k)
+    seconds = time.perf_counter() - t0
+    degrees = np.bincount(fit.degree, minlength=MAX_DEGREE + 1)
+    return {
+        "nodes": len(points), "k": fit.k, "threads": numba.get_num_threads(),
+        "seconds": seconds, "fallback_nodes": int(np.sum(~fit.use)),
+        "degrees": {d: int(degrees[d]) for d in range(2, MAX_DEGREE + 1)},
+    }  # fmt: skip
