@@ -651,9 +651,9 @@ def harmonic_fit_checks(u, b) -> np.ndarray:
     L = K.FIT_CHECK_DEGREE
     out = [np.sqrt(np.mean((b - b.mean(axis=0)) ** 2)), np.sqrt(np.mean(b**2))]
     sw = (1.0 - K.FIT_TAPER * np.sum(u**2, axis=1)) ** 2
-    mono = np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2)
-    for a, rhs in ((harmonic_design(u, L) * np.repeat(sw, 3)[:, None], (b * sw[:, None]).reshape(-1)),
-                   (mono * sw[:, None], b * sw[:, None])):  # fmt: skip
+    mono = np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2) * sw[:, None]
+    harm = harmonic_design(u, L) * np.repeat(sw, 3)[:, None]
+    for a, rhs in ((harm, (b * sw[:, None]).reshape(-1)), (mono, b * sw[:, None])):
         a = a / np.linalg.norm(a, axis=0)
         if np.min(np.diag(np.linalg.qr(a, mode="r")) ** 2) <= K.FIT_PIVOT_MIN:
             out.append(np.nan)

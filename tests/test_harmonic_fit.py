@@ -78,7 +78,7 @@ def test_kernel_matches_twin(field):
         B = np.c_[0.07 * pts[:, 1] - 0.01 * pts[:, 1], 0.07 * pts[:, 0] + 0.01 * pts[:, 0],
                   1e-3 * pts[:, 2] ** 2]  # fmt: skip
     idx = np.arange(0, len(pts), 7)
-    nbr, scale = neighbourhoods(scipy.spatial.cKDTree(pts), pts, idx, 40)
+    nbr, scale = neighbourhoods(scipy.spatial.cKDTree(pts), pts, pts[idx], 40)
     args = (pts[idx], scale, nbr, pts, B)
     got = K.harmonic_fit_block(*args, field_basis(5), monomial_exponents(5), 2, 5)
     want = twins.harmonic_fit_twin(*args, 2, 5)
@@ -101,7 +101,9 @@ def _within_reach(fit, q):
     nearest node's reach holds the point (a scattered cloud has a few wider gaps)."""
     B, inside = fit.field_at(q)
     d, near = scipy.spatial.cKDTree(fit.centers).query(q)
-    np.testing.assert_array_equal(inside, d <= fit.reach_mm[near])
+    np.testing.assert_array_equal(
+        inside, np.sqrt(np.sum((q - fit.centers[near]) ** 2, 1)) <= fit.reach_mm[near]
+    )
     assert inside.mean() > 0.97 and np.isnan(B[~inside]).all()
     return B, inside
 
@@ -272,7 +274,8 @@ def test_same_bits_whatever_threads_blocks_and_row_order(layout, monkeypatch):
             np.testing.assert_array_equal(
                 getattr(fit, name), want if order is None else want[order]
             )
-    q = _off_node_points(500, (6.0, 6.0, 6.0))
+    # off-node points, and cell centres of the grid (equidistant from 8 nodes)
+    q = np.r_[_off_node_points(500, (6.0, 6.0, 6.0)), pts[::7] + 0.35]
     np.testing.assert_array_equal(runs[-1][0].field_at(q)[0], ref.field_at(q)[0])
 
 
@@ -282,7 +285,7 @@ def test_grid_ties_are_broken_by_coordinates():
     pts = _grid(7, 1.0)
     tree = scipy.spatial.cKDTree(pts)
     centre = np.flatnonzero(np.all(pts == 0.0, axis=1))
-    nbr, scale = neighbourhoods(tree, pts, centre, 40)
+    nbr, scale = neighbourhoods(tree, pts, pts[centre], 40)
     d2 = np.sum(pts[nbr[0]] ** 2, axis=1)
     assert scale[0] == np.sqrt(5.0) and np.all(np.diff(d2) >= 0)
     shell = pts[nbr[0][d2 == 5.0]]

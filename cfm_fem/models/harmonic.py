@@ -127,12 +127,15 @@ class HarmonicFit:
 
     @cached_property
     def _used(self) -> tuple:
-        """Indices of the nodes with ``use`` and a k-d tree of them."""
+        """Indices of the nodes with ``use``, their centres and a k-d tree of them."""
         idx = np.flatnonzero(self.use)
-        return idx, scipy.spatial.cKDTree(self.centers[idx])
+        return idx, self.centers[idx], scipy.spatial.cKDTree(self.centers[idx])
 
     def field_at(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Field of the model of the nearest node with ``use`` True, within its reach.
+
+        Of equidistant nodes, the first in (x, y, z) order: the answer does not depend on the
+        map's row order.
 
         Parameters
         ----------
@@ -148,17 +151,17 @@ class HarmonicFit:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = np.full((len(pts), 3), np.nan)
         inside = np.zeros(len(pts), dtype=bool)
-        idx, tree = self._used
+        idx, used, tree = self._used
         if idx.size == 0:
             return out, inside
         gmat = field_basis(MAX_DEGREE)
         exps = monomial_exponents(MAX_DEGREE)
         for a in range(0, len(pts), _EVAL_CHUNK):
             p = pts[a : a + _EVAL_CHUNK]
-            _, near = tree.query(p, workers=numba.get_num_threads())
-            g = idx[near]
+            near, dist = neighbourhoods(tree, used, p, 1)
+            g = idx[near[:, 0]]
             u = (p - self.centers[g]) / self.scale[g, None]
-            ok = np.linalg.norm(u, axis=1) * self.scale[g] <= self.reach_mm[g]
+            ok = dist <= self.reach_mm[g]
             nodes, inv = np.unique(g[ok], return_inverse=True)
             cexp = np.einsum("cmj,nj->ncm", gmat, self.coef[nodes])  # (nodes, 3, M)
             mono = np.prod(u[ok, None, :] ** exps[None], axis=2)  # (ok, M)
@@ -200,8 +203,8 @@ def _check_map(points, B, k, min_degree, max_degree, source):
     return points, B
 
 
-def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The k nearest nodes of nodes ``idx``, in an order independent of the map's row order.
+def neighbourhoods(tree, points, centres, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest nodes of each centre, in an order independent of the map's row order.
 
     Sorted by squared distance, then x, y, z. Where ties at the k-th distance (a grid's
     shells) may run past the queried candidates, the query is repeated with twice as many.
@@ -211,7 +214,7 @@ def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
     tree : scipy.spatial.cKDTree
         Over ``points``.
     points : ndarray, shape (N, 3), mm
-    idx : ndarray, shape (m,), int64
+    centres : ndarray, shape (m, 3), mm
     k : int
         <= N.
 
@@ -223,13 +226,13 @@ def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
         Distance to the k-th.
     """
     n = len(points)
-    nbr = np.empty((len(idx), k), dtype=np.int64)
-    d2k = np.empty(len(idx))
-    todo = np.arange(len(idx))
+    nbr = np.empty((len(centres), k), dtype=np.int64)
+    d2k = np.empty(len(centres))
+    todo = np.arange(len(centres))
     kq = min(k + _NBR_MARGIN, n)
     while todo.size:
-        _, cand = tree.query(points[idx[todo]], kq, workers=numba.get_num_threads())
-        cand, d2 = _canonical(points, idx[todo], cand.reshape(len(todo), kq))
+        _, cand = tree.query(centres[todo], kq, workers=numba.get_num_threads())
+        cand, d2 = _canonical(points, centres[todo], cand.reshape(len(todo), kq))
         # complete unless the last candidate ties with the k-th (to rounding: the tree's
         # distances may round otherwise)
         done = d2[:, kq - 1] > d2[:, k - 1] * (1.0 + 1e-12) if kq < n else np.ones(todo.size, bool)
@@ -240,10 +243,11 @@ def neighbourhoods(tree, points, idx, k: int) -> tuple[np.ndarray, np.ndarray]:
     return nbr, np.sqrt(d2k)
 
 
-def _canonical(points, idx, cand):
-    """Candidates ``cand`` (m, c) sorted by (squared distance, x, y, z): (nbr (m, c), d2)."""
+def _canonical(points, centres, cand):
+    """Candidates ``cand`` (m, c) of ``centres`` (m, 3) sorted by (squared distance, x, y, z):
+    (nbr (m, c), d2)."""
     p = points[cand]
-    d2 = np.sum((p - points[idx][:, None, :]) ** 2, axis=2)
+    d2 = np.sum((p - centres[:, None, :]) ** 2, axis=2)
     order = np.lexsort((p[..., 2], p[..., 1], p[..., 0], d2), axis=-1)
     return np.take_along_axis(cand, order, -1), np.take_along_axis(d2, order, -1)
 
@@ -316,7 +320,7 @@ def fit_harmonic(
     use = np.empty(n, dtype=bool)
     for a in range(0, n, _QUERY_CHUNK):
         idx = np.arange(a, min(a + _QUERY_CHUNK, n))
-        nbr, sc = neighbourhoods(tree, points, idx, k)
+        nbr, sc = neighbourhoods(tree, points, points[idx], k)
         cen = points[idx]
 
         def block(i0, i1, nbr=nbr, sc=sc, cen=cen):
@@ -351,8 +355,8 @@ def time_fit(points, B, *, k=40) -> dict:
     """
     import time
 
-    points = np.asarray(points, dtype=np.float64)
-    fit_harmonic(points[: max(MIN_NODES, min(len(points), 200))], np.asarray(B)[:200], k=k)
+    warm = np.random.default_rng(0).uniform(-1.0, 1.0, (2 * k, 3))  # compiles the kernel
+    fit_harmonic(warm, warm, k=k)
     t0 = time.perf_counter()
     fit = fit_harmonic(points, B, k=k)
     seconds = time.perf_counter() - t0
