@@ -654,7 +654,8 @@ def harmonic_fit_checks(u, b) -> np.ndarray:
     mono = np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2) * sw[:, None]
     harm = harmonic_design(u, L) * np.repeat(sw, 3)[:, None]
     for a, rhs in ((harm, (b * sw[:, None]).reshape(-1)), (mono, b * sw[:, None])):
-        a = a / np.linalg.norm(a, axis=0)
+        norms = np.linalg.norm(a, axis=0)
+        a = a / np.where(norms > 0, norms, 1.0)
         if np.min(np.diag(np.linalg.qr(a, mode="r")) ** 2) <= K.FIT_PIVOT_MIN:
             out.append(np.nan)
             continue

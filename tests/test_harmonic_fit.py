@@ -66,17 +66,29 @@ def _off_node_points(n, half, seed=2):
 # ---------------------------------------------------------------------------------------------
 # Kernel against twin
 # ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("field", ["dipole", "current"])
-def test_kernel_matches_twin(field):
-    pts = _cloud(400, (8.0, 8.0, 8.0), seed=3)
-    if field == "dipole":  # a point dipole outside the cloud: harmonic, not a polynomial
+def _scan_lines(spacing):
+    """Hall-probe scan lines along z, 0.1 mm steps, on a 4 x 4 grid of ``spacing`` (mm)."""
+    ax = np.arange(4) * spacing
+    pts = np.stack(np.meshgrid(ax, ax, np.arange(60) * 0.1, indexing="ij"), -1).reshape(-1, 3)
+    return pts - [2.0, 2.0, 3.0]
+
+
+@pytest.mark.parametrize("case", ["dipole", "current", "lines_1mm", "lines_3mm"])
+def test_kernel_matches_twin(case):
+    """Degrees and flags equal, coefficients to rounding: a harmonic non-polynomial field; a
+    field with curl; scan lines whose neighbourhoods cannot fix every degree (1 mm apart:
+    the pivot check lowers the degree; 3 mm: mostly one line, no fit at all)."""
+    pts = _scan_lines(float(case[6])) if case.startswith("lines") else _cloud(400, (8.0,) * 3, 3)
+    if case == "dipole":  # a point dipole outside the cloud: harmonic, not a polynomial
         d = pts - np.array([0.0, 0.0, 25.0])
         r = np.linalg.norm(d, axis=1)[:, None]
         m = np.array([0.3, -0.2, 1.0]) * 1e4
         B = (3.0 * d * (d @ m)[:, None] / r**2 - m) / r**3
-    else:  # a current along z through the cloud on top of a quadrupole: curl != 0
+    elif case == "current":  # a current along z through the cloud on a quadrupole: curl != 0
         B = np.c_[0.07 * pts[:, 1] - 0.01 * pts[:, 1], 0.07 * pts[:, 0] + 0.01 * pts[:, 0],
                   1e-3 * pts[:, 2] ** 2]  # fmt: skip
+    else:
+        B = _bessel_quadrupole(pts)
     idx = np.arange(0, len(pts), 7)
     nbr, scale = neighbourhoods(scipy.spatial.cKDTree(pts), pts, pts[idx], 40)
     args = (pts[idx], scale, nbr, pts, B)
@@ -85,15 +97,21 @@ def test_kernel_matches_twin(field):
     coef, degree, resid, flag, checks = got
     np.testing.assert_array_equal(degree, want[1])
     np.testing.assert_array_equal(flag, want[3])
-    big = np.abs(want[0]).max(axis=1, keepdims=True)
+    big = np.maximum(np.abs(want[0]).max(axis=1, keepdims=True), 1e-300)
     np.testing.assert_allclose(coef / big, want[0] / big, rtol=0, atol=1e-10)
     floor = 1e-13 * np.abs(B).max()  # rounding of residuals of exact fits
     np.testing.assert_allclose(resid, want[2], rtol=1e-8, atol=floor)
     np.testing.assert_allclose(checks, want[4], rtol=1e-8, atol=floor)
-    if field == "dipole":
+    failed = (flag & K.FIT_FAILED) != 0
+    assert np.all(coef[failed] == 0.0) and np.isnan(resid[failed]).all()
+    if case == "dipole":
         assert degree.min() >= 4  # the dipole's higher terms show: the fit takes them
-    else:
+    elif case == "current":
         assert np.all(checks[:, K.CHECK_HARMONIC] > 100 * checks[:, K.CHECK_FREE])
+    elif case == "lines_1mm":
+        assert np.all(flag == K.FIT_CAPPED_PIVOT) and degree.max() < 5
+    else:
+        assert failed.mean() > 0.5
 
 
 def _within_reach(fit, q):
@@ -231,6 +249,20 @@ def test_current_in_the_neighbourhood_triggers_the_fallback():
     clean = fit_harmonic(pts, _bessel_quadrupole(pts, amplitude=0.3))
     assert clean.use.all()
     assert "linear interpolant" in fit.fallback_rule
+
+
+def test_field_jump_at_a_surface_triggers_the_fallback():
+    """A jump of 0.01 T in the tangential field across the plane z = 0 (a current sheet, as
+    at the surface of iron): the nodes whose neighbourhood it cuts near the middle fall back;
+    the nodes whose neighbourhood lies on one side do not."""
+    pts = _cloud(3000, (10.0, 10.0, 10.0), seed=11)
+    B = _bessel_quadrupole(pts, amplitude=0.3)
+    B[pts[:, 2] > 0, 0] += 0.01
+    fit = fit_harmonic(pts, B)
+    depth = np.abs(pts[:, 2]) / fit.scale
+    assert (depth < 0.25).sum() > 100 and (depth > 1).sum() > 1000
+    assert not fit.use[depth < 0.25].any()
+    assert fit.use[depth > 1].all()
 
 
 def test_pure_conductor_field_falls_back():
