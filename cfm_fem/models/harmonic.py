@@ -28,8 +28,8 @@ rule (`FALLBACK_RULE`), with r the weighted RMS residual over the neighbours' co
 * misfit check: r of the chosen fit exceeds `MISFIT_REL` of the RMS variation of B over the
   neighbourhood (at most 6.5e-4 over the bundled map): a field jump at an iron surface, or
   noise comparable with the field's variation, that the smooth model cannot follow (a
-  tangential jump of 0.01 T across a plane through a neighbourhood, in a field varying by
-  ~0.03 T across it, gives about 0.1).
+  tangential jump of 0.01 T across a plane through a neighbourhood, in a field of RMS
+  variation 0.018 T over it, gives about 0.1).
 * or no degree >= ``min_degree`` could be fitted (too few or coplanar neighbours).
 
 Residuals below `ROUNDING_FLOOR` of the RMS field over the neighbourhood are rounding and never
