@@ -4,15 +4,13 @@ fallback where Laplace fails, and the same bits whatever the threads, blocks or 
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import meshio
 import numba
 import numpy as np
 import pytest
 import scipy.spatial
 import scipy.special
+from test_default_mesh import VTU, gen
 
 from cfm_fem import _kernels as K
 from cfm_fem import testing as twins
@@ -21,7 +19,6 @@ from cfm_fem.models import harmonic
 from cfm_fem.models.harmonic import fit_harmonic, neighbourhoods
 from cfm_fem.models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents, n_basis
 
-ROOT = Path(__file__).resolve().parent.parent
 MU0 = 4e-7 * np.pi  # T m / A
 
 
@@ -163,15 +160,6 @@ def test_analytic_3d_quadrupole_is_reproduced_within_truncation():
 # ---------------------------------------------------------------------------------------------
 # The bundled map against its exact source
 # ---------------------------------------------------------------------------------------------
-def _load_generator():
-    spec = importlib.util.spec_from_file_location(
-        "make_default_mesh", ROOT / "scripts" / "make_default_mesh.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 #: Smallest RMS factor (linear error / harmonic error) per slab and part of the aperture, about
 #: half the factors these samples give. In the body the 16 magnet segments add harmonics of
 #: order 18 and 34 whose period, ~3 mm at r = 8 mm, the 1.4 mm mesh barely samples: there
@@ -188,8 +176,7 @@ def test_bundled_map_beats_the_linear_interpolant(slab):
     interpolant there is the mean of the four nodes. Cells with a node on the surface
     r = 10 mm are checked apart."""
     pytest.importorskip("magpylib")
-    gen = _load_generator()
-    mesh = meshio.read(ROOT / "meshes" / "quadrupole.vtu")
+    mesh = meshio.read(VTU)
     pts, B, tets = mesh.points, mesh.point_data["B"], mesh.cells_dict["tetra"]
     z0, z1 = (-10.0, 10.0) if slab == "body" else (34.0, 46.0)
     keep = (pts[:, 2] > z0) & (pts[:, 2] < z1)

@@ -78,6 +78,28 @@ def _sparse_basis(gmat):
 
 
 @nb.njit(**JIT)
+def _cholesky(a, n):
+    """Lower Cholesky factor, in place, of the symmetric matrix in the lower triangle of
+    ``a[:n, :n]``, column by column up to the first pivot <= `FIT_PIVOT_MIN`.
+
+    Returns the number of columns factorised: the leading block of that size is the factor
+    of the matrix's leading block.
+    """
+    for j in range(n):
+        for col in range(j + 1):
+            s = a[j, col]
+            for q in range(col):
+                s -= a[j, q] * a[col, q]
+            if col < j:
+                a[j, col] = s / a[col, col]
+            elif s > FIT_PIVOT_MIN:
+                a[j, j] = np.sqrt(s)
+            else:
+                return j
+    return n
+
+
+@nb.njit(**JIT)
 def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     """Fit the harmonic field model of each node of a block to its neighbours' field values.
 
@@ -217,21 +239,7 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
                 f = arow[r, j]
                 for col in range(j + 1):
                     chol[j, col] += f * arow[r, col]
-        n_ok = 0
-        for j in range(nbf):
-            for col in range(j + 1):
-                s = chol[j, col]
-                for q in range(col):
-                    s -= chol[j, q] * chol[col, q]
-                if col < j:
-                    chol[j, col] = s / chol[col, col]
-                elif s > FIT_PIVOT_MIN:
-                    chol[j, j] = np.sqrt(s)
-                else:
-                    chol[j, j] = 0.0
-            if chol[j, j] == 0.0:
-                break
-            n_ok = j + 1
+        n_ok = _cholesky(chol, nbf)
         lhi = lcap
         while lhi >= 0 and _n_basis(lhi) > n_ok:
             lhi -= 1
@@ -347,20 +355,14 @@ def _free_fit_rms(ft, b, work):
         for i in range(k):
             s += ft[j, i] * ft[j, i]
         norm[j] = np.sqrt(s) if s > 0.0 else 1.0
-    for j in range(npar):  # Cholesky factor of the scaled Gram matrix in work[:, :npar]
+    for j in range(npar):  # scaled Gram matrix in work[:, :npar], then its Cholesky factor
         for col in range(j + 1):
             s = 0.0
             for i in range(k):
                 s += ft[j, i] * ft[col, i]
-            s /= norm[j] * norm[col]
-            for q in range(col):
-                s -= work[j, q] * work[col, q]
-            if col < j:
-                work[j, col] = s / work[col, col]
-            elif s > FIT_PIVOT_MIN:
-                work[j, j] = np.sqrt(s)
-            else:
-                return np.nan
+            work[j, col] = s / (norm[j] * norm[col])
+    if _cholesky(work, npar) < npar:
+        return np.nan
     rss = 0.0
     for c in range(3):
         for j in range(npar):  # forward: w = L^-1 (scaled A^T b_c)
