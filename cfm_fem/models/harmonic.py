@@ -289,7 +289,10 @@ def fit_harmonic(
     k : int
         Neighbours per fit (the node included); ``min(k, n)`` are used.
     min_degree, max_degree : int
-        Field degrees allowed, 2 <= min_degree <= max_degree <= 5.
+        Field degrees allowed, 2 <= min_degree <= max_degree <= 5. A low ``max_degree`` makes
+        the misfit check (`FALLBACK_RULE`) fire where the field needs a higher degree: a
+        Bessel quadrupole (`tests/test_harmonic_fit.py`) fitted at degree 2 falls back at
+        94 % of its nodes, at degrees up to 3 or 5 at none.
     source : str, optional
         The map's file, for messages.
 
