@@ -106,7 +106,8 @@ class HarmonicFit:
     degree : ndarray, shape (n,), int64
         Field degree used, 2 .. 5.
     residual_T : ndarray, shape (n,), T
-        RMS residual of the fit over its neighbours' components (NaN if no fit).
+        RMS residual of the fit over its neighbours' components, weighted as the fit
+        (weights normalised to sum 1; NaN if no fit).
     reach_mm : ndarray, shape (n,), mm
         Displacements beyond it are outside the model's reach.
     use : ndarray, shape (n,), bool
