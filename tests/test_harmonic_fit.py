@@ -135,7 +135,7 @@ def test_degree_5_harmonic_sum_is_reproduced_to_rounding():
     B, inside = _within_reach(fit, q)
     exact = _basis_field(q[inside])
     err = np.abs(B[inside] - exact).max() / np.abs(exact).max()
-    assert err < 1e-10, err
+    assert err < 1e-12, err  # 6e-14 measured: normal equations with scaled columns suffice
     far = np.array([[0.0, 0.0, 40.0]])
     Bf, inf = fit.field_at(far)
     assert not inf[0] and np.isnan(Bf).all()
