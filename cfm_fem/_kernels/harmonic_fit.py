@@ -145,24 +145,21 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     """
     n, k = nbr.shape
     nbf = _n_basis(lmax)
-    n_mono = exps.shape[0]
     rows = 3 * k
-    start, mono_of, val = _sparse_basis(gmat)
+    basis = _sparse_basis(gmat)
     coef = np.zeros((n, nbf))
     degree = np.full(n, lmin, dtype=np.int64)
     resid = np.full(n, np.nan)
     flag = np.zeros(n, dtype=np.int64)
     checks = np.full((n, 4), np.nan)
     n_free = (FIT_CHECK_DEGREE + 1) * (FIT_CHECK_DEGREE + 2) * (FIT_CHECK_DEGREE + 3) // 6
-    free_at = np.empty((n_free, k))
+    free_at = np.empty((n_free, k))  # weighted monomials of the unconstrained fit
     free_work = np.empty((n_free, n_free + 2))
-
-    at = np.empty((nbf, rows))  # design, transposed: basis field x (neighbour, component)
-    arow = np.empty((rows, nbf))  # the same, row-major
+    arow = np.empty((rows, nbf))  # weighted design: (neighbour, component) x basis field
+    at = np.empty((nbf, rows))  # the same, transposed, columns scaled
     zt = np.empty((nbf, rows))  # L^-1 at: leverages of every degree
     b = np.empty(rows)  # weighted field values
     braw = np.empty(rows)
-    sw = np.empty(k)  # square roots of the weights
     colnorm = np.empty(nbf)
     chol = np.empty((nbf, nbf))
     y = np.empty(nbf)
@@ -170,8 +167,6 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     best = np.empty(nbf)
     e = np.empty(rows)
     hat = np.zeros((k, 6))  # running leverage blocks of each neighbour: xx yy zz xy xz yz
-    mono = np.empty(n_mono)
-    pw = np.empty((3, 6))
 
     # highest degree the equations support
     lcap = lmax
@@ -179,67 +174,11 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         lcap -= 1
 
     for g in range(n):
-        inv = 1.0 / scale[g]
-        mean = np.zeros(3)
-        sumw = 0.0
-        for i in range(k):
-            p = nbr[g, i]
-            u2 = 0.0
-            for a in range(3):
-                pw[a, 0] = 1.0
-                ua = (points[p, a] - centers[g, a]) * inv
-                u2 += ua * ua
-                for q in range(1, 6):
-                    pw[a, q] = pw[a, q - 1] * ua
-            t = 1.0 - FIT_TAPER * u2
-            sw[i] = t * t
-            sumw += sw[i] * sw[i]
-            for a in range(3):
-                braw[3 * i + a] = B[p, a]
-                b[3 * i + a] = sw[i] * B[p, a]
-                mean[a] += B[p, a]
-            for m in range(n_mono):
-                mono[m] = sw[i] * pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
-            for m in range(n_free):
-                free_at[m, i] = mono[m]
-            for c in range(3):
-                for j in range(nbf):
-                    s = 0.0
-                    for q in range(start[c, j], start[c, j + 1]):
-                        s += val[q] * mono[mono_of[q]]
-                    arow[3 * i + c, j] = s
-        ss = 0.0
-        s2 = 0.0
-        for i in range(k):
-            for a in range(3):
-                d = braw[3 * i + a] - mean[a] / k
-                ss += d * d
-                s2 += braw[3 * i + a] * braw[3 * i + a]
-        checks[g, CHECK_SPREAD] = np.sqrt(ss / rows)
-        checks[g, CHECK_LEVEL] = np.sqrt(s2 / rows)
-        checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work) / np.sqrt(3.0 * sumw)
-
-        # scaled columns, normal matrix by rank-1 updates (contiguous rows: vectorised),
-        # Cholesky in place up to the first small pivot
-        for j in range(nbf):
-            colnorm[j] = 0.0
-        for r in range(rows):
-            for j in range(nbf):
-                colnorm[j] += arow[r, j] * arow[r, j]
-        for j in range(nbf):
-            colnorm[j] = np.sqrt(colnorm[j])
-            cs[j] = 1.0 / colnorm[j] if colnorm[j] > 0.0 else 0.0
-        for r in range(rows):
-            for j in range(nbf):
-                arow[r, j] *= cs[j]
-                at[j, r] = arow[r, j]
-        chol[:, :] = 0.0
-        for r in range(rows):
-            for j in range(nbf):
-                f = arow[r, j]
-                for col in range(j + 1):
-                    chol[j, col] += f * arow[r, col]
-        n_ok = _cholesky(chol, nbf)
+        sumw = _node_rows(g, centers, scale, nbr, points, B, exps, basis, arow, b, braw, free_at)
+        norm_w = np.sqrt(3.0 * sumw)  # weighted RMS = residual norm / norm_w
+        checks[g, CHECK_SPREAD], checks[g, CHECK_LEVEL] = _spread_level(braw, k)
+        checks[g, CHECK_FREE] = _free_fit_rms(free_at, b, free_work) / norm_w
+        n_ok = _factor(arow, at, colnorm, cs, chol)
         lhi = lcap
         while lhi >= 0 and _n_basis(lhi) > n_ok:
             lhi -= 1
@@ -250,84 +189,21 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         if lhi < lmin:
             flag[g] |= FIT_FAILED
             continue
-        nhi = _n_basis(lhi)
-
-        # y = L^-1 A^T b and Z = L^-1 A^T (forward substitution, rows of Z as axpys)
-        for j in range(nhi):
-            s = 0.0
-            for r in range(rows):
-                s += at[j, r] * b[r]
-            for q in range(j):
-                s -= chol[j, q] * y[q]
-            y[j] = s / chol[j, j]
-        for j in range(nhi):
-            for r in range(rows):
-                zt[j, r] = at[j, r]
-            for q in range(j):
-                f = chol[j, q]
-                for r in range(rows):
-                    zt[j, r] -= f * zt[q, r]
-            f = 1.0 / chol[j, j]
-            for r in range(rows):
-                zt[j, r] *= f
-
+        _forward(at, b, chol, _n_basis(lhi), y, zt)
         hat[:, :] = 0.0
-        j0 = 0
         best_press = np.inf
         best_rss = np.nan
+        j0 = 0
         for lev in range(min(lmin, FIT_CHECK_DEGREE), lhi + 1):
             nb_l = _n_basis(lev)
-            for i in range(k):
-                r0 = 3 * i
-                for j in range(j0, nb_l):
-                    zx, zy, zz = zt[j, r0], zt[j, r0 + 1], zt[j, r0 + 2]
-                    hat[i, 0] += zx * zx
-                    hat[i, 1] += zy * zy
-                    hat[i, 2] += zz * zz
-                    hat[i, 3] += zx * zy
-                    hat[i, 4] += zx * zz
-                    hat[i, 5] += zy * zz
+            _add_leverages(zt, j0, nb_l, hat)
             j0 = nb_l
-            # coefficients of degree lev (scaled columns): L^T cs = y, leading block
-            for j in range(nb_l - 1, -1, -1):
-                s = y[j]
-                for q in range(j + 1, nb_l):
-                    s -= chol[q, j] * cs[q]
-                cs[j] = s / chol[j, j]
-            for r in range(rows):
-                e[r] = -b[r]
-            for j in range(nb_l):
-                f = cs[j]
-                for r in range(rows):
-                    e[r] += f * at[j, r]
-            rss = 0.0
-            for r in range(rows):
-                rss += e[r] * e[r]
-            press = 0.0
-            for i in range(k):
-                r0 = 3 * i
-                ex, ey, ez = e[r0], e[r0 + 1], e[r0 + 2]
-                # (I - H_i)^-1 e_i by the adjugate of the symmetric 3x3 block
-                a00, a11, a22 = 1.0 - hat[i, 0], 1.0 - hat[i, 1], 1.0 - hat[i, 2]
-                a01, a02, a12 = -hat[i, 3], -hat[i, 4], -hat[i, 5]
-                c00 = a11 * a22 - a12 * a12
-                c01 = a02 * a12 - a01 * a22
-                c02 = a01 * a12 - a02 * a11
-                c11 = a00 * a22 - a02 * a02
-                c12 = a01 * a02 - a00 * a12
-                c22 = a00 * a11 - a01 * a01
-                det = a00 * c00 + a01 * c01 + a02 * c02
-                if det < FIT_LEVERAGE_DET_MIN:
-                    press = np.inf
-                    break
-                qx = (c00 * ex + c01 * ey + c02 * ez) / det
-                qy = (c01 * ex + c11 * ey + c12 * ez) / det
-                qz = (c02 * ex + c12 * ey + c22 * ez) / det
-                press += qx * qx + qy * qy + qz * qz
+            rss = _fit_degree(y, chol, nb_l, at, b, cs, e)
             if lev == FIT_CHECK_DEGREE:
-                checks[g, CHECK_HARMONIC] = np.sqrt(rss / (3.0 * sumw))
+                checks[g, CHECK_HARMONIC] = np.sqrt(rss) / norm_w
             if lev < lmin:
                 continue
+            press = _press(e, hat)
             if press < best_press or lev == lmin:
                 best_press = press
                 best_rss = rss
@@ -336,8 +212,180 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
                     best[j] = cs[j]
         for j in range(_n_basis(degree[g])):
             coef[g, j] = best[j] / colnorm[j]
-        resid[g] = np.sqrt(best_rss / (3.0 * sumw))
+        resid[g] = np.sqrt(best_rss) / norm_w
     return coef, degree, resid, flag, checks
+
+
+@nb.njit(**JIT)
+def _node_rows(g, centers, scale, nbr, points, B, exps, basis, arow, b, braw, free_at):
+    """Weighted design rows and field values of node g's neighbourhood, in place: ``arow``
+    (3 k, NB), ``b`` and ``braw`` (3 k,) weighted and not, ``free_at`` (P, k) the weighted
+    monomials of the unconstrained fit. Returns the sum of the weights."""
+    start, mono_of, val = basis
+    k = nbr.shape[1]
+    n_mono = exps.shape[0]
+    nbf = arow.shape[1]
+    mono = np.empty(n_mono)
+    pw = np.empty((3, 6))
+    inv = 1.0 / scale[g]
+    sumw = 0.0
+    for i in range(k):
+        p = nbr[g, i]
+        u2 = 0.0
+        for a in range(3):
+            pw[a, 0] = 1.0
+            ua = (points[p, a] - centers[g, a]) * inv
+            u2 += ua * ua
+            for q in range(1, 6):
+                pw[a, q] = pw[a, q - 1] * ua
+        t = 1.0 - FIT_TAPER * u2
+        sw = t * t  # square root of the weight
+        sumw += sw * sw
+        for a in range(3):
+            braw[3 * i + a] = B[p, a]
+            b[3 * i + a] = sw * B[p, a]
+        for m in range(n_mono):
+            mono[m] = sw * pw[0, exps[m, 0]] * pw[1, exps[m, 1]] * pw[2, exps[m, 2]]
+        for m in range(free_at.shape[0]):
+            free_at[m, i] = mono[m]
+        for c in range(3):
+            for j in range(nbf):
+                s = 0.0
+                for q in range(start[c, j], start[c, j + 1]):
+                    s += val[q] * mono[mono_of[q]]
+                arow[3 * i + c, j] = s
+    return sumw
+
+
+@nb.njit(**JIT)
+def _spread_level(braw, k):
+    """RMS over the 3 k components ``braw`` of B minus its mean over the k nodes, and of B."""
+    mean = np.zeros(3)
+    for i in range(k):
+        for a in range(3):
+            mean[a] += braw[3 * i + a]
+    ss = 0.0
+    s2 = 0.0
+    for i in range(k):
+        for a in range(3):
+            d = braw[3 * i + a] - mean[a] / k
+            ss += d * d
+            s2 += braw[3 * i + a] * braw[3 * i + a]
+    return np.sqrt(ss / (3 * k)), np.sqrt(s2 / (3 * k))
+
+
+@nb.njit(**JIT)
+def _factor(arow, at, colnorm, cs, chol):
+    """Scale the columns of ``arow`` to unit norm (norms to ``colnorm``, ``at`` its
+    transpose), form the normal matrix by rank-1 updates (contiguous rows: vectorised) and
+    factorise it in ``chol``. Returns the number of columns factorised (`_cholesky`)."""
+    rows, nbf = arow.shape
+    for j in range(nbf):
+        colnorm[j] = 0.0
+    for r in range(rows):
+        for j in range(nbf):
+            colnorm[j] += arow[r, j] * arow[r, j]
+    for j in range(nbf):
+        colnorm[j] = np.sqrt(colnorm[j])
+        cs[j] = 1.0 / colnorm[j] if colnorm[j] > 0.0 else 0.0
+    for r in range(rows):
+        for j in range(nbf):
+            arow[r, j] *= cs[j]
+            at[j, r] = arow[r, j]
+    chol[:, :] = 0.0
+    for r in range(rows):
+        for j in range(nbf):
+            f = arow[r, j]
+            for col in range(j + 1):
+                chol[j, col] += f * arow[r, col]
+    return _cholesky(chol, nbf)
+
+
+@nb.njit(**JIT)
+def _forward(at, b, chol, nhi, y, zt):
+    """y = L^-1 A^T b and Z = L^-1 A^T over the first ``nhi`` fields (rows of Z as axpys)."""
+    rows = at.shape[1]
+    for j in range(nhi):
+        s = 0.0
+        for r in range(rows):
+            s += at[j, r] * b[r]
+        for q in range(j):
+            s -= chol[j, q] * y[q]
+        y[j] = s / chol[j, j]
+    for j in range(nhi):
+        for r in range(rows):
+            zt[j, r] = at[j, r]
+        for q in range(j):
+            f = chol[j, q]
+            for r in range(rows):
+                zt[j, r] -= f * zt[q, r]
+        f = 1.0 / chol[j, j]
+        for r in range(rows):
+            zt[j, r] *= f
+
+
+@nb.njit(**JIT)
+def _add_leverages(zt, j0, j1, hat):
+    """Add fields j0 .. j1 - 1 to the 3 x 3 hat-matrix blocks of the neighbours."""
+    for i in range(hat.shape[0]):
+        r0 = 3 * i
+        for j in range(j0, j1):
+            zx, zy, zz = zt[j, r0], zt[j, r0 + 1], zt[j, r0 + 2]
+            hat[i, 0] += zx * zx
+            hat[i, 1] += zy * zy
+            hat[i, 2] += zz * zz
+            hat[i, 3] += zx * zy
+            hat[i, 4] += zx * zz
+            hat[i, 5] += zy * zz
+
+
+@nb.njit(**JIT)
+def _fit_degree(y, chol, nb_l, at, b, cs, e):
+    """Coefficients of the first ``nb_l`` scaled fields (L^T cs = y, leading block), the
+    residuals ``e`` = A cs - b; returns their sum of squares."""
+    rows = at.shape[1]
+    for j in range(nb_l - 1, -1, -1):
+        s = y[j]
+        for q in range(j + 1, nb_l):
+            s -= chol[q, j] * cs[q]
+        cs[j] = s / chol[j, j]
+    for r in range(rows):
+        e[r] = -b[r]
+    for j in range(nb_l):
+        f = cs[j]
+        for r in range(rows):
+            e[r] += f * at[j, r]
+    rss = 0.0
+    for r in range(rows):
+        rss += e[r] * e[r]
+    return rss
+
+
+@nb.njit(**JIT)
+def _press(e, hat):
+    """Sum of squares of the leave-one-node-out residuals (I - H_i)^-1 e_i; inf if a block
+    I - H_i is near singular (`FIT_LEVERAGE_DET_MIN`)."""
+    press = 0.0
+    for i in range(hat.shape[0]):
+        r0 = 3 * i
+        ex, ey, ez = e[r0], e[r0 + 1], e[r0 + 2]
+        # by the adjugate of the symmetric 3 x 3 block
+        a00, a11, a22 = 1.0 - hat[i, 0], 1.0 - hat[i, 1], 1.0 - hat[i, 2]
+        a01, a02, a12 = -hat[i, 3], -hat[i, 4], -hat[i, 5]
+        c00 = a11 * a22 - a12 * a12
+        c01 = a02 * a12 - a01 * a22
+        c02 = a01 * a12 - a02 * a11
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if det < FIT_LEVERAGE_DET_MIN:
+            return np.inf
+        qx = (c00 * ex + c01 * ey + c02 * ez) / det
+        qy = (c01 * ex + c11 * ey + c12 * ez) / det
+        qz = (c02 * ex + c12 * ey + c22 * ez) / det
+        press += qx * qx + qy * qy + qz * qz
+    return press
 
 
 @nb.njit(**JIT)
