@@ -311,7 +311,7 @@ def fit_harmonic(
     Neighbours are queried `_QUERY_CHUNK` nodes at a time and fitted in blocks on
     ``numba.get_num_threads()`` threads; the results do not depend on the number of threads,
     the blocks or the row order of the map. Memory: the coefficients, 384 bytes a node, and
-    the neighbours of one chunk (~20 MB); a 1,000,000-node map peaks at ~0.8 GB for the
+    the neighbour search of one chunk (~0.1 GB); a 1,000,000-node map peaks at ~0.8 GB for the
     whole process.
     """
     points, B = _check_map(points, B, k, min_degree, max_degree, source)
