@@ -17,6 +17,7 @@ from . import _kernels
 from . import _kernels as K
 from .models.bench import ERROR_NAMES, Bench
 from .models.field import FieldMap
+from .models.harmonic_basis import field_basis, monomial_exponents, n_basis
 from .models.kinematics.geometry import _keys, kernel_geometry
 from .models.mc import coverage_count, ppf_numpy, shortest_interval, symmetric_interval
 
@@ -578,3 +579,86 @@ def gauss_linear_std(up_um: float, gradient=LINEAR_GRADIENT) -> np.ndarray:
     ndarray, shape (3,), T
     """
     return up_um * 1e-3 * np.linalg.norm(np.asarray(gradient), axis=1)
+
+
+def harmonic_design(u, degree: int) -> np.ndarray:
+    """Design matrix of the harmonic basis of ``degree`` at scaled displacements ``u`` (m, 3):
+    row 3 i + c is component c of every basis field at u[i]; shape (3 m, n_basis(degree))."""
+    exps = monomial_exponents(degree)
+    mono = np.prod(np.asarray(u)[:, None, :] ** exps[None], axis=2)  # (m, M)
+    return np.einsum("im,cmj->icj", mono, field_basis(degree)).reshape(-1, n_basis(degree))
+
+
+def harmonic_fit_twin(centers, scale, nbr, points, B, lmin: int, lmax: int) -> tuple:
+    """`_kernels.harmonic_fit_block` by `np.linalg.lstsq` and explicit hat matrices.
+
+    Per node and degree: the weighted least-squares fit (weights (1 - `FIT_TAPER` |u|^2)^4)
+    with column-scaled design, its residuals and
+    the leave-one-node-out residuals (I - H_ii)^-1 e_i from the 3 x 3 diagonal blocks of
+    H = Q Q^T; the degree of least PRESS among those the equations and the pivots (squared
+    diagonal of R in A = Q R) allow; the Laplace checks by `harmonic_fit_checks`. Returns
+    (coef, degree, resid, flag, checks).
+    """
+    n, k = nbr.shape
+    rows = 3 * k
+    nbf = n_basis(lmax)
+    coef = np.zeros((n, nbf))
+    degree = np.full(n, lmin, dtype=np.int64)
+    resid = np.full(n, np.nan)
+    flag = np.zeros(n, dtype=np.int64)
+    checks = np.full((n, 4), np.nan)
+    lcap = max([L for L in range(lmax + 1) if rows >= K.FIT_EQ_PER_UNKNOWN * n_basis(L)],
+               default=-1)  # fmt: skip
+    for g in range(n):
+        u = (points[nbr[g]] - centers[g]) / scale[g]
+        sw = np.repeat((1.0 - K.FIT_TAPER * np.sum(u**2, axis=1)) ** 2, 3)
+        b = B[nbr[g]].reshape(-1) * sw
+        checks[g] = harmonic_fit_checks(u, B[nbr[g]])
+        a = harmonic_design(u, lmax) * sw[:, None]
+        norms = np.linalg.norm(a, axis=0)
+        a = a / np.where(norms > 0, norms, 1.0)
+        pivots = np.diag(np.linalg.qr(a, mode="r")) ** 2
+        small = np.flatnonzero(pivots <= K.FIT_PIVOT_MIN)
+        n_ok = small[0] if small.size else nbf
+        lhi = max([L for L in range(lcap + 1) if n_basis(L) <= n_ok], default=-1)
+        flag[g] |= K.FIT_CAPPED_EQUATIONS * (lcap < lmax) | K.FIT_CAPPED_PIVOT * (lhi < lcap)
+        if lhi < lmin:
+            flag[g] |= K.FIT_FAILED
+            continue
+        best = None
+        for L in range(lmin, lhi + 1):
+            al = a[:, : n_basis(L)]
+            c = np.linalg.lstsq(al, b, rcond=None)[0]
+            e = (al @ c - b).reshape(k, 3)
+            q = np.linalg.qr(al)[0].reshape(k, 3, -1)
+            eye_h = np.eye(3) - np.einsum("iaj,ibj->iab", q, q)
+            if np.any(np.linalg.det(eye_h) < K.FIT_LEVERAGE_DET_MIN):
+                press = np.inf
+            else:
+                press = np.sum(np.linalg.solve(eye_h, e[..., None]) ** 2)
+            if best is None or press < best[0]:
+                best = (press, L, c, np.sqrt(np.sum(e**2) / np.sum(sw**2)))
+        _, degree[g], c, resid[g] = best
+        coef[g, : c.size] = c / norms[: c.size]
+    return coef, degree, resid, flag, checks
+
+
+def harmonic_fit_checks(u, b) -> np.ndarray:
+    """The ``checks`` row of `_kernels.harmonic_fit_block` for one neighbourhood: RMS over the
+    components of B - mean(B), of B, and of the residuals of the harmonic and of the
+    unconstrained polynomial fits of degree `FIT_CHECK_DEGREE`, weighted (``u`` (k, 3),
+    ``b`` (k, 3))."""
+    L = K.FIT_CHECK_DEGREE
+    out = [np.sqrt(np.mean((b - b.mean(axis=0)) ** 2)), np.sqrt(np.mean(b**2))]
+    sw = (1.0 - K.FIT_TAPER * np.sum(u**2, axis=1)) ** 2
+    mono = np.prod(u[:, None, :] ** monomial_exponents(L)[None], axis=2) * sw[:, None]
+    harm = harmonic_design(u, L) * np.repeat(sw, 3)[:, None]
+    for a, rhs in ((harm, (b * sw[:, None]).reshape(-1)), (mono, b * sw[:, None])):
+        norms = np.linalg.norm(a, axis=0)
+        a = a / np.where(norms > 0, norms, 1.0)
+        if np.min(np.diag(np.linalg.qr(a, mode="r")) ** 2) <= K.FIT_PIVOT_MIN:
+            out.append(np.nan)
+            continue
+        rss = np.sum((a @ np.linalg.lstsq(a, rhs, rcond=None)[0] - rhs) ** 2)
+        out.append(np.sqrt(rss / (3 * np.sum(sw**2))))
+    return np.array(out)

@@ -8,8 +8,8 @@ Modules: `rng` (counter-based random numbers), `htm` (the 21-error HTM chain),
 (selection and per-node statistics), `locate` (point location in a simplex mesh), `interpolate`
 (linear interpolation at many points), `star` (star tables of a node), `sweep` (the Gaussian
 sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep),
-`harmonic` (evaluation of local harmonic field models), `harmonic_sweep` (both sweeps under
-them).
+`harmonic` (evaluation of local harmonic field models), `harmonic_fit` (their fit per node),
+`harmonic_sweep` (both sweeps under them).
 This namespace re-exports the public names of every module.
 """
 
@@ -20,6 +20,21 @@ from .harmonic import (
     expand_node,
     poly_errors,
     poly_parts,
+)
+from .harmonic_fit import (
+    CHECK_FREE,
+    CHECK_HARMONIC,
+    CHECK_LEVEL,
+    CHECK_SPREAD,
+    FIT_CAPPED_EQUATIONS,
+    FIT_CAPPED_PIVOT,
+    FIT_CHECK_DEGREE,
+    FIT_EQ_PER_UNKNOWN,
+    FIT_FAILED,
+    FIT_LEVERAGE_DET_MIN,
+    FIT_PIVOT_MIN,
+    FIT_TAPER,
+    harmonic_fit_block,
 )
 from .harmonic_sweep import (
     harmonic_gauss_sweep,
@@ -247,4 +262,17 @@ __all__ = [
     "poly_parts",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
+    "FIT_PIVOT_MIN",
+    "FIT_TAPER",
+    "FIT_EQ_PER_UNKNOWN",
+    "FIT_LEVERAGE_DET_MIN",
+    "FIT_CAPPED_EQUATIONS",
+    "FIT_CAPPED_PIVOT",
+    "FIT_FAILED",
+    "FIT_CHECK_DEGREE",
+    "CHECK_SPREAD",
+    "CHECK_LEVEL",
+    "CHECK_HARMONIC",
+    "CHECK_FREE",
+    "harmonic_fit_block",
 ]
