@@ -12,7 +12,7 @@ from cfm_fem import testing
 from cfm_fem.cli import main
 from cfm_fem.models.field import FieldMap
 from cfm_fem.models.harmonic_basis import field_basis, monomial_exponents
-from cfm_fem.models.sweep import SweepConfig
+from cfm_fem.models.sweep import SweepConfig, summarize
 from cfm_fem.workflows.sweep.in_memory import run_sweep
 from cfm_fem.workflows.sweep.problem import prepare_sweep
 
@@ -193,3 +193,34 @@ def test_planar_map_refused_for_the_harmonic_model(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "3-D map" in err and "Traceback" not in err
     assert not (tmp_path / "o" / "summary.json").exists()
+
+
+def conductor_field(p, centre=(3.0, 0.0), radius=2.0, k=0.01):
+    """A quadrupole plus the field of a straight conductor along z of uniform current density
+    (k = mu0 J / 2, T/mm): curl B != 0 inside the conductor, so Laplace's equation fails there."""
+    x, y, z = np.asarray(p, dtype=np.float64).T
+    dx, dy = x - centre[0], y - centre[1]
+    r2 = dx**2 + dy**2
+    scale = np.where(r2 < radius**2, 1.0, radius**2 / np.maximum(r2, 1e-300))
+    return np.c_[G * y - k * dy * scale, G * x + k * dx * scale, np.zeros_like(x)]
+
+
+def test_nodes_where_laplace_fails_keep_the_linear_interpolant():
+    ax = np.linspace(-6, 6, 13)
+    pts = np.stack(np.meshgrid(ax, ax, np.linspace(-6, 6, 13), indexing="ij"), -1).reshape(-1, 3)
+    fm = FieldMap.from_arrays(pts, conductor_field(pts), source="conductor.csv")
+    cfg = SweepConfig(up_um=[20.0], trials=200, seed=4, field_model="harmonic")
+    res = run_sweep(fm, cfg)
+    lin = run_sweep(fm, SweepConfig(up_um=[20.0], trials=200, seed=4))
+    fallback = res.field_fit["degree"] == 0
+    inside = np.hypot(pts[:, 0] - 3.0, pts[:, 1]) < 2.0
+    assert fallback[inside & (np.abs(pts[:, 2]) < 5)].all()
+    far = np.hypot(pts[:, 0] - 3.0, pts[:, 1]) > 6.0
+    assert not fallback[far & (np.abs(pts) < 5).all(axis=1)].any()
+    np.testing.assert_array_equal(res.stats[fallback], lin.stats[fallback])
+    s = summarize(res)
+    h = s["harmonic"]
+    assert h["linear_fallback_nodes"] == int(fallback.sum())
+    box = h["linear_fallback_box_mm"]
+    assert box["min"][0] <= 1.0 and box["max"][0] >= 5.0
+    assert "curl" in h["fallback_rule"]
