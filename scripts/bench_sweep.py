@@ -36,6 +36,7 @@ import time
 
 import numba
 import numpy as np
+import scipy.special
 from scipy.interpolate import LinearNDInterpolator
 
 from cfm_fem import FieldMap, _kernels
@@ -47,11 +48,24 @@ from cfm_fem.workflows.sweep.in_memory import run_sweep
 
 
 def quadrupole_with_ends(p):
-    """Smooth 3-D test field (T) of a 60 T/m quadrupole with soft ends at z = +-40 mm (p in mm)."""
+    """Exactly harmonic 3-D test field (T) of a 60 T/m quadrupole whose strength falls as
+    cos(q z) to zero at z = +-60 mm (p in mm): B = grad Phi, Phi = a I_2(q r) sin(2 theta)
+    cos(q z) / q, q = 2 pi / 240 mm, a = 4 G / q (the modified Bessel equation makes the
+    Laplacian of Phi vanish), so the harmonic field model holds at every node."""
+    q = 2.0 * np.pi / 240.0
+    a = 4.0 * 0.06 / q
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    g = 0.06 / (1 + np.exp((np.abs(z) - 40) / 5))  # T/mm
-    dg = -np.sign(z) * g * (1 - g / 0.06) / 5
-    return np.c_[g * y, g * x, dg * x * y]
+    r = np.hypot(x, y)
+    th = np.arctan2(y, x)
+    i2 = scipy.special.iv(2, q * r)
+    di2 = 0.5 * (scipy.special.iv(1, q * r) + scipy.special.iv(3, q * r))  # I_2'
+    with np.errstate(invalid="ignore", divide="ignore"):
+        i2_r = np.where(r > 0, i2 / np.where(r > 0, q * r, 1.0), 0.0)
+    b_r = a * di2 * np.sin(2 * th) * np.cos(q * z)
+    b_t = 2.0 * a * i2_r * np.cos(2 * th) * np.cos(q * z)
+    b_z = -a * i2 * np.sin(2 * th) * np.sin(q * z)
+    c, s = np.cos(th), np.sin(th)
+    return np.c_[b_r * c - b_t * s, b_r * s + b_t * c, b_z]
 
 
 def peak_rss_bytes() -> float:
