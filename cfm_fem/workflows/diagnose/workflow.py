@@ -22,6 +22,7 @@ from .conflicts import prior_conflicts
 from .locate import isolated_planes, locate
 from .noise import estimate_noise
 from .problem import Problem, noise_sigma, subset_rows
+from .register import pose_step, register, registration_note, repose
 from .select import cv_rms, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
@@ -293,7 +294,23 @@ def _arrays(prob, cal, fit1, loc0, loc1) -> dict:
     }
 
 
-def _attribute(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
+def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> SimpleNamespace:
+    """Steps 1-4 with the magnet's registration non-linear (a Hall map): the problem is
+    linearised at the registration the baseline fits, and again at the one the selected model
+    fits (a released ``magnet_misalignment`` moves it) until it stays put."""
+    prob = register(prob)
+    for _ in range(max_refits + 1):
+        a = _attribute_at(prob, o, progress)
+        if prob.kind != "hall" or "rebuild" not in prob.ctx:
+            break
+        pose, moved = pose_step(prob, a.sel.model, a.fit1)
+        if not moved:
+            break
+        prob = repose(prob, pose)
+    return a
+
+
+def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
     """Calibrate, locate, select the effects and fit them together (steps 1-4)."""
 
     def sigma_fn(resid, edf, var_known=None):
@@ -370,7 +387,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     t0 = time.perf_counter()
     o = {**DEFAULTS, **opts}
     full = _attribute(prob, o, progress)
-    a, isolated = _without_bad_planes(prob, full, o, progress)
+    a, isolated = _without_bad_planes(full.prob, full, o, progress)
     sel, cal, fit1, loc1 = a.sel, a.cal, a.fit1, a.loc1
     p = a.prob
     cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
@@ -415,7 +432,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "calibration": cal.calib,
         "thresholds": o,
         "kind": prob.kind,
-        "notes": p.notes,
+        "notes": p.notes + [n for n in [registration_note(p)] if n],
     }
     dt = time.perf_counter() - t0
     summary["seconds"] = round(dt, 2)

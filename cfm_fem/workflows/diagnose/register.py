@@ -1,0 +1,94 @@
+"""Non-linear magnet registration of a Hall map: Gauss-Newton on the magnet's pose.
+
+The magnet's offset and rotation enter the field non-linearly: through a fringe a few mm long,
+a 0.3 mm shift leaves second-order terms far above a Hall probe's noise, which a linearisation
+at the nominal placement cannot absorb and other signatures would then take. The problem is
+linearised at a pose (:func:`~cfm_fem.workflows.diagnose.problem.hall_problem`: reference field
+and gradient re-evaluated with the magnet moved there) and the pose is moved to the fitted
+registration until the step is far below its standard uncertainty. The reported uncertainties
+are those of the final linearisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .calibrate import fit_map, stack
+from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
+
+__all__ = ["register", "repose", "pose_step", "registration_note"]
+
+#: Converged when every registration step is below this fraction of its std.
+STEP_TOL = 0.05
+
+
+def repose(prob: Problem, pose) -> Problem:
+    """The same problem (same rows) linearised at the registration ``pose`` (um, urad)."""
+    full = prob.ctx["rebuild"](pose=np.asarray(pose, dtype=float))
+    full.notes = list(prob.notes)  # with what the caller added
+    rows = prob.ctx["rows"]
+    if len(rows) == full.n:
+        return full
+    keep = np.zeros(full.n, dtype=bool)
+    keep[rows] = True
+    return subset_rows(full, keep)
+
+
+def pose_step(prob: Problem, model, fit) -> tuple[np.ndarray, bool]:
+    """The registration a fit puts the magnet at, and whether it moved beyond the tolerance.
+
+    Parameters
+    ----------
+    prob : Problem
+        A Hall-map problem linearised at ``prob.ctx['pose']``.
+    model : Columns
+        The model fitted (its registration columns named as :data:`REG_NAMES`).
+    fit : Fit
+
+    Returns
+    -------
+    pose : ndarray, shape (6,), um and urad
+    moved : bool
+        Some step exceeds ``STEP_TOL`` times its std.
+    """
+    pose = np.array(prob.ctx["pose"], dtype=float)
+    new = pose.copy()
+    moved = False
+    for k, nm in enumerate(REG_NAMES):
+        if nm in model.names:
+            i = model.names.index(nm)
+            new[k] = fit.theta[i]
+            moved |= bool(abs(fit.theta[i] - pose[k]) > STEP_TOL * max(fit.std[i], 1e-12))
+    return new, moved
+
+
+def register(prob: Problem, max_iter: int = 6) -> Problem:
+    """Gauss-Newton on the magnet's pose with the calibrated baseline (registration priors
+    kept): the problem linearised at the registration it fits.
+
+    A tracker problem, or a Hall-map problem that cannot be rebuilt, is returned unchanged.
+    """
+    if prob.kind != "hall" or "rebuild" not in prob.ctx:
+        return prob
+    for _ in range(max_iter):
+        base = stack(prob.baseline)
+        fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
+        sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+        pose, moved = pose_step(prob, base, fit_map(prob.y, sigma, base))
+        if not moved:
+            break
+        prob = repose(prob, pose)
+    return prob
+
+
+def registration_note(prob: Problem) -> str | None:
+    """What the non-linear registration did, for the notes of the diagnosis."""
+    pose = prob.ctx.get("pose") if prob.kind == "hall" else None
+    if pose is None or not np.any(pose):
+        return None
+    moved = ", ".join(f"{n} {v:.4g}" for n, v in zip(REG_NAMES, pose, strict=True))
+    return (
+        "registration non-linear: reference field and gradient re-evaluated with the magnet at "
+        f"its fitted pose ({moved}; um, urad), iterated until each step is below "
+        f"{STEP_TOL:g} of its std"
+    )
