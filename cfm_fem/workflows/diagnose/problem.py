@@ -384,6 +384,17 @@ def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
     return out
 
 
+def _node_step(upts, spacing_mm, nodes):
+    """The node spacing of a linear reference map when every reading's point is one of its
+    nodes (second differences of that step then read the map's node values), else None."""
+    if spacing_mm is None or nodes is None:
+        return None
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(nodes).query(upts)
+    return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
+
+
 def _field_at_pose(field_fn, upts, pose, h, smooth):
     """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
     ``pose``, and the posed field function.
@@ -515,6 +526,8 @@ def hall_problem(
         )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
+        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes) if not smooth else None,
+        "reference_fn": field_fn,
         "B0": B0,
         "G": G,
         "field_fn": fn_posed,
@@ -527,14 +540,14 @@ def hall_problem(
             field_fn,
             b_ref,
             bench,
-            reg_std_mm,
-            reg_std_rad,
-            gain_std_pct,
-            smooth,
-            h,
-            ref_spacing_mm,
-            ref_nodes,
-        ),  # fmt: skip
+            reg_std_mm=reg_std_mm,
+            reg_std_rad=reg_std_rad,
+            gain_std_pct=gain_std_pct,
+            smooth=smooth,
+            h=h,
+            ref_spacing_mm=ref_spacing_mm,
+            ref_nodes=ref_nodes,
+        ),
         "smooth": smooth,
         "upts": upts,
         "uinv": uinv,

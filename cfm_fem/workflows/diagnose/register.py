@@ -16,10 +16,30 @@ import numpy as np
 from .calibrate import fit_map, stack
 from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
 
-__all__ = ["register", "repose", "pose_step", "registration_note"]
+__all__ = ["applies", "register", "repose", "pose_step", "registration_note"]
 
 #: Converged when every registration step is below this fraction of its std.
 STEP_TOL = 0.05
+
+
+def applies(prob: Problem) -> bool:
+    """Whether the registration of ``prob`` is made non-linear: a Hall map against a reference
+    that varies along z (a 3-D map). Against a 2-D reference the second-order terms of a move
+    come from its higher multipoles only, and a map through the magnet ends, which that
+    reference lacks, would steer the pose (the soft ends are ``fringe_field_3d``'s)."""
+    if prob.kind != "hall" or "rebuild" not in prob.ctx:
+        return False
+    G = prob.ctx["G"]
+    return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
+
+
+def _objective(prob: Problem):
+    """MAP objective and fit of the calibrated baseline (noise from its own residuals)."""
+    base = stack(prob.baseline)
+    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
+    sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+    fit = fit_map(prob.y, sigma, base)
+    return fit.objective, base, fit
 
 
 def repose(prob: Problem, pose) -> Problem:
@@ -66,18 +86,26 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     """Gauss-Newton on the magnet's pose with the calibrated baseline (registration priors
     kept): the problem linearised at the registration it fits.
 
-    A tracker problem, or a Hall-map problem that cannot be rebuilt, is returned unchanged.
+    A step that raises the MAP objective is halved (three times at most, then the pose stays).
+    A problem :func:`applies` rejects is returned unchanged.
     """
-    if prob.kind != "hall" or "rebuild" not in prob.ctx:
+    if not applies(prob):
         return prob
+    obj, base, fit = _objective(prob)
     for _ in range(max_iter):
-        base = stack(prob.baseline)
-        fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
-        sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
-        pose, moved = pose_step(prob, base, fit_map(prob.y, sigma, base))
+        pose, moved = pose_step(prob, base, fit)
         if not moved:
             break
-        prob = repose(prob, pose)
+        start = np.asarray(prob.ctx["pose"], dtype=float)
+        for _half in range(4):
+            trial = repose(prob, pose)
+            obj_t, base_t, fit_t = _objective(trial)
+            if obj_t <= obj * (1.0 + 1e-9):
+                break
+            pose = 0.5 * (start + pose)
+        else:
+            break
+        prob, obj, base, fit = trial, obj_t, base_t, fit_t
     return prob
 
 
