@@ -114,10 +114,13 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
     disc = eff.get("sensor_volume_averaging", {}).get("disc_mm")
     sens, w_sens = _sensitive_points(disc, rot)
     b = np.empty((n, 3))
+    seen = {}  # field at each distinct element position
     for i, c in enumerate("xyz"):  # each element at its own position
-        d = np.array([offs.get(f"d_{c}_{j}", 0.0) for j in "xyz"]) * 1e-3
-        field = sum(w * magnet.field(local + d + s) for s, w in zip(sens, w_sens, strict=True))
-        b[:, i] = (field @ rot.T)[:, i]
+        d = tuple(offs.get(f"d_{c}_{j}", 0.0) * 1e-3 for j in "xyz")
+        if d not in seen:
+            at = local + np.array(d)
+            seen[d] = sum(w * magnet.field(at + s) for s, w in zip(sens, w_sens, strict=True))
+        b[:, i] = (seen[d] @ rot.T)[:, i]
     t_true, t_log = temperature(scan.t_s, rng["temp"])
     beta = eff.get("magnet_temperature", {}).get("beta", 0.0)
     b *= 1.0 + beta * 1e-6 * (t_true - t_true[0])[:, None]
