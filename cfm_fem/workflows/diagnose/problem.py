@@ -395,9 +395,10 @@ def _node_step(upts, spacing_mm, nodes):
     return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
 
 
-def _field_at_pose(field_fn, upts, pose, h, smooth):
+def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
-    ``pose``, and the posed field function.
+    ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
+    node spacing: a shorter step sees no curvature inside a cell), default ``h``.
 
     A smooth reference is evaluated at the moved points. A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
@@ -414,7 +415,8 @@ def _field_at_pose(field_fn, upts, pose, h, smooth):
         return fn(upts), field_jacobian(fn, upts, h), fn
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
     d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
-    B, G, H = field_fn(upts), field_jacobian(field_fn, upts, h), field_hessian(field_fn, upts, h)
+    B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
+    H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
     Hd = np.einsum("nijk,nk->nij", H, d)
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
     G = G + Hd
@@ -476,7 +478,7 @@ def hall_problem(
     upts, uinv = np.unique(np.round(p, 9), axis=0, return_inverse=True)
     uinv = uinv.reshape(-1)
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
-    B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth)
+    B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
     B0, G = B0u[uinv], Gu[uinv]
     scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
     lever_pt = p - pose[:3] * UM  # from the magnet origin

@@ -24,10 +24,17 @@ STEP_TOL = 0.05
 
 def applies(prob: Problem) -> bool:
     """Whether the registration of ``prob`` is made non-linear: a Hall map against a reference
-    that varies along z (a 3-D map). Against a 2-D reference the second-order terms of a move
-    come from its higher multipoles only, and a map through the magnet ends, which that
-    reference lacks, would steer the pose (the soft ends are ``fringe_field_3d``'s)."""
+    that varies along z (a 3-D map), smooth or interpolated linearly with the readings on its
+    nodes.
+
+    Against a 2-D reference the second-order terms of a move come from its higher multipoles
+    only, and a map through the magnet ends, which that reference lacks, would steer the pose
+    (the soft ends are ``fringe_field_3d``'s). Between the nodes of a linear map its curvature
+    is not known better than its own interpolation error (added to the noise), which is of
+    the order of the second-order terms of a move of up to a node spacing."""
     if prob.kind != "hall" or "rebuild" not in prob.ctx:
+        return False
+    if not prob.ctx.get("smooth", True) and prob.ctx.get("node_step") is None:
         return False
     G = prob.ctx["G"]
     return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
