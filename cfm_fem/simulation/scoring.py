@@ -53,8 +53,9 @@ def _step(summary, truth, names) -> dict:
     }
 
 
-def score(summary: dict, truth: dict) -> dict:
-    """One diagnosis against its truth.
+def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
+    """One diagnosis against its truth; ``model_dependent``: score the parameters the
+    diagnosis reports as model-dependent too.
 
     Returns
     -------
@@ -69,7 +70,7 @@ def score(summary: dict, truth: dict) -> dict:
     pulls = {}
     for e in summary["effects"]:
         for p, v in e["params"].items():
-            if p in e.get("model_dependent", ()):
+            if p in e.get("model_dependent", ()) and not model_dependent:
                 continue  # the parameter of an approximate shape: no truth shares its meaning
             t = known_truth(truth, e["name"], p)
             s = e.get("param_std", {}).get(p)
