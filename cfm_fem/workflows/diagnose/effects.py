@@ -49,7 +49,9 @@ Field (Hall map), change of the measured field in the magnet frame:
   The magnet's z offset is a common shift of both ends: the edges are reported in the map frame
   (they carry it). The physical parameters reported are z_entry, z_exit, lambda (mm) and a (1
   for a field that vanishes outside the magnet), with propagated uncertainties. An end more
-  than 10 lambda outside the map is not estimated.
+  than 10 lambda outside the map is not estimated. A real end is not exactly this profile: the
+  parameters are reported as model-dependent, their std scaled by the square root of the
+  reduced chi2 of the fit where the profile carries the signal (``Columns.model_rows``).
 * ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
   box of side a_j). A field in free space is harmonic (sum_j d^2 B / dx_j^2 = 0), so the
   isotropic part of w never shows (mean-value property: a cube averages to its centre value at

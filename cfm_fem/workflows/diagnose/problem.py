@@ -6,7 +6,9 @@ errors (exact HTM chain, linearised at zero, Table II priors) + the tracker-to-b
 
 Hall map: y = measured - reference field (magnet frame, T); baseline = the 21 errors seen through
 the field gradient, the magnet-to-bench registration (translation, small rotation about the
-magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std).
+magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std). The problem may be
+linearised at a registration other than the nominal one (``pose``: the reference evaluated with
+the magnet moved there; :mod:`~cfm_fem.workflows.diagnose.register` iterates it).
 """
 
 from __future__ import annotations

@@ -137,7 +137,7 @@ def _determined(effect: str, names, std) -> np.ndarray:
 def _lack_of_fit(cols, fit1, sigma) -> float:
     """Reduced chi2 of the final fit in the rows an approximate effect model carries
     (:attr:`Columns.model_rows`), at least 1; 1 without such rows."""
-    rows = getattr(cols, "model_rows", None)
+    rows = cols.model_rows
     if rows is None or len(rows) != len(fit1.resid) or not rows.any():
         return 1.0
     r = fit1.resid[rows] / sigma[rows]
@@ -203,7 +203,7 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
         lof = _lack_of_fit(c0.cols, fit1, sigma)
         cov = fit1.cov[np.ix_(ib, ib)] * lof
         phys = c0.cols.physical(c0.param_names[-nb:], fit1.theta[ib], cov)
-        if getattr(c0.cols, "model_rows", None) is not None:
+        if c0.cols.model_rows is not None:
             e["lack_of_fit"] = {
                 "reduced_chi2": round(lof, 2),
                 "note": "the effect's model is an approximate shape: its parameters are those of "
