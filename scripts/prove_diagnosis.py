@@ -21,6 +21,9 @@ Full run (936 points x 10 repetitions; realistic sizes)::
 
     python scripts/prove_diagnosis.py --nulls 50 --seeds 20 --jobs 2 --out proof/
 
+``--rescore --model-dependent`` scores the kept runs again with the parameters the diagnosis
+reports as model-dependent (the soft ends' profile) scored too.
+
 Quick run: ``--small`` (small grids, 4 repetitions). ``--cases reversal,null_hall`` restricts the
 cases; ``--no-velocities`` leaves v_x, v_y, v_z out of the recordings (the diagnosis then infers
 the moving axes). Writes DIR/results.json (every run and the summary) and DIR/summary.md.
@@ -112,9 +115,10 @@ def run_all(jobs: list, workers: int) -> list:
     return results
 
 
-def rescore(out: Path) -> list:
+def rescore(out: Path, model_dependent: bool = False) -> list:
     """Score again the runs recorded in OUT/results.json from their kept diagnosis.json and
-    truth files (after a change of the scoring, without diagnosing again)."""
+    truth files (after a change of the scoring, without diagnosing again); ``model_dependent``:
+    score the parameters reported as model-dependent too."""
     runs = json.loads((out / "results.json").read_text())["runs"]
     results = []
     for r in runs:
@@ -124,7 +128,7 @@ def rescore(out: Path) -> list:
             results.append(r)
             continue
         summary = json.loads(diag.read_text())
-        new = score(summary, json.loads(truth.read_text()))
+        new = score(summary, json.loads(truth.read_text()), model_dependent)
         results.append(new | {"seconds": r["seconds"], "effects": summary["effects"]})
     return results
 
@@ -179,6 +183,11 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--rescore", action="store_true", help="score the runs in --out again (same options)"
     )
+    ap.add_argument(
+        "--model-dependent",
+        action="store_true",
+        help="with --rescore: score the parameters reported as model-dependent too",
+    )
     a = ap.parse_args(argv)
     cases = list(CASES) if not a.cases else [c.strip() for c in a.cases.split(",")]
     unknown = [c for c in cases if c not in CASES]
@@ -193,7 +202,9 @@ def main(argv=None) -> int:
     size = "small" if a.small else "full (936 points x 10 repetitions)"
     print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)
     t0 = time.perf_counter()
-    results = rescore(out) if a.rescore else run_all(jobs, a.jobs)
+    if a.model_dependent and not a.rescore:
+        ap.error("--model-dependent goes with --rescore")
+    results = rescore(out, a.model_dependent) if a.rescore else run_all(jobs, a.jobs)
     results.sort(key=lambda r: (r["case"], r["seed"]))
     summary = summarise(results)
     seconds = {c: sum(r["seconds"] for r in results if r["case"] == c) / summary[c]["runs"]

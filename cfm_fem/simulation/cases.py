@@ -46,6 +46,8 @@ CASES = {
     "magnet_temperature": (
         "hall", {"magnet_temperature": {"beta": -1000.0}}, "magnet_temperature"),  # NdFeB
     "fringe_field_3d": ("hall", {"fringe_field_3d": {}}, "fringe_field_3d"),
+    "sensor_volume_averaging": (
+        "hall", {"sensor_volume_averaging": {"disc_mm": 2.0}}, "sensor_volume_averaging"),
 }  # fmt: skip
 
 

@@ -3,7 +3,8 @@
 A reading: the probe goes where the HTM chain (:mod:`.bench`, Table II draws, vibration and
 reading error) puts it; the magnet sits at its nominal place plus a survey error (20 um, 50
 urad; more with ``magnet_misalignment``); each Hall element reads the exact field
-(:mod:`.magnet`) at its own position (``sensor_offset`` moves one element), turned into the
+(:mod:`.magnet`) at its own position (``sensor_offset`` moves one element; averaged over a
+disc with ``sensor_volume_averaging``), turned into the
 bench axes by the magnet's rotation; then the probe's own errors: component mixing
 (``probe_misalignment``), planar Hall terms, the magnet's temperature coefficient, gains (S_HP,
 uniform with 0.15 % std, per element) and offsets, and white noise (7 uT per component). The
@@ -55,6 +56,22 @@ def _magnet_pose(rng, extra: dict):
     return t * 1e-3, r * 1e-6, truth
 
 
+def _sensitive_points(disc_mm, rot):
+    """Points (magnet frame, mm, relative to the element's centre) and weights over which each
+    Hall element averages the field: its centre alone, or a thin disc of diameter ``disc_mm``
+    in the probe's x-y plane (the elements of a 3-axis chip normal to the magnet axis),
+    sampled by Gauss-Legendre in radius (area weight) and 12 azimuths."""
+    if not disc_mm:
+        return [np.zeros(3)], [1.0]
+    r, wr = np.polynomial.legendre.leggauss(4)
+    r = 0.25 * disc_mm * (r + 1.0)
+    wr = wr * r
+    phi = 2.0 * np.pi * np.arange(12) / 12
+    pts = [np.array([ri * np.cos(f), ri * np.sin(f), 0.0]) @ rot for ri in r for f in phi]
+    w = np.repeat(wr / wr.sum(), len(phi)) / len(phi)
+    return pts, list(w)
+
+
 def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=None):
     """One Hall map.
 
@@ -67,7 +84,9 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
         j), ``magnet_misalignment`` magnet_dx.. (um), magnet_rot_x.. (urad) beyond the survey,
         ``planar_hall`` k_i (1/T), ``hall_offset_gain`` offset_i (uT), gain_i (%, added to the
         S_HP draw), ``magnet_temperature`` beta (ppm/K), ``fringe_field_3d`` (no parameters:
-        the recording is the same; the reference lacks the ends).
+        the recording is the same; the reference lacks the ends), ``sensor_volume_averaging``
+        disc_mm (each element averages the field over a thin disc of that diameter in the
+        probe's x-y plane).
     size : {'full', 'small'}
     n_reps : int, optional
 
@@ -92,10 +111,16 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
     local = (probe - B.MAGNET_ORIGIN_MM - t_m) @ rot  # R^T (P - O): magnet frame
 
     offs = eff.get("sensor_offset", {})
+    disc = eff.get("sensor_volume_averaging", {}).get("disc_mm")
+    sens, w_sens = _sensitive_points(disc, rot)
     b = np.empty((n, 3))
+    seen = {}  # field at each distinct element position
     for i, c in enumerate("xyz"):  # each element at its own position
-        d = np.array([offs.get(f"d_{c}_{j}", 0.0) for j in "xyz"]) * 1e-3
-        b[:, i] = (magnet.field(local + d) @ rot.T)[:, i]
+        d = tuple(offs.get(f"d_{c}_{j}", 0.0) * 1e-3 for j in "xyz")
+        if d not in seen:
+            at = local + np.array(d)
+            seen[d] = sum(w * magnet.field(at + s) for s, w in zip(sens, w_sens, strict=True))
+        b[:, i] = (seen[d] @ rot.T)[:, i]
     t_true, t_log = temperature(scan.t_s, rng["temp"])
     beta = eff.get("magnet_temperature", {}).get("beta", 0.0)
     b *= 1.0 + beta * 1e-6 * (t_true - t_true[0])[:, None]
@@ -127,6 +152,9 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
                 d = {i: block.get(f"d_{i}_{j}", 0.0) for i in "xyz"}
                 mean = sum(d.values()) / 3.0
                 params |= {f"d_{i}_{j}": d[i] - mean for i in "xyz"}
+        elif name == "sensor_volume_averaging":  # diagnosis: w_j = <d_j^2> / 2, 1e-3 mm^2
+            w_xy = (0.5 * block["disc_mm"]) ** 2 / 8.0 * 1e3
+            params |= {"dw_xy": 0.0, "dw_z": -w_xy}
         elif name not in ("magnet_misalignment", "hall_offset_gain"):
             params.update(block)
     if "fringe_field_3d" in eff:  # edges in the map frame: they carry the magnet's z offset

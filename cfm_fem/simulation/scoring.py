@@ -53,21 +53,25 @@ def _step(summary, truth, names) -> dict:
     }
 
 
-def score(summary: dict, truth: dict) -> dict:
-    """One diagnosis against its truth.
+def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
+    """One diagnosis against its truth; ``model_dependent``: score the parameters the
+    diagnosis reports as model-dependent too.
 
     Returns
     -------
     dict
         ``claimed`` (effect names, strongest first), ``detected``, ``rank1``, ``false_alarm``
         (a null with any effect claimed), ``other_claims``, ``pulls`` {effect: {param: pull}} of
-        every reported parameter with a known truth, ``step`` (step case only).
+        every reported parameter with a known truth (not those the diagnosis reports as
+        ``model_dependent``), ``step`` (step case only).
     """
     names = [e["name"] for e in summary["effects"]]
     expected = truth.get("expected")
     pulls = {}
     for e in summary["effects"]:
         for p, v in e["params"].items():
+            if p in e.get("model_dependent", ()) and not model_dependent:
+                continue  # the parameter of an approximate shape: no truth shares its meaning
             t = known_truth(truth, e["name"], p)
             s = e.get("param_std", {}).get(p)
             if t is None or s is None or v is None or not s > 0:

@@ -76,6 +76,11 @@ class Columns:
     bounds_why : list of str, optional
         Reason of each bound in place of the catalogue's (``fringe_field_3d``: an edge must lie
         in the z range the data cover); '' keeps the catalogue's.
+    model_rows : ndarray of bool, shape (n,), optional
+        Rows where an approximate model of a non-linear effect (``fringe_field_3d``: the soft
+        ends) carries the signal: the reported std of its physical parameters is scaled by the
+        square root of the reduced chi2 of the fitted model there when above 1 (its lack of
+        fit). None: the model is taken as exact.
     """
 
     J: np.ndarray
@@ -94,6 +99,7 @@ class Columns:
     multiplicity: float = 1.0
     info: dict | None = None
     bounds_why: list | None = None
+    model_rows: np.ndarray | None = None
 
     @property
     def p(self) -> int:
@@ -129,6 +135,7 @@ class Columns:
             self.multiplicity,
             self.info,
             None if self.bounds_why is None else [self.bounds_why[k] for k in keep],
+            self.model_rows,
         )
 
     def released(self, group: str) -> Columns:

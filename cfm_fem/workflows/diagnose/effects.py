@@ -49,13 +49,17 @@ Field (Hall map), change of the measured field in the magnet frame:
   The magnet's z offset is a common shift of both ends: the edges are reported in the map frame
   (they carry it). The physical parameters reported are z_entry, z_exit, lambda (mm) and a (1
   for a field that vanishes outside the magnet), with propagated uncertainties. An end more
-  than 10 lambda outside the map is not estimated.
+  than 10 lambda outside the map is not estimated. A real end is not exactly this profile: the
+  parameters are reported as model-dependent, their std scaled by the square root of the
+  reduced chi2 of the fit where the profile carries the signal (``Columns.model_rows``).
 * ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
   box of side a_j). A field in free space is harmonic (sum_j d^2 B / dx_j^2 = 0), so the
   isotropic part of w never shows (mean-value property: a cube averages to its centre value at
   this order); the parameters are the anisotropy dw_xy = w_x - w_y and
   dw_z = w_z - (w_x + w_y) / 2, in 1e-3 mm^2. A 2-D reference has no z curvature: only dw_xy.
-  A field linear in position (pure quadrupole) has no curvature: untestable, said so.
+  A field linear in position (pure quadrupole) has no curvature: untestable, said so. Against
+  a map interpolated linearly, only when the readings lie on its nodes (second differences of
+  node values, step the node spacing); between nodes the map has no curvature to use.
 
 Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
 (magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
@@ -75,7 +79,7 @@ import numpy as np
 from ...models.bench import ERROR_NAMES
 from ...models.kinematics.chain import probe_errors_for_bench
 from .calibrate import Columns
-from .problem import UM, URAD, field_hessian_diag
+from .problem import UM, URAD, field_hessian, field_hessian_diag
 from .step_event import step_event
 
 __all__ = [
@@ -690,15 +694,26 @@ def fringe_field_3d(prob):
         return out
 
     blk.physical = physical
+    # where the soft-end model carries the signal: a real end is not exactly this profile
+    g = fringe_profile(prob.pos[:, 2], zi, zo, lam)[0]
+    blk.model_rows = (g > 1e-3) & (g < 1.0 - 1e-3)
     return blk
 
 
 def sensor_volume_averaging(prob):
-    if not prob.ctx.get("smooth", True):
-        return "the reference map is piecewise linear: no second derivatives to average"
     ctx = prob.ctx
+    step = ctx.get("node_step")
+    if not ctx.get("smooth", True) and step is None:
+        return (
+            "the reference map is piecewise linear and the readings lie between its nodes: no "
+            "second derivatives to average"
+        )
     if "H" not in ctx:
-        ctx["H"] = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)[ctx["uinv"]]
+        if ctx.get("smooth", True):
+            H = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)
+        else:  # readings on the map's nodes: second differences of node values
+            H = np.einsum("nijj->nij", field_hessian(ctx["reference_fn"], ctx["upts"], step))
+        ctx["H"] = H[ctx["uinv"]]
     H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
     # largest change the plausible sensitive volume (5 mm side, w = 1.04 mm^2) could make
     if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx["b_ref"]:

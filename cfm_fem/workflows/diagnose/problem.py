@@ -6,12 +6,15 @@ errors (exact HTM chain, linearised at zero, Table II priors) + the tracker-to-b
 
 Hall map: y = measured - reference field (magnet frame, T); baseline = the 21 errors seen through
 the field gradient, the magnet-to-bench registration (translation, small rotation about the
-magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std).
+magnet origin; survey-sized priors), the probe gains (S_HP, 0.15 % std). The problem may be
+linearised at a registration other than the nominal one (``pose``: the reference evaluated with
+the magnet moved there; :mod:`~cfm_fem.workflows.diagnose.register` iterates it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -105,14 +108,10 @@ def subset_rows(prob: Problem, keep) -> Problem:
         return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
 
     _, point = np.unique(prob.point[keep], return_inverse=True)
-    ctx = {k: take(v) for k, v in prob.ctx.items() if k not in ("upts", "V", "point_ids")}
-    ctx["upts"] = prob.ctx.get("upts")
-    if "V" in prob.ctx:
-        ctx["V"] = prob.ctx["V"]
+    whole = ("upts", "V", "point_ids", "pose")  # not per row
+    ctx = {k: take(v) if k not in whole else v for k, v in prob.ctx.items()}
     if "point_ids" in prob.ctx:
         ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
-    if ctx["upts"] is None:
-        del ctx["upts"]
     return replace(
         prob,
         y=prob.y[keep],
@@ -281,9 +280,45 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
     return out
 
 
+#: The magnet-to-bench registration parameters of a Hall map (um, um, um, urad, urad, urad).
+REG_NAMES = ("magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll")
+
+
+def posed_field(field_fn, pose):
+    """The reference field of a magnet moved by ``pose``: B'(p) = R B(R^T (p - t)).
+
+    Parameters
+    ----------
+    field_fn : callable
+        ``field_fn(points (k, 3) mm) -> B (k, 3) T`` in the magnet's own frame.
+    pose : ndarray, shape (6,)
+        Translation t (um) and rotation vector of R (urad), in the order of :data:`REG_NAMES`.
+
+    Returns
+    -------
+    callable
+        The field at map points (k, 3) mm, T; ``field_fn`` itself for a zero pose.
+    """
+    from scipy.spatial.transform import Rotation
+
+    pose = np.asarray(pose, dtype=float)
+    if not np.any(pose):
+        return field_fn
+    t = pose[:3] * UM
+    R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
+
+    def fn(p):
+        return field_fn((np.asarray(p, dtype=float) - t) @ R) @ R.T
+
+    return fn
+
+
 def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> list:
     """The magnet-to-bench registration (translation, small rotation about the magnet origin)
-    and the Hall gains as baseline columns of a Hall map, with their priors."""
+    and the Hall gains as baseline columns of a Hall map, with their priors.
+
+    ``B0``, ``G``: the field and its gradient at the readings, the magnet at its current pose;
+    ``p``: the readings' positions from the magnet origin (mm)."""
     n = len(p)
     reg = np.zeros((n, 3, 6))
     reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
@@ -297,7 +332,7 @@ def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> 
     return [
         Columns(
             reg,
-            ["magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll"],
+            list(REG_NAMES),
             ["um"] * 3 + ["urad"] * 3,
             np.zeros(6),
             np.r_[np.full(3, reg_std_mm / UM), np.full(3, reg_std_rad / URAD)],
@@ -328,6 +363,68 @@ def _reference_error(field_fn, upts, spacing_mm, nodes):
     return var
 
 
+def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
+    """d^2 B_i / dx_j dx_k by central differences of step ``h``, shape (n, 3, 3, 3), T/mm^2.
+
+    Only the points p + h (+-e_j +-e_k) are used: on a map with nodes h either side of each
+    point the second differences read node values only. Where a neighbour lies outside a map
+    (NaN), the entry is 0."""
+    b0 = f(p)
+    out = np.zeros((len(p), 3, 3, 3))
+    eye = np.eye(3) * h
+    for j in range(3):
+        out[:, :, j, j] = (f(p + eye[j]) - 2.0 * b0 + f(p - eye[j])) / h**2
+        for k in range(j + 1, 3):
+            d = (
+                f(p + eye[j] + eye[k])
+                - f(p + eye[j] - eye[k])
+                - f(p - eye[j] + eye[k])
+                + f(p - eye[j] - eye[k])
+            ) / (4.0 * h**2)
+            out[:, :, j, k] = out[:, :, k, j] = d
+    out[~np.isfinite(out)] = 0.0
+    return out
+
+
+def _node_step(upts, spacing_mm, nodes):
+    """The node spacing of a linear reference map when every reading's point is one of its
+    nodes (second differences of that step then read the map's node values), else None."""
+    if spacing_mm is None or nodes is None:
+        return None
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(nodes).query(upts)
+    return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
+
+
+def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
+    """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
+    ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
+    node spacing: a shorter step sees no curvature inside a cell), default ``h``.
+
+    A smooth reference is evaluated at the moved points. A map interpolated linearly between
+    its nodes is not: between nodes its kinks would make the fit jump from one linearisation
+    to the next, and a point moved outside it has no value. Its field is expanded to second
+    order about the points instead (value, gradient and Hessian by differences of step ``h``:
+    node values on a map with nodes either side of each point), which holds the second-order
+    terms of the move."""
+    from scipy.spatial.transform import Rotation
+
+    fn = posed_field(field_fn, pose)
+    if not np.any(pose):
+        return field_fn(upts), field_jacobian(field_fn, upts, h), fn
+    if smooth:
+        return fn(upts), field_jacobian(fn, upts, h), fn
+    R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
+    d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
+    B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
+    H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
+    Hd = np.einsum("nijk,nk->nij", H, d)
+    B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
+    G = G + Hd
+    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+
+
 def hall_problem(
     rec,
     field_fn,
@@ -340,8 +437,15 @@ def hall_problem(
     h: float = 0.5,
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
+    pose=None,
 ):
     """Problem of a Hall map against a reference field.
+
+    The model is linearised in the registration at ``pose`` (Gauss-Newton): the reference is
+    evaluated with the magnet moved there (:func:`posed_field`), its gradient too, and the
+    residual is ``y = B_meas - B'(pose) + J_reg pose``, so that the registration parameters
+    fitted to ``y`` are the magnet's whole offset and rotation, not an increment
+    (:func:`~cfm_fem.workflows.diagnose.register.register` moves ``pose`` to their estimate).
 
     Parameters
     ----------
@@ -366,17 +470,22 @@ def hall_problem(
     ref_nodes : ndarray, shape (k, 3), mm, optional
         Nodes of that map: the error vanishes at a node and grows to its full size half a
         spacing away, so it is scaled by the distance to the nearest node.
+    pose : ndarray, shape (6,), optional
+        Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
+        None: the nominal placement.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
     p = rec.cmd
     upts, uinv = np.unique(np.round(p, 9), axis=0, return_inverse=True)
     uinv = uinv.reshape(-1)
-    B0u = field_fn(upts)
-    Gu = field_jacobian(field_fn, upts, h)
+    pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
+    B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
     B0, G = B0u[uinv], Gu[uinv]
     scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
-    y = rec.B - B0
+    lever_pt = p - pose[:3] * UM  # from the magnet origin
+    reg_gain = _registration_and_gains(B0, G, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct)
+    y = rec.B - B0 + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
@@ -405,7 +514,7 @@ def hall_problem(
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         nv = bench.noise_std_mm() ** 2
         var_known = np.einsum("nik,k->ni", lever**2, nv)
-    blocks += _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct)
+    blocks += reg_gain
     notes.append(
         f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
         f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
@@ -421,10 +530,28 @@ def hall_problem(
         )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
+        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes) if not smooth else None,
+        "reference_fn": field_fn,
         "B0": B0,
         "G": G,
-        "field_fn": field_fn,
+        "field_fn": fn_posed,
         "b_ref": b_ref,
+        "pose": pose,
+        "rows": np.arange(len(p)),
+        "rebuild": partial(
+            hall_problem,
+            rec,
+            field_fn,
+            b_ref,
+            bench,
+            reg_std_mm=reg_std_mm,
+            reg_std_rad=reg_std_rad,
+            gain_std_pct=gain_std_pct,
+            smooth=smooth,
+            h=h,
+            ref_spacing_mm=ref_spacing_mm,
+            ref_nodes=ref_nodes,
+        ),
         "smooth": smooth,
         "upts": upts,
         "uinv": uinv,
@@ -477,4 +604,12 @@ def noise_sigma(
     return model.sigma(vk, prob.var_ref), model.floor
 
 
-__all__ += ["noise_sigma", "bench_columns", "field_hessian_diag", "AXES"]
+__all__ += [
+    "noise_sigma",
+    "bench_columns",
+    "field_hessian_diag",
+    "field_hessian",
+    "AXES",
+    "REG_NAMES",
+    "posed_field",
+]

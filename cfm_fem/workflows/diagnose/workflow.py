@@ -22,6 +22,7 @@ from .conflicts import prior_conflicts
 from .locate import isolated_planes, locate
 from .noise import estimate_noise
 from .problem import Problem, noise_sigma, subset_rows
+from .register import applies, pose_step, register, registration_note, repose
 from .select import cv_rms, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
@@ -133,7 +134,17 @@ def _determined(effect: str, names, std) -> np.ndarray:
     return np.asarray(std) < limit
 
 
-def _effect_entry(cands, model, fit1, base) -> dict:
+def _lack_of_fit(cols, fit1, sigma) -> float:
+    """Reduced chi2 of the final fit in the rows an approximate effect model carries
+    (:attr:`Columns.model_rows`), at least 1; 1 without such rows."""
+    rows = cols.model_rows
+    if rows is None or len(rows) != len(fit1.resid) or not rows.any():
+        return 1.0
+    r = fit1.resid[rows] / sigma[rows]
+    return max(1.0, float(np.mean(r[np.isfinite(r)] ** 2)))
+
+
+def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     """The ``effects[]`` entry of one effect (one or several of its functions accepted)."""
     c0 = cands[0]
     names = [n for c in cands for n in c.param_names]
@@ -189,7 +200,16 @@ def _effect_entry(cands, model, fit1, base) -> dict:
     if c0.has_new and c0.cols.physical is not None:
         nb = c0.cols.p
         ib = [model.names.index(n) for n in c0.param_names[-nb:]]
-        phys = c0.cols.physical(c0.param_names[-nb:], fit1.theta[ib], fit1.cov[np.ix_(ib, ib)])
+        lof = _lack_of_fit(c0.cols, fit1, sigma)
+        cov = fit1.cov[np.ix_(ib, ib)] * lof
+        phys = c0.cols.physical(c0.param_names[-nb:], fit1.theta[ib], cov)
+        if c0.cols.model_rows is not None:
+            e["lack_of_fit"] = {
+                "reduced_chi2": round(lof, 2),
+                "note": "the effect's model is an approximate shape: its parameters are those of "
+                "that shape fitted to these data (model-dependent), and their std is scaled by "
+                "sqrt(reduced chi2) of the fit where the model carries the signal",
+            }
     if phys:  # a linearised non-linear or constrained effect: report its physical parameters
         e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
         pn = list(phys)
@@ -199,6 +219,8 @@ def _effect_entry(cands, model, fit1, base) -> dict:
         e["units"] = {n: phys[n][2] for n, k in zip(pn, ok, strict=True) if k}
         e["not_determined"] = [n for n, k in zip(pn, ok, strict=True) if not k]
         e["param_corr"] = None
+        if "lack_of_fit" in e:
+            e["model_dependent"] = list(e["params"])
     return e
 
 
@@ -207,7 +229,7 @@ def _effects_out(sel, fit1, base) -> list:
     groups: dict = {}
     for c in sel.accepted:
         groups.setdefault(c.name, []).append(c)
-    out = [_effect_entry(cs, sel.model, fit1, base) for cs in groups.values()]
+    out = [_effect_entry(cs, sel.model, fit1, base, sel.sigma) for cs in groups.values()]
     return sorted(out, key=lambda e: -e["delta_bic"])
 
 
@@ -293,7 +315,23 @@ def _arrays(prob, cal, fit1, loc0, loc1) -> dict:
     }
 
 
-def _attribute(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
+def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> SimpleNamespace:
+    """Steps 1-4 with the magnet's registration non-linear (a Hall map): the problem is
+    linearised at the registration the baseline fits, and again at the one the selected model
+    fits (a released ``magnet_misalignment`` moves it) until it stays put."""
+    prob = register(prob)
+    for _ in range(max_refits + 1):
+        a = _attribute_at(prob, o, progress)
+        if not applies(prob):
+            break
+        pose, moved = pose_step(prob, a.sel.model, a.fit1)
+        if not moved:
+            break
+        prob = repose(prob, pose)
+    return a
+
+
+def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
     """Calibrate, locate, select the effects and fit them together (steps 1-4)."""
 
     def sigma_fn(resid, edf, var_known=None):
@@ -370,7 +408,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     t0 = time.perf_counter()
     o = {**DEFAULTS, **opts}
     full = _attribute(prob, o, progress)
-    a, isolated = _without_bad_planes(prob, full, o, progress)
+    a, isolated = _without_bad_planes(full.prob, full, o, progress)
     sel, cal, fit1, loc1 = a.sel, a.cal, a.fit1, a.loc1
     p = a.prob
     cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
@@ -415,7 +453,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "calibration": cal.calib,
         "thresholds": o,
         "kind": prob.kind,
-        "notes": p.notes,
+        "notes": p.notes + [n for n in [registration_note(p)] if n],
     }
     dt = time.perf_counter() - t0
     summary["seconds"] = round(dt, 2)

@@ -1,0 +1,129 @@
+"""Non-linear magnet registration of a Hall map: Gauss-Newton on the magnet's pose.
+
+The magnet's offset and rotation enter the field non-linearly: through a fringe a few mm long,
+a 0.3 mm shift leaves second-order terms far above a Hall probe's noise, which a linearisation
+at the nominal placement cannot absorb and other signatures would then take. The problem is
+linearised at a pose (:func:`~cfm_fem.workflows.diagnose.problem.hall_problem`: reference field
+and gradient re-evaluated with the magnet moved there) and the pose is moved to the fitted
+registration until the step is far below its standard uncertainty. The reported uncertainties
+are those of the final linearisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .calibrate import fit_map, stack
+from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
+
+__all__ = ["applies", "register", "repose", "pose_step", "registration_note"]
+
+#: Converged when every registration step is below this fraction of its std.
+STEP_TOL = 0.05
+
+
+def applies(prob: Problem) -> bool:
+    """Whether the registration of ``prob`` is made non-linear: a Hall map against a reference
+    that varies along z (a 3-D map), smooth or interpolated linearly with the readings on its
+    nodes.
+
+    Against a 2-D reference the second-order terms of a move come from its higher multipoles
+    only, and a map through the magnet ends, which that reference lacks, would steer the pose
+    (the soft ends are ``fringe_field_3d``'s). Between the nodes of a linear map its curvature
+    is not known better than its own interpolation error (added to the noise), which is of
+    the order of the second-order terms of a move of up to a node spacing."""
+    if prob.kind != "hall" or "rebuild" not in prob.ctx:
+        return False
+    if not prob.ctx.get("smooth", True) and prob.ctx.get("node_step") is None:
+        return False
+    G = prob.ctx["G"]
+    return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
+
+
+def _objective(prob: Problem):
+    """MAP objective and fit of the calibrated baseline (noise from its own residuals)."""
+    base = stack(prob.baseline)
+    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
+    sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+    fit = fit_map(prob.y, sigma, base)
+    return fit.objective, base, fit
+
+
+def repose(prob: Problem, pose) -> Problem:
+    """The same problem (same rows) linearised at the registration ``pose`` (um, urad)."""
+    full = prob.ctx["rebuild"](pose=np.asarray(pose, dtype=float))
+    full.notes = list(prob.notes)  # with what the caller added
+    rows = prob.ctx["rows"]
+    if len(rows) == full.n:
+        return full
+    keep = np.zeros(full.n, dtype=bool)
+    keep[rows] = True
+    return subset_rows(full, keep)
+
+
+def pose_step(prob: Problem, model, fit) -> tuple[np.ndarray, bool]:
+    """The registration a fit puts the magnet at, and whether it moved beyond the tolerance.
+
+    Parameters
+    ----------
+    prob : Problem
+        A Hall-map problem linearised at ``prob.ctx['pose']``.
+    model : Columns
+        The model fitted (its registration columns named as :data:`REG_NAMES`).
+    fit : Fit
+
+    Returns
+    -------
+    pose : ndarray, shape (6,), um and urad
+    moved : bool
+        Some step exceeds ``STEP_TOL`` times its std.
+    """
+    pose = np.array(prob.ctx["pose"], dtype=float)
+    new = pose.copy()
+    moved = False
+    for k, nm in enumerate(REG_NAMES):
+        if nm in model.names:
+            i = model.names.index(nm)
+            new[k] = fit.theta[i]
+            moved |= bool(abs(fit.theta[i] - pose[k]) > STEP_TOL * max(fit.std[i], 1e-12))
+    return new, moved
+
+
+def register(prob: Problem, max_iter: int = 6) -> Problem:
+    """Gauss-Newton on the magnet's pose with the calibrated baseline (registration priors
+    kept): the problem linearised at the registration it fits.
+
+    A step that raises the MAP objective is halved (three times at most, then the pose stays).
+    A problem :func:`applies` rejects is returned unchanged.
+    """
+    if not applies(prob):
+        return prob
+    obj, base, fit = _objective(prob)
+    for _ in range(max_iter):
+        pose, moved = pose_step(prob, base, fit)
+        if not moved:
+            break
+        start = np.asarray(prob.ctx["pose"], dtype=float)
+        for _half in range(4):
+            trial = repose(prob, pose)
+            obj_t, base_t, fit_t = _objective(trial)
+            if obj_t <= obj * (1.0 + 1e-9):
+                break
+            pose = 0.5 * (start + pose)
+        else:
+            break
+        prob, obj, base, fit = trial, obj_t, base_t, fit_t
+    return prob
+
+
+def registration_note(prob: Problem) -> str | None:
+    """What the non-linear registration did, for the notes of the diagnosis."""
+    pose = prob.ctx.get("pose") if prob.kind == "hall" else None
+    if pose is None or not np.any(pose):
+        return None
+    moved = ", ".join(f"{n} {v:.4g}" for n, v in zip(REG_NAMES, pose, strict=True))
+    return (
+        "registration non-linear: reference field and gradient re-evaluated with the magnet at "
+        f"its fitted pose ({moved}; um, urad), iterated until each step is below "
+        f"{STEP_TOL:g} of its std"
+    )
