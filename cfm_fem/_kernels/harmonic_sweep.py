@@ -12,7 +12,7 @@ import numba as nb
 import numpy as np
 
 from .harmonic import expand_node, poly_errors, poly_parts
-from .htm_sweep import _position_moments, _probe_points
+from .htm_sweep import _position_moments, _probe_points, htm_buffers
 from .options import JIT
 from .order_stats import coverage_count, sample_stats
 from .rng import (
@@ -23,7 +23,7 @@ from .rng import (
     stream_key,
     trial_key,
 )
-from .sweep import _abs_change, _unit_disp
+from .sweep import _abs_change, _unit_disp, sweep_outputs
 
 
 @nb.njit(inline="always", **JIT)
@@ -99,10 +99,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     coords, hcoef, hdeg, hscale, hreach, gmat, exps = model
     k_nodes = nodes.shape[0]
     n_up = scales.shape[0]
-    stats = np.full((k_nodes, n_up, 4, 6), np.nan)
-    n_out = np.zeros((k_nodes, n_up), dtype=np.int64)
-    n_lost = np.zeros((k_nodes, n_up), dtype=np.int64)
-    star = np.zeros(k_nodes, dtype=np.bool_)
+    stats, n_out, n_lost, star = sweep_outputs(k_nodes, n_up)
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     z = np.empty((3, n_trials))
@@ -180,21 +177,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     rot, q_nodes, params, terms, nkey, fkey = trials
     k_nodes = nodes.shape[0]
     n_trials = params.shape[0]
-    stats = np.full((k_nodes, 1, 4, 6), np.nan)
-    n_out = np.zeros((k_nodes, 1), dtype=np.int64)
-    n_lost = np.zeros((k_nodes, 1), dtype=np.int64)
-    pos = np.full((k_nodes, 3, 3), np.nan)
-    zero = np.zeros(params.shape[1])
-    dq = np.zeros(3)
-    e = np.empty(3)
-    dm = np.empty(3)
-    tkeys = np.empty(n_trials, dtype=np.uint64)
-    for t in range(n_trials):
-        tkeys[t] = trial_key(nkey, t)
-    z = np.zeros((3, n_trials))
-    ok = np.empty(n_trials, dtype=np.bool_)
-    pts = np.empty((n_trials, 3))
-    starts = np.empty(n_trials, dtype=np.int64)
+    stats, n_out, n_lost, _ = sweep_outputs(k_nodes, 1)
+    pos, zero, dq, e, dm, tkeys, z, ok, pts, starts = htm_buffers(k_nodes, params, nkey, 3)
     basis = np.eye(3)
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)

@@ -13,7 +13,7 @@ from .options import JIT
 from .order_stats import coverage_count, sample_stats
 from .rng import _delay_tau, normals_by_key, trial_key
 from .star import STAR_HASH, build_star, star_find
-from .sweep import _abs_change
+from .sweep import _abs_change, sweep_outputs
 
 
 @nb.njit(inline="always", **JIT)
@@ -136,6 +136,29 @@ def _position_moments(n_trials, s1, s2, sx, pos_i):
 
 
 @nb.njit(**JIT)
+def htm_buffers(k_nodes, params, nkey, d):
+    """Work arrays of the mode-htm kernels: probe-error moments per node (NaN), a zero error
+    set, 3-vectors dq, e, dm, the trials' noise keys, normals z and their flags ok, the probe
+    points (n_trials, d) and their start cells."""
+    n_trials = params.shape[0]
+    tkeys = np.empty(n_trials, dtype=np.uint64)
+    for t in range(n_trials):
+        tkeys[t] = trial_key(nkey, t)
+    return (
+        np.full((k_nodes, 3, 3), np.nan),
+        np.zeros(params.shape[1]),
+        np.zeros(3),
+        np.empty(3),
+        np.empty(3),
+        tkeys,
+        np.zeros((3, n_trials)),
+        np.empty(n_trials, dtype=np.bool_),
+        np.empty((n_trials, d)),
+        np.empty(n_trials, dtype=np.int64),
+    )
+
+
+@nb.njit(**JIT)
 def htm_sweep(nodes, keys, mesh, trials, geo, use_geometric, use_noise, p, exit_grad, search):
     """Monte Carlo of B(x + E_p) - B(x) with E_p from the bench model, statistics per node.
 
@@ -197,27 +220,14 @@ def htm_sweep(nodes, keys, mesh, trials, geo, use_geometric, use_noise, p, exit_
     k_nodes = nodes.shape[0]
     n_trials = params.shape[0]
     d = coords.shape[1]
-    stats = np.full((k_nodes, 1, 4, 6), np.nan)
-    n_out = np.zeros((k_nodes, 1), dtype=np.int64)
-    n_lost = np.zeros((k_nodes, 1), dtype=np.int64)
-    pos = np.full((k_nodes, 3, 3), np.nan)
-    zero = np.zeros(params.shape[1])
+    stats, n_out, n_lost, _ = sweep_outputs(k_nodes, 1)
     comp = np.empty((3, n_trials))
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
-    dq = np.zeros(3)
-    e = np.empty(3)
-    dm = np.empty(3)
     bi = np.empty(3)
     # per node, all trials at once: the noise by the block generator (`axis_noise_mm`'s
     # numbers), then the probe points, then their walks (`walk_block3` in 3-D)
-    tkeys = np.empty(n_trials, dtype=np.uint64)
-    for t in range(n_trials):
-        tkeys[t] = trial_key(nkey, t)
-    z = np.zeros((3, n_trials))
-    ok = np.empty(n_trials, dtype=np.bool_)
-    pts = np.empty((n_trials, d))
-    starts = np.empty(n_trials, dtype=np.int64)
+    pos, zero, dq, e, dm, tkeys, z, ok, pts, starts = htm_buffers(k_nodes, params, nkey, d)
     cells = np.empty(n_trials, dtype=np.int64)
     act = np.empty(n_trials, dtype=np.int64)
     bary = np.empty((n_trials, d + 1))

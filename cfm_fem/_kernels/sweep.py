@@ -544,6 +544,18 @@ def _gauss_buffers(n_up, n_trials, d):
 
 
 @nb.njit(**JIT)
+def sweep_outputs(k_nodes, n_col):
+    """Output arrays of a sweep kernel for ``k_nodes`` nodes and ``n_col`` columns: statistics
+    (NaN until computed), outside and lost-trial counts (0) and the star flags (False)."""
+    return (
+        np.full((k_nodes, n_col, 4, 6), np.nan),
+        np.zeros((k_nodes, n_col), dtype=np.int64),
+        np.zeros((k_nodes, n_col), dtype=np.int64),
+        np.zeros(k_nodes, dtype=np.bool_),
+    )
+
+
+@nb.njit(**JIT)
 def gauss_sweep(
     nodes,
     keys,
@@ -617,10 +629,7 @@ def gauss_sweep(
     """
     k_nodes = nodes.shape[0]
     n_up = scales.shape[0]
-    stats = np.full((k_nodes, n_up, 4, 6), np.nan)
-    n_out = np.zeros((k_nodes, n_up), dtype=np.int64)
-    n_lost = np.zeros((k_nodes, n_up), dtype=np.int64)
-    star = np.zeros(k_nodes, dtype=np.bool_)
+    stats, n_out, n_lost, star = sweep_outputs(k_nodes, n_up)
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     buffers = _gauss_buffers(n_up, n_trials, coords.shape[1])
