@@ -40,22 +40,34 @@ def csv_map(grid_csv):
     return grid_csv(6, curved_field)
 
 
-def test_dask_chunks_are_bit_identical_to_one_process(cluster):
+@pytest.mark.parametrize("model", ["linear", "harmonic"])
+def test_dask_chunks_are_bit_identical_to_one_process(cluster, model):
     from cfm_fem.workflows.sweep.distributed import dask_chunk_map
 
     _, client = cluster
     pts, B = _map()
+    if model == "harmonic":  # a field the harmonic fits hold at every node
+        from test_sweep_harmonic import exact_field
+
+        B = exact_field(pts * 3.0)
     fm = FieldMap.from_arrays(pts, B)
     ref = run_sweep(
-        fm, SweepConfig(up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=10**6)
+        fm,
+        SweepConfig(
+            up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=10**6, field_model=model
+        ),
     )
     for chunk in (37, 128):  # odd sizes, many chunks, completion order differs from node order
-        cfg = SweepConfig(up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=chunk)
+        cfg = SweepConfig(
+            up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=chunk, field_model=model
+        )
         res = run_sweep(fm, cfg, map_chunks=dask_chunk_map(client))
         np.testing.assert_array_equal(res.stats, ref.stats)  # NaN == NaN, bit for bit
         np.testing.assert_array_equal(res.n_outside, ref.n_outside)
         np.testing.assert_array_equal(res.n_walk_failed, ref.n_walk_failed)
         np.testing.assert_array_equal(res.linear_in_up, ref.linear_in_up)
+    if model == "harmonic":
+        assert (ref.field_fit["degree"] > 0).mean() > 0.9
     other = run_sweep(fm, SweepConfig(up_um=[25.0], trials=300, seed=12, chunk_nodes=64))
     assert not np.array_equal(other.stats[:, 0], ref.stats[:, 1])  # the seed matters
 
