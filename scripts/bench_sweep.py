@@ -272,6 +272,7 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg)
     t_run = time.perf_counter() - t0
+    res.mesh = res.mesh.for_output()  # as the command line does before writing
     with tempfile.TemporaryDirectory(dir=out) as tmp:
         t1 = time.perf_counter()
         s = write_sweep(tmp, res, {})

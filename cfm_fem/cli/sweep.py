@@ -509,6 +509,7 @@ def _run(args, up) -> int:
         backend=_backend(args),
         resumed_chunks=runner.loaded,
     )
+    res.mesh = res.mesh.for_output()  # point location is done: its arrays are freed here
     if args.pieces:
         chunks = chunk_ranges(fm.n_nodes, cfg.chunk_nodes)
         summary = write_sweep_pieces(

@@ -20,7 +20,7 @@ of the probe are then not covered, and the outputs say so.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.spatial
@@ -120,6 +120,18 @@ class SimplexMesh:
             else ""
         )
         return f"{what}{plane}; {len(self.simplices)} simplices"
+
+    def for_output(self) -> SimplexMesh:
+        """The same mesh without what only point location needs (barycentric transforms, face
+        neighbours, node stars: 128 bytes per tetrahedron, 0.74 GB for 5.8 million cells): what
+        writing the maps needs, once the sweep is done. It cannot run another sweep."""
+        d = self.dim
+        return replace(
+            self,
+            transform=np.empty((0, d + 1, d)),
+            neighbors=np.empty((0, d + 1), dtype=np.int64),
+            _stars=None,
+        )
 
     def to_local(self, points) -> np.ndarray:
         """Map-frame points (k, 3) mm to mesh-frame coordinates (k, dim)."""
