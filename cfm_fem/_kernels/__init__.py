@@ -8,8 +8,9 @@ Modules: `rng` (counter-based random numbers), `htm` (the 21-error HTM chain),
 (selection and per-node statistics), `locate` (point location in a simplex mesh), `interpolate`
 (linear interpolation at many points), `star` (star tables of a node), `sweep` (the Gaussian
 sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep),
-`harmonic` (evaluation of local harmonic field models), `harmonic_fit` (their fit per node),
-`harmonic_sweep` (both sweeps under them).
+`harmonic` (evaluation of local harmonic field models), `harmonic_parts` (their homogeneous
+parts at many displacements, generated), `harmonic_fit` (their fit per node), `harmonic_stats`
+(statistics of their field changes), `harmonic_sweep` (both sweeps under them).
 This namespace re-exports the public names of every module.
 """
 
@@ -18,8 +19,6 @@ from .coupled import (
 )
 from .harmonic import (
     expand_node,
-    poly_errors,
-    poly_parts,
 )
 from .harmonic_fit import (
     CHECK_FREE,
@@ -35,6 +34,17 @@ from .harmonic_fit import (
     FIT_PIVOT_MIN,
     FIT_TAPER,
     harmonic_fit_block,
+)
+from .harmonic_parts import (
+    N_SLOTS,
+    PART_BLOCK,
+    homogeneous_parts,
+)
+from .harmonic_stats import (
+    changes_block,
+    gather_tails,
+    tail_quantile_z,
+    tail_stats,
 )
 from .harmonic_sweep import (
     harmonic_gauss_sweep,
@@ -258,8 +268,13 @@ __all__ = [
     "coupled_probe_errors",
     "htm_sweep",
     "expand_node",
-    "poly_errors",
-    "poly_parts",
+    "PART_BLOCK",
+    "N_SLOTS",
+    "homogeneous_parts",
+    "changes_block",
+    "gather_tails",
+    "tail_quantile_z",
+    "tail_stats",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
     "FIT_PIVOT_MIN",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .options import FJIT, JIT
+from .options import JIT
 
 
 @nb.njit(**JIT)
@@ -61,86 +61,3 @@ def poly_field(cexp, n_mono, exps, u0, u1, u2):
         b1 += cexp[1, m] * v
         b2 += cexp[2, m] * v
     return b0, b1, b2
-
-
-@nb.njit(**FJIT)
-def poly_errors(cexp, n_mono, exps, u, n, pw, err):
-    """Field change B(u) - B(0) of an expanded model at ``n`` scaled displacements, T.
-
-    Vectorised over the displacements: monomials one at a time, each for every trial.
-
-    Parameters
-    ----------
-    cexp : ndarray, shape (3, >= n_mono), T
-    n_mono : int
-    exps : ndarray, shape (M, 3), int64
-    u : ndarray, shape (3, >= n)
-        Scaled displacements.
-    n : int
-    pw : ndarray, shape (3, 6, >= n)
-        Work space: powers 0..5 of each coordinate.
-    err : ndarray, shape (3, >= n), T
-        Output.
-    """
-    for a in range(3):
-        for t in range(n):
-            pw[a, 0, t] = 1.0
-        for q in range(1, 6):
-            for t in range(n):
-                pw[a, q, t] = pw[a, q - 1, t] * u[a, t]
-    for c in range(3):
-        for t in range(n):
-            err[c, t] = 0.0
-    for m in range(1, n_mono):
-        i, j, k = exps[m, 0], exps[m, 1], exps[m, 2]
-        c0, c1, c2 = cexp[0, m], cexp[1, m], cexp[2, m]
-        px, py, pz = pw[0, i], pw[1, j], pw[2, k]
-        for t in range(n):
-            v = px[t] * py[t] * pz[t]
-            err[0, t] += c0 * v
-            err[1, t] += c1 * v
-            err[2, t] += c2 * v
-
-
-@nb.njit(**FJIT)
-def poly_parts(cexp, degree, exps, u, n, pw, parts):
-    """Homogeneous parts of an expanded model's field change at ``n`` displacements u.
-
-    B(s u) - B(0) = sum_q s^q parts[q - 1] for q = 1 .. degree: the field change at any
-    multiple s of u (every U_p of a sweep) from one evaluation.
-
-    Parameters
-    ----------
-    cexp : ndarray, shape (3, >= n_monomials(degree)), T
-    degree : int
-    exps : ndarray, shape (M, 3), int64
-    u : ndarray, shape (3, >= n)
-    n : int
-    pw : ndarray, shape (3, 6, >= n)
-        Work space: powers 0..5 of each coordinate.
-    parts : ndarray, shape (>= degree, 3, >= n), T
-        Output.
-    """
-    for a in range(3):
-        for t in range(n):
-            pw[a, 0, t] = 1.0
-        for q in range(1, degree + 1):
-            for t in range(n):
-                pw[a, q, t] = pw[a, q - 1, t] * u[a, t]
-    m = 1
-    for q in range(1, degree + 1):
-        for c in range(3):
-            for t in range(n):
-                parts[q - 1, c, t] = 0.0
-        m_end = (q + 1) * (q + 2) * (q + 3) // 6
-        while m < m_end:
-            i, j, k = exps[m, 0], exps[m, 1], exps[m, 2]
-            c0, c1, c2 = cexp[0, m], cexp[1, m], cexp[2, m]
-            px, py, pz = pw[0, i], pw[1, j], pw[2, k]
-            p0, p1, p2 = parts[q - 1, 0], parts[q - 1, 1], parts[q - 1, 2]
-            for t in range(n):
-                v = px[t] * py[t] * pz[t]
-                p0[t] += c0 * v
-                p1[t] += c1 * v
-                p2[t] += c2 * v
-            m += 1

@@ -8,10 +8,22 @@ displaced beyond the node's reach is counted as outside (left out, or kept with
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
-from .harmonic import expand_node, poly_errors, poly_parts
+from .harmonic import expand_node
+from .harmonic_parts import N_SLOTS, PART_BLOCK, homogeneous_parts
+from .harmonic_stats import (
+    BOUND_SAFETY,
+    changes_block,
+    copy_row,
+    first_order_abs,
+    gather_tails,
+    tail_quantile_z,
+    tail_stats,
+)
 from .htm_sweep import _position_moments, _probe_points, htm_buffers
 from .options import JIT
 from .order_stats import coverage_count, sample_stats
@@ -24,6 +36,9 @@ from .rng import (
     trial_key,
 )
 from .sweep import _abs_change, _unit_disp, sweep_outputs
+
+#: Highest degree of the unrolled polynomial (`homogeneous_parts`).
+MAX_DEG = N_SLOTS // 3
 
 
 @nb.njit(inline="always", **JIT)
@@ -64,11 +79,84 @@ def _stats_of_errors(n, d2, reach2, extrapolate, b0, err, absb, scratch, p, out,
 
 
 @nb.njit(**JIT)
+def _gauss_buffers(n_up, n_trials, n_mono):
+    """Per-thread work arrays of `harmonic_gauss_sweep`."""
+    n = n_trials
+    return (
+        np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
+        np.empty(N_SLOTS * PART_BLOCK), np.empty(4 * PART_BLOCK), np.empty((n_up, 4, n)),
+        np.empty((4, n)), np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, n)),
+        np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n), np.empty(n),
+        np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
+    )  # fmt: skip
+
+
+@nb.njit(**JIT)
+def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
+    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and the
+    first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts)."""
+    (z, ok, u_, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
+     counts, scratch, cexp_) = buffers  # fmt: skip
+    n_up = scales.shape[0]
+    for t0 in range(0, n, PART_BLOCK):
+        m = min(PART_BLOCK, n - t0)
+        homogeneous_parts(cexp, u, t0, m, parts)
+        for c in range(3):
+            copy_row(parts[c * PART_BLOCK : c * PART_BLOCK + m], lin[c, t0 : t0 + m])
+        first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
+        for k in range(n_up):
+            if scales[k] > 0.0:
+                changes_block(parts, m, scales[k], b0, abs0, blk)
+                for j in range(4):
+                    copy_row(blk[j * PART_BLOCK : j * PART_BLOCK + m], vals[k, j, t0 : t0 + m])
+
+
+@nb.njit(**JIT)
+def _coefficient_sums(cexp, sums):
+    """sums[q - 1, c]: root sum of squares of the coefficients of the degree-q monomials of
+    component c, so that |part_q,c(u)| <= sums[q - 1, c] |u|^q (Cauchy-Schwarz: the squares
+    of the degree-q monomials sum to at most |u|^(2q))."""
+    m = 1
+    for q in range(1, MAX_DEG + 1):
+        m_end = (q + 1) * (q + 2) * (q + 3) // 6
+        for c in range(3):
+            a = 0.0
+            for mm in range(m, m_end):
+                a += cexp[c, mm] ** 2
+            sums[q - 1, c] = math.sqrt(a) * (1.0 + BOUND_SAFETY)
+        m = m_end
+
+
+@nb.njit(**JIT)
+def _remainder_bounds(s, rho, csum, b_hat, abs0, bounds):
+    """Bounds of |change / s - first-order part| over every trial at U_p = s (``bounds``, 4:
+    components, |B|; inf where none holds). ``rho``: the largest scaled displacement |u|;
+    ``csum``: `_coefficient_sums`."""
+    e2 = 0.0
+    mix = 0.0
+    for c in range(3):
+        d = 0.0
+        sq = rho
+        for q in range(1, MAX_DEG):
+            sq *= s * rho
+            d += sq * csum[q, c]
+        bounds[c] = d
+        e2 += (csum[0, c] * rho + d) ** 2
+        mix += abs(b_hat[c]) * d
+    # 0 <= |B0 + d| - |B0| - b.d <= |d|^2 / (2 (|B0| - |d|)) for |d| < |B0|, d = s e
+    e = math.sqrt(e2)
+    gap = abs0 - s * e
+    bounds[3] = mix + s * e2 / (2.0 * gap) if gap > 0.0 else np.inf
+
+
+@nb.njit(**JIT)
 def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed, p, extrapolate):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node under its harmonic model.
 
     The same standard normals as `gauss_sweep` (same seed, same node key), so the two field
-    models are compared trial by trial.
+    models are compared trial by trial. Each trial's polynomial is evaluated once
+    (`homogeneous_parts`), every U_p from its homogeneous parts; the order statistics come
+    from the candidates of the first-order part's tails (`harmonic_stats`), exactly.
 
     Parameters
     ----------
@@ -99,41 +187,55 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     coords, hcoef, hdeg, hscale, hreach, gmat, exps = model
     k_nodes = nodes.shape[0]
     n_up = scales.shape[0]
+    n = n_trials
     stats, n_out, n_lost, star = sweep_outputs(k_nodes, n_up)
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
-    z = np.empty((3, n_trials))
-    ok = np.empty(n_trials, dtype=np.bool_)
-    unit = np.empty((3, n_trials))
-    u = np.empty((3, n_trials))
-    d2 = np.empty(n_trials)
-    pw = np.empty((3, 6, n_trials))
-    parts = np.empty((5, 3, n_trials))
-    err = np.empty((3, n_trials))
-    absb = np.empty(n_trials)
-    scratch = np.empty(n_trials)
-    cexp = np.empty((3, gmat.shape[1]))
-    w = np.empty((3, 3))
-    cnt = np.zeros(1, dtype=np.int64)
+    buffers = _gauss_buffers(n_up, n, gmat.shape[1])
+    (z, ok, u, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
+     counts, scratch, cexp) = buffers  # fmt: skip
+    w = np.zeros((3, 3))
     for c in range(3):
-        for a in range(3):
-            w[c, a] = sigma_axes[c] if a == c else 0.0
+        w[c, c] = sigma_axes[c]
+    csum = np.empty((MAX_DEG, 3))
+    bounds = np.empty(4)
+    b_hat = np.zeros(3)
+    cnt = np.zeros(1, dtype=np.int64)
+    smax = 0.0
+    for k in range(n_up):
+        smax = max(smax, scales[k])
+    q = coverage_count(n, p) if n > 1 else 1
+    z_h = tail_quantile_z(n, q)
     for i in range(k_nodes):
         g = nodes[i]
-        _node_model(g, hcoef, hdeg, gmat, cexp)
-        normals_by_index(trial_key(skey, keys[i]), fkey, 0, n_trials, z, ok)
-        for t in range(n_trials):
-            for a in range(3):
-                unit[a, t] = _unit_disp(w, z, t, a)
+        n_mono = _node_model(g, hcoef, hdeg, gmat, cexp)
+        cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
+        normals_by_index(trial_key(skey, keys[i]), fkey, 0, n, z, ok)
         inv = 1.0 / hscale[g]
-        for t in range(n_trials):
+        d2max = 0.0
+        for t in range(n):
             r2 = 0.0
             for a in range(3):
-                u[a, t] = unit[a, t] * inv
-                r2 += unit[a, t] * unit[a, t]
+                da = _unit_disp(w, z, t, a)
+                u[a, t] = da * inv
+                r2 += da * da
             d2[t] = r2
-        deg = hdeg[g]
-        poly_parts(cexp, deg, exps, u, n_trials, pw, parts)  # every U_p from one evaluation
+            d2max = max(d2max, r2)
+        rho = math.sqrt(d2max) * inv * (1.0 + BOUND_SAFETY)
+        _coefficient_sums(cexp, csum)
+        b0 = cexp[:, 0]
+        abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+        for c in range(3):
+            b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
+        _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers)
+        for j in range(4):
+            gather_tails(lin[j], n, z_h, lo_val[j], lo_idx[j], hi_val[j], hi_idx[j], limits[j],
+                         counts[j])  # fmt: skip
+        beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
+        if smax > 0.0:
+            r2max = (hreach[g] / smax) ** 2
+            for t in range(n):
+                beyond_max += d2[t] > r2max
         for k in range(n_up):
             s = scales[k]
             if s == 0.0:  # no displacement: every error is exactly zero
@@ -141,25 +243,24 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                     for j in range(6):
                         stats[i, k, c, j] = 0.0
                 continue
-            if deg == 5:  # Horner in s over the homogeneous parts, components together
-                for t in range(n_trials):
-                    for c in range(3):
-                        acc = parts[4, c, t]
-                        acc = acc * s + parts[3, c, t]
-                        acc = acc * s + parts[2, c, t]
-                        acc = acc * s + parts[1, c, t]
-                        err[c, t] = (acc * s + parts[0, c, t]) * s
-            else:
-                for c in range(3):
-                    for t in range(n_trials):
-                        acc = parts[deg - 1, c, t]
-                        for q in range(deg - 2, -1, -1):
-                            acc = acc * s + parts[q, c, t]
-                        err[c, t] = acc * s
-            cnt[0] = 0
-            _stats_of_errors(n_trials, d2, (hreach[g] / s) ** 2, extrapolate, cexp[:, 0], err,
-                             absb, scratch, p, stats[i, k], cnt)  # fmt: skip
-            n_out[i, k] = cnt[0]
+            reach2 = (hreach[g] / s) ** 2
+            if beyond_max > 0:
+                cnt[0] = 0
+                for t in range(n):
+                    cnt[0] += d2[t] > reach2
+                if cnt[0] > 0 and not extrapolate:  # a sample of its own per U_p
+                    cnt[0] = 0
+                    _stats_of_errors(n, d2, reach2, False, b0, vals[k, :3], vals[k, 3],
+                                     scratch, p, stats[i, k], cnt)  # fmt: skip
+                    n_out[i, k] = cnt[0]
+                    continue
+                n_out[i, k] = cnt[0]
+            _remainder_bounds(s, rho, csum, b_hat, abs0, bounds)
+            for j in range(4):
+                tails = (lo_val[j], lo_idx[j], hi_val[j], hi_idx[j])
+                if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
+                                  stats[i, k, j], low, high):  # fmt: skip
+                    sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
     return stats, n_out, n_lost, star
 
 
@@ -182,7 +283,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     basis = np.eye(3)
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)
-    pw = np.empty((3, 6, n_trials))
+    parts = np.empty(N_SLOTS * PART_BLOCK)
+    blk = np.empty(4 * PART_BLOCK)
     err = np.empty((3, n_trials))
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
@@ -210,7 +312,15 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
                 u[a, t] = da * inv
                 r2 += da * da
             d2[t] = r2
-        poly_errors(cexp, n_mono, exps, u, n_trials, pw, err)
+        cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
+        b0 = cexp[:, 0]
+        abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+        for t0 in range(0, n_trials, PART_BLOCK):
+            m = min(PART_BLOCK, n_trials - t0)
+            homogeneous_parts(cexp, u, t0, m, parts)
+            changes_block(parts, m, 1.0, b0, abs0, blk)
+            for c in range(3):
+                copy_row(blk[c * PART_BLOCK : c * PART_BLOCK + m], err[c, t0 : t0 + m])
         _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err, absb,
                          scratch, p, stats[i, 0], n_out[i])  # fmt: skip
         _position_moments(n_trials, s1, s2, sx, pos[i])

@@ -1,0 +1,260 @@
+"""Statistics of a node's field changes at several U_p values under its harmonic model.
+
+Under the linear interpolant a trial's component errors scale exactly with U_p, so their order
+statistics are computed once. A polynomial's do not: at U_p = s the change of component c is
+s e_c(s) with e_c(s) = L_c + s R_c(s), L_c the first-order part. The tails of e_c are still
+those of L_c up to the remainder: if every trial's |e_c - L_c| <= D, the h smallest values of
+e_c are among the trials with L_c <= v + 2 D, v any value with at least h trials of L_c below
+it. So each tail of L_c is gathered once per node, and at each U_p only its candidates are
+read and sorted. |B| is handled the same way with the
+first-order change of |B| as its L. The bound D comes from the largest displacement and the
+sums of |coefficient| per degree; where it is too loose for the gathered tail (a field whose
+first-order part vanishes, large U_p against the field's curvature length), the statistic is
+computed from the whole sample, so every number is exact either way.
+
+The field changes are computed per block of trials (`PART_BLOCK`, rows of a constant pitch) by a
+loop LLVM vectorises, and then copied into one row per U_p and quantity.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .harmonic_parts import PART_BLOCK
+from .options import FJIT, JIT, RJIT
+from .order_stats import TAIL_PILOT, _intervals, sort_values
+
+#: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
+#: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
+GATHER_SIGMAS = 1.0
+
+#: Relative safety on the remainder bounds and the candidate thresholds (rounding).
+BOUND_SAFETY = 1e-6
+
+
+@nb.njit(**FJIT)
+def changes_block(parts, m, s, b0, abs0, blk):
+    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`).
+
+    Parameters
+    ----------
+    parts : ndarray, shape (>= N_SLOTS * PART_BLOCK,), T
+    m : int
+        Trials in the block.
+    s : float, mm
+        U_p; the parts are per unit displacement scale, so part q is weighted by s^q.
+    b0 : ndarray, shape (3,), T
+        The model's field at the node.
+    abs0 : float
+        |b0|, T.
+    blk : ndarray, shape (>= 4 * PART_BLOCK,), T
+        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3).
+    """
+    bx = b0[0]
+    by = b0[1]
+    bz = b0[2]
+    for t in range(m):
+        ex = parts[12 * PART_BLOCK + t] * s + parts[9 * PART_BLOCK + t]
+        ey = parts[13 * PART_BLOCK + t] * s + parts[10 * PART_BLOCK + t]
+        ez = parts[14 * PART_BLOCK + t] * s + parts[11 * PART_BLOCK + t]
+        ex = ex * s + parts[6 * PART_BLOCK + t]
+        ey = ey * s + parts[7 * PART_BLOCK + t]
+        ez = ez * s + parts[8 * PART_BLOCK + t]
+        ex = ex * s + parts[3 * PART_BLOCK + t]
+        ey = ey * s + parts[4 * PART_BLOCK + t]
+        ez = ez * s + parts[5 * PART_BLOCK + t]
+        ex = (ex * s + parts[t]) * s
+        ey = (ey * s + parts[PART_BLOCK + t]) * s
+        ez = (ez * s + parts[2 * PART_BLOCK + t]) * s
+        x0 = bx + ex
+        x1 = by + ey
+        x2 = bz + ez
+        den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
+        num = 2.0 * (bx * ex + by * ey + bz * ez) + ex * ex + ey * ey + ez * ez
+        blk[t] = ex
+        blk[PART_BLOCK + t] = ey
+        blk[2 * PART_BLOCK + t] = ez
+        blk[3 * PART_BLOCK + t] = num / den if den > 0.0 else 0.0
+
+
+@nb.njit(**JIT)
+def copy_row(src, dst):
+    """dst[:] = src (contiguous 1-D views: a loop LLVM vectorises)."""
+    for t in range(src.shape[0]):
+        dst[t] = src[t]
+
+
+@nb.njit(**FJIT)
+def first_order_abs(parts, m, b_hat, dst):
+    """First-order change of |B| per unit s of a block's trials: b_hat . part 1, into dst[:m]."""
+    bx = b_hat[0]
+    by = b_hat[1]
+    bz = b_hat[2]
+    for t in range(m):
+        dst[t] = bx * parts[t] + by * parts[PART_BLOCK + t] + bz * parts[2 * PART_BLOCK + t]
+
+
+@nb.njit(**RJIT)
+def shifted_sums(x, n):
+    """shift = x[0] and the sums of (x - shift) and (x - shift)^2 over x[:n]."""
+    f = x[0]
+    a = 0.0
+    q = 0.0
+    for t in range(n):
+        d = x[t] - f
+        a += d
+        q += d * d
+    return f, a, q
+
+
+@nb.njit(**JIT)
+def tail_quantile_z(n, q):
+    """z with P(Z < -z) = 1.25 h / n (h = n - q, Z standard normal): the first-order parts are
+    normal samples, so about 1.25 h of them lie below mean - z std, enough to hold the h
+    smallest (`gather_tails` counts them; the statistics are exact either way). 0 if the
+    tails are not small."""
+    f = 1.25 * (n - q) / max(n, 1)
+    if not 0.0 < f < 0.5:
+        return 0.0
+    lo = 0.0
+    hi = 40.0
+    for _ in range(64):  # bisection on the normal tail
+        mid = 0.5 * (lo + hi)
+        if 0.5 * math.erfc(mid / math.sqrt(2.0)) > f:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@nb.njit(**JIT)
+def gather_tails(lin, n, z_h, lo_val, lo_idx, hi_val, hi_idx, limits, counts):
+    """Trials in the two tails of a first-order part.
+
+    Parameters
+    ----------
+    lin : ndarray, shape (>= n,)
+        The first-order part per trial.
+    n : int
+    z_h : float
+        `tail_quantile_z`.
+    lo_val, lo_idx, hi_val, hi_idx : ndarray, shape (>= n,)
+        Output: values <= g_lo and >= g_hi with their trial index, in trial order
+        (g = mean -+ `GATHER_SIGMAS` std of the leading `TAIL_PILOT` values).
+    limits : ndarray, shape (4,)
+        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g).
+    counts : ndarray, shape (4,), int64
+        Output: values gathered in each tail, and values <= v_lo and >= v_hi.
+    """
+    m = min(n, TAIL_PILOT)
+    pm = 0.0
+    for t in range(m):
+        pm += lin[t]
+    pm /= max(m, 1)
+    pv = 0.0
+    for t in range(m):
+        pv += (lin[t] - pm) ** 2
+    ps = math.sqrt(pv / max(m - 1, 1))
+    g_lo = pm - GATHER_SIGMAS * ps
+    g_hi = pm + GATHER_SIGMAS * ps
+    counts[:] = 0
+    if not (g_lo < g_hi and z_h > 0.0):  # nothing gathered: the whole-sample path
+        limits[0] = -np.inf
+        limits[1] = np.inf
+        limits[2] = -np.inf
+        limits[3] = np.inf
+        return
+    v_lo = min(pm - z_h * ps, g_lo)
+    v_hi = max(pm + z_h * ps, g_hi)
+    limits[0] = g_lo
+    limits[1] = g_hi
+    limits[2] = v_lo
+    limits[3] = v_hi
+    n_lo = 0
+    n_hi = 0
+    c_lo = 0
+    c_hi = 0
+    for t in range(n):  # branch-free gather
+        v = lin[t]
+        lo_val[n_lo] = v
+        lo_idx[n_lo] = t
+        n_lo += v <= g_lo
+        hi_val[n_hi] = v
+        hi_idx[n_hi] = t
+        n_hi += v >= g_hi
+        c_lo += v <= v_lo
+        c_hi += v >= v_hi
+    counts[0] = n_lo
+    counts[1] = n_hi
+    counts[2] = c_lo
+    counts[3] = c_hi
+
+
+@nb.njit(**JIT)
+def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
+    """Statistics (`sample_stats` order) of the field changes ``x[:n]`` from the candidates of
+    the gathered tails of their first-order part; False if the bound does not confine the
+    candidates to the gathered tails (the caller then takes the whole sample).
+
+    The h = n - q smallest changes are among the trials whose first-order part is at most
+    v_lo + 2 bound: at least h trials lie below v_lo, their changes per unit s are at most
+    v_lo + bound, and any trial beyond has a larger one.
+
+    Parameters
+    ----------
+    x : ndarray, shape (>= n,), T
+        Changes at one U_p s (s times the change per unit s).
+    n, q : int
+        Trials, coverage count.
+    bound : float
+        Upper bound of |change / s - first-order part| over every trial, in the first-order
+        part's units.
+    tails : tuple
+        (lo_val, lo_idx, hi_val, hi_idx) of `gather_tails`.
+    limits, counts : ndarray, shape (4,)
+        Of `gather_tails`.
+    stats : ndarray, shape (6,)
+        Output.
+    low, high : ndarray, shape (>= counts[0]), (>= counts[1])
+        Work space.
+    """
+    lo_val, lo_idx, hi_val, hi_idx = tails
+    h = n - q
+    if n < 2 or h < 1 or counts[2] < h or counts[3] < h or not bound < np.inf:
+        return False
+    margin = 2.0 * bound + BOUND_SAFETY * (abs(limits[2]) + abs(limits[3]) + bound)
+    thr_lo = limits[2] + margin
+    thr_hi = limits[3] - margin
+    if not (thr_lo < limits[0] and thr_hi > limits[1]):
+        return False
+    k = 0
+    for i in range(counts[0]):  # branch-free: candidates of the low tail
+        low[k] = x[lo_idx[i]]
+        k += lo_val[i] <= thr_lo
+    m = 0
+    for i in range(counts[1]):
+        high[m] = x[hi_idx[i]]
+        m += hi_val[i] >= thr_hi
+    sort_values(low[:k])
+    sort_values(high[:m])
+    shift, s1, s2 = shifted_sums(x, n)
+    stats[0] = shift + s1 / n
+    stats[1] = math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1))
+    _intervals(low[:h], high[m - h : m], n, q, stats)
+    return True
+
+
+__all__ = [
+    "BOUND_SAFETY",
+    "GATHER_SIGMAS",
+    "changes_block",
+    "copy_row",
+    "first_order_abs",
+    "gather_tails",
+    "shifted_sums",
+    "tail_quantile_z",
+    "tail_stats",
+]

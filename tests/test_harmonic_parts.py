@@ -1,0 +1,105 @@
+"""The unrolled harmonic polynomial and the tail statistics of the harmonic sweep."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cfm_fem import _kernels, testing
+from cfm_fem.models.harmonic_basis import monomial_exponents, n_monomials
+
+ROOT = Path(__file__).resolve().parents[1]
+B = _kernels.PART_BLOCK
+
+
+def test_generated_module_is_the_generators_output():
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "generate_harmonic_parts.py"), "--check"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+@pytest.mark.parametrize("degree", [2, 5])
+def test_parts_match_numpy_monomials_across_blocks(degree):
+    """Part q of component c equals the degree-q monomials of u times their coefficients,
+    evaluated by numpy, for a trial count that spans several blocks; coefficients beyond the
+    node's degree are zero and give zero parts."""
+    rng = np.random.default_rng(degree)
+    n = 2 * B + 37
+    u = rng.normal(size=(3, n)) * 0.7
+    exps = monomial_exponents()
+    cexp = rng.normal(size=(3, len(exps)))
+    cexp[:, n_monomials(degree) :] = 0.0
+    mono = np.prod(u.T[:, None, :] ** exps[None], axis=2)  # (n, M)
+    parts = np.empty(_kernels.N_SLOTS * B)
+    for t0 in range(0, n, B):
+        m = min(B, n - t0)
+        _kernels.homogeneous_parts(cexp, u, t0, m, parts)
+        for q in range(1, 6):
+            sel = exps.sum(axis=1) == q
+            want = mono[t0 : t0 + m][:, sel] @ cexp[:, sel].T  # (m, 3)
+            got = parts.reshape(_kernels.N_SLOTS, B)[3 * (q - 1) : 3 * q, :m].T
+            np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+            if q > degree:
+                assert not got.any()
+
+
+def _tail_case(n, curvature, seed=0, p=0.95):
+    """Changes x = s (L + k w |w|) of a normal first-order part L and an independent normal w
+    (a remainder that reorders the trials), the remainder's exact bound |k| max w^2, and what
+    `tail_stats` needs."""
+    rng = np.random.default_rng(seed)
+    lin = rng.normal(0.3, 2.0, n)
+    w = rng.normal(size=n)
+    s = 0.05
+    x = s * (lin + curvature * w * np.abs(w))
+    bound = abs(curvature) * np.max(w**2)
+    q = _kernels.coverage_count(n, p)
+    z_h = _kernels.tail_quantile_z(n, q)
+    bufs = [np.empty(n), np.empty(n, dtype=np.int64), np.empty(n), np.empty(n, dtype=np.int64)]
+    limits = np.empty(4)
+    counts = np.empty(4, dtype=np.int64)
+    _kernels.gather_tails(lin, n, z_h, *bufs, limits, counts)
+    return x, q, bound, tuple(bufs), limits, counts
+
+
+@pytest.mark.parametrize("curvature", [0.0, 0.02, -0.03])
+def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
+    """Where the remainder bound confines the candidates, the statistics from the tails are
+    those of the whole sample (sorted by numpy), to rounding."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, curvature)
+    stats = np.empty(6)
+    took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
+                               np.empty(n))  # fmt: skip
+    assert took
+    want = testing.sample_stats(x)
+    np.testing.assert_allclose(stats, want, rtol=1e-12, atol=1e-15)
+
+
+def test_a_loose_bound_refuses_the_tails():
+    """A remainder too large for the gathered tails sends the caller to the whole sample."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, 1.0)
+    stats = np.empty(6)
+    assert not _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats,
+                                   np.empty(n), np.empty(n))  # fmt: skip
+
+
+def test_an_understated_bound_would_be_caught_by_the_comparison():
+    """The whole-sample comparison above can fail: with a bound far below the true remainder
+    (up to +-3 here, L's std is 2) the tails miss order statistics and the result differs
+    from numpy's."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, 0.2)
+    stats = np.empty(6)
+    took = _kernels.tail_stats(x, n, q, 1e-3 * bound, tails, limits, counts, stats,
+                               np.empty(n), np.empty(n))  # fmt: skip
+    assert took
+    assert not np.allclose(stats[2:], testing.sample_stats(x)[2:], rtol=1e-12)
