@@ -103,3 +103,18 @@ def test_an_understated_bound_would_be_caught_by_the_comparison():
                                np.empty(n), np.empty(n))  # fmt: skip
     assert took
     assert not np.allclose(stats[2:], testing.sample_stats(x)[2:], rtol=1e-12)
+
+
+def test_point_evaluation_matches_numpy_monomials():
+    """`poly_points` (the kernel of `HarmonicFit.field_at`) equals the monomials of each
+    point's displacement times its model's coefficients, evaluated by numpy."""
+    rng = np.random.default_rng(7)
+    exps = monomial_exponents()
+    cexp = rng.normal(size=(4, 3, len(exps)))
+    which = rng.integers(0, 4, 300).astype(np.int64)
+    u = rng.normal(size=(300, 3)) * 0.5
+    out = np.empty((300, 3))
+    _kernels.poly_points(cexp, which, exps, u, out)
+    mono = np.prod(u[:, None, :] ** exps[None], axis=2)
+    want = np.einsum("pm,pcm->pc", mono, cexp[which])
+    np.testing.assert_allclose(out, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())

@@ -19,6 +19,7 @@ from .coupled import (
 )
 from .harmonic import (
     expand_node,
+    poly_points,
 )
 from .harmonic_fit import (
     CHECK_FREE,
@@ -268,6 +269,7 @@ __all__ = [
     "coupled_probe_errors",
     "htm_sweep",
     "expand_node",
+    "poly_points",
     "PART_BLOCK",
     "N_SLOTS",
     "homogeneous_parts",

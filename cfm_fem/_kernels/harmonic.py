@@ -2,8 +2,9 @@
 
 A node's model is B(x) = sum_j coef[j] F_j(u), u = (x - x_node) / scale, with F_j the harmonic
 basis fields. `expand_node` turns the coefficients into monomial coefficients per component
-once per node; a trial then costs the monomials of u and one multiply-add per monomial and
-component, with no cell to locate.
+once per node; a point then costs the monomials of u and one multiply-add per monomial and
+component, with no cell to locate (`poly_points`; the sweep's many trials per node use the
+unrolled `harmonic_parts`).
 """
 
 from __future__ import annotations
@@ -37,27 +38,42 @@ def expand_node(coef, n_basis, gmat, n_mono, out):
             out[c, m] = s
 
 
-@nb.njit(inline="always", **JIT)
-def poly_field(cexp, n_mono, exps, u0, u1, u2):
-    """Field of an expanded model (`expand_node`) at one scaled displacement u, T.
+@nb.njit(**JIT)
+def poly_points(cexp, which, exps, u, out):
+    """Fields of expanded models (`expand_node`) at scaled displacements, T.
 
-    ``exps``: `monomial_exponents` of the highest degree, shape (M, 3), int64.
-    Returns (B_x, B_y, B_z).
+    Parameters
+    ----------
+    cexp : ndarray, shape (k, 3, M), T
+        Monomial coefficients of k nodes' models.
+    which : ndarray, shape (m,), int64
+        Model of each point (row of ``cexp``).
+    exps : ndarray, shape (M, 3), int64
+        `monomial_exponents` of the degree of ``cexp``.
+    u : ndarray, shape (m, 3)
+        Scaled displacement of each point from its model's node.
+    out : ndarray, shape (m, 3), T
+        Output.
     """
-    px = np.empty(6)
-    py = np.empty(6)
-    pz = np.empty(6)
-    px[0] = py[0] = pz[0] = 1.0
-    for q in range(1, 6):
-        px[q] = px[q - 1] * u0
-        py[q] = py[q - 1] * u1
-        pz[q] = pz[q - 1] * u2
-    b0 = 0.0
-    b1 = 0.0
-    b2 = 0.0
-    for m in range(n_mono):
-        v = px[exps[m, 0]] * py[exps[m, 1]] * pz[exps[m, 2]]
-        b0 += cexp[0, m] * v
-        b1 += cexp[1, m] * v
-        b2 += cexp[2, m] * v
-    return b0, b1, b2
+    n_mono = cexp.shape[2]
+    top = 0
+    for mm in range(n_mono):
+        top = max(top, exps[mm, 0], exps[mm, 1], exps[mm, 2])
+    pw = np.empty((3, top + 1))
+    for i in range(which.shape[0]):
+        for a in range(3):
+            pw[a, 0] = 1.0
+            for q in range(1, top + 1):
+                pw[a, q] = pw[a, q - 1] * u[i, a]
+        c = cexp[which[i]]
+        b0 = 0.0
+        b1 = 0.0
+        b2 = 0.0
+        for mm in range(n_mono):
+            v = pw[0, exps[mm, 0]] * pw[1, exps[mm, 1]] * pw[2, exps[mm, 2]]
+            b0 += c[0, mm] * v
+            b1 += c[1, mm] * v
+            b2 += c[2, mm] * v
+        out[i, 0] = b0
+        out[i, 1] = b1
+        out[i, 2] = b2

@@ -167,8 +167,10 @@ class HarmonicFit:
             ok = dist <= self.reach_mm[g]
             nodes, inv = np.unique(g[ok], return_inverse=True)
             cexp = np.einsum("cmj,nj->ncm", gmat, self.coef[nodes])  # (nodes, 3, M)
-            mono = np.prod(u[ok, None, :] ** exps[None], axis=2)  # (ok, M)
-            out[a : a + len(p)][ok] = np.einsum("pm,pcm->pc", mono, cexp[inv])
+            val = np.empty((int(ok.sum()), 3))
+            _kernels.poly_points(cexp, inv.astype(np.int64), exps, np.ascontiguousarray(u[ok]),
+                                 val)  # fmt: skip
+            out[a : a + len(p)][ok] = val
             inside[a : a + len(p)] = ok
         return out, inside
 
