@@ -11,6 +11,7 @@ import pytest
 from cfm_fem import testing
 from cfm_fem.cli import main
 from cfm_fem.models.field import FieldMap
+from cfm_fem.models.harmonic import fit_harmonic
 from cfm_fem.models.harmonic_basis import field_basis, monomial_exponents
 from cfm_fem.models.sweep import SweepConfig, summarize
 from cfm_fem.workflows.sweep.in_memory import run_sweep
@@ -262,3 +263,12 @@ def test_compare_and_diagnose_take_a_harmonic_reference_map(tmp_path):
         if model == "harmonic":  # the recording is the reference's field plus noise
             assert not diag["mismatch"] and diag["fit"]["chi2_dof_before"] < 2.0
     assert rms["harmonic"] < 0.1 * rms["linear"]
+
+
+def test_a_harmonic_field_keeps_its_model_on_the_grids_edges():
+    """On a 12 mm grid of the hand-written field (its degree-5 term is strongest at the
+    corners) the one-sided neighbourhoods of the edges lift the degree-2 curl ratio above 3;
+    their chosen fits beat the unconstrained quadratic, so no node falls back."""
+    fm = grid_map(7, 21)
+    fit = fit_harmonic(fm.points, fm.B)
+    assert fit.use.all()

@@ -21,10 +21,14 @@ rule (`FALLBACK_RULE`), with r the weighted RMS residual over the neighbours' co
 
 * curl check: r of the harmonic fit of degree 2 exceeds `CURL_RATIO` times r of an
   unconstrained quadratic fit of each component (3 x 10 free coefficients against the
-  harmonic 15) of the same neighbourhood. A harmonic field gives a ratio of about 1 (at most
-  1.47 over the 46,051 nodes of the bundled quadrupole map); a uniform current density of
-  0.8 A/mm^2 (3.2 A/mm^2) in a conductor holding the neighbourhood, on top of the bundled
-  map's field, gives at least 4.4 (17).
+  harmonic 15) of the same neighbourhood, and r of the chosen fit (degree up to 5) is no
+  smaller than the unconstrained quadratic's. A harmonic field gives a ratio of about 1 (at
+  most 1.47 over the 46,051 nodes of the bundled quadrupole map); a uniform current density
+  of 0.8 A/mm^2 (3.2 A/mm^2) in a conductor holding the neighbourhood, on top of the bundled
+  map's field, gives at least 4.4 (17). The second condition keeps the one-sided
+  neighbourhoods of a grid's edges, where strong high-order terms can lift the degree-2 ratio
+  above 3 although the field is harmonic: there the chosen fit beats the quadratic, while a
+  current leaves every harmonic fit behind it.
 * misfit check: r of the chosen fit exceeds `MISFIT_REL` of the RMS variation of B over the
   neighbourhood (at most 6.5e-4 over the bundled map): a field jump at an iron surface, or
   noise comparable with the field's variation, that the smooth model cannot follow (a
@@ -79,7 +83,8 @@ MIN_NODES = 20
 FALLBACK_RULE = (
     f"a node falls back to the linear interpolant when the RMS residual of its harmonic fit "
     f"of degree {_kernels.FIT_CHECK_DEGREE} exceeds {CURL_RATIO:g} times that of an "
-    f"unconstrained polynomial fit of the same degree and neighbours (curl), or the residual of "
+    f"unconstrained polynomial fit of the same degree and neighbours and its chosen fit does "
+    f"no better than that unconstrained fit (curl), or the residual of "
     f"its chosen fit exceeds {MISFIT_REL:g} of the RMS variation of B over its neighbours "
     f"(misfit), or no fit of the lowest degree is determined; residuals below "
     f"{ROUNDING_FLOOR:g} of the RMS field are rounding"
@@ -274,7 +279,8 @@ def fallback_mask(residual_T, flag, checks) -> np.ndarray:
     floor = ROUNDING_FLOOR * checks[:, _kernels.CHECK_LEVEL]
     harm = checks[:, _kernels.CHECK_HARMONIC]
     with np.errstate(invalid="ignore"):
-        curl = (harm > CURL_RATIO * checks[:, _kernels.CHECK_FREE]) & (harm > floor)
+        free = checks[:, _kernels.CHECK_FREE]
+        curl = (harm > CURL_RATIO * free) & (residual_T > free) & (harm > floor)
         misfit = (residual_T > MISFIT_REL * checks[:, _kernels.CHECK_SPREAD]) & (residual_T > floor)
     failed = (flag & _kernels.FIT_FAILED) != 0
     return ~(curl | misfit | failed)
