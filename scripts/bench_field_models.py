@@ -250,7 +250,7 @@ def main(argv=None) -> int:
     print("sweep kernel, one U_p value (20 um): "
           + ", ".join(f"{n} {c * 1e9:.0f} ns" for n, c in cost.items())
           + f"; harmonic / linear = {cost['harmonic'] / cost['linear']:.2f}")  # fmt: skip
-    cost = evaluation_cost(fm, fit, nodes, 10000, args.seed)
+    cost = evaluation_cost(fm, fit, nodes, 1000, args.seed)
     print("field at arbitrary points (field_at, as compare, diagnose and coupled use it), CPU "
           "time per point, one thread: "
           + ", ".join(f"{n} {c * 1e9:.0f} ns" for n, c in cost.items())
