@@ -31,15 +31,20 @@ def main():
     longitudinal = grid.slice(normal="y", origin=c)
     transverse = grid.slice(normal="z", origin=c)
     clim = [0.0, float(np.nanmax(grid[a.array]))]
-    bar = dict(title=f"U_f (95 %), units of 1e-4 x {b_ref:.3g} T", n_labels=5, fmt="%.0f")
+    # the bar's title goes in its own text: a horizontal bar draws title and labels on one line
+    bar = dict(title="", n_labels=5, fmt="%.0f", position_x=0.42, position_y=0.06, width=0.5,
+               height=0.1)  # fmt: skip
     p = pv.Plotter(off_screen=True, shape=(1, 2), window_size=(1600, 560), border=False)
     p.subplot(0, 0)
-    p.add_mesh(longitudinal, scalars=a.array, cmap="viridis", clim=clim, scalar_bar_args=bar)
+    p.add_mesh(longitudinal, scalars=a.array, cmap="viridis", clim=clim, scalar_bar_args=bar,
+               nan_opacity=0.0)  # fmt: skip
     p.add_text(f"U_p = {up:g} um: x-z plane through the axis (z horizontal)", font_size=10)
+    p.add_text(f"U_f (95 %), units of 1e-4 x {b_ref:.3g} T", position=(20, 40), font_size=9)
     p.view_zx()
     p.camera.zoom(1.3)
     p.subplot(0, 1)
-    p.add_mesh(transverse, scalars=a.array, cmap="viridis", clim=clim, show_scalar_bar=False)
+    p.add_mesh(transverse, scalars=a.array, cmap="viridis", clim=clim, show_scalar_bar=False,
+               nan_opacity=0.0)  # fmt: skip
     p.add_text("x-y slice at the magnet centre", font_size=10)
     p.view_xy()
     p.screenshot(a.png)
