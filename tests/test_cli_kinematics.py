@@ -72,6 +72,12 @@ def test_tolerance_design_in_reverse(tmp_path, capsys):
         mc = d["plan_check_mc"][a]["U_p_um"]
         assert mc == pytest.approx(d["up_after_plan_um"][j], abs=5 * 13 / np.sqrt(3000) + 0.1)
     assert (out / "bench_plan.toml").exists()
+    # the report: the plan, its Monte Carlo check and every error's factor
+    html = (out / "report.html").read_text()
+    assert "the plan below meets the target" in html and 'id="plan"' in html
+    assert "plan, Monte Carlo (3000 trials)" in html
+    assert all(f">{s['name']}<" in html for s in d["plan"])
+    assert html.count("<tr>") >= 21 + 1 + len(d["plan"]) and (out / "up_share.png").exists()
     text = capsys.readouterr().out
     assert "factor" in text and "up_share X/Y/Z %" in text
     assert "up_share = the error's share of U_p^2 = sys^2 + u^2" in " ".join(text.split())

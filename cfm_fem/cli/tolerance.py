@@ -63,7 +63,11 @@ def add_args(p):
     p.add_argument(
         "--bench", metavar="B.toml", help="bench file (default: the CFM reference bench)"
     )
-    p.add_argument("--out", metavar="DIR", help="write DIR/tolerance.json and DIR/bench_plan.toml")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="write DIR/tolerance.json, DIR/bench_plan.toml and DIR/report.html",
+    )
     p.add_argument(
         "--check",
         type=trial_count_type("--check"),
@@ -108,13 +112,21 @@ def _run(args) -> int:
         d["plan_check_mc"]["trials"] = res.trials
     _print(d)
     if args.out:
+        from ..models.kinematics.budget import UP_SHARE_MEANING
+        from ..report.tolerance import tolerance_report  # matplotlib: loaded only when used
+
         d["bench"] = bench_description(bench)
-        text = json_text(_inf_as_text(d))
+        doc = _inf_as_text(d)
+        rep = tolerance_report(doc, UP_SHARE_MEANING, getattr(args, "command_line", None))
         out = Path(args.out)
-        with atomic_paths([out / "tolerance.json", out / "bench_plan.toml"]) as (tj, tb):
-            write_text(tj, text)
+        names = ["tolerance.json", "bench_plan.toml", "report.html", *rep.images]
+        with atomic_paths([out / n for n in names]) as (tj, tb, th, *images):
+            write_text(tj, json_text(doc))
             write_bench(tb, plan_bench)
-        print(f"wrote {args.out}/tolerance.json and {args.out}/bench_plan.toml")
+            write_text(th, rep.render())
+            for path, png in zip(images, rep.images.values(), strict=True):
+                path.write_bytes(png)
+        print(f"wrote {args.out}/tolerance.json, bench_plan.toml and report.html")
     return 0
 
 

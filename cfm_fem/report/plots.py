@@ -25,6 +25,7 @@ __all__ = [
     "residual_figure",
     "uf_slices",
     "count_histograms",
+    "share_bars",
 ]
 
 DPI = 110
@@ -280,4 +281,27 @@ def count_histograms(histograms, labels, title: str, unit: str = "units") -> byt
         axes[k // cols][k % cols].set_visible(False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
+    return png_bytes(fig)
+
+
+def share_bars(names, shares, title: str) -> bytes:
+    """Horizontal bars of each name's share per axis.
+
+    Parameters
+    ----------
+    names : list of str, length k
+    shares : ndarray, shape (k, 3)
+        Per name and axis X, Y, Z (any unit, e.g. %).
+    title : str
+    """
+    k = len(names)
+    fig, ax = plt.subplots(figsize=(7.0, 0.45 * k + 1.2))
+    y = np.arange(k)
+    for a, label in enumerate("XYZ"):
+        ax.barh(y + (a - 1) * 0.27, shares[:, a], height=0.27, label=label)
+    ax.set_yticks(y, names)
+    ax.invert_yaxis()
+    ax.axvline(0.0, color="k", lw=0.6)
+    ax.legend(loc="lower right")
+    ax.set_title(title)
     return png_bytes(fig)
