@@ -129,3 +129,26 @@ def test_design_help(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "--uf-max X" in out and "--coverage P" in out and "--region" in out
+
+
+def test_cli_design_under_the_harmonic_model_answers_for_every_node(tmp_path):
+    """`--field-model harmonic`: a field that is exactly a harmonic potential's gradient keeps
+    its model at every node, border nodes included, where the linear model loses trials."""
+    ax = np.arange(-3.0, 4.0)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    B = pts @ np.diag([0.2, -0.25, 0.05]).T + [0.0, 0.0, 1.0]  # div B = curl B = 0
+    path = tmp_path / "harmonic.csv"
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    docs = {}
+    for model in ("linear", "harmonic"):
+        out = tmp_path / model
+        argv = ["design", str(path), "--uf-max", "100", "--up", "0:100:50", "--trials", "500",
+                "--out", str(out), "--field-model", model]  # fmt: skip
+        assert main(argv) == 0
+        docs[model] = json.loads((out / "design.json").read_text())
+    assert docs["harmonic"]["field_model"] == "harmonic"
+    assert docs["harmonic"]["nodes"][1:] == [343, 343]
+    assert docs["linear"]["nodes"][1] < 343
+    s = json.loads((tmp_path / "harmonic" / "summary.json").read_text())
+    assert s["harmonic"]["linear_fallback_nodes"] == 0

@@ -15,7 +15,7 @@ from ..errors import CfmInputError
 from . import option_type
 from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import note_first_compile, progress_bar
-from ._reader import add_reader_args, reader_kwargs
+from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
 
 NAME = "design"
 HELP = "largest U_p that keeps U_f <= X units over 95 %% of the nodes (or a region)"
@@ -52,6 +52,7 @@ def add_args(p):
         default="exclude",
         help="trials that leave the map: as in cfm-fem sweep (default exclude)",
     )
+    add_field_model_arg(p, "FIELD")
     add_reader_args(p)
 
 
@@ -92,7 +93,7 @@ def _run(args, up) -> int:
     if not inside.any():
         raise CfmInputError(f"--region holds none of the {fm.n_nodes} nodes of {args.field}")
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
-                      outside=args.outside)  # fmt: skip
+                      outside=args.outside, field_model=args.field_model)  # fmt: skip
     print(f"cfm-fem design: {fm.n_nodes} nodes from {fm.source} ({int(inside.sum())} in the "
           f"region); U_p = {', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node",
           file=sys.stderr)  # fmt: skip
@@ -113,6 +114,7 @@ def _run(args, up) -> int:
         "region_mm": None if args.region is None else args.region.tolist(),
         "region_nodes": int(inside.sum()),
         "b_ref_T": summary["b_ref_T"],
+        "field_model": cfg.field_model,
         "trials": cfg.trials,
         "seed": cfg.seed,
         "definition": "largest U_p whose coverage quantile of U_f over the region's nodes with "
