@@ -67,6 +67,23 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         return _diagnose(prob, progress, **opts)
 
 
+def _registration_prior_doc(prob: Problem) -> dict | None:
+    """The registration prior the calibration used (1 sigma per axis, um and urad) and the
+    source of each (an argument, the bench file's key, or the default)."""
+    prior = prob.ctx.get("registration_prior")
+    if prior is None:
+        return None
+    doc = {
+        "translation_um": round(prior["translation_mm"] * 1e3, 9),
+        "rotation_urad": round(prior["rotation_rad"] * 1e6, 9),
+        "translation_source": prior["translation_source"],
+        "rotation_source": prior["rotation_source"],
+    }
+    if "bench file" in (doc["translation_source"], doc["rotation_source"]):
+        doc["bench_file"] = prior["bench_file"]
+    return doc
+
+
 def _calibrate(prob: Problem) -> SimpleNamespace:
     """Fit the baseline (what the model already contains) and describe the calibration."""
     base = stack(prob.baseline)
@@ -101,6 +118,7 @@ def _calibrate(prob: Problem) -> SimpleNamespace:
         ],
         **ident,
         "correlated_pairs": correlated_pairs(fit_b, base.names),
+        "registration_prior": _registration_prior_doc(prob),
     }
     return SimpleNamespace(base=base, sigma0=sigma0, fit_b=fit_b, ident=ident, calib=calib)
 
