@@ -316,7 +316,9 @@ def probe_misalignment(prob):
                 J[:, i, k] = B[:, j] * 1e-3
                 names.append(f"m_{'xyz'[i]}{'xyz'[j]}")
                 k += 1
-    return _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+    blk = _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+    blk.element = (0, 0, 1, 1, 2, 2)
+    return blk
 
 
 def sensor_offset(prob):
@@ -365,7 +367,9 @@ def planar_hall(prob):
     for i in range(3):
         j, k = [c for c in range(3) if c != i]
         J[:, i, i] = B[:, j] * B[:, k]
-    return _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+    blk = _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+    blk.element = (0, 1, 2)
+    return blk
 
 
 def hall_offset_gain(prob):

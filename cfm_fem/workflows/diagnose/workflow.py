@@ -162,20 +162,46 @@ def _lack_of_fit(cols, fit1, sigma) -> float:
     return max(1.0, float(np.mean(r[np.isfinite(r)] ** 2)))
 
 
+def _per_gain(cands, model, fit1, names) -> tuple[np.ndarray, np.ndarray]:
+    """Value (p,) and covariance (p, p) of the parameters ``names``, those of an effect on the
+    field an element senses (:attr:`Columns.element`) divided by (1 + that element's gain):
+    the reading is the sensed field, the effect's change included, times (1 + gain), so the
+    columns fit the parameter times (1 + gain). Uncertainty propagated (gains included)."""
+    idx = [model.names.index(n) for n in names]
+    element = {}
+    for c in cands:
+        if c.cols.element is not None:
+            element.update(zip(c.cols.names, c.cols.element, strict=True))
+    gains = [f"gain_{a}" for a in "xyz"]
+    ext = list(idx) + [model.names.index(g) for g in gains if g in model.names]
+    theta = fit1.theta[idx].copy()
+    T = np.eye(len(idx), len(ext))  # Jacobian of the reported values by the fitted ones
+    for r, n in enumerate(names):
+        if n not in element or gains[element[n]] not in model.names:
+            continue
+        k = ext.index(model.names.index(gains[element[n]]))
+        f = 1.0 + 1e-2 * fit1.theta[ext[k]]  # gains in %
+        theta[r] = fit1.theta[idx[r]] / f
+        T[r, r] = 1.0 / f
+        T[r, k] = -1e-2 * fit1.theta[idx[r]] / f**2
+    return theta, T @ fit1.cov[np.ix_(ext, ext)] @ T.T
+
+
 def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     """The ``effects[]`` entry of one effect (one or several of its functions accepted)."""
     c0 = cands[0]
     names = [n for c in cands for n in c.param_names]
     idx = [model.names.index(n) for n in names]
-    th, sd = fit1.theta[idx], fit1.std[idx]
+    th, cov = _per_gain(cands, model, fit1, names)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     keep = _determined(c0.name, names, sd)
     units = [model.units[i] for i in idx]
     base_prior = dict(
         zip(base.names, zip(base.prior_mean, base.prior_std, strict=True), strict=True)
     )
-    det = [i for i, k in zip(idx, keep, strict=True) if k]
-    sd_det = np.sqrt(np.clip(np.diag(fit1.cov)[det], 1e-300, None))
-    corr = fit1.cov[np.ix_(det, det)] / np.outer(sd_det, sd_det)
+    det = [k for k, ok in enumerate(keep) if ok]
+    sd_det = np.sqrt(np.clip(np.diag(cov)[det], 1e-300, None))
+    corr = cov[np.ix_(det, det)] / np.outer(sd_det, sd_det)
     released = [n for c in cands for n in c.released]
     info = {}
     for c in cands:
