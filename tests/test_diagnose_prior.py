@@ -1,7 +1,8 @@
-"""The magnet's survey std of the bench file is the prior of a Hall map's registration.
+"""What the diagnosis takes from the bench and the probe for its reported parameters.
 
 ``[magnet] survey_std_um`` and ``survey_std_urad`` (1 sigma per axis) set the prior of the
-magnet-to-bench registration the diagnosis fits; without them it takes 50 um and 100 urad.
+magnet-to-bench registration the diagnosis fits; without them it takes 50 um and 100 urad. An
+effect on the field an element senses is reported per that element's gain.
 """
 
 from __future__ import annotations
@@ -108,3 +109,33 @@ def test_bench_file_prior_reaches_the_fit(tmp_path):
         std[name] = np.array([cal.fit_b.std[cal.base.names.index(n)] for n in REG_NAMES])
     assert np.all(std["survey"][:3] < 0.95 * std["default"][:3]), std
     assert np.all(std["survey"] <= std["default"] * (1 + 1e-9)), std
+
+
+def test_mixing_is_reported_per_element_gain():
+    """An element reads (1 + gain) times the field it senses, its mixing included: the fit's
+    mixing column takes m (1 + gain); the reported m is divided by the fitted gain."""
+    from types import SimpleNamespace
+
+    from cfm_fem.workflows.diagnose.calibrate import Columns, fit_map, stack
+    from cfm_fem.workflows.diagnose.workflow import _per_gain
+
+    rng = np.random.default_rng(3)
+    B = rng.normal(0.0, 0.2, (400, 3))  # sensed field, T
+    m_zx, gain_z = 0.5, 3.0  # mrad, %
+    y = np.zeros_like(B)
+    y[:, 2] = (1 + 1e-2 * gain_z) * (B[:, 2] + 1e-3 * m_zx * B[:, 0]) - B[:, 2]
+    Jg = np.zeros((400, 3, 3))
+    Jg[:, [0, 1, 2], [0, 1, 2]] = B * 1e-2
+    gains = Columns(Jg, ["gain_x", "gain_y", "gain_z"], ["%"] * 3, np.zeros(3),
+                    np.full(3, 10.0), "probe")  # fmt: skip
+    Jm = np.zeros((400, 3, 1))
+    Jm[:, 2, 0] = B[:, 0] * 1e-3
+    mix = Columns(Jm, ["m_zx"], ["mrad"], np.zeros(1), np.full(1, 1e3), "probe_misalignment",
+                  element=(2,))  # fmt: skip
+    model = stack([gains, mix])
+    fit = fit_map(y, np.full_like(y, 1e-7), model)
+    assert fit.theta[-1] == pytest.approx(m_zx * (1 + 1e-2 * gain_z), rel=1e-6)
+    cand = SimpleNamespace(cols=mix)
+    theta, cov = _per_gain([cand], model, fit, ["m_zx"])
+    assert theta[0] == pytest.approx(m_zx, rel=1e-6)
+    assert cov.shape == (1, 1) and 0 < cov[0, 0] <= fit.cov[-1, -1] * 1.01
