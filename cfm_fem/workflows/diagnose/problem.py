@@ -108,7 +108,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
 
     _, point = np.unique(prob.point[keep], return_inverse=True)
-    whole = ("upts", "V", "point_ids", "pose")  # not per row
+    whole = ("upts", "V", "point_ids", "pose", "axis_var")  # not per row
     ctx = {k: take(v) if k not in whole else v for k, v in prob.ctx.items()}
     if "point_ids" in prob.ctx:
         ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
@@ -559,6 +559,7 @@ def hall_problem(
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
+    ctx_vib = {}  # the vibration's lever (n, 3, 3) and variance per axis (3,), with a bench
     q = np.zeros_like(p)
     disp = None
     if bench is not None:
@@ -584,6 +585,7 @@ def hall_problem(
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         nv = bench.noise_std_mm() ** 2
         var_known = np.einsum("nik,k->ni", lever**2, nv)
+        ctx_vib = {"lever": lever, "axis_var": nv}
     blocks += reg_gain
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
@@ -614,6 +616,7 @@ def hall_problem(
         "point_ids": ids,
         "bench": bench,
         "bench_disp": disp,
+        **ctx_vib,
     }
     return Problem(
         kind="hall",

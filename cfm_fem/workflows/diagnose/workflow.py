@@ -9,7 +9,7 @@ document (``mismatch``, ``located``, ``effects`` sorted by evidence, strongest f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,7 +20,7 @@ from .advice import advise
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .conflicts import prior_conflicts
 from .locate import isolated_planes, locate
-from .noise import estimate_noise
+from .noise import estimate_noise, vibration_covariance
 from .problem import Problem, noise_sigma, subset_rows
 from .register import applies, pose_step, register, registration_note, repose
 from .select import cv_rms, select_effects, structural_absorption
@@ -268,8 +268,15 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     return e
 
 
-def _effects_out(sel, fit1, base) -> list:
-    """One entry per effect, the functions of one effect merged, strongest first."""
+def _effects_out(prob, sel, fit1, base) -> list:
+    """One entry per effect, the functions of one effect merged, strongest first; their std
+    with the vibration correlated across the components of a reading
+    (:func:`~cfm_fem.workflows.diagnose.noise.vibration_covariance`)."""
+    if sel.accepted:
+        model = sel.model
+        vk = prob.var_known if model.var_known is None else model.var_known
+        noise = estimate_noise(prob, fit1.resid, fit1.edf, vk)
+        fit1 = replace(fit1, cov=vibration_covariance(prob, model, fit1, sel.sigma, noise))
     groups: dict = {}
     for c in sel.accepted:
         groups.setdefault(c.name, []).append(c)
@@ -457,7 +464,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     p = a.prob
     cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
     cv_a, _ = cv_rms(p, sel.sigma, sel.model, sel.folds) if sel.selected else (cv_b, None)
-    eff_out = _effects_out(sel, fit1, cal.base)
+    eff_out = _effects_out(p, sel, fit1, cal.base)
     cand_out = _candidate_table(sel, a.absorbed, a.absorption)
     implausible = [
         {"name": c["name"], "reason": c["reason"], "delta_bic": c["delta_bic"]}
