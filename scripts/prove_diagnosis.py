@@ -50,13 +50,14 @@ from cfm_fem.simulation import CASES, write_case  # noqa: E402
 from cfm_fem.simulation.scoring import GOALS, score, summarise  # noqa: E402
 
 
-def tasks(cases, nulls: int, seeds: int) -> list:
-    """(case, seed) of every run; seeds differ between cases (a hash of the name)."""
+def tasks(cases, nulls: int, seeds: int, skip: int = 0) -> list:
+    """(case, seed) of every run; seeds differ between cases (a hash of the name). ``skip``:
+    leave out the first seeds of each case (more runs of a case after a run of fewer)."""
     out = []
     for case in cases:
         n = nulls if CASES[case][2] is None else seeds
         base = 1000 * (zlib.crc32(case.encode()) % 100000)
-        out += [(case, base + i) for i in range(n)]
+        out += [(case, base + i) for i in range(skip, skip + n)]
     return out
 
 
@@ -174,6 +175,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--nulls", type=int, default=50, help="null recordings of each kind")
     ap.add_argument("--seeds", type=int, default=20, help="seeds per concealed-effect case")
+    ap.add_argument(
+        "--skip-seeds",
+        type=int,
+        default=0,
+        metavar="N",
+        help="leave out the first N seeds of each case (--seeds more after a run of N)",
+    )
     ap.add_argument("--small", action="store_true", help="small grids, 4 repetitions")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
     ap.add_argument("--out", default="proof", help="output folder")
@@ -197,7 +205,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     jobs = [
         (c, s, str(out), a.small, not a.no_velocities, a.keep)
-        for c, s in tasks(cases, a.nulls, a.seeds)
+        for c, s in tasks(cases, a.nulls, a.seeds, a.skip_seeds)
     ]
     size = "small" if a.small else "full (936 points x 10 repetitions)"
     print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)

@@ -352,7 +352,7 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
     delay = _read_delay(doc, data)
 
     mag_t = _get(doc, data, "magnet", "", "table", default={})
-    _check_keys(doc, mag_t, {"rotation_deg", "translation_mm"}, "magnet")
+    _check_keys(doc, mag_t, {"rotation_deg", "translation_mm", *_SURVEY_KEYS}, "magnet")
     rot = _get(doc, mag_t, "rotation_deg", "magnet", "vector3", default=np.zeros(3))
     if np.any(np.abs(rot) > MAX_ROTATION_DEG):
         raise doc.error(
@@ -360,6 +360,7 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
             f"must be within +-{MAX_ROTATION_DEG:g} deg per angle; found {_shown(rot.tolist())}",
         )
     trans = _offset(doc, mag_t, "translation_mm", "magnet")
+    survey = {k: _survey_std(doc, mag_t, k) for k in _SURVEY_KEYS}
 
     ass_t = _get(doc, data, "assumptions", "", "table", default={})
     _check_keys(doc, ass_t, {"notes"}, "assumptions")
@@ -376,7 +377,12 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
             errors=errors,
             vibration_std_mm=vib,
             delay=delay,
-            magnet=MagnetPlacement(np.deg2rad(rot), trans),
+            magnet=MagnetPlacement(
+                np.deg2rad(rot),
+                trans,
+                survey_std_mm=survey["survey_std_um"],
+                survey_std_rad=survey["survey_std_urad"],
+            ),
             grid=Grid(**grid_args),
             assumptions=tuple(notes),
             source=source,
@@ -413,6 +419,25 @@ def _load_toml(text: str, source: str) -> dict:
             "plausible size",
             file=source,
         ) from None
+
+
+#: Keys of the magnet's survey uncertainty (1 sigma per axis): key -> (unit, factor to mm or
+#: rad, largest value: 1 m, 1 rad).
+_SURVEY_KEYS = {"survey_std_um": ("um", 1e-3, 1e6), "survey_std_urad": ("urad", 1e-6, 1e6)}
+
+
+def _survey_std(doc, table, key) -> float | None:
+    """``[magnet] survey_std_um`` / ``survey_std_urad`` in mm / rad, None when absent."""
+    v = _get(doc, table, key, "magnet", "number")
+    if v is None:
+        return None
+    unit, factor, largest = _SURVEY_KEYS[key]
+    if not 0.0 < v <= largest:
+        raise doc.error(
+            f"magnet.{key}",
+            f"must be > 0 and <= {largest:g} {unit} (a standard deviation); found {_shown(v)}",
+        )
+    return v * factor
 
 
 def _offset(doc, table, key, prefix, required=False) -> np.ndarray:
@@ -579,6 +604,7 @@ def bench_to_toml(bench: Bench) -> str:
         "[magnet]",
         f"rotation_deg = {_fmt(np.rad2deg(bench.magnet.rotation_rad))}",
         f"translation_mm = {_fmt(bench.magnet.translation_mm)}",
+        *_survey_lines(bench.magnet),
         "",
         "[assumptions]",
         "notes = [",
@@ -587,6 +613,16 @@ def bench_to_toml(bench: Bench) -> str:
         "",
     ]
     return "\n".join(out)
+
+
+def _survey_lines(magnet) -> list:
+    """The ``[magnet]`` survey keys a bench states (none when it states none)."""
+    out = []
+    values = (magnet.survey_std_mm, magnet.survey_std_rad)
+    for key, value in zip(_SURVEY_KEYS, values, strict=True):
+        if value is not None:
+            out.append(f"{key} = {_fmt(float(f'{value / _SURVEY_KEYS[key][1]:.12g}'))}")
+    return out
 
 
 def write_bench(path, bench: Bench) -> None:

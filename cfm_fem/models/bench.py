@@ -174,10 +174,15 @@ class MagnetPlacement:
     """Pose of the magnet (map) frame in the bench frame: p_bench = R p_magnet + t.
 
     ``rotation_rad`` holds (phi, theta, psi), the zyx angles of paper eq. 4.
+    ``survey_std_mm`` and ``survey_std_rad``: the 1-sigma uncertainty of that pose after the
+    survey (translation per axis, mm; rotation per axis, rad), the prior of a diagnosis's
+    magnet-to-bench registration; None where the bench file does not state it.
     """
 
     rotation_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
     translation_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    survey_std_mm: float | None = None
+    survey_std_rad: float | None = None
 
 
 @dataclass(frozen=True)

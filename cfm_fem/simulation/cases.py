@@ -85,6 +85,27 @@ def _reference(kind_ref: str, size: str, folder: Path) -> Path:
     return path
 
 
+def _bench_file(folder: Path) -> Path:
+    """The bench file of a Hall map, written once per folder: the shipped reference bench with
+    the survey uncertainty of the magnet's placement (:data:`.hall.SURVEY_STD`) stated in its
+    ``[magnet]`` table, as a user states the survey of their magnet."""
+    from importlib import resources
+
+    path = folder / "bench_survey.toml"
+    if path.exists():
+        return path
+    text = resources.files("cfm_fem.data").joinpath("cfm_reference_bench.toml").read_text()
+    t_um, r_urad = hall.SURVEY_STD
+    survey = (
+        "# survey of the simulated magnet's placement, 1 sigma per axis\n"
+        f"survey_std_um = {t_um!r}\nsurvey_std_urad = {r_urad!r}\n"
+    )
+    head, sep, tail = text.partition("\n[magnet]\n")
+    if not sep:
+        raise ValueError("the shipped reference bench has no [magnet] table")
+    return output.write_text(path, head + sep + survey + tail)
+
+
 def write_case(case: str, seed: int, folder, size: str = "full", velocities: bool = True,
                n_reps=None) -> dict:  # fmt: skip
     """Simulate one case and write ``<case>_<seed>.csv``, ``<case>_<seed>.truth.json`` and, for a
@@ -93,8 +114,11 @@ def write_case(case: str, seed: int, folder, size: str = "full", velocities: boo
     Returns
     -------
     dict
-        ``recording``, ``truth`` and ``reference`` (None for the tracker) paths, ``kind``,
-        ``expected`` and the ``args`` of ``cfm-fem diagnose`` (less ``--out``).
+        ``recording``, ``truth``, ``reference`` and ``bench`` (None for the tracker) paths,
+        ``kind``, ``expected`` and the ``args`` of ``cfm-fem diagnose`` (less ``--out``). A
+        Hall map's bench file is the reference bench with the simulated survey uncertainty of
+        the magnet (``[magnet] survey_std_um``, ``survey_std_urad``): the diagnosis's
+        registration prior.
     """
     kind, effects, expected = CASES[case]
     folder = Path(folder)
@@ -114,8 +138,10 @@ def write_case(case: str, seed: int, folder, size: str = "full", velocities: boo
     )
     tru = output.write_json(stem.with_suffix(".truth.json"), truth)
     if kind == "tracker":
-        return {"recording": rec, "truth": tru, "reference": None, "kind": kind,
+        return {"recording": rec, "truth": tru, "reference": None, "bench": None, "kind": kind,
                 "expected": expected, "args": ["--tracker", str(rec)]}  # fmt: skip
     ref = _reference("harmonics" if "fringe_field_3d" in effects else "map", size, folder)
-    return {"recording": rec, "truth": tru, "reference": ref, "kind": kind, "expected": expected,
-            "args": ["--hall-map", str(rec), "--reference", str(ref)]}  # fmt: skip
+    bench = _bench_file(folder)
+    args = ["--hall-map", str(rec), "--reference", str(ref), "--bench", str(bench)]
+    return {"recording": rec, "truth": tru, "reference": ref, "bench": bench, "kind": kind,
+            "expected": expected, "args": args}  # fmt: skip

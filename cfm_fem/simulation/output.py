@@ -10,7 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_csv", "write_json", "write_reference_table", "write_harmonics", "COLUMN_FORMAT"]
+__all__ = [
+    "write_csv",
+    "write_json",
+    "write_text",
+    "write_reference_table",
+    "write_harmonics",
+    "COLUMN_FORMAT",
+]
 
 #: printf format of each column (positions to 1 nm, fields to 1 nT).
 COLUMN_FORMAT = {
@@ -54,6 +61,11 @@ def write_csv(path, columns: dict, comments=(), drop=()) -> Path:
 def write_json(path, obj) -> Path:
     """Write ``obj`` as indented JSON, atomically."""
     return _atomic_write(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
+
+
+def write_text(path, text: str) -> Path:
+    """Write ``text`` (a bench file) atomically."""
+    return _atomic_write(path, text)
 
 
 def write_reference_table(path, points_mm, b_t, comments=()) -> Path:

@@ -81,6 +81,12 @@ class Columns:
         ends) carries the signal: the reported std of its physical parameters is scaled by the
         square root of the reduced chi2 of the fitted model there when above 1 (its lack of
         fit). None: the model is taken as exact.
+    element : tuple of int, optional
+        For an effect on the field a Hall element senses (``probe_misalignment``,
+        ``planar_hall``): the element (0, 1, 2 for x, y, z) whose reading each parameter's
+        column changes. The element's gain scales that change as it scales the field, so the
+        columns fit the parameter times (1 + gain); the reported value is divided by it.
+        None: no such conversion.
     """
 
     J: np.ndarray
@@ -100,6 +106,7 @@ class Columns:
     info: dict | None = None
     bounds_why: list | None = None
     model_rows: np.ndarray | None = None
+    element: tuple | None = None
 
     @property
     def p(self) -> int:
@@ -136,6 +143,7 @@ class Columns:
             self.info,
             None if self.bounds_why is None else [self.bounds_why[k] for k in keep],
             self.model_rows,
+            None if self.element is None else tuple(self.element[k] for k in keep),
         )
 
     def released(self, group: str) -> Columns:

@@ -27,7 +27,10 @@ Positioning (tracker), displacement of the probe in the bench frame:
 
 Field (Hall map), change of the measured field in the magnet frame:
 
-* ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad).
+* ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad). Element i reads
+  the field it senses, mixing included, times (1 + gain_i): the columns fit m_ij (1 + gain_i),
+  and m_ij is reported divided by the fitted gain (:attr:`Columns.element`; so is k_i of
+  ``planar_hall``).
 * ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um), d_ij
   the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
   common to all three is the magnet's registration, ``magnet_misalignment``).
@@ -316,7 +319,9 @@ def probe_misalignment(prob):
                 J[:, i, k] = B[:, j] * 1e-3
                 names.append(f"m_{'xyz'[i]}{'xyz'[j]}")
                 k += 1
-    return _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+    blk = _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+    blk.element = (0, 0, 1, 1, 2, 2)
+    return blk
 
 
 def sensor_offset(prob):
@@ -365,7 +370,9 @@ def planar_hall(prob):
     for i in range(3):
         j, k = [c for c in range(3) if c != i]
         J[:, i, i] = B[:, j] * B[:, k]
-    return _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+    blk = _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+    blk.element = (0, 1, 2)
+    return blk
 
 
 def hall_offset_gain(prob):

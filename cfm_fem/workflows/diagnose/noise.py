@@ -32,7 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
-__all__ = ["NoiseModel", "estimate_noise", "line_triples", "reference_error_var"]
+__all__ = [
+    "NoiseModel",
+    "estimate_noise",
+    "line_triples",
+    "reference_error_var",
+    "vibration_covariance",
+]
 
 #: Second differences beyond this many model standard deviations are gross outliers (a bad
 #: plane, a glitch), left out of the noise estimate; they are for `locate` to find.
@@ -209,6 +215,52 @@ def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
     tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)
     floor = np.maximum(floor, tiny)
     return NoiseModel(floor=floor, scale=scale, source=source, dof=dof)
+
+
+def vibration_covariance(prob, model, fit, sigma, noise: NoiseModel) -> np.ndarray:
+    """Covariance of the parameters of ``fit`` with the vibration correlated across the
+    components of a reading.
+
+    The fit weighs each component of a reading on its own (``sigma``), but the bench's
+    vibration moves the probe as a whole: one displacement d of the probe changes every
+    component, dB = L d (``L`` = ``prob.ctx['lever']``, T/mm per bench-frame displacement), so
+    the components of one reading covary by sqrt(scale_a scale_b) (L diag(v) L^T)_ab, ``v``
+    the bench's vibration variance per axis and ``scale`` the noise model's. With S the
+    readings' covariance (its diagonal sigma^2), C the fit's posterior covariance and P the
+    prior precisions, the estimate's covariance is C (J^T W S W J + P) C, W = diag(sigma^-2)
+    (C itself when S is diagonal).
+
+    Parameters
+    ----------
+    prob : Problem
+        A Hall map with ``ctx['lever']`` (n, 3, 3) and ``ctx['axis_var']`` (3,), mm^2.
+    model : Columns
+    fit : Fit
+        ``fit_map(prob.y, sigma, model)``.
+    sigma : ndarray, shape (n, 3)
+    noise : NoiseModel
+        The noise model behind ``sigma`` (its vibration scale).
+
+    Returns
+    -------
+    ndarray, shape (p, p)
+        ``fit.cov`` where the problem has no lever or the model brings its own vibration
+        variance (:attr:`Columns.var_known`).
+    """
+    lever = prob.ctx.get("lever")
+    if lever is None or model.var_known is not None:
+        return fit.cov
+    root = np.sqrt(np.clip(noise.scale, 0.0, None))
+    Lv = lever * root[None, :, None]
+    S = np.einsum("nik,k,njk->nij", Lv, prob.ctx["axis_var"], Lv)
+    idx = np.arange(3)
+    S[:, idx, idx] = sigma**2
+    w = np.where(np.isfinite(sigma), 1.0 / sigma**2, 0.0)
+    K = model.J * w[..., None]
+    S = np.where(np.isfinite(S), S, 0.0)
+    M = np.einsum("nip,niq->pq", np.einsum("nij,nip->njp", S, K), K)
+    P = np.where(np.isfinite(model.prior_std) & (model.prior_std > 0), model.prior_std, np.inf)
+    return fit.cov @ (M + np.diag(1.0 / P**2)) @ fit.cov
 
 
 def reference_error_var(field_fn, pts, h: float) -> np.ndarray:

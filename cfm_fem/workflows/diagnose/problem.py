@@ -108,7 +108,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
 
     _, point = np.unique(prob.point[keep], return_inverse=True)
-    whole = ("upts", "V", "point_ids", "pose")  # not per row
+    whole = ("upts", "V", "point_ids", "pose", "axis_var")  # not per row
     ctx = {k: take(v) if k not in whole else v for k, v in prob.ctx.items()}
     if "point_ids" in prob.ctx:
         ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
@@ -180,16 +180,31 @@ def bench_columns(bench: Bench, q, lever_to=None) -> Columns:
     return Columns(J, list(ERROR_NAMES), units, mean, std, "bench")
 
 
-def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: float = 1e-3):
+#: Prior std of the tracker-to-bench registration: mm, rad (1 sigma per axis). The tracker is
+#: set up anywhere near the bench: its registration is found by the fit, not known before it.
+TRACKER_REG_STD_DEFAULT = (1.0, 1e-3)
+
+
+def tracker_problem(rec, bench: Bench, reg_std_mm: float | None = None,
+                    reg_std_rad: float | None = None):  # fmt: skip
     """Problem of a laser-tracker recording (bench frame, mm).
 
     Parameters
     ----------
     rec : Recording, kind 'tracker'
     bench : Bench
-    reg_std_mm, reg_std_rad : float
-        Prior std of the tracker-to-bench registration (translation mm, rotation rad).
+    reg_std_mm, reg_std_rad : float, optional
+        Prior std of the tracker-to-bench registration (translation mm, rotation rad);
+        None: :data:`TRACKER_REG_STD_DEFAULT`.
     """
+    t_mm, r_rad = TRACKER_REG_STD_DEFAULT
+    prior = {
+        "translation_mm": t_mm if reg_std_mm is None else float(reg_std_mm),
+        "rotation_rad": r_rad if reg_std_rad is None else float(reg_std_rad),
+        "translation_source": "default" if reg_std_mm is None else "argument",
+        "rotation_source": "default" if reg_std_rad is None else "argument",
+    }
+    reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     ids, point = np.unique(rec.point_id, return_inverse=True)
     q = rec.cmd
     nominal = bench.nominal_probe_mm(q)
@@ -232,7 +247,7 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float = 1.0, reg_std_rad: flo
         unit="um",
         var_known=np.zeros_like(y),
         baseline=[base, regc],
-        ctx={"bench": bench, "nominal": nominal, "point_ids": ids},
+        ctx={"bench": bench, "nominal": nominal, "point_ids": ids, "registration_prior": prior},
         notes=notes,
         vel=_velocities(rec, notes),
     )
@@ -425,13 +440,61 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
 
 
+#: Prior std of the magnet-to-bench registration where neither the caller nor the bench file
+#: (``[magnet] survey_std_um``, ``survey_std_urad``) states it: mm, rad (1 sigma per axis).
+SURVEY_STD_DEFAULT = (0.05, 1e-4)
+
+
+def registration_prior(bench: Bench | None, reg_std_mm=None, reg_std_rad=None) -> dict:
+    """The magnet-to-bench registration prior of a Hall map and where it comes from.
+
+    Each std is the one given, else the bench's survey (``[magnet] survey_std_um``,
+    ``survey_std_urad`` of its file), else :data:`SURVEY_STD_DEFAULT`.
+
+    Returns
+    -------
+    dict
+        ``translation_mm``, ``rotation_rad`` (1 sigma per axis), the source of each
+        (``translation_source``, ``rotation_source``: ``'argument'``, ``'bench file'`` or
+        ``'default'``) and ``bench_file`` (the bench's source).
+    """
+    magnet = None if bench is None else bench.magnet
+    stated = (None, None) if magnet is None else (magnet.survey_std_mm, magnet.survey_std_rad)
+    out = {"bench_file": None if bench is None else str(bench.source)}
+    given = (reg_std_mm, reg_std_rad)
+    keys = (("translation_mm", "translation_source"), ("rotation_rad", "rotation_source"))
+    for (k, k_src), g, b, d in zip(keys, given, stated, SURVEY_STD_DEFAULT, strict=True):
+        value, src = (g, "argument") if g is not None else (b, "bench file")
+        if value is None:
+            value, src = d, "default"
+        out[k], out[k_src] = float(value), src
+    return out
+
+
+def _prior_note(prior: dict) -> str:
+    """Where the registration prior of a Hall map comes from, for the notes."""
+    src = {prior["translation_source"], prior["rotation_source"]}
+    head = (
+        f"registration prior (survey of the magnet, 1 sigma per axis): "
+        f"{prior['translation_mm'] * 1e3:g} um, {prior['rotation_rad'] * 1e6:g} urad"
+    )
+    if src == {"bench file"}:
+        return f"{head} from [magnet] survey_std_um, survey_std_urad of {prior['bench_file']}"
+    if src == {"default"}:
+        return f"{head}, the default: the bench states no [magnet] survey_std_um, survey_std_urad"
+    return (
+        f"{head}; translation from the {prior['translation_source']}, rotation from the "
+        f"{prior['rotation_source']}"
+    )
+
+
 def hall_problem(
     rec,
     field_fn,
     b_ref: float,
     bench: Bench | None,
-    reg_std_mm: float = 0.05,
-    reg_std_rad: float = 1e-4,
+    reg_std_mm: float | None = None,
+    reg_std_rad: float | None = None,
     gain_std_pct: float = 0.15,
     smooth: bool = True,
     h: float = 0.5,
@@ -456,8 +519,10 @@ def hall_problem(
         Reference field of 'units' (1e-4 b_ref).
     bench : Bench or None
         None: no positioning-error columns (bench unknown).
-    reg_std_mm, reg_std_rad : float
-        Prior std of the magnet-to-bench registration (survey after alignment).
+    reg_std_mm, reg_std_rad : float, optional
+        Prior std of the magnet-to-bench registration (survey after alignment), mm and rad per
+        axis; None: the bench's ``[magnet] survey_std_um`` / ``survey_std_urad``, else
+        :data:`SURVEY_STD_DEFAULT` (:func:`registration_prior`).
     gain_std_pct : float
         Prior std of each Hall element's gain (S_HP of Table I), percent.
     smooth : bool
@@ -480,6 +545,11 @@ def hall_problem(
     upts, uinv = np.unique(np.round(p, 9), axis=0, return_inverse=True)
     uinv = uinv.reshape(-1)
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
+    rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
+                      reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
+                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes)  # fmt: skip
+    prior = registration_prior(bench, reg_std_mm, reg_std_rad)
+    reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
     B0, G = B0u[uinv], Gu[uinv]
     scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
@@ -489,6 +559,7 @@ def hall_problem(
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
+    ctx_vib = {}  # the vibration's lever (n, 3, 3) and variance per axis (3,), with a bench
     q = np.zeros_like(p)
     disp = None
     if bench is not None:
@@ -514,11 +585,10 @@ def hall_problem(
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         nv = bench.noise_std_mm() ** 2
         var_known = np.einsum("nik,k->ni", lever**2, nv)
+        ctx_vib = {"lever": lever, "axis_var": nv}
     blocks += reg_gain
-    notes.append(
-        f"registration prior: {reg_std_mm * 1e3:g} um, {reg_std_rad * 1e6:g} urad (survey); "
-        f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed"
-    )
+    notes.append(_prior_note(prior))
+    notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
     if ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
@@ -538,26 +608,15 @@ def hall_problem(
         "b_ref": b_ref,
         "pose": pose,
         "rows": np.arange(len(p)),
-        "rebuild": partial(
-            hall_problem,
-            rec,
-            field_fn,
-            b_ref,
-            bench,
-            reg_std_mm=reg_std_mm,
-            reg_std_rad=reg_std_rad,
-            gain_std_pct=gain_std_pct,
-            smooth=smooth,
-            h=h,
-            ref_spacing_mm=ref_spacing_mm,
-            ref_nodes=ref_nodes,
-        ),
+        "registration_prior": prior,
+        "rebuild": rebuild,
         "smooth": smooth,
         "upts": upts,
         "uinv": uinv,
         "point_ids": ids,
         "bench": bench,
         "bench_disp": disp,
+        **ctx_vib,
     }
     return Problem(
         kind="hall",
@@ -612,4 +671,7 @@ __all__ += [
     "AXES",
     "REG_NAMES",
     "posed_field",
+    "registration_prior",
+    "SURVEY_STD_DEFAULT",
+    "TRACKER_REG_STD_DEFAULT",
 ]

@@ -9,7 +9,7 @@ document (``mismatch``, ``located``, ``effects`` sorted by evidence, strongest f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,7 +20,7 @@ from .advice import advise
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .conflicts import prior_conflicts
 from .locate import isolated_planes, locate
-from .noise import estimate_noise
+from .noise import estimate_noise, vibration_covariance
 from .problem import Problem, noise_sigma, subset_rows
 from .register import applies, pose_step, register, registration_note, repose
 from .select import cv_rms, select_effects, structural_absorption
@@ -67,6 +67,23 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         return _diagnose(prob, progress, **opts)
 
 
+def _registration_prior_doc(prob: Problem) -> dict | None:
+    """The registration prior the calibration used (1 sigma per axis, um and urad) and the
+    source of each (an argument, the bench file's key, or the default)."""
+    prior = prob.ctx.get("registration_prior")
+    if prior is None:
+        return None
+    doc = {
+        "translation_um": round(prior["translation_mm"] * 1e3, 9),
+        "rotation_urad": round(prior["rotation_rad"] * 1e6, 9),
+        "translation_source": prior["translation_source"],
+        "rotation_source": prior["rotation_source"],
+    }
+    if "bench file" in (doc["translation_source"], doc["rotation_source"]):
+        doc["bench_file"] = prior["bench_file"]
+    return doc
+
+
 def _calibrate(prob: Problem) -> SimpleNamespace:
     """Fit the baseline (what the model already contains) and describe the calibration."""
     base = stack(prob.baseline)
@@ -101,6 +118,7 @@ def _calibrate(prob: Problem) -> SimpleNamespace:
         ],
         **ident,
         "correlated_pairs": correlated_pairs(fit_b, base.names),
+        "registration_prior": _registration_prior_doc(prob),
     }
     return SimpleNamespace(base=base, sigma0=sigma0, fit_b=fit_b, ident=ident, calib=calib)
 
@@ -144,20 +162,46 @@ def _lack_of_fit(cols, fit1, sigma) -> float:
     return max(1.0, float(np.mean(r[np.isfinite(r)] ** 2)))
 
 
+def _per_gain(cands, model, fit1, names) -> tuple[np.ndarray, np.ndarray]:
+    """Value (p,) and covariance (p, p) of the parameters ``names``, those of an effect on the
+    field an element senses (:attr:`Columns.element`) divided by (1 + that element's gain):
+    the reading is the sensed field, the effect's change included, times (1 + gain), so the
+    columns fit the parameter times (1 + gain). Uncertainty propagated (gains included)."""
+    idx = [model.names.index(n) for n in names]
+    element = {}
+    for c in cands:
+        if c.cols.element is not None:
+            element.update(zip(c.cols.names, c.cols.element, strict=True))
+    gains = [f"gain_{a}" for a in "xyz"]
+    ext = list(idx) + [model.names.index(g) for g in gains if g in model.names]
+    theta = fit1.theta[idx].copy()
+    T = np.eye(len(idx), len(ext))  # Jacobian of the reported values by the fitted ones
+    for r, n in enumerate(names):
+        if n not in element or gains[element[n]] not in model.names:
+            continue
+        k = ext.index(model.names.index(gains[element[n]]))
+        f = 1.0 + 1e-2 * fit1.theta[ext[k]]  # gains in %
+        theta[r] = fit1.theta[idx[r]] / f
+        T[r, r] = 1.0 / f
+        T[r, k] = -1e-2 * fit1.theta[idx[r]] / f**2
+    return theta, T @ fit1.cov[np.ix_(ext, ext)] @ T.T
+
+
 def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     """The ``effects[]`` entry of one effect (one or several of its functions accepted)."""
     c0 = cands[0]
     names = [n for c in cands for n in c.param_names]
     idx = [model.names.index(n) for n in names]
-    th, sd = fit1.theta[idx], fit1.std[idx]
+    th, cov = _per_gain(cands, model, fit1, names)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     keep = _determined(c0.name, names, sd)
     units = [model.units[i] for i in idx]
     base_prior = dict(
         zip(base.names, zip(base.prior_mean, base.prior_std, strict=True), strict=True)
     )
-    det = [i for i, k in zip(idx, keep, strict=True) if k]
-    sd_det = np.sqrt(np.clip(np.diag(fit1.cov)[det], 1e-300, None))
-    corr = fit1.cov[np.ix_(det, det)] / np.outer(sd_det, sd_det)
+    det = [k for k, ok in enumerate(keep) if ok]
+    sd_det = np.sqrt(np.clip(np.diag(cov)[det], 1e-300, None))
+    corr = cov[np.ix_(det, det)] / np.outer(sd_det, sd_det)
     released = [n for c in cands for n in c.released]
     info = {}
     for c in cands:
@@ -224,8 +268,15 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     return e
 
 
-def _effects_out(sel, fit1, base) -> list:
-    """One entry per effect, the functions of one effect merged, strongest first."""
+def _effects_out(prob, sel, fit1, base) -> list:
+    """One entry per effect, the functions of one effect merged, strongest first; their std
+    with the vibration correlated across the components of a reading
+    (:func:`~cfm_fem.workflows.diagnose.noise.vibration_covariance`)."""
+    if sel.accepted:
+        model = sel.model
+        vk = prob.var_known if model.var_known is None else model.var_known
+        noise = estimate_noise(prob, fit1.resid, fit1.edf, vk)
+        fit1 = replace(fit1, cov=vibration_covariance(prob, model, fit1, sel.sigma, noise))
     groups: dict = {}
     for c in sel.accepted:
         groups.setdefault(c.name, []).append(c)
@@ -413,7 +464,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     p = a.prob
     cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
     cv_a, _ = cv_rms(p, sel.sigma, sel.model, sel.folds) if sel.selected else (cv_b, None)
-    eff_out = _effects_out(sel, fit1, cal.base)
+    eff_out = _effects_out(p, sel, fit1, cal.base)
     cand_out = _candidate_table(sel, a.absorbed, a.absorption)
     implausible = [
         {"name": c["name"], "reason": c["reason"], "delta_bic": c["delta_bic"]}
