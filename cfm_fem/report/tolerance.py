@@ -50,7 +50,7 @@ def tolerance_report(d: dict, meaning: str, command_line: str | None = None) -> 
         ["target", *d["target_um"]],
         ["now (linearised)", *d["current_um"]],
         ["floor: vibration and delay", *d["noise_floor_um"]],
-        [f"all tolerances x {d['common_factor']:.3g}", *d["up_at_common_um"]],
+        [f"all tolerances x {_factor_text(d['common_factor'])}", *d["up_at_common_um"]],
     ]
     if d["plan"]:
         rows.append(["after the plan", *d["up_after_plan_um"]])
