@@ -41,8 +41,11 @@ Field (Hall map), change of the measured field in the magnet frame:
   temperature log).
 * ``fringe_field_3d``: soft magnet ends that a 2-D multipole lacks: the body field times the
   Enge/Fermi profile g(z) of :func:`fringe_profile` (edges z_entry, z_exit and fringe length
-  lambda, mm), with the B_z = g'(z) V(x, y) the 3-D scalar potential g V implies (V the
-  potential of the 2-D field; leading order in the end curvature). Non-linear in the edges: they
+  lambda, mm), as the gradient of the 3-D scalar potential g V - g'' W (V the potential of
+  the 2-D field, lap_perp W = V; Laplace's equation then holds up to terms in g'''' r^4):
+  B_z = g' V - g''' W, and the transverse field gains -g'' grad W, the r^2 / lambda^2
+  correction of a real end (the baseline's gradient through the ends keeps the leading
+  order). Non-linear in the edges: they
   are found by a search against the calibrated baseline, then refined by Gauss-Newton on the
   joint model and linearised there (amplitude a, edge and length increments). In that model the
   baseline acts on the 3-D field (``Columns.replaces``): the bench errors and the magnet
@@ -410,17 +413,37 @@ def fringe_profile(z, z_entry, z_exit, lam):
 
 
 def _scalar_potential(field_fn, pts, n: int = 8):
-    """V(x, y, z) with (B_x, B_y) = grad V of the transverse field, V = 0 on the axis (line
-    integral from (0, 0, z): exact for a curl-free 2-D field), T mm."""
+    """V, W and grad W of the transverse field at ``pts`` (line integrals from (0, 0, z)).
+
+    (B_x, B_y) = grad V, V = 0 on the axis: exact for a curl-free 2-D field. W solves
+    lap_perp W = V (W = r^2 / 4 int_0^1 V(t p) dt: a harmonic V_n of degree n gives
+    r^2 V_n / (4 (n + 1))), the next order of the 3-D potential g V - g'' W of a field whose
+    amplitude g(z) varies along z.
+
+    Returns
+    -------
+    V : ndarray, shape (m,), T mm
+    W3 : ndarray, shape (m, 3)
+        W (T mm^3) and dW/dx, dW/dy (T mm^2).
+    """
     t, w = np.polynomial.legendre.leggauss(n)
     t, w = 0.5 * (t + 1.0), 0.5 * w
     V = np.zeros(len(pts))
+    avg = np.zeros(len(pts))  # int_0^1 V(t p) dt = int_0^1 (1 - s) p . B(s p) ds
+    moment = np.zeros((len(pts), 2))  # int_0^1 s B(s p) ds, the gradient of avg
     for tk, wk in zip(t, w, strict=True):
         q = pts.copy()
         q[:, :2] *= tk
         b = field_fn(q)
-        V += wk * (pts[:, 0] * b[:, 0] + pts[:, 1] * b[:, 1])
-    return V
+        pb = pts[:, 0] * b[:, 0] + pts[:, 1] * b[:, 1]
+        V += wk * pb
+        avg += wk * (1.0 - tk) * pb
+        moment += wk * tk * b[:, :2]
+    r2 = pts[:, 0] ** 2 + pts[:, 1] ** 2
+    W3 = np.empty((len(pts), 3))
+    W3[:, 0] = 0.25 * r2 * avg
+    W3[:, 1:] = 0.5 * pts[:, :2] * avg[:, None] + 0.25 * r2[:, None] * moment
+    return V, W3
 
 
 class _Projector:
@@ -455,14 +478,23 @@ class _Projector:
         return self.bb - 2 * np.sum(self.s1 * D) + np.sum(self.s2 * D * D) - float(c @ c)
 
 
-def _fringe_profile_d2(z, z_entry, z_exit, lam):
-    """g, g' (1/mm) and g'' (1/mm^2) of :func:`fringe_profile`."""
-    fi = 0.5 * (1.0 + np.tanh(0.5 * (z - z_entry) / lam))
-    fo = 0.5 * (1.0 + np.tanh(0.5 * (z_exit - z) / lam))
-    g = fi * fo
-    dg = g * (fo - fi) / lam
-    d2g = dg * (fo - fi) / lam - g * (fi * (1.0 - fi) + fo * (1.0 - fo)) / lam**2
-    return g, dg, d2g
+def _fringe_derivatives(z, z_entry, z_exit, lam):
+    """g of :func:`fringe_profile` and its first three z-derivatives (1/mm^k)."""
+
+    def logistic(u, sign):
+        f = 0.5 * (1.0 + np.tanh(0.5 * u))
+        d1 = f * (1.0 - f)  # derivatives in u, times (sign / lam)^k for z
+        d2 = d1 * (1.0 - 2.0 * f)
+        d3 = d1 * (1.0 - 6.0 * f + 6.0 * f * f)
+        return f, sign * d1 / lam, d2 / lam**2, sign * d3 / lam**3
+
+    a0, a1, a2, a3 = logistic((z - z_entry) / lam, 1.0)
+    b0, b1, b2, b3 = logistic((z_exit - z) / lam, -1.0)
+    g = a0 * b0
+    g1 = a1 * b0 + a0 * b1
+    g2 = a2 * b0 + 2.0 * a1 * b1 + a0 * b2
+    g3 = a3 * b0 + 3.0 * a2 * b1 + 3.0 * a1 * b2 + a0 * b3
+    return g, g1, g2, g3
 
 
 #: Registration columns of :func:`~cfm_fem.workflows.diagnose.problem.hall_problem` that move
@@ -494,15 +526,17 @@ def _baseline_3d(prob, base):
     """
     ctx = prob.ctx
     B0, G, V = ctx["B0"], ctx["G"], ctx["V"][ctx["uinv"]]
+    W3 = ctx["W3"][ctx["uinv"]]
     z, p = prob.pos[:, 2], prob.pos
     disp = ctx.get("bench_disp")
     bench = ctx.get("bench")
 
     def j3(a, th):
-        g, dg, d2g = _fringe_profile_d2(z, *th)
+        g, dg, d2g, d3g = _fringe_derivatives(z, *th)
         ge, dge, d2ge = 1.0 + a * (g - 1.0), a * dg, a * d2g
         F = B0 * ge[:, None]
-        F[:, 2] += dge * V
+        F[:, :2] -= d2ge[:, None] * W3[:, 1:]
+        F[:, 2] += dge * V - a * d3g * W3[:, 0]
         G3 = G * ge[:, None, None]
         G3[:, :, 2] += dge[:, None] * B0
         G3[:, 2, :2] += dge[:, None] * B0[:, :2]
@@ -594,16 +628,18 @@ def fringe_field_3d(prob):
             "the reference field varies along z (a 3-D map): the magnet ends are part of it, "
             "and the effect describes ends missing from a 2-D reference"
         )
-    if "V" not in ctx:
-        ctx["V"] = _scalar_potential(ctx["field_fn"], upts)
+    if "V" not in ctx or "W3" not in ctx:
+        ctx["V"], ctx["W3"] = _scalar_potential(ctx["field_fn"], upts)
     B0u = ctx["field_fn"](upts)
-    Vu = ctx["V"]
+    Vu, W3u = ctx["V"], ctx["W3"]
 
     def delta(th):
-        """Change of the reading from the 2-D reference to the field with soft ends (a = 1)."""
-        g, dg = fringe_profile(z, *th)
+        """Change of the reading from the 2-D reference to the field with soft ends (a = 1):
+        the gradient of the potential g V - g'' W (grad V = B_perp, lap_perp W = V)."""
+        g, dg, d2g, d3g = _fringe_derivatives(z, *th)
         D = (g - 1.0)[:, None] * B0u
-        D[:, 2] += dg * Vu  # B_z = g' V (grad V = B_perp)
+        D[:, :2] -= d2g[:, None] * W3u[:, 1:]
+        D[:, 2] += dg * Vu - d3g * W3u[:, 0]
         return D
 
     base = stack(prob.baseline)

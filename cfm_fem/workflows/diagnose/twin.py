@@ -18,7 +18,7 @@ from ...models.bench import ERROR_NAMES, Bench, MagnetPlacement
 from ...models.kinematics.chain import probe_errors_for_bench
 from ...models.kinematics.geometry import draw_error_sets
 from ...models.recordings import Recording
-from .effects import fringe_profile
+from .effects import _fringe_derivatives
 
 __all__ = ["tracker_twin", "hall_twin", "scan_order", "default_hall_points", "fringe_edges"]
 
@@ -207,6 +207,27 @@ def _potential(mp, pts):
     return F.imag
 
 
+def _potential_next_order(mp, pts):
+    """W with lap_perp W = V and its gradient (T mm^3, T mm^2): the next order of the 3-D
+    potential g V - g'' W of soft ends. A term of degree n of V gives r^2 V_n / (4 (n + 1)).
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+        W, dW/dx, dW/dy.
+    """
+    c = mp.normal + 1j * mp.skew
+    w = (pts[:, 0] + 1j * pts[:, 1]) / mp.r_ref
+    u = sum(c[k] * mp.r_ref / ((k + 1) * (k + 2)) * w ** (k + 1) for k in range(c.size))
+    du = sum(c[k] / (k + 2) * w**k for k in range(c.size))  # dU/dx = Im, dU/dy = Re
+    r2 = pts[:, 0] ** 2 + pts[:, 1] ** 2
+    out = np.empty((len(pts), 3))
+    out[:, 0] = 0.25 * r2 * u.imag
+    out[:, 1] = 0.5 * pts[:, 0] * u.imag + 0.25 * r2 * du.imag
+    out[:, 2] = 0.5 * pts[:, 1] * u.imag + 0.25 * r2 * du.real
+    return out
+
+
 def fringe_edges(params: dict) -> tuple[float, float, float]:
     """(z_entry, z_exit, lambda) in mm, magnet body frame, of the twin's ``fringe_field_3d``:
     catalogue names ``z_entry``, ``z_exit``, ``lambda`` or a centred magnet ``half_length_mm``,
@@ -241,9 +262,9 @@ def hall_twin(
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
         ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
         lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
-        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, with the B_z the 3-D
-        potential implies (edges in the magnet body frame: the fitted edges also carry the
-        magnet's z offset), ``sensor_volume_averaging``
+        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, the field the 3-D
+        potential g V - g'' W implies (edges in the magnet body frame: the fitted edges also
+        carry the magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.
     noise_units : float
         Std of the Hall noise per component in units of 1e-4 B_ref.
@@ -294,10 +315,12 @@ def hall_twin(
         """True field at magnet-frame points x (n, 3) for the displaced, rotated magnet."""
         xl = (x - tr) @ R  # R^T (x - t)
         b = mp.field(xl)
-        if fr:
-            g, dg = fringe_profile(xl[:, 2], *fr_edges)
+        if fr:  # the gradient of g V - g'' W, to the order in the ends' curvature the model has
+            g, dg, d2g, d3g = _fringe_derivatives(xl[:, 2], *fr_edges)
+            w3 = _potential_next_order(mp, xl)
             b = b * g[:, None]
-            b[:, 2] = dg * _potential(mp, xl)
+            b[:, :2] -= d2g[:, None] * w3[:, 1:]
+            b[:, 2] = dg * _potential(mp, xl) - d3g * w3[:, 0]
         return b @ R.T
 
     va = effects.get("sensor_volume_averaging")
