@@ -22,7 +22,8 @@ Full run (936 points x 10 repetitions; realistic sizes)::
     python scripts/prove_diagnosis.py --nulls 50 --seeds 20 --jobs 2 --out proof/
 
 ``--rescore --model-dependent`` scores the kept runs again with the parameters the diagnosis
-reports as model-dependent (the soft ends' profile) scored too.
+reports as model-dependent (the soft ends' profile) scored too. ``--merge A B ... --out DIR``
+pools the runs of earlier proofs (more seeds of some cases, a case run again) into one summary.
 
 Quick run: ``--small`` (small grids, 4 repetitions). ``--cases reversal,null_hall`` restricts the
 cases; ``--no-velocities`` leaves v_x, v_y, v_z out of the recordings (the diagnosis then infers
@@ -134,6 +135,19 @@ def rescore(out: Path, model_dependent: bool = False) -> list:
     return results
 
 
+def merged(folders: list) -> list:
+    """The runs of earlier proofs pooled: every FOLDER/results.json in turn, a later folder's run
+    of the same case and seed replacing an earlier one."""
+    runs = {}
+    for folder in folders:
+        path = Path(folder) / "results.json"
+        if not path.is_file():
+            raise SystemExit(f"prove_diagnosis: {path}: no results.json (run a proof there first)")
+        for r in json.loads(path.read_text())["runs"]:
+            runs[r["case"], r["seed"]] = r
+    return list(runs.values())
+
+
 def _pct(pair):
     k, n = pair
     return f"{k}/{n} ({100.0 * k / n:.0f} %)" if n else "-"
@@ -196,6 +210,13 @@ def main(argv=None) -> int:
         action="store_true",
         help="with --rescore: score the parameters reported as model-dependent too",
     )
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="DIR",
+        help="pool the results of earlier proofs in DIR ... (a later folder's run of a case and "
+        "seed replaces an earlier one) and write their summary to --out",
+    )
     a = ap.parse_args(argv)
     cases = list(CASES) if not a.cases else [c.strip() for c in a.cases.split(",")]
     unknown = [c for c in cases if c not in CASES]
@@ -208,11 +229,18 @@ def main(argv=None) -> int:
         for c, s in tasks(cases, a.nulls, a.seeds, a.skip_seeds)
     ]
     size = "small" if a.small else "full (936 points x 10 repetitions)"
-    print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)
+    if not a.merge:
+        print(f"{len(jobs)} runs, size {size}, {a.jobs} worker(s)", flush=True)
     t0 = time.perf_counter()
     if a.model_dependent and not a.rescore:
         ap.error("--model-dependent goes with --rescore")
-    results = rescore(out, a.model_dependent) if a.rescore else run_all(jobs, a.jobs)
+    if a.merge:
+        results = merged(a.merge)
+        size = f"pooled from {', '.join(a.merge)}"
+    elif a.rescore:
+        results = rescore(out, a.model_dependent)
+    else:
+        results = run_all(jobs, a.jobs)
     results.sort(key=lambda r: (r["case"], r["seed"]))
     summary = summarise(results)
     seconds = {c: sum(r["seconds"] for r in results if r["case"] == c) / summary[c]["runs"]
@@ -223,6 +251,9 @@ def main(argv=None) -> int:
         f"velocities {'absent' if a.no_velocities else 'written'}; goals {GOALS}; "
         f"{wall:.0f} s wall with {a.jobs} worker(s)."
     )
+    if a.merge:
+        header = f"Independent proof of `cfm-fem diagnose`: {len(results)} runs {size}; "
+        header += f"goals {GOALS}."
     md = markdown(summary, seconds, header)
     print()
     print(md)
