@@ -50,12 +50,13 @@ def test_parts_match_numpy_monomials_across_blocks(degree):
                 assert not got.any()
 
 
-def _tail_case(n, curvature, seed=0, p=0.95):
+def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):
     """Changes x = s (L + k w |w|) of a normal first-order part L and an independent normal w
     (a remainder that reorders the trials), the remainder's exact bound |k| max w^2, and what
-    `tail_stats` needs."""
+    `tail_stats` needs. ``pilot_shift`` moves the leading values of L that place the tails."""
     rng = np.random.default_rng(seed)
     lin = rng.normal(0.3, 2.0, n)
+    lin[: _kernels.TAIL_PILOT] += pilot_shift
     w = rng.normal(size=n)
     s = 0.05
     x = s * (lin + curvature * w * np.abs(w))
@@ -65,7 +66,7 @@ def _tail_case(n, curvature, seed=0, p=0.95):
     bufs = [np.empty(n), np.empty(n, dtype=np.int64), np.empty(n), np.empty(n, dtype=np.int64)]
     limits = np.empty(4)
     counts = np.empty(4, dtype=np.int64)
-    _kernels.gather_tails(lin, n, z_h, *bufs, limits, counts)
+    _kernels.gather_tails(lin, n, z_h, n - q, *bufs, limits, counts, np.empty(n))
     return x, q, bound, tuple(bufs), limits, counts
 
 
@@ -81,6 +82,20 @@ def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
     assert took
     want = testing.sample_stats(x)
     np.testing.assert_allclose(stats, want, rtol=1e-12, atol=1e-15)
+
+
+def test_a_misleading_pilot_still_gives_the_whole_samples_statistics():
+    """Leading values 0.15 std above the rest put the pilot's high-tail value v where fewer than
+    h values lie above it: v is then selected in the gathered tail, and the statistics are
+    still those of the whole sample."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, 0.02, pilot_shift=0.3)
+    assert counts[3] == n - q  # the selected v: exactly h values at or above it
+    stats = np.empty(6)
+    took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
+                               np.empty(n))  # fmt: skip
+    assert took
+    np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
 
 
 def test_a_loose_bound_refuses_the_tails():

@@ -6,9 +6,9 @@ s e_c(s) with e_c(s) = L_c + s R_c(s), L_c the first-order part. The tails of e_
 those of L_c up to the remainder: if every trial's |e_c - L_c| <= D, the h smallest values of
 e_c are among the trials with L_c <= v + 2 D, v any value with at least h trials of L_c below
 it. So each tail of L_c is gathered once per node, and at each U_p only its candidates are
-read and sorted. |B| is handled the same way with the
-first-order change of |B| as its L. The bound D comes from the largest displacement and the
-sums of |coefficient| per degree; where it is too loose for the gathered tail (a field whose
+read and sorted. |B| is handled the same way with the first-order change of |B| as its L. D is
+the largest |e_c - L_c| over the trials, taken while the changes are computed
+(`changes_block`); where the candidates it admits go beyond the gathered tail (a field whose
 first-order part vanishes, large U_p against the field's curvature length), the statistic is
 computed from the whole sample, so every number is exact either way.
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from .harmonic_parts import PART_BLOCK
 from .options import FJIT, JIT, RJIT
-from .order_stats import TAIL_PILOT, _intervals, sort_values
+from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 
 #: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
 #: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
@@ -36,8 +36,9 @@ BOUND_SAFETY = 1e-6
 
 
 @nb.njit(**FJIT)
-def changes_block(parts, m, s, b0, abs0, blk):
-    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`).
+def changes_block(parts, m, s, b0, abs0, b_hat, blk, dev):
+    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`),
+    and their largest departure from the first-order part.
 
     Parameters
     ----------
@@ -45,17 +46,27 @@ def changes_block(parts, m, s, b0, abs0, blk):
     m : int
         Trials in the block.
     s : float, mm
-        U_p; the parts are per unit displacement scale, so part q is weighted by s^q.
+        U_p > 0; the parts are per unit displacement scale, so part q is weighted by s^q.
     b0 : ndarray, shape (3,), T
         The model's field at the node.
     abs0 : float
         |b0|, T.
-    blk : ndarray, shape (>= 4 * PART_BLOCK,), T
-        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3).
+    b_hat : ndarray, shape (3,)
+        b0 / |b0| (zero where |b0| = 0): the first-order change of |B| is b_hat . part 1.
+    blk : ndarray, shape (>= 8 * PART_BLOCK,), T
+        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3); rows 4-7
+        are work space.
+    dev : ndarray, shape (4,), T
+        Raised to the largest |change / s - first-order part| of the block's trials, per
+        quantity: the exact remainder that confines the candidates of `tail_stats`.
     """
     bx = b0[0]
     by = b0[1]
     bz = b0[2]
+    hx = b_hat[0]
+    hy = b_hat[1]
+    hz = b_hat[2]
+    inv_s = 1.0 / s
     for t in range(m):
         ex = parts[12 * PART_BLOCK + t] * s + parts[9 * PART_BLOCK + t]
         ey = parts[13 * PART_BLOCK + t] * s + parts[10 * PART_BLOCK + t]
@@ -66,18 +77,45 @@ def changes_block(parts, m, s, b0, abs0, blk):
         ex = ex * s + parts[3 * PART_BLOCK + t]
         ey = ey * s + parts[4 * PART_BLOCK + t]
         ez = ez * s + parts[5 * PART_BLOCK + t]
-        ex = (ex * s + parts[t]) * s
-        ey = (ey * s + parts[PART_BLOCK + t]) * s
-        ez = (ez * s + parts[2 * PART_BLOCK + t]) * s
+        lx = parts[t]
+        ly = parts[PART_BLOCK + t]
+        lz = parts[2 * PART_BLOCK + t]
+        ex = (ex * s + lx) * s
+        ey = (ey * s + ly) * s
+        ez = (ez * s + lz) * s
         x0 = bx + ex
         x1 = by + ey
         x2 = bz + ez
         den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
         num = 2.0 * (bx * ex + by * ey + bz * ez) + ex * ex + ey * ey + ez * ez
+        eb = num / den if den > 0.0 else 0.0
         blk[t] = ex
         blk[PART_BLOCK + t] = ey
         blk[2 * PART_BLOCK + t] = ez
-        blk[3 * PART_BLOCK + t] = num / den if den > 0.0 else 0.0
+        blk[3 * PART_BLOCK + t] = eb
+        blk[4 * PART_BLOCK + t] = abs(ex * inv_s - lx)
+        blk[5 * PART_BLOCK + t] = abs(ey * inv_s - ly)
+        blk[6 * PART_BLOCK + t] = abs(ez * inv_s - lz)
+        blk[7 * PART_BLOCK + t] = abs(eb * inv_s - (hx * lx + hy * ly + hz * lz))
+    for c in range(4):  # reductions apart: inside the loop above they stop its vectorisation
+        dev[c] = max(dev[c], _largest(blk[(4 + c) * PART_BLOCK : (4 + c) * PART_BLOCK + m]))
+
+
+@nb.njit(**FJIT)
+def _largest(x):
+    """max(x, 0) of a 1-D array, in 8 lanes (a single running max does not vectorise)."""
+    m = x.shape[0]
+    acc = np.zeros(8)
+    for t0 in range(0, m - 7, 8):
+        for j in range(8):
+            v = x[t0 + j]
+            acc[j] = v if v > acc[j] else acc[j]
+    d = 0.0
+    for j in range(8):
+        d = acc[j] if acc[j] > d else d
+    for t in range(m - m % 8, m):
+        d = x[t] if x[t] > d else d
+    return d
 
 
 @nb.njit(**JIT)
@@ -131,7 +169,7 @@ def tail_quantile_z(n, q):
 
 
 @nb.njit(**JIT)
-def gather_tails(lin, n, z_h, lo_val, lo_idx, hi_val, hi_idx, limits, counts):
+def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
     """Trials in the two tails of a first-order part.
 
     Parameters
@@ -141,13 +179,19 @@ def gather_tails(lin, n, z_h, lo_val, lo_idx, hi_val, hi_idx, limits, counts):
     n : int
     z_h : float
         `tail_quantile_z`.
+    h : int
+        Order statistics needed in each tail (n - q).
     lo_val, lo_idx, hi_val, hi_idx : ndarray, shape (>= n,)
         Output: values <= g_lo and >= g_hi with their trial index, in trial order
         (g = mean -+ `GATHER_SIGMAS` std of the leading `TAIL_PILOT` values).
     limits : ndarray, shape (4,)
-        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g).
+        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g);
+        where fewer than h values lie beyond one of those (the pilot's mean or std off, a
+        first-order part far from normal), that v is the h-th value of its tail, selected.
     counts : ndarray, shape (4,), int64
         Output: values gathered in each tail, and values <= v_lo and >= v_hi.
+    work : ndarray, shape (>= n,)
+        Work space.
     """
     m = min(n, TAIL_PILOT)
     pm = 0.0
@@ -187,6 +231,16 @@ def gather_tails(lin, n, z_h, lo_val, lo_idx, hi_val, hi_idx, limits, counts):
         n_hi += v >= g_hi
         c_lo += v <= v_lo
         c_hi += v >= v_hi
+    if c_lo < h <= n_lo:  # the pilot misplaced v: select it (rare; exact either way)
+        work[:n_lo] = lo_val[:n_lo]
+        select_inplace(work, np.int64(0), n_lo - 1, h - 1)
+        limits[2] = work[h - 1]
+        c_lo = h
+    if c_hi < h <= n_hi:
+        work[:n_hi] = hi_val[:n_hi]
+        select_inplace(work, np.int64(0), n_hi - 1, n_hi - h)
+        limits[3] = work[n_hi - h]
+        c_hi = h
     counts[0] = n_lo
     counts[1] = n_hi
     counts[2] = c_lo
