@@ -27,9 +27,9 @@ from .harmonic_parts import PART_BLOCK
 from .options import FJIT, JIT, RJIT
 from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 
-#: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
-#: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
-GATHER_SIGMAS = 1.0
+#: Each tail of the first-order part is gathered up to v + room + this many std of the pilot:
+#: room for the pilot's own error in placing v (its mean and std from 512 values).
+GATHER_SLACK = 0.25
 
 #: Relative safety on the remainder bounds and the candidate thresholds (rounding).
 BOUND_SAFETY = 1e-6
@@ -169,7 +169,7 @@ def tail_quantile_z(n, q):
 
 
 @nb.njit(**JIT)
-def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
+def gather_tails(lin, n, z_h, h, room, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
     """Trials in the two tails of a first-order part.
 
     Parameters
@@ -181,11 +181,15 @@ def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts,
         `tail_quantile_z`.
     h : int
         Order statistics needed in each tail (n - q).
+    room : float
+        How far beyond v the candidates of `tail_stats` reach at the largest U_p (twice the
+        largest remainder, `changes_block`).
     lo_val, lo_idx, hi_val, hi_idx : ndarray, shape (>= n,)
         Output: values <= g_lo and >= g_hi with their trial index, in trial order
-        (g = mean -+ `GATHER_SIGMAS` std of the leading `TAIL_PILOT` values).
+        (g_lo = v_lo + room + `GATHER_SLACK` std, g_hi = v_hi - room - `GATHER_SLACK` std).
     limits : ndarray, shape (4,)
-        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g);
+        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std of the leading
+        `TAIL_PILOT` values;
         where fewer than h values lie beyond one of those (the pilot's mean or std off, a
         first-order part far from normal), that v is the h-th value of its tail, selected.
     counts : ndarray, shape (4,), int64
@@ -202,17 +206,17 @@ def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts,
     for t in range(m):
         pv += (lin[t] - pm) ** 2
     ps = math.sqrt(pv / max(m - 1, 1))
-    g_lo = pm - GATHER_SIGMAS * ps
-    g_hi = pm + GATHER_SIGMAS * ps
     counts[:] = 0
-    if not (g_lo < g_hi and z_h > 0.0):  # nothing gathered: the whole-sample path
+    if not (ps > 0.0 and z_h > 0.0 and room < np.inf):  # the whole-sample path
         limits[0] = -np.inf
         limits[1] = np.inf
         limits[2] = -np.inf
         limits[3] = np.inf
         return
-    v_lo = min(pm - z_h * ps, g_lo)
-    v_hi = max(pm + z_h * ps, g_hi)
+    v_lo = pm - z_h * ps
+    v_hi = pm + z_h * ps
+    g_lo = v_lo + room + GATHER_SLACK * ps
+    g_hi = v_hi - room - GATHER_SLACK * ps
     limits[0] = g_lo
     limits[1] = g_hi
     limits[2] = v_lo
@@ -303,7 +307,7 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
 
 __all__ = [
     "BOUND_SAFETY",
-    "GATHER_SIGMAS",
+    "GATHER_SLACK",
     "changes_block",
     "copy_row",
     "first_order_abs",

@@ -184,8 +184,11 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
         _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers)
         for j in range(4):
-            gather_tails(lin[j], n, z_h, n - q, lo_val[j], lo_idx[j], hi_val[j], hi_idx[j],
-                         limits[j], counts[j], scratch)  # fmt: skip
+            room = 0.0  # the candidates' reach at the largest U_p
+            for k in range(n_up):
+                room = max(room, 2.0 * dev[k, j] * (1.0 + 2.0 * BOUND_SAFETY))
+            gather_tails(lin[j], n, z_h, n - q, room, lo_val[j], lo_idx[j], hi_val[j],
+                         hi_idx[j], limits[j], counts[j], scratch)  # fmt: skip
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
         if smax > 0.0:
             r2max = (hreach[g] / smax) ** 2
