@@ -6,9 +6,9 @@ s e_c(s) with e_c(s) = L_c + s R_c(s), L_c the first-order part. The tails of e_
 those of L_c up to the remainder: if every trial's |e_c - L_c| <= D, the h smallest values of
 e_c are among the trials with L_c <= v + 2 D, v any value with at least h trials of L_c below
 it. So each tail of L_c is gathered once per node, and at each U_p only its candidates are
-read and sorted. |B| is handled the same way with the first-order change of |B| as its L. D is
-the largest |e_c - L_c| over the trials, taken while the changes are computed
-(`changes_block`); where the candidates it admits go beyond the gathered tail (a field whose
+read and sorted. |B| is handled the same way with the
+first-order change of |B| as its L. The bound D comes from the largest displacement and the
+sums of |coefficient| per degree; where it is too loose for the gathered tail (a field whose
 first-order part vanishes, large U_p against the field's curvature length), the statistic is
 computed from the whole sample, so every number is exact either way.
 
@@ -27,18 +27,17 @@ from .harmonic_parts import PART_BLOCK
 from .options import FJIT, JIT, RJIT
 from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 
-#: Each tail of the first-order part is gathered up to v + room + this many std of the pilot:
-#: room for the pilot's own error in placing v (its mean and std from 512 values).
-GATHER_SLACK = 0.25
+#: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
+#: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
+GATHER_SIGMAS = 1.0
 
 #: Relative safety on the remainder bounds and the candidate thresholds (rounding).
 BOUND_SAFETY = 1e-6
 
 
 @nb.njit(**FJIT)
-def changes_block(parts, m, s, b0, abs0, b_hat, blk, dev):
-    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`),
-    and their largest departure from the first-order part.
+def changes_block(parts, m, s, b0, abs0, blk):
+    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`).
 
     Parameters
     ----------
@@ -46,27 +45,17 @@ def changes_block(parts, m, s, b0, abs0, b_hat, blk, dev):
     m : int
         Trials in the block.
     s : float, mm
-        U_p > 0; the parts are per unit displacement scale, so part q is weighted by s^q.
+        U_p; the parts are per unit displacement scale, so part q is weighted by s^q.
     b0 : ndarray, shape (3,), T
         The model's field at the node.
     abs0 : float
         |b0|, T.
-    b_hat : ndarray, shape (3,)
-        b0 / |b0| (zero where |b0| = 0): the first-order change of |B| is b_hat . part 1.
-    blk : ndarray, shape (>= 8 * PART_BLOCK,), T
-        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3); rows 4-7
-        are work space.
-    dev : ndarray, shape (4,), T
-        Raised to the largest |change / s - first-order part| of the block's trials, per
-        quantity: the exact remainder that confines the candidates of `tail_stats`.
+    blk : ndarray, shape (>= 4 * PART_BLOCK,), T
+        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3).
     """
     bx = b0[0]
     by = b0[1]
     bz = b0[2]
-    hx = b_hat[0]
-    hy = b_hat[1]
-    hz = b_hat[2]
-    inv_s = 1.0 / s
     for t in range(m):
         ex = parts[12 * PART_BLOCK + t] * s + parts[9 * PART_BLOCK + t]
         ey = parts[13 * PART_BLOCK + t] * s + parts[10 * PART_BLOCK + t]
@@ -77,45 +66,18 @@ def changes_block(parts, m, s, b0, abs0, b_hat, blk, dev):
         ex = ex * s + parts[3 * PART_BLOCK + t]
         ey = ey * s + parts[4 * PART_BLOCK + t]
         ez = ez * s + parts[5 * PART_BLOCK + t]
-        lx = parts[t]
-        ly = parts[PART_BLOCK + t]
-        lz = parts[2 * PART_BLOCK + t]
-        ex = (ex * s + lx) * s
-        ey = (ey * s + ly) * s
-        ez = (ez * s + lz) * s
+        ex = (ex * s + parts[t]) * s
+        ey = (ey * s + parts[PART_BLOCK + t]) * s
+        ez = (ez * s + parts[2 * PART_BLOCK + t]) * s
         x0 = bx + ex
         x1 = by + ey
         x2 = bz + ez
         den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
         num = 2.0 * (bx * ex + by * ey + bz * ez) + ex * ex + ey * ey + ez * ez
-        eb = num / den if den > 0.0 else 0.0
         blk[t] = ex
         blk[PART_BLOCK + t] = ey
         blk[2 * PART_BLOCK + t] = ez
-        blk[3 * PART_BLOCK + t] = eb
-        blk[4 * PART_BLOCK + t] = abs(ex * inv_s - lx)
-        blk[5 * PART_BLOCK + t] = abs(ey * inv_s - ly)
-        blk[6 * PART_BLOCK + t] = abs(ez * inv_s - lz)
-        blk[7 * PART_BLOCK + t] = abs(eb * inv_s - (hx * lx + hy * ly + hz * lz))
-    for c in range(4):  # reductions apart: inside the loop above they stop its vectorisation
-        dev[c] = max(dev[c], _largest(blk[(4 + c) * PART_BLOCK : (4 + c) * PART_BLOCK + m]))
-
-
-@nb.njit(**FJIT)
-def _largest(x):
-    """max(x, 0) of a 1-D array, in 8 lanes (a single running max does not vectorise)."""
-    m = x.shape[0]
-    acc = np.zeros(8)
-    for t0 in range(0, m - 7, 8):
-        for j in range(8):
-            v = x[t0 + j]
-            acc[j] = v if v > acc[j] else acc[j]
-    d = 0.0
-    for j in range(8):
-        d = acc[j] if acc[j] > d else d
-    for t in range(m - m % 8, m):
-        d = x[t] if x[t] > d else d
-    return d
+        blk[3 * PART_BLOCK + t] = num / den if den > 0.0 else 0.0
 
 
 @nb.njit(**JIT)
@@ -169,7 +131,7 @@ def tail_quantile_z(n, q):
 
 
 @nb.njit(**JIT)
-def gather_tails(lin, n, z_h, h, room, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
+def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
     """Trials in the two tails of a first-order part.
 
     Parameters
@@ -181,15 +143,11 @@ def gather_tails(lin, n, z_h, h, room, lo_val, lo_idx, hi_val, hi_idx, limits, c
         `tail_quantile_z`.
     h : int
         Order statistics needed in each tail (n - q).
-    room : float
-        How far beyond v the candidates of `tail_stats` reach at the largest U_p (twice the
-        largest remainder, `changes_block`).
     lo_val, lo_idx, hi_val, hi_idx : ndarray, shape (>= n,)
         Output: values <= g_lo and >= g_hi with their trial index, in trial order
-        (g_lo = v_lo + room + `GATHER_SLACK` std, g_hi = v_hi - room - `GATHER_SLACK` std).
+        (g = mean -+ `GATHER_SIGMAS` std of the leading `TAIL_PILOT` values).
     limits : ndarray, shape (4,)
-        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std of the leading
-        `TAIL_PILOT` values;
+        Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g);
         where fewer than h values lie beyond one of those (the pilot's mean or std off, a
         first-order part far from normal), that v is the h-th value of its tail, selected.
     counts : ndarray, shape (4,), int64
@@ -206,17 +164,17 @@ def gather_tails(lin, n, z_h, h, room, lo_val, lo_idx, hi_val, hi_idx, limits, c
     for t in range(m):
         pv += (lin[t] - pm) ** 2
     ps = math.sqrt(pv / max(m - 1, 1))
+    g_lo = pm - GATHER_SIGMAS * ps
+    g_hi = pm + GATHER_SIGMAS * ps
     counts[:] = 0
-    if not (ps > 0.0 and z_h > 0.0 and room < np.inf):  # the whole-sample path
+    if not (g_lo < g_hi and z_h > 0.0):  # nothing gathered: the whole-sample path
         limits[0] = -np.inf
         limits[1] = np.inf
         limits[2] = -np.inf
         limits[3] = np.inf
         return
-    v_lo = pm - z_h * ps
-    v_hi = pm + z_h * ps
-    g_lo = v_lo + room + GATHER_SLACK * ps
-    g_hi = v_hi - room - GATHER_SLACK * ps
+    v_lo = min(pm - z_h * ps, g_lo)
+    v_hi = max(pm + z_h * ps, g_hi)
     limits[0] = g_lo
     limits[1] = g_hi
     limits[2] = v_lo
@@ -307,7 +265,7 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
 
 __all__ = [
     "BOUND_SAFETY",
-    "GATHER_SLACK",
+    "GATHER_SIGMAS",
     "changes_block",
     "copy_row",
     "first_order_abs",

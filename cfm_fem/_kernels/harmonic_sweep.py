@@ -37,6 +37,9 @@ from .rng import (
 )
 from .sweep import _abs_change, _unit_disp, sweep_outputs
 
+#: Highest degree of the unrolled polynomial (`homogeneous_parts`).
+MAX_DEG = N_SLOTS // 3
+
 
 @nb.njit(inline="always", **JIT)
 def _node_model(g, hcoef, hdeg, gmat, cexp):
@@ -81,22 +84,20 @@ def _gauss_buffers(n_up, n_trials, n_mono):
     n = n_trials
     return (
         np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
-        np.empty(N_SLOTS * PART_BLOCK), np.empty(8 * PART_BLOCK), np.empty((n_up, 4, n)),
+        np.empty(N_SLOTS * PART_BLOCK), np.empty(4 * PART_BLOCK), np.empty((n_up, 4, n)),
         np.empty((4, n)), np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, n)),
         np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n), np.empty(n),
-        np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)), np.empty((n_up, 4)),
+        np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
     )  # fmt: skip
 
 
 @nb.njit(**JIT)
 def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
-    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n), the
-    first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts) and the
-    largest |change / U_p - first-order part| per U_p and quantity into ``dev`` (n_up, 4)."""
+    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and the
+    first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts)."""
     (z, ok, u_, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
-     counts, scratch, cexp_, dev) = buffers  # fmt: skip
+     counts, scratch, cexp_) = buffers  # fmt: skip
     n_up = scales.shape[0]
-    dev[:] = 0.0
     for t0 in range(0, n, PART_BLOCK):
         m = min(PART_BLOCK, n - t0)
         homogeneous_parts(cexp, u, t0, m, parts)
@@ -105,9 +106,47 @@ def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
         first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
         for k in range(n_up):
             if scales[k] > 0.0:
-                changes_block(parts, m, scales[k], b0, abs0, b_hat, blk, dev[k])
+                changes_block(parts, m, scales[k], b0, abs0, blk)
                 for j in range(4):
                     copy_row(blk[j * PART_BLOCK : j * PART_BLOCK + m], vals[k, j, t0 : t0 + m])
+
+
+@nb.njit(**JIT)
+def _coefficient_sums(cexp, sums):
+    """sums[q - 1, c]: root sum of squares of the coefficients of the degree-q monomials of
+    component c, so that |part_q,c(u)| <= sums[q - 1, c] |u|^q (Cauchy-Schwarz: the squares
+    of the degree-q monomials sum to at most |u|^(2q))."""
+    m = 1
+    for q in range(1, MAX_DEG + 1):
+        m_end = (q + 1) * (q + 2) * (q + 3) // 6
+        for c in range(3):
+            a = 0.0
+            for mm in range(m, m_end):
+                a += cexp[c, mm] ** 2
+            sums[q - 1, c] = math.sqrt(a) * (1.0 + BOUND_SAFETY)
+        m = m_end
+
+
+@nb.njit(**JIT)
+def _remainder_bounds(s, rho, csum, b_hat, abs0, bounds):
+    """Bounds of |change / s - first-order part| over every trial at U_p = s (``bounds``, 4:
+    components, |B|; inf where none holds). ``rho``: the largest scaled displacement |u|;
+    ``csum``: `_coefficient_sums`."""
+    e2 = 0.0
+    mix = 0.0
+    for c in range(3):
+        d = 0.0
+        sq = rho
+        for q in range(1, MAX_DEG):
+            sq *= s * rho
+            d += sq * csum[q, c]
+        bounds[c] = d
+        e2 += (csum[0, c] * rho + d) ** 2
+        mix += abs(b_hat[c]) * d
+    # 0 <= |B0 + d| - |B0| - b.d <= |d|^2 / (2 (|B0| - |d|)) for |d| < |B0|, d = s e
+    e = math.sqrt(e2)
+    gap = abs0 - s * e
+    bounds[3] = mix + s * e2 / (2.0 * gap) if gap > 0.0 else np.inf
 
 
 @nb.njit(**JIT)
@@ -154,10 +193,12 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     fkey = stream_key(seed, STREAM_FALLBACK)
     buffers = _gauss_buffers(n_up, n, gmat.shape[1])
     (z, ok, u, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
-     counts, scratch, cexp, dev) = buffers  # fmt: skip
+     counts, scratch, cexp) = buffers  # fmt: skip
     w = np.zeros((3, 3))
     for c in range(3):
         w[c, c] = sigma_axes[c]
+    csum = np.empty((MAX_DEG, 3))
+    bounds = np.empty(4)
     b_hat = np.zeros(3)
     cnt = np.zeros(1, dtype=np.int64)
     smax = 0.0
@@ -171,6 +212,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
         normals_by_index(trial_key(skey, keys[i]), fkey, 0, n, z, ok)
         inv = 1.0 / hscale[g]
+        d2max = 0.0
         for t in range(n):
             r2 = 0.0
             for a in range(3):
@@ -178,17 +220,17 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                 u[a, t] = da * inv
                 r2 += da * da
             d2[t] = r2
+            d2max = max(d2max, r2)
+        rho = math.sqrt(d2max) * inv * (1.0 + BOUND_SAFETY)
+        _coefficient_sums(cexp, csum)
         b0 = cexp[:, 0]
         abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
         for c in range(3):
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
         _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers)
         for j in range(4):
-            room = 0.0  # the candidates' reach at the largest U_p
-            for k in range(n_up):
-                room = max(room, 2.0 * dev[k, j] * (1.0 + 2.0 * BOUND_SAFETY))
-            gather_tails(lin[j], n, z_h, n - q, room, lo_val[j], lo_idx[j], hi_val[j],
-                         hi_idx[j], limits[j], counts[j], scratch)  # fmt: skip
+            gather_tails(lin[j], n, z_h, n - q, lo_val[j], lo_idx[j], hi_val[j], hi_idx[j],
+                         limits[j], counts[j], scratch)  # fmt: skip
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
         if smax > 0.0:
             r2max = (hreach[g] / smax) ** 2
@@ -213,10 +255,10 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                     n_out[i, k] = cnt[0]
                     continue
                 n_out[i, k] = cnt[0]
+            _remainder_bounds(s, rho, csum, b_hat, abs0, bounds)
             for j in range(4):
                 tails = (lo_val[j], lo_idx[j], hi_val[j], hi_idx[j])
-                bound = dev[k, j] * (1.0 + BOUND_SAFETY)
-                if not tail_stats(vals[k, j], n, q, bound, tails, limits[j], counts[j],
+                if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
                                   stats[i, k, j], low, high):  # fmt: skip
                     sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
     return stats, n_out, n_lost, star
@@ -242,13 +284,11 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)
     parts = np.empty(N_SLOTS * PART_BLOCK)
-    blk = np.empty(8 * PART_BLOCK)
+    blk = np.empty(4 * PART_BLOCK)
     err = np.empty((3, n_trials))
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
     cexp = np.empty((3, gmat.shape[1]))
-    b_hat = np.zeros(3)  # the first-order parts and departures are not needed here
-    dev = np.zeros(4)
     for i in range(k_nodes):
         g = nodes[i]
         if start_cells[g, 0] < 0:  # out of the bench's strokes
@@ -278,7 +318,7 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
         for t0 in range(0, n_trials, PART_BLOCK):
             m = min(PART_BLOCK, n_trials - t0)
             homogeneous_parts(cexp, u, t0, m, parts)
-            changes_block(parts, m, 1.0, b0, abs0, b_hat, blk, dev)
+            changes_block(parts, m, 1.0, b0, abs0, blk)
             for c in range(3):
                 copy_row(blk[c * PART_BLOCK : c * PART_BLOCK + m], err[c, t0 : t0 + m])
         _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err, absb,
