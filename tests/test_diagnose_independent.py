@@ -136,8 +136,8 @@ def test_field_averaged_over_the_elements_is_named(tmp_path):
 
 
 def test_full_map_through_both_ends_names_the_soft_ends_alone(tmp_path):
-    # seed 82577000: the field's r^2 / lambda^2 terms at the ends (B_z about 1-3 % off at
-    # r = 4-5.7 mm without them) were taken up by a gain of the z element
+    # seed 82577000: without the field's r^2 / lambda^2 terms at the ends (B_z about 1-3 % off
+    # at r = 4-5.7 mm) a gain of the z element takes them up, a second, false claim
     files = write_case("fringe_field_3d", 82577000, tmp_path, size="full")
     assert main(["diagnose", *files["args"], "--no-report", "--out", str(tmp_path / "out")]) == 0
     summary = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
