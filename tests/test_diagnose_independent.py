@@ -110,8 +110,9 @@ def test_common_z_shift_is_the_magnet_not_the_elements(diagnosed):
 
 
 @shortcoming(
-    "the soft ends are named first, but their parameters are those of the Enge/Fermi profile "
-    "fitted to ends of another shape: reported as model-dependent, none is scored"
+    "the soft ends are named first, but the 3 x 3 points of a plane of the small grid separate "
+    "only the first layer of the 3-D potential: every profile value is model-dependent, none "
+    "is scored (the full grid's are: test_full_map_through_both_ends_names_the_soft_ends_alone)"
 )
 def test_soft_ends_against_a_2d_reference_are_named(diagnosed):
     _first_with_pulls(diagnosed("fringe_field_3d"))
@@ -122,7 +123,10 @@ def test_soft_ends_are_named_first_and_their_model_error_stated(tmp_path):
     assert main(["diagnose", *files["args"], "--no-report", "--out", str(tmp_path / "d")]) == 0
     e = json.loads((tmp_path / "d" / "diagnosis.json").read_text())["effects"][0]
     assert e["name"] == "fringe_field_3d"
-    assert set(e["model_dependent"]) == set(e["params"])
+    # the Fermi shape's parameters, and the profile of planes whose 3 x 3 points separate too
+    # few layers of the 3-D potential, are model-dependent
+    assert {"z_entry", "z_exit", "lambda"} <= set(e["model_dependent"])
+    assert "g'@125" in e["model_dependent"]
     assert e["lack_of_fit"]["reduced_chi2"] > 1.0
 
 
@@ -136,13 +140,26 @@ def test_field_averaged_over_the_elements_is_named(tmp_path):
 
 
 def test_full_map_through_both_ends_names_the_soft_ends_alone(tmp_path):
-    # seed 82577000: without the field's r^2 / lambda^2 terms at the ends (B_z about 1-3 % off
-    # at r = 4-5.7 mm) a gain of the z element takes them up, a second, false claim
+    # seed 82577000: a model of the ends that misses the field's higher terms in r / lambda, or
+    # the bench and magnet offsets seen through them, leaves the planes next to the edges
+    # tens of sigma off: they are then taken for bad planes and a z-element gain takes up the
+    # rest (a false prior conflict) or a second, false claim
     files = write_case("fringe_field_3d", 82577000, tmp_path, size="full")
     assert main(["diagnose", *files["args"], "--no-report", "--out", str(tmp_path / "out")]) == 0
     summary = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
     assert [e["name"] for e in summary["effects"]] == ["fringe_field_3d"]
-    assert summary["effects"][0]["lack_of_fit"]["reduced_chi2"] < 10.0
+    assert summary["outliers"] == [] and summary["prior_conflicts"] == []
+    assert summary["effects"][0]["lack_of_fit"]["reduced_chi2"] < 1.3
+    # each plane's profile g, g', g'' against the magnet's exact on-axis profile
+    s = score(summary, json.loads(files["truth"].read_text()))
+    pulls = s["pulls"]["fringe_field_3d"]
+    assert {"g@132", "g'@132", "g''@132", "g@-108"} <= set(pulls)
+    _first_with_pulls(s)
+    # the Fermi summary is model-dependent: its std, which includes its spread over the planes,
+    # covers what the shape misses
+    shape = score(summary, json.loads(files["truth"].read_text()), model_dependent=True)
+    for name in ("z_entry", "z_exit", "lambda"):
+        assert abs(shape["pulls"]["fringe_field_3d"][name]) < 2.0, shape["pulls"]
 
 
 def test_z_shift_whose_data_outweigh_the_survey_is_the_magnet(tmp_path):

@@ -162,6 +162,11 @@ def simulate(seed: int, effects: dict | None = None, size: str = "full", n_reps=
         dz = reg["magnet_dz"] * 1e-3
         params |= {"z_entry": z_in + dz, "z_exit": z_out + dz}
         params |= {"lambda": lam, "amplitude": 1.0}
+        # each plane's profile values, at the plane's position in the magnet frame
+        prof = magnet.profile_derivatives(gz - dz)
+        for k, z in enumerate(gz):
+            for name, row in zip(("g", "g'", "g''"), prof, strict=True):
+                params[f"{name}@{z:g}"] = float(row[k])
     truth = {
         "kind": "hall",
         "seed": int(seed),

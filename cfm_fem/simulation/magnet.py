@@ -22,6 +22,7 @@ __all__ = [
     "quadrupole",
     "field",
     "fringe_edges",
+    "profile_derivatives",
     "harmonics_2d",
 ]
 
@@ -105,6 +106,37 @@ def fringe_edges() -> tuple:
     half = 0.5 * LENGTH_MM
     fit = least_squares(lambda th: _enge(z, *th) - g, [-half, half, 5.0])
     return tuple(float(v) for v in fit.x)
+
+
+def _axis_gradient(z, half_widths=(0.25, 0.5, 0.75, 1.0)):
+    """G(z) = dBy/dx on the axis (T/mm): the odd part of By along x at each z,
+    (By(x) - By(-x)) / (2 x) = G - G'' x^2 / 12 + ..., fitted as a polynomial in x^2."""
+    x = np.asarray(half_widths, dtype=float)
+    z = np.asarray(z, dtype=float)
+    p = np.zeros((len(z), len(x), 3))
+    p[:, :, 0], p[:, :, 2] = x, z[:, None]
+    q = p * [-1.0, 1.0, 1.0]
+    odd = (field(p.reshape(-1, 3))[:, 1] - field(q.reshape(-1, 3))[:, 1]).reshape(len(z), -1)
+    odd /= 2.0 * x
+    vander = np.vander(x**2, 3, increasing=True)
+    return np.linalg.lstsq(vander, odd.T, rcond=None)[0][0]
+
+
+def profile_derivatives(z_mm, h: float = 0.2) -> np.ndarray:
+    """The exact profile of the ends, g(z) = G(z) / G(0) on the axis, and its first two
+    z-derivatives (1/mm, 1/mm^2) by five-point differences over +-2 ``h`` mm.
+
+    Returns
+    -------
+    ndarray, shape (3, len(z_mm))
+    """
+    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
+    offs = np.arange(-2, 3) * h
+    g = _axis_gradient((z[:, None] + offs).reshape(-1)).reshape(len(z), 5)
+    g /= _axis_gradient([0.0])[0]
+    d1 = (-g[:, 4] + 8 * g[:, 3] - 8 * g[:, 1] + g[:, 0]) / (12 * h)
+    d2 = (-g[:, 4] + 16 * g[:, 3] - 30 * g[:, 2] + 16 * g[:, 1] - g[:, 0]) / (12 * h * h)
+    return np.stack([g[:, 2], d1, d2])
 
 
 def harmonics_2d(r_ref_mm: float = 10.0, n_max: int = 40, z_mm: float = 0.0) -> np.ndarray:

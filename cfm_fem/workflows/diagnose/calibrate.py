@@ -87,6 +87,10 @@ class Columns:
         column changes. The element's gain scales that change as it scales the field, so the
         columns fit the parameter times (1 + gain); the reported value is divided by it.
         None: no such conversion.
+    model_dependent : tuple of str, optional
+        Physical parameters that belong to an assumed shape (``fringe_field_3d``: the edges
+        and fringe length of a Fermi profile) rather than to the data alone; reported as
+        model-dependent. None: every physical parameter when the block has ``model_rows``.
     """
 
     J: np.ndarray
@@ -107,6 +111,7 @@ class Columns:
     bounds_why: list | None = None
     model_rows: np.ndarray | None = None
     element: tuple | None = None
+    model_dependent: tuple | None = None
 
     @property
     def p(self) -> int:
@@ -144,6 +149,7 @@ class Columns:
             None if self.bounds_why is None else [self.bounds_why[k] for k in keep],
             self.model_rows,
             None if self.element is None else tuple(self.element[k] for k in keep),
+            self.model_dependent,
         )
 
     def released(self, group: str) -> Columns:

@@ -108,7 +108,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
 
     _, point = np.unique(prob.point[keep], return_inverse=True)
-    whole = ("upts", "V", "W3", "point_ids", "pose", "axis_var")  # not per row
+    whole = ("upts", "V", "W3", "U", "HU", "point_ids", "pose", "axis_var")  # not per row
     ctx = {k: take(v) if k not in whole else v for k, v in prob.ctx.items()}
     if "point_ids" in prob.ctx:
         ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]

@@ -18,7 +18,7 @@ from ...models.bench import ERROR_NAMES, Bench, MagnetPlacement
 from ...models.kinematics.chain import probe_errors_for_bench
 from ...models.kinematics.geometry import draw_error_sets
 from ...models.recordings import Recording
-from .effects import _fringe_derivatives
+from .fringe import _fringe_derivatives
 
 __all__ = ["tracker_twin", "hall_twin", "scan_order", "default_hall_points", "fringe_edges"]
 
@@ -262,7 +262,7 @@ def hall_twin(
         ``planar_hall`` {k_x, k_y, k_z: 1/T}, ``hall_offset_gain`` {offset_x: uT, gain_x: %},
         ``magnet_temperature`` {beta: ppm/K}, ``fringe_field_3d`` {z_entry, z_exit,
         lambda: mm} (or a centred {half_length_mm, lambda_mm}): soft ends of the Enge/Fermi
-        profile :func:`~cfm_fem.workflows.diagnose.effects.fringe_profile`, the field the 3-D
+        profile :func:`~cfm_fem.workflows.diagnose.fringe.fringe_profile`, the field the 3-D
         potential g V - g'' W implies (edges in the magnet body frame: the fitted edges also
         carry the magnet's z offset), ``sensor_volume_averaging``
         {a_x, a_y, a_z: mm side of the averaging box}.

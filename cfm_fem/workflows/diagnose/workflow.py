@@ -250,9 +250,9 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
         if c0.cols.model_rows is not None:
             e["lack_of_fit"] = {
                 "reduced_chi2": round(lof, 2),
-                "note": "the effect's model is an approximate shape: its parameters are those of "
-                "that shape fitted to these data (model-dependent), and their std is scaled by "
-                "sqrt(reduced chi2) of the fit where the model carries the signal",
+                "note": "the parameters listed in model_dependent are those of an assumed shape "
+                "fitted to these data, not of the data alone; every std of the effect is scaled "
+                "by sqrt(reduced chi2) of the fit where its model carries the signal",
             }
     if phys:  # a linearised non-linear or constrained effect: report its physical parameters
         e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
@@ -264,7 +264,8 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
         e["not_determined"] = [n for n, k in zip(pn, ok, strict=True) if not k]
         e["param_corr"] = None
         if "lack_of_fit" in e:
-            e["model_dependent"] = list(e["params"])
+            shaped = c0.cols.model_dependent
+            e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
     return e
 
 
