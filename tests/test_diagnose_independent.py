@@ -4,8 +4,9 @@ A scaled-down version of ``scripts/prove_diagnosis.py``: small grids, a few null
 and one seed per key effect, each diagnosed through the command line as a user would. The goals:
 nothing claimed on a null; the concealed effect ranked first with its parameters within
 4 standard uncertainties of the truth; a slip located in the repetitions from the step on and
-not taken for thermal drift. Goals the diagnosis does not meet yet are strict xfails naming the
-shortcoming, so they show when it is fixed.
+not taken for thermal drift. The soft ends are scored on the full grid: the 3 x 3 points of a
+plane of the small one separate only the first layer of the 3-D potential, and the diagnosis
+then reports every profile value as model-dependent.
 """
 
 from __future__ import annotations
@@ -23,11 +24,6 @@ from cfm_fem.simulation.scoring import score  # noqa: E402
 SEED = 20260101
 
 pytestmark = pytest.mark.slow  # a few minutes: full command-line runs
-
-
-def shortcoming(reason: str):
-    """A goal the diagnosis does not meet yet: a strict xfail, so that a fix shows."""
-    return pytest.mark.xfail(strict=True, reason=reason)
 
 
 @pytest.fixture(scope="module")
@@ -107,15 +103,6 @@ def test_common_z_shift_is_the_magnet_not_the_elements(diagnosed):
     s = diagnosed("magnet_shift_z")
     assert "sensor_offset" not in s["claimed"]
     _first_with_pulls(s)
-
-
-@shortcoming(
-    "the soft ends are named first, but the 3 x 3 points of a plane of the small grid separate "
-    "only the first layer of the 3-D potential: every profile value is model-dependent, none "
-    "is scored (the full grid's are: test_full_map_through_both_ends_names_the_soft_ends_alone)"
-)
-def test_soft_ends_against_a_2d_reference_are_named(diagnosed):
-    _first_with_pulls(diagnosed("fringe_field_3d"))
 
 
 def test_soft_ends_are_named_first_and_their_model_error_stated(tmp_path):
