@@ -124,3 +124,22 @@ def test_fermi_summary_recovers_a_fermi_profile_from_its_plane_values():
     for name, true in zip(("z_entry", "z_exit", "lambda"), th, strict=True):
         value, sd, unit = got[name]
         assert unit == "mm" and abs(value - true) < 1e-6 and sd < 1e-2
+
+
+def test_truncation_bias_is_what_a_short_fit_of_the_full_series_gets_wrong():
+    # a plane of 3 x 3 points next to an edge: the field of four layers with the Fermi
+    # profile's derivatives, fitted with the first layer only (and the B_z constant)
+    th, a, z = (-125.0, 125.0, 3.7), 1.0, 126.0
+    p = _plane(3)
+    p[:, 2] = z
+    U = fringe.potential_layers(_quadrupole, p)
+    V = G * p[:, 0] * p[:, 1]
+    cols = fringe._plane_columns(_quadrupole(p), V, U, np.arange(len(p)), 4)
+    d = fringe.fringe_derivatives(np.array([z]), *th, 7)[:, 0]
+    field = cols.reshape(-1, 8) @ d
+    fitted = np.concatenate([cols[..., :2], np.zeros((len(p), 3, 1))], axis=-1)
+    fitted[:, 2, 2] = 1.0
+    short = np.linalg.lstsq(fitted.reshape(-1, 3), field, rcond=None)[0]
+    bias = fringe._truncation_bias(fitted, cols[..., 2:], z, th, a)
+    assert np.allclose(short[:2] - d[:2], bias[:2], rtol=1e-9, atol=1e-15)
+    assert abs(bias[1]) > 1e-3 * abs(d[1])  # the short fit is visibly off at the edge

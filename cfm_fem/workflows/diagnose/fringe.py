@@ -375,6 +375,34 @@ def _plane_layers(cols, cond_max: float = 1e6) -> int:
     return best
 
 
+def _truncation_bias(fitted, omitted, z, th, a):
+    """What leaving out the higher layers does to a plane's fitted values: the least-squares
+    projection of the omitted columns, at the Fermi profile's derivatives, on the fitted ones.
+
+    Parameters
+    ----------
+    fitted : ndarray, shape (m, 3, p)
+        The plane's fitted columns (its layers first).
+    omitted : ndarray, shape (m, 3, q)
+        The columns of the layers it cannot separate (orders p .. p + q - 1 of the profile).
+    z : float, mm
+    th : sequence
+        Fermi (z_entry, z_exit, lambda), mm.
+    a : float
+        Fermi amplitude.
+
+    Returns
+    -------
+    ndarray, shape (p,)
+        Bias of each fitted value (its units).
+    """
+    p, q = fitted.shape[-1], omitted.shape[-1]
+    derivs = a * fringe_derivatives(np.array([z]), *th, p + q)[:, 0]
+    layers_2 = p - (p % 2)  # the profile orders among the fitted columns
+    left = omitted.reshape(-1, q) @ derivs[layers_2 : layers_2 + q]
+    return np.linalg.lstsq(fitted.reshape(-1, p), left, rcond=None)[0]
+
+
 def _fermi_summary(obs, values, cov, th0):
     """The Fermi profile's edges and length fitted to per-plane profile values.
 
@@ -448,7 +476,8 @@ def _plane_block(prob, blk, th, a, inside, shape):
     ``a``: the Fermi profile's amplitude (its planes beyond, until the block is fitted).
     ``shape``: the Fermi edges and length with their std ({name: (value, std, unit)}), reported
     as model-dependent, as are the values of a plane whose points separate fewer than
-    `PLANE_LAYERS` layers (its profile then rests on the higher ones being negligible).
+    `PLANE_LAYERS` layers; their std includes what the layers left out do to them
+    (`_truncation_bias`).
     """
     ctx = prob.ctx
     upts, uinv = ctx["upts"], ctx["uinv"]
@@ -465,6 +494,7 @@ def _plane_block(prob, blk, th, a, inside, shape):
             near |= np.abs(zs - edge) <= PLANE_REACH * lam
     Jp, names, units, freed, short = [], [], [], np.zeros(len(zs), dtype=bool), []
     slots = []  # (rows of the plane, first column, layers)
+    trunc = {}  # truncation bias of the values of planes that separate too few layers
     for j in np.flatnonzero(near):
         idx = np.flatnonzero(plane == j)
         cols = _plane_columns(B0u, Vu, U, idx, PLANE_LAYERS)
@@ -482,6 +512,8 @@ def _plane_block(prob, blk, th, a, inside, shape):
         Jp.append(full)
         if layers < PLANE_LAYERS:  # the higher layers are assumed negligible: a truncation
             short += [f"{o}@{zs[j]:g}" for o in PLANE_ORDERS]
+            bias = _truncation_bias(full[idx], cols[..., 2 * layers :], zs[j], th, a)
+            trunc.update({f"g{m}@{zs[j]:g}": float(abs(bias[m])) for m in range(2 * layers)})
         for m in range(2 * layers):
             names.append(f"g{m}@{zs[j]:g}")
             units.append("1" if m == 0 else "1/mm" if m == 1 else f"1/mm{m}")
@@ -519,12 +551,14 @@ def _plane_block(prob, blk, th, a, inside, shape):
                 continue
             value = float(theta[k]) + (1.0 if m == "g0" else 0.0)
             phys = f"{label[int(m[1:])]}@{z}"
-            res[phys] = (value, float(np.sqrt(max(cov[k, k], 0.0))), unit)
+            sd = float(np.sqrt(max(cov[k, k], 0.0) + trunc.get(name, 0.0) ** 2))
+            res[phys] = (value, sd, unit)
             every.append((float(z), int(m[1:]), k))
             if phys not in short:
                 obs.append(every[-1])
         values = theta + np.isin(np.arange(len(nm)), ones)
-        fermi = _fermi_summary(obs, values, cov, th) or _fermi_summary(every, values, cov, th)
+        cov_t = cov + np.diag([trunc.get(n, 0.0) ** 2 for n in nm])
+        fermi = _fermi_summary(obs, values, cov_t, th) or _fermi_summary(every, values, cov_t, th)
         for name in shape:
             if fermi is not None:
                 res[name] = fermi[name]
