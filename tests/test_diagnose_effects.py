@@ -318,3 +318,19 @@ def test_fringe_field_parameters_contain_the_truth():
     )
     assert np.abs(pulls).max() < 4.5, pulls
     assert abs(pulls.mean()) < 3.0 / np.sqrt(len(pulls)) and 0.5 < pulls.std() < 1.5, pulls
+
+
+def test_fringe_field_on_scattered_points_is_the_fermi_profile():
+    # no z plane holds enough points to be fitted on its own: the ends are the Fermi profile
+    rng = np.random.default_rng(5)
+    pts = np.column_stack(
+        [rng.uniform(-8, 8, 400), rng.uniform(-8, 8, 400), rng.uniform(-300, 300, 400)]
+    )
+    rec, truth, ctx = hall_twin(0, FRINGE, n_reps=4, points=pts, dt_s=4.0)
+    mp = ctx["multipole"]
+    s = diagnose(hall_problem(rec, mp.field, mp.b_ref, ctx["bench"])).summary
+    e = s["effects"][0]
+    assert e["name"] == "fringe_field_3d"
+    assert set(e["params"]) == {"amplitude", "z_entry", "z_exit", "lambda"}
+    for p, v in {**_fringe_truth(truth), "amplitude": 1.0}.items():
+        assert abs(e["params"][p] - v) < 3 * e["param_std"][p], (p, e["params"][p], v)

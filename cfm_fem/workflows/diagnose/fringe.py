@@ -342,6 +342,9 @@ def _search_edges(obj, delta, zmin, zmax):
 #: Planes within this many fringe lengths of an end the data cover get their own profile.
 PLANE_REACH = 16.0
 
+#: Fewest distinct points of a plane that gets its own profile.
+PLANE_MIN_POINTS = 6
+
 #: Orders of the profile reported per plane: g, g' and g''.
 PLANE_ORDERS = ("g", "g'", "g''")
 
@@ -467,8 +470,9 @@ def _fermi_summary(obs, values, cov, th0):
 
 
 def _plane_block(prob, blk, th, a, inside, shape):
-    """The soft ends measured plane by plane: near each end the data cover, every z plane gets
-    its own profile values g - 1, g', g'', ... (the generalised gradients of the body
+    """The soft ends measured plane by plane: near each end the data cover, every z plane of
+    at least `PLANE_MIN_POINTS` points gets its own profile values g - 1, g', g'', ... (the
+    generalised gradients of the body
     multipole relative to the 2-D reference), so the fit does not rest on the Fermi shape
     there; the Fermi profile of ``blk`` (its amplitude column) carries the other planes. None
     if no plane near an end has points that separate the layers.
@@ -497,6 +501,8 @@ def _plane_block(prob, blk, th, a, inside, shape):
     trunc = {}  # truncation bias of the values of planes that separate too few layers
     for j in np.flatnonzero(near):
         idx = np.flatnonzero(plane == j)
+        if len(idx) < PLANE_MIN_POINTS:  # scattered z: no plane to fit on its own
+            continue
         cols = _plane_columns(B0u, Vu, U, idx, PLANE_LAYERS)
         layers = _plane_layers(cols)
         if layers == 0:
