@@ -472,10 +472,10 @@ def _fermi_summary(obs, values, cov, th0):
 def _plane_block(prob, blk, th, a, inside, shape):
     """The soft ends measured plane by plane: near each end the data cover, every z plane of
     at least `PLANE_MIN_POINTS` points gets its own profile values g - 1, g', g'', ... (the
-    generalised gradients of the body
-    multipole relative to the 2-D reference), so the fit does not rest on the Fermi shape
-    there; the Fermi profile of ``blk`` (its amplitude column) carries the other planes. None
-    if no plane near an end has points that separate the layers.
+    generalised gradients of the body multipole relative to the 2-D reference), so the fit
+    does not rest on the Fermi shape there; the Fermi profile of ``blk`` (its amplitude
+    column) carries the other planes. None if no plane near an end has points that separate
+    the layers.
 
     ``a``: the Fermi profile's amplitude (its planes beyond, until the block is fitted).
     ``shape``: the Fermi edges and length with their std ({name: (value, std, unit)}), reported
