@@ -336,8 +336,13 @@ def test_star_block_pass_places_trials_like_the_walk():
 def test_sort_values_matches_numpy():
     rng = np.random.default_rng(8)
     extremes = np.r_[1e-300, 1e300, -1e300, rng.normal(size=100)]
+    tail = np.sort(rng.normal(size=10_000))[:1200]  # the shape the sweeps sort
+    rng.shuffle(tail)
+    outlier = np.r_[rng.normal(size=999), 1e12]  # every other value shares a 16-bit key
+    sizes = [rng.normal(size=k) for k in (48, 4096, 4097)]  # either side of the key widths
     for a in (rng.normal(size=5000) ** 3, rng.integers(0, 5, 300).astype(float),
-              rng.uniform(size=47), extremes):  # fmt: skip
+              rng.uniform(size=47), extremes, tail, outlier, -np.abs(rng.normal(size=700)),
+              *sizes):  # fmt: skip
         b = a.copy()
         _kernels.sort_values(b)
         np.testing.assert_array_equal(b, np.sort(a))
