@@ -12,8 +12,8 @@ sums of |coefficient| per degree; where it is too loose for the gathered tail (a
 first-order part vanishes, large U_p against the field's curvature length), the statistic is
 computed from the whole sample, so every number is exact either way.
 
-The field changes are computed per block of trials (`PART_BLOCK`, rows of a constant pitch) by a
-loop LLVM vectorises, and then copied into one row per U_p and quantity.
+The field changes are computed per block of trials (`PART_BLOCK`, parts in rows of a constant
+pitch) by a loop LLVM vectorises, straight into one row per U_p and quantity.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ BOUND_SAFETY = 1e-6
 
 
 @nb.njit(**FJIT)
-def changes_block(parts, m, s, b0, abs0, blk):
+def changes_block(parts, m, s, b0, abs0, out, t0):
     """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`).
 
     Parameters
@@ -50,12 +50,18 @@ def changes_block(parts, m, s, b0, abs0, blk):
         The model's field at the node.
     abs0 : float
         |b0|, T.
-    blk : ndarray, shape (>= 4 * PART_BLOCK,), T
-        ``blk[c * PART_BLOCK + t]``: change of B_c (c < 3), and of |B| (c = 3).
+    out : ndarray, shape (4, >= t0 + m), T
+        ``out[c, t0 + t]``: change of B_c (c < 3), and of |B| (c = 3), of the block's trial t.
+    t0 : int
+        The block's first trial.
     """
     bx = b0[0]
     by = b0[1]
     bz = b0[2]
+    out_x = out[0, t0 : t0 + m]  # 1-D views: the loop below stays vectorised
+    out_y = out[1, t0 : t0 + m]
+    out_z = out[2, t0 : t0 + m]
+    out_b = out[3, t0 : t0 + m]
     for t in range(m):
         ex = parts[12 * PART_BLOCK + t] * s + parts[9 * PART_BLOCK + t]
         ey = parts[13 * PART_BLOCK + t] * s + parts[10 * PART_BLOCK + t]
@@ -74,10 +80,10 @@ def changes_block(parts, m, s, b0, abs0, blk):
         x2 = bz + ez
         den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
         num = 2.0 * (bx * ex + by * ey + bz * ez) + ex * ex + ey * ey + ez * ez
-        blk[t] = ex
-        blk[PART_BLOCK + t] = ey
-        blk[2 * PART_BLOCK + t] = ez
-        blk[3 * PART_BLOCK + t] = num / den if den > 0.0 else 0.0
+        out_x[t] = ex
+        out_y[t] = ey
+        out_z[t] = ez
+        out_b[t] = num / den if den > 0.0 else 0.0
 
 
 @nb.njit(**JIT)

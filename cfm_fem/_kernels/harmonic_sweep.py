@@ -84,7 +84,7 @@ def _gauss_buffers(n_up, n_trials, n_mono):
     n = n_trials
     return (
         np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
-        np.empty(N_SLOTS * PART_BLOCK), np.empty(4 * PART_BLOCK), np.empty((n_up, 4, n)),
+        np.empty(N_SLOTS * PART_BLOCK), np.empty((n_up, 4, n)),
         np.empty((4, n)), np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, n)),
         np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n), np.empty(n),
         np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
@@ -95,7 +95,7 @@ def _gauss_buffers(n_up, n_trials, n_mono):
 def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
     """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and the
     first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts)."""
-    (z, ok, u_, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
+    (z, ok, u_, d2, parts, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
      counts, scratch, cexp_) = buffers  # fmt: skip
     n_up = scales.shape[0]
     for t0 in range(0, n, PART_BLOCK):
@@ -106,9 +106,7 @@ def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
         first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
         for k in range(n_up):
             if scales[k] > 0.0:
-                changes_block(parts, m, scales[k], b0, abs0, blk)
-                for j in range(4):
-                    copy_row(blk[j * PART_BLOCK : j * PART_BLOCK + m], vals[k, j, t0 : t0 + m])
+                changes_block(parts, m, scales[k], b0, abs0, vals[k], t0)
 
 
 @nb.njit(**JIT)
@@ -192,7 +190,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     buffers = _gauss_buffers(n_up, n, gmat.shape[1])
-    (z, ok, u, d2, parts, blk, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
+    (z, ok, u, d2, parts, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
      counts, scratch, cexp) = buffers  # fmt: skip
     w = np.zeros((3, 3))
     for c in range(3):
@@ -284,8 +282,7 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)
     parts = np.empty(N_SLOTS * PART_BLOCK)
-    blk = np.empty(4 * PART_BLOCK)
-    err = np.empty((3, n_trials))
+    err = np.empty((4, n_trials))  # the components, then |B| (recomputed below)
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
     cexp = np.empty((3, gmat.shape[1]))
@@ -318,10 +315,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
         for t0 in range(0, n_trials, PART_BLOCK):
             m = min(PART_BLOCK, n_trials - t0)
             homogeneous_parts(cexp, u, t0, m, parts)
-            changes_block(parts, m, 1.0, b0, abs0, blk)
-            for c in range(3):
-                copy_row(blk[c * PART_BLOCK : c * PART_BLOCK + m], err[c, t0 : t0 + m])
-        _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err, absb,
+            changes_block(parts, m, 1.0, b0, abs0, err, t0)
+        _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err[:3], absb,
                          scratch, p, stats[i, 0], n_out[i])  # fmt: skip
         _position_moments(n_trials, s1, s2, sx, pos[i])
     return stats, n_out, n_lost, pos
