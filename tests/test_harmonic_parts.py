@@ -63,7 +63,7 @@ def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):
     bound = abs(curvature) * np.max(w**2)
     q = _kernels.coverage_count(n, p)
     z_h = _kernels.tail_quantile_z(n, q)
-    bufs = [np.empty(n), np.empty(n, dtype=np.int64), np.empty(n), np.empty(n, dtype=np.int64)]
+    bufs = [np.empty(n), np.empty(n, dtype=np.int64)]
     limits = np.empty(4)
     counts = np.empty(4, dtype=np.int64)
     _kernels.gather_tails(lin, n, z_h, n - q, *bufs, limits, counts, np.empty(n))
@@ -84,13 +84,14 @@ def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
     np.testing.assert_allclose(stats, want, rtol=1e-12, atol=1e-15)
 
 
-def test_a_misleading_pilot_still_gives_the_whole_samples_statistics():
-    """Leading values 0.15 std above the rest put the pilot's high-tail value v where fewer than
-    h values lie above it: v is then selected in the gathered tail, and the statistics are
-    still those of the whole sample."""
+@pytest.mark.parametrize("shift", [0.3, -0.3])
+def test_a_misleading_pilot_still_gives_the_whole_samples_statistics(shift):
+    """Leading values 0.15 std above (below) the rest put the pilot's high-tail (low-tail)
+    value v where fewer than h values lie beyond it: v is then selected in the gathered tail,
+    and the statistics are still those of the whole sample."""
     n = 10_000
-    x, q, bound, tails, limits, counts = _tail_case(n, 0.02, pilot_shift=0.3)
-    assert counts[3] == n - q  # the selected v: exactly h values at or above it
+    x, q, bound, tails, limits, counts = _tail_case(n, 0.02, pilot_shift=shift)
+    assert counts[3 if shift > 0 else 2] == n - q  # the selected v: exactly h values beyond
     stats = np.empty(6)
     took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
                                np.empty(n))  # fmt: skip

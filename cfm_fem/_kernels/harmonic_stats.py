@@ -137,8 +137,23 @@ def tail_quantile_z(n, q):
 
 
 @nb.njit(**JIT)
-def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts, work):
-    """Trials in the two tails of a first-order part.
+def _select_in_tail(val, count, low_side, g, h, work):
+    """The h-th value of one tail of a gathered list: the h-th smallest of ``val[:count]``
+    at or below ``g`` (``low_side``), or the h-th largest at or above it."""
+    k = 0
+    for i in range(count):
+        v = val[i]
+        if (v <= g) if low_side else (v >= g):
+            work[k] = v
+            k += 1
+    pos = h - 1 if low_side else k - h
+    select_inplace(work, np.int64(0), k - 1, pos)
+    return work[pos]
+
+
+@nb.njit(**JIT)
+def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
+    """Trials in the two tails of a first-order part, in one list.
 
     Parameters
     ----------
@@ -149,15 +164,15 @@ def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts,
         `tail_quantile_z`.
     h : int
         Order statistics needed in each tail (n - q).
-    lo_val, lo_idx, hi_val, hi_idx : ndarray, shape (>= n,)
-        Output: values <= g_lo and >= g_hi with their trial index, in trial order
+    val, idx : ndarray, shape (>= n,)
+        Output: values <= g_lo or >= g_hi with their trial index, in trial order
         (g = mean -+ `GATHER_SIGMAS` std of the leading `TAIL_PILOT` values).
     limits : ndarray, shape (4,)
         Output: g_lo, g_hi and v_lo = mean - z_h std, v_hi = mean + z_h std (clipped to g);
         where fewer than h values lie beyond one of those (the pilot's mean or std off, a
         first-order part far from normal), that v is the h-th value of its tail, selected.
     counts : ndarray, shape (4,), int64
-        Output: values gathered in each tail, and values <= v_lo and >= v_hi.
+        Output: values gathered, values <= g_lo, and values <= v_lo and >= v_hi.
     work : ndarray, shape (>= n,)
         Work space.
     """
@@ -185,32 +200,28 @@ def gather_tails(lin, n, z_h, h, lo_val, lo_idx, hi_val, hi_idx, limits, counts,
     limits[1] = g_hi
     limits[2] = v_lo
     limits[3] = v_hi
+    k = 0
+    for t in range(n):  # branch-free gather: one list, one counter
+        v = lin[t]
+        val[k] = v
+        idx[k] = t
+        k += (v <= g_lo) | (v >= g_hi)
     n_lo = 0
-    n_hi = 0
     c_lo = 0
     c_hi = 0
-    for t in range(n):  # branch-free gather
-        v = lin[t]
-        lo_val[n_lo] = v
-        lo_idx[n_lo] = t
+    for i in range(k):
+        v = val[i]
         n_lo += v <= g_lo
-        hi_val[n_hi] = v
-        hi_idx[n_hi] = t
-        n_hi += v >= g_hi
         c_lo += v <= v_lo
         c_hi += v >= v_hi
     if c_lo < h <= n_lo:  # the pilot misplaced v: select it (rare; exact either way)
-        work[:n_lo] = lo_val[:n_lo]
-        select_inplace(work, np.int64(0), n_lo - 1, h - 1)
-        limits[2] = work[h - 1]
+        limits[2] = _select_in_tail(val, k, True, g_lo, h, work)
         c_lo = h
-    if c_hi < h <= n_hi:
-        work[:n_hi] = hi_val[:n_hi]
-        select_inplace(work, np.int64(0), n_hi - 1, n_hi - h)
-        limits[3] = work[n_hi - h]
+    if c_hi < h <= k - n_lo:
+        limits[3] = _select_in_tail(val, k, False, g_hi, h, work)
         c_hi = h
-    counts[0] = n_lo
-    counts[1] = n_hi
+    counts[0] = k
+    counts[1] = n_lo
     counts[2] = c_lo
     counts[3] = c_hi
 
@@ -235,15 +246,15 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
         Upper bound of |change / s - first-order part| over every trial, in the first-order
         part's units.
     tails : tuple
-        (lo_val, lo_idx, hi_val, hi_idx) of `gather_tails`.
+        (val, idx) of `gather_tails`.
     limits, counts : ndarray, shape (4,)
         Of `gather_tails`.
     stats : ndarray, shape (6,)
         Output.
-    low, high : ndarray, shape (>= counts[0]), (>= counts[1])
+    low, high : ndarray, shape (>= counts[0],)
         Work space.
     """
-    lo_val, lo_idx, hi_val, hi_idx = tails
+    val, idx = tails
     h = n - q
     if n < 2 or h < 1 or counts[2] < h or counts[3] < h or not bound < np.inf:
         return False
@@ -253,13 +264,14 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
     if not (thr_lo < limits[0] and thr_hi > limits[1]):
         return False
     k = 0
-    for i in range(counts[0]):  # branch-free: candidates of the low tail
-        low[k] = x[lo_idx[i]]
-        k += lo_val[i] <= thr_lo
     m = 0
-    for i in range(counts[1]):
-        high[m] = x[hi_idx[i]]
-        m += hi_val[i] >= thr_hi
+    for i in range(counts[0]):  # branch-free: candidates of both tails
+        v = val[i]
+        xi = x[idx[i]]
+        low[k] = xi
+        k += v <= thr_lo
+        high[m] = xi
+        m += v >= thr_hi
     sort_values(low[:k])
     sort_values(high[:m])
     shift, s1, s2 = shifted_sums(x, n)

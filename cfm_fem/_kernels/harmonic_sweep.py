@@ -84,10 +84,9 @@ def _gauss_buffers(n_up, n_trials, n_mono):
     n = n_trials
     return (
         np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
-        np.empty(N_SLOTS * PART_BLOCK), np.empty((n_up, 4, n)),
-        np.empty((4, n)), np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, n)),
-        np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n), np.empty(n),
-        np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
+        np.empty(N_SLOTS * PART_BLOCK), np.empty((n_up, 4, n)), np.empty((4, n)),
+        np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n),
+        np.empty(n), np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
     )  # fmt: skip
 
 
@@ -95,8 +94,8 @@ def _gauss_buffers(n_up, n_trials, n_mono):
 def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
     """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and the
     first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts)."""
-    (z, ok, u_, d2, parts, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
-     counts, scratch, cexp_) = buffers  # fmt: skip
+    (z, ok, u_, d2, parts, vals, lin, tail_val, tail_idx, limits, low, high, counts, scratch,
+     cexp_) = buffers  # fmt: skip
     n_up = scales.shape[0]
     for t0 in range(0, n, PART_BLOCK):
         m = min(PART_BLOCK, n - t0)
@@ -190,8 +189,8 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     buffers = _gauss_buffers(n_up, n, gmat.shape[1])
-    (z, ok, u, d2, parts, vals, lin, lo_val, lo_idx, hi_val, hi_idx, limits, low, high,
-     counts, scratch, cexp) = buffers  # fmt: skip
+    (z, ok, u, d2, parts, vals, lin, tail_val, tail_idx, limits, low, high, counts, scratch,
+     cexp) = buffers  # fmt: skip
     w = np.zeros((3, 3))
     for c in range(3):
         w[c, c] = sigma_axes[c]
@@ -227,8 +226,8 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
         _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers)
         for j in range(4):
-            gather_tails(lin[j], n, z_h, n - q, lo_val[j], lo_idx[j], hi_val[j], hi_idx[j],
-                         limits[j], counts[j], scratch)  # fmt: skip
+            gather_tails(lin[j], n, z_h, n - q, tail_val[j], tail_idx[j], limits[j], counts[j],
+                         scratch)  # fmt: skip
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
         if smax > 0.0:
             r2max = (hreach[g] / smax) ** 2
@@ -255,7 +254,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                 n_out[i, k] = cnt[0]
             _remainder_bounds(s, rho, csum, b_hat, abs0, bounds)
             for j in range(4):
-                tails = (lo_val[j], lo_idx[j], hi_val[j], hi_idx[j])
+                tails = (tail_val[j], tail_idx[j])
                 if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
                                   stats[i, k, j], low, high):  # fmt: skip
                     sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
