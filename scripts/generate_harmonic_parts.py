@@ -36,7 +36,7 @@ is the sum of the degree-q monomials of u times their coefficients, so that
     B(s u) - B(0) = sum_q s^q part_q.
 
 Trials are taken in blocks of at most `PART_BLOCK`; part q of component c of trial t of a block is
-``parts[(3 (q - 1) + c) * PART_BLOCK + t]``. A straight-line body per trial and a constant row pitch
+``parts[(3 (q - 1) + c) * PART_PITCH + t]``. A straight-line body per trial and a constant row pitch
 are what let LLVM vectorise the loop over trials.
 """
 
@@ -46,8 +46,13 @@ import numba as nb
 
 from .options import FJIT
 
-#: Trials per block, the row pitch of the part arrays.
+#: Trials per block.
 PART_BLOCK = 512
+
+#: Row pitch of the part arrays: one cache line more than a block, so that the rows of a trial,
+#: read and written together, do not all fall into the same cache set (as a pitch of 4 KiB
+#: would have them).
+PART_PITCH = PART_BLOCK + 8
 
 #: Part rows: 3 components per degree.
 N_SLOTS = {n_slots}
@@ -65,7 +70,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         Scaled displacements.
     t0, m : int
         First trial and number of trials, m <= `PART_BLOCK`.
-    parts : ndarray, shape (>= N_SLOTS * PART_BLOCK,), T
+    parts : ndarray, shape (>= N_SLOTS * PART_PITCH,), T
         Output, see the module docstring.
     """
 '''
@@ -104,7 +109,7 @@ def generate() -> str:
             m += 1
         for c in range(3):
             terms = [f"k{c}_{mm} * {v}" for mm, v in mons]
-            target = f"parts[{slot} * PART_BLOCK + t]"
+            target = f"parts[{slot} * PART_PITCH + t]"
             line = f"        {target} = {' + '.join(terms)}"
             inner = f"            {' + '.join(terms)}"
             if len(line) <= LINE_LENGTH:

@@ -14,6 +14,7 @@ from cfm_fem.models.harmonic_basis import monomial_exponents, n_monomials
 
 ROOT = Path(__file__).resolve().parents[1]
 B = _kernels.PART_BLOCK
+P = _kernels.PART_PITCH
 
 
 def test_generated_module_is_the_generators_output():
@@ -37,14 +38,14 @@ def test_parts_match_numpy_monomials_across_blocks(degree):
     cexp = rng.normal(size=(3, len(exps)))
     cexp[:, n_monomials(degree) :] = 0.0
     mono = np.prod(u.T[:, None, :] ** exps[None], axis=2)  # (n, M)
-    parts = np.empty(_kernels.N_SLOTS * B)
+    parts = np.empty(_kernels.N_SLOTS * P)
     for t0 in range(0, n, B):
         m = min(B, n - t0)
         _kernels.homogeneous_parts(cexp, u, t0, m, parts)
         for q in range(1, 6):
             sel = exps.sum(axis=1) == q
             want = mono[t0 : t0 + m][:, sel] @ cexp[:, sel].T  # (m, 3)
-            got = parts.reshape(_kernels.N_SLOTS, B)[3 * (q - 1) : 3 * q, :m].T
+            got = parts.reshape(_kernels.N_SLOTS, P)[3 * (q - 1) : 3 * q, :m].T
             np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
             if q > degree:
                 assert not got.any()

@@ -39,6 +39,7 @@ from .harmonic_fit import (
 from .harmonic_parts import (
     N_SLOTS,
     PART_BLOCK,
+    PART_PITCH,
     homogeneous_parts,
 )
 from .harmonic_stats import (
@@ -271,6 +272,7 @@ __all__ = [
     "expand_node",
     "poly_points",
     "PART_BLOCK",
+    "PART_PITCH",
     "N_SLOTS",
     "homogeneous_parts",
     "changes_block",

@@ -10,7 +10,7 @@ is the sum of the degree-q monomials of u times their coefficients, so that
     B(s u) - B(0) = sum_q s^q part_q.
 
 Trials are taken in blocks of at most `PART_BLOCK`; part q of component c of trial t of a block is
-``parts[(3 (q - 1) + c) * PART_BLOCK + t]``. A straight-line body per trial and a constant row pitch
+``parts[(3 (q - 1) + c) * PART_PITCH + t]``. A straight-line body per trial and a constant row pitch
 are what let LLVM vectorise the loop over trials.
 """
 
@@ -20,8 +20,13 @@ import numba as nb
 
 from .options import FJIT
 
-#: Trials per block, the row pitch of the part arrays.
+#: Trials per block.
 PART_BLOCK = 512
+
+#: Row pitch of the part arrays: one cache line more than a block, so that the rows of a trial,
+#: read and written together, do not all fall into the same cache set (as a pitch of 4 KiB
+#: would have them).
+PART_PITCH = PART_BLOCK + 8
 
 #: Part rows: 3 components per degree.
 N_SLOTS = 15
@@ -39,7 +44,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         Scaled displacements.
     t0, m : int
         First trial and number of trials, m <= `PART_BLOCK`.
-    parts : ndarray, shape (>= N_SLOTS * PART_BLOCK,), T
+    parts : ndarray, shape (>= N_SLOTS * PART_PITCH,), T
         Output, see the module docstring.
     """
     k0_1 = cexp[0, 1]
@@ -223,19 +228,19 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         z3 = z2 * z
         z4 = z3 * z
         z5 = z4 * z
-        parts[0 * PART_BLOCK + t] = k0_1 * x + k0_2 * y + k0_3 * z
-        parts[1 * PART_BLOCK + t] = k1_1 * x + k1_2 * y + k1_3 * z
-        parts[2 * PART_BLOCK + t] = k2_1 * x + k2_2 * y + k2_3 * z
+        parts[0 * PART_PITCH + t] = k0_1 * x + k0_2 * y + k0_3 * z
+        parts[1 * PART_PITCH + t] = k1_1 * x + k1_2 * y + k1_3 * z
+        parts[2 * PART_PITCH + t] = k2_1 * x + k2_2 * y + k2_3 * z
         v5 = x * y
         v6 = x * z
         v8 = y * z
-        parts[3 * PART_BLOCK + t] = (
+        parts[3 * PART_PITCH + t] = (
             k0_4 * x2 + k0_5 * v5 + k0_6 * v6 + k0_7 * y2 + k0_8 * v8 + k0_9 * z2
         )
-        parts[4 * PART_BLOCK + t] = (
+        parts[4 * PART_PITCH + t] = (
             k1_4 * x2 + k1_5 * v5 + k1_6 * v6 + k1_7 * y2 + k1_8 * v8 + k1_9 * z2
         )
-        parts[5 * PART_BLOCK + t] = (
+        parts[5 * PART_PITCH + t] = (
             k2_4 * x2 + k2_5 * v5 + k2_6 * v6 + k2_7 * y2 + k2_8 * v8 + k2_9 * z2
         )
         v11 = x2 * y
@@ -245,7 +250,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         v15 = x * z2
         v17 = y2 * z
         v18 = y * z2
-        parts[6 * PART_BLOCK + t] = (
+        parts[6 * PART_PITCH + t] = (
             k0_10 * x3
             + k0_11 * v11
             + k0_12 * v12
@@ -257,7 +262,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k0_18 * v18
             + k0_19 * z3
         )
-        parts[7 * PART_BLOCK + t] = (
+        parts[7 * PART_PITCH + t] = (
             k1_10 * x3
             + k1_11 * v11
             + k1_12 * v12
@@ -269,7 +274,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k1_18 * v18
             + k1_19 * z3
         )
-        parts[8 * PART_BLOCK + t] = (
+        parts[8 * PART_PITCH + t] = (
             k2_10 * x3
             + k2_11 * v11
             + k2_12 * v12
@@ -293,7 +298,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         v31 = y3 * z
         v32 = y2 * z2
         v33 = y * z3
-        parts[9 * PART_BLOCK + t] = (
+        parts[9 * PART_PITCH + t] = (
             k0_20 * x4
             + k0_21 * v21
             + k0_22 * v22
@@ -310,7 +315,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k0_33 * v33
             + k0_34 * z4
         )
-        parts[10 * PART_BLOCK + t] = (
+        parts[10 * PART_PITCH + t] = (
             k1_20 * x4
             + k1_21 * v21
             + k1_22 * v22
@@ -327,7 +332,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k1_33 * v33
             + k1_34 * z4
         )
-        parts[11 * PART_BLOCK + t] = (
+        parts[11 * PART_PITCH + t] = (
             k2_20 * x4
             + k2_21 * v21
             + k2_22 * v22
@@ -362,7 +367,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
         v52 = y3 * z2
         v53 = y2 * z3
         v54 = y * z4
-        parts[12 * PART_BLOCK + t] = (
+        parts[12 * PART_PITCH + t] = (
             k0_35 * x5
             + k0_36 * v36
             + k0_37 * v37
@@ -385,7 +390,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k0_54 * v54
             + k0_55 * z5
         )
-        parts[13 * PART_BLOCK + t] = (
+        parts[13 * PART_PITCH + t] = (
             k1_35 * x5
             + k1_36 * v36
             + k1_37 * v37
@@ -408,7 +413,7 @@ def homogeneous_parts(cexp, u, t0, m, parts):
             + k1_54 * v54
             + k1_55 * z5
         )
-        parts[14 * PART_BLOCK + t] = (
+        parts[14 * PART_PITCH + t] = (
             k2_35 * x5
             + k2_36 * v36
             + k2_37 * v37

@@ -13,7 +13,7 @@ first-order part vanishes, large U_p against the field's curvature length), the 
 computed from the whole sample, so every number is exact either way.
 
 The field changes are computed per block of trials (`PART_BLOCK`, parts in rows of a constant
-pitch) by a loop LLVM vectorises, straight into one row per U_p and quantity.
+pitch, `PART_PITCH`) by a loop LLVM vectorises, straight into one row per U_p and quantity.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .harmonic_parts import PART_BLOCK
+from .harmonic_parts import PART_PITCH
 from .options import FJIT, JIT, RJIT
 from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 
@@ -41,7 +41,7 @@ def changes_block(parts, m, s, b0, abs0, out, t0):
 
     Parameters
     ----------
-    parts : ndarray, shape (>= N_SLOTS * PART_BLOCK,), T
+    parts : ndarray, shape (>= N_SLOTS * PART_PITCH,), T
     m : int
         Trials in the block.
     s : float, mm
@@ -63,18 +63,18 @@ def changes_block(parts, m, s, b0, abs0, out, t0):
     out_z = out[2, t0 : t0 + m]
     out_b = out[3, t0 : t0 + m]
     for t in range(m):
-        ex = parts[12 * PART_BLOCK + t] * s + parts[9 * PART_BLOCK + t]
-        ey = parts[13 * PART_BLOCK + t] * s + parts[10 * PART_BLOCK + t]
-        ez = parts[14 * PART_BLOCK + t] * s + parts[11 * PART_BLOCK + t]
-        ex = ex * s + parts[6 * PART_BLOCK + t]
-        ey = ey * s + parts[7 * PART_BLOCK + t]
-        ez = ez * s + parts[8 * PART_BLOCK + t]
-        ex = ex * s + parts[3 * PART_BLOCK + t]
-        ey = ey * s + parts[4 * PART_BLOCK + t]
-        ez = ez * s + parts[5 * PART_BLOCK + t]
+        ex = parts[12 * PART_PITCH + t] * s + parts[9 * PART_PITCH + t]
+        ey = parts[13 * PART_PITCH + t] * s + parts[10 * PART_PITCH + t]
+        ez = parts[14 * PART_PITCH + t] * s + parts[11 * PART_PITCH + t]
+        ex = ex * s + parts[6 * PART_PITCH + t]
+        ey = ey * s + parts[7 * PART_PITCH + t]
+        ez = ez * s + parts[8 * PART_PITCH + t]
+        ex = ex * s + parts[3 * PART_PITCH + t]
+        ey = ey * s + parts[4 * PART_PITCH + t]
+        ez = ez * s + parts[5 * PART_PITCH + t]
         ex = (ex * s + parts[t]) * s
-        ey = (ey * s + parts[PART_BLOCK + t]) * s
-        ez = (ez * s + parts[2 * PART_BLOCK + t]) * s
+        ey = (ey * s + parts[PART_PITCH + t]) * s
+        ez = (ez * s + parts[2 * PART_PITCH + t]) * s
         x0 = bx + ex
         x1 = by + ey
         x2 = bz + ez
@@ -100,7 +100,7 @@ def first_order_abs(parts, m, b_hat, dst):
     by = b_hat[1]
     bz = b_hat[2]
     for t in range(m):
-        dst[t] = bx * parts[t] + by * parts[PART_BLOCK + t] + bz * parts[2 * PART_BLOCK + t]
+        dst[t] = bx * parts[t] + by * parts[PART_PITCH + t] + bz * parts[2 * PART_PITCH + t]
 
 
 @nb.njit(**RJIT)

@@ -14,7 +14,7 @@ import numba as nb
 import numpy as np
 
 from .harmonic import expand_node
-from .harmonic_parts import N_SLOTS, PART_BLOCK, homogeneous_parts
+from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
 from .harmonic_stats import (
     BOUND_SAFETY,
     changes_block,
@@ -84,7 +84,7 @@ def _gauss_buffers(n_up, n_trials, n_mono):
     n = n_trials
     return (
         np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
-        np.empty(N_SLOTS * PART_BLOCK), np.empty((n_up, 4, n)), np.empty((4, n)),
+        np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, n)), np.empty((4, n)),
         np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n),
         np.empty(n), np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
     )  # fmt: skip
@@ -101,7 +101,7 @@ def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
         m = min(PART_BLOCK, n - t0)
         homogeneous_parts(cexp, u, t0, m, parts)
         for c in range(3):
-            copy_row(parts[c * PART_BLOCK : c * PART_BLOCK + m], lin[c, t0 : t0 + m])
+            copy_row(parts[c * PART_PITCH : c * PART_PITCH + m], lin[c, t0 : t0 + m])
         first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
         for k in range(n_up):
             if scales[k] > 0.0:
@@ -280,7 +280,7 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     basis = np.eye(3)
     u = np.empty((3, n_trials))
     d2 = np.empty(n_trials)
-    parts = np.empty(N_SLOTS * PART_BLOCK)
+    parts = np.empty(N_SLOTS * PART_PITCH)
     err = np.empty((4, n_trials))  # the components, then |B| (recomputed below)
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
