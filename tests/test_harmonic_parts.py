@@ -71,6 +71,12 @@ def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):
     return x, q, bound, tuple(bufs), limits, counts
 
 
+def _sums(x):
+    """Shift (the first value) and the sums of x - shift and of its square."""
+    d = x - x[0]
+    return np.array([x[0], d.sum(), (d * d).sum()])
+
+
 @pytest.mark.parametrize("curvature", [0.0, 0.02, -0.03])
 def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
     """Where the remainder bound confines the candidates, the statistics from the tails are
@@ -79,7 +85,7 @@ def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
     x, q, bound, tails, limits, counts = _tail_case(n, curvature)
     stats = np.empty(6)
     took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
-                               np.empty(n))  # fmt: skip
+                               np.empty(n), _sums(x))  # fmt: skip
     assert took
     want = testing.sample_stats(x)
     np.testing.assert_allclose(stats, want, rtol=1e-12, atol=1e-15)
@@ -95,7 +101,7 @@ def test_a_misleading_pilot_still_gives_the_whole_samples_statistics(shift):
     assert counts[3 if shift > 0 else 2] == n - q  # the selected v: exactly h values beyond
     stats = np.empty(6)
     took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
-                               np.empty(n))  # fmt: skip
+                               np.empty(n), _sums(x))  # fmt: skip
     assert took
     np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
 
@@ -106,7 +112,7 @@ def test_a_loose_bound_refuses_the_tails():
     x, q, bound, tails, limits, counts = _tail_case(n, 1.0)
     stats = np.empty(6)
     assert not _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats,
-                                   np.empty(n), np.empty(n))  # fmt: skip
+                                   np.empty(n), np.empty(n), _sums(x))  # fmt: skip
 
 
 def test_an_understated_bound_would_be_caught_by_the_comparison():
@@ -117,7 +123,7 @@ def test_an_understated_bound_would_be_caught_by_the_comparison():
     x, q, bound, tails, limits, counts = _tail_case(n, 0.2)
     stats = np.empty(6)
     took = _kernels.tail_stats(x, n, q, 1e-3 * bound, tails, limits, counts, stats,
-                               np.empty(n), np.empty(n))  # fmt: skip
+                               np.empty(n), np.empty(n), _sums(x))  # fmt: skip
     assert took
     assert not np.allclose(stats[2:], testing.sample_stats(x)[2:], rtol=1e-12)
 

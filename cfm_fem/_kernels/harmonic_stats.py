@@ -24,7 +24,7 @@ import numba as nb
 import numpy as np
 
 from .harmonic_parts import PART_PITCH
-from .options import FJIT, JIT, RJIT
+from .options import FJIT, JIT, SJIT
 from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 
 #: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
@@ -35,9 +35,10 @@ GATHER_SIGMAS = 1.0
 BOUND_SAFETY = 1e-6
 
 
-@nb.njit(**FJIT)
-def changes_block(parts, m, s, b0, abs0, out, t0):
-    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`).
+@nb.njit(**SJIT)
+def changes_block(parts, m, s, b0, abs0, out, t0, shift, sums):
+    """Field changes at U_p = ``s`` of a block of trials from its parts (`homogeneous_parts`),
+    and their shifted sums.
 
     Parameters
     ----------
@@ -54,6 +55,11 @@ def changes_block(parts, m, s, b0, abs0, out, t0):
         ``out[c, t0 + t]``: change of B_c (c < 3), and of |B| (c = 3), of the block's trial t.
     t0 : int
         The block's first trial.
+    shift : ndarray, shape (4,), T
+        Per quantity, a value near its changes (the first trial's): the sums keep the
+        precision of the variance.
+    sums : ndarray, shape (4, 2), T
+        Per quantity, the sums of (change - shift) and of its square are added here.
     """
     bx = b0[0]
     by = b0[1]
@@ -62,6 +68,9 @@ def changes_block(parts, m, s, b0, abs0, out, t0):
     out_y = out[1, t0 : t0 + m]
     out_z = out[2, t0 : t0 + m]
     out_b = out[3, t0 : t0 + m]
+    fx, fy, fz, fb = shift[0], shift[1], shift[2], shift[3]
+    ax = ay = az = ab = 0.0
+    qx = qy = qz = qb = 0.0
     for t in range(m):
         ex = parts[12 * PART_PITCH + t] * s + parts[9 * PART_PITCH + t]
         ey = parts[13 * PART_PITCH + t] * s + parts[10 * PART_PITCH + t]
@@ -80,10 +89,27 @@ def changes_block(parts, m, s, b0, abs0, out, t0):
         x2 = bz + ez
         den = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) + abs0
         num = 2.0 * (bx * ex + by * ey + bz * ez) + ex * ex + ey * ey + ez * ez
+        eb = num / den if den > 0.0 else 0.0
         out_x[t] = ex
         out_y[t] = ey
         out_z[t] = ez
-        out_b[t] = num / den if den > 0.0 else 0.0
+        out_b[t] = eb
+        ax += ex - fx
+        qx += (ex - fx) ** 2
+        ay += ey - fy
+        qy += (ey - fy) ** 2
+        az += ez - fz
+        qz += (ez - fz) ** 2
+        ab += eb - fb
+        qb += (eb - fb) ** 2
+    sums[0, 0] += ax
+    sums[0, 1] += qx
+    sums[1, 0] += ay
+    sums[1, 1] += qy
+    sums[2, 0] += az
+    sums[2, 1] += qz
+    sums[3, 0] += ab
+    sums[3, 1] += qb
 
 
 @nb.njit(**JIT)
@@ -101,19 +127,6 @@ def first_order_abs(parts, m, b_hat, dst):
     bz = b_hat[2]
     for t in range(m):
         dst[t] = bx * parts[t] + by * parts[PART_PITCH + t] + bz * parts[2 * PART_PITCH + t]
-
-
-@nb.njit(**RJIT)
-def shifted_sums(x, n):
-    """shift = x[0] and the sums of (x - shift) and (x - shift)^2 over x[:n]."""
-    f = x[0]
-    a = 0.0
-    q = 0.0
-    for t in range(n):
-        d = x[t] - f
-        a += d
-        q += d * d
-    return f, a, q
 
 
 @nb.njit(**JIT)
@@ -227,7 +240,7 @@ def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
 
 
 @nb.njit(**JIT)
-def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
+def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high, sums):
     """Statistics (`sample_stats` order) of the field changes ``x[:n]`` from the candidates of
     the gathered tails of their first-order part; False if the bound does not confine the
     candidates to the gathered tails (the caller then takes the whole sample).
@@ -253,6 +266,8 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
         Output.
     low, high : ndarray, shape (>= counts[0],)
         Work space.
+    sums : ndarray, shape (3,)
+        Shift, sum of (x - shift) and of its square over x[:n] (`changes_block`).
     """
     val, idx = tails
     h = n - q
@@ -274,7 +289,7 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high):
         m += v >= thr_hi
     sort_values(low[:k])
     sort_values(high[:m])
-    shift, s1, s2 = shifted_sums(x, n)
+    shift, s1, s2 = sums[0], sums[1], sums[2]
     stats[0] = shift + s1 / n
     stats[1] = math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1))
     _intervals(low[:h], high[m - h : m], n, q, stats)
@@ -288,7 +303,6 @@ __all__ = [
     "copy_row",
     "first_order_abs",
     "gather_tails",
-    "shifted_sums",
     "tail_quantile_z",
     "tail_stats",
 ]

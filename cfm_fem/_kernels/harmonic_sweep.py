@@ -91,9 +91,11 @@ def _gauss_buffers(n_up, n_trials, n_mono):
 
 
 @nb.njit(**JIT)
-def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
-    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and the
-    first-order parts into ``lin`` (4, n; |B|'s is b_hat . the component parts)."""
+def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums):
+    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n), their sums
+    into ``sums`` (n_up, 4, 3: shift, sum of (change - shift) and of its square; the shift is
+    the first trial's change), and the first-order parts into ``lin`` (4, n; |B|'s is
+    b_hat . the component parts)."""
     (z, ok, u_, d2, parts, vals, lin, tail_val, tail_idx, limits, low, high, counts, scratch,
      cexp_) = buffers  # fmt: skip
     n_up = scales.shape[0]
@@ -105,7 +107,13 @@ def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers):
         first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
         for k in range(n_up):
             if scales[k] > 0.0:
-                changes_block(parts, m, scales[k], b0, abs0, vals[k], t0)
+                if t0 == 0:  # the first trial's changes are the shifts of the sums
+                    changes_block(parts, 1, scales[k], b0, abs0, vals[k], 0, sums[k, :, 0],
+                                  sums[k, :, 1:])  # fmt: skip
+                    sums[k, :, 0] = vals[k, :, 0]
+                    sums[k, :, 1:] = 0.0
+                changes_block(parts, m, scales[k], b0, abs0, vals[k], t0, sums[k, :, 0],
+                              sums[k, :, 1:])  # fmt: skip
 
 
 @nb.njit(**JIT)
@@ -196,6 +204,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         w[c, c] = sigma_axes[c]
     csum = np.empty((MAX_DEG, 3))
     bounds = np.empty(4)
+    sums = np.zeros((n_up, 4, 3))
     b_hat = np.zeros(3)
     cnt = np.zeros(1, dtype=np.int64)
     smax = 0.0
@@ -224,7 +233,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
         for c in range(3):
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
-        _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers)
+        _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums)
         for j in range(4):
             gather_tails(lin[j], n, z_h, n - q, tail_val[j], tail_idx[j], limits[j], counts[j],
                          scratch)  # fmt: skip
@@ -256,7 +265,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             for j in range(4):
                 tails = (tail_val[j], tail_idx[j])
                 if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
-                                  stats[i, k, j], low, high):  # fmt: skip
+                                  stats[i, k, j], low, high, sums[k, j]):  # fmt: skip
                     sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
     return stats, n_out, n_lost, star
 
@@ -282,6 +291,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     d2 = np.empty(n_trials)
     parts = np.empty(N_SLOTS * PART_PITCH)
     err = np.empty((4, n_trials))  # the components, then |B| (recomputed below)
+    no_shift = np.zeros(4)
+    unused_sums = np.zeros((4, 2))  # the statistics below take their own
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
     cexp = np.empty((3, gmat.shape[1]))
@@ -314,7 +325,7 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
         for t0 in range(0, n_trials, PART_BLOCK):
             m = min(PART_BLOCK, n_trials - t0)
             homogeneous_parts(cexp, u, t0, m, parts)
-            changes_block(parts, m, 1.0, b0, abs0, err, t0)
+            changes_block(parts, m, 1.0, b0, abs0, err, t0, no_shift, unused_sums)
         _stats_of_errors(n_trials, d2, hreach[g] ** 2, extrapolate, cexp[:, 0], err[:3], absb,
                          scratch, p, stats[i, 0], n_out[i])  # fmt: skip
         _position_moments(n_trials, s1, s2, sx, pos[i])

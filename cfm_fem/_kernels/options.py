@@ -30,3 +30,6 @@ def kernels_cached(*kernels) -> bool:
 
 #: Reductions may be reassociated (vectorised); the order is fixed by the compiled code.
 RJIT = dict(JIT, fastmath={"reassoc"})
+
+#: Both: loops that compute values and sum them in one pass.
+SJIT = dict(JIT, fastmath={"contract", "reassoc"})
