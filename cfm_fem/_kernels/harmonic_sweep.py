@@ -79,12 +79,53 @@ def _stats_of_errors(n, d2, reach2, extrapolate, b0, err, absb, scratch, p, out,
 
 
 @nb.njit(**JIT)
+def _hot_arrays(n, n_sets):
+    """Arrays of the loops over every trial, carved from one buffer so that the rows one loop
+    reads lie in other cache lines than, and just above (modulo 4 KiB), the rows it writes:
+    rows 4 KiB apart fall into one cache set, and a load 4 KiB below a pending store waits
+    for it. The first ``n`` values of each row are the trials'.
+
+    Returns
+    -------
+    parts : ndarray, shape (N_SLOTS * PART_PITCH,)
+        `homogeneous_parts` of a block: lines 0 .. 14 modulo 4 KiB.
+    u, z : ndarray, shape (3, >= n)
+        Scaled displacements and normals, rows in consecutive lines from line 16 and 20.
+    d2 : ndarray, shape (>= n,)
+        Squared displacements, line 19.
+    lin : ndarray, shape (4, >= n)
+        First-order parts, every row at line 63.
+    vals : ndarray, shape (n_sets, 4, >= n)
+        Field changes, every row at line 63.
+    """
+    pitch = n + (8 - n) % 512  # 4 KiB + one line apart: rows in consecutive lines
+    wide = (n + 511) // 512 * 512  # rows a multiple of 4 KiB apart: all in one line
+    size_parts = N_SLOTS * PART_PITCH
+    lines = (0, 16, 19, 20, 63, 63)  # first line (mod 64) of parts, u, d2, z, lin, vals
+    sizes = (size_parts, 3 * pitch, pitch, 3 * pitch, 4 * wide, n_sets * 4 * wide)
+    starts = np.empty(6, dtype=np.int64)
+    pos = 0
+    for i in range(6):
+        pos = (pos + 511) // 512 * 512 + 8 * lines[i]
+        starts[i] = pos
+        pos += sizes[i]
+    ws = np.empty(pos)
+    parts = ws[starts[0] : starts[0] + size_parts]
+    u = ws[starts[1] : starts[1] + 3 * pitch].reshape((3, pitch))
+    d2 = ws[starts[2] : starts[2] + pitch]
+    z = ws[starts[3] : starts[3] + 3 * pitch].reshape((3, pitch))
+    lin = ws[starts[4] : starts[4] + 4 * wide].reshape((4, wide))
+    vals = ws[starts[5] : starts[5] + n_sets * 4 * wide].reshape((n_sets, 4, wide))
+    return parts, u, d2, z, lin, vals
+
+
+@nb.njit(**JIT)
 def _gauss_buffers(n_up, n_trials, n_mono):
     """Per-thread work arrays of `harmonic_gauss_sweep`."""
     n = n_trials
+    parts, u, d2, z, lin, vals = _hot_arrays(n, n_up)
     return (
-        np.empty((3, n)), np.empty(n, dtype=np.bool_), np.empty((3, n)), np.empty(n),
-        np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, n)), np.empty((4, n)),
+        z, np.empty(n, dtype=np.bool_), u, d2, parts, vals, lin,
         np.empty((4, n)), np.empty((4, n), dtype=np.int64), np.empty((4, 4)), np.empty(n),
         np.empty(n), np.zeros((4, 4), dtype=np.int64), np.empty(n), np.zeros((3, n_mono)),
     )  # fmt: skip
@@ -287,10 +328,8 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     stats, n_out, n_lost, _ = sweep_outputs(k_nodes, 1)
     pos, zero, dq, e, dm, tkeys, z, ok, pts, starts = htm_buffers(k_nodes, params, nkey, 3)
     basis = np.eye(3)
-    u = np.empty((3, n_trials))
-    d2 = np.empty(n_trials)
-    parts = np.empty(N_SLOTS * PART_PITCH)
-    err = np.empty((4, n_trials))  # the components, then |B| (recomputed below)
+    parts, u, d2, _, _, err = _hot_arrays(n_trials, 1)
+    err = err[0]  # the components, then |B| (recomputed below)
     no_shift = np.zeros(4)
     unused_sums = np.zeros((4, 2))  # the statistics below take their own
     absb = np.empty(n_trials)
