@@ -141,3 +141,51 @@ def test_point_evaluation_matches_numpy_monomials():
     mono = np.prod(u[:, None, :] ** exps[None], axis=2)
     want = np.einsum("pm,pcm->pc", mono, cexp[which])
     np.testing.assert_allclose(out, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+
+
+def _degree_parts_on_sphere(cexp, u):
+    """Part q (1 .. 5) of each component at unit vectors u (n, 3), by numpy: (5, n, 3)."""
+    exps = monomial_exponents()
+    mono = np.prod(u[:, None, :] ** exps[None], axis=2)
+    deg = exps.sum(axis=1)
+    return np.stack([mono[:, deg == q] @ cexp[:, deg == q].T for q in range(1, 6)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_degree_bounds_hold_on_the_sphere_and_the_quadratic_one_is_reached(seed):
+    """|part_q,c(u)| <= bound[q - 1, c] on the unit sphere for every degree (200,000 random
+    directions, numpy's monomials); the degree-2 bound is the largest |eigenvalue| of the
+    quadratic form (numpy's eigvalsh) and no more than the root sum of squares of the
+    coefficients, which the others undercut too."""
+    rng = np.random.default_rng(seed)
+    exps = monomial_exponents()
+    cexp = rng.normal(size=(3, len(exps)))
+    bound = np.empty((5, 3))
+    _kernels.degree_bounds(cexp, exps, _kernels.inverse_multinomials(exps), 5, bound)
+    u = rng.normal(size=(200_000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    reached = np.abs(_degree_parts_on_sphere(cexp, u)).max(axis=1)  # (5, 3)
+    assert np.all(reached <= bound)
+    deg = exps.sum(axis=1)
+    for c in range(3):
+        a = np.zeros((3, 3))
+        for m in np.flatnonzero(deg == 2):
+            i, j = np.repeat(np.arange(3), exps[m])
+            a[i, j] += cexp[c, m] / (1 if i == j else 2)
+            a[j, i] += 0 if i == j else cexp[c, m] / 2
+        np.testing.assert_allclose(bound[1, c], np.abs(np.linalg.eigvalsh(a)).max(), rtol=2e-6)
+        assert bound[1, c] <= reached[1, c] * 1.01  # reached, up to the directions drawn
+    rss = np.array([[np.sqrt((cexp[c, deg == q] ** 2).sum()) for c in range(3)]
+                    for q in range(1, 6)])  # fmt: skip
+    assert np.all(bound <= rss * (1 + 2e-6))
+    assert np.all(bound[2:] < rss[2:])
+
+
+def test_symmetric_norm_of_degenerate_matrices():
+    """The closed form at a multiple of the identity, a rank-one matrix and zero."""
+    assert _kernels.symmetric3_norm(-2.0, 0.0, 0.0, -2.0, 0.0, -2.0) == 2.0
+    v = np.array([1.0, -2.0, 0.5])
+    a = np.outer(v, v)
+    got = _kernels.symmetric3_norm(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2])
+    np.testing.assert_allclose(got, v @ v, rtol=1e-12)
+    assert _kernels.symmetric3_norm(0.0, 0.0, 0.0, 0.0, 0.0, 0.0) == 0.0

@@ -9,8 +9,9 @@ Modules: `rng` (counter-based random numbers), `htm` (the 21-error HTM chain),
 (linear interpolation at many points), `star` (star tables of a node), `sweep` (the Gaussian
 sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the bench-model sweep),
 `harmonic` (evaluation of local harmonic field models), `harmonic_parts` (their homogeneous
-parts at many displacements, generated), `harmonic_fit` (their fit per node), `harmonic_stats`
-(statistics of their field changes), `harmonic_sweep` (both sweeps under them).
+parts at many displacements, generated), `harmonic_fit` (their fit per node), `harmonic_bounds`
+(their bounds over a ball), `harmonic_stats` (statistics of their field changes),
+`harmonic_sweep` (both sweeps under them).
 This namespace re-exports the public names of every module.
 """
 
@@ -20,6 +21,12 @@ from .coupled import (
 from .harmonic import (
     expand_node,
     poly_points,
+)
+from .harmonic_bounds import (
+    degree_bounds,
+    inverse_multinomials,
+    remainder_bounds,
+    symmetric3_norm,
 )
 from .harmonic_fit import (
     CHECK_FREE,
@@ -275,6 +282,10 @@ __all__ = [
     "PART_PITCH",
     "N_SLOTS",
     "homogeneous_parts",
+    "degree_bounds",
+    "inverse_multinomials",
+    "remainder_bounds",
+    "symmetric3_norm",
     "changes_block",
     "gather_tails",
     "tail_quantile_z",

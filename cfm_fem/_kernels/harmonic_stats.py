@@ -23,6 +23,7 @@ import math
 import numba as nb
 import numpy as np
 
+from .harmonic_bounds import BOUND_SAFETY
 from .harmonic_parts import PART_PITCH
 from .options import FJIT, JIT, SJIT
 from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
@@ -30,9 +31,6 @@ from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
 #: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
 #: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
 GATHER_SIGMAS = 1.0
-
-#: Relative safety on the remainder bounds and the candidate thresholds (rounding).
-BOUND_SAFETY = 1e-6
 
 
 @nb.njit(**SJIT)

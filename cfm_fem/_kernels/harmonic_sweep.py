@@ -14,9 +14,9 @@ import numba as nb
 import numpy as np
 
 from .harmonic import expand_node
+from .harmonic_bounds import BOUND_SAFETY, degree_bounds, inverse_multinomials, remainder_bounds
 from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
 from .harmonic_stats import (
-    BOUND_SAFETY,
     changes_block,
     copy_row,
     first_order_abs,
@@ -158,44 +158,6 @@ def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums):
 
 
 @nb.njit(**JIT)
-def _coefficient_sums(cexp, sums):
-    """sums[q - 1, c]: root sum of squares of the coefficients of the degree-q monomials of
-    component c, so that |part_q,c(u)| <= sums[q - 1, c] |u|^q (Cauchy-Schwarz: the squares
-    of the degree-q monomials sum to at most |u|^(2q))."""
-    m = 1
-    for q in range(1, MAX_DEG + 1):
-        m_end = (q + 1) * (q + 2) * (q + 3) // 6
-        for c in range(3):
-            a = 0.0
-            for mm in range(m, m_end):
-                a += cexp[c, mm] ** 2
-            sums[q - 1, c] = math.sqrt(a) * (1.0 + BOUND_SAFETY)
-        m = m_end
-
-
-@nb.njit(**JIT)
-def _remainder_bounds(s, rho, csum, b_hat, abs0, bounds):
-    """Bounds of |change / s - first-order part| over every trial at U_p = s (``bounds``, 4:
-    components, |B|; inf where none holds). ``rho``: the largest scaled displacement |u|;
-    ``csum``: `_coefficient_sums`."""
-    e2 = 0.0
-    mix = 0.0
-    for c in range(3):
-        d = 0.0
-        sq = rho
-        for q in range(1, MAX_DEG):
-            sq *= s * rho
-            d += sq * csum[q, c]
-        bounds[c] = d
-        e2 += (csum[0, c] * rho + d) ** 2
-        mix += abs(b_hat[c]) * d
-    # 0 <= |B0 + d| - |B0| - b.d <= |d|^2 / (2 (|B0| - |d|)) for |d| < |B0|, d = s e
-    e = math.sqrt(e2)
-    gap = abs0 - s * e
-    bounds[3] = mix + s * e2 / (2.0 * gap) if gap > 0.0 else np.inf
-
-
-@nb.njit(**JIT)
 def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed, p, extrapolate):
     """Monte Carlo of B(x + N(0, U_p)) - B(x) at each node under its harmonic model.
 
@@ -244,6 +206,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     for c in range(3):
         w[c, c] = sigma_axes[c]
     csum = np.empty((MAX_DEG, 3))
+    inv_multi = inverse_multinomials(exps)
     bounds = np.empty(4)
     sums = np.zeros((n_up, 4, 3))
     b_hat = np.zeros(3)
@@ -269,7 +232,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             d2[t] = r2
             d2max = max(d2max, r2)
         rho = math.sqrt(d2max) * inv * (1.0 + BOUND_SAFETY)
-        _coefficient_sums(cexp, csum)
+        degree_bounds(cexp, exps, inv_multi, MAX_DEG, csum)
         b0 = cexp[:, 0]
         abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
         for c in range(3):
@@ -302,7 +265,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                     n_out[i, k] = cnt[0]
                     continue
                 n_out[i, k] = cnt[0]
-            _remainder_bounds(s, rho, csum, b_hat, abs0, bounds)
+            remainder_bounds(s, rho, csum, MAX_DEG, b_hat, abs0, bounds)
             for j in range(4):
                 tails = (tail_val[j], tail_idx[j])
                 if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
