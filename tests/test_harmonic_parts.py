@@ -153,7 +153,7 @@ def _degree_parts_on_sphere(cexp, u):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_degree_bounds_hold_on_the_sphere_and_the_quadratic_one_is_reached(seed):
-    """|part_q,c(u)| <= bound[q - 1, c] on the unit sphere for every degree (200,000 random
+    """|part_q,c(u)| <= bound[q - 1, c] on the unit sphere for every degree (50,000 random
     directions, numpy's monomials); the degree-2 bound is the largest |eigenvalue| of the
     quadratic form (numpy's eigvalsh) and no more than the root sum of squares of the
     coefficients, which the others undercut too."""
@@ -162,7 +162,7 @@ def test_degree_bounds_hold_on_the_sphere_and_the_quadratic_one_is_reached(seed)
     cexp = rng.normal(size=(3, len(exps)))
     bound = np.empty((5, 3))
     _kernels.degree_bounds(cexp, exps, _kernels.inverse_multinomials(exps), 5, bound)
-    u = rng.normal(size=(200_000, 3))
+    u = rng.normal(size=(50_000, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
     reached = np.abs(_degree_parts_on_sphere(cexp, u)).max(axis=1)  # (5, 3)
     assert np.all(reached <= bound)
