@@ -59,8 +59,7 @@ def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):
     lin = rng.normal(0.3, 2.0, n)
     lin[: _kernels.TAIL_PILOT] += pilot_shift
     w = rng.normal(size=n)
-    s = 0.05
-    x = s * (lin + curvature * w * np.abs(w))
+    x = _S * (lin + curvature * w * np.abs(w))
     bound = abs(curvature) * np.max(w**2)
     q = _kernels.coverage_count(n, p)
     z_h = _kernels.tail_quantile_z(n, q)
@@ -69,6 +68,20 @@ def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):
     counts = np.empty(4, dtype=np.int64)
     _kernels.gather_tails(lin, n, z_h, n - q, *bufs, limits, counts, np.empty(n))
     return x, q, bound, tuple(bufs), limits, counts
+
+
+_S = 0.05  # the U_p of `_tail_case`
+
+
+def _tail_stats(x, q, bound, tails, limits, counts, guide=(np.nan, np.nan)):
+    """`tail_stats` of a `_tail_case` with fresh work space: (took, stats, guide after)."""
+    n = x.shape[0]
+    stats = np.empty(6)
+    guide = np.array(guide, dtype=float)
+    work = _kernels.radix_work(n)
+    took = _kernels.tail_stats(x, n, q, _S, bound, tails, limits, counts, guide, stats,
+                               np.empty(n), np.empty(n), _sums(x), work)  # fmt: skip
+    return took, stats, guide
 
 
 def _sums(x):
@@ -83,12 +96,39 @@ def test_tail_statistics_equal_those_of_the_whole_sample(curvature):
     those of the whole sample (sorted by numpy), to rounding."""
     n = 10_000
     x, q, bound, tails, limits, counts = _tail_case(n, curvature)
-    stats = np.empty(6)
-    took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
-                               np.empty(n), _sums(x))  # fmt: skip
+    took, stats, guide = _tail_stats(x, q, bound, tails, limits, counts)
     assert took
     want = testing.sample_stats(x)
     np.testing.assert_allclose(stats, want, rtol=1e-12, atol=1e-15)
+    h = n - q  # the guide for the next U_p: a little beyond the h-th value of each tail
+    ordered = np.sort(x) / _S
+    assert ordered[h - 1] <= guide[0] <= ordered[h + h // 16]
+    assert ordered[n - h - h // 16] <= guide[1] <= ordered[n - h]
+
+
+@pytest.mark.parametrize("guide", [(-np.inf, np.inf), (np.inf, -np.inf), (0.0, 0.0), "exact"])
+def test_any_guide_gives_the_whole_samples_statistics(guide):
+    """The guess of the previous U_p only decides how much is sorted: one far too tight
+    (fewer than h values beyond it), one that filters nothing, one across the median and the
+    exact h-th values all give the statistics of the whole sample."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, 0.02)
+    if guide == "exact":
+        ordered = np.sort(x) / _S
+        guide = (ordered[n - q - 1], ordered[q])
+    took, stats, _ = _tail_stats(x, q, bound, tails, limits, counts, guide)
+    assert took
+    np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
+
+
+def test_a_nan_change_sends_the_tails_to_the_whole_sample():
+    """A NaN among the candidates (a field the model cannot give) is left to `sample_stats`,
+    which orders NaN as numpy does."""
+    n = 10_000
+    x, q, bound, tails, limits, counts = _tail_case(n, 0.02)
+    x[np.argmin(x)] = np.nan
+    took, _, _ = _tail_stats(x, q, bound, tails, limits, counts)
+    assert not took
 
 
 @pytest.mark.parametrize("shift", [0.3, -0.3])
@@ -99,9 +139,7 @@ def test_a_misleading_pilot_still_gives_the_whole_samples_statistics(shift):
     n = 10_000
     x, q, bound, tails, limits, counts = _tail_case(n, 0.02, pilot_shift=shift)
     assert counts[3 if shift > 0 else 2] == n - q  # the selected v: exactly h values beyond
-    stats = np.empty(6)
-    took = _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats, np.empty(n),
-                               np.empty(n), _sums(x))  # fmt: skip
+    took, stats, _ = _tail_stats(x, q, bound, tails, limits, counts)
     assert took
     np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
 
@@ -110,9 +148,7 @@ def test_a_loose_bound_refuses_the_tails():
     """A remainder too large for the gathered tails sends the caller to the whole sample."""
     n = 10_000
     x, q, bound, tails, limits, counts = _tail_case(n, 1.0)
-    stats = np.empty(6)
-    assert not _kernels.tail_stats(x, n, q, bound, tails, limits, counts, stats,
-                                   np.empty(n), np.empty(n), _sums(x))  # fmt: skip
+    assert not _tail_stats(x, q, bound, tails, limits, counts)[0]
 
 
 def test_an_understated_bound_would_be_caught_by_the_comparison():
@@ -121,9 +157,7 @@ def test_an_understated_bound_would_be_caught_by_the_comparison():
     from numpy's."""
     n = 10_000
     x, q, bound, tails, limits, counts = _tail_case(n, 0.2)
-    stats = np.empty(6)
-    took = _kernels.tail_stats(x, n, q, 1e-3 * bound, tails, limits, counts, stats,
-                               np.empty(n), np.empty(n), _sums(x))  # fmt: skip
+    took, stats, _ = _tail_stats(x, q, 1e-3 * bound, tails, limits, counts)
     assert took
     assert not np.allclose(stats[2:], testing.sample_stats(x)[2:], rtol=1e-12)
 

@@ -348,6 +348,26 @@ def test_sort_values_matches_numpy():
         np.testing.assert_array_equal(b, np.sort(a))
 
 
+def test_sort_in_range_matches_numpy():
+    """The allocation-free sort of values with known bounds, on bounds wider than the values,
+    a range that overflows the key (every value shares one), equal values and short lists;
+    one set of work arrays serves lists of any length up to its size."""
+    rng = np.random.default_rng(9)
+    work = _kernels.radix_work(2000)
+    cases = [
+        (rng.normal(size=900), -10.0, 10.0),
+        (np.r_[-1e308, 1e308, rng.normal(size=200)], -1e308, 1e308),
+        (np.full(300, 2.5), 2.5, 2.5),
+        (rng.uniform(size=47), 0.0, 1.0),
+        (np.sort(rng.normal(size=10_000))[:600], -5.0, 0.0),
+    ]
+    for a, lo, hi in cases:
+        b = a.copy()
+        rng.shuffle(b)
+        _kernels.sort_in_range(b, lo, hi, work)
+        np.testing.assert_array_equal(b, np.sort(a))
+
+
 def test_abs_b_statistics_on_a_kinked_field():
     """|B| at a node where the field folds (B_x = 0.1 |x|): the component samples are one-sided,
     so their statistics take the exact whole-sample path, which reorders them; |B| must still

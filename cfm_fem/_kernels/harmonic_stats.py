@@ -6,9 +6,11 @@ s e_c(s) with e_c(s) = L_c + s R_c(s), L_c the first-order part. The tails of e_
 those of L_c up to the remainder: if every trial's |e_c - L_c| <= D, the h smallest values of
 e_c are among the trials with L_c <= v + 2 D, v any value with at least h trials of L_c below
 it. So each tail of L_c is gathered once per node, and at each U_p only its candidates are
-read and sorted. |B| is handled the same way with the
-first-order change of |B| as its L. The bound D comes from the largest displacement and the
-sums of |coefficient| per degree; where it is too loose for the gathered tail (a field whose
+read. Of those, only the values up to a threshold with at least h values below it are sorted:
+s (v + D) always qualifies; the previous U_p's h-th value, scaled, is tighter and is taken
+when the count confirms it. |B| is handled the same way with the first-order change of |B|
+as its L. The bound D comes from the largest displacement and the norms of the coefficients
+per degree (`harmonic_bounds`); where it is too loose for the gathered tail (a field whose
 first-order part vanishes, large U_p against the field's curvature length), the statistic is
 computed from the whole sample, so every number is exact either way.
 
@@ -26,11 +28,15 @@ import numpy as np
 from .harmonic_bounds import BOUND_SAFETY
 from .harmonic_parts import PART_PITCH
 from .options import FJIT, JIT, SJIT
-from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_values
+from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_in_range
 
 #: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
 #: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
 GATHER_SIGMAS = 1.0
+
+#: Values beyond the h-th of a tail whose threshold guides the next U_p, besides h / 32: room
+#: for the reordering between two U_p values, so that the guess rarely falls short.
+GUIDE_PAD = 4
 
 
 @nb.njit(**SJIT)
@@ -238,21 +244,60 @@ def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
 
 
 @nb.njit(**JIT)
-def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high, sums):
-    """Statistics (`sample_stats` order) of the field changes ``x[:n]`` from the candidates of
-    the gathered tails of their first-order part; False if the bound does not confine the
-    candidates to the gathered tails (the caller then takes the whole sample).
+def _candidates(x, tails, count, thr_lo, thr_hi, low, high):
+    """Changes of the trials of a gathered list beyond the thresholds of its first-order part:
+    low[:k] (at most thr_lo) and high[:m] (at least thr_hi); returns k, m."""
+    val, idx = tails
+    k = 0
+    m = 0
+    for i in range(count):  # branch-free; k and m depend on the list, not on the loads of x
+        v = val[i]
+        xi = x[idx[i]]
+        low[k] = xi
+        k += v <= thr_lo
+        high[m] = xi
+        m += v >= thr_hi
+    return k, m
+
+
+@nb.njit(**JIT)
+def _keep_up_to(a, k, tau, sign):
+    """Keep, in place and in order, the values of a[:k] with sign * value <= sign * tau.
+
+    Returns their count, their largest sign * value (to bound a sort's range) and whether a
+    value is NaN."""
+    j = 0
+    far = -np.inf
+    nan = False
+    for i in range(k):
+        v = a[i]
+        a[j] = v
+        j += sign * v <= sign * tau
+        far = max(far, -sign * v)
+        nan |= v != v
+    return j, far, nan
+
+
+@nb.njit(**JIT)
+def tail_stats(x, n, q, s, bound, tails, limits, counts, guide, stats, low, high, sums, work):
+    """Statistics (`sample_stats` order) of the field changes ``x[:n]`` at U_p = ``s`` from
+    the candidates of the gathered tails of their first-order part; False if the bound does
+    not confine the candidates to the gathered tails (the caller then takes the whole sample).
 
     The h = n - q smallest changes are among the trials whose first-order part is at most
     v_lo + 2 bound: at least h trials lie below v_lo, their changes per unit s are at most
-    v_lo + bound, and any trial beyond has a larger one.
+    v_lo + bound, and any trial beyond has a larger one. Of those candidates only the changes
+    at most tau are sorted, tau any value with at least h changes at or below it:
+    s (v_lo + bound), or tighter, ``guide``'s guess when at least h candidates confirm it.
 
     Parameters
     ----------
     x : ndarray, shape (>= n,), T
-        Changes at one U_p s (s times the change per unit s).
+        Changes at U_p = s.
     n, q : int
         Trials, coverage count.
+    s : float, mm
+        U_p, > 0.
     bound : float
         Upper bound of |change / s - first-order part| over every trial, in the first-order
         part's units.
@@ -260,14 +305,18 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high, sums):
         (val, idx) of `gather_tails`.
     limits, counts : ndarray, shape (4,)
         Of `gather_tails`.
+    guide : ndarray, shape (2,)
+        In: per unit s, guesses of a change a little beyond the h-th smallest and the h-th
+        largest (NaN: none); out: this U_p's (`GUIDE_PAD`), for the next one.
     stats : ndarray, shape (6,)
         Output.
     low, high : ndarray, shape (>= counts[0],)
         Work space.
     sums : ndarray, shape (3,)
         Shift, sum of (x - shift) and of its square over x[:n] (`changes_block`).
+    work : tuple
+        `radix_work` (n).
     """
-    val, idx = tails
     h = n - q
     if n < 2 or h < 1 or counts[2] < h or counts[3] < h or not bound < np.inf:
         return False
@@ -276,17 +325,29 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high, sums):
     thr_hi = limits[3] - margin
     if not (thr_lo < limits[0] and thr_hi > limits[1]):
         return False
-    k = 0
-    m = 0
-    for i in range(counts[0]):  # branch-free: candidates of both tails
-        v = val[i]
-        xi = x[idx[i]]
-        low[k] = xi
-        k += v <= thr_lo
-        high[m] = xi
-        m += v >= thr_hi
-    sort_values(low[:k])
-    sort_values(high[:m])
+    # at least h changes per unit s at most v_lo + bound (at least v_hi - bound)
+    sure_lo = s * (limits[2] + 0.5 * margin)
+    sure_hi = s * (limits[3] - 0.5 * margin)
+    tau_lo = min(s * guide[0], sure_lo) if guide[0] == guide[0] else sure_lo
+    tau_hi = max(s * guide[1], sure_hi) if guide[1] == guide[1] else sure_hi
+    k_all, m_all = _candidates(x, tails, counts[0], thr_lo, thr_hi, low, high)
+    k, neg_min, nan_lo = _keep_up_to(low, k_all, tau_lo, 1.0)
+    m, x_max, nan_hi = _keep_up_to(high, m_all, tau_hi, -1.0)
+    if nan_lo or nan_hi:
+        return False
+    if k < h or m < h:  # a guess too tight (the list was overwritten): the sure thresholds
+        tau_lo = sure_lo
+        tau_hi = sure_hi
+        k_all, m_all = _candidates(x, tails, counts[0], thr_lo, thr_hi, low, high)
+        k, neg_min, _ = _keep_up_to(low, k_all, tau_lo, 1.0)
+        m, x_max, _ = _keep_up_to(high, m_all, tau_hi, -1.0)
+        if k < h or m < h:  # cannot happen when the bound holds: the whole sample decides
+            return False
+    sort_in_range(low[:k], -neg_min, tau_lo, work)
+    sort_in_range(high[:m], tau_hi, x_max, work)
+    pad = GUIDE_PAD + h // 32
+    guide[0] = low[min(h - 1 + pad, k - 1)] / s
+    guide[1] = high[max(m - h - pad, 0)] / s
     shift, s1, s2 = sums[0], sums[1], sums[2]
     stats[0] = shift + s1 / n
     stats[1] = math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1))
@@ -297,6 +358,7 @@ def tail_stats(x, n, q, bound, tails, limits, counts, stats, low, high, sums):
 __all__ = [
     "BOUND_SAFETY",
     "GATHER_SIGMAS",
+    "GUIDE_PAD",
     "changes_block",
     "copy_row",
     "first_order_abs",

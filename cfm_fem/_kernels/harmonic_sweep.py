@@ -26,7 +26,7 @@ from .harmonic_stats import (
 )
 from .htm_sweep import _position_moments, _probe_points, htm_buffers
 from .options import JIT
-from .order_stats import coverage_count, sample_stats
+from .order_stats import coverage_count, radix_work, sample_stats
 from .rng import (
     STREAM_FALLBACK,
     STREAM_SWEEP,
@@ -208,6 +208,8 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     csum = np.empty((MAX_DEG, 3))
     inv_multi = inverse_multinomials(exps)
     bounds = np.empty(4)
+    guide = np.empty((4, 2))
+    sort_work = radix_work(n)
     sums = np.zeros((n_up, 4, 3))
     b_hat = np.zeros(3)
     cnt = np.zeros(1, dtype=np.int64)
@@ -241,6 +243,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         for j in range(4):
             gather_tails(lin[j], n, z_h, n - q, tail_val[j], tail_idx[j], limits[j], counts[j],
                          scratch)  # fmt: skip
+        guide[:] = np.nan  # no guess at the node's first U_p
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
         if smax > 0.0:
             r2max = (hreach[g] / smax) ** 2
@@ -268,8 +271,9 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
             remainder_bounds(s, rho, csum, MAX_DEG, b_hat, abs0, bounds)
             for j in range(4):
                 tails = (tail_val[j], tail_idx[j])
-                if not tail_stats(vals[k, j], n, q, bounds[j], tails, limits[j], counts[j],
-                                  stats[i, k, j], low, high, sums[k, j]):  # fmt: skip
+                if not tail_stats(vals[k, j], n, q, s, bounds[j], tails, limits[j], counts[j],
+                                  guide[j], stats[i, k, j], low, high, sums[k, j],
+                                  sort_work):  # fmt: skip
                     sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
     return stats, n_out, n_lost, star
 

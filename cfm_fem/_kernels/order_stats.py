@@ -139,15 +139,43 @@ def _sort_finite(a, lo, hi):
 
 @nb.njit(**JIT)
 def _radix16_sort(a, n, lo, hi):
-    """`sort_values` for 48 <= n <= 4096 values in [lo, hi], lo < hi: an LSD radix sort on a
-    16-bit key quantised over [lo, hi] (two branch-free passes of 8 bits, stable), then the
-    exact insertion pass, which only moves values sharing a key."""
-    scale = 65535.0 / (hi - lo)
-    keys = np.empty(n, dtype=np.uint16)
+    """`sort_values` for 48 <= n <= 4096 values in [lo, hi], lo < hi."""
+    sort_in_range(a[:n], lo, hi, radix_work(n))
+
+
+@nb.njit(**JIT)
+def radix_work(n):
+    """Work arrays of `sort_in_range` for up to ``n`` values."""
+    return (np.empty(n, dtype=np.uint16), np.empty(n), np.empty(n, dtype=np.uint16),
+            np.empty(n), np.empty((2, 257), dtype=np.int64))  # fmt: skip
+
+
+@nb.njit(**JIT)
+def sort_in_range(a, lo, hi, work):
+    """Sort finite values ``a`` known to lie in [lo, hi] in place, with the work arrays of
+    `radix_work`: no allocation and no pass for the range, for callers that sort many short
+    lists and know their bounds.
+
+    An LSD radix sort on a 16-bit key quantised over [lo, hi] (two branch-free passes of 8
+    bits, stable), then the exact insertion pass, which only moves values sharing a key
+    (~4 ns per element for 500 to 1,200 values in random order; a range too wide for the key,
+    all values sharing one key, costs the insertion sort's n^2 / 4 moves but stays exact).
+    """
+    n = a.shape[0]
+    if n < 48:
+        _insertion_sort(a, a.copy())
+        return
+    if not hi > lo:  # every value equal
+        return
+    keys, by_low, low_keys, by_key, start = work
+    scale = 65535.0 / (hi - lo)  # 0 if the range overflows
+    if not scale < np.inf:  # a range below 65535 denormals: one key (0 * inf would be NaN)
+        scale = 0.0
     for i in range(n):
-        keys[i] = np.uint16(min((a[i] - lo) * scale, 65535.0))
-    low_start = np.zeros(257, dtype=np.int64)
-    high_start = np.zeros(257, dtype=np.int64)
+        keys[i] = np.uint16(min(max((a[i] - lo) * scale, 0.0), 65535.0))
+    start[:] = 0
+    low_start = start[0]
+    high_start = start[1]
     for i in range(n):
         k = keys[i]
         low_start[(k & 255) + 1] += 1
@@ -155,21 +183,18 @@ def _radix16_sort(a, n, lo, hi):
     for b in range(256):
         low_start[b + 1] += low_start[b]
         high_start[b + 1] += high_start[b]
-    by_low = np.empty(n)
-    low_keys = np.empty(n, dtype=np.uint16)
     for i in range(n):
         k = keys[i]
         j = low_start[k & 255]
         low_start[k & 255] = j + 1
         by_low[j] = a[i]
         low_keys[j] = k
-    by_key = np.empty(n)
     for i in range(n):
         k = low_keys[i] >> 8
         j = high_start[k]
         high_start[k] = j + 1
         by_key[j] = by_low[i]
-    _insertion_sort(a, by_key)
+    _insertion_sort(a, by_key[:n])
 
 
 #: Tails beyond mean -+ TAIL_SIGMAS * std are gathered first; 1.3 holds ~10 % of a normal sample,
