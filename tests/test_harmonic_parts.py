@@ -144,6 +144,36 @@ def test_a_misleading_pilot_still_gives_the_whole_samples_statistics(shift):
     np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.parametrize("guide", [None, "near", (-np.inf, np.inf), (np.inf, -np.inf)])
+@pytest.mark.parametrize("shape", ["normal", "skewed", "ties"])
+def test_whole_sample_statistics_are_those_of_numpy(guide, shape):
+    """Where the tails of the first-order part do not confine the changes, the statistics
+    come from thresholds on the changes themselves: a previous U_p's guess (close, one that
+    keeps everything, one that keeps nothing) or mean -+ z_h std, and `sample_stats` where
+    those hold too few values; on a skewed sample and one with ties too, they equal numpy's,
+    and the guess returned lies beyond the h-th value."""
+    n = 10_000
+    rng = np.random.default_rng(11)
+    x = {"normal": rng.normal(0.1, 2.0, n), "skewed": rng.gamma(1.5, 1.0, n) ** 2,
+         "ties": np.round(rng.normal(size=n), 1)}[shape] * _S  # fmt: skip
+    q = _kernels.coverage_count(n, 0.95)
+    h = n - q
+    ordered = np.sort(x) / _S
+    if guide == "near":
+        guide = (ordered[h + 3], ordered[n - h - 4])
+    g = np.array(guide if guide is not None else (np.nan, np.nan), dtype=float)
+    stats = np.empty(6)
+    z_h = _kernels.tail_quantile_z(n, q)
+    _kernels.whole_sample_stats(x.copy(), n, q, _S, z_h, g, stats, np.empty(n), np.empty(n),
+                                _sums(x), _kernels.radix_work(n), np.empty(n))  # fmt: skip
+    np.testing.assert_allclose(stats, testing.sample_stats(x), rtol=1e-12, atol=1e-15)
+    keeps_nothing = guide is None or guide[0] == -np.inf
+    if shape == "skewed" and keeps_nothing:  # none below mean - z_h std: `sample_stats`
+        assert np.isnan(g).all()
+    else:
+        assert ordered[h - 1] <= g[0] and g[1] <= ordered[n - h]
+
+
 def test_a_loose_bound_refuses_the_tails():
     """A remainder too large for the gathered tails sends the caller to the whole sample."""
     n = 10_000

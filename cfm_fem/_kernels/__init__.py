@@ -52,8 +52,10 @@ from .harmonic_parts import (
 from .harmonic_stats import (
     changes_block,
     gather_tails,
+    keep_candidates,
     tail_quantile_z,
     tail_stats,
+    whole_sample_stats,
 )
 from .harmonic_sweep import (
     harmonic_gauss_sweep,
@@ -294,6 +296,8 @@ __all__ = [
     "gather_tails",
     "tail_quantile_z",
     "tail_stats",
+    "whole_sample_stats",
+    "keep_candidates",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
     "FIT_PIVOT_MIN",

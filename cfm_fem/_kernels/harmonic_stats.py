@@ -28,7 +28,14 @@ import numpy as np
 from .harmonic_bounds import BOUND_SAFETY
 from .harmonic_parts import PART_PITCH
 from .options import FJIT, JIT, SJIT
-from .order_stats import TAIL_PILOT, _intervals, select_inplace, sort_in_range
+from .order_stats import (
+    TAIL_PILOT,
+    _intervals,
+    sample_stats,
+    select_inplace,
+    sort_in_range,
+    sort_values,
+)
 
 #: Tails of the first-order part beyond its mean -+ this many std are gathered (~16 % each):
 #: room for the candidates of the 5 % tails the 95 % intervals need when the field bends.
@@ -169,6 +176,13 @@ def _select_in_tail(val, count, low_side, g, h, work):
 
 
 @nb.njit(**JIT)
+def candidate_margin(v_lo, v_hi, bound):
+    """Margin of the candidates beyond v_lo and v_hi under a remainder ``bound``
+    (`tail_stats`): twice the bound, and a relative safety for rounding."""
+    return 2.0 * bound + BOUND_SAFETY * (abs(v_lo) + abs(v_hi) + bound)
+
+
+@nb.njit(**JIT)
 def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
     """Trials in the two tails of a first-order part, in one list.
 
@@ -241,6 +255,28 @@ def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
     counts[1] = n_lo
     counts[2] = c_lo
     counts[3] = c_hi
+
+
+@nb.njit(**JIT)
+def keep_candidates(tails, counts, limits, bound):
+    """Keep, of a gathered list (in place, in order), the entries that are candidates under
+    ``bound``, the largest of the node's U_p values (`tail_stats`): the thresholds of a
+    smaller bound are tighter, so every U_p finds its candidates among them."""
+    val, idx = tails
+    margin = candidate_margin(limits[2], limits[3], bound)
+    thr_lo = limits[2] + margin
+    thr_hi = limits[3] - margin
+    if not (thr_lo <= limits[0] and thr_hi >= limits[1]):
+        return
+    k = 0
+    for i in range(counts[0]):  # branch-free
+        v = val[i]
+        val[k] = v
+        idx[k] = idx[i]
+        k += (v <= thr_lo) | (v >= thr_hi)
+    counts[0] = k
+    limits[0] = thr_lo  # every value up to here is still listed
+    limits[1] = thr_hi
 
 
 @nb.njit(**JIT)
@@ -320,10 +356,10 @@ def tail_stats(x, n, q, s, bound, tails, limits, counts, guide, stats, low, high
     h = n - q
     if n < 2 or h < 1 or counts[2] < h or counts[3] < h or not bound < np.inf:
         return False
-    margin = 2.0 * bound + BOUND_SAFETY * (abs(limits[2]) + abs(limits[3]) + bound)
+    margin = candidate_margin(limits[2], limits[3], bound)
     thr_lo = limits[2] + margin
     thr_hi = limits[3] - margin
-    if not (thr_lo < limits[0] and thr_hi > limits[1]):
+    if not (thr_lo <= limits[0] and thr_hi >= limits[1]):  # candidates beyond the list
         return False
     # at least h changes per unit s at most v_lo + bound (at least v_hi - bound)
     sure_lo = s * (limits[2] + 0.5 * margin)
@@ -355,6 +391,79 @@ def tail_stats(x, n, q, s, bound, tails, limits, counts, guide, stats, low, high
     return True
 
 
+@nb.njit(**JIT)
+def _values_beyond(x, n, tau_lo, tau_hi, low, high):
+    """Values of x[:n] at most tau_lo into low[:k] and at least tau_hi into high[:m], in
+    order; returns k, m, the smallest and largest value, and whether one is NaN."""
+    k = 0
+    m = 0
+    mn = np.inf
+    mx = -np.inf
+    nan = False
+    for i in range(n):
+        v = x[i]
+        if v <= tau_lo:  # rarely taken: cheaper than a count that waits for every load
+            low[k] = v
+            k += 1
+        if v >= tau_hi:
+            high[m] = v
+            m += 1
+        mn = min(mn, v)
+        mx = max(mx, v)
+        nan |= v != v
+    return k, m, mn, mx, nan
+
+
+@nb.njit(**JIT)
+def _sort_bounded(a, lo, hi, work):
+    """Sort ``a`` (values in [lo, hi]) in place: `sort_in_range`, or `sort_values` for long
+    lists (its 24-bit key)."""
+    if a.shape[0] > 4096:
+        sort_values(a)
+    else:
+        sort_in_range(a, lo, hi, work)
+
+
+@nb.njit(**JIT)
+def whole_sample_stats(x, n, q, s, z_h, guide, stats, low, high, sums, work, scratch):
+    """Statistics (`sample_stats` order) of the changes ``x[:n]`` at U_p = ``s`` where the
+    first-order part's tails do not confine them (`tail_stats` False).
+
+    One pass takes the values beyond thresholds with at least h = n - q values beyond each:
+    ``guide``'s (`tail_stats`), else mean -+ z_h std, where a normal sample has about 1.25 h
+    (`tail_quantile_z`); a count that falls short leaves the sample to `sample_stats`. Exact
+    either way; ``guide`` is updated as by `tail_stats` (NaN after `sample_stats`).
+    ``x`` may be reordered; ``sums`` as in `tail_stats`."""
+    h = n - q
+    shift, s1, s2 = sums[0], sums[1], sums[2]
+    mean = shift + s1 / n
+    std = math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1)) if n > 1 else 0.0
+    for attempt in range(2):
+        if attempt == 0 and guide[0] == guide[0] and guide[1] == guide[1]:
+            tau_lo = s * guide[0]
+            tau_hi = s * guide[1]
+        elif attempt == 1 and z_h > 0.0 and std > 0.0:
+            tau_lo = mean - z_h * std
+            tau_hi = mean + z_h * std
+        else:
+            continue
+        k, m, mn, mx, nan = _values_beyond(x, n, tau_lo, tau_hi, low, high)
+        if nan:
+            break
+        if k >= h and m >= h and h >= 1:
+            _sort_bounded(low[:k], mn, tau_lo, work)
+            _sort_bounded(high[:m], tau_hi, mx, work)
+            pad = GUIDE_PAD + h // 32
+            guide[0] = low[min(h - 1 + pad, k - 1)] / s
+            guide[1] = high[max(m - h - pad, 0)] / s
+            stats[0] = mean
+            stats[1] = std
+            _intervals(low[:h], high[m - h : m], n, q, stats)
+            return
+    guide[:] = np.nan
+    sample_stats(x, n, q, stats, scratch)
+
+
 __all__ = [
     "BOUND_SAFETY",
     "GATHER_SIGMAS",
@@ -363,6 +472,9 @@ __all__ = [
     "copy_row",
     "first_order_abs",
     "gather_tails",
+    "candidate_margin",
+    "keep_candidates",
     "tail_quantile_z",
     "tail_stats",
+    "whole_sample_stats",
 ]

@@ -21,8 +21,10 @@ from .harmonic_stats import (
     copy_row,
     first_order_abs,
     gather_tails,
+    keep_candidates,
     tail_quantile_z,
     tail_stats,
+    whole_sample_stats,
 )
 from .htm_sweep import _position_moments, _probe_points, htm_buffers
 from .options import JIT
@@ -76,6 +78,24 @@ def _stats_of_errors(n, d2, reach2, extrapolate, b0, err, absb, scratch, p, out,
     for c in range(3):
         sample_stats(err[c], nv, q, out[c], scratch)
     sample_stats(absb, nv, q, out[3], scratch)
+
+
+@nb.njit(**JIT)
+def _scaled_displacements(w, z, n, inv, u, d2):
+    """Displacements per unit U_p of n trials (`_unit_disp`) times ``inv`` into u (3, n) and
+    their squared lengths before scaling into d2; returns the largest of those."""
+    for t in range(n):  # straight-line body: vectorised
+        d0 = _unit_disp(w, z, t, 0)
+        d1 = _unit_disp(w, z, t, 1)
+        d2_ = _unit_disp(w, z, t, 2)
+        u[0, t] = d0 * inv
+        u[1, t] = d1 * inv
+        u[2, t] = d2_ * inv
+        d2[t] = 0.0 + d0 * d0 + d1 * d1 + d2_ * d2_
+    d2max = 0.0
+    for t in range(n):
+        d2max = max(d2max, d2[t])
+    return d2max
 
 
 @nb.njit(**JIT)
@@ -208,6 +228,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     csum = np.empty((MAX_DEG, 3))
     inv_multi = inverse_multinomials(exps)
     bounds = np.empty(4)
+    bound_max = np.empty(4)
     guide = np.empty((4, 2))
     sort_work = radix_work(n)
     sums = np.zeros((n_up, 4, 3))
@@ -224,15 +245,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
         normals_by_index(trial_key(skey, keys[i]), fkey, 0, n, z, ok)
         inv = 1.0 / hscale[g]
-        d2max = 0.0
-        for t in range(n):
-            r2 = 0.0
-            for a in range(3):
-                da = _unit_disp(w, z, t, a)
-                u[a, t] = da * inv
-                r2 += da * da
-            d2[t] = r2
-            d2max = max(d2max, r2)
+        d2max = _scaled_displacements(w, z, n, inv, u, d2)
         rho = math.sqrt(d2max) * inv * (1.0 + BOUND_SAFETY)
         degree_bounds(cexp, exps, inv_multi, MAX_DEG, csum)
         b0 = cexp[:, 0]
@@ -240,9 +253,14 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         for c in range(3):
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
         _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums)
+        for k in range(n_up):  # the largest bound: its candidates hold every U_p's
+            remainder_bounds(scales[k], rho, csum, MAX_DEG, b_hat, abs0, bounds)
+            for j in range(4):
+                bound_max[j] = max(bound_max[j], bounds[j]) if k > 0 else bounds[j]
         for j in range(4):
             gather_tails(lin[j], n, z_h, n - q, tail_val[j], tail_idx[j], limits[j], counts[j],
                          scratch)  # fmt: skip
+            keep_candidates((tail_val[j], tail_idx[j]), counts[j], limits[j], bound_max[j])
         guide[:] = np.nan  # no guess at the node's first U_p
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)
         if smax > 0.0:
@@ -274,7 +292,8 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
                 if not tail_stats(vals[k, j], n, q, s, bounds[j], tails, limits[j], counts[j],
                                   guide[j], stats[i, k, j], low, high, sums[k, j],
                                   sort_work):  # fmt: skip
-                    sample_stats(vals[k, j], n, q, stats[i, k, j], scratch)
+                    whole_sample_stats(vals[k, j], n, q, s, z_h, guide[j], stats[i, k, j], low,
+                                       high, sums[k, j], sort_work, scratch)  # fmt: skip
     return stats, n_out, n_lost, star
 
 
