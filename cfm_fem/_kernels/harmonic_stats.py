@@ -123,13 +123,6 @@ def changes_block(parts, m, s, b0, abs0, out, t0, shift, sums):
     sums[3, 1] += qb
 
 
-@nb.njit(**JIT)
-def copy_row(src, dst):
-    """dst[:] = src (contiguous 1-D views: a loop LLVM vectorises)."""
-    for t in range(src.shape[0]):
-        dst[t] = src[t]
-
-
 @nb.njit(**FJIT)
 def first_order_abs(parts, m, b_hat, dst):
     """First-order change of |B| per unit s of a block's trials: b_hat . part 1, into dst[:m]."""
@@ -183,8 +176,76 @@ def candidate_margin(v_lo, v_hi, bound):
 
 
 @nb.njit(**JIT)
+def tail_pilot(lin, m, z_h, limits):
+    """Where `gather_tails` gathers, from the leading values ``lin[:m]`` (m <= `TAIL_PILOT`):
+    limits[:] = g_lo, g_hi, v_lo, v_hi. False (and infinite limits) if nothing is gathered."""
+    pm = 0.0
+    for t in range(m):
+        pm += lin[t]
+    pm /= max(m, 1)
+    pv = 0.0
+    for t in range(m):
+        pv += (lin[t] - pm) ** 2
+    ps = math.sqrt(pv / max(m - 1, 1))
+    g_lo = pm - GATHER_SIGMAS * ps
+    g_hi = pm + GATHER_SIGMAS * ps
+    if not (g_lo < g_hi and z_h > 0.0):  # the whole-sample path
+        limits[0] = -np.inf
+        limits[1] = np.inf
+        limits[2] = -np.inf
+        limits[3] = np.inf
+        return False
+    limits[0] = g_lo
+    limits[1] = g_hi
+    limits[2] = min(pm - z_h * ps, g_lo)
+    limits[3] = max(pm + z_h * ps, g_hi)
+    return True
+
+
+@nb.njit(**JIT)
+def gather_block(lin, m, t0, limits, val, idx, k):
+    """Append the values of lin[:m] at most g_lo or at least g_hi (``limits``), with their
+    trial index t0 + t, to val[k:] and idx[k:]; returns the new length."""
+    g_lo = limits[0]
+    g_hi = limits[1]
+    for t in range(m):  # branch-free: one list, one counter
+        v = lin[t]
+        val[k] = v
+        idx[k] = t0 + t
+        k += (v <= g_lo) | (v >= g_hi)
+    return k
+
+
+@nb.njit(**JIT)
+def finish_tails(val, k, h, limits, counts, work):
+    """Counts of a gathered list of k values into ``counts``, and v_lo / v_hi selected where
+    the pilot misplaced them (`gather_tails`)."""
+    g_lo = limits[0]
+    n_lo = 0
+    c_lo = 0
+    c_hi = 0
+    for i in range(k):
+        v = val[i]
+        n_lo += v <= g_lo
+        c_lo += v <= limits[2]
+        c_hi += v >= limits[3]
+    if c_lo < h <= n_lo:  # the pilot misplaced v: select it (rare; exact either way)
+        limits[2] = _select_in_tail(val, k, True, g_lo, h, work)
+        c_lo = h
+    if c_hi < h <= k - n_lo:
+        limits[3] = _select_in_tail(val, k, False, limits[1], h, work)
+        c_hi = h
+    counts[0] = k
+    counts[1] = n_lo
+    counts[2] = c_lo
+    counts[3] = c_hi
+
+
+@nb.njit(**JIT)
 def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
-    """Trials in the two tails of a first-order part, in one list.
+    """Trials in the two tails of a first-order part, in one list: `tail_pilot` on the
+    leading `TAIL_PILOT` values, `gather_block`, `finish_tails` (the sweep runs these per
+    block of trials, while the block's parts are at hand).
 
     Parameters
     ----------
@@ -207,54 +268,10 @@ def gather_tails(lin, n, z_h, h, val, idx, limits, counts, work):
     work : ndarray, shape (>= n,)
         Work space.
     """
-    m = min(n, TAIL_PILOT)
-    pm = 0.0
-    for t in range(m):
-        pm += lin[t]
-    pm /= max(m, 1)
-    pv = 0.0
-    for t in range(m):
-        pv += (lin[t] - pm) ** 2
-    ps = math.sqrt(pv / max(m - 1, 1))
-    g_lo = pm - GATHER_SIGMAS * ps
-    g_hi = pm + GATHER_SIGMAS * ps
     counts[:] = 0
-    if not (g_lo < g_hi and z_h > 0.0):  # nothing gathered: the whole-sample path
-        limits[0] = -np.inf
-        limits[1] = np.inf
-        limits[2] = -np.inf
-        limits[3] = np.inf
-        return
-    v_lo = min(pm - z_h * ps, g_lo)
-    v_hi = max(pm + z_h * ps, g_hi)
-    limits[0] = g_lo
-    limits[1] = g_hi
-    limits[2] = v_lo
-    limits[3] = v_hi
-    k = 0
-    for t in range(n):  # branch-free gather: one list, one counter
-        v = lin[t]
-        val[k] = v
-        idx[k] = t
-        k += (v <= g_lo) | (v >= g_hi)
-    n_lo = 0
-    c_lo = 0
-    c_hi = 0
-    for i in range(k):
-        v = val[i]
-        n_lo += v <= g_lo
-        c_lo += v <= v_lo
-        c_hi += v >= v_hi
-    if c_lo < h <= n_lo:  # the pilot misplaced v: select it (rare; exact either way)
-        limits[2] = _select_in_tail(val, k, True, g_lo, h, work)
-        c_lo = h
-    if c_hi < h <= k - n_lo:
-        limits[3] = _select_in_tail(val, k, False, g_hi, h, work)
-        c_hi = h
-    counts[0] = k
-    counts[1] = n_lo
-    counts[2] = c_lo
-    counts[3] = c_hi
+    if tail_pilot(lin, min(n, TAIL_PILOT), z_h, limits):
+        k = gather_block(lin, n, 0, limits, val, idx, 0)
+        finish_tails(val, k, h, limits, counts, work)
 
 
 @nb.njit(**JIT)
@@ -366,7 +383,9 @@ def tail_stats(x, n, q, s, bound, tails, limits, counts, guide, stats, low, high
     sure_hi = s * (limits[3] - 0.5 * margin)
     tau_lo = min(s * guide[0], sure_lo) if guide[0] == guide[0] else sure_lo
     tau_hi = max(s * guide[1], sure_hi) if guide[1] == guide[1] else sure_hi
-    k_all, m_all = _candidates(x, tails, counts[0], thr_lo, thr_hi, low, high)
+    # a change at most tau needs a first-order part at most tau / s + bound: fewer to copy
+    k_all, m_all = _candidates(x, tails, counts[0], min(thr_lo, tau_lo / s + 0.5 * margin),
+                               max(thr_hi, tau_hi / s - 0.5 * margin), low, high)  # fmt: skip
     k, neg_min, nan_lo = _keep_up_to(low, k_all, tau_lo, 1.0)
     m, x_max, nan_hi = _keep_up_to(high, m_all, tau_hi, -1.0)
     if nan_lo or nan_hi:
@@ -469,11 +488,13 @@ __all__ = [
     "GATHER_SIGMAS",
     "GUIDE_PAD",
     "changes_block",
-    "copy_row",
     "first_order_abs",
+    "finish_tails",
+    "gather_block",
     "gather_tails",
     "candidate_margin",
     "keep_candidates",
+    "tail_pilot",
     "tail_quantile_z",
     "tail_stats",
     "whole_sample_stats",

@@ -18,17 +18,18 @@ from .harmonic_bounds import BOUND_SAFETY, degree_bounds, inverse_multinomials, 
 from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
 from .harmonic_stats import (
     changes_block,
-    copy_row,
+    finish_tails,
     first_order_abs,
-    gather_tails,
+    gather_block,
     keep_candidates,
+    tail_pilot,
     tail_quantile_z,
     tail_stats,
     whole_sample_stats,
 )
 from .htm_sweep import _position_moments, _probe_points, htm_buffers
 from .options import JIT
-from .order_stats import coverage_count, radix_work, sample_stats
+from .order_stats import TAIL_PILOT, coverage_count, radix_work, sample_stats
 from .rng import (
     STREAM_FALLBACK,
     STREAM_SWEEP,
@@ -113,8 +114,8 @@ def _hot_arrays(n, n_sets):
         Scaled displacements and normals, rows in consecutive lines from line 16 and 20.
     d2 : ndarray, shape (>= n,)
         Squared displacements, line 19.
-    lin : ndarray, shape (4, >= n)
-        First-order parts, every row at line 63.
+    lin : ndarray, shape (PART_BLOCK,)
+        |B|'s first-order parts of a block, line 63.
     vals : ndarray, shape (n_sets, 4, >= n)
         Field changes, every row at line 63.
     """
@@ -122,7 +123,7 @@ def _hot_arrays(n, n_sets):
     wide = (n + 511) // 512 * 512  # rows a multiple of 4 KiB apart: all in one line
     size_parts = N_SLOTS * PART_PITCH
     lines = (0, 16, 19, 20, 63, 63)  # first line (mod 64) of parts, u, d2, z, lin, vals
-    sizes = (size_parts, 3 * pitch, pitch, 3 * pitch, 4 * wide, n_sets * 4 * wide)
+    sizes = (size_parts, 3 * pitch, pitch, 3 * pitch, PART_BLOCK, n_sets * 4 * wide)
     starts = np.empty(6, dtype=np.int64)
     pos = 0
     for i in range(6):
@@ -134,7 +135,7 @@ def _hot_arrays(n, n_sets):
     u = ws[starts[1] : starts[1] + 3 * pitch].reshape((3, pitch))
     d2 = ws[starts[2] : starts[2] + pitch]
     z = ws[starts[3] : starts[3] + 3 * pitch].reshape((3, pitch))
-    lin = ws[starts[4] : starts[4] + 4 * wide].reshape((4, wide))
+    lin = ws[starts[4] : starts[4] + PART_BLOCK]
     vals = ws[starts[5] : starts[5] + n_sets * 4 * wide].reshape((n_sets, 4, wide))
     return parts, u, d2, z, lin, vals
 
@@ -152,20 +153,29 @@ def _gauss_buffers(n_up, n_trials, n_mono):
 
 
 @nb.njit(**JIT)
-def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums):
-    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n), their sums
+def _node_changes(cexp, u, n, scales, b0, abs0, b_hat, z_h, buffers, sums, gathered):
+    """Every trial's field changes at every U_p > 0 into ``vals`` (n_up, 4, n) and their sums
     into ``sums`` (n_up, 4, 3: shift, sum of (change - shift) and of its square; the shift is
-    the first trial's change), and the first-order parts into ``lin`` (4, n; |B|'s is
-    b_hat . the component parts)."""
+    the first trial's change); the tails of the first-order parts (the components' part 1,
+    |B|'s b_hat . those) gathered block by block while the block is at hand: `tail_pilot` on
+    the first block (its leading `TAIL_PILOT` values, as `gather_tails`), `gather_block` on
+    each, into ``tail_val``, ``tail_idx``, ``limits`` and ``counts[:, 0]``; ``gathered[j]``
+    False where quantity j gathers nothing."""
     (z, ok, u_, d2, parts, vals, lin, tail_val, tail_idx, limits, low, high, counts, scratch,
      cexp_) = buffers  # fmt: skip
     n_up = scales.shape[0]
+    counts[:, 0] = 0
     for t0 in range(0, n, PART_BLOCK):
         m = min(PART_BLOCK, n - t0)
         homogeneous_parts(cexp, u, t0, m, parts)
-        for c in range(3):
-            copy_row(parts[c * PART_PITCH : c * PART_PITCH + m], lin[c, t0 : t0 + m])
-        first_order_abs(parts, m, b_hat, lin[3, t0 : t0 + m])
+        first_order_abs(parts, m, b_hat, lin)
+        for j in range(4):
+            row = lin[:m] if j == 3 else parts[j * PART_PITCH : j * PART_PITCH + m]
+            if t0 == 0:
+                gathered[j] = tail_pilot(row, min(m, TAIL_PILOT), z_h, limits[j])
+            if gathered[j]:
+                counts[j, 0] = gather_block(row, m, t0, limits[j], tail_val[j], tail_idx[j],
+                                            counts[j, 0])  # fmt: skip
         for k in range(n_up):
             if scales[k] > 0.0:
                 if t0 == 0:  # the first trial's changes are the shifts of the sums
@@ -228,6 +238,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     csum = np.empty((MAX_DEG, 3))
     inv_multi = inverse_multinomials(exps)
     bounds = np.empty(4)
+    gathered = np.zeros(4, dtype=np.bool_)
     bound_max = np.empty(4)
     guide = np.empty((4, 2))
     sort_work = radix_work(n)
@@ -252,14 +263,16 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
         abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
         for c in range(3):
             b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
-        _node_changes(cexp, u, n, scales, b0, abs0, b_hat, buffers, sums)
+        _node_changes(cexp, u, n, scales, b0, abs0, b_hat, z_h, buffers, sums, gathered)
         for k in range(n_up):  # the largest bound: its candidates hold every U_p's
             remainder_bounds(scales[k], rho, csum, MAX_DEG, b_hat, abs0, bounds)
             for j in range(4):
                 bound_max[j] = max(bound_max[j], bounds[j]) if k > 0 else bounds[j]
         for j in range(4):
-            gather_tails(lin[j], n, z_h, n - q, tail_val[j], tail_idx[j], limits[j], counts[j],
-                         scratch)  # fmt: skip
+            if gathered[j]:
+                finish_tails(tail_val[j], counts[j, 0], n - q, limits[j], counts[j], scratch)
+            else:
+                counts[j, :] = 0
             keep_candidates((tail_val[j], tail_idx[j]), counts[j], limits[j], bound_max[j])
         guide[:] = np.nan  # no guess at the node's first U_p
         beyond_max = 0  # trials beyond the reach at the largest U_p (the most)

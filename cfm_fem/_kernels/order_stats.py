@@ -333,8 +333,11 @@ def _intervals(low, high, n, q, out):
     out[2] = low[r - 1]
     out[3] = high[r - 1]
     best = 0
+    width = high[0] - low[0]
     for j in range(1, h):
-        if high[j] - low[j] < high[best] - low[best]:
+        w = high[j] - low[j]
+        if w < width:  # the first of equal widths, as before
+            width = w
             best = j
     out[4] = low[best]
     out[5] = high[best]
