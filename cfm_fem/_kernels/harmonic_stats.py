@@ -208,12 +208,13 @@ def gather_block(lin, m, t0, limits, val, idx, k):
     trial index t0 + t, to val[k:] and idx[k:]; returns the new length."""
     g_lo = limits[0]
     g_hi = limits[1]
+    j = np.uint64(k)  # unsigned: no negative-index wraparound in the loop
     for t in range(m):  # branch-free: one list, one counter
         v = lin[t]
-        val[k] = v
-        idx[k] = t0 + t
-        k += (v <= g_lo) | (v >= g_hi)
-    return k
+        val[j] = v
+        idx[j] = t0 + t
+        j += np.uint64((v <= g_lo) | (v >= g_hi))
+    return np.int64(j)
 
 
 @nb.njit(**JIT)
@@ -301,16 +302,16 @@ def _candidates(x, tails, count, thr_lo, thr_hi, low, high):
     """Changes of the trials of a gathered list beyond the thresholds of its first-order part:
     low[:k] (at most thr_lo) and high[:m] (at least thr_hi); returns k, m."""
     val, idx = tails
-    k = 0
-    m = 0
+    k = np.uint64(0)  # unsigned: no negative-index wraparound
+    m = np.uint64(0)
     for i in range(count):  # branch-free; k and m depend on the list, not on the loads of x
         v = val[i]
         xi = x[idx[i]]
         low[k] = xi
-        k += v <= thr_lo
+        k += np.uint64(v <= thr_lo)
         high[m] = xi
-        m += v >= thr_hi
-    return k, m
+        m += np.uint64(v >= thr_hi)
+    return np.int64(k), np.int64(m)
 
 
 @nb.njit(**JIT)
@@ -319,16 +320,16 @@ def _keep_up_to(a, k, tau, sign):
 
     Returns their count, their largest sign * value (to bound a sort's range) and whether a
     value is NaN."""
-    j = 0
+    j = np.uint64(0)
     far = -np.inf
     nan = False
     for i in range(k):
         v = a[i]
         a[j] = v
-        j += sign * v <= sign * tau
+        j += np.uint64(sign * v <= sign * tau)
         far = max(far, -sign * v)
         nan |= v != v
-    return j, far, nan
+    return np.int64(j), far, nan
 
 
 @nb.njit(**JIT)
@@ -414,8 +415,9 @@ def tail_stats(x, n, q, s, bound, tails, limits, counts, guide, stats, low, high
 def _values_beyond(x, n, tau_lo, tau_hi, low, high):
     """Values of x[:n] at most tau_lo into low[:k] and at least tau_hi into high[:m], in
     order; returns k, m, the smallest and largest value, and whether one is NaN."""
-    k = 0
-    m = 0
+    k = np.uint64(0)
+    m = np.uint64(0)
+    one = np.uint64(1)
     mn = np.inf
     mx = -np.inf
     nan = False
@@ -423,14 +425,14 @@ def _values_beyond(x, n, tau_lo, tau_hi, low, high):
         v = x[i]
         if v <= tau_lo:  # rarely taken: cheaper than a count that waits for every load
             low[k] = v
-            k += 1
+            k += one
         if v >= tau_hi:
             high[m] = v
-            m += 1
+            m += one
         mn = min(mn, v)
         mx = max(mx, v)
         nan |= v != v
-    return k, m, mn, mx, nan
+    return np.int64(k), np.int64(m), mn, mx, nan
 
 
 @nb.njit(**JIT)

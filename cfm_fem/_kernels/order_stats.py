@@ -147,7 +147,7 @@ def _radix16_sort(a, n, lo, hi):
 def radix_work(n):
     """Work arrays of `sort_in_range` for up to ``n`` values."""
     return (np.empty(n, dtype=np.uint16), np.empty(n), np.empty(n, dtype=np.uint16),
-            np.empty(n), np.empty((2, 257), dtype=np.int64))  # fmt: skip
+            np.empty(n), np.empty((2, 257), dtype=np.uint64))  # fmt: skip
 
 
 @nb.njit(**JIT)
@@ -176,23 +176,24 @@ def sort_in_range(a, lo, hi, work):
     start[:] = 0
     low_start = start[0]
     high_start = start[1]
+    one = np.uint64(1)  # unsigned positions: no negative-index wraparound in the scatters
     for i in range(n):
         k = keys[i]
-        low_start[(k & 255) + 1] += 1
-        high_start[(k >> 8) + 1] += 1
+        low_start[(k & 255) + 1] += one
+        high_start[(k >> 8) + 1] += one
     for b in range(256):
         low_start[b + 1] += low_start[b]
         high_start[b + 1] += high_start[b]
     for i in range(n):
         k = keys[i]
         j = low_start[k & 255]
-        low_start[k & 255] = j + 1
+        low_start[k & 255] = j + one
         by_low[j] = a[i]
         low_keys[j] = k
     for i in range(n):
         k = low_keys[i] >> 8
         j = high_start[k]
-        high_start[k] = j + 1
+        high_start[k] = j + one
         by_key[j] = by_low[i]
     _insertion_sort(a, by_key[:n])
 
