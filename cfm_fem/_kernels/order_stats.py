@@ -337,7 +337,7 @@ def _intervals(low, high, n, q, out):
     width = high[0] - low[0]
     for j in range(1, h):
         w = high[j] - low[j]
-        if w < width:  # the first of equal widths, as before
+        if w < width:  # strict: the first of equal widths
             width = w
             best = j
     out[4] = low[best]
