@@ -710,6 +710,45 @@ def test_kernels_cached_tells_a_cold_cache_from_a_warm_one(tmp_path, monkeypatch
     assert _kernels.kernels_cached(mod.twice)
 
 
+_CALLER = (
+    "import numba\nfrom callee import g\n\n@numba.njit(cache=True)\ndef f():\n    return g()\n"
+)
+_CALLEE = "import numba\n\n@numba.njit(cache=True)\ndef g():\n    return {}\n"
+
+
+def test_a_changed_callee_reaches_a_cached_caller_only_through_the_digest(tmp_path):
+    """numba checks a cached kernel against its own file only: after an edit to the module of
+    a function it calls, it still runs the old code. `drop_stale_cache` (run on import of the
+    kernels) compiles it anew; with unchanged sources it keeps the cache."""
+    import subprocess
+    import sys
+
+    (tmp_path / "caller.py").write_text(_CALLER)
+    sources = [tmp_path / "caller.py", tmp_path / "callee.py"]
+    cache = tmp_path / "__pycache__"
+    guard = (
+        "from cfm_fem._kernels.options import drop_stale_cache; "
+        f"drop_stale_cache({str(cache)!r}, {[str(p) for p in sources]!r}); "
+    )
+
+    def run(value, guarded):
+        (tmp_path / "callee.py").write_text(_CALLEE.format(value))
+        code = (guard if guarded else "") + "from caller import f; print(f())"
+        out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                             text=True, check=True)  # fmt: skip
+        return int(out.stdout)
+
+    assert run(1, guarded=False) == 1
+    assert run(2, guarded=False) == 1  # numba's cache alone: the stale caller
+    assert run(2, guarded=True) == 2
+    stamp = (cache / "cfm_fem_kernels.sha256").read_text()
+    files = sorted(p.name for p in cache.glob("*.nb[ic]"))
+    assert files and run(2, guarded=True) == 2  # unchanged: the cache is kept
+    assert sorted(p.name for p in cache.glob("*.nb[ic]")) == files
+    assert (cache / "cfm_fem_kernels.sha256").read_text() == stamp
+    assert run(3, guarded=True) == 3
+
+
 def _cycling(mesh, every=5):
     """``mesh.neighbors`` with every ``every``-th interior cell's faces leading back to itself:
     a walk that enters such a cell without ``p`` in it goes round in it until ``MAX_WALK``, as

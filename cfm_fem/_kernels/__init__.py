@@ -120,6 +120,7 @@ from .options import (
     JIT,
     PJIT,
     RJIT,
+    drop_stale_kernels,
     kernels_cached,
 )
 from .order_stats import (
@@ -314,3 +315,5 @@ __all__ = [
     "CHECK_FREE",
     "harmonic_fit_block",
 ]
+
+drop_stale_kernels(sort_values)  # before any kernel is compiled or loaded

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
+from pathlib import Path
+
 from .._numba_cache import CACHE
 
 #: One place for numba options. ``cache`` keeps compile time out of repeated runs.
@@ -26,6 +30,63 @@ def kernels_cached(*kernels) -> bool:
         return all(len(k._cache._cache_file._load_index()) > 0 for k in kernels)
     except Exception:  # another numba version: say nothing rather than something wrong
         return True
+
+
+#: Beside numba's cache of the kernels: a digest of every kernel source it was written for.
+DIGEST_FILE = "cfm_fem_kernels.sha256"
+
+
+def drop_stale_cache(cache_dir, sources) -> bool:
+    """Delete numba's cached kernels in ``cache_dir`` unless they were written for these
+    ``sources`` (paths of the kernel modules); True if it deleted any.
+
+    numba checks each cached kernel against its own source file only. A kernel that calls,
+    and so compiles in, a function of another module keeps that function's old code when
+    only the other module changes, as in a checkout updated in place (an upgrade by pip
+    replaces every file). A digest of all the sources, kept in the cache folder, catches it:
+    on a change the folder's kernels are compiled anew, once.
+    """
+    import numba
+
+    h = hashlib.sha256(numba.__version__.encode())
+    for path in sorted(Path(p) for p in sources):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    digest = h.hexdigest()
+    folder = Path(cache_dir)
+    stamp = folder / DIGEST_FILE
+    try:
+        if stamp.read_text() == digest:
+            return False
+    except OSError:
+        pass
+    if not folder.is_dir():
+        return False
+    dropped = False
+    for f in [*folder.glob("*.nbi"), *folder.glob("*.nbc")]:
+        try:
+            f.unlink()
+            dropped = True
+        except OSError:  # another process took it first
+            pass
+    try:
+        tmp = folder / f"{DIGEST_FILE}.{os.getpid()}"
+        tmp.write_text(digest)
+        tmp.replace(stamp)
+    except OSError:  # a read-only cache: numba does not write to it either
+        pass
+    return dropped
+
+
+def drop_stale_kernels(kernel) -> bool:
+    """`drop_stale_cache` for the folder where numba caches ``kernel`` (a dispatcher of this
+    package; every module here shares that folder) and the package's sources. Finds the
+    folder through numba's cache object (a private API): if that fails, False."""
+    try:
+        cache_dir = kernel._cache._cache_path
+    except Exception:  # another numba version, or no cache
+        return False
+    return drop_stale_cache(cache_dir, Path(__file__).parent.glob("*.py"))
 
 
 #: Reductions may be reassociated (vectorised); the order is fixed by the compiled code.
