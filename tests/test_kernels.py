@@ -719,7 +719,9 @@ _CALLEE = "import numba\n\n@numba.njit(cache=True)\ndef g():\n    return {}\n"
 def test_a_changed_callee_reaches_a_cached_caller_only_through_the_digest(tmp_path):
     """numba checks a cached kernel against its own file only: after an edit to the module of
     a function it calls, it still runs the old code. `drop_stale_cache` (run on import of the
-    kernels) compiles it anew; with unchanged sources it keeps the cache."""
+    kernels) compiles it anew; with unchanged sources, and after a first run into an empty
+    folder, it keeps the cache."""
+    import shutil
     import subprocess
     import sys
 
@@ -732,7 +734,9 @@ def test_a_changed_callee_reaches_a_cached_caller_only_through_the_digest(tmp_pa
     )
 
     def run(value, guarded):
-        (tmp_path / "callee.py").write_text(_CALLEE.format(value))
+        callee = tmp_path / "callee.py"
+        if not callee.exists() or callee.read_text() != _CALLEE.format(value):
+            callee.write_text(_CALLEE.format(value))  # a new stamp only for new code
         code = (guard if guarded else "") + "from caller import f; print(f())"
         out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                              text=True, check=True)  # fmt: skip
@@ -747,6 +751,11 @@ def test_a_changed_callee_reaches_a_cached_caller_only_through_the_digest(tmp_pa
     assert sorted(p.name for p in cache.glob("*.nb[ic]")) == files
     assert (cache / "cfm_fem_kernels.sha256").read_text() == stamp
     assert run(3, guarded=True) == 3
+    shutil.rmtree(cache)  # a first run: compiled once, then loaded
+    assert run(3, guarded=True) == 3
+    written = {p.name: p.stat().st_mtime_ns for p in cache.glob("*.nb[ic]")}
+    assert written and run(3, guarded=True) == 3
+    assert {p.name: p.stat().st_mtime_ns for p in cache.glob("*.nb[ic]")} == written
 
 
 def _cycling(mesh, every=5):

@@ -60,7 +60,9 @@ def drop_stale_cache(cache_dir, sources) -> bool:
             return False
     except OSError:
         pass
-    if not folder.is_dir():
+    try:  # a first run: the folder numba is about to fill gets the digest too
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:  # numba cannot write there either
         return False
     dropped = False
     for f in [*folder.glob("*.nbi"), *folder.glob("*.nbc")]:
