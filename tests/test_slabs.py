@@ -172,7 +172,7 @@ def test_trials_that_reach_the_halo_border_count_as_outside(tmp_path):
     # nodes next to a slab edge lose cells of their star;
     # their trials that walk into the missing cells must be counted outside, never given a value
     path = _write_csv(tmp_path / "g.csv", _lattice(5, 8))
-    cfg = SweepConfig(up_um=[0.0, 1000.0], trials=200)
+    cfg = SweepConfig(up_um=[0.0, 1000.0], trials=200, field_model="linear")
     fm = read_field(path)
     from cfm_fem.workflows.sweep.in_memory import run_sweep
 

@@ -69,7 +69,7 @@ def exact_case():
     fm = grid_map()
     cfg = SweepConfig(up_um=[0.0, 50.0, 200.0], trials=400, seed=5, field_model="harmonic")
     _, problem, _ = prepare_sweep(fm, cfg)
-    lin_cfg = SweepConfig(up_um=[0.0, 50.0, 200.0], trials=400, seed=5)
+    lin_cfg = SweepConfig(up_um=[0.0, 50.0, 200.0], trials=400, seed=5, field_model="linear")
     _, lin_problem, _ = prepare_sweep(fm, lin_cfg)
     nodes = np.flatnonzero(np.all(np.abs(fm.points) < [4.0, 4.0, 9.0], axis=1))
     return fm, problem, lin_problem, nodes
@@ -194,6 +194,46 @@ def test_planar_map_refused_for_the_harmonic_model(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "3-D map" in err and "Traceback" not in err
     assert not (tmp_path / "o" / "summary.json").exists()
+
+
+def test_default_field_model_is_harmonic_on_a_volume_and_linear_on_a_plane(tmp_path, capsys):
+    """With no --field-model, a 3-D map runs under the harmonic fits and a planar map under the
+    linear interpolant, with a note saying why; the summary names the model that served."""
+    vol = tmp_path / "volume.csv"
+    pts = grid_map().points
+    vol.write_text(
+        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+        + "".join(",".join(map(repr, r)) + "\n" for r in np.c_[pts, exact_field(pts)].tolist())
+    )
+    args = ["--up", "0,20", "--trials", "200"]
+    assert main(["sweep", str(vol), *args, "--out", str(tmp_path / "v")]) == 0
+    summary = json.loads((tmp_path / "v" / "summary.json").read_text())
+    assert summary["field_model"] == "harmonic"
+    assert summary["harmonic"]["linear_fallback_nodes"] < len(pts)
+    assert "harmonic fit per node" in capsys.readouterr().out
+
+    ax = np.linspace(-5, 5, 6)
+    flat = np.stack(np.meshgrid(ax, ax, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    plane = tmp_path / "plane.csv"
+    plane.write_text(
+        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+        + "".join(",".join(map(repr, r)) + "\n" for r in np.c_[flat, exact_field(flat)].tolist())
+    )
+    assert main(["sweep", str(plane), *args, "--out", str(tmp_path / "p")]) == 0
+    summary = json.loads((tmp_path / "p" / "summary.json").read_text())
+    assert summary["field_model"] == "linear"
+    assert any("planar map" in n for n in summary["notes"])
+    out = capsys.readouterr().out
+    assert "linear interpolant at every node" in out
+
+
+def test_default_field_model_matches_an_explicit_harmonic_run():
+    fm = grid_map()
+    runs = [
+        run_sweep(fm, SweepConfig(up_um=[20.0], trials=200, seed=3, **kw))
+        for kw in ({}, {"field_model": "harmonic"})
+    ]
+    assert np.array_equal(runs[0].stats, runs[1].stats, equal_nan=True)
 
 
 def conductor_field(p, centre=(3.0, 0.0), radius=2.0, k=0.01):

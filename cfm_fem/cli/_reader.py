@@ -133,15 +133,21 @@ def read_recording_args(args):
     )
 
 
-def add_field_model_arg(p, what: str) -> None:
-    """Add ``--field-model linear|harmonic``: how the map ``what`` is modelled between nodes."""
+def add_field_model_arg(p, what: str, auto: bool = False) -> None:
+    """Add ``--field-model``: how the map ``what`` is modelled between nodes. ``auto``: offer
+    and default to "auto" (harmonic on a 3-D map, linear on a planar one), else default linear."""
     p.add_argument(
         "--field-model",
-        choices=["linear", "harmonic"],
-        default="linear",
-        help=f"the field of {what} between its nodes: linear interpolation in its cells "
-        "(default), or per node a least-squares fit of a harmonic potential's gradient "
-        "(div B = curl B = 0) to its nearest nodes (3-D maps)",
+        choices=["auto", "linear", "harmonic"] if auto else ["linear", "harmonic"],
+        default="auto" if auto else "linear",
+        help=f"the field of {what} between its nodes: linear interpolation in its cells, or per "
+        "node a least-squares fit of a harmonic potential's gradient (div B = curl B = 0) to its "
+        "nearest nodes (3-D maps); "
+        + (
+            "auto (default): harmonic on a 3-D map, linear on a planar one"
+            if auto
+            else "default linear"
+        ),
     )
 
 

@@ -52,7 +52,7 @@ def add_args(p):
         default="exclude",
         help="trials that leave the map: as in cfm-fem sweep (default exclude)",
     )
-    add_field_model_arg(p, "FIELD")
+    add_field_model_arg(p, "FIELD", auto=True)
     add_reader_args(p)
 
 
@@ -114,7 +114,7 @@ def _run(args, up) -> int:
         "region_mm": None if args.region is None else args.region.tolist(),
         "region_nodes": int(inside.sum()),
         "b_ref_T": summary["b_ref_T"],
-        "field_model": cfg.field_model,
+        "field_model": summary["field_model"],
         "trials": cfg.trials,
         "seed": cfg.seed,
         "definition": "largest U_p whose coverage quantile of U_f over the region's nodes with "

@@ -90,12 +90,13 @@ def add_args(p):
     )
     p.add_argument(
         "--field-model",
-        choices=["linear", "harmonic"],  # models.sweep.FIELD_MODELS; --help stays fast
-        default="linear",
-        help="the field between nodes: linear interpolation in the mesh's cells (default), or "
-        "per node a least-squares fit of a harmonic potential's gradient (div B = curl B = 0) to "
-        "its nearest nodes, right where the field bends (3-D maps; nodes where the fit shows "
-        "Laplace's equation violated keep the linear model)",
+        choices=["auto", "linear", "harmonic"],  # models.sweep.FIELD_MODELS; --help stays fast
+        default="auto",
+        help="the field between nodes: per node a least-squares fit of a harmonic potential's "
+        "gradient (div B = curl B = 0) to its nearest nodes, right where the field bends (3-D "
+        "maps; nodes where the fit shows Laplace's equation violated keep the linear model), or "
+        "linear interpolation in the mesh's cells; auto (default): harmonic on a 3-D map, "
+        "linear on a planar one",
     )
     p.add_argument(
         "--outside",
@@ -564,7 +565,12 @@ def _explain_outside(s):
 def _print_summary(s, out):
     h = s.get("harmonic")
     if h is None:
-        print(f"interpolation: {s['interpolation']}")
+        print(f"field model: the linear interpolant at every node ({s['interpolation']})")
+    elif not h["nodes_by_degree"]:
+        print(
+            f"field model: the linear interpolant at every node ({s['interpolation']}): no "
+            f"node's harmonic fit holds ({h['fallback_rule']})"
+        )
     else:
         degrees = ", ".join(f"{n} of degree {d}" for d, n in h["nodes_by_degree"].items())
         print(

@@ -22,6 +22,7 @@ __all__ = [
     "HTM_PARTS",
     "OUTSIDE_RULES",
     "FIELD_MODELS",
+    "uses_harmonic",
     "field_model_summary",
     "harmonic_summary",
     "SweepConfig",
@@ -44,8 +45,17 @@ HTM_PARTS = {
 }
 
 
-#: Field models between the nodes (`SweepConfig.field_model`).
-FIELD_MODELS = ("linear", "harmonic")
+#: Field models between the nodes (`SweepConfig.field_model`). "auto": the harmonic fits on a
+#: 3-D map (each node keeps the linear interpolant where its fit finds Laplace's equation
+#: violated), the linear interpolant on a planar map, whose records tie the field's derivative
+#: across the plane to nothing.
+FIELD_MODELS = ("auto", "linear", "harmonic")
+
+
+def uses_harmonic(field_model: str, dim: int) -> bool:
+    """Whether field model ``field_model`` fits the per-node harmonic models on a map of
+    dimension ``dim`` (2: planar, 3: volume)."""
+    return field_model == "harmonic" or (field_model == "auto" and dim == 3)
 
 
 #: What happens to a trial whose perturbed position leaves the map (`SweepConfig.outside`).
@@ -89,10 +99,11 @@ class SweepConfig:
         Delaunay maps: remove the flat cells of the convex hull (default) or keep them
         (`cfm_fem.models.mesh.hull_sliver_cells`); trials in a removed cell are outside. Kept,
         they put U_f and the gradient (so the GUM figure) of the nodes on the hull far off.
-    field_model : {"linear", "harmonic"}
+    field_model : {"auto", "linear", "harmonic"}
         The field between nodes: the piecewise-linear interpolant of the mesh, or per node the
         local harmonic fit (`cfm_fem.models.harmonic`; 3-D maps), with the linear interpolant
-        where the fit finds Laplace's equation violated.
+        where the fit finds Laplace's equation violated; "auto" (default): the harmonic fits on a
+        3-D map, the linear interpolant on a planar one (`uses_harmonic`).
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -107,7 +118,7 @@ class SweepConfig:
     chunk_nodes: int = 20000
     outside: str = "exclude"
     hull_slivers: str = "remove"
-    field_model: str = "linear"
+    field_model: str = "auto"
 
 
 def _bench_named(cfg) -> dict | None:

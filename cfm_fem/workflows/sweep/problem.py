@@ -27,7 +27,14 @@ from ...models.mesh import (
     morton_order,
     no_search,
 )
-from ...models.sweep import FIELD_MODELS, HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
+from ...models.sweep import (
+    FIELD_MODELS,
+    HTM_PARTS,
+    OUTSIDE_RULES,
+    SweepConfig,
+    up_label,
+    uses_harmonic,
+)
 from ...threads import map_blocks
 
 __all__ = [
@@ -38,6 +45,7 @@ __all__ = [
     "chunk_ranges",
     "serial_map",
     "prepare_sweep",
+    "fallback_note",
     "check_options",
     "node_gradients",
     "sweep_gradients",
@@ -150,7 +158,9 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     if cfg.outside not in OUTSIDE_RULES:
         raise CfmInputError(f"--outside must be exclude or extrapolate; got {cfg.outside!r}")
     if cfg.field_model not in FIELD_MODELS:
-        raise CfmInputError(f"--field-model must be linear or harmonic; got {cfg.field_model!r}")
+        raise CfmInputError(
+            f"--field-model must be auto, linear or harmonic; got {cfg.field_model!r}"
+        )
     if cfg.field_model == "harmonic" and mesh.dim != 3:
         raise CfmInputError(
             "--field-model harmonic needs a 3-D map (Laplace's equation ties the field's "
@@ -296,19 +306,19 @@ class SweepProblem:
     def _run_harmonic(self, nodes, keys):
         """Nodes whose harmonic fit holds run under it, the others (`HarmonicFit.use` False)
         under the linear interpolant; results in the order of ``nodes``."""
-        fit = self.harmonic
-        use = fit.use[nodes]
-        parts = [None, None]
-        if (~use).any():
-            parts[0] = self._run_linear(nodes[~use], keys[~use])
-        if use.any():
-            parts[1] = self._harmonic_kernel(nodes[use], keys[use])
-        ref = parts[1] if parts[1] is not None else parts[0]
-        out = [np.empty((len(nodes),) + a.shape[1:], dtype=a.dtype) for a in ref]
-        for part, sel in ((parts[0], ~use), (parts[1], use)):
-            if part is not None:
-                for o, a in zip(out, part, strict=True):
-                    o[sel] = a
+        use = self.harmonic.use[nodes]
+        if not use.any():  # no node (or none whose fit holds): the linear interpolant
+            return self._run_linear(nodes, keys)
+        if use.all():
+            return self._harmonic_kernel(nodes, keys)
+        parts = (
+            self._run_linear(nodes[~use], keys[~use]),
+            self._harmonic_kernel(nodes[use], keys[use]),
+        )
+        out = [np.empty((len(nodes),) + a.shape[1:], dtype=a.dtype) for a in parts[1]]
+        for part, sel in zip(parts, (~use, use), strict=True):
+            for o, a in zip(out, part, strict=True):
+                o[sel] = a
         return tuple(out)
 
     def _harmonic_kernel(self, nodes, keys):
@@ -472,18 +482,27 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
 def _harmonic_fit(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh):
     """The per-node harmonic fits of field model "harmonic" (else None), with a note of how
     many nodes fall back to the linear interpolant."""
-    if cfg.field_model != "harmonic":
+    if not uses_harmonic(cfg.field_model, mesh.dim):
+        if cfg.field_model == "auto":
+            mesh.notes.append(
+                "field model: the linear interpolant (a planar map; the harmonic fits need a "
+                "3-D map)"
+            )
         return None
     from ...models.harmonic import fit_harmonic
 
     fit = fit_harmonic(fm.points, fm.B, source=fm.source)
     n_lin = int((~fit.use).sum())
     if n_lin:
-        mesh.notes.append(
-            f"{n_lin} node(s) of {len(fit.use)} use the linear interpolant: their harmonic fit "
-            f"fails ({fit.fallback_rule})"
-        )
+        mesh.notes.append(fallback_note(n_lin, len(fit.use), fit.fallback_rule))
     return fit
+
+
+def fallback_note(n_linear: int, n: int, rule: str) -> str:
+    """The note of the ``n_linear`` nodes of ``n`` whose harmonic fit fails (``rule``)."""
+    return (
+        f"{n_linear} node(s) of {n} use the linear interpolant: their harmonic fit fails ({rule})"
+    )
 
 
 def field_fit_info(fit) -> dict | None:

@@ -117,8 +117,16 @@ from ...models.sweep import (
     _gum_u,
     harmonic_summary,
     summarize,
+    uses_harmonic,
 )
-from .problem import field_fit_info, prepare_sweep, serial_map, sweep_gradients, with_bench
+from .problem import (
+    fallback_note,
+    field_fit_info,
+    prepare_sweep,
+    serial_map,
+    sweep_gradients,
+    with_bench,
+)
 from .slab_plan import (
     SlabPlan,
     at_cut,
@@ -452,7 +460,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     # the whole map's hull: a slab removes the hull slivers the whole map removes
     hull = hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
     store = SlabStore(work / "results")
-    harmonic = cfg.field_model == "harmonic"
+    harmonic = uses_harmonic(cfg.field_model, 3)  # slabs cut 3-D maps only
     for name, dtype, cols in (("uf", np.float64, n_col), ("complete", np.bool_, n_col),
                               ("e2", np.float64, n_col), ("fit", np.float64, 2)):  # fmt: skip
         if name not in ("e2", "fit") or (htm if name == "e2" else harmonic):
@@ -502,6 +510,11 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         mesh_notes.append(tie_note(int(sums["ties"]), span))
     if sums["slivers"]:
         mesh_notes.append(sliver_note(int(sums["slivers"])))
+    if harmonic:
+        n_linear = int((open_per_node(work / "fit.npy", "r")[:, 0] == 0).sum())
+        if n_linear:
+            rule = template["harmonic"]["fallback_rule"]
+            mesh_notes.append(fallback_note(n_linear, n, rule))
     summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
     if harmonic:  # the whole map's fits, from the per-node file and the slabs' boxes
         boxes = [records[k]["fit_box"] for k in range(K) if records[k].get("fit_box")]
