@@ -61,3 +61,12 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     p50 = maps.summary["uf_units"]["p50"]
     assert 0 < p50[0] < p50[1]  # U_f grows with U_p
     assert maps.percentile(50, up_um=20) == pytest.approx(p50[1])
+
+
+def test_the_version_is_stated_once_and_cited_alike():
+    """pyproject.toml takes the version from the package; CITATION.cff cites the same one."""
+    import cfm_fem
+
+    assert re.search(r'^dynamic = \["version"\]$', (ROOT / "pyproject.toml").read_text(), re.M)
+    cited = re.search(r'^version: "([^"]+)"$', (ROOT / "CITATION.cff").read_text(), re.M)
+    assert cited and cited.group(1) == cfm_fem.__version__
