@@ -808,6 +808,13 @@ def _reported_early(nodes: int, block: int) -> int:
     return block * ((nodes - 1) // block) if nodes > 0 else 0
 
 
+#: How an out-of-core run's U_f percentiles weigh the nodes (`_summary`).
+SLAB_WEIGHTING = (
+    "node count: an out-of-core run counts every node once (exact order statistics over the "
+    "slabs); each map's node_volume_mm3 gives the volume weights"
+)
+
+
 def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
     s = dict(template)
     n_col = len(ups)
@@ -833,6 +840,11 @@ def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
     n_samples = max(sums["processed"], 1) * s["trials"]
     s["up_um"] = list(ups)
     s["uf_units"] = pct
+    s["uf_units_per_node"] = pct
+    s["statistics_weighting"] = SLAB_WEIGHTING
+    s["region_nodes"] = int(n)
+    s["region_volume_mm3"] = None
+    s["uf_volume_fraction"] = [None] * n_col
     s["uf_nodes"] = uf_nodes
     s["nodes"] = int(n)
     s["processed_nodes"] = int(sums["processed"])
