@@ -232,4 +232,3 @@ def _per_pass(update, passes: int):
             state["shown"] = now
 
     return step
-
