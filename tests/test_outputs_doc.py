@@ -246,3 +246,68 @@ def test_design_and_synth_outputs_match_the_page(tmp_path):
         header = next(ln for ln in rec.read_text().splitlines() if not ln.startswith("#"))
         columns |= set(header.split(","))
     assert columns == _documented("synth", "column")
+
+
+def _keys_and_words(obj) -> set[str]:
+    """Every key of a JSON document at any depth, and every string value."""
+    found = set()
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            found.add(k)
+            found |= _keys_and_words(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            found |= _keys_and_words(v)
+    elif isinstance(obj, str):
+        found.add(obj)
+    return found
+
+
+def _check_inline_json(command: str, outs, file: str, extra=frozenset()) -> None:
+    """A JSON file whose keys the page lists in its row: every top-level key written (by the
+    runs in ``outs``) is named there, and every name there is a key (at any depth) or a value
+    of the file in one of the runs."""
+    named = _inline_names(command, file) | set(extra)
+    words = set()
+    for out in outs:
+        doc = json.loads((out / file).read_text())
+        assert not set(doc) - named, f"{command} {file}: not in outputs.md: {set(doc) - named}"
+        words |= _keys_and_words(doc)
+    unwritten = {
+        n for n in _inline_names(command, file)
+        if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", n) and n not in words
+    }  # fmt: skip
+    assert not unwritten, f"{command} {file}: in outputs.md, not written: {unwritten}"
+
+
+def test_other_commands_outputs_match_the_page(tmp_path):
+    path = _csv_map(tmp_path / "map.csv", n=5)
+    from cfm_fem.io.harmonics import qfdp4_path
+
+    rec, hall = tmp_path / "rec.csv", tmp_path / "hall.csv"
+    assert main(["synth", "tracker", "--reps", "2", "--grid", "2,2,2", "--out", str(rec)]) == 0
+    assert main(["synth", "hall", "--reps", "1", "--out", str(hall)]) == 0
+    runs = {
+        "tolerance": ["tolerance", "--target", "18,13,14", "--check", "100"],
+        "coupled": ["coupled", "--trials", "60"],
+        "fig4": ["fig4", str(path), "--up", "0,20", "--trials", "60"],
+        "compare": ["compare", "--tracker", str(rec), "--trials", "60"],
+        "compare_hall": ["compare", "--hall-map", str(hall), "--reference", str(qfdp4_path()),
+                         "--trials", "60"],
+        "diagnose": ["diagnose", "--tracker", str(rec)],
+    }  # fmt: skip
+    outs = {}
+    for name, argv in runs.items():
+        outs[name] = tmp_path / name
+        assert main([*argv, "--out", str(outs[name])]) == 0, name
+        for f in outs[name].glob("*.vtu"):
+            _read_both(f)
+    for name in ("tolerance", "coupled", "fig4", "diagnose"):
+        _check_files(name, [outs[name]])
+    _check_files("compare", [outs["compare"], outs["compare_hall"]])
+    _check_inline_json("tolerance", [outs["tolerance"]], "tolerance.json")
+    _check_inline_json("coupled", [outs["coupled"]], "summary.json")
+    sweep_keys = _documented("sweep", "key", "summary.json")
+    _check_inline_json("fig4", [outs["fig4"]], "fig4.json", extra=sweep_keys)
+    _check_inline_json("compare", [outs["compare"], outs["compare_hall"]], "compare.json")
+    _check_inline_json("diagnose", [outs["diagnose"]], "diagnosis.json")

@@ -18,7 +18,7 @@ import numpy as np
 
 from .mesh import signed_measures
 
-__all__ = ["node_volumes", "weighted_percentiles", "CELL_RULE", "GRID_RULE"]
+__all__ = ["node_volumes", "volume_rule", "weighted_percentiles", "CELL_RULE", "GRID_RULE"]
 
 CELL_RULE = "an equal share (1/(d+1)) of the volume of each cell around the node"
 GRID_RULE = "the product of the node's half-spacings along the grid's axes"
@@ -48,6 +48,14 @@ def _half_spacings(x: np.ndarray) -> np.ndarray:
     """Half-spacing of each grid value, (x[i+1] - x[i-1]) / 2, one-sided at the ends."""
     padded = np.concatenate([x[:1], x, x[-1:]])
     return (padded[2:] - padded[:-2]) / 2.0
+
+
+def volume_rule(mesh) -> str:
+    """The rule `node_volumes` applies to ``mesh`` (`GRID_RULE` or `CELL_RULE`)."""
+    coords = np.asarray(mesh.coords, dtype=np.float64)
+    if getattr(mesh, "kind", None) == "grid" and _grid_axes(coords) is not None:
+        return GRID_RULE
+    return CELL_RULE
 
 
 def node_volumes(mesh) -> tuple[np.ndarray, str]:

@@ -17,7 +17,7 @@ from ..errors import CfmInputError
 from .field import FieldMap
 from .mc import numerical_tolerance
 from .mesh import SimplexMesh
-from .node_weights import node_volumes, weighted_percentiles
+from .node_weights import node_volumes, volume_rule, weighted_percentiles
 from .region import region_mask
 
 __all__ = [
@@ -440,9 +440,11 @@ def summarize(res: SweepResult) -> dict:
     processed = (res.n_outside + res.n_walk_failed > 0).any(axis=1) | np.isfinite(
         res.stats[:, :, 3, 1]
     ).any(axis=1)
-    volumes, volume_rule = node_volumes(res.mesh)
-    if res.node_volume_mm3 is None:  # the maps are written from the same figures
-        res.node_volume_mm3 = volumes
+    if res.node_volume_mm3 is None:  # kept: the maps are written from the same figures
+        res.node_volume_mm3, rule = node_volumes(res.mesh)
+    else:  # a part of a map (a slab's own nodes) carries its share of the whole
+        rule = volume_rule(res.mesh)
+    volumes = res.node_volume_mm3
     inside = region_mask(res.fieldmap.points, cfg.region)
     pct, per_node, counted = uf_percentiles(uf, complete & inside[:, None], volumes)
     n_samples = max(int(processed.sum()), 1) * cfg.trials
@@ -470,7 +472,7 @@ def summarize(res: SweepResult) -> dict:
         "uf_units": pct,
         "uf_units_per_node": per_node,
         "statistics_weighting": WEIGHTING,
-        "node_volume_rule": volume_rule,
+        "node_volume_rule": rule,
         "region": None if cfg.region is None else cfg.region.to_json(),
         "region_description": "the whole map" if cfg.region is None else cfg.region.describe(),
         "region_nodes": int(inside.sum()),
