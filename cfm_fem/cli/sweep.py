@@ -612,9 +612,11 @@ def _print_summary(s, out, table=None):
         print(f"interpolation: {s['interpolation']}")
     else:
         degrees = ", ".join(f"{n} of degree {d}" for d, n in h["nodes_by_degree"].items())
+        p95 = h["residual_units"]["p95"]  # None: no node kept a fit
         print(
             f"field model: harmonic fit per node to its {h['neighbours']} nearest nodes "
-            f"({degrees}); RMS residual p95 {h['residual_units']['p95']:.3g} units; "
+            f"({degrees or 'no fit kept'}); RMS residual p95 "
+            f"{'-' if p95 is None else f'{p95:.3g}'} units; "
             f"{h['linear_fallback_nodes']} node(s) on the linear interpolant "
             f"({s['interpolation']})"
         )
