@@ -153,3 +153,21 @@ def test_parquet_table_needs_pyarrow(tmp_path, capsys):
                  "--out", str(out)]) == 0  # fmt: skip
     t = pq.read_table(out / "nodes.parquet")
     assert t.num_rows == 5 * 5 * 13 and "U_f_units_up20um" in t.column_names
+
+
+def test_out_of_core_weighted_percentiles_equal_the_in_memory_ones():
+    from cfm_fem.workflows.sweep.slabs import disk_weighted_percentiles
+
+    rng = np.random.default_rng(7)
+    v = np.r_[rng.lognormal(size=5000), np.full(300, 2.0)]  # ties too
+    w = rng.uniform(0.0, 3.0, size=v.size) * (rng.random(v.size) > 0.1)
+    qs = [1, 50, 95, 99]
+    expect = weighted_percentiles(v, w, qs)
+
+    def chunks():
+        for a in range(0, v.size, 700):
+            yield v[a : a + 700], w[a : a + 700]
+
+    assert disk_weighted_percentiles(chunks, qs) == expect  # gathered in memory
+    # histogram refinement (a tiny memory limit), down to a few values per window
+    assert disk_weighted_percentiles(chunks, qs, in_memory_limit=50, bins=8) == expect
