@@ -171,3 +171,14 @@ def test_out_of_core_weighted_percentiles_equal_the_in_memory_ones():
     assert disk_weighted_percentiles(chunks, qs) == expect  # gathered in memory
     # histogram refinement (a tiny memory limit), down to a few values per window
     assert disk_weighted_percentiles(chunks, qs, in_memory_limit=50, bins=8) == expect
+
+
+def test_python_sweep_takes_the_region_as_text_and_its_percentile_is_the_summarys(tmp_path):
+    import cfm_fem
+
+    path = _z_graded_map(tmp_path, True)
+    maps = cfm_fem.run_sweep(str(path), up_um=[20], trials=200, region="cylinder:2.5,2:10")
+    s = maps.summary
+    assert s["region"] == {"cylinder_radius_mm": 2.5, "z_mm": [2.0, 10.0]}
+    assert maps.percentile(50, up_um=20) == s["uf_units"]["p50"][0]
+    assert maps.percentile(95, up_um=20, per_node=True) == s["uf_units_per_node"]["p95"][0]

@@ -346,3 +346,13 @@ def test_other_commands_outputs_match_the_page(tmp_path):
         except AssertionError as exc:
             problems.append(str(exc).splitlines()[0])
     assert not problems, "\n".join(problems)
+
+
+def test_the_page_has_a_section_for_every_command():
+    import argparse
+
+    from cfm_fem.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(_sections()) == set(sub.choices)
