@@ -44,7 +44,9 @@ EXAMPLES = [
         "Per-node U_f maps of a field map for a sweep of positioning uncertainties U_p "
         "(Monte Carlo, GUM Supplement 1). `--mode htm` draws the probe error from the bench "
         "model instead of N(0, U_p). `--pieces`, `--slabs`/`--max-memory`, `--workers`/"
-        "`--scheduler` and `--resume` change how the work is split, never the numbers.",
+        "`--scheduler` and `--resume` change how the work is split, never the numbers. The "
+        "U_f percentiles weigh each node by the volume it stands for; `--region` takes them over "
+        "a box or a cylinder (the good-field region); `--table csv` adds a per-node table.",
     ),
     (
         "design",

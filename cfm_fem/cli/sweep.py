@@ -1,8 +1,10 @@
 """Per-node field uncertainty U_f of an FEM map for a sweep of positioning uncertainties U_p.
 
 Writes DIR/uf_up<U_p>um.vtu per U_p value, DIR/sweep.pvd (open it in ParaView; U_p is the time
-axis), DIR/open_in_paraview.py (pvpython: the slice through the axis, nodes with a U_f figure),
-DIR/summary.json and DIR/report.html (design curve, slices, histograms, GUM flags). Maps an
+axis), DIR/open_in_paraview.py (pvpython: the slice through the axis at the largest U_p, nodes
+with a U_f figure), DIR/summary.json (U_f percentiles weighted by the volume each node stands
+for, over the map or --region) and DIR/report.html (design curve, slices, histograms, GUM
+flags); --table csv adds DIR/nodes.csv, one row per node. Maps an
 earlier sweep left in DIR that this run does not write (other U_p values, pieces instead of one
 file or the reverse) are removed once the new outputs are complete, and named on stderr; files a
 sweep did not write are never deleted.
