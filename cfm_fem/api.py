@@ -103,7 +103,8 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
         Called with the nodes finished.
     **config
         Other `cfm_fem.models.sweep.SweepConfig` fields: ``b_ref_T``, ``axis_scale``, ``outside``,
-        ``interpolation``, ``hull_slivers``, ``chunk_nodes``.
+        ``interpolation``, ``hull_slivers``, ``chunk_nodes``, ``region`` (a
+        `cfm_fem.models.region.Region` or its text, as ``--region``: ``"cylinder:7,-30:30"``).
 
     Returns
     -------
@@ -115,6 +116,10 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
 
     if isinstance(bench, str | Path):
         bench = read_bench(bench)
+    if isinstance(config.get("region"), str):
+        from .models.region import parse_region
+
+        config["region"] = parse_region(config["region"])
     if mode == "htm" and bench is None:
         bench = read_bench()
     cfg = SweepConfig(up_um=[float(u) for u in up_um], trials=int(trials), seed=int(seed),

@@ -46,7 +46,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("vtu", help="a map written by cfm-fem sweep (uf_up<U_p>um.vtu)")
     a = ap.parse_args()
-    m = pv.read(a.vtu)  # VTK's reader: the maps' provenance is a string array meshio refuses
+    m = pv.read(a.vtu)
     tets = m.cells_dict.get(pv.CellType.TETRA)
     if tets is None:
         raise SystemExit(f"{a.vtu}: no tetrahedra; this script needs a map on native cells")

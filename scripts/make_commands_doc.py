@@ -3,8 +3,10 @@
     python scripts/make_commands_doc.py            # rewrite docs/commands.md
     python scripts/make_commands_doc.py --check    # exit 1 if docs/commands.md is out of date
 
-The option lists are the parser's own help, formatted at 100 columns, so the page cannot drift
-from the command line; the short text above each list and the examples are kept here.
+The list of commands and their option lists are the parser's own (every subcommand of
+`cfm_fem.cli.build_parser`, in its order; the help formatted at 100 columns), so the page cannot
+drift from the command line. The example and the short text above each list are kept here, in
+`EXAMPLES`; a command without an entry there fails the script (and `--check`), naming it.
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ a file. What each command writes is described in [outputs.md](outputs.md); the i
 [formats.md](formats.md).
 """
 
-#: (command, example, summary, what it is for), in the order ``cfm-fem --help`` lists them.
-COMMANDS = [
+#: (command, example, summary, what it is for); the parser decides which commands are listed
+#: and in which order (`commands`).
+EXAMPLES = [
     (
         "sweep",
         "cfm-fem sweep meshes/quadrupole.vtu --up 0:50:10 --out results/",
@@ -41,7 +44,18 @@ COMMANDS = [
         "Per-node U_f maps of a field map for a sweep of positioning uncertainties U_p "
         "(Monte Carlo, GUM Supplement 1). `--mode htm` draws the probe error from the bench "
         "model instead of N(0, U_p). `--pieces`, `--slabs`/`--max-memory`, `--workers`/"
-        "`--scheduler` and `--resume` change how the work is split, never the numbers.",
+        "`--scheduler` and `--resume` change how the work is split, never the numbers. The "
+        "U_f percentiles weigh each node by the volume it stands for; `--region` takes them over "
+        "a box or a cylinder (the good-field region); `--table csv` adds a per-node table.",
+    ),
+    (
+        "design",
+        "cfm-fem design meshes/quadrupole.vtu --uf-max 40 --region cylinder:7,-30:30 --out design/",
+        "largest U_p that keeps U_f <= X units",
+        "The paper's design question: the largest U_p that keeps U_f at or below a target over "
+        "a share of the nodes (default 95 %) of the map or of a `--region`, with its Monte Carlo "
+        "uncertainty. Writes the sweep's outputs, `design.json` and a report with the answer on "
+        "top.",
     ),
     (
         "kinematics",
@@ -72,6 +86,14 @@ COMMANDS = [
         "U_f against U_p on a field map as a table and plots (paper Fig. 4).",
     ),
     (
+        "synth",
+        "cfm-fem synth tracker --out rec/tracker.csv",
+        "a synthetic recording of a simulated bench",
+        "A synthetic laser-tracker recording or Hall map of one simulated bench (one draw of its "
+        "errors; the same seed gives the same file), in the recording contract: input for "
+        "`compare` and `diagnose`, and a way to try them without a bench.",
+    ),
+    (
         "compare",
         "cfm-fem compare --tracker rec/tracker.csv --out cmp/",
         "recordings against the simulation",
@@ -90,21 +112,49 @@ COMMANDS = [
 ]
 
 
-def help_text(name: str) -> str:
-    """``cfm-fem NAME --help`` at 100 columns."""
+def _subcommands() -> dict:
+    """The parser's subcommands, name -> subparser, in the order ``cfm-fem --help`` lists them."""
     os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal width: fixed for the page
     from cfm_fem.cli import build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return sub.choices[name].format_help().rstrip() + "\n"
+    return dict(sub.choices)
+
+
+def commands() -> list[tuple[str, str, str, str]]:
+    """(command, example, summary, what it is for) of every subcommand of the parser.
+
+    Raises
+    ------
+    SystemExit
+        A subcommand without an entry in `EXAMPLES`, or an entry for no subcommand.
+    """
+    names = list(_subcommands())
+    known = {row[0]: row for row in EXAMPLES}
+    missing = [n for n in names if n not in known]
+    extra = [n for n in known if n not in names]
+    if missing or extra:
+        raise SystemExit(
+            f"{Path(__file__).name}: "
+            + (f"add an EXAMPLES entry for {', '.join(missing)}" if missing else "")
+            + ("; " if missing and extra else "")
+            + (f"no such command: {', '.join(extra)}" if extra else "")
+        )
+    return [known[n] for n in names]
+
+
+def help_text(name: str) -> str:
+    """``cfm-fem NAME --help`` at 100 columns."""
+    return _subcommands()[name].format_help().rstrip() + "\n"
 
 
 def page() -> str:
+    rows = commands()
     parts = [INTRO]
     parts.append("| command | what for |\n|---|---|\n")
-    parts.append("".join(f"| [`{name}`](#{name}) | {short} |\n" for name, _, short, _ in COMMANDS))
-    for name, example, _, what in COMMANDS:
+    parts.append("".join(f"| [`{name}`](#{name}) | {short} |\n" for name, _, short, _ in rows))
+    for name, example, _, what in rows:
         parts.append(f"\n## {name}\n\n{what}\n\n    {example}\n\n```text\n{help_text(name)}```\n")
     return "\n".join(parts[:1]) + "\n" + "".join(parts[1:])
 

@@ -9,6 +9,7 @@ import pytest
 import pyvista as pv
 
 from cfm_fem.cli import main
+from cfm_fem.io.vtk import read_text_field
 
 G = np.array([[0.2, 0.0, 0.0], [0.0, -0.2, 0.0], [0.0, 0.0, 0.1]])
 
@@ -63,8 +64,8 @@ def test_sweep_writes_pvd_vtu_and_summary(csv_map, tmp_path, capsys):
     assert np.isfinite(inside[~complete]).all() and np.isnan(inside[complete]).all()
     assert np.isnan(m.point_data["Bx_u_units"][~complete]).all()
     assert "absB_U95_units" not in m.point_data and "Bx_Uk2_T" not in m.point_data
-    assert m.field_data["column"][0] == "up20um" and m.field_data["U_p_um"][0] == 20
-    assert json.loads(m.field_data["provenance"][0]) == s["provenance"]
+    assert read_text_field(m.field_data, "column") == "up20um" and m.field_data["U_p_um"][0] == 20
+    assert json.loads(read_text_field(m.field_data, "provenance")) == s["provenance"]
     assert "Bz_gum_disagree" in m.point_data and "grad_B_T_per_mm" in m.point_data
     printed = capsys.readouterr().out
     assert "U_f p50" in printed and "Kuhn" in printed

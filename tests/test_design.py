@@ -66,7 +66,17 @@ def test_region_parsing_and_selection():
     box = parse_region("-1:1,:0,5:")
     pts = np.array([[0.0, -3.0, 6.0], [0.0, 1.0, 6.0], [2.0, -1.0, 9.0], [1.0, 0.0, 5.0]])
     assert region_mask(pts, box).tolist() == [True, False, False, True]
-    for bad in ("1:0,:,:", "a:1,:,:", "1:2,3:4", "1,2,3"):
+    cyl = parse_region("cylinder:1.5,5:")
+    assert region_mask(pts, cyl).tolist() == [False, True, False, True]
+    for bad in (
+        "1:0,:,:",
+        "a:1,:,:",
+        "1:2,3:4",
+        "1,2,3",
+        "cylinder:0,:",
+        "cylinder:1",
+        "cylinder:x,:",
+    ):
         with pytest.raises(CfmInputError, match="--region must be"):
             parse_region(bad)
 
@@ -89,7 +99,8 @@ def test_cli_design_answers_with_its_uncertainty_and_writes_the_report(grid_csv,
     assert main(argv) == 0
     d = json.loads((out / "design.json").read_text())
     s = json.loads((out / "summary.json").read_text())
-    assert d["percentile_units"] == pytest.approx(s["uf_units"]["p95"], rel=1e-12)
+    # design counts nodes: the summary's per-node figures (its uf_units weigh node volumes)
+    assert d["percentile_units"] == pytest.approx(s["uf_units_per_node"]["p95"], rel=1e-12)
     p = d["percentile_units"]
     assert p[1] < 100 < p[2] and 50 < d["up_max_um"] < 100
     # the linear interpolation between the sweep values that bracket 100 units
@@ -110,7 +121,7 @@ def test_cli_design_answers_with_its_uncertainty_and_writes_the_report(grid_csv,
     [
         (["--uf-max", "-1"], "--uf-max must be > 0"),
         (["--uf-max", "5", "--coverage", "1.5"], "--coverage must be in (0, 1]"),
-        (["--uf-max", "5", "--region", "0:1"], "argument --region: must be xmin:xmax"),
+        (["--uf-max", "5", "--region", "0:1"], "argument --region: must be XMIN:XMAX"),
         (["--uf-max", "5", "--region", "50:60,:,:"], "--region holds none of the 343 nodes"),
         (["--uf-max", "5", "--up", "10,5"], "--up values must increase"),
     ],

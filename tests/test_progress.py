@@ -45,3 +45,17 @@ def test_log_progress_limits_lines_to_one_per_interval(monkeypatch):
     lines = log.getvalue().splitlines()
     assert lines[:6] == [f"cfm-fem: {5 * k} fits, {5 * k} s" for k in range(1, 7)]
     assert lines[6:] == ["cfm-fem sweep: a message", "cfm-fem: 30 / 30 fits (100 %), 30 s"]
+
+
+def test_kinematics_progress_counts_trials_not_passes():
+    from cfm_fem.cli.kinematics import _per_pass
+
+    seen = []
+    step = _per_pass(seen.append, 2)  # exact intervals: every trial runs twice
+    for n in (300, 300, 250, 150, 1000):  # 2,000 draws of 1,000 trials
+        step(n)
+    assert sum(seen) == 1000 and all(v > 0 for v in seen)
+    one = []
+    step = _per_pass(one.append, 1)
+    step(7)
+    assert one == [7]

@@ -150,7 +150,7 @@ def test_every_output_records_what_produced_it(small_map, tmp_path):
     assert prov["seed"] == 4 and prov["trials"] == 100
     assert prov["command_line"].startswith("cfm-fem sweep") and "--seed 4" in prov["command_line"]
     vtu = pv.read(out / "uf_up10um.vtu")
-    assert read_provenance(vtu.field_data["provenance"]) == prov
+    assert read_provenance(vtu.field_data) == prov
 
     kin = tmp_path / "k"
     assert main(["kinematics", "--trials", "500", "--seed", "2", "--out", str(kin)]) == 0
@@ -162,7 +162,7 @@ def test_every_output_records_what_produced_it(small_map, tmp_path):
         ln for ln in (kin / "points.csv").read_text().splitlines() if ln.startswith("# provenance:")
     )
     assert json.loads(csv_line.removeprefix("# provenance: ")) == kprov
-    assert read_provenance(pv.read(kin / "points.vtu").field_data["provenance"]) == kprov
+    assert read_provenance(pv.read(kin / "points.vtu").field_data) == kprov
 
 
 def test_ctrl_c_keeps_the_chunks_and_says_how_to_resume(big_map, tmp_path):

@@ -22,7 +22,7 @@ HELP = "largest U_p that keeps U_f <= X units over 95 %% of the nodes (or a regi
 
 
 def _region(text):
-    from ..workflows.design import parse_region
+    from ..models.region import parse_region
 
     return parse_region(text)
 
@@ -34,9 +34,10 @@ def add_args(p):
     p.add_argument("--coverage", type=float, default=0.95, metavar="P",
                    help="share of the nodes that must meet it (default 0.95)")  # fmt: skip
     p.add_argument("--region", type=option_type(_region, "--region"),
-                   metavar="XMIN:XMAX,YMIN:YMAX,ZMIN:ZMAX",
-                   help="only the nodes in this box, mm (an empty end is unbounded, e.g. "
-                   "-10:10,-10:10,:)")  # fmt: skip
+                   metavar="XMIN:XMAX,YMIN:YMAX,ZMIN:ZMAX|cylinder:R,ZMIN:ZMAX",
+                   help="only the nodes in this box, or in this cylinder about the z axis "
+                   "(radius R, z range), mm (an empty end is unbounded, e.g. -10:10,-10:10,: or "
+                   "cylinder:7,-30:30); B_ref defaults to the largest |B| in it")  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     p.add_argument("--up", default="0:50:10", metavar="START:STOP:STEP",
                    help="U_p values of the sweep, um (default 0:50:10); a target beyond the "
@@ -45,7 +46,8 @@ def add_args(p):
                    help="trials per node and U_p (default 10000)")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument("--b-ref", type=float, metavar="T",
-                   help="reference field for units (default: max |B| of the map)")  # fmt: skip
+                   help="reference field for units (default: max |B| over the nodes of "
+                   "--region, or of the map)")  # fmt: skip
     p.add_argument(
         "--outside",
         choices=["exclude", "extrapolate"],
@@ -93,7 +95,8 @@ def _run(args, up) -> int:
     if not inside.any():
         raise CfmInputError(f"--region holds none of the {fm.n_nodes} nodes of {args.field}")
     cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
-                      outside=args.outside, field_model=args.field_model)  # fmt: skip
+                      outside=args.outside, field_model=args.field_model,
+                      region=args.region)  # fmt: skip
     print(f"cfm-fem design: {fm.n_nodes} nodes from {fm.source} ({int(inside.sum())} in the "
           f"region); U_p = {', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node",
           file=sys.stderr)  # fmt: skip
@@ -111,7 +114,7 @@ def _run(args, up) -> int:
     doc = {
         "answer": ans.sentence(),
         **ans.to_dict(),
-        "region_mm": None if args.region is None else args.region.tolist(),
+        "region_mm": None if args.region is None else args.region.to_json(),
         "region_nodes": int(inside.sum()),
         "b_ref_T": summary["b_ref_T"],
         "field_model": summary["field_model"],

@@ -1,8 +1,10 @@
 """Per-node field uncertainty U_f of an FEM map for a sweep of positioning uncertainties U_p.
 
 Writes DIR/uf_up<U_p>um.vtu per U_p value, DIR/sweep.pvd (open it in ParaView; U_p is the time
-axis), DIR/open_in_paraview.py (pvpython: the slice through the axis, nodes with a U_f figure),
-DIR/summary.json and DIR/report.html (design curve, slices, histograms, GUM flags). Maps an
+axis), DIR/open_in_paraview.py (pvpython: the slice through the axis at the largest U_p, nodes
+with a U_f figure), DIR/summary.json (U_f percentiles weighted by the volume each node stands
+for, over the map or --region) and DIR/report.html (design curve, slices, histograms, GUM
+flags); --table csv adds DIR/nodes.csv, one row per node. Maps an
 earlier sweep left in DIR that this run does not write (other U_p values, pieces instead of one
 file or the reverse) are removed once the new outputs are complete, and named on stderr; files a
 sweep did not write are never deleted.
@@ -74,7 +76,8 @@ def add_args(p):
         "--b-ref",
         type=float,
         metavar="T",
-        help="reference field for units (default: max |B| of the map)",
+        help="reference field for units (default: max |B| over the nodes of --region, or "
+        "of the map)",
     )
     p.add_argument(
         "--axis-scale",
@@ -144,8 +147,29 @@ def add_args(p):
         "map), holding one piece's statistics in memory at a time; for maps whose statistics "
         "do not fit in memory",
     )
+    p.add_argument(
+        "--region",
+        type=option_type(_region, "--region"),
+        metavar="XMIN:XMAX,YMIN:YMAX,ZMIN:ZMAX|cylinder:R,ZMIN:ZMAX",
+        help="region of interest, mm: a box, or a cylinder of radius R about the z axis over a "
+        "z range (an empty end is unbounded, e.g. cylinder:7,-30:30); the U_f percentiles of "
+        "summary.json are over its nodes and B_ref defaults to the largest |B| in it; the maps "
+        "cover every node and flag the region's (in_region)",
+    )
+    p.add_argument(
+        "--table",
+        choices=["csv", "parquet"],  # io.sweep_table.TABLE_FORMATS; --help stays fast
+        help="also write DIR/nodes.csv (or nodes.parquet, which needs pyarrow): one row per "
+        "node with x, y, z, node volume, and U_f and the |B| statistics per U_p",
+    )
     add_slab_args(p)  # maps larger than memory
     add_reader_args(p)
+
+
+def _region(text):
+    from ..models.region import parse_region
+
+    return parse_region(text)
 
 
 def add_slab_args(p):
@@ -219,6 +243,9 @@ def _check_slab_options(args) -> None:
     if args.pieces:
         raise CfmInputError("--slabs/--max-memory cannot be combined with --pieces (slabs are "
                             "written as pieces already)")  # fmt: skip
+    if args.region is not None:
+        raise CfmInputError("--region cannot be combined with --slabs/--max-memory (the "
+                            "out-of-core run summarises every node); leave one out")  # fmt: skip
 
 
 def _run_slabs(args, up):
@@ -307,8 +334,7 @@ def _run_slabs(args, up):
         print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
         return None, (flat[0] if flat else None)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _write_report(args.out)
-    _print_summary(summary, args.out)
+    _finish(args, summary)
     return 0, None
 
 
@@ -400,6 +426,10 @@ def run(args) -> int:
     check_scale_out(args.scheduler, args.workers)
     if args.slabs is not None or args.max_memory is not None:
         _check_slab_options(args)
+    if args.table is not None:
+        from ..io.sweep_table import check_table_format
+
+        check_table_format(args.table)
     # the options are checked before the numerics are imported and the lock of --out is taken:
     # a typo is answered at once, also for a folder in use
     from ..io.lock import output_lock
@@ -447,6 +477,7 @@ def _run(args, up) -> int:
         outside=args.outside,
         hull_slivers=args.hull_slivers,
         field_model=args.field_model,
+        region=args.region,
     )
     what = (
         f"U_p = {', '.join(f'{u:g}' for u in up)} um"
@@ -525,9 +556,23 @@ def _run(args, up) -> int:
         summary = write_sweep(args.out, res, prov, remove_stale=False)
     runner.finish(keep=args.keep_chunks)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _write_report(args.out)
-    _print_summary(summary, args.out)
+    _finish(args, summary)
     return 0
+
+
+def _finish(args, summary) -> None:
+    """The per-node table (``--table``), the report and the printed summary, once the maps,
+    ``sweep.pvd`` and ``summary.json`` are written."""
+    from ..io.sweep_table import remove_stale_table, write_sweep_table
+
+    gone = remove_stale_table(args.out, args.table)
+    if gone:
+        print(f"cfm-fem sweep: removed {', '.join(gone)} of an earlier run from {args.out} "
+              "(this run writes no such table)", file=sys.stderr)  # fmt: skip
+    if args.table is not None:
+        write_sweep_table(args.out, args.table)
+    _write_report(args.out)
+    _print_summary(summary, args.out, args.table)
 
 
 def _write_report(out) -> None:
@@ -562,7 +607,9 @@ def _explain_outside(s):
     print(textwrap.fill(text, width=100, subsequent_indent="  "))
 
 
-def _print_summary(s, out):
+def _print_summary(s, out, table=None):
+    from ..io.sweep_table import table_name
+
     h = s.get("harmonic")
     if h is None:
         print(f"field model: the linear interpolant at every node ({s['interpolation']})")
@@ -583,6 +630,14 @@ def _print_summary(s, out):
         f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {s['trials']} trials per node, "
         f"U_f of one node known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo)"
     )
+    if "region_description" in s:
+        weighting = (
+            "each node weighted by the volume it stands for"
+            if s["statistics_weighting"].startswith("volume")
+            else "every node counted once"
+        )
+        print(f"U_f percentiles over {s['region_description']} ({s['region_nodes']} nodes), "
+              f"{weighting}")  # fmt: skip
     print(
         f"{'U_p [um]':>9} {'U_f p50':>9} {'p95':>9} {'p99':>9} {'max':>9}  [units]  "
         f"{'outside':>9} {'nodes':>8}"
@@ -614,5 +669,6 @@ def _print_summary(s, out):
         if "pieces" in s
         else (f"{len(s['up_um'])} .vtu maps")
     )
-    print(f"{s['seconds']:.1f} s; wrote {Path(out) / 'sweep.pvd'}, {maps}, summary.json, "
-          "report.html and open_in_paraview.py")  # fmt: skip
+    table = f", {table_name(table)}" if table else ""
+    print(f"{s['seconds']:.1f} s; wrote {Path(out) / 'sweep.pvd'}, {maps}, summary.json"
+          f"{table}, report.html and open_in_paraview.py")  # fmt: skip

@@ -148,8 +148,8 @@ def write_points_csv(path, result, bench, provenance: dict | None = None) -> Non
 def write_points_vtu(path, result, bench, provenance: dict | None = None) -> None:
     """Point cloud at the nominal probe positions (bench frame, mm) with the statistics (um).
 
-    ``provenance`` goes into the field data ``provenance`` (JSON text, a VTK string array that
-    ParaView shows; `cfm_fem.io.sweep_out.read_provenance` decodes it)."""
+    ``provenance`` goes into the field data ``provenance_utf8`` (the UTF-8 bytes of its JSON
+    text, `cfm_fem.io.vtk.write_vtu`; `cfm_fem.io.sweep_out.read_provenance` decodes it)."""
     pd = {
         "E_systematic_um": 1e3 * result.mean[:, :3],
         "E_std_um": 1e3 * result.std[:, :3],

@@ -1,7 +1,7 @@
 """What produced an output: input hashes, version, command line.
 
 The same record goes into ``summary.json`` (key ``provenance``), into every ``.vtu`` (field data
-``provenance``, JSON text in a VTK string array, see `cfm_fem.io.sweep_out.provenance_text`)
+``provenance_utf8``, the UTF-8 bytes of the JSON text, see `cfm_fem.io.sweep_out.provenance_text`)
 and, as an XML comment that ParaView skips, into ``sweep.pvd`` and every ``.pvtu`` index
 (`xml_comment`, read back with `read_xml_provenance`).
 """

@@ -306,7 +306,8 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
         ids = np.asarray(store.load(p, "ids"))
         cells = np.asarray(store.load(p, "cells"))
         nodes = np.union1d(ids, cells.ravel())
-        names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos"]
+        names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos",
+                 "volume"]  # fmt: skip
         harmonic = "harmonic" in summary
         if harmonic:
             names += ["fit_degree", "fit_residual"]
@@ -327,7 +328,8 @@ def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary)
                           positioning=g["pos"] if htm else None,
                           n_left_out=g["n_left"],
                           field_fit=({"degree": g["fit_degree"], "residual_T": g["fit_residual"]}
-                                     if harmonic else None))  # fmt: skip
+                                     if harmonic else None),
+                          node_volume_mm3=g["volume"])  # fmt: skip
         for k, label in enumerate(labels):
             path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})

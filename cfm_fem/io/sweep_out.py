@@ -16,7 +16,7 @@ from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
 from .lock import locks_output
 from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
-from .vtk import write_pvd, write_vtu
+from .vtk import read_text_field, write_pvd, write_vtu
 
 __all__ = [
     "write_sweep",
@@ -37,17 +37,18 @@ def vtu_name(label: str) -> str:
 
 
 def provenance_text(provenance: dict | None) -> str:
-    """The provenance as JSON text: the field data ``provenance`` of every map (a VTK string
-    array: ParaView shows it in the Information panel; `read_provenance` turns it back)."""
+    """The provenance as JSON text: the field data ``provenance_utf8`` of every map (its UTF-8
+    bytes, `cfm_fem.io.vtk.write_vtu`; `read_provenance` turns it back)."""
     return json.dumps(provenance or {}, sort_keys=True)
 
 
-def read_provenance(value) -> dict:
-    """Inverse of `provenance_text`: the field data ``provenance`` of a map (a string, or the
-    one-element array VTK readers give) back to a dict."""
-    if not isinstance(value, str):
-        value = str(np.asarray(value).ravel()[0])
-    return json.loads(value)
+def read_provenance(field_data) -> dict:
+    """Inverse of `provenance_text`: the provenance of a map, as a dict, from its field data
+    (the mapping meshio's or pyvista's reader gives, holding ``provenance_utf8``), or from the
+    JSON text itself."""
+    if isinstance(field_data, str):
+        return json.loads(field_data)
+    return json.loads(read_text_field(field_data, "provenance"))
 
 
 def _point_data(res: SweepResult, k: int) -> dict:
@@ -80,8 +81,11 @@ def _point_data(res: SweepResult, k: int) -> dict:
         "outside_fraction": (res.n_outside[:, k] / res.config.trials).astype(f32),
         "walk_failed_fraction": (res.n_walk_failed[:, k] / res.config.trials).astype(f32),
         "complete": complete.astype(np.uint8),
+        "node_volume_mm3": res.node_volumes().astype(f32),
         "linear_in_up": res.linear_in_up.astype(np.uint8),
     }
+    if res.config.region is not None:  # the nodes of the summary's percentiles
+        data["in_region"] = res.config.region.mask(res.fieldmap.points).astype(np.uint8)
     if res.field_fit is not None:  # harmonic model: what each node's fit is worth
         data["field_fit_degree"] = res.field_fit["degree"].astype(np.uint8)
         data["field_fit_residual_units"] = units(res.field_fit["residual_T"]).astype(f32)
@@ -117,8 +121,8 @@ def map_field_data(
 ) -> dict:
     """Field data of one map: U_p (um), the column's name (``up20um``, ``htm_geometric``: mode
     htm's time steps 0, 1, 2 are its columns), B_ref (T), trials, seed, ``extra`` (``piece``)
-    and the provenance as JSON text (a VTK string array, shown by ParaView's Information
-    panel)."""
+    and the provenance as JSON text; the texts are written as UTF-8 bytes, ``column_utf8`` and
+    ``provenance_utf8`` (`cfm_fem.io.vtk.write_vtu`, `cfm_fem.io.vtk.read_text_field`)."""
     return {
         "U_p_um": float(up_um),
         "column": str(label),
@@ -292,8 +296,9 @@ _HEAD_BYTES = 1 << 20
 def _written_by_sweep(path: Path) -> bool:
     """True for a map a sweep writes (`write_sweep`, `write_sweep_pieces`,
     `cfm_fem.workflows.sweep.slabs`), told by its contents, not only by its name: a ``.vtu``
-    whose field data (written before the points) hold ``U_p_um`` and ``provenance``
-    (``provenance_utf8`` in maps of earlier versions), or a ``.pvtu`` index of ``U_f_units``."""
+    whose field data (written before the points) hold ``U_p_um`` and the provenance
+    (``provenance_utf8``, or ``provenance`` as a VTK string array), or a ``.pvtu`` index of
+    ``U_f_units``."""
     try:
         with open(path, "rb") as f:
             head = f.read(_HEAD_BYTES)

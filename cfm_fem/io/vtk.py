@@ -11,7 +11,29 @@ from pyvista import CellType
 
 from ._atomic import atomic_path, check_free_space, write_text
 
-__all__ = ["write_vtu", "write_pvd"]
+__all__ = ["write_vtu", "write_pvd", "TEXT_SUFFIX", "text_field", "read_text_field"]
+
+#: Suffix of the name under which `write_vtu` stores a text field-data value.
+TEXT_SUFFIX = "_utf8"
+
+
+def text_field(value: str) -> np.ndarray:
+    """A text as the field-data array `write_vtu` stores: its UTF-8 bytes, shape (k,), uint8
+    (every VTK reader, meshio included, reads it; a VTK string array stops meshio)."""
+    return np.frombuffer(str(value).encode("utf-8"), dtype=np.uint8).copy()
+
+
+def read_text_field(field_data, name: str) -> str:
+    """The text ``name`` of a map's field data (``field_data`` as meshio, pyvista or VTK's
+    numpy support give it), stored by `write_vtu` as ``<name>_utf8`` bytes.
+
+    Raises
+    ------
+    KeyError
+        The field data hold no text ``name``.
+    """
+    values = np.asarray(field_data[name + TEXT_SUFFIX]).ravel()
+    return values.astype(np.uint8).tobytes().decode("utf-8")
 
 
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
@@ -26,8 +48,10 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     point_data : dict of str -> ndarray, shape (n,) or (n, k), optional
         Arrays are written with their own dtype (float32 keeps large maps small).
     field_data : dict of str -> number or str, optional
-        Dataset-level metadata (B_ref, U_p, seed, ...); a string is written as a VTK string
-        array (ParaView shows it; meshio cannot read a file that has one).
+        Dataset-level metadata (B_ref, U_p, seed, ...). A number is a Float64 array of one
+        value; a string ``s`` under ``name`` is written as ``name_utf8``, the UTF-8 bytes of
+        ``s`` as a UInt8 array (`text_field`; `read_text_field` turns it back): meshio, pyvista
+        and ParaView read every array of the file (meshio stops at a VTK string array).
     """
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
@@ -41,7 +65,7 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         grid.point_data[name] = np.ascontiguousarray(values)
     for name, value in (field_data or {}).items():
         if isinstance(value, str):
-            grid.field_data[name] = np.array([value])
+            grid.field_data[name + TEXT_SUFFIX] = text_field(value)
         else:
             grid.field_data[name] = np.atleast_1d(np.asarray(value, dtype=np.float64))
     from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter

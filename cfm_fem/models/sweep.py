@@ -17,6 +17,8 @@ from ..errors import CfmInputError
 from .field import FieldMap
 from .mc import numerical_tolerance
 from .mesh import SimplexMesh
+from .node_weights import node_volumes, volume_rule, weighted_percentiles
+from .region import region_mask
 
 __all__ = [
     "HTM_PARTS",
@@ -31,6 +33,9 @@ __all__ = [
     "up_label",
     "SweepResult",
     "summarize",
+    "reference_field",
+    "b_ref_rule",
+    "uf_percentiles",
     "CompactSweep",
     "piece_bounds",
     "partition",
@@ -104,6 +109,9 @@ class SweepConfig:
         local harmonic fit (`cfm_fem.models.harmonic`; 3-D maps), with the linear interpolant
         where the fit finds Laplace's equation violated; "auto" (default): the harmonic fits on a
         3-D map, the linear interpolant on a planar one (`uses_harmonic`).
+    region : cfm_fem.models.region.Region or None
+        Region of interest: the U_f percentiles of the summary are over its nodes, and the
+        default B_ref is the largest |B| over them (`reference_field`); None: the whole map.
     """
 
     up_um: list[float] = field(default_factory=lambda: [0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
@@ -119,6 +127,7 @@ class SweepConfig:
     outside: str = "exclude"
     hull_slivers: str = "remove"
     field_model: str = "auto"
+    region: object | None = None
 
 
 def _bench_named(cfg) -> dict | None:
@@ -185,6 +194,8 @@ class SweepResult:
         Field model "harmonic": per node ``degree`` (n,) int64, the polynomial degree of its
         harmonic fit (0 where the node uses the linear interpolant), and ``residual_T`` (n,),
         the fit's RMS residual over its neighbours' field values, T. None: linear.
+    node_volume_mm3 : ndarray, shape (n,), mm^3, or None
+        Volume each node stands for (`node_volumes`); None: from the mesh on first use.
     """
 
     fieldmap: FieldMap
@@ -201,6 +212,14 @@ class SweepResult:
     positioning: np.ndarray | None = None
     n_left_out: np.ndarray | None = None
     field_fit: dict | None = None
+    node_volume_mm3: np.ndarray | None = None
+
+    def node_volumes(self) -> np.ndarray:
+        """Volume each node stands for, shape (n,), mm^3 (`node_weights.node_volumes` of the
+        mesh, made on first use; a piece of a result carries its nodes' share of the whole)."""
+        if self.node_volume_mm3 is None:
+            self.node_volume_mm3 = node_volumes(self.mesh)[0]
+        return self.node_volume_mm3
 
     @property
     def gum_mean(self) -> np.ndarray:
@@ -335,6 +354,77 @@ def _gum_mean(gradient, B, b_ref, mean_mm):
     return np.einsum("ncj,nkj->nkc", _gradients4(gradient, B, b_ref), mean_mm)
 
 
+#: How the U_f percentiles of summary.json weigh the nodes (`summarize`).
+WEIGHTING = (
+    "volume: each node weighs the volume it stands for (its dual cell, node_volume_rule); p<q> "
+    "is the smallest U_f such that the nodes at or below it hold q % of the volume of the "
+    "region's nodes with a U_f figure; max is the largest node value. uf_units_per_node counts "
+    "every node once"
+)
+
+
+def b_ref_rule(cfg) -> str:
+    """How B_ref was set (`reference_field`), for summary.json."""
+    if cfg.b_ref_T is not None:
+        return "given by the user"
+    if cfg.region is None:
+        return "max |B| over the map nodes"
+    return "max |B| over the map nodes in the region of interest"
+
+
+def reference_field(fm: FieldMap, cfg) -> float:
+    """B_ref of a run, T: ``cfg.b_ref_T`` when given, else the largest |B| over the map's
+    nodes in ``cfg.region`` (every node without a region), whatever the file format.
+
+    Raises
+    ------
+    CfmInputError
+        The region holds no node of the map.
+    """
+    if cfg.b_ref_T is not None:
+        return float(cfg.b_ref_T)
+    if cfg.region is None:
+        return fm.b_max
+    inside = cfg.region.mask(fm.points)
+    if not inside.any():
+        raise CfmInputError(
+            f"--region ({cfg.region.describe()}) holds none of the {fm.n_nodes} nodes of the map",
+            file=fm.source,
+        )
+    return float(np.sqrt((fm.B[inside] ** 2).sum(axis=1)).max())
+
+
+def uf_percentiles(uf, counted, volumes):
+    """U_f percentiles p50, p95, p99 and max per column, weighted by node volume and per node.
+
+    Parameters
+    ----------
+    uf : ndarray, shape (n, n_col), units
+    counted : ndarray, shape (n, n_col), bool
+        Nodes that enter each column's figures (a U_f figure, in the region).
+    volumes : ndarray, shape (n,), mm^3
+
+    Returns
+    -------
+    weighted, per_node : dict of str -> list of float or None
+        One entry per column; None where no node counts.
+    counted : ndarray, shape (n, n_col), bool
+    """
+    names = (("p50", 50), ("p95", 95), ("p99", 99))
+    weighted = {"p50": [], "p95": [], "p99": [], "max": []}
+    per_node = {"p50": [], "p95": [], "p99": [], "max": []}
+    for k in range(uf.shape[1]):
+        vals = uf[counted[:, k], k]
+        w = weighted_percentiles(vals, volumes[counted[:, k]], [q for _, q in names])
+        for (name, q), v in zip(names, w, strict=True):
+            weighted[name].append(v)
+            per_node[name].append(float(np.percentile(vals, q)) if vals.size else None)
+        top = float(vals.max()) if vals.size else None
+        weighted["max"].append(top)
+        per_node["max"].append(top)
+    return weighted, per_node, counted
+
+
 def summarize(res: SweepResult) -> dict:
     """The ``summary.json`` content plus the context a reader needs.
 
@@ -344,11 +434,14 @@ def summarize(res: SweepResult) -> dict:
     uncertainty of |B|: the larger of |lower| and |upper| of the probabilistically symmetric
     95 % interval of B_meas - B_nom, in units of 1e-4 B_ref.
 
-    U_f percentiles are taken over the nodes whose every trial has a value (``uf_nodes`` counts
-    them): by default those whose every trial stayed inside the map, as nodes near the map's
-    border lose trials and are reported through ``outside_fraction`` instead of being summarised
-    from a truncated sample; with ``outside="extrapolate"`` every node, the trials that left the
-    map taking the node's first-order Taylor expansion.
+    U_f percentiles are taken over the nodes of the region of interest (``config.region``; the
+    whole map without one) whose every trial has a value (``uf_nodes`` counts them): by default
+    those whose every trial stayed inside the map, as nodes near the map's border lose trials
+    and are reported through ``outside_fraction`` instead of being summarised from a truncated
+    sample; with ``outside="extrapolate"`` every node, the trials that left the map taking the
+    node's first-order Taylor expansion. Each node weighs the volume it stands for
+    (`cfm_fem.models.node_weights.node_volumes`), so the node density does not move them;
+    ``uf_units_per_node`` gives the same percentiles with every node counted once.
     """
     cfg = res.config
     n_col = res.stats.shape[1]
@@ -358,11 +451,13 @@ def summarize(res: SweepResult) -> dict:
     processed = (res.n_outside + res.n_walk_failed > 0).any(axis=1) | np.isfinite(
         res.stats[:, :, 3, 1]
     ).any(axis=1)
-    pct = {"p50": [], "p95": [], "p99": [], "max": []}
-    for k in range(n_col):
-        vals = uf[complete[:, k], k]
-        for name, q in (("p50", 50), ("p95", 95), ("p99", 99), ("max", 100)):
-            pct[name].append(float(np.percentile(vals, q)) if vals.size else None)
+    if res.node_volume_mm3 is None:  # kept: the maps are written from the same figures
+        res.node_volume_mm3, rule = node_volumes(res.mesh)
+    else:  # a part of a map (a slab's own nodes) carries its share of the whole
+        rule = volume_rule(res.mesh)
+    volumes = res.node_volume_mm3
+    inside = region_mask(res.fieldmap.points, cfg.region)
+    pct, per_node, counted = uf_percentiles(uf, complete & inside[:, None], volumes)
     n_samples = max(int(processed.sum()), 1) * cfg.trials
     dis_frac, dis_nodes = [], []
     for k in range(n_col):  # one column at a time: no map-sized temporaries for every column
@@ -380,13 +475,26 @@ def summarize(res: SweepResult) -> dict:
         )
     return {
         "b_ref_T": res.b_ref_T,
-        "b_ref_rule": "max |B| over the map nodes" if cfg.b_ref_T is None else "given by the user",
+        "b_ref_rule": b_ref_rule(cfg),
         "trials": cfg.trials,
         "seed": cfg.seed,
         "up_um": res.column_up_um(),
         "columns": res.labels,
         "uf_units": pct,
-        "uf_nodes": [int(complete[:, k].sum()) for k in range(n_col)],
+        "uf_units_per_node": per_node,
+        "statistics_weighting": WEIGHTING,
+        "node_volume_rule": rule,
+        "region": None if cfg.region is None else cfg.region.to_json(),
+        "region_description": "the whole map" if cfg.region is None else cfg.region.describe(),
+        "region_nodes": int(inside.sum()),
+        "region_volume_mm3": float(volumes[inside].sum()),
+        "uf_volume_fraction": [
+            float(volumes[counted[:, k]].sum() / volumes[inside].sum())
+            if volumes[inside].sum() > 0
+            else None
+            for k in range(n_col)
+        ],
+        "uf_nodes": [int(counted[:, k].sum()) for k in range(n_col)],
         "nodes": int(res.fieldmap.n_nodes),
         "processed_nodes": int(processed.sum()),  # in some cell (gauss) / reachable (htm)
         "outside_fraction": [float(res.n_outside[:, k].sum() / n_samples) for k in range(n_col)],
@@ -528,6 +636,7 @@ def _part_result(compact, nodes, parts) -> SweepResult:
     sigma = compact.sigma_mm if positioning is None else positioning[:, :, 1]
     corr = None if positioning is None else positioning[:, :, 2]
     extra = {} if positioning is None else {"positioning": positioning}
+    extra["node_volume_mm3"] = compact.node_volumes()[nodes]
     if compact.field_fit is not None:
         extra["field_fit"] = {
             key: v[nodes] if isinstance(v, np.ndarray) else v

@@ -44,10 +44,19 @@ def _design_table(rep: HtmlReport, s: dict) -> None:
         rows,
         table_id="uf_percentiles",
     )
+    region = s.get("region_description", "the whole map")
+    weighting = s.get("statistics_weighting", "")
+    how = (
+        "each node weighted by the volume it stands for (" + s["node_volume_rule"] + ")"
+        if weighting.startswith("volume")
+        else "every node counted once"
+    )
     rep.paragraph(
-        "Percentiles over the nodes with a U_f figure (every trial has a value: "
-        f"{s['outside_rule']}); {s['processed_nodes']} of {s['nodes']} nodes simulated. Outside: "
-        "share of all trials of the simulated nodes whose perturbed position left the map.",
+        f"Percentiles of U_f over the nodes of {region} that have a U_f figure, {how}. A node "
+        "has a U_f figure when every one of its trials has a value; a trial whose perturbed "
+        f"position leaves the map is {s['outside_rule']}. {s['processed_nodes']} of "
+        f"{s['nodes']} nodes simulated. Outside: share of all trials of the simulated nodes "
+        "whose perturbed position left the map.",
         "note",
     )
 

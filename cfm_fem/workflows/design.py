@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import CfmInputError
+from ..models.region import parse_region, region_mask  # the region syntax of every command
 
 __all__ = ["DesignAnswer", "admissible_up", "region_mask", "parse_region"]
 
@@ -174,41 +175,3 @@ def admissible_up(
         u_percentile_units=[None if not np.isfinite(v) else float(v) for v in u_p],
         nodes=[int(complete[:, k].sum()) for k in range(len(up))],
     )
-
-
-def parse_region(text: str):
-    """``xmin:xmax,ymin:ymax,zmin:zmax`` (mm; an empty end is unbounded) to a (3, 2) array."""
-    bad = CfmInputError(
-        f"--region must be xmin:xmax,ymin:ymax,zmin:zmax in mm (an end may be empty); got {text!r}"
-    )
-    parts = text.split(",")
-    if len(parts) != 3:
-        raise bad
-    box = np.empty((3, 2))
-    for a, part in enumerate(parts):
-        ends = part.split(":")
-        if len(ends) != 2:
-            raise bad
-        try:
-            lo = float(ends[0]) if ends[0].strip() else -np.inf
-            hi = float(ends[1]) if ends[1].strip() else np.inf
-        except ValueError:
-            raise bad from None
-        if np.isnan(lo) or np.isnan(hi) or lo > hi:
-            raise bad
-        box[a] = lo, hi
-    return box
-
-
-def region_mask(points, box) -> np.ndarray:
-    """Nodes inside the box (bounds included), shape (n,), bool.
-
-    Parameters
-    ----------
-    points : ndarray, shape (n, 3), mm
-    box : ndarray, shape (3, 2), mm, or None (every node)
-    """
-    points = np.asarray(points)
-    if box is None:
-        return np.ones(len(points), dtype=bool)
-    return np.all((points >= box[:, 0]) & (points <= box[:, 1]), axis=1)

@@ -97,11 +97,22 @@ class SweepMaps:
         values = self.result.to_units(self.result.stats[:, k, c, s])
         return np.where(self.result.complete()[:, k], values, np.nan)
 
-    def percentile(self, q: float, up_um=None, column=None) -> float:
-        """The ``q`` % percentile of U_f over the nodes with a figure, units (as summary.json)."""
+    def percentile(self, q: float, up_um=None, column=None, per_node: bool = False) -> float:
+        """The ``q`` % percentile of U_f over the nodes with a figure (of the region of
+        interest, if the sweep has one), units, as ``summary.json``'s ``uf_units``: each node
+        weighted by the volume it stands for (`cfm_fem.models.node_weights`); ``per_node``
+        counts every node once instead (``uf_units_per_node``)."""
+        from ..models.node_weights import weighted_percentiles
+        from ..models.region import region_mask
+
+        res = self.result
         v = self.uf("absB", up_um, column)
-        v = v[np.isfinite(v)]
-        return float(np.percentile(v, q)) if v.size else float("nan")
+        keep = np.isfinite(v) & region_mask(res.fieldmap.points, res.config.region)
+        if not keep.any():
+            return float("nan")
+        if per_node:
+            return float(np.percentile(v[keep], q))
+        return float(weighted_percentiles(v[keep], res.node_volumes()[keep], [q])[0])
 
     def write(self, out_dir, provenance: dict | None = None, report: bool = True) -> list:
         """Write the maps, ``sweep.pvd``, ``open_in_paraview.py``, ``summary.json`` and (with

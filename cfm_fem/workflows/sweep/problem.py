@@ -32,6 +32,7 @@ from ...models.sweep import (
     HTM_PARTS,
     OUTSIDE_RULES,
     SweepConfig,
+    reference_field,
     up_label,
     uses_harmonic,
 )
@@ -428,7 +429,7 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
         )
     mesh = build_mesh(fm, cfg.interpolation, cfg.hull_slivers) if mesh is None else mesh
     _check_config(cfg, fm, mesh)
-    b_ref = fm.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
+    b_ref = reference_field(fm, cfg)
     if b_ref <= 0:
         raise CfmInputError(
             "the map's field is zero everywhere; give B_ref explicitly", file=fm.source

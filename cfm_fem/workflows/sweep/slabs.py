@@ -110,6 +110,7 @@ from ...models.mesh import (
     sliver_note,
     tie_note,
 )
+from ...models.node_weights import node_volumes, weighted_percentiles
 from ...models.sweep import (
     HTM_PARTS,
     SweepConfig,
@@ -148,6 +149,7 @@ from .slab_plan import (
 __all__ = [
     "run_slab_sweep",
     "disk_percentiles",
+    "disk_weighted_percentiles",
 ]
 
 #: Default halo: this many cell sizes plus 6 sigma of the largest U_p.
@@ -462,7 +464,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     store = SlabStore(work / "results")
     harmonic = uses_harmonic(cfg.field_model, 3)  # slabs cut 3-D maps only
     for name, dtype, cols in (("uf", np.float64, n_col), ("complete", np.bool_, n_col),
-                              ("e2", np.float64, n_col), ("fit", np.float64, 2)):  # fmt: skip
+                              ("volume", np.float64, 1), ("e2", np.float64, n_col),
+                              ("fit", np.float64, 2)):  # fmt: skip
         if name not in ("e2", "fit") or (htm if name == "e2" else harmonic):
             make_per_node_file(work / f"{name}.npy", dtype, (n, cols), resume)
     job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
@@ -499,6 +502,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     e2_all = open_per_node(work / "e2.npy", "r") if htm else None
     uf_all = open_per_node(work / "uf.npy", "r")
     ok_all = open_per_node(work / "complete.npy", "r")
+    vol_all = open_per_node(work / "volume.npy", "r")
     if htm:  # as SweepResult.column_up_um, over the whole map
         ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
         if sums["unreachable"]:
@@ -515,7 +519,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         if n_linear:
             rule = template["harmonic"]["fallback_rule"]
             mesh_notes.append(fallback_note(n_linear, n, rule))
-    summary = _summary(template, ups, n, uf_all, ok_all, sums, notes + mesh_notes, kind, file)
+    summary = _summary(template, ups, n, (uf_all, ok_all, vol_all), sums, notes + mesh_notes,
+                       kind, file)  # fmt: skip
     if harmonic:  # the whole map's fits, from the per-node file and the slabs' boxes
         boxes = [records[k]["fit_box"] for k in range(K) if records[k].get("fit_box")]
         box = None
@@ -701,16 +706,18 @@ class _SlabJob:
             del e2_all
         else:
             sigma_mm, corr = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None], None
+        volume = node_volumes(mesh)[0][own]  # the halo holds every cell around an own node
         res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
                           n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
                           gradient=grad, seconds=0.0,
                           gum_u=_gum_u(grad, sub.B, b_ref, sigma_mm, corr),
                           positioning=pos if htm else None, n_left_out=n_left,
-                          field_fit=fit)  # fmt: skip
+                          field_fit=fit, node_volume_mm3=volume)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
-        uf_all[own_ids], ok_all[own_ids] = uf, complete
-        for arr in (uf_all, ok_all):  # written through to the file; keep RSS at one slab
+        vol_all = self.per_node("volume")
+        uf_all[own_ids], ok_all[own_ids], vol_all[own_ids, 0] = uf, complete, volume
+        for arr in (uf_all, ok_all, vol_all):  # written through; keep RSS at one slab
             arr.flush()
             drop_pages(getattr(arr, "_mmap", None))  # numpy's memmap keeps its mmap here
         processed = (n_out + n_lost > 0).any(axis=1) | np.isfinite(stats[:, :, 3, 1]).any(axis=1)
@@ -731,7 +738,7 @@ class _SlabJob:
             sums["slivers"] += int(own[gone[cert_gone].max(axis=1)].sum())
         store.save(k, ids=own_ids, points=pts[own], B=B[own], stats=stats, n_out=n_out,
                    n_lost=n_lost, n_left=n_left, star=star, gradient=grad, pos=pos,
-                   cells=cells, **_fit_arrays(fit))  # fmt: skip
+                   cells=cells, volume=volume, **_fit_arrays(fit))  # fmt: skip
         record = {"sums": {key: np.asarray(v).tolist() for key, v in sums.items()},
                   "mesh_notes": mesh_notes, "template": summarize(res), "nodes": len(own_ids),
                   "log": messages, "fit_box": fit_box}  # fmt: skip
@@ -821,31 +828,106 @@ def _reported_early(nodes: int, block: int) -> int:
     return block * ((nodes - 1) // block) if nodes > 0 else 0
 
 
-def _summary(template, ups, n, uf_all, ok_all, sums, notes, kind, file):
+def disk_weighted_percentiles(chunks, qs, in_memory_limit: int = 1 << 22, bins: int = 4096):
+    """`cfm_fem.models.node_weights.weighted_percentiles` of values and weights given in
+    chunks: the same figures, in O(chunk) memory beyond ``in_memory_limit`` values.
+
+    Parameters
+    ----------
+    chunks : callable() -> iterable of (ndarray, ndarray)
+        Yields (values, weights) chunk by chunk (values finite, weights >= 0); called several
+        times.
+    qs : sequence of float
+        Percentiles, 0..100.
+
+    Returns
+    -------
+    list of float or None
+    """
+    pairs = lambda: ((v[w > 0], w[w > 0]) for v, w in chunks())  # noqa: E731
+    n = sum(len(v) for v, _ in pairs())
+    if n == 0:
+        return [None for _ in qs]
+    if n <= in_memory_limit:
+        parts = list(pairs())
+        return weighted_percentiles(
+            np.concatenate([v for v, _ in parts]), np.concatenate([w for _, w in parts]), qs
+        )
+    total = sum(float(w.sum()) for _, w in pairs())
+    return [_weighted_stat(pairs, q / 100.0 * total * (1.0 - 1e-12), in_memory_limit, bins)
+            for q in qs]  # fmt: skip
+
+
+def _weighted_stat(pairs, target, gather, bins):
+    """The smallest value whose cumulative weight (values in increasing order) reaches
+    ``target``, by weighted histogram refinement."""
+    lo, hi = np.inf, -np.inf
+    for v, _ in pairs():
+        if len(v):
+            lo, hi = min(lo, v.min()), max(hi, v.max())
+    below = 0.0  # weight of the values < lo
+    while True:
+        sel = [(v[(v >= lo) & (v <= hi)], w[(v >= lo) & (v <= hi)]) for v, w in pairs()]
+        count = sum(len(v) for v, _ in sel)
+        if count <= gather or lo == hi:
+            vals = np.concatenate([v for v, _ in sel])
+            order = np.argsort(vals, kind="stable")
+            cum = below + np.cumsum(np.concatenate([w for _, w in sel])[order])
+            i = min(int(np.searchsorted(cum, target, side="left")), len(vals) - 1)
+            return float(vals[order[i]])
+        edges = np.linspace(lo, hi, bins + 1)
+        hist = np.zeros(bins)
+        for v, w in sel:
+            idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, bins - 1)
+            hist += np.bincount(idx, weights=w, minlength=bins)
+        cum = below + np.cumsum(hist)
+        j = min(int(np.searchsorted(cum, target, side="left")), bins - 1)
+        below = float(cum[j - 1]) if j else below
+        new_lo = edges[j]
+        new_hi = np.nextafter(edges[j + 1], -np.inf) if j + 1 < bins else hi
+        if new_lo == lo and new_hi == hi:  # cannot split further
+            gather = count
+            continue
+        lo, hi = new_lo, max(new_hi, new_lo)
+
+
+def _summary(template, ups, n, per_node, sums, notes, kind, file):
+    uf_all, ok_all, vol_all = per_node
     s = dict(template)
     n_col = len(ups)
     step = 1 << 20
 
-    def column(k):
-        def chunks():
-            for a in range(0, n, step):
-                ok = np.array(ok_all[a : a + step, k])
-                yield np.array(uf_all[a : a + step, k])[ok]
-                for arr in (uf_all, ok_all):  # one block resident at a time
-                    drop_pages(getattr(arr, "_mmap", None))
+    def blocks(k):
+        for a in range(0, n, step):
+            ok = np.array(ok_all[a : a + step, k])
+            yield np.array(uf_all[a : a + step, k])[ok], np.array(vol_all[a : a + step, 0])[ok]
+            for arr in (uf_all, ok_all, vol_all):  # one block resident at a time
+                drop_pages(getattr(arr, "_mmap", None))
 
-        return chunks
+    def column(k):
+        return lambda: (v for v, _ in blocks(k))
 
     pct = {"p50": [], "p95": [], "p99": [], "max": []}
-    uf_nodes = []
+    per = {"p50": [], "p95": [], "p99": [], "max": []}
+    uf_nodes, uf_volume = [], []
     for k in range(n_col):
         vals = disk_percentiles(column(k), [50, 95, 99, 100])
-        for name, v in zip(pct, vals, strict=True):
+        for name, v in zip(per, vals, strict=True):
+            per[name].append(v)
+        weighted = disk_weighted_percentiles(lambda k=k: blocks(k), [50, 95, 99])
+        for name, v in zip(("p50", "p95", "p99"), weighted, strict=True):
             pct[name].append(v)
+        pct["max"].append(per["max"][-1])
         uf_nodes.append(int(sum(len(c) for c in column(k)())))
+        uf_volume.append(sum(float(w.sum()) for _, w in blocks(k)))
+    volume = sum(float(np.asarray(vol_all[a : a + step, 0]).sum()) for a in range(0, n, step))
     n_samples = max(sums["processed"], 1) * s["trials"]
     s["up_um"] = list(ups)
     s["uf_units"] = pct
+    s["uf_units_per_node"] = per
+    s["region_nodes"] = int(n)
+    s["region_volume_mm3"] = volume
+    s["uf_volume_fraction"] = [v / volume if volume > 0 else None for v in uf_volume]
     s["uf_nodes"] = uf_nodes
     s["nodes"] = int(n)
     s["processed_nodes"] = int(sums["processed"])
