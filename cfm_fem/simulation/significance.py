@@ -51,13 +51,16 @@ def per_unit(signal, others, sigma) -> tuple[float, float]:
     """
     y = (np.asarray(signal, dtype=float) / sigma).ravel()
     a = whitened(others, sigma)
+    r = y
     if a.shape[1]:
         scale = np.linalg.norm(a, axis=0)
-        scale[scale == 0] = 1.0
-        coef = np.linalg.lstsq(a / scale, y, rcond=1e-10)[0]
-        r = y - (a / scale) @ coef
-    else:
-        r = y
+        a = a[:, scale > 0] / scale[scale > 0]
+        # projection through the eigenvectors of the (unit-diagonal) Gram matrix, the
+        # directions the columns do not span (eigenvalue <= 1e-12 of the largest) left out
+        lam, vec = np.linalg.eigh(a.T @ a)
+        keep = lam > 1e-12 * lam.max()
+        u = a @ (vec[:, keep] / np.sqrt(lam[keep]))
+        r = y - u @ (u.T @ y)
     norm = float(np.linalg.norm(y))
     z = float(np.linalg.norm(r))
     return z, (z / norm if norm > 0 else 0.0)
