@@ -59,7 +59,9 @@ def summarise_family(scores: list) -> dict:
     -------
     dict
         ``pooled`` {nulls, effects}, ``strata`` {stratum: {label: {nulls, effects}}},
-        ``per_effect`` {effect: {runs, rank1, pull_n, pull_mean, pull_std}}, ``goals``
+        ``per_effect`` {effect: {runs, rank1, pull_n, pull_mean, pull_std, first_instead
+        {what was ranked first in the misses: count}}}, ``null_claims`` {effect: nulls on which
+        it was claimed}, ``goals``
         {goal: bool} (those with runs to judge them), ``failing`` (which strata or effects
         miss which goal).
     """
@@ -89,6 +91,17 @@ def summarise_family(scores: list) -> dict:
         row["pull_mean"] = float(np.mean(p)) if p else None
         row["pull_std"] = float(np.std(p, ddof=1)) if len(p) > 1 else None
     out["per_effect"] = dict(sorted(per.items()))
+    claims = {}
+    for r in nulls:
+        for name in r.get("claimed") or ():
+            claims[name] = claims.get(name, 0) + 1
+    out["null_claims"] = dict(sorted(claims.items(), key=lambda kv: -kv[1]))
+    for r in effects:
+        if "error" in r or r["rank1"]:
+            continue
+        first = (r.get("claimed") or ["nothing"])[0]
+        row = out["per_effect"][r["expected"]].setdefault("first_instead", {})
+        row[first] = row.get(first, 0) + 1
     out["goals"], out["failing"] = _goals(out)
     return out
 
@@ -157,16 +170,19 @@ def markdown_family(summary: dict, header: str) -> str:
         )
     lines += [
         "",
-        "| effect | runs | rank 1 | pulls | pull mean | pull std |",
-        "|---|---|---|---|---|---|",
+        "| effect | runs | rank 1 | ranked first instead | pulls | pull mean | pull std |",
+        "|---|---|---|---|---|---|---|",
     ]
     for eff, row in summary["per_effect"].items():
         m = "-" if row["pull_mean"] is None else f"{row['pull_mean']:.2f}"
         s = "-" if row["pull_std"] is None else f"{row['pull_std']:.2f}"
+        inst = ", ".join(f"{k} {v}" for k, v in row.get("first_instead", {}).items()) or "-"
         lines.append(
-            f"| {eff} | {row['runs']} | {row['rank1']}/{row['runs']} | {row['pull_n']} "
+            f"| {eff} | {row['runs']} | {row['rank1']}/{row['runs']} | {inst} | {row['pull_n']} "
             f"| {m} | {s} |"
         )
+    claims = ", ".join(f"{k} {v}" for k, v in summary.get("null_claims", {}).items())
+    lines += ["", f"Claimed on nulls (effect: nulls): {claims or 'none'}."]
     lines += [
         "",
         "Goals: "
