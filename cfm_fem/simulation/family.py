@@ -49,6 +49,7 @@ TRACKER_EFFECTS = (
     "position_dependent_geometric",
     "arm_deflection",
     "parameter_bias",
+    "step_event",
 )
 #: Largest plausible size of a parameter (display units); a draw beyond is redrawn.
 CAPS = {
@@ -65,6 +66,7 @@ CAPS = {
     "position_dependent_geometric": 1000.0,
     "arm_deflection": 200.0,
     "parameter_bias": 2000.0,
+    "step_event": 200.0,
 }
 #: Parameters an effect is drawn along (one or two of them at random).
 DRAWN = {
@@ -294,7 +296,7 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
         return ({effect: {}} if z >= SIGMA_RANGE[0] else None), record
     pool = DRAWN.get(effect, FH.PARAMS.get(effect) or FT.PARAMS.get(effect))
     for _ in range(8):
-        k = 1 if effect in ONE_PARAM else int(rng.integers(1, 3))
+        k = min(1 if effect in ONE_PARAM else int(rng.integers(1, 3)), len(pool))
         params = [str(p) for p in rng.choice(pool, k, replace=False)]
         u = rng.normal(size=k)
         u = np.abs(u) if effect in POSITIVE else u
@@ -335,7 +337,9 @@ def _amplitudes(cfg, effect, params, u, z1, target):
         disc = float(np.sqrt(amp))
         return None if disc > 5.0 else {"disc_mm": disc}
     vals = {p: float(amp * ui) for p, ui in zip(params, u, strict=True)}
-    return None if max(abs(v) for v in vals.values()) > CAPS[effect] else vals
+    if max(abs(v) for v in vals.values()) > CAPS[effect]:
+        return None
+    return vals | ({"from_rep": FT.step_rep(cfg)} if effect == "step_event" else {})
 
 
 def _harmonic_field(cfg, ctx):

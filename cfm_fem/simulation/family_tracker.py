@@ -5,7 +5,8 @@ The physics is that of :mod:`.tracker` on a bench of :mod:`.benches` (any stack,
 strokes, tool, vibration and Table II draws) and a scan of :mod:`.scans`: axis travel =
 command + backlash + thermal expansion + vibration and reading error; bench errors (plus
 position-dependent error functions) through the HTM chain; arm sag; a late reading on the fly;
-tracker registration and white noise of the configuration's level.
+a slip of the reflector along x from the middle repetition on (``step_event``); tracker
+registration and white noise of the configuration's level.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ PARAMS = {
     "position_dependent_geometric": PDG_FUNCTIONS,
     "arm_deflection": ("sag_x", "sag_z"),
     "parameter_bias": B.NAMES,
+    "step_event": ("dx_um",),
 }
 
 
@@ -85,6 +87,9 @@ def forward(cfg: dict, ctx: dict, effects: dict, noisy: bool = True, errors=None
         sag.get("sag_x", 0.0) * _sag(u[:, 0]) + sag.get("sag_z", 0.0) * _sag(u[:, 2])
     )
     p = p + scan.v * effects.get("reading_delay", {}).get("tau", 0.0) * 1e-3
+    step = effects.get("step_event", {})
+    if step:  # a slip of the reflector along x from a repetition on
+        p[scan.rep >= step["from_rep"], 0] += 1e-3 * step["dx_um"]
     if not noisy:
         return p
     centre = (q + np.asarray(bench["tool_mm"])).mean(0)
@@ -123,9 +128,17 @@ def signatures(cfg: dict, ctx: dict, names, base=None, grad=None) -> dict:
             e = dict(cfg["bench"]["errors"])
             e[p] += 1.0
             out[eff, p] = forward(cfg, ctx, {}, noisy=False, errors=e) - base
+        elif eff == "step_event":
+            block = {p: 1.0, "from_rep": step_rep(cfg)}
+            out[eff, p] = forward(cfg, ctx, {eff: block}, noisy=False) - base
         else:
             out[eff, p] = forward(cfg, ctx, {eff: {p: 1.0}}, noisy=False) - base
     return out
+
+
+def step_rep(cfg: dict) -> int:
+    """The repetition a concealed slip starts from: the middle one."""
+    return int(cfg["scan"]["n_reps"]) // 2
 
 
 def truth_params(cfg: dict, ctx: dict, effects: dict) -> dict:
@@ -138,6 +151,8 @@ def truth_params(cfg: dict, ctx: dict, effects: dict) -> dict:
                 s = block.get(f"scale_drift_{c}", 0.0)
                 params[f"drift_{c}"] = block.get(f"drift_{c}", 0.0) + s * 1e-3 * q[:, a].mean()
                 params[f"scale_drift_{c}"] = s
+        elif name == "step_event":  # the diagnosis: the step of the x axis, um
+            params["step_x"] = block["dx_um"]
         else:
             params.update(block)
     return params
