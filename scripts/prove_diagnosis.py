@@ -64,7 +64,7 @@ import zlib  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from cfm_fem.simulation import CASES, write_case  # noqa: E402
-from cfm_fem.simulation.family import write_family_case  # noqa: E402
+from cfm_fem.simulation.family import draw_config, write_family_case  # noqa: E402
 from cfm_fem.simulation.family_summary import (  # noqa: E402
     FAMILY_GOALS,
     markdown_family,
@@ -174,6 +174,8 @@ def run_family(a) -> int:
     share = 1.0 if a.nulls_only else a.null_share
     size = "small" if a.small or a.size == "small" else "full"
     jobs = [(s, r, str(out), size, a.keep) for s, r in family_jobs(a.family, a.first_seed, share)]
+    if a.only_kind:  # the seeds whose drawn recording is of that kind
+        jobs = [j for j in jobs if draw_config(j[0], size, j[1])["kind"] == a.only_kind]
     t0 = time.perf_counter()
     if a.family_merge:
         runs = {}
@@ -327,6 +329,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--nulls-only", action="store_true", help="--family runs all nulls")
     ap.add_argument("--size", choices=("small", "full"), default="full", help="--family size")
+    ap.add_argument(
+        "--only-kind",
+        choices=("hall", "tracker"),
+        help="--family: run only the seeds whose drawn recording is of this kind",
+    )
     ap.add_argument(
         "--family-merge",
         nargs="+",

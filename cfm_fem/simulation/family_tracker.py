@@ -20,8 +20,11 @@ from .common import streams, temperature
 __all__ = ["context", "forward", "truth_params", "signatures", "PARAMS", "PDG_FUNCTIONS"]
 
 REG_STD = (10.0, 10.0)
-#: The 18 position-dependent error functions (linear along their own axis's stroke).
-PDG_FUNCTIONS = tuple(f"{k}_{c}({a})_u1" for a in "xyz" for k in ("delta", "eps") for c in "xyz")
+#: The position-dependent error functions: each of the 18 errors growing linearly (``_u1``) or
+#: quadratically (``_u2``) along its own axis's stroke.
+PDG_FUNCTIONS = tuple(
+    f"{k}_{c}({a})_u{m}" for m in (1, 2) for a in "xyz" for k in ("delta", "eps") for c in "xyz"
+)
 PARAMS = {
     "thermal_drift": tuple(f"{k}_{c}" for k in ("drift", "scale_drift") for c in "xyz"),
     "reversal": ("backlash_x", "backlash_y", "backlash_z"),
