@@ -217,3 +217,45 @@ def test_family_summary_per_stratum():
     assert out["goals"]["rank1_per_magnet"] is False  # 18 / 19 < 95 %
     assert out["per_effect"]["planar_hall"]["pull_n"] == 18
     assert "| magnet | dipole |" in markdown_family(out, "header")
+
+
+def _fitted_t(files):
+    """t of the concealed effect's signature fitted to the noisy recording with every
+    neighbour and nuisance signature (the drawn significance, measured)."""
+    from cfm_fem.simulation import family as F
+    from cfm_fem.simulation import family_hall as FH
+    from cfm_fem.simulation import family_tracker as FT
+
+    truth = json.loads(files["truth"].read_text())
+    cfg, eff = truth["config"], truth["expected"]
+    hall = cfg["kind"] == "hall"
+    sim = FH if hall else FT
+    ctx = sim.context(cfg)
+    rec = sim.forward(cfg, ctx, truth["effects"])
+    if hall:
+        nominal = magnets.field(cfg["magnet"], ctx["scan"].q - benches.travel_offset(cfg["bench"]))
+        grad = FH.gradient(cfg, ctx)
+        sigma = FH.noise_std(cfg, ctx, grad)
+    else:
+        nominal, grad = ctx["scan"].q + np.asarray(cfg["bench"]["tool_mm"]), None
+        sigma = FT.noise_std(cfg, ctx)
+    base = sim.forward(cfg, ctx, {}, noisy=False)
+    others = sim.signatures(cfg, ctx, F._neighbour_names(cfg, eff), base=base, grad=grad)
+    if eff != "sensor_offset":
+        F._relative_offsets(others)
+    direction = truth["significance"]["direction"]
+    sig = sim.signatures(cfg, ctx, [(eff, p) for p in direction], base=base, grad=grad)
+    s = sum(u * sig[eff, p] for p, u in direction.items())
+    a = significance.whitened([*others.values(), s], sigma)
+    norm = np.linalg.norm(a, axis=0)
+    a = a[:, norm > 0] / norm[norm > 0]
+    coef = np.linalg.lstsq(a, ((rec - nominal) / sigma).ravel(), rcond=1e-9)[0]
+    cov = np.linalg.pinv(a.T @ a, rcond=1e-9)
+    return coef[-1] / np.sqrt(cov[-1, -1]), truth["significance"]["sigma_drawn"]
+
+
+@pytest.mark.parametrize("seed", [1003, 1023, 1022])
+def test_drawn_significance_is_measured_on_the_recording(seed, tmp_path):
+    files = write_family_case(seed, tmp_path, role="effect")
+    t, drawn = _fitted_t(files)
+    assert abs(abs(t) - drawn) < 3.0  # t ~ N(drawn, 1)
