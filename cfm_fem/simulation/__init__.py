@@ -7,6 +7,11 @@ Hall recordings with concealed effects (:mod:`.tracker`, :mod:`.hall`), and the 
 would give the diagnosis (:mod:`.output`, :mod:`.cases`). Concealed effects and their truth use the
 diagnosis' parameter names and units.
 
+A randomized family (:mod:`.family`) draws a whole configuration from a seed: magnets of every
+order and a solenoid (:mod:`.magnets`), benches stacked in any order (:mod:`.benches`), grids,
+on-the-fly lines, circles and sparse maps (:mod:`.scans`), noise levels, references, and nulls or
+one effect sized to a stated joint significance against its neighbours (:mod:`.significance`).
+
 Example
 -------
 >>> from cfm_fem.simulation import write_case                          # doctest: +SKIP
@@ -15,5 +20,6 @@ Example
 """
 
 from .cases import CASES, write_case
+from .family import draw_config, write_family_case
 
-__all__ = ["CASES", "write_case"]
+__all__ = ["CASES", "write_case", "draw_config", "write_family_case"]

@@ -75,8 +75,9 @@ def write_reference_table(path, points_mm, b_t, comments=()) -> Path:
     return _atomic_write(path, _table(names, arrays, ["%.6f"] * 3 + ["%.10e"] * 3, comments))
 
 
-def write_harmonics(path, rows, r_ref_mm: float, comments=()) -> Path:
-    """2-D multipoles (rows n, B_n, A_n in T at ``r_ref_mm``) as a harmonics CSV."""
-    head = [*comments, f"r_ref_mm: {r_ref_mm:g}", "convention: tesla", "main: 2"]
+def write_harmonics(path, rows, r_ref_mm: float, comments=(), main: int = 2) -> Path:
+    """2-D multipoles (rows n, B_n, A_n in T at ``r_ref_mm``; main harmonic of order ``main``)
+    as a harmonics CSV."""
+    head = [*comments, f"r_ref_mm: {r_ref_mm:g}", "convention: tesla", f"main: {int(main)}"]
     rows = np.asarray(rows, dtype=float)
     return _atomic_write(path, _table(["n", "Bn", "An"], rows.T, ["%d", "%.10e", "%.10e"], head))

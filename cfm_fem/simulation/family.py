@@ -1,0 +1,516 @@
+"""A randomized family of simulated recordings: every configuration drawn from its seed.
+
+A case of the family is a Hall map or a laser-tracker recording of a drawn configuration:
+
+* the magnet (Hall maps): a dipole, quadrupole, sextupole or octupole (a permanent-magnet ring
+  of blocks or current-driven saddle loops) or a solenoid, of drawn bore, length and strength,
+  scanned through both ends, through one, or in its body only (:mod:`.magnets`);
+* the bench: the carriages stacked in any order, with drawn strokes, tool offset, vibration,
+  Table II widths and error draws, survey uncertainty; its bench file (:mod:`.benches`);
+* the scan: a grid, on-the-fly lines at several speeds, circles at a radius or a sparse map,
+  3 to 10 repetitions (:mod:`.scans`);
+* the noise: Hall probe 0.5 to 20 uT, tracker 1 to 8 um (log-uniform);
+* the reference given to a Hall diagnosis: the exact field on a grid through the map's points,
+  an FEM-like coarser grid, or 2-D harmonics (body-only scans, and the soft-ends case);
+* the role: a null (nothing concealed) or one catalogued effect whose size is drawn so that its
+  joint significance against its neighbours is a drawn 5 to 8 sigma (:mod:`.significance`).
+
+Every label (``strata``), the whole configuration and the drawn significance go into the truth
+file, so a case can be replayed from its seed and role.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from . import benches, magnets, output, scans, significance
+from . import family_hall as FH
+from . import family_tracker as FT
+
+__all__ = ["draw_config", "write_family_case", "HALL_EFFECTS", "TRACKER_EFFECTS", "SIGMA_RANGE"]
+
+SIGMA_RANGE = (5.0, 8.0)
+HALL_EFFECTS = (
+    "probe_misalignment",
+    "sensor_offset",
+    "magnet_misalignment",
+    "planar_hall",
+    "hall_offset_gain",
+    "magnet_temperature",
+    "fringe_field_3d",
+    "sensor_volume_averaging",
+)
+TRACKER_EFFECTS = (
+    "thermal_drift",
+    "reversal",
+    "reading_delay",
+    "position_dependent_geometric",
+    "arm_deflection",
+    "parameter_bias",
+    "step_event",
+)
+#: Largest plausible size of a parameter (display units); a draw beyond is redrawn.
+CAPS = {
+    "probe_misalignment": 50.0,
+    "sensor_offset": 2000.0,
+    "magnet_misalignment": 3000.0,
+    "planar_hall": 1.0,
+    "hall_offset_gain": 1000.0,
+    "magnet_temperature": 5000.0,
+    "sensor_volume_averaging": 25.0,
+    "thermal_drift": 50.0,
+    "reversal": 100.0,
+    "reading_delay": 50.0,
+    "position_dependent_geometric": 1000.0,
+    "arm_deflection": 200.0,
+    "parameter_bias": 2000.0,
+    "step_event": 200.0,
+}
+#: Parameters an effect is drawn along (one or two of them at random).
+DRAWN = {
+    "hall_offset_gain": ("offset_x", "offset_y", "offset_z"),
+    "sensor_offset": tuple(f"d_{i}_{j}" for i in "xy" for j in "xyz"),
+    "arm_deflection": ("sag_x", "sag_z"),
+    "reversal": FT.PARAMS["reversal"],
+}
+ONE_PARAM = (
+    "magnet_misalignment",
+    "parameter_bias",
+    "position_dependent_geometric",
+    "sensor_volume_averaging",
+    "magnet_temperature",
+    "reading_delay",
+)
+POSITIVE = ("reversal", "reading_delay", "arm_deflection", "sensor_volume_averaging")
+PRIOR_RELEASE = ("magnet_misalignment", "parameter_bias")
+
+
+def _rng(seed: int, part: int) -> np.random.Generator:
+    """The configuration's own streams (apart from the recording's draws of ``streams``)."""
+    return np.random.default_rng(np.random.SeedSequence([20261129, int(seed), part]))
+
+
+def _regime(kind: str, level: float) -> str:
+    lo, hi = (2.0, 7.0) if kind == "hall" else (3.0, 5.0)
+    return "low" if level < lo else ("high" if level > hi else "mid")
+
+
+def _magnet(rng) -> dict:
+    order = int(rng.integers(0, 5))
+    if order == 0:
+        return {
+            "source": "solenoid",
+            "order": 0,
+            "bore_mm": float(rng.uniform(15, 40)),
+            "length_mm": float(rng.uniform(150, 300)),
+            "scale_T": float(rng.uniform(0.05, 1.0)),
+        }
+    src = "pm" if rng.uniform() < 0.6 else "coil"
+    bore = float(rng.uniform(8, 20) if src == "pm" else rng.uniform(10, 30))
+    scale = float(rng.uniform(0.2, 1.0) if src == "pm" else rng.uniform(0.05, 0.5))
+    return {
+        "source": src,
+        "order": order,
+        "bore_mm": bore,
+        "length_mm": float(rng.uniform(100, 300)),
+        "scale_T": scale,
+    }
+
+
+def _z_range(rng, spec, ends):
+    half, r = 0.5 * spec["length_mm"], spec["bore_mm"]
+    k = float(rng.uniform(3.0, 6.0))
+    if ends == "both":
+        return (-half - k * r, half + k * r)
+    if ends == "one":
+        return (float(rng.uniform(-0.5, 0.0)) * half, half + k * r)
+    return (-(half - 4.0 * r), half - 4.0 * r)
+
+
+def _hall_config(rng, cfg, size):
+    spec = _magnet(rng)
+    body_ok = 0.5 * spec["length_mm"] - 4.0 * spec["bore_mm"] >= 20.0
+    ends = str(rng.choice(["both", "one", "body"] if body_ok else ["both", "one"]))
+    z0, z1 = _z_range(rng, spec, ends)
+    half = (0.3 if spec["order"] == 0 else 0.35) * spec["bore_mm"]
+    bench = benches.draw_bench(
+        rng, (100.0, 100.0, max(600.0, 100.0 * np.ceil((z1 - z0) / 100 + 1)))
+    )
+    n_reps = int(rng.integers(3, 6) if size == "small" else rng.integers(3, 11))
+    kind = str(rng.choice(scans.SCAN_KINDS))
+    scan = scans.draw_scan(rng, kind, (half, half), (z0, z1), size, n_reps)
+    noise = float(np.exp(rng.uniform(np.log(0.5), np.log(20.0))))
+    refs = ["exact", "coarse"] + (["harmonics"] if ends == "body" and spec["order"] else [])
+    cfg |= {
+        "magnet": spec,
+        "bench": bench,
+        "scan": scan,
+        "noise_uT": noise,
+        "reference": str(rng.choice(refs)),
+    }
+    cfg["strata"] = {
+        "magnet": magnets.ORDER_NAMES[spec["order"]],
+        "source": spec["source"],
+        "ends": ends,
+        "bench_stack": bench["stack_label"],
+        "scan": kind,
+        "noise": _regime("hall", noise),
+        "reference": cfg["reference"],
+    }
+
+
+def _tracker_config(rng, cfg, size):
+    bench = benches.draw_bench(rng)
+    st = bench["strokes_mm"]
+    n_reps = int(rng.integers(3, 6) if size == "small" else rng.integers(3, 11))
+    kind = str(rng.choice(scans.SCAN_KINDS))
+    scan = scans.draw_scan(
+        rng, kind, (0.5 * st["x"], 0.5 * st["y"]), (-0.5 * st["z"], 0.5 * st["z"]), size, n_reps
+    )
+    noise = float(np.exp(rng.uniform(np.log(1.0), np.log(8.0))))
+    cfg |= {"magnet": None, "bench": bench, "scan": scan, "noise_um": noise}
+    cfg["strata"] = {
+        "magnet": "none",
+        "source": "none",
+        "ends": "none",
+        "bench_stack": bench["stack_label"],
+        "scan": kind,
+        "noise": _regime("tracker", noise),
+        "reference": "none",
+    }
+
+
+def draw_config(seed: int, size: str = "small", role: str | None = None, kind=None) -> dict:
+    """The configuration of a family case, all from ``seed``.
+
+    Parameters
+    ----------
+    seed : int
+    size : {'small', 'full'}
+        Small: 3 x 3 lines, 13 to 21 planes, 3 to 5 repetitions; full: up to 6 x 6, 21 to 35
+        planes, 3 to 10 repetitions.
+    role : {'null', 'effect'}, optional
+        Drawn from the seed (half each) when not given.
+    kind : {'hall', 'tracker'}, optional
+        Drawn from the seed (Hall 70 %) when not given.
+
+    Returns
+    -------
+    dict
+        ``seed``, ``size``, ``role``, ``kind``, ``magnet``, ``bench``, ``scan``, ``noise_uT`` or
+        ``noise_um``, ``reference`` (Hall), ``strata`` (the labels) and ``effect`` (name or
+        None; its parameters are drawn by :func:`write_family_case`, which needs the
+        signatures).
+    """
+    if size not in ("small", "full"):
+        raise ValueError(f"size must be 'small' or 'full'; found {size!r}")
+    rng = _rng(seed, 0)
+    draw_role = "null" if rng.uniform() < 0.5 else "effect"
+    draw_kind = "hall" if rng.uniform() < 0.7 else "tracker"
+    role, kind = role or draw_role, kind or draw_kind
+    cfg = {"seed": int(seed), "size": size, "role": role, "kind": kind}
+    (_hall_config if kind == "hall" else _tracker_config)(rng, cfg, size)
+    cfg["effect"] = None
+    if role == "effect":
+        pool = effect_pool(cfg)
+        cfg["effect"] = str(rng.choice(pool))
+        rest = [e for e in pool if e != cfg["effect"]]
+        cfg["fallback"] = [str(e) for e in rng.permutation(rest)]
+        if cfg["effect"] == "fringe_field_3d":
+            cfg["reference"] = cfg["strata"]["reference"] = "harmonics"
+    elif role != "null":
+        raise ValueError(f"role must be 'null' or 'effect'; found {role!r}")
+    return cfg
+
+
+def effect_pool(cfg: dict) -> list:
+    """The effects a configuration can conceal: the catalogue of its kind, less the soft ends
+    where there is no 2-D reference or no end scanned, and less the reading delay without an
+    on-the-fly repetition."""
+    pool = list(HALL_EFFECTS if cfg["kind"] == "hall" else TRACKER_EFFECTS)
+    if cfg["kind"] == "hall" and (cfg["magnet"]["order"] == 0 or cfg["strata"]["ends"] == "body"):
+        pool.remove("fringe_field_3d")
+    if cfg["kind"] == "tracker" and not any(cfg["scan"].get("speeds", [0.0])):
+        pool.remove("reading_delay")
+    return pool
+
+
+def _neighbour_names(cfg, effect) -> list:
+    """(effect, param) of every nuisance and neighbour signature an effect is told from."""
+    hall = cfg["kind"] == "hall"
+    names = [("bench", n) for n in benches.B.NAMES]
+    if effect != "magnet_misalignment":
+        pose = FH.POSE if hall else ("t_x", "t_y", "t_z", "r_x", "r_y", "r_z")
+        names += [("pose", p) for p in pose]
+    if hall:
+        names += [("gain", f"gain_{c}") for c in "xyz"]
+        for eff in HALL_EFFECTS:
+            if eff in (effect, "fringe_field_3d", "magnet_misalignment"):
+                continue
+            params = DRAWN.get(eff, FH.PARAMS[eff]) if eff != "sensor_offset" else ()
+            names += [(eff, p) for p in params]
+        if effect != "sensor_offset":
+            names += [("sensor_offset", f"d_{i}_{j}") for i in "xyz" for j in "xyz"]
+    else:
+        for eff in TRACKER_EFFECTS:
+            if eff in (effect, "parameter_bias"):
+                continue
+            names += [(eff, p) for p in FT.PARAMS[eff]]
+    return names
+
+
+def _relative_offsets(sig: dict) -> None:
+    """Element offsets relative to the centroid: a common shift is the registration's."""
+    for j in "xyz":
+        z = sig.pop(("sensor_offset", f"d_z_{j}"), None)
+        if z is None:
+            continue
+        for i in "xy":
+            key = ("sensor_offset", f"d_{i}_{j}")
+            if key in sig:
+                sig[key] = sig[key] - z
+
+
+def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
+    """The concealed effect's parameters and its significance record."""
+    effect = cfg["effect"]
+    sim = FH if cfg["kind"] == "hall" else FT
+    others = _neighbour_names(cfg, effect)
+    sig_o = sim.signatures(cfg, ctx, others, base=base, grad=grad)
+    if effect != "sensor_offset":
+        _relative_offsets(sig_o)
+    vec_o = [v for (e, p), v in sig_o.items() if not (effect == "parameter_bias" and e == "bench")]
+    target = float(rng.uniform(*SIGMA_RANGE))
+    record = {
+        "definition": significance.__doc__.split("\n\n")[1].strip(),
+        "sigma_target": target,
+        "neighbours": sorted({e for e, _ in sig_o if e not in ("bench", "pose", "gain")}),
+        "nuisances": sorted({e for e, _ in sig_o if e in ("bench", "pose", "gain")}),
+    }
+    if effect == "fringe_field_3d":
+        ref = _harmonic_field(cfg, ctx)
+        z, kept = significance.per_unit(base - ref, vec_o, sigma)
+        record |= {"sigma_drawn": z, "kept": kept, "sized": "fixed by the magnet"}
+        return ({effect: {}} if z >= SIGMA_RANGE[0] else None), record
+    pool = DRAWN.get(effect, FH.PARAMS.get(effect) or FT.PARAMS.get(effect))
+    for _ in range(8):
+        k = min(1 if effect in ONE_PARAM else int(rng.integers(1, 3)), len(pool))
+        params = [str(p) for p in rng.choice(pool, k, replace=False)]
+        u = rng.normal(size=k)
+        u = np.abs(u) if effect in POSITIVE else u
+        u /= np.linalg.norm(u)
+        sig = sim.signatures(cfg, ctx, [(effect, p) for p in params], base=base, grad=grad)
+        s = sum(ui * sig[effect, p] for ui, p in zip(u, params, strict=True))
+        vec = vec_o + [v for (e, p), v in sig_o.items() if e == "bench" and p not in params]
+        z1, kept = significance.per_unit(s, vec if effect == "parameter_bias" else vec_o, sigma)
+        if kept < 0.05 or z1 <= 0:
+            continue
+        values = _amplitudes(cfg, effect, params, u, z1, target)
+        if values is None:
+            continue
+        return {effect: values}, record | {
+            "sigma_drawn": target,
+            "kept": kept,
+            "z_per_unit": z1,
+            "direction": dict(zip(params, u.tolist(), strict=True)),
+        }
+    return None, record | {"sigma_drawn": None, "kept": None}
+
+
+def _amplitudes(cfg, effect, params, u, z1, target):
+    """Parameter values of the drawn size (None when beyond :data:`CAPS`)."""
+    if effect in PRIOR_RELEASE:
+        p = params[0]
+        if effect == "magnet_misalignment":
+            t_um, r_urad = cfg["bench"]["survey_std"]
+            prior = t_um if p.startswith("magnet_d") else r_urad
+            excess = significance.excess_for(target, z1, prior) * np.sign(u[0])
+            return None if abs(excess) > CAPS[effect] else {p: excess}
+        kind, a, b = cfg["bench"]["pdfs"][p]
+        mean, prior = ((a + b) / 2, (b - a) / np.sqrt(12)) if kind == "uniform" else (a, b)
+        excess = significance.excess_for(target, z1, prior) * np.sign(u[0])
+        return None if abs(excess) > CAPS[effect] else {p: mean + excess}
+    amp = target / z1
+    if effect == "sensor_volume_averaging":  # the signature is per mm^2 of disc diameter
+        disc = float(np.sqrt(amp))
+        return None if disc > 5.0 else {"disc_mm": disc}
+    vals = {p: float(amp * ui) for p, ui in zip(params, u, strict=True)}
+    if max(abs(v) for v in vals.values()) > CAPS[effect]:
+        return None
+    return vals | ({"from_rep": FT.step_rep(cfg)} if effect == "step_event" else {})
+
+
+def _harmonic_field(cfg, ctx):
+    """The 2-D harmonics' field at the nominal readings (bench axes, gains applied)."""
+    spec = cfg["magnet"]
+    r_ref = 0.5 * spec["bore_mm"]
+    rows = magnets.harmonics_2d(spec, r_ref, 20)
+    local, _ = FH.element_positions(cfg, ctx, {}, noisy=False)
+    w = (local[:, 0] + 1j * local[:, 1]) / r_ref
+    f = sum((bn + 1j * an) * w ** (int(n) - 1) for n, bn, an in rows)
+    b = np.stack([f.imag, f.real, np.zeros(len(w))], -1)
+    return b * (1.0 + 1e-2 * ctx["gains"])
+
+
+def _reference(cfg, ctx, folder: Path, stem: str) -> Path:
+    """The reference file of a Hall case."""
+    spec = cfg["magnet"]
+    pts = scans.map_points(cfg["scan"])
+    if cfg["reference"] == "harmonics":
+        r_ref = 0.5 * spec["bore_mm"]
+        return output.write_harmonics(
+            folder / f"{stem}.harmonics.csv",
+            magnets.harmonics_2d(spec, r_ref, 20),
+            r_ref,
+            [f"2-D multipoles of the simulated {cfg['strata']['magnet']} (z = 0)"],
+            main=spec["order"],
+        )
+
+    def axis(g, fine):
+        g = np.unique(np.round(g, 6))
+        if not fine:
+            lo, hi = g.min() - 2.0, g.max() + 2.0
+            step = max((hi - lo) / 8.0, 0.5) if len(g) > 1 or hi - lo > 4 else 1.0
+            return np.arange(lo, hi + 0.5 * step, step)
+        return np.unique(np.concatenate([g, g - 0.5, g + 0.5, [g.min() - 2.0, g.max() + 2.0]]))
+
+    fine = cfg["reference"] == "exact"
+    gx, gy = axis(pts[:, 0], fine), axis(pts[:, 1], fine)
+    if fine:
+        gz = axis(pts[:, 2], True)
+    else:
+        step = float(np.clip(spec["bore_mm"] / 4.0, 2.0, 5.0))
+        gz = np.arange(pts[:, 2].min() - 2.0 * step, pts[:, 2].max() + 2.5 * step, step)
+    nodes = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), -1).reshape(-1, 3)
+    what = "exact field on a grid through the map's points" if fine else "coarse FEM-like grid"
+    return output.write_reference_table(
+        folder / f"{stem}.reference.csv",
+        nodes,
+        magnets.field(spec, nodes),
+        [f"{what}, simulated {cfg['strata']['magnet']}"],
+    )
+
+
+def _null_harmonics_ok(cfg, ctx, base, grad, sigma) -> float:
+    """Significance of the body's own 3-D departure from the 2-D harmonics (a null must have
+    none)."""
+    names = [("pose", p) for p in FH.POSE] + [("gain", f"gain_{c}") for c in "xyz"]
+    sig = FH.signatures(cfg, ctx, names, base=base, grad=grad)
+    return significance.per_unit(base - _harmonic_field(cfg, ctx), list(sig.values()), sigma)[0]
+
+
+def write_family_case(seed: int, folder, size: str = "small", role=None, kind=None) -> dict:
+    """Simulate one family case and write its recording, truth, reference and bench file.
+
+    Returns
+    -------
+    dict
+        ``recording``, ``truth``, ``reference`` (None for a tracker recording) and ``bench``
+        paths, ``kind``, ``expected`` (the effect or None) and the ``args`` of
+        ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
+    """
+    cfg = draw_config(seed, size, role, kind)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    hall = cfg["kind"] == "hall"
+    sim = FH if hall else FT
+    ctx = sim.context(cfg)
+    base = sim.forward(cfg, ctx, {}, noisy=False)
+    grad = FH.gradient(cfg, ctx) if hall else None
+    sigma = FH.noise_std(cfg, ctx, grad) if hall else FT.noise_std(cfg, ctx)
+    rng = _rng(seed, 1)
+    effects, record = {}, None
+    if cfg["effect"]:
+        tried = []
+        for name in [cfg["effect"], *cfg["fallback"]]:
+            cfg["effect"] = name
+            effects, record = _draw_effect(cfg, ctx, rng, base, grad, sigma)
+            if effects is not None:
+                break
+            tried.append(name)  # not separable within the caps on this configuration
+        if effects is None:
+            effects, cfg["effect"] = {}, None
+            record["note"] = "no effect separable within the caps: the case is a null"
+        record["not_separable"] = tried
+        if cfg["effect"] == "fringe_field_3d":
+            cfg["reference"] = cfg["strata"]["reference"] = "harmonics"
+        elif (
+            cfg.get("reference") == "harmonics"
+            and _null_harmonics_ok(cfg, ctx, base, grad, sigma) > 1
+        ):
+            cfg["reference"] = cfg["strata"]["reference"] = "exact"
+    elif hall and cfg["reference"] == "harmonics":
+        z = _null_harmonics_ok(cfg, ctx, base, grad, sigma)
+        if z > 1.0:
+            cfg["reference"] = cfg["strata"]["reference"] = "exact"
+        record = {"body_vs_2d_sigma": z}
+    cols = _columns(cfg, ctx, sim.forward(cfg, ctx, effects))
+    stem = f"family_{seed}"
+    expected = cfg["effect"]
+    truth = {
+        "case": f"family_{cfg['kind']}",
+        "seed": int(seed),
+        "kind": cfg["kind"],
+        "role": cfg["role"],
+        "expected": expected,
+        "effects": effects,
+        "params": sim.truth_params(cfg, ctx, effects),
+        "strata": cfg["strata"],
+        "significance": record,
+        "config": cfg,
+        "size": size,
+        "n_reps": cfg["scan"]["n_reps"],
+        "n_readings": len(ctx["scan"].point),
+        "temperature_range_K": float(np.ptp(ctx["t_true"])),
+        "duration_h": float(ctx["scan"].t_s[-1] / 3600.0),
+    }
+    rec = output.write_csv(
+        folder / f"{stem}.csv", cols, [f"simulated family {cfg['kind']} recording, seed {seed}"]
+    )
+    tru = output.write_json(folder / f"{stem}.truth.json", truth)
+    bench = output.write_text(
+        folder / f"{stem}.bench.toml",
+        benches.bench_toml(cfg["bench"], comment=f"family case {seed}"),
+    )
+    ref = _reference(cfg, ctx, folder, stem) if hall else None
+    args = ["--hall-map", str(rec), "--reference", str(ref)] if hall else ["--tracker", str(rec)]
+    return {
+        "recording": rec,
+        "truth": tru,
+        "reference": ref,
+        "bench": bench,
+        "kind": cfg["kind"],
+        "expected": expected,
+        "args": [*args, "--bench", str(bench)],
+    }
+
+
+def _columns(cfg, ctx, values) -> dict:
+    scan = ctx["scan"]
+    if cfg["kind"] == "hall":
+        p = scan.q - benches.travel_offset(cfg["bench"])
+        head = {
+            "point_id": scan.point,
+            "rep": scan.rep,
+            "x_cmd": p[:, 0],
+            "y_cmd": p[:, 1],
+            "z_cmd": p[:, 2],
+            "Bx": values[:, 0],
+            "By": values[:, 1],
+            "Bz": values[:, 2],
+        }
+    else:
+        q = scan.q
+        head = {
+            "point_id": scan.point,
+            "rep": scan.rep,
+            "x_cmd": q[:, 0],
+            "y_cmd": q[:, 1],
+            "z_cmd": q[:, 2],
+            "x_meas": values[:, 0],
+            "y_meas": values[:, 1],
+            "z_meas": values[:, 2],
+        }
+    return head | scan.columns(ctx["t_log"])
