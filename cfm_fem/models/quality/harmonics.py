@@ -350,6 +350,8 @@ def centre_from_harmonics(c, main_order: int, r_ref_mm: float, iterations: int =
     """
     big = main_order
     c = np.nan_to_num(np.asarray(c, dtype=np.complex128))
+    shape = c.shape[:-1]
+    c = c.reshape(-1, c.shape[-1])
     orders = np.arange(big - 1, c.shape[-1] + 1)  # n = N-1 .. 15
     coef = np.stack(
         [c[..., n - 1] * comb(n - 1, big - 2) for n in orders], axis=-1
@@ -357,14 +359,19 @@ def centre_from_harmonics(c, main_order: int, r_ref_mm: float, iterations: int =
     powers = np.arange(orders.size)
     with np.errstate(divide="ignore", invalid="ignore"):
         u = -coef[..., 0] / coef[..., 1]
-        for _ in range(iterations):
-            f = np.sum(coef * u[..., None] ** powers, axis=-1)
-            df = np.sum(coef[..., 1:] * powers[1:] * u[..., None] ** (powers[1:] - 1), axis=-1)
-            step = f / df
-            u = u - step
-            if np.all(~np.isfinite(step) | (np.abs(step) <= 1e-15 * (1 + np.abs(u)))):
+        moving = np.isfinite(u)
+        for _ in range(iterations):  # each value stops on its own: no dependence on the others
+            if not moving.any():
                 break
-    return u * r_ref_mm
+            um = u[moving]
+            cm = coef[moving]
+            f = np.sum(cm * um[:, None] ** powers, axis=-1)
+            df = np.sum(cm[:, 1:] * powers[1:] * um[:, None] ** (powers[1:] - 1), axis=-1)
+            step = f / df
+            u[moving] = um - step
+            idx = np.flatnonzero(moving)
+            moving[idx[~np.isfinite(step) | (np.abs(step) <= 1e-15 * (1 + np.abs(um)))]] = False
+    return (u * r_ref_mm).reshape(shape)
 
 
 def _length_plane_value(planes_main, z, z_length):
