@@ -92,9 +92,9 @@ def add_args(p):
     p.add_argument(
         "--budget-trials",
         type=trial_count_type("--budget-trials"),
-        default=400,
+        default=200,
         metavar="N",
-        help="trials per error group of the budget (default 400)",
+        help="trials per error group of the budget (default 200)",
     )
     p.add_argument("--no-budget", action="store_true", help="skip the budget by error group")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")

@@ -241,7 +241,7 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                 probe: str = "paper", field_model: str = "harmonic", sampling: str = "auto",
                 radius_mm: float | None = None, dz_mm: float | None = None, n_angles: int = 64,
                 centre_magnet: bool = False, tolerances=None, budget: bool = True,
-                budget_trials: int = 400, digits: int = 1, batch_trials: int = 500,
+                budget_trials: int = 200, digits: int = 1, batch_trials: int = 500,
                 max_trials: int = 10_000, uncertainty: bool = True, reader: dict | None = None,
                 provenance: dict | None = None, progress=None) -> QualityRun:  # fmt: skip
     """Field quality of a map and its uncertainty from a bench (``cfm-fem quality``).
