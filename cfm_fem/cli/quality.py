@@ -97,6 +97,29 @@ def add_args(p):
         help="trials per error group of the budget (default 200)",
     )
     p.add_argument("--no-budget", action="store_true", help="skip the budget by error group")
+    beam = p.add_mutually_exclusive_group()
+    beam.add_argument("--rigidity", type=float, metavar="TM",
+                      help="track a particle of this rigidity B rho (T m) along the axis "
+                      "through the map: deflection and sagitta (dipoles)")  # fmt: skip
+    beam.add_argument(
+        "--energy",
+        type=float,
+        metavar="GEV",
+        help="or give its kinetic energy, GeV (with --particle)",
+    )
+    p.add_argument(
+        "--particle",
+        choices=["electron", "proton"],
+        default="electron",
+        help="particle of --energy (default electron)",
+    )
+    p.add_argument(
+        "--trajectory-step",
+        type=float,
+        default=0.5,
+        metavar="MM",
+        help="Runge-Kutta step of the trajectory, mm (default 0.5)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     add_reader_args(p, "FIELD")
     p.add_argument("--field-model", choices=["harmonic", "linear"], default="harmonic",
@@ -119,7 +142,13 @@ def _check(args):
                         ("--angles", args.angles, 3)):  # fmt: skip
         if v < low:
             raise CfmInputError(f"{opt} must be >= {low}; got {v}")
-    for opt, v in (("--radius", args.radius), ("--dz", args.dz)):
+    for opt, v in (
+        ("--radius", args.radius),
+        ("--dz", args.dz),
+        ("--rigidity", args.rigidity),
+        ("--energy", args.energy),
+        ("--trajectory-step", args.trajectory_step),
+    ):
         if v is not None and not (0 < v < float("inf")):
             raise CfmInputError(f"{opt} must be a positive length in mm; got {v:g}")
     if args.mode == "gauss" and args.up is None:
@@ -154,6 +183,8 @@ def _run(args) -> int:
             dz_mm=args.dz, n_angles=args.angles, centre_magnet=args.centre_magnet,
             tolerances=args.tolerances, budget=not args.no_budget,
             budget_trials=args.budget_trials, digits=args.digits, max_trials=args.max_trials,
+            rigidity_Tm=args.rigidity, energy_gev=args.energy, particle=args.particle,
+            trajectory_step_mm=args.trajectory_step,
             reader=reader_kwargs(args), provenance=prov, progress=bar.update,
         )  # fmt: skip
     paths = res.write(args.out, args.command_line)
@@ -176,6 +207,11 @@ def _print_summary(s: dict) -> None:
     print(f"centre x {pm(c[0], uc[0], 1e3)} um, y {pm(c[1], uc[1], 1e3)} um")
     print(f"roll {pm(s['roll_mrad'], s['U95_roll_mrad'])} mrad")
     print(f"magnetic length {pm(s['magnetic_length_mm'], s['U95_magnetic_length_mm'], 1, 6)} mm")
+    t = s.get("trajectory")
+    if t:
+        print(f"trajectory (B rho = {t['rigidity_Tm']:.6g} T m, step {t['step_mm']:g} mm): "
+              f"deflection {pm(t['deflection_mrad'], t['U95_deflection_mrad'], 1, 6)} mrad, "
+              f"sagitta {t['sagitta_mm']:.4g} mm")  # fmt: skip
     integ = s["integrated"]
     for k in range(len(integ["n"])):
         ub = (integ["U95_b_n_units"] or [None] * 15)[k]

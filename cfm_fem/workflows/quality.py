@@ -35,9 +35,10 @@ from ..models.quality import (
     quality_numbers,
     run_quality_mc,
 )
-from ..models.quality.harmonics import inscribed_radius
+from ..models.quality.harmonics import VECTOR_NAMES, inscribed_radius
+from ..models.quality.trajectory import rigidity_from_energy, track
 
-__all__ = ["QualityRun", "run_quality", "SAMPLINGS", "PROBES"]
+__all__ = ["QualityRun", "run_quality", "scan_plan", "SAMPLINGS", "PROBES"]
 
 SAMPLINGS = ("auto", "nodes", "circles")
 PROBES = ("exact", "paper", "table1")
@@ -146,8 +147,27 @@ def _circle_planes(fm: FieldMap, dz_mm):
     return dz_mm * np.arange(k0, k1 + 1), dz_mm
 
 
-def _scan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
-    """(plan, nominal B at its points or None) of the sampling asked."""
+def scan_plan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
+    """Scan plan of a map and the nominal field at its points.
+
+    Parameters
+    ----------
+    fm : FieldMap
+    sampling : {"auto", "nodes", "circles"}
+    r_ref_mm : float, mm
+    radius_mm, dz_mm : float or None, mm
+        Disk or circle radius, plane spacing of the circles (None: defaults of `run_quality`).
+    n_angles : int
+        Points per circle.
+    notes : list of str
+        Receives what the sampling chose.
+
+    Returns
+    -------
+    plan : ScanPlan
+    B_nodes : ndarray, shape (n, 3), T, or None
+        The map's values at the scan points (node sampling); None on circles.
+    """
     if sampling in ("auto", "nodes"):
         try:
             plan = plan_from_nodes(fm.points, r_ref_mm, r_fit_mm=radius_mm, source=fm.source)
@@ -242,7 +262,10 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                 radius_mm: float | None = None, dz_mm: float | None = None, n_angles: int = 64,
                 centre_magnet: bool = False, tolerances=None, budget: bool = True,
                 budget_trials: int = 200, digits: int = 1, batch_trials: int = 500,
-                max_trials: int = 10_000, uncertainty: bool = True, reader: dict | None = None,
+                max_trials: int = 10_000, uncertainty: bool = True,
+                rigidity_Tm: float | None = None, energy_gev: float | None = None,
+                particle: str = "electron",
+                trajectory_step_mm: float = 0.5, reader: dict | None = None,
                 provenance: dict | None = None, progress=None) -> QualityRun:  # fmt: skip
     """Field quality of a map and its uncertainty from a bench (``cfm-fem quality``).
 
@@ -286,6 +309,12 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
         The adaptive procedure (`run_quality_mc`).
     uncertainty : bool
         False: the map's numbers only.
+    rigidity_Tm : float, optional, T m
+        Track a particle of this rigidity through the map (`track`).
+    energy_gev, particle
+        Or its kinetic energy (GeV) and kind (``"electron"``, ``"proton"``).
+    trajectory_step_mm : float, mm
+        Runge-Kutta step of the trajectory.
     reader : dict, optional
         Reader options of `cfm_fem.io.read_field`.
     provenance : dict, optional
@@ -307,9 +336,13 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
         raise CfmInputError("--up applies to mode gauss; mode htm takes its errors from the bench")
     fm, bench, tolerances = _read_inputs(fieldmap, bench, mode, tolerances, reader)
     notes = list(fm.notes)
-    plan, b_nodes = _scan(fm, sampling, float(r_ref_mm), radius_mm, dz_mm, int(n_angles), notes)
+    plan, b_nodes = scan_plan(fm, sampling, float(r_ref_mm), radius_mm, dz_mm, int(n_angles), notes)
     notes += plan.notes
-    needs_model = uncertainty or b_nodes is None
+    if rigidity_Tm is not None and energy_gev is not None:
+        raise CfmInputError("give --rigidity or --energy, not both")
+    if energy_gev is not None:
+        rigidity_Tm = rigidity_from_energy(float(energy_gev), particle)
+    needs_model = uncertainty or b_nodes is None or rigidity_Tm is not None
     model, model_desc = _field_model(fm, field_model) if needs_model else (None, "none")
     local = LocalField(model, plan.points, b_nodes) if model is not None else None
     b_nom = b_nodes if b_nodes is not None else local.B_nominal
@@ -337,6 +370,36 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
         if budget:
             groups = [run_quality_mc(plan, local, g, vec, n_main, z_len, trials=budget_trials,
                                      **kw) for g in budget_groups(src)]  # fmt: skip
-    return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, None,
+    traj = None
+    if rigidity_Tm is not None:
+        traj = _trajectory(model, plan, nominal, mc, n_main, float(rigidity_Tm),
+                           trajectory_step_mm, energy_gev, particle)  # fmt: skip
+    return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, traj,
                       fm.source, model_desc, src_desc, fm.n_nodes, notes, provenance,
                       time.perf_counter() - t0)  # fmt: skip
+
+
+def _trajectory(model, plan, nominal, mc, n_main, rigidity, step, energy, particle) -> dict:
+    """The ``trajectory`` entry of quality.json: an orbit along the axis through the map."""
+    t = track(model.field_at, rigidity, float(plan.z[0]), float(plan.z[-1]), step_mm=step)
+    straight = float(nominal.integrated[0].real) / (1000.0 * rigidity) * 1e3
+    out = {
+        "rigidity_Tm": rigidity, "energy_GeV": energy,
+        "particle": particle if energy is not None else None,
+        "step_mm": t["step_mm"], "z_range_mm": [float(plan.z[0]), float(plan.z[-1])],
+        "deflection_mrad": t["deflection_mrad"], "deflection_x_mrad": t["deflection_x_mrad"],
+        "deflection_y_mrad": t["deflection_y_mrad"], "sagitta_mm": t["sagitta_mm"],
+        "exit_mm": t["exit_mm"].tolist(),
+        "straight_line_deflection_mrad": straight, "U95_deflection_mrad": None,
+        "definition": "RK4 orbit from (0, 0, z_min) along +z to the plane z_max through the "
+        "model between nodes, positive charge (B_y > 0 bends towards -x); "
+        "straight_line_deflection_mrad: integrated B_1 at R_ref over B rho (small angles); "
+        "U95_deflection_mrad: the deflection times the relative U95 of the integrated main "
+        "harmonic (dipoles; the deflection is proportional to it at small angles)",
+    }  # fmt: skip
+    if mc is not None and n_main == 1:
+        j = VECTOR_NAMES.index("main_integral")
+        out["U95_deflection_mrad"] = float(
+            t["deflection_mrad"] * mc.u95[j] / float(nominal.main_integral_Tmm)
+        )
+    return out
