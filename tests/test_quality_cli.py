@@ -1,5 +1,5 @@
-"""``cfm-fem quality`` end to end: files and keys of DESIGN 4.4, the API's identical numbers, and
-bad input answered with one message and exit code 2, nothing written."""
+"""``cfm-fem quality`` end to end: the files and keys of docs/quality.md, the API's identical
+numbers, and bad input answered with one message and exit code 2, nothing written."""
 
 from __future__ import annotations
 

@@ -81,7 +81,8 @@ def add_args(p):
         "--dz",
         type=float,
         metavar="MM",
-        help="plane spacing of the circle sampling, mm (default: median node spacing)",
+        help="plane spacing of the circle sampling, mm (default: the larger of the median "
+        "node spacing and a quarter of the circle radius)",
     )
     p.add_argument(
         "--angles", type=int, default=64, metavar="K", help="points per circle (default 64)"

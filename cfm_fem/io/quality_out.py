@@ -1,5 +1,5 @@
-"""Files of ``cfm-fem quality``: ``quality.json`` (DESIGN 4.4), ``planes.csv``, and the
-tolerance table a user gives with ``--tolerances``.
+"""Files of ``cfm-fem quality``: ``quality.json`` (keys in docs/quality.md), ``planes.csv``,
+and the tolerance table a user gives with ``--tolerances``.
 
 Tolerance table: CSV with a header row ``quantity,tolerance`` (``#`` comment lines allowed), one
 quantity a row: ``b1`` .. ``b15``, ``a1`` .. ``a15`` (units of 1e-4 of the main harmonic),
@@ -117,7 +117,7 @@ def _tolerance_rows(tolerances: dict, u95) -> list:
 
 
 def quality_summary(run) -> dict:
-    """``quality.json`` of a `cfm_fem.workflows.quality.QualityRun` (DESIGN 4.4; extra keys)."""
+    """``quality.json`` of a `cfm_fem.workflows.quality.QualityRun` (docs/quality.md)."""
     nom = run.nominal
     v = nom.vector()
     mc = run.mc

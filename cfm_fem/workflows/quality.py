@@ -132,12 +132,14 @@ def _read_inputs(fieldmap, bench, mode, tolerances, reader):
     return fm, bench, tolerances
 
 
-def _circle_planes(fm: FieldMap, dz_mm):
-    """Planes k dz inside the map's z range (z = 0 among them when inside), and dz."""
+def _circle_planes(fm: FieldMap, dz_mm, r_mm):
+    """Planes k dz inside the map's z range (z = 0 among them when inside), and dz; default
+    dz: the larger of the median distance between nodes and a quarter of the circle radius
+    (the field changes along z over lengths of the order of the aperture)."""
     pts = fm.points
     if dz_mm is None:
         d, _ = scipy.spatial.cKDTree(pts).query(pts, 2)
-        dz_mm = float(f"{np.median(d[:, 1]):.2g}")
+        dz_mm = float(f"{max(np.median(d[:, 1]), r_mm / 4):.2g}")
     if not (np.isfinite(dz_mm) and dz_mm > 0):
         raise CfmInputError(f"--dz must be a positive length in mm; got {dz_mm}")
     z0, z1 = pts[:, 2].min(), pts[:, 2].max()
@@ -186,7 +188,7 @@ def scan_plan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
             "the line x = y = 0 is not inside the map; harmonics are taken about it",
             file=fm.source,
         )
-    z, dz = _circle_planes(fm, dz_mm)
+    z, dz = _circle_planes(fm, dz_mm, r)
     notes.append(f"circle sampling: planes every {dz:g} mm, circle r = {r:.6g} mm "
                  f"({n_angles} points), read from the model between nodes")  # fmt: skip
     return plan_on_circles(z, r, r_ref_mm, n_angles), None
@@ -296,7 +298,8 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
         Disk (nodes) or circle radius; default the largest disk about the axis the map covers
         (nodes) or 0.9 of it (circles).
     dz_mm : float, optional, mm
-        Plane spacing of the circle sampling; default the median distance between nodes.
+        Plane spacing of the circle sampling; default the larger of the median distance
+        between nodes and a quarter of the circle radius.
     n_angles : int
         Points per circle.
     centre_magnet : bool
