@@ -45,7 +45,8 @@ def harmonics_figure(summary: dict) -> bytes:
 
 
 def centre_figure(summary: dict, deviations) -> bytes:
-    """Monte Carlo centres (um, about the map's centre) with the 95 % covariance ellipse."""
+    """Monte Carlo centres (um, about the map's centre) with the 95 % covariance ellipse about
+    their mean."""
     k = 2 * N_HARMONICS
     d = 1e3 * np.asarray(deviations)[:, k : k + 2]
     cov = np.cov(d.T)
@@ -53,9 +54,13 @@ def centre_figure(summary: dict, deviations) -> bytes:
     t = np.linspace(0, 2 * np.pi, 200)
     ell = (v @ (np.sqrt(CHI2_2DOF_95 * np.maximum(w, 0))[:, None] * np.vstack([np.cos(t),
            np.sin(t)]))).T  # fmt: skip
+    mean = d.mean(axis=0)
+    ell = ell + mean
     fig, ax = plt.subplots(figsize=(5, 5))
     ax.plot(d[:2000, 0], d[:2000, 1], ".", ms=2, alpha=0.4, color="C0", label="trials")
-    ax.plot(ell[:, 0], ell[:, 1], "k-", lw=1.5, label="95 % ellipse")
+    ax.plot(ell[:, 0], ell[:, 1], "k-", lw=1.5, label="95 % ellipse about the mean")
+    ax.plot([mean[0]], [mean[1]], "k+", ms=10, label="mean (systematic)")
+    ax.plot([0.0], [0.0], "rx", ms=8, label="map's centre")
     c = summary["centre_mm"]
     ax.set_title(f"centre ({c[0] * 1e3:.3g}, {c[1] * 1e3:.3g}) um; deviations", fontsize=9)
     ax.set_xlabel("x deviation (um)")
@@ -138,8 +143,9 @@ def quality_report(run, summary: dict, command_line: str | None = None) -> HtmlR
     if run.mc is not None:
         r.heading("Magnetic centre")
         r.figure("centre.png", centre_figure(summary, run.mc.deviations),
-                 "Centre of each Monte Carlo trial minus the map's, and the 95 % ellipse of "
-                 "their covariance (chi-square, 2 degrees of freedom).")  # fmt: skip
+                 "Centre of each Monte Carlo trial minus the map's, their mean (the bench's "
+                 "systematic error) and the 95 % ellipse of their covariance about it "
+                 "(chi-square, 2 degrees of freedom).")  # fmt: skip
     b = (u or {}).get("budget")
     if b:
         r.heading("Budget by error group")
