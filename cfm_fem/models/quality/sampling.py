@@ -19,10 +19,13 @@ import numpy as np
 
 from ... import _kernels
 from ...errors import CfmInputError
+from ...threads import map_blocks
 from ..harmonic import HarmonicFit, neighbourhoods
 from ..harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
 __all__ = ["LocalField"]
+
+_EVAL_BLOCK = 65536  # points per call of the evaluation kernel on a thread
 
 
 class LocalField:
@@ -84,8 +87,13 @@ class LocalField:
         inside = np.sqrt((rel**2).sum(-1)) <= self._reach[None]
         u = np.ascontiguousarray((rel / self._scale[None, :, None]).reshape(-1, 3))
         which = np.tile(self._which, m)
-        out = np.empty((m * n, 3))
-        _kernels.poly_points(self._cexp, which, self._exps, u, out)
+
+        def block(i0, i1):  # points are independent: any split gives the same numbers
+            out = np.empty((i1 - i0, 3))
+            _kernels.poly_points(self._cexp, which[i0:i1], self._exps, u[i0:i1], out)
+            return (out,)
+
+        (out,) = map_blocks(block, m * n, _EVAL_BLOCK)
         return out.reshape(m, n, 3), inside
 
     def read(self, disp) -> tuple[np.ndarray, np.ndarray]:
