@@ -23,6 +23,7 @@ conditioned) and rescaled to R_ref by (R_ref / r)^(n-1). Orders the points canno
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from math import comb
 
@@ -190,10 +191,17 @@ def plan_from_nodes(points, r_ref_mm: float, *, r_fit_mm: float | None = None,
     """
     pts = np.asarray(points, dtype=np.float64)
     zp, index = node_planes(pts)
-    key = np.round(pts[:, :2], 9)
+    counts = np.bincount(index, minlength=zp.size)
+    if zp.size < MIN_PLANES or np.median(counts) < 3:  # scattered nodes: no planes
+        raise CfmInputError(
+            f"the map's nodes do not lie in z planes sharing one (x, y) pattern ({zp.size} "
+            "distinct z values); use the circle sampling of the model between nodes",
+            file=source,
+        )
+    key = np.round(pts[:, :2], 9)[np.argsort(index, kind="stable")]
     # (x, y) pattern shared by the planes: the pattern of the most common kind of plane
-    sets = [frozenset(map(tuple, key[index == p])) for p in range(zp.size)]
-    common = max(set(sets), key=sets.count)
+    sets = [frozenset(map(tuple, k)) for k in np.split(key, np.cumsum(counts)[:-1])]
+    common = Counter(sets).most_common(1)[0][0]
     keep = np.array([s >= common for s in sets])
     if keep.sum() < MIN_PLANES or len(common) < 3:
         raise CfmInputError(
