@@ -139,3 +139,20 @@ def test_adaptive_run_stops_at_the_cap_and_says_so(field_map):
     assert mc.trials == 300 and mc.batches == 3 and not mc.converged
     assert any("adaptive Monte Carlo stopped at 300 trials" in n for n in res.summary["notes"])
     assert res.summary["uncertainty"]["numerical_tolerance"]["converged"] is False
+
+
+@pytest.mark.parametrize("model", ["paper", "table1"])
+def test_probe_reading_is_the_probe_model(model):
+    from cfm_fem.models.probe import HallProbe, apply_probe
+    from cfm_fem.models.quality.uncertainty import PROBE_STREAM, _probe_read
+
+    rng = np.random.default_rng(0)
+    B = rng.normal(size=(4, 7, 3))
+    r = np.linalg.qr(rng.normal(size=(3, 3)))[0]  # bench -> magnet rotation
+    probe = HallProbe(model)
+    out = _probe_read(probe, B, 5, 3, r)
+    for j in range(4):
+        draw = probe.sample(
+            np.random.default_rng(np.random.SeedSequence(3, spawn_key=(PROBE_STREAM, 5 + j)))
+        )
+        np.testing.assert_allclose(out[j], apply_probe(B[j] @ r, draw) @ r.T, atol=1e-14)

@@ -39,7 +39,7 @@ from ...errors import CfmInputError
 from ..bench import ERROR_NAMES, Bench, ReadingDelay
 from ..kinematics.geometry import draw_error_sets, kernel_geometry, noise_keys
 from ..mc import numerical_tolerance, symmetric_interval
-from ..probe import HallProbe, ProbeDraws, apply_probe
+from ..probe import HallProbe
 from .harmonics import VECTOR_NAMES, ScanPlan, fit_planes, quality_numbers
 from .sampling import LocalField
 
@@ -138,12 +138,13 @@ def _probe_read(probe: HallProbe, B, t0: int, seed: int, r_probe) -> np.ndarray:
             np.random.SeedSequence(int(seed), spawn_key=(PROBE_STREAM, t0 + j))), ())
         for j in range(m)
     ]  # fmt: skip
-    d = ProbeDraws(
-        np.stack([x.gain for x in draws])[:, None],
-        np.stack([x.offset_T for x in draws])[:, None],
-        np.stack([x.directions for x in draws])[:, None],
-    )
-    return apply_probe(B @ r_probe, d) @ r_probe.T
+    gain = np.stack([x.gain for x in draws])[:, None]  # (m, 1, 3)
+    if probe.model == "paper":  # one factor for the three components, no offset, no tilt
+        return B * gain
+    offset = np.stack([x.offset_T for x in draws])[:, None]
+    directions = np.stack([x.directions for x in draws])  # (m, 3, 3)
+    mixed = np.einsum("mij,mnj->mni", directions, B @ r_probe)  # B_meas_i = g_i n_i . B + o_i
+    return (gain * mixed + offset) @ r_probe.T
 
 
 @dataclass
