@@ -87,6 +87,9 @@ def _bad(argv, out, capsys):
         (["--r-ref", "4", "--up", "10", "--trials", "5"], "--trials must be >= 20"),
         (["--r-ref", "4", "--up", "10", "--main-order", "16"], "--main-order must be 1 .. 15"),
         (["--r-ref", "4", "--up", "10", "--sampling", "circles", "--radius", "30"], "outside"),
+        (["--r-ref", "4", "--up", "10", "--energy", "-1"], "positive kinetic energy in GeV"),
+        (["--r-ref", "4", "--up", "10", "--rigidity", "1", "--energy", "2"], "not allowed"),
+        (["--r-ref", "4", "--mode", "htm", "--bench", "none.toml"], "none.toml"),
     ],
 )
 def test_bad_options(map_file, tmp_path, capsys, extra, expect):

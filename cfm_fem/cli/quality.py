@@ -143,15 +143,15 @@ def _check(args):
                         ("--angles", args.angles, 3)):  # fmt: skip
         if v < low:
             raise CfmInputError(f"{opt} must be >= {low}; got {v}")
-    for opt, v in (
-        ("--radius", args.radius),
-        ("--dz", args.dz),
-        ("--rigidity", args.rigidity),
-        ("--energy", args.energy),
-        ("--trajectory-step", args.trajectory_step),
+    for opt, v, what in (
+        ("--radius", args.radius, "length in mm"),
+        ("--dz", args.dz, "length in mm"),
+        ("--rigidity", args.rigidity, "rigidity in T m"),
+        ("--energy", args.energy, "kinetic energy in GeV"),
+        ("--trajectory-step", args.trajectory_step, "length in mm"),
     ):
         if v is not None and not (0 < v < float("inf")):
-            raise CfmInputError(f"{opt} must be a positive length in mm; got {v:g}")
+            raise CfmInputError(f"{opt} must be a positive {what}; got {v:g}")
     if args.mode == "gauss" and args.up is None:
         raise CfmInputError("--mode gauss needs --up UM")
     if args.up is not None and (args.bench or args.centre_magnet):
