@@ -18,6 +18,7 @@ from .api import (
     run_design,
     run_diagnose,
     run_kinematics,
+    run_quality,
     run_sweep,
 )
 from .errors import CfmInputError, CfmInputWarning
@@ -38,5 +39,6 @@ __all__ = [
     "run_design",
     "run_diagnose",
     "run_kinematics",
+    "run_quality",
     "run_sweep",
 ]

@@ -29,6 +29,7 @@ __all__ = [
     "run_compare",
     "run_diagnose",
     "run_design",
+    "run_quality",
     "SWEEP_TRIALS",
 ]
 
@@ -274,3 +275,37 @@ def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed
     return admissible_up(maps.up_um, ends[..., 0], ends[..., 1], res.complete()[inside], uf_max,
                          coverage=coverage, rel_mc_std=maps.summary["uf_relative_mc_std"],
                          seed=seed)  # fmt: skip
+
+
+def run_quality(field, r_ref_mm: float, *, up_um=None, mode=None, bench=None, trials=None,
+                seed: int = 0, progress=None, **options):  # fmt: skip
+    """Field quality of a map and its uncertainty from a bench (``cfm-fem quality``).
+
+    Parameters
+    ----------
+    field : path-like or FieldMap
+    r_ref_mm : float, mm
+        Reference radius of the harmonics.
+    up_um : float, optional, um
+        Mode gauss: standard deviation per axis of the scan points.
+    mode : {"gauss", "htm"}, optional
+        Default gauss with ``up_um``, else htm.
+    bench : Bench or path-like, optional
+        Mode htm (default the reference bench).
+    trials : int, optional
+        Fixed trial count; default adaptive (JCGM 101 7.9.4).
+    seed : int
+    progress : callable(int), optional
+    **options
+        Other arguments of `cfm_fem.workflows.quality.run_quality` (``probe``, ``sampling``,
+        ``main_order``, ``tolerances``, ``centre_magnet``, ``budget``, ...).
+
+    Returns
+    -------
+    cfm_fem.workflows.quality.QualityRun
+        ``.summary`` is ``quality.json``; ``.write(out_dir)`` writes the command's files.
+    """
+    from .workflows.quality import run_quality as run
+
+    return run(field, r_ref_mm, up_um=up_um, mode=mode, bench=bench, trials=trials, seed=seed,
+               progress=progress, **options)  # fmt: skip

@@ -80,6 +80,15 @@ EXAMPLES = [
         "(paper eq. 12-14, pooled as Table V), with an HTML report.",
     ),
     (
+        "quality",
+        "cfm-fem quality meshes/quadrupole.vtu --r-ref 10 --mode htm --out quality/",
+        "field quality of a map and how well the bench determines it",
+        "Integrated harmonics b_n, a_n at R_ref, magnetic centre, roll and magnetic length of a "
+        "field map, with the U95 of each from the bench (Monte Carlo of the scan, adaptive) "
+        "and the budget by error group; a particle's deflection with `--rigidity`. Method and "
+        "outputs: [quality.md](quality.md).",
+    ),
+    (
         "fig4",
         "cfm-fem fig4 meshes/quadrupole.vtu --out fig4/",
         "U_f against U_p (Fig. 4)",

@@ -33,6 +33,7 @@ _COMMANDS = [
     "kinematics",
     "tolerance",
     "coupled",
+    "quality",
     "fig4",
     "compare",
     "diagnose",
