@@ -306,6 +306,25 @@ def _check_inline_json(command: str, outs, file: str, extra=frozenset(), nested=
     assert not unwritten, f"{command} {file}: in outputs.md, not written: {unwritten}"
 
 
+def _quadrupole_map(path: Path) -> Path:
+    """A 7 x 7 x 11 grid about the z axis holding a quadrupole field, 0.05 T/mm."""
+    ax, az = np.linspace(-3.0, 3.0, 7), np.linspace(-10.0, 10.0, 11)
+    pts = np.stack(np.meshgrid(ax, ax, az, indexing="ij"), -1).reshape(-1, 3)
+    B = np.c_[0.05 * pts[:, 1], 0.05 * pts[:, 0], np.zeros(len(pts))]
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, B])
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    return path
+
+
+def _check_json_keys(command: str, out: Path, file: str) -> None:
+    """The top-level keys of ``file`` against the section's key table of that file."""
+    keys = set(json.loads((out / file).read_text()))
+    documented = _documented(command, "key", file)
+    assert keys == documented, f"{command} {file}: written {keys - documented}, " + (
+        f"documented {documented - keys}"
+    )
+
+
 def test_other_commands_outputs_match_the_page(tmp_path):
     path = _csv_map(tmp_path / "map.csv", n=5)
     from cfm_fem.io.harmonics import qfdp4_path
@@ -321,6 +340,8 @@ def test_other_commands_outputs_match_the_page(tmp_path):
         "compare_hall": ["compare", "--hall-map", str(hall), "--reference", str(qfdp4_path()),
                          "--trials", "60"],
         "diagnose": ["diagnose", "--tracker", str(rec)],
+        "quality": ["quality", str(_quadrupole_map(tmp_path / "quad.csv")), "--r-ref", "2",
+                    "--up", "20", "--trials", "100"],
     }  # fmt: skip
     outs = {}
     for name, argv in runs.items():
@@ -338,6 +359,8 @@ def test_other_commands_outputs_match_the_page(tmp_path):
         (_check_inline_json, ("fig4", [outs["fig4"]], "fig4.json", sweep_keys)),
         (_check_inline_json, ("compare", [outs["compare"], outs["compare_hall"]], "compare.json")),
         (_check_inline_json, ("diagnose", [outs["diagnose"]], "diagnosis.json", (), False)),
+        (_check_files, ("quality", [outs["quality"]])),
+        (_check_json_keys, ("quality", outs["quality"], "quality.json")),
     ]
     problems = []
     for check, args in checks:  # every mismatch at once, not the first
