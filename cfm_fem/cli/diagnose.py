@@ -141,12 +141,15 @@ def _reference(spec, rec, r_ref=None, args=None):
     from ..models.interpolation import LinearInterpolator
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
+    spacing = node_spacing_mm(fm.points)
     if field_model == "harmonic":
         from ..models.harmonic import fit_harmonic
 
         interp = fit_harmonic(fm.points, fm.B, source=fm.source)
     else:
-        interp = LinearInterpolator(fm)
+        from ..models.curvature import CurvatureCorrected
+
+        interp = CurvatureCorrected(LinearInterpolator(fm), spacing)
 
     def fn(p):
         b, inside = interp.field_at(p)
@@ -165,7 +168,6 @@ def _reference(spec, rec, r_ref=None, args=None):
             file=rec.source,
             line=int(rec.lines[i]) or None,
         )
-    spacing = node_spacing_mm(fm.points)
     desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
     if field_model == "harmonic":  # smooth between nodes: no interpolation error to add
         return (
@@ -175,6 +177,8 @@ def _reference(spec, rec, r_ref=None, args=None):
             (desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"),
         )
     fn.nodes = fm.points  # the interpolation is exact there
+    fn.error_var = interp.error_var
+    desc = desc[:-1] + ", interpolated linearly with its curvature corrected)"
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 
 
@@ -246,9 +250,12 @@ def _run(args) -> int:
         if args.b_ref is not None:
             b_ref = args.b_ref
         nodes = getattr(fn, "nodes", None)
-        prob = hall_problem(
-            rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes
-        )
+        err = getattr(fn, "error_var", None)
+        if err is not None:  # a map with its curvature corrected: smooth to second order
+            prob = hall_problem(rec, fn, b_ref, bench, ref_error_var=err)
+        else:
+            prob = hall_problem(rec, fn, b_ref, bench, smooth=spacing is None,
+                                ref_spacing_mm=spacing, ref_nodes=nodes)  # fmt: skip
         prob.notes.append(f"reference: {desc}")
         src = args.hall_map
     print(f"cfm-fem diagnose: {len(rec)} rows from {src}", file=sys.stderr)

@@ -501,6 +501,7 @@ def hall_problem(
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
     pose=None,
+    ref_error_var=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -538,6 +539,11 @@ def hall_problem(
     pose : ndarray, shape (6,), optional
         Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
         None: the nominal placement.
+    ref_error_var : callable, optional
+        ``ref_error_var(points (k, 3) mm) -> (k, 3) T^2``: variance of a smooth reference's
+        own error between the nodes of the map it comes from (a map interpolated with its
+        curvature corrected, :class:`~cfm_fem.models.curvature.CurvatureCorrected`), added
+        to the noise.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -547,7 +553,8 @@ def hall_problem(
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
-                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes)  # fmt: skip
+                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
+                      ref_error_var=ref_error_var)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
@@ -590,7 +597,16 @@ def hall_problem(
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
-    if ref_spacing_mm is not None and not smooth:
+    if ref_error_var is not None:
+        var_ref = np.asarray(ref_error_var(upts), dtype=float)[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        notes.append(
+            "reference map interpolated between its nodes linearly with its curvature "
+            "corrected (second-order accurate): the error that leaves (rms "
+            f"{rms:.3g} units over the readings, from its third derivatives) is added to the "
+            "noise"
+        )
+    elif ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         notes.append(

@@ -418,6 +418,22 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
     )
 
 
+def _final_baseline(model, fit1, base) -> list:
+    """The baseline parameters (registration, gains, bench) as the final model fits them,
+    the accepted effects beside them: ``name``, ``unit``, ``value``, ``std``. The calibration
+    (``calibration.parameters``) fits the baseline alone, so a signature it lacks (an offset,
+    say) can pull a parameter it trades with, such as a shift along a fringe against a common
+    gain."""
+    out = []
+    for nm in base.names:
+        if nm in model.names:
+            i = model.names.index(nm)
+            std = float(np.sqrt(max(fit1.cov[i, i], 0.0)))
+            out.append({"name": nm, "unit": model.units[i], "value": float(fit1.theta[i]),
+                        "std": std})  # fmt: skip
+    return out
+
+
 def _outlier_entries(isolated) -> list:
     return [
         {
@@ -502,7 +518,10 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "outliers": [{k: v for k, v in d.items() if k != "rows"} for d in isolated],
         "untestable": a.untestable,
         "overlaps": [{"a": x, "b": y, "overlap": round(v, 3)} for x, y, v in ov],
-        "calibration": cal.calib,
+        "calibration": {
+            **cal.calib,
+            "parameters_final": _final_baseline(sel.model, fit1, cal.base),
+        },
         "thresholds": o,
         "kind": prob.kind,
         "notes": p.notes + [n for n in [registration_note(p)] if n],
