@@ -283,7 +283,8 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
 
     Five-point stencil: exact for fields polynomial up to degree 5 along each axis, so the
     Laplace identity sum_j d^2 B_i / dx_j^2 = 0 of a harmonic reference holds to rounding (the
-    averaging signatures rely on it)."""
+    averaging signatures rely on it). 0 where a stencil point lies outside the map a reference
+    comes from (NaN there): no curvature is known at that point."""
     b0 = f(p)
     out = np.empty((len(p), 3, 3))
     for j in range(3):
@@ -292,6 +293,7 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
         out[:, :, j] = (-f(p + 2 * e) + 16 * f(p + e) - 30 * b0 + 16 * f(p - e) - f(p - 2 * e)) / (
             12 * h**2
         )
+    out[~np.isfinite(out)] = 0.0
     return out
 
 
@@ -417,19 +419,31 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
     node spacing: a shorter step sees no curvature inside a cell), default ``h``.
 
-    A smooth reference is evaluated at the moved points. A map interpolated linearly between
+    A smooth reference is evaluated at the moved points (expanded as below at a point the move
+    takes off the border of the map it comes from). A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
     to the next, and a point moved outside it has no value. Its field is expanded to second
     order about the points instead (value, gradient and Hessian by differences of step ``h``:
     node values on a map with nodes either side of each point), which holds the second-order
     terms of the move."""
-    from scipy.spatial.transform import Rotation
 
     fn = posed_field(field_fn, pose)
     if not np.any(pose):
         return field_fn(upts), field_jacobian(field_fn, upts, h), fn
     if smooth:
-        return fn(upts), field_jacobian(fn, upts, h), fn
+        B, G = fn(upts), field_jacobian(fn, upts, h)
+        out = ~np.isfinite(B).all(1)  # moved off a map's border: expanded about the point
+        if out.any():
+            B[out], G[out] = _expanded(field_fn, upts[out], pose, h, h2)
+        return B, G, fn
+    return (*_expanded(field_fn, upts, pose, h, h2), fn)
+
+
+def _expanded(field_fn, upts, pose, h, h2):
+    """Field and gradient at ``upts`` with the magnet at ``pose``, expanded to second order
+    about the points (:func:`_field_at_pose`)."""
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
     d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
     B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
@@ -437,7 +451,7 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     Hd = np.einsum("nijk,nk->nij", H, d)
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
     G = G + Hd
-    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R)
 
 
 #: Prior std of the magnet-to-bench registration where neither the caller nor the bench file
