@@ -28,6 +28,7 @@ from cfm_fem.cli import main
 from cfm_fem.cli.diagnose import node_spacing_mm
 from cfm_fem.io import read_field
 from cfm_fem.io.recordings import write_hall_map
+from cfm_fem.models.curvature import CurvatureCorrected
 from cfm_fem.models.interpolation import LinearInterpolator
 from cfm_fem.models.recordings import Recording
 from cfm_fem.workflows.diagnose.problem import hall_problem
@@ -99,22 +100,21 @@ def upstream(body, tmp_path_factory):
 
 
 def _diagnose(rec, body):
-    interp = LinearInterpolator(body)
+    """The diagnosis against the body scan read as the command line reads it (its linear
+    interpolant with the curvature corrected), without a bench."""
+    interp = CurvatureCorrected(LinearInterpolator(body), node_spacing_mm(body.points))
 
     def field(p):
         return interp.field_at(p)[0]
 
     b_ref = float(np.nanmax(np.linalg.norm(body.B, axis=1)))
-    h = node_spacing_mm(body.points)
-    return diagnose(
-        hall_problem(rec, field, b_ref, None, smooth=False, ref_spacing_mm=h, ref_nodes=body.points)
-    ).summary
+    return diagnose(hall_problem(rec, field, b_ref, None, ref_error_var=interp.error_var)).summary
 
 
 def _shift_close(s, owners, tol_xy_um, tol_z_um):
-    """The released shifts (the effect) and the others (calibrated within their survey prior)
-    near the owners' fit."""
-    p = {d["name"]: d["value"] for d in s["calibration"]["parameters"]}
+    """The released shifts (the effect) and the others (fitted within their survey prior,
+    beside the effects) near the owners' fit."""
+    p = {d["name"]: d["value"] for d in s["calibration"]["parameters_final"]}
     p.update(s["effects"][0]["params"])
     for k, tol in (("magnet_dx", tol_xy_um), ("magnet_dy", tol_xy_um), ("magnet_dz", tol_z_um)):
         assert abs(p[k] - owners[k]) < tol, (k, p[k], owners[k])
@@ -135,7 +135,8 @@ def test_upstream_noise_is_stated_with_the_reference_error(upstream):
     nm = s["fit"]["noise_model"]
     assert "second differences" in nm["source"]
     assert nm["reference_error_rms"] > 0
-    assert any("interpolated linearly between nodes 4.98 mm apart" in n for n in s["notes"])
+    assert any("nodes 4.98 mm apart, interpolated linearly with its curvature corrected" in n
+               for n in s["notes"])  # fmt: skip
     assert 0.3 < s["fit"]["chi2_dof_after"] < 2.0
 
 
