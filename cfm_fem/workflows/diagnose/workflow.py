@@ -327,7 +327,9 @@ def _noise_doc(prob, noise) -> dict:
         "vibration_scale": [float(v) for v in noise.scale],
         "dof": noise.dof,
         "model": "sigma^2 = floor_std^2 + vibration_scale * (bench vibration through the "
-        "gradient)^2, per component, both estimated from the data",
+        "gradient)^2 per component, a floor per component and one vibration scale (the same "
+        "for the three: one bench), both estimated from the data, no component below its "
+        "own scatter",
     }
 
 
