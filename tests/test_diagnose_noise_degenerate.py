@@ -83,3 +83,45 @@ def test_an_all_zero_field_is_refused_with_the_input_named(synth_hall, tmp_path,
     err = capsys.readouterr().err
     assert "--reference fit:3" in err and "zero everywhere" in err and "Traceback" not in err
     assert not (out / "diagnosis.json").exists()
+
+
+def _shifted(path, out, dx_mm):
+    lines = path.read_text().splitlines()
+    rows = [ln.split(",") for ln in lines if not ln.startswith("#")]
+    i = rows[0].index("x_cmd")
+    for r in rows[1:]:
+        r[i] = repr(float(r[i]) + dx_mm)
+    out.write_text("\n".join([ln for ln in lines if ln.startswith("#")]
+                             + [",".join(r) for r in rows]) + "\n")  # fmt: skip
+    return out
+
+
+def _tesla_harmonics(out):
+    from importlib import resources
+
+    text = resources.files("cfm_fem.data").joinpath("qfdp4_harmonics.csv").read_text()
+    out.write_text(text.replace("# convention: paper_units", "# convention: tesla"))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["fitz:4", "tesla", "500 mm off"])
+def test_inputs_that_ended_in_nnls_tracebacks_run(synth_hall, tmp_path, case):
+    """Residuals of a component exactly zero made the noise fit's weights infinite; each of
+    these inputs ran into it. They run now, with finite noise stated."""
+    if case == "fitz:4":
+        rec, ref = synth_hall, "fitz:4"
+    elif case == "tesla":
+        rec, ref = synth_hall, str(_tesla_harmonics(tmp_path / "q.csv"))
+    else:
+        ref = str(_tesla_harmonics(tmp_path / "q.csv").with_name("q.csv"))
+        from importlib import resources
+
+        text = resources.files("cfm_fem.data").joinpath("qfdp4_harmonics.csv").read_text()
+        (tmp_path / "q.csv").write_text(text)
+        rec = _shifted(synth_hall, tmp_path / "off.csv", 500.0)
+    out = tmp_path / "d"
+    assert main(["diagnose", "--hall-map", str(rec), "--reference", ref, "--no-report",
+                 "--out", str(out)]) == 0  # fmt: skip
+    s = json.loads((out / "diagnosis.json").read_text())
+    assert all(np.isfinite(s["fit"]["noise_std"]))

@@ -3,7 +3,9 @@ recordings, locate significant residuals, attribute them to catalogued physical 
 model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
 DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
---reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
+--reference FIELD: a field map (any format cfm-fem reads; with --field-model linear, the default,
+read between its nodes by its linear interpolant with the curvature corrected, second-order
+accurate), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
 itself (global, or in z windows).
 """
