@@ -130,10 +130,9 @@ def load_bench(args):
 
 
 def _parse_z(text):
-    try:
-        return [float(v) for v in text.split(",")]
-    except ValueError:
-        raise CfmInputError(f"--z must be comma-separated numbers in mm; got {text!r}") from None
+    from ._checks import number_list
+
+    return number_list(text, "--z", what="numbers in mm")
 
 
 #: Most scan points of --radius/--step: each point is a full Monte Carlo of --trials (default

@@ -70,7 +70,7 @@ def run(args) -> int:
         raise CfmInputError(f"--coverage must be in (0, 1]; got {args.coverage}")
     from ..workflows.sweep.problem import check_options
 
-    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref)
+    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref, len(up))
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):

@@ -30,17 +30,10 @@ HELP = "U_f maps (95 %%) of a field map for a sweep of U_p; VTK output for ParaV
 
 
 def _triplet(text):
-    try:
-        v = tuple(float(x) for x in text.split(","))
-        if len(v) == 1:
-            v = v * 3
-        if len(v) != 3:
-            raise ValueError
-        return v
-    except ValueError:
-        raise CfmInputError(
-            f"--axis-scale must be one number or three comma-separated numbers; got {text!r}"
-        ) from None
+    from ._checks import number_list
+
+    v = number_list(text, "--axis-scale", (1, 3))
+    return tuple(v * 3 if len(v) == 1 else v)
 
 
 def add_args(p):
@@ -395,7 +388,7 @@ def run(args) -> int:
     from ..workflows.sweep.distributed import check_scale_out
     from ..workflows.sweep.problem import check_options
 
-    check_options(args.trials, args.axis_scale, args.b_ref)
+    check_options(args.trials, args.axis_scale, args.b_ref, len(up), args.mode)
     check_scale_out(args.scheduler, args.workers)
     if args.slabs is not None or args.max_memory is not None:
         _check_slab_options(args)
@@ -522,9 +515,10 @@ def _run(args, up) -> int:
         )
     else:
         summary = write_sweep(args.out, res, prov, remove_stale=False)
-    runner.finish(keep=args.keep_chunks)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
     _write_report(args.out)
+    # the chunk store goes last: a run stopped before every output is written resumes from it
+    runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out)
     return 0
 
@@ -561,15 +555,20 @@ def _explain_outside(s):
     print(textwrap.fill(text, width=100, subsequent_indent="  "))
 
 
+def _number(v) -> str:
+    """``v`` to 3 significant digits, or '-' when there is none (None: no node of that kind)."""
+    return "-" if v is None else f"{v:.3g}"
+
+
 def _print_summary(s, out):
     h = s.get("harmonic")
     if h is None:
         print(f"interpolation: {s['interpolation']}")
     else:
-        degrees = ", ".join(f"{n} of degree {d}" for d, n in h["nodes_by_degree"].items())
+        degrees = ", ".join(f"{n} of degree {d}" for d, n in h["nodes_by_degree"].items()) or "none"
         print(
             f"field model: harmonic fit per node to its {h['neighbours']} nearest nodes "
-            f"({degrees}); RMS residual p95 {h['residual_units']['p95']:.3g} units; "
+            f"({degrees}); RMS residual p95 {_number(h['residual_units']['p95'])} units; "
             f"{h['linear_fallback_nodes']} node(s) on the linear interpolant "
             f"({s['interpolation']})"
         )

@@ -9,11 +9,12 @@ its PDFs; the same seed gives the same file. Feed the file to `cfm-fem compare` 
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 from ..errors import CfmInputError
-from ._checks import check_seed
+from ._checks import check_seed, number_list
 
 NAME = "synth"
 HELP = "write a synthetic tracker recording or Hall map of a simulated bench (CSV)"
@@ -46,12 +47,12 @@ def add_args(p):
 
 
 def _numbers(text, count, option, kind=float):
-    try:
-        v = [kind(x) for x in text.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != count:
-        raise CfmInputError(f"{option} must be {count} comma-separated numbers; got {text!r}")
+    v = number_list(text, option, count)
+    if kind is int:
+        if any(x != int(x) for x in v):
+            raise CfmInputError(f"{option} must be {count} comma-separated whole numbers; "
+                                f"got {text!r}")  # fmt: skip
+        v = [int(x) for x in v]
     return v
 
 
@@ -76,7 +77,28 @@ def _check(args):
     grid = _numbers(args.grid, 3, "--grid", int)
     if min(grid) < 1:
         raise CfmInputError(f"--grid counts must be >= 1; got {args.grid!r}")
+    _check_rows(args, grid)
     return grid, _numbers(args.magnet_offset, 2, "--magnet-offset")
+
+
+#: Bytes a synthetic recording holds per row until it is written: its arrays (positions,
+#: ids, directions, the bench chain's intermediates) and the text of its CSV row.
+ROW_BYTES = 1000
+
+
+def _check_rows(args, grid) -> None:
+    """Refuse a recording whose rows do not fit in memory, before any is made."""
+    from ..threads import check_memory
+
+    if args.kind == "tracker":
+        what, points = "--grid and --reps", math.prod(grid)
+        reps = args.reps or 5
+    else:
+        from ..workflows.synthetic import hall_map_points
+
+        what, points = "--reps", len(hall_map_points())
+        reps = args.reps or 10
+    check_memory(f"synth {args.kind} {what}", points * reps, ROW_BYTES, "rows")
 
 
 def run(args) -> int:

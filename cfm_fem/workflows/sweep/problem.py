@@ -13,6 +13,7 @@ from collections import namedtuple
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
@@ -28,7 +29,7 @@ from ...models.mesh import (
     no_search,
 )
 from ...models.sweep import FIELD_MODELS, HTM_PARTS, OUTSIDE_RULES, SweepConfig, up_label
-from ...threads import map_blocks
+from ...threads import check_memory, map_blocks
 
 __all__ = [
     "node_keys",
@@ -124,17 +125,45 @@ def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 
     return grad
 
 
-def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
+def trial_bytes(n_columns: int, mode: str = "gauss") -> float:
+    """Bytes a sweep holds per Monte Carlo trial, whatever the map's size.
+
+    Each kernel thread keeps per node the trials of every U_p column and component (a
+    (n_columns, 3, trials) and a (n_columns, trials) array) and some 17 scratch rows of
+    ``trials`` values; mode htm also keeps the 21 geometric errors and their chain terms of
+    every trial.
+
+    Parameters
+    ----------
+    n_columns : int
+        U_p values (mode gauss) or bench columns (mode htm).
+    mode : {'gauss', 'htm'}
+
+    Returns
+    -------
+    float
+        Bytes per trial.
+    """
+    per_thread = 8.0 * (4 * max(int(n_columns), 1) + 24)
+    shared = 8.0 * 2 * 21 if mode == "htm" else 0.0
+    return numba.get_num_threads() * per_thread + shared
+
+
+def check_options(
+    trials: int, axis_scale, b_ref_T: float | None, n_columns: int = 1, mode: str = "gauss"
+) -> None:
     """The checks of a `SweepConfig` that need no map: the command line runs them before it
     reads the map (which can take minutes), `_check_config` again for a Python caller.
 
     Raises
     ------
     CfmInputError
-        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0.
+        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0, or
+        more trials than the memory holds (`cfm_fem.threads.check_memory`, `trial_bytes`).
     """
     if trials < 20:
         raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {trials}")
+    check_memory("--trials", trials, trial_bytes(n_columns, mode), "trials")
     if any(not np.isfinite(a) or a < 0 for a in axis_scale) or max(axis_scale) == 0:
         raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {axis_scale}")
     if b_ref_T is not None and not (np.isfinite(b_ref_T) and b_ref_T > 0):
@@ -144,7 +173,7 @@ def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     if cfg.mode not in ("gauss", "htm"):
         raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
-    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T)
+    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T, len(cfg.up_um), cfg.mode)
     if not 0.5 < cfg.coverage < 1.0:
         raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
     if cfg.outside not in OUTSIDE_RULES:
