@@ -216,6 +216,11 @@ OPTION_TOKENS = ["nan", "inf", "-inf", "-1", "0", "1", "-0", "1e14", "1e999", "1
                  "{dir}/bench.toml", "/dev/null", "tcp://127.0.0.1:1"]  # fmt: skip
 
 
+#: Options whose value is a file or folder: a refusal may name the file instead of the option.
+FILE_OPTIONS = {"--bench", "--field", "--tracker", "--hall-map", "--reference", "--harmonics",
+                "--out"}  # fmt: skip
+
+
 def _set(argv: list, option: str, value) -> list:
     """``argv`` with ``option`` set to ``value`` (None: removed; a flag: value True)."""
     argv = list(argv)
@@ -349,8 +354,9 @@ def make_cases(n: int, rng: random.Random, seeds_only: bool = False, commands=No
                 value = rng.choice(OPTION_TOKENS)
             argv = _apply(BASES[cmd], [option, value])
             names = [option]
-            if isinstance(value, str) and value.startswith("{dir}/"):
-                names.append(value.removeprefix("{dir}/"))
+            if option in FILE_OPTIONS and isinstance(value, str) and value.strip():
+                names.append(value.removeprefix("{dir}/").removeprefix("{dir}"))
+            names = [n for n in names if n]
             label = f"{cmd} {option} {value!r}"
         for key, name in placeholders.items():
             argv = [a.replace("{" + key + "}", "{dir}/" + name) for a in argv]
