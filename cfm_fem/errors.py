@@ -49,6 +49,8 @@ def location(file=None, line=None) -> str:
     """Format ``file:line`` (either part optional) for messages."""
     if file is None:
         return "" if line is None else f"line {line}"
+    if not str(file).strip() or str(file) != str(file).strip():  # blanks a reader cannot see
+        file = repr(str(file))
     return f"{file}" if line is None else f"{file}:{line}"
 
 

@@ -354,9 +354,10 @@ def make_cases(n: int, rng: random.Random, seeds_only: bool = False, commands=No
                 value = rng.choice(OPTION_TOKENS)
             argv = _apply(BASES[cmd], [option, value])
             names = [option]
-            if option in FILE_OPTIONS and isinstance(value, str) and value.strip():
+            if option in FILE_OPTIONS and isinstance(value, str):
                 names.append(value.removeprefix("{dir}/").removeprefix("{dir}"))
-            names = [n for n in names if n]
+                names.append(repr(value))  # a blank name is quoted
+            names = [n for n in names if n.strip()]
             label = f"{cmd} {option} {value!r}"
         for key, name in placeholders.items():
             argv = [a.replace("{" + key + "}", "{dir}/" + name) for a in argv]

@@ -604,9 +604,9 @@ def test_the_repository_cites_no_design_notes_outside_it():
 @pytest.mark.parametrize(
     "extra, what",
     [
-        (["--up", "0:10:10"], "--up is used by mode gauss only"),
-        (["--axis-scale", "1,1,2"], "--axis-scale is used by mode gauss only"),
-        (["--up", "5", "--axis-scale", "2"], "--up and --axis-scale are used by mode gauss only"),
+        (["--up", "0:10:10"], "--up is used by --mode gauss only"),
+        (["--axis-scale", "1,1,2"], "--axis-scale is used by --mode gauss only"),
+        (["--up", "5", "--axis-scale", "2"], "--up and --axis-scale are used by --mode gauss only"),
     ],
 )
 def test_gauss_options_in_mode_htm(tmp_path, capsys, extra, what):

@@ -339,3 +339,10 @@ def test_summary_of_a_map_whose_nodes_all_fall_back_to_linear(capsys):
     _print_summary(s, "out")
     printed = capsys.readouterr().out
     assert "(none); RMS residual p95 - units; 40 node(s) on the linear interpolant" in printed
+
+
+@pytest.mark.parametrize("argv", [["kinematics", "--trials", "20"], ["synth", "tracker"]])
+def test_an_out_name_too_long_is_refused(tmp_path, capsys, argv):
+    out = tmp_path / ("x" * 300)
+    err = _refused([*argv, "--out", out], capsys)
+    assert "--out" in err and "File name too long" in err and "expected a" in err, err

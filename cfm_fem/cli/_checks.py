@@ -49,7 +49,16 @@ def check_out_dir(path, option: str = "--out") -> None:
         raise CfmInputError(
             f"{option} is empty; expected the name of an output folder (created if missing)"
         )
-    p = Path(path)
+    try:
+        _check_out_dir(Path(path), path, option)
+    except OSError as exc:  # a name too long, a loop of links, ...: what stat() met
+        raise CfmInputError(
+            f"{option} {str(path)!r} cannot be used: {exc.strerror or exc}; expected a folder "
+            "name the file system takes"
+        ) from None
+
+
+def _check_out_dir(p: Path, path, option: str) -> None:
     if p.exists() and not p.is_dir():
         raise CfmInputError(
             f"{option} {str(path)!r} is an existing file; expected a folder (created if missing)"

@@ -371,8 +371,8 @@ def run(args) -> int:
     given = [o for o, v in (("--up", args.up), ("--axis-scale", args.axis_scale)) if v is not None]
     if given and args.mode == "htm":  # htm draws the probe error from the bench: no U_p in it
         raise CfmInputError(
-            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by mode gauss only "
-            "(mode htm draws the probe error from the bench model); leave "
+            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by --mode gauss "
+            "only (--mode htm draws the probe error from the bench model); leave "
             f"{'it' if len(given) == 1 else 'them'} out"
         )
     args.up = "0:50:10" if args.up is None else args.up

@@ -59,9 +59,19 @@ def _numbers(text, count, option, kind=float):
 def _check(args):
     check_seed(args.seed)
     out = Path(args.out)
-    if out.is_dir():
+    try:
+        is_dir, parent_is_dir = out.is_dir(), out.parent.is_dir()
+        is_file = out.exists() and not is_dir
+        if is_file:  # stat() it too: a name the file system refuses fails here, not later
+            out.stat()
+    except OSError as exc:  # a name too long, a loop of links, ...
+        raise CfmInputError(
+            f"--out {args.out!r} cannot be used: {exc.strerror or exc}; expected a file name "
+            "the file system takes"
+        ) from None
+    if is_dir:
         raise CfmInputError(f"--out {args.out!r} is a folder; expected a file name (FILE.csv)")
-    if not out.parent.is_dir():
+    if not parent_is_dir:
         raise CfmInputError(f"--out {args.out!r}: folder {str(out.parent)!r} does not exist")
     if args.reps is not None and args.reps < 1:
         raise CfmInputError(f"--reps must be >= 1; got {args.reps}")

@@ -92,7 +92,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
                 client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
             except (OSError, TimeoutError, ValueError) as exc:
                 raise CfmInputError(
-                    f"cannot reach the Dask scheduler {scheduler!r}: {exc}; expected the address "
+                    f"--scheduler: cannot reach the Dask scheduler {scheduler!r}: {exc}; "
+                    "expected the address "
                     "of a running scheduler such as tcp://HOST:8786"
                 ) from None
         else:
