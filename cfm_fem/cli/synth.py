@@ -111,6 +111,18 @@ def _check_rows(args, grid) -> None:
     check_memory(f"synth {args.kind} {what}", points * reps, ROW_BYTES, "rows")
 
 
+def _given(args) -> str:
+    """The numeric options of ``args`` that differ from their defaults, as typed."""
+    options = [("--grid", args.grid, "3,3,3"), ("--reps", args.reps, None),
+               ("--tracker-std-um", args.tracker_std_um, 0.0),
+               ("--reversal-um", args.reversal_um, 0.0),
+               ("--drift-um-per-s", args.drift_um_per_s, 0.0),
+               ("--magnet-offset", args.magnet_offset, "0,0"),
+               ("--r-ref", args.r_ref, None)]  # fmt: skip
+    return ", ".join(f"{o} {v:g}" if isinstance(v, float) else f"{o} {v}"
+                     for o, v, default in options if v != default)  # fmt: skip
+
+
 def run(args) -> int:
     grid, offset = _check(args)
     from ..io.bench_toml import read_bench, read_reference_bench
@@ -138,6 +150,10 @@ def run(args) -> int:
         )
         write = write_hall_map
     comments = [f"synthetic: {rec.source}", f"written by: {args.command_line}"]
-    write(args.out, rec, comments=comments)
+    try:
+        write(args.out, rec, comments=comments)
+    except CfmInputError as exc:  # the numbers come from the options: name those given
+        raise CfmInputError(f"{exc.what} (options given: {_given(args) or 'none'})",
+                            file=exc.file) from None  # fmt: skip
     print(f"wrote {args.out} ({len(rec)} rows; {rec.source})", file=sys.stderr)
     return 0

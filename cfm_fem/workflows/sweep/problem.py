@@ -165,9 +165,11 @@ def check_options(
         raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {trials}")
     check_memory("--trials", trials, trial_bytes(n_columns, mode), "trials")
     if any(not np.isfinite(a) or a < 0 for a in axis_scale) or max(axis_scale) == 0:
-        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {axis_scale}")
+        raise CfmInputError(
+            f"--axis-scale (axis_scale) must be finite, >= 0 and not all 0; got {axis_scale}"
+        )
     if b_ref_T is not None and not (np.isfinite(b_ref_T) and b_ref_T > 0):
-        raise CfmInputError(f"B_ref must be a positive field in T; got {b_ref_T}")
+        raise CfmInputError(f"--b-ref (B_ref) must be a positive field in T; got {b_ref_T}")
 
 
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
@@ -460,9 +462,11 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     if cfg.mode == "htm":
         htm, unreachable = _htm_arrays(cfg, fm)
         if unreachable.all():
+            bench = cfg.bench
+            where = "the packaged bench" if bench is None else bench.source
             raise CfmInputError(
-                "no node of the map is within the strokes of the bench's axes; check the magnet "
-                "placement in the bench file ([magnet] rotation_deg, translation_mm)",
+                f"no node of the map is within the strokes of the bench's axes; check the magnet "
+                f"placement in the bench file {where} ([magnet] rotation_deg, translation_mm)",
                 file=fm.source,
             )
         if unreachable.any():
