@@ -355,9 +355,7 @@ def make_cases(n: int, rng: random.Random, seeds_only: bool = False, commands=No
             argv = _apply(BASES[cmd], [option, value])
             names = [option]
             if option in FILE_OPTIONS and isinstance(value, str):
-                names.append(value.removeprefix("{dir}/").removeprefix("{dir}"))
-                names.append(repr(value))  # a blank name is quoted
-            names = [n for n in names if n.strip()]
+                names += [value, repr(value)]  # a blank name is quoted
             label = f"{cmd} {option} {value!r}"
         for key, name in placeholders.items():
             argv = [a.replace("{" + key + "}", "{dir}/" + name) for a in argv]
@@ -468,7 +466,7 @@ def _outputs(folder: Path, inputs) -> list:
 
 def classify(code, err: str, folder: Path, inputs, names) -> str:
     """The outcome of one case (see the module docstring)."""
-    from cfm_fem.errors import one_line, printable
+    from cfm_fem.errors import one_line
 
     if code == "timeout":
         return "failure: hang"
@@ -484,8 +482,9 @@ def classify(code, err: str, folder: Path, inputs, names) -> str:
         return "failure: raw control character on stderr"
     if _outputs(folder, inputs):
         return "failure: output left"
-    if not any(n in lines[0] or printable(n) in lines[0] or one_line(n) in lines[0]
-               for n in names):  # fmt: skip
+    names = [str(n).replace("{dir}", str(folder)) for n in names]
+    names = [one_line(n) for n in names if one_line(n).strip()]
+    if not any(n in lines[0] for n in names):
         return "failure: message not naming its input"
     return "exit 2"
 

@@ -346,3 +346,13 @@ def test_an_out_name_too_long_is_refused(tmp_path, capsys, argv):
     out = tmp_path / ("x" * 300)
     err = _refused([*argv, "--out", out], capsys)
     assert "--out" in err and "File name too long" in err and "expected a" in err, err
+
+
+@pytest.mark.parametrize("value", ["1_000", "\u0661\u0662", "2,5_0"])
+def test_options_refuse_digit_separators_and_other_digits(value):
+    from cfm_fem.cli._checks import number_list
+
+    with pytest.raises(Exception, match="must be a number|finite numbers"):
+        finite_float(value)
+    with pytest.raises(CfmInputError, match=r"--z must be comma-separated finite numbers"):
+        number_list(value, "--z")

@@ -99,6 +99,14 @@ def trial_count_type(option: str = "--trials"):
     return option_type(trial_count, option)
 
 
+def _float(text: str) -> float:
+    """``float(text)`` of plain ASCII number text: Python's float also takes digit separators
+    (``1_000``) and other scripts' digits, which the file readers refuse, so options do too."""
+    if not str(text).isascii() or "_" in str(text):
+        raise ValueError(text)
+    return float(text)
+
+
 def finite_float(text: str) -> float:
     """argparse ``type=`` of every ``type=float`` option (`cfm_fem.cli._Parser` registers it):
     a finite number. ``nan``, ``inf`` and numbers beyond the float range (``1e999``) are
@@ -107,7 +115,7 @@ def finite_float(text: str) -> float:
     import math
 
     try:
-        value = float(text)
+        value = _float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
     if not math.isfinite(value):
@@ -145,7 +153,7 @@ def number_list(text: str, option: str, count=None, what: str = "numbers") -> li
         else f"comma-separated finite {what}"
     )
     try:
-        values = [float(v) for v in str(text).split(",")]
+        values = [_float(v) for v in str(text).split(",")]
     except ValueError:
         values = None
     if values is None or (counts and len(values) not in counts):

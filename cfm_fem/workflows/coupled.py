@@ -406,12 +406,16 @@ def _nominal(field_model: FieldModel, bench: Bench, pts):
         raise CfmInputError(
             f"scan point {i} at {pts[i].tolist()} mm (magnet frame) needs axis positions "
             f"{np.round(q[i], 3).tolist()} mm, outside the strokes {bench.strokes_mm.tolist()}; "
-            "check [magnet] translation_mm of the bench"
+            f"check the scan region (--radius, --step, --z) and [magnet] translation_mm of the "
+            f"bench {bench.source}"
         )
     B_nom, inside = field_model.field(pts)
     if not inside.all():
         i = int(np.argmax(~inside))
-        raise CfmInputError(f"scan point {i} at {pts[i].tolist()} mm is outside the field map")
+        raise CfmInputError(
+            f"scan point {i} at {pts[i].tolist()} mm is outside the field map; check the scan "
+            "region (--radius, --step, --z)"
+        )
     return q, B_nom
 
 
