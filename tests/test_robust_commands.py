@@ -356,3 +356,15 @@ def test_options_refuse_digit_separators_and_other_digits(value):
         finite_float(value)
     with pytest.raises(CfmInputError, match=r"--z must be comma-separated finite numbers"):
         number_list(value, "--z")
+
+
+def test_int_options_take_ascii_digits_and_workers_are_bounded(tmp_path, capsys):
+    from cfm_fem.workflows.sweep.distributed import MAX_WORKERS_PER_CPU
+
+    err = _refused(["sweep", "m.txt", "--workers", "1_000", "--out", tmp_path / "o"], capsys)
+    assert "argument --workers: must be a whole number; got '1_000'" in err
+    err = _refused(["kinematics", "--workers", "100000", "--out", tmp_path / "o"], capsys)
+    assert (
+        f"--workers must be at most {MAX_WORKERS_PER_CPU * (__import__('os').cpu_count() or 1)}"
+        in err
+    )

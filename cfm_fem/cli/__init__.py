@@ -58,9 +58,10 @@ class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = re.compile(r"^-\.?\d")
-        from ._checks import finite_float
+        from ._checks import finite_float, plain_int
 
         self.register("type", float, finite_float)  # every type=float option: finite only
+        self.register("type", int, plain_int)  # every type=int option: ASCII digits only
 
     def error(self, message):
         # ``main`` prints "cfm-fem: error: " before it: a subcommand's parser adds only its name

@@ -126,6 +126,22 @@ def finite_float(text: str) -> float:
 finite_float.__name__ = "float"
 
 
+def plain_int(text: str) -> int:
+    """argparse ``type=`` of every ``type=int`` option (`cfm_fem.cli._Parser` registers it): a
+    whole number in ASCII digits; Python's int also takes ``1_000`` and other scripts' digits."""
+    import argparse
+
+    if not str(text).isascii() or "_" in str(text):
+        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}")
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number; got {text!r}") from None
+
+
+plain_int.__name__ = "int"
+
+
 def number_list(text: str, option: str, count=None, what: str = "numbers") -> list[float]:
     """The comma-separated finite numbers of an option (``--z 0,50``, ``--magnet-offset 1,0``).
 

@@ -312,13 +312,13 @@ def read_bench(path) -> Bench:
     CfmInputError
         Unreadable file, TOML syntax error, unknown key, missing or impossible value.
     """
-    path = Path(path)
+    given, path = str(path), Path(path)  # messages name the file as given (Path drops "//")
     try:
-        with open_regular(path, "a bench TOML file", "the bench file") as f:
+        with open_regular(given, "a bench TOML file", "the bench file") as f:
             raw = f.read()
     except OSError as exc:
         raise CfmInputError(
-            f"cannot read the bench file: {exc.strerror or exc}", file=path
+            f"cannot read the bench file: {exc.strerror or exc}", file=given
         ) from None
     try:
         text = raw.decode("utf-8-sig")  # Windows Notepad writes a BOM
