@@ -197,8 +197,8 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if up_max_mm * 5.0 > extent:
         raise CfmInputError(
-            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
-            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            f"--up: U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its "
+            f"smallest extent of {extent:g} mm, so most perturbed points would leave the map",
             file=fm.source,
         )
 
