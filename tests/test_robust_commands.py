@@ -368,3 +368,12 @@ def test_int_options_take_ascii_digits_and_workers_are_bounded(tmp_path, capsys)
         f"--workers must be at most {MAX_WORKERS_PER_CPU * (__import__('os').cpu_count() or 1)}"
         in err
     )
+
+
+def test_an_absurdly_small_b_ref_is_refused_before_the_run(tmp_path, capsys):
+    """B_ref = 1e-300 T made every U_f infinite and the design summary a TypeError."""
+    out = tmp_path / "out"
+    argv = ["design", _small_map(tmp_path), "--uf-max", "10", "--up", "10,20", "--trials", "20",
+            "--b-ref", "1e-300", "--out", out]  # fmt: skip
+    err = _refused(argv, capsys, out)
+    assert "--b-ref 1e-300 T is below 1e-09 of the map's largest |B|" in err

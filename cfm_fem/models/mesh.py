@@ -329,7 +329,7 @@ def build_mesh(
         simplices, kind = fm.cells, "native"
     elif method == "native":
         raise CfmInputError(
-            f"interpolation 'native' needs {'triangles' if dim == 2 else 'tetrahedra'} in the "
+            f"--interpolation native needs {'triangles' if dim == 2 else 'tetrahedra'} in the "
             "export; this map has none",
             file=src,
         )

@@ -125,6 +125,11 @@ def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 
     return grad
 
 
+#: Smallest B_ref, as a share of the map's largest |B|: below it, field errors in units of
+#: 1e-4 B_ref reach 1e13 units per tesla of error and overflow for absurd values (1e-300 T).
+MIN_B_REF_SHARE = 1e-9
+
+
 def trial_bytes(n_columns: int, mode: str = "gauss") -> float:
     """Bytes a sweep holds per Monte Carlo trial, whatever the map's size.
 
@@ -453,6 +458,13 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     if b_ref <= 0:
         raise CfmInputError(
             "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
+        )
+    if b_ref < MIN_B_REF_SHARE * fm.b_max:  # units of 1e-4 B_ref would overflow
+        raise CfmInputError(
+            f"--b-ref {b_ref:g} T is below {MIN_B_REF_SHARE:g} of the map's largest |B| "
+            f"({fm.b_max:.6g} T): its units (1e-4 B_ref) would be meaningless or overflow; "
+            "expected the reference field of the magnet, in T",
+            file=fm.source,
         )
     eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
     start_cells = _kernels.octant_cells(

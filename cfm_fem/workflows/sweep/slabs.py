@@ -405,7 +405,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         keys = [np.unique(lattice_keys(d, span)) for d in st.distinct]
     kind = cfg.interpolation
     if kind == "native":
-        raise CfmInputError("interpolation 'native' needs tetrahedra in the export; this map has "
+        raise CfmInputError("--interpolation native needs tetrahedra in the export; this map has "
                             "none", file=file)  # fmt: skip
     grid_shape = None if keys is None else tuple(len(k) for k in keys)
     if kind in ("auto", "grid"):
