@@ -10,6 +10,7 @@ __all__ = [
     "location",
     "MAX_SEED",
     "check_seed",
+    "one_line",
     "printable",
     "shown",
 ]
@@ -24,6 +25,13 @@ def printable(text) -> str:
     so that what a file holds cannot move the cursor, recolour or clear a terminal."""
     return _CONTROLS.sub(lambda m: f"\\x{ord(m[0]):02x}" if ord(m[0]) < 256
                          else f"\\u{ord(m[0]):04x}", str(text))  # fmt: skip
+
+
+def one_line(text) -> str:
+    """``text`` made `printable` and kept on one line: line feeds, carriage returns and tabs
+    (in a file name, say) written as ``\\n``, ``\\r``, ``\\t``. Every `CfmInputError` message
+    is one line, so a message stays one line on a terminal and in a log."""
+    return printable(text).replace("\n", "\\n").replace("\r", "\\r").replace("\t", "\\t")
 
 
 def shown(token: str, limit: int = 60) -> str:
@@ -41,6 +49,8 @@ def location(file=None, line=None) -> str:
     """Format ``file:line`` (either part optional) for messages."""
     if file is None:
         return "" if line is None else f"line {line}"
+    if not str(file).strip() or str(file) != str(file).strip():  # blanks a reader cannot see
+        file = repr(str(file))
     return f"{file}" if line is None else f"{file}:{line}"
 
 
@@ -63,9 +73,9 @@ class CfmInputError(ValueError):
     """
 
     def __init__(self, what: str, *, file=None, line: int | None = None, column: str | None = None):
-        what = printable(what)
+        what = one_line(what)
         self.what = what
-        self.file = None if file is None else printable(file)
+        self.file = None if file is None else one_line(file)
         self.line = line
         self.column = column
         loc = location(self.file, line)

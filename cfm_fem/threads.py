@@ -41,3 +41,76 @@ def map_threads(func, items, threads: int | None = None) -> list:
         return [func(x) for x in items]
     with ThreadPoolExecutor(threads) as pool:
         return list(pool.map(func, items))
+
+
+#: Share of the available memory one run may plan to use: the rest stays for the operating
+#: system, the interpreter and the arrays an estimate leaves out.
+MEMORY_SHARE = 0.8
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``; else the free
+    physical pages), or None when the system does not say."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import os
+
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def gigabytes(nbytes: float) -> str:
+    """``nbytes`` for a message: ``'3.2 GB'``, ``'5,000 GB'``, ``'120 MB'``."""
+    if nbytes < 1e9:
+        return f"{nbytes / 1e6:.3g} MB"
+    gb = nbytes / 1e9
+    return f"{gb:.3g} GB" if gb < 100 else f"{gb:,.0f} GB" if gb < 1e9 else f"{gb:.2g} GB"
+
+
+def check_memory(what: str, count: float, per_unit: float, unit: str, fixed: float = 0.0,
+                 available: int | None = None) -> None:  # fmt: skip
+    """Refuse, before allocating, work whose arrays need more memory than is available.
+
+    The estimate is ``fixed + count * per_unit`` bytes: the arrays the work holds at once.
+
+    Parameters
+    ----------
+    what : str
+        The work and the option that sizes it, for the message (``'sweep --trials'``).
+    count : float
+        The size the option asks for (trials, grid points, rows).
+    per_unit : float
+        Bytes per unit of ``count``.
+    unit : str
+        The unit's name, plural (``'trials'``).
+    fixed : float, optional
+        Bytes needed whatever ``count`` is.
+    available : int, optional
+        Bytes available; default `available_memory`.
+
+    Raises
+    ------
+    CfmInputError
+        The estimate exceeds `MEMORY_SHARE` of the available memory; the message gives both
+        sizes and the largest ``count`` that fits.
+    """
+    from .errors import CfmInputError
+
+    free = available_memory() if available is None else available
+    nbytes = float(fixed) + float(count) * float(per_unit)
+    if free is None or not nbytes > MEMORY_SHARE * free:
+        return
+    most = int(max(MEMORY_SHARE * free - fixed, 0.0) // per_unit) if per_unit > 0 else 0
+    fits = f"at most about {most:,} {unit} fit" if most > 0 else f"not even one of the {unit} fits"
+    raise CfmInputError(
+        f"{what}: {count:,.0f} {unit} need about {gigabytes(nbytes)} of memory at once; "
+        f"{gigabytes(free)} is available, of which this run plans on "
+        f"{100 * MEMORY_SHARE:.0f} %: {fits}"
+    )

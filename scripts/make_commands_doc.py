@@ -30,7 +30,9 @@ column and what was expected; nothing written), 1 when interrupted (Ctrl-C). A c
 writes into `--out DIR` holds a lock on `DIR/.cfm_fem.lock` while it runs; a second run into the
 same folder stops at once with exit code 2, naming the run that holds it. Long work shows a
 progress bar on a terminal and a plain progress line every few seconds when the output goes to
-a file. What each command writes is described in [outputs.md](outputs.md); the input files in
+a file. Numeric options take finite numbers only (`nan`, `inf` stop at the option), and a run
+whose trials or rows would not fit in the memory available stops before any work, saying how
+many fit. What each command writes is described in [outputs.md](outputs.md); the input files in
 [formats.md](formats.md).
 """
 

@@ -310,8 +310,8 @@ def test_a_subcommand_option_error_names_the_subcommand_once(capsys):
     "extra, message",
     [
         (["--trials", "0"], "--trials must be at least 20 for a 95 % interval; got 0"),
-        (["--b-ref", "-1"], "B_ref must be a positive field in T; got -1.0"),
-        (["--axis-scale", "0"], "axis scale must be finite, >= 0 and not all 0"),
+        (["--b-ref", "-1"], "--b-ref (B_ref) must be a positive field in T; got -1.0"),
+        (["--axis-scale", "0"], "--axis-scale (axis_scale) must be finite, >= 0 and not all 0"),
         (["--workers", "0"], "--workers must be >= 1; got 0"),
         (["--trials", "5", "--slabs", "2"], "--trials must be at least 20"),
     ],

@@ -156,8 +156,14 @@ def test_bad_arguments_exit_2(csv_map, tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["tolerance", "--target", "5,5"], "--target: must be one or three positive numbers"),
-        (["sweep", "map.csv", "--axis-scale", "1,2", "--out", "o"], "--axis-scale: must be one"),
+        (
+            ["tolerance", "--target", "5,5"],
+            "--target: must be 1 or 3 comma-separated finite numbers in um",
+        ),
+        (
+            ["sweep", "map.csv", "--axis-scale", "1,2", "--out", "o"],
+            "--axis-scale: must be 1 or 3 comma-separated",
+        ),
         # C9: a bench in mode gauss was ignored without a word
         (["sweep", "map.csv", "--bench", "b.toml", "--out", "o"], "--bench is used by --mode htm"),
     ],

@@ -175,3 +175,30 @@ def test_harmonics_and_recordings(folder, kind, ops):
     path = folder / f"{kind}.csv"
     path.write_bytes(mutate(seed, ops))
     check(read, path)
+
+
+def _fuzz_script():
+    """``scripts/fuzz_inputs.py`` as a module (a script, not part of the package); imported by
+    name, so that its worker processes import it too."""
+    import importlib
+    import sys
+
+    if str(ROOT / "scripts") not in sys.path:
+        sys.path.insert(0, str(ROOT / "scripts"))
+    return importlib.import_module("fuzz_inputs")
+
+
+def test_command_line_fuzz_subset(tmp_path):
+    """A bounded-time subset of the command-line fuzzer (some 30 s): the packaged bench without
+    each optional table, and options of every command set to fuzzing tokens. Every case ends
+    in exit 0 with finite outputs or in exit 2 naming its input; nothing else."""
+    import random
+
+    fuzz = _fuzz_script()
+    cases = fuzz.make_cases(10, random.Random(3), kinds=("tables",), commands={"kinematics"})
+    cases += fuzz.make_cases(16, random.Random(5), kinds=("options",))
+    counts, failures = fuzz.run_cases(cases, workers=1, timeout=60, keep=tmp_path / "keep")
+    assert not failures, "\n".join(f"{label}: {outcome}: {tail}"
+                                   for _, label, outcome, _, tail in failures)  # fmt: skip
+    outcomes = {o for _, o in counts}
+    assert outcomes <= {"exit 0", "exit 2"} and sum(counts.values()) == len(cases)

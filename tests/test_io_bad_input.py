@@ -354,7 +354,9 @@ def test_empty_or_cut_mesh_file_says_why(tmp_path):
     empty = tmp_path / "empty.vtu"
     empty.write_bytes(b"")
     with pytest.raises(
-        CfmInputError, match=r"empty.vtu: cannot read as a 'vtu' mesh file: the file is empty$"
+        CfmInputError,
+        match=r"empty.vtu: cannot read as a 'vtu' mesh file: the file is empty; expected a "
+        r"complete vtu file with nodes, cells and point data B$",
     ):
         read_field(empty)
     with pytest.raises(CfmInputError, match=r"cut.vtu: cannot read as a 'vtu' mesh file: \S"):

@@ -183,10 +183,18 @@ def test_opera_reads_units_in_any_case_and_ignores_extra_columns(tmp_path):
 
 
 def test_opera_count_mismatch_is_a_warning(tmp_path):
-    text = OPERA.replace(" 2 3 2 2", " 4 3 2 2") + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
-    with pytest.warns(CfmInputWarning, match=r"point counts \[4, 3, 2\] do not match"):
+    """More rows than the counts make: a warning (the rows are valid nodes)."""
+    text = OPERA.replace(" 2 3 2 2", " 1 3 2 2") + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
+    with pytest.warns(CfmInputWarning, match=r"point counts \[1, 3, 2\] do not match"):
         fm = read_opera(_write(tmp_path, "f.table", text))
     assert any("point counts" in n for n in fm.notes)
+
+
+def test_opera_fewer_rows_than_its_counts_is_refused(tmp_path):
+    text = OPERA.replace(" 2 3 2 2", " 4 3 2 2") + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
+    what = r"f.table:1: the point counts \[4, 3, 2\] make 24 rows but only 12 data rows follow"
+    with pytest.raises(CfmInputError, match=what):
+        read_opera(_write(tmp_path, "f.table", text))
 
 
 def test_opera_metre_and_tesla_with_five_columns(tmp_path):
@@ -517,21 +525,20 @@ def test_thousands_separator_warning_once_per_file_when_streamed_in_blocks(tmp_p
     assert np.concatenate([v[:, 0] for v, _ in blocks]).tolist() == [1250.0 + i for i in range(10)]
 
 
-def test_opera_cut_short_in_its_last_plane_is_reported(tmp_path):
+def test_opera_cut_short_in_its_last_plane_is_refused(tmp_path):
     """A file cut inside its last x plane still holds every distinct x, y, z value: only the row
-    count shows the cut (in the in-memory and the streaming reader)."""
+    count shows the cut (in the in-memory and the streaming reader), and it is refused."""
     text = OPERA + _opera_rows([0, 5], [0, 5, 10], [-1, 1])
     text = text[: text.rindex(" 5 10 -1")]  # the last two rows cut off
     path = _write(tmp_path, "f.table", text)
-    what = r"point counts \[2, 3, 2\] do not match the 10 data rows: they make 12 rows \(2 "
-    with pytest.warns(CfmInputWarning, match=what + "missing"):
-        fm = read_opera(path)
-    assert fm.n_nodes == 10 and any("cut short" in n for n in fm.notes)
+    what = r"point counts \[2, 3, 2\] make 12 rows but only 10 data rows follow \(2 missing\)"
+    with pytest.raises(CfmInputError, match=what):
+        read_opera(path)
 
     from cfm_fem.io.streaming import check_opera_counts, open_stream
 
     stream = open_stream(path, "opera")
     blocks = list(stream.blocks(rows_per_block=4))
     distinct = [len(np.unique(np.concatenate([v[:, k] for v, _ in blocks]))) for k in range(3)]
-    with pytest.warns(CfmInputWarning, match=what):
-        assert check_opera_counts(stream, distinct)
+    with pytest.raises(CfmInputError, match=what):
+        check_opera_counts(stream, distinct)

@@ -42,7 +42,7 @@ def test_synth_hall_is_the_python_generator(tmp_path):
     "argv, message",
     [
         (["synth", "hall", "--reversal-um", "2"], "not an option of 'synth hall'"),
-        (["synth", "tracker", "--grid", "3,3"], "--grid must be 3 comma-separated numbers"),
+        (["synth", "tracker", "--grid", "3,3"], "--grid must be 3 comma-separated finite numbers"),
         (["synth", "tracker", "--reps", "0"], "--reps must be >= 1"),
         (["synth", "wand"], "invalid choice: 'wand'"),
     ],

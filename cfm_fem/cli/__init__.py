@@ -48,6 +48,9 @@ EXIT_BAD_INPUT = 2
 class _Parser(argparse.ArgumentParser):
     """argparse that raises instead of exiting, so ``main`` keeps control of the exit code.
 
+    Every ``type=float`` option takes finite numbers only (`cfm_fem.cli._checks.finite_float`):
+    ``--reversal-um inf`` or ``--drift-um-per-s nan`` stop at the option, naming it.
+
     A value that starts with a minus sign and a digit (``--z -100,0,100``, ``--up -10:50:10``)
     is a value, not an option: argparse's own test takes only a plain number such as ``-100``
     for one, and answered "expected one argument". No option of cfm-fem looks like a number.
@@ -56,6 +59,10 @@ class _Parser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = re.compile(r"^-\.?\d")
+        from ._checks import finite_float, plain_int
+
+        self.register("type", float, finite_float)  # every type=float option: finite only
+        self.register("type", int, plain_int)  # every type=int option: ASCII digits only
 
     def error(self, message):
         # ``main`` prints "cfm-fem: error: " before it: a subcommand's parser adds only its name

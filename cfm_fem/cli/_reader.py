@@ -53,12 +53,14 @@ def add_reader_args(p, what: str = "FIELD", when: str | None = None) -> None:
     g.add_argument(
         "--length-unit",
         metavar="UNIT",
+        type=option_type(_check_unit("length"), "--length-unit"),
         help="unit of the coordinates (mm, m, in, ...); overrides a unit the file states (with "
         "a warning when they differ); needed when the file states none (mesh files: mm assumed)",
     )
     g.add_argument(
         "--field-unit",
         metavar="UNIT",
+        type=option_type(_check_unit("field"), "--field-unit"),
         help="unit of the field (T, mT, G, kG); overrides a unit the file states (with a "
         "warning when they differ); needed when the file states none (mesh files: T assumed)",
     )

@@ -130,10 +130,9 @@ def load_bench(args):
 
 
 def _parse_z(text):
-    try:
-        return [float(v) for v in text.split(",")]
-    except ValueError:
-        raise CfmInputError(f"--z must be comma-separated numbers in mm; got {text!r}") from None
+    from ._checks import number_list
+
+    return number_list(text, "--z", what="numbers in mm")
 
 
 #: Most scan points of --radius/--step: each point is a full Monte Carlo of --trials (default
@@ -163,7 +162,8 @@ def _region(args, fm: FieldModel):
     n_est = np.pi * (r / args.step) ** 2 * len(z)  # grid points inside the circle, all planes
     if not n_est <= MAX_REGION_POINTS:
         raise CfmInputError(
-            f"--step {args.step:g} mm inside r <= {r:g} mm on {len(z)} plane(s) asks for about "
+            f"--step {args.step:g} mm inside r <= {r:g} mm ({what}) on {len(z)} plane(s) asks "
+            "for about "
             f"{n_est:.3g} scan points; expected at most {MAX_REGION_POINTS:,} (the step is in mm: "
             f"{r * np.sqrt(np.pi * len(z) / MAX_REGION_POINTS):.2g} mm or more here)"
         )

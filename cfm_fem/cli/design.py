@@ -72,7 +72,7 @@ def run(args) -> int:
         raise CfmInputError(f"--coverage must be in (0, 1]; got {args.coverage}")
     from ..workflows.sweep.problem import check_options
 
-    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref)
+    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref, len(up))
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):
@@ -132,7 +132,7 @@ def _run(args, up) -> int:
     write_sweep_report(args.out, design=doc)
     print(ans.sentence())
     for u, p, s in zip(ans.up_um, ans.percentile_units, ans.u_percentile_units, strict=True):
-        text = "-" if p is None else f"{p:.4g} +- {s:.2g}"
+        text = "-" if p is None else f"{p:.4g} +- {'-' if s is None else f'{s:.2g}'}"
         print(f"  U_p = {u:g} um: p{100 * args.coverage:g} of U_f = {text} units")
     print(f"wrote {args.out}/design.json, report.html, sweep.pvd and the maps")
     return 0

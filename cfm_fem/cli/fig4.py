@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import CfmInputError
 from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import progress_bar
 from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
@@ -44,9 +43,10 @@ def add_args(p):
 def run(args) -> int:
     check_out_dir(args.out)
     check_seed(args.seed)
-    if args.trials < 20:
-        raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
     up = parse_up_range(args.up)
+    from ..workflows.sweep.problem import check_options
+
+    check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref, len(up))
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):  # one run at a time in --out

@@ -32,17 +32,10 @@ HELP = "U_f maps (95 %%) of a field map for a sweep of U_p; VTK output for ParaV
 
 
 def _triplet(text):
-    try:
-        v = tuple(float(x) for x in text.split(","))
-        if len(v) == 1:
-            v = v * 3
-        if len(v) != 3:
-            raise ValueError
-        return v
-    except ValueError:
-        raise CfmInputError(
-            f"--axis-scale must be one number or three comma-separated numbers; got {text!r}"
-        ) from None
+    from ._checks import number_list
+
+    v = number_list(text, "--axis-scale", (1, 3))
+    return tuple(v * 3 if len(v) == 1 else v)
 
 
 def add_args(p):
@@ -405,8 +398,8 @@ def run(args) -> int:
     given = [o for o, v in (("--up", args.up), ("--axis-scale", args.axis_scale)) if v is not None]
     if given and args.mode == "htm":  # htm draws the probe error from the bench: no U_p in it
         raise CfmInputError(
-            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by mode gauss only "
-            "(mode htm draws the probe error from the bench model); leave "
+            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by --mode gauss "
+            "only (--mode htm draws the probe error from the bench model); leave "
             f"{'it' if len(given) == 1 else 'them'} out"
         )
     args.up = "0:50:10" if args.up is None else args.up
@@ -422,7 +415,7 @@ def run(args) -> int:
     from ..workflows.sweep.distributed import check_scale_out
     from ..workflows.sweep.problem import check_options
 
-    check_options(args.trials, args.axis_scale, args.b_ref)
+    check_options(args.trials, args.axis_scale, args.b_ref, len(up), args.mode)
     check_scale_out(args.scheduler, args.workers)
     if args.slabs is not None or args.max_memory is not None:
         _check_slab_options(args)
@@ -554,15 +547,15 @@ def _run(args, up) -> int:
         )
     else:
         summary = write_sweep(args.out, res, prov, remove_stale=False)
-    runner.finish(keep=args.keep_chunks)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _finish(args, summary)
+    _finish(args, summary, runner)
     return 0
 
 
-def _finish(args, summary) -> None:
+def _finish(args, summary, runner=None) -> None:
     """The per-node table (``--table``), the report and the printed summary, once the maps,
-    ``sweep.pvd`` and ``summary.json`` are written."""
+    ``sweep.pvd`` and ``summary.json`` are written; the chunk store of ``runner`` goes after
+    every output, so a run stopped before then resumes from it."""
     from ..io.sweep_table import remove_stale_table, write_sweep_table
 
     gone = remove_stale_table(args.out, args.table)
@@ -572,6 +565,8 @@ def _finish(args, summary) -> None:
     if args.table is not None:
         write_sweep_table(args.out, args.table)
     _write_report(args.out)
+    if runner is not None:
+        runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out, args.table)
 
 

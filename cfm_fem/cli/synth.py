@@ -9,11 +9,12 @@ its PDFs; the same seed gives the same file. Feed the file to `cfm-fem compare` 
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 from ..errors import CfmInputError
-from ._checks import check_seed
+from ._checks import check_seed, number_list
 
 NAME = "synth"
 HELP = "write a synthetic tracker recording or Hall map of a simulated bench (CSV)"
@@ -46,21 +47,31 @@ def add_args(p):
 
 
 def _numbers(text, count, option, kind=float):
-    try:
-        v = [kind(x) for x in text.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != count:
-        raise CfmInputError(f"{option} must be {count} comma-separated numbers; got {text!r}")
+    v = number_list(text, option, count)
+    if kind is int:
+        if any(x != int(x) for x in v):
+            raise CfmInputError(f"{option} must be {count} comma-separated whole numbers; "
+                                f"got {text!r}")  # fmt: skip
+        v = [int(x) for x in v]
     return v
 
 
 def _check(args):
     check_seed(args.seed)
     out = Path(args.out)
-    if out.is_dir():
+    try:
+        is_dir, parent_is_dir = out.is_dir(), out.parent.is_dir()
+        is_file = out.exists() and not is_dir
+        if is_file:  # stat() it too: a name the file system refuses fails here, not later
+            out.stat()
+    except OSError as exc:  # a name too long, a loop of links, ...
+        raise CfmInputError(
+            f"--out {args.out!r} cannot be used: {exc.strerror or exc}; expected a file name "
+            "the file system takes"
+        ) from None
+    if is_dir:
         raise CfmInputError(f"--out {args.out!r} is a folder; expected a file name (FILE.csv)")
-    if not out.parent.is_dir():
+    if not parent_is_dir:
         raise CfmInputError(f"--out {args.out!r}: folder {str(out.parent)!r} does not exist")
     if args.reps is not None and args.reps < 1:
         raise CfmInputError(f"--reps must be >= 1; got {args.reps}")
@@ -76,7 +87,40 @@ def _check(args):
     grid = _numbers(args.grid, 3, "--grid", int)
     if min(grid) < 1:
         raise CfmInputError(f"--grid counts must be >= 1; got {args.grid!r}")
+    _check_rows(args, grid)
     return grid, _numbers(args.magnet_offset, 2, "--magnet-offset")
+
+
+#: Bytes a synthetic recording holds per row until it is written: its arrays (positions,
+#: ids, directions, the bench chain's intermediates) and the text of its CSV row.
+ROW_BYTES = 1000
+
+
+def _check_rows(args, grid) -> None:
+    """Refuse a recording whose rows do not fit in memory, before any is made."""
+    from ..threads import check_memory
+
+    if args.kind == "tracker":
+        what, points = "--grid and --reps", math.prod(grid)
+        reps = args.reps or 5
+    else:
+        from ..workflows.synthetic import hall_map_points
+
+        what, points = "--reps", len(hall_map_points())
+        reps = args.reps or 10
+    check_memory(f"synth {args.kind} {what}", points * reps, ROW_BYTES, "rows")
+
+
+def _given(args) -> str:
+    """The numeric options of ``args`` that differ from their defaults, as typed."""
+    options = [("--grid", args.grid, "3,3,3"), ("--reps", args.reps, None),
+               ("--tracker-std-um", args.tracker_std_um, 0.0),
+               ("--reversal-um", args.reversal_um, 0.0),
+               ("--drift-um-per-s", args.drift_um_per_s, 0.0),
+               ("--magnet-offset", args.magnet_offset, "0,0"),
+               ("--r-ref", args.r_ref, None)]  # fmt: skip
+    return ", ".join(f"{o} {v:g}" if isinstance(v, float) else f"{o} {v}"
+                     for o, v, default in options if v != default)  # fmt: skip
 
 
 def run(args) -> int:
@@ -106,6 +150,10 @@ def run(args) -> int:
         )
         write = write_hall_map
     comments = [f"synthetic: {rec.source}", f"written by: {args.command_line}"]
-    write(args.out, rec, comments=comments)
+    try:
+        write(args.out, rec, comments=comments)
+    except CfmInputError as exc:  # the numbers come from the options: name those given
+        raise CfmInputError(f"{exc.what} (options given: {_given(args) or 'none'})",
+                            file=exc.file) from None  # fmt: skip
     print(f"wrote {args.out} ({len(rec)} rows; {rec.source})", file=sys.stderr)
     return 0

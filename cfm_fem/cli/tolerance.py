@@ -29,12 +29,9 @@ MAX_TARGET_UM = 1e6
 
 
 def _target(text):
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise CfmInputError(
-            f"--target must be numbers in um (one or X,Y,Z); got {text!r}"
-        ) from None
+    from ._checks import number_list
+
+    v = number_list(text, "--target", (1, 3), "numbers in um")
     if len(v) == 1:
         v = v * 3
     if len(v) != 3 or any(not (x > 0) for x in v):

@@ -194,5 +194,14 @@ def json_text(data) -> str:
 
 
 def write_json(path, data) -> None:
-    """Write ``data`` as indented JSON atomically; numpy arrays and scalars become plain JSON."""
+    """Write ``data`` as indented JSON atomically; numpy arrays and scalars become plain JSON.
+
+    Raises
+    ------
+    CfmInputError
+        NaN or infinity in ``data``, naming the file and the key; nothing is written.
+    """
+    from ._finite import check_json_finite
+
+    check_json_finite(path, data)
     write_text(path, json_text(data))

@@ -136,12 +136,12 @@ def _shown(v) -> str:
     return text if len(text) <= 60 else f"{text[:40]}...{text[-10:]} ({len(text)} characters)"
 
 
-def _get(doc, table, key, prefix, kind, default=None, required=False):
+def _get(doc, table, key, prefix, kind, default=None, required=False, expect=None):
     full = f"{prefix}.{key}" if prefix else key
     if key not in table:
         if required:
             raise CfmInputError(
-                f"'{full}' is missing; expected {kind}",
+                f"'{full}' is missing; expected {expect or kind}",
                 file=doc.path,
                 line=doc.line_of(prefix) if prefix else None,
             )
@@ -176,6 +176,39 @@ def _get(doc, table, key, prefix, kind, default=None, required=False):
             raise doc.error(full, f"must be a table; found {v!r}")
         return v
     raise AssertionError(kind)
+
+
+#: What a bench without its vibration or reading-delay figures is asked for: these are
+#: uncertainty contributions, and one left out would make U_p smaller than the bench's without a
+#: word, so a missing table is an error, never a silent zero.
+_NO_VIBRATION = (
+    "the bench's vibration as a standard deviation per axis, e.g. [vibration] std_um = 2.5 "
+    "(write std_um = 0.0 for a bench without vibration)"
+)
+_NO_DELAY = (
+    'the bench\'s reading delay, e.g. [reading_delay] model = "normal", std_um = 1.0 (write '
+    'std_um = 0.0 for none), or model = "speed_tau" with speed_mm_s and tau'
+)
+#: Notes of defaults taken for tables or keys a bench file leaves out start with this; they are
+#: added to the bench's assumptions (printed and written with every output) and not written
+#: back by `bench_to_toml`, which states every table.
+DEFAULT_NOTE = "Not in the bench file, default taken: "
+
+
+def _required_table(doc, data, key, expect) -> dict:
+    """A top-level table the bench must state (an uncertainty contribution)."""
+    if key not in data:
+        raise CfmInputError(f"[{key}] is missing; expected {expect}", file=doc.path)
+    return _get(doc, data, key, "", "table")
+
+
+def _require_key(doc, table, key, prefix, expect) -> None:
+    if key not in table:
+        raise CfmInputError(
+            f"'{prefix}.{key}' is missing; expected {expect}",
+            file=doc.path,
+            line=doc.line_of(prefix),
+        )
 
 
 def _std_or_vector(doc, table, key, prefix, default):
@@ -234,7 +267,9 @@ def _read_error(doc, table, group, key):
     _check_keys(doc, table, _ERROR_KEYS, prefix)
     is_angle = key.startswith(("eps", "alpha"))
     units = _ANGLE_UNITS if is_angle else _LENGTH_UNITS
-    unit = _get(doc, table, "unit", prefix, "string", default="urad" if is_angle else "um")
+    unit = _get(doc, table, "unit", prefix, "string", required=True,
+                expect=f"one of {', '.join(units)} (a value without a unit is ambiguous by "
+                "factors of 1000)")  # fmt: skip
     if unit not in units:
         raise doc.error(
             f"{prefix}.unit",
@@ -277,13 +312,13 @@ def read_bench(path) -> Bench:
     CfmInputError
         Unreadable file, TOML syntax error, unknown key, missing or impossible value.
     """
-    path = Path(path)
+    given, path = str(path), Path(path)  # messages name the file as given (Path drops "//")
     try:
-        with open_regular(path, "a bench TOML file", "the bench file") as f:
+        with open_regular(given, "a bench TOML file", "the bench file") as f:
             raw = f.read()
     except OSError as exc:
         raise CfmInputError(
-            f"cannot read the bench file: {exc.strerror or exc}", file=path
+            f"cannot read the bench file: {exc.strerror or exc}", file=given
         ) from None
     try:
         text = raw.decode("utf-8-sig")  # Windows Notepad writes a BOM
@@ -325,6 +360,10 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
 
     frame = _get(doc, data, "frame", "", "table", required=True)
     _check_keys(doc, frame, {"stack", "tool_offset_mm", "description"}, "frame")
+    assumed: list[str] = []  # defaults taken, said in the bench's assumptions
+    if "stack" not in frame:
+        assumed.append(DEFAULT_NOTE + "[frame] stack = [\"z\", \"x\", \"y\"] (Z on the "
+                       "foundation, X on Z, Y on X, as the reference bench)")  # fmt: skip
     stack = frame.get("stack", ["z", "x", "y"])
     if not (isinstance(stack, list) and sorted(map(str, stack)) == sorted(AXES)):
         raise doc.error(
@@ -332,7 +371,7 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
         )
     tool = _offset(doc, frame, "tool_offset_mm", "frame", required=True)
     axes = _read_axes(doc, data)
-    grid_args = _read_grid(doc, data, axes)
+    grid_args = _read_grid(doc, data, axes, assumed)
 
     err_t = _get(doc, data, "errors", "", "table", required=True)
     _check_keys(doc, err_t, set(_ERROR_GROUPS), "errors")
@@ -346,12 +385,19 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
             specs[spec.name] = spec
     errors = tuple(specs[n] for n in ERROR_NAMES)
 
-    vib_t = _get(doc, data, "vibration", "", "table", default={})
+    vib_t = _required_table(doc, data, "vibration", _NO_VIBRATION)
     _check_keys(doc, vib_t, {"std_um"}, "vibration")
+    _require_key(doc, vib_t, "std_um", "vibration", _NO_VIBRATION)
     vib = _std_or_vector(doc, vib_t, "std_um", "vibration", 0.0)
-    delay = _read_delay(doc, data)
+    delay = _read_delay(doc, data, assumed)
 
     mag_t = _get(doc, data, "magnet", "", "table", default={})
+    for key, value in (("rotation_deg", "[0, 0, 0]"), ("translation_mm", "[0, 0, 0]")):
+        if key not in mag_t:
+            assumed.append(
+                f"{DEFAULT_NOTE}[magnet] {key} = {value} (magnet frame = bench frame there; "
+                "used by sweep --mode htm, coupled, compare and diagnose)"
+            )
     _check_keys(doc, mag_t, {"rotation_deg", "translation_mm", *_SURVEY_KEYS}, "magnet")
     rot = _get(doc, mag_t, "rotation_deg", "magnet", "vector3", default=np.zeros(3))
     if np.any(np.abs(rot) > MAX_ROTATION_DEG):
@@ -384,7 +430,7 @@ def parse_bench(text: str, source: str = "<string>") -> Bench:
                 survey_std_rad=survey["survey_std_urad"],
             ),
             grid=Grid(**grid_args),
-            assumptions=tuple(notes),
+            assumptions=tuple(notes) + tuple(assumed),
             source=source,
         )
     except CfmInputError as exc:  # model-level checks: name the file, the key is in the text
@@ -468,15 +514,26 @@ def _read_axes(doc, data) -> dict:
     return axes
 
 
-def _read_grid(doc, data, axes) -> dict:
-    """``[grid]``: (start, stop, num) per axis, within its stroke (defaults: `Grid`)."""
+#: Points per axis of the grid a bench file without ``[grid]`` gets: the reference bench's.
+DEFAULT_GRID_POINTS = {"x": 9, "y": 8, "z": 13}
+
+
+def _read_grid(doc, data, axes, assumed) -> dict:
+    """``[grid]``: (start, stop, num) per axis, within its stroke. An axis the file leaves out
+    gets its full stroke with the reference bench's point count (`DEFAULT_GRID_POINTS`), said
+    in ``assumed``."""
     grid_t = _get(doc, data, "grid", "", "table", default={})
     _check_keys(doc, grid_t, {f"{a}_mm" for a in AXES}, "grid")
     grid_args = {}
     for a in AXES:
         key = f"{a}_mm"
         if key not in grid_t:
-            grid_args[a] = getattr(Grid(), a)
+            grid_args[a] = (0.0, axes[a].stroke_mm, DEFAULT_GRID_POINTS[a])
+            assumed.append(
+                f"{DEFAULT_NOTE}[grid] {key} = {{ start = 0, stop = {axes[a].stroke_mm:g}, "
+                f"num = {DEFAULT_GRID_POINTS[a]} }} (the whole stroke, the reference bench's "
+                "point count)"
+            )
             continue
         g = _get(doc, grid_t, key, "grid", "table")
         _check_keys(doc, g, {"start", "stop", "num"}, f"grid.{key}")
@@ -504,15 +561,17 @@ def _read_grid(doc, data, axes) -> dict:
     return grid_args
 
 
-def _read_delay(doc, data) -> ReadingDelay:
-    """``[reading_delay]``: model 'normal' (std_um) or 'speed_tau' (speed_mm_s and tau)."""
-    del_t = _get(doc, data, "reading_delay", "", "table", default={})
+def _read_delay(doc, data, assumed) -> ReadingDelay:
+    """``[reading_delay]``: model 'normal' (std_um) or 'speed_tau' (speed_mm_s and tau); the
+    table is required (`_NO_DELAY`); a tau without a unit is in s, said in ``assumed``."""
+    del_t = _required_table(doc, data, "reading_delay", _NO_DELAY)
     _check_keys(doc, del_t, {"model", "std_um", "speed_mm_s", "tau"}, "reading_delay")
     model = _get(doc, del_t, "model", "reading_delay", "string", default="normal")
     if model == "normal":
         for k in ("speed_mm_s", "tau"):
             if k in del_t:
                 raise doc.error(f"reading_delay.{k}", "is only used with model = 'speed_tau'")
+        _require_key(doc, del_t, "std_um", "reading_delay", _NO_DELAY)
         return ReadingDelay("normal", _std_or_vector(doc, del_t, "std_um", "reading_delay", 0.0))
     if model != "speed_tau":
         raise doc.error(
@@ -529,11 +588,28 @@ def _read_delay(doc, data) -> ReadingDelay:
     tau_t = _get(doc, del_t, "tau", "reading_delay", "table", required=True)
     _check_keys(doc, tau_t, _ERROR_KEYS - {"profile", "note"}, "reading_delay.tau")
     unit = _get(doc, tau_t, "unit", "reading_delay.tau", "string", default="s")
+    if "unit" not in tau_t:
+        assumed.append(DEFAULT_NOTE + "[reading_delay] tau in s (tau states no unit)")
     scales = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
     if unit not in scales:
         raise doc.error("reading_delay.tau.unit", f"must be one of s, ms, us; found {_shown(unit)}")
     tau = _pdf(doc, tau_t, "reading_delay.tau", scales[unit], "time")
+    lowest = _lowest(tau)
+    if lowest < 0:
+        raise doc.error(
+            "reading_delay.tau",
+            f"reaches {lowest / scales[unit]:.3g} {unit}; expected a delay >= 0 (a reading "
+            "cannot come before its position): a PDF on [0, ...), e.g. uniform with low >= 0"
+            + (" or a normal whose mean - 3 std >= 0" if tau.kind == "normal" else ""),
+        )
     return ReadingDelay("speed_tau", np.zeros(3), speed, tau)
+
+
+def _lowest(pdf: Pdf) -> float:
+    """The lowest value ``pdf`` takes (for a normal or Student t: mean - 3 std)."""
+    if pdf.kind in ("normal", "student_t"):
+        return pdf.mean - 3.0 * pdf.std
+    return float(pdf.params[0])
 
 
 def _fmt(v) -> str:
@@ -608,7 +684,7 @@ def bench_to_toml(bench: Bench) -> str:
         "",
         "[assumptions]",
         "notes = [",
-        *[f"  {_fmt(n)}," for n in bench.assumptions],
+        *[f"  {_fmt(n)}," for n in bench.assumptions if not n.startswith(DEFAULT_NOTE)],
         "]",
         "",
     ]

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..models.field_model import PAPER_TABLE_V, QUANTITIES
 from ._atomic import atomic_path, write_json, write_text
+from ._finite import check_finite
 from .kinematics_out import PAPER_TABLE_IV, bench_description
 
 __all__ = [
@@ -39,21 +40,31 @@ DEFINITIONS = {
 }
 
 
+#: The comment every per-point CSV states: how a value that does not exist is written.
+NO_FIGURE = "an empty cell: no figure (undefined, e.g. a z-score 0/0 of a component that is 0)"
+
+
 def _csv(header, rows, comments=()) -> str:
+    """CSV text; a NaN cell is written empty (`NO_FIGURE`, said in a comment line), an
+    infinite one refused (`check_finite`)."""
     buf = io.StringIO()
     for c in comments:
         buf.write(f"# {c}\n")
+    buf.write(f"# {NO_FIGURE}\n")
     buf.write(",".join(header) + "\n")
     for r in rows:
-        buf.write(",".join(_cell(v) for v in r) + "\n")
+        buf.write(",".join(_cell(v, header[j]) for j, v in enumerate(r)) + "\n")
     return buf.getvalue()
 
 
-def _cell(v) -> str:
+def _cell(v, column: str) -> str:
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     v = float(v)
-    return "nan" if v != v else repr(v)
+    if v != v:
+        return ""
+    check_finite("points.csv", column, v)
+    return repr(v)
 
 
 # --------------------------------------------------------------------------- coupled

@@ -9,6 +9,9 @@ triangulation of the nodes.
 
 from __future__ import annotations
 
+import re
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -88,15 +91,9 @@ def read_meshfile(
     try:
         mesh = _meshio_read(path, fmt)
     except Exception as exc:  # meshio raises many types (ReadError, KeyError, struct.error, ...)
-        why = str(exc).strip()
-        if not why:  # meshio's ReadError() on an empty or cut-off file says nothing
-            why = (
-                "the file is empty"
-                if Path(path).stat().st_size == 0
-                else f"{type(exc).__name__} with no reason given; is the file complete "
-                "(not cut short) and of this format?"
-            )
-        raise CfmInputError(f"cannot read as a '{fmt}' mesh file: {why}", file=file) from None
+        raise CfmInputError(
+            f"cannot read as a '{fmt}' mesh file: {library_reason(exc, fmt, path)}", file=file
+        ) from None
     notes: list[str] = []
     points = np.asarray(mesh.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] not in (2, 3) or len(points) == 0:
@@ -149,6 +146,69 @@ def read_meshfile(
     )
 
 
+#: meshio's (and numpy's) messages for broken files, and what each means for the user: the
+#: pattern, then the reason given (``{0}``, ``{1}``: the pattern's groups).
+_LIBRARY_REASONS = [
+    (r"need at least one array to concatenate",
+     "the file holds no nodes or no data arrays (NumberOfPoints 0, or no Piece)"),
+    (r"cannot reshape array of size (\d+) into shape \((\d+),?\s*(\d*)\)",
+     "a data array holds {0} values where the file's counts ask for {1} x {2} (a count "
+     "the file states, such as NumberOfPoints, POINTS or NumberOfCells, disagrees with its "
+     "data)"),
+    (r"index (-?\d+) is out of bounds for axis \d+ with size (\d+)",
+     "a cell or tag refers to entry {0} (counted from 0) of a list of {1}: a node or element "
+     "number outside the file's nodes"),
+    (r"No module named '([\w.]+)'",
+     "reading this format needs the Python package '{0}' (pip install {0})"),
+    (r"no element found|not well-formed|mismatched tag|unclosed token|junk after document",
+     "the XML is not well-formed ({msg})"),
+]  # fmt: skip
+
+
+def library_reason(exc: BaseException, fmt: str, path) -> str:
+    """What a reading library's exception ``exc`` means, as a reason and what was expected.
+
+    meshio passes on numpy's and its parsers' messages ("need at least one array to
+    concatenate", "cannot reshape array of size 1029 into shape (999,3)", "'Version'"), which
+    name neither the damage nor the fix; each known one is translated (`_LIBRARY_REASONS`), an
+    unknown one kept with its type. The text ends with what a readable file holds.
+
+    Parameters
+    ----------
+    exc : BaseException
+    fmt : str
+        The format tried (``'vtu'``, ``'gmsh'``).
+    path : path-like
+        The file (its size tells an empty file from a damaged one).
+
+    Returns
+    -------
+    str
+        One line.
+    """
+    msg = " ".join(str(exc).split())  # one line: library messages may hold line feeds
+    expected = f"; expected a complete {fmt} file with nodes, cells and point data B"
+    for pattern, reason in _LIBRARY_REASONS:
+        m = re.search(pattern, msg)
+        if m:
+            groups = [g or "1" for g in m.groups()]
+            missing_package = pattern.startswith("No module")
+            return reason.format(*groups, msg=msg) + ("" if missing_package else expected)
+    if isinstance(exc, KeyError):
+        return f"the entry {msg} that {fmt} files must hold is missing" + expected
+    if isinstance(exc, (EOFError, struct.error, zlib.error, UnicodeDecodeError)):
+        return f"the file is cut short or damaged ({type(exc).__name__}: {msg})" + expected
+    if not msg:  # meshio's ReadError() on an empty or cut-off file says nothing
+        try:
+            empty = Path(path).stat().st_size == 0
+        except OSError:
+            empty = False
+        if empty:
+            return "the file is empty" + expected
+        return f"{type(exc).__name__} with no reason given; is the file cut short?" + expected
+    return f"{msg} ({type(exc).__name__})" + expected
+
+
 def _meshio_read(path, fmt):
     """meshio's reader for ``fmt``, called directly: ``meshio.read`` prints and calls
     ``sys.exit(1)`` when the file is broken."""
@@ -187,6 +247,8 @@ def _flux_density(point_data, n, file):
         if arr.shape[1] == 2:
             arr = np.column_stack([arr, np.zeros(n)])
             notes.append(f"point data '{vectors[0]}' has 2 components: Bz = 0 at every node")
+        if all(len(v) == 1 for v in components.values()):
+            notes.append(_vector_and_components(point_data, vectors[0], components, arr, file))
         return arr, vectors, notes
     if all(len(v) == 1 for v in components.values()):
         used = [components[c][0] for c in ("Bx", "By", "Bz")]
@@ -195,6 +257,30 @@ def _flux_density(point_data, n, file):
     raise CfmInputError(
         f"no unambiguous flux density in the point data: expected 'B' (3 components) or "
         f"'Bx', 'By', 'Bz'; found {found}",
+        file=file,
+    )
+
+
+def _vector_and_components(point_data, vector, components, arr, file) -> str:
+    """Both a vector ``B`` and components ``Bx, By, Bz``: the note when they agree (to 1e-9 of
+    the largest |B|, rounding of a float32 copy included: 1e-6), else a `CfmInputError`."""
+    names = [components[c][0] for c in ("Bx", "By", "Bz")]
+    comp = np.column_stack([np.asarray(point_data[c], dtype=np.float64).ravel() for c in names])
+    scale = max(float(np.nanmax(np.abs(arr))) if arr.size else 0.0, 1e-300)
+    with np.errstate(invalid="ignore"):
+        diff = np.abs(comp - arr)
+    if (
+        comp.shape == arr.shape
+        and not (diff > 1e-6 * scale).any()
+        and np.array_equal(np.isnan(comp), np.isnan(arr))
+    ):
+        return f"point data '{vector}' used; {', '.join(names)} agree with it"
+    node, k = np.unravel_index(int(np.nanargmax(np.where(np.isnan(diff), np.inf, diff))),
+                               diff.shape) if comp.shape == arr.shape else (0, 0)  # fmt: skip
+    raise CfmInputError(
+        f"point data '{vector}' and {', '.join(repr(c) for c in names)} disagree (node "
+        f"{node}: {'xyz'[k]} component {arr[node, k]:.6g} in '{vector}', {comp[node, k]:.6g} in "
+        f"'{names[k]}'); expected one flux density: remove or rename the other arrays",
         file=file,
     )
 

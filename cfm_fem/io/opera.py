@@ -144,12 +144,37 @@ def _definition(text, expected_index, file, line):
 
 
 def _check_counts(counts, points, file, line) -> list[str]:
+    refuse_missing_rows(counts, len(points), file, line)
     distinct = [int(np.unique(points[:, k]).size) for k in range(3)]
     msg = count_mismatch(counts, distinct, len(points), file, line)
     if msg is None:
         return []
     warnings.warn(msg, CfmInputWarning, stacklevel=4)
     return [msg]
+
+
+def refuse_missing_rows(counts, n_rows, file, line) -> None:
+    """Refuse a table with fewer data rows than the point counts of line 1 make.
+
+    Rows missing from an Opera grid are a file cut short (a copy or an export that stopped):
+    the rows present would be used as if they were the map, without the part cut off. More
+    rows than the counts, or counts that do not match the distinct values, stay a warning
+    (`count_mismatch`).
+
+    Raises
+    ------
+    CfmInputError
+        Naming line 1, the rows expected and the rows found.
+    """
+    expected = int(np.prod(counts, dtype=object))
+    if n_rows < expected:
+        raise CfmInputError(
+            f"the point counts {counts} make {expected} rows but only {n_rows} data rows follow "
+            f"({expected - n_rows} missing): the file looks cut short; expected the complete "
+            "table (or point counts that match its rows)",
+            file=file,
+            line=line,
+        )
 
 
 def count_mismatch(counts, distinct, n_rows, file, line) -> str | None:

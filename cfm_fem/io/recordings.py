@@ -32,6 +32,7 @@ import numpy as np
 from ..errors import CfmInputError, CfmInputWarning, shown
 from ..models.recordings import Recording
 from ._atomic import atomic_path
+from ._finite import check_finite
 from ._parse import (
     MAX_FIELD_T,
     check_cut_row,
@@ -428,7 +429,15 @@ def write_hall_map(path, rec: Recording, comments=()) -> None:
 
 
 def write_recording(path, rec: Recording, comments=()) -> None:
-    """Write either kind (columns: required, then the optional ones present, then ``extra``)."""
+    """Write either kind (columns: required, then the optional ones present, then ``extra``).
+
+    Raises
+    ------
+    CfmInputError
+        A value that is not finite or beyond what the readers take (`check_finite`): nothing
+        is written.
+    """
+    _check_writable(path, rec)
     n = len(rec)
     cols: list[tuple[str, list[str]]] = [
         ("point_id", [str(v) for v in rec.point_id.tolist()]),
@@ -460,6 +469,20 @@ def write_recording(path, rec: Recording, comments=()) -> None:
         writer.writerow([c for c, _ in cols])
         values = [v for _, v in cols]
         writer.writerows([col[i] for col in values] for i in range(n))
+
+
+def _check_writable(path, rec: Recording) -> None:
+    """The finite-value contract of a recording: every number finite and within the limits
+    the reader takes (`LIMITS`), so what is written reads back."""
+    columns = [(c, rec.cmd[:, j]) for j, c in enumerate(("x_cmd", "y_cmd", "z_cmd"))]
+    columns += [(c, rec.values[:, j]) for j, c in enumerate(_REQUIRED[rec.kind][5:])]
+    columns += [(c, v) for c, v in (("t_s", rec.t_s), ("speed", rec.speed),
+                                    ("temp_C", rec.temp_C)) if v is not None]  # fmt: skip
+    if rec.vel is not None:
+        columns += [(c, rec.vel[:, j]) for j, c in enumerate(("v_x", "v_y", "v_z"))]
+    for name, values in columns:
+        limit, unit = LIMITS.get(name, LIMITS["speed"])  # v_x, v_y, v_z: a speed
+        check_finite(path, name, values, limit=limit, unit=unit)
 
 
 def _floats(a) -> list[str]:

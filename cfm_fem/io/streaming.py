@@ -24,7 +24,7 @@ from ..errors import CfmInputError, CfmInputWarning
 from ._files import open_regular
 from ._parse import _check_finite, describe_column, detect_delimiter, header_names, parse_block
 from ._parse import table_layout as _layout
-from .opera import count_mismatch
+from .opera import count_mismatch, refuse_missing_rows
 
 __all__ = ["TableStream", "open_stream", "iter_lines", "check_opera_counts", "STREAMABLE"]
 
@@ -319,6 +319,7 @@ def check_opera_counts(stream: TableStream, distinct) -> list[str]:
     """
     if stream.counts is None:
         return []
+    refuse_missing_rows(stream.counts, stream.n_rows, stream.file, _first_line(stream.file))
     msg = count_mismatch(
         stream.counts, distinct, stream.n_rows, stream.file, _first_line(stream.file)
     )

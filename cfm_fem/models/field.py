@@ -127,7 +127,13 @@ class FieldMap:
                     file=source,
                 )
             if cells.min() < 0 or cells.max() >= len(points):
-                raise CfmInputError("cells refer to nodes that do not exist", file=source)
+                bad = int(np.argmax((cells < 0).any(axis=1) | (cells >= len(points)).any(axis=1)))
+                raise CfmInputError(
+                    f"cell {bad} refers to node(s) {cells[bad].tolist()}, outside the "
+                    f"{len(points)} nodes of the file; expected node numbers 0 to "
+                    f"{len(points) - 1} (counted from 0)",
+                    file=source,
+                )
         points, B, cells, lines = _merge_duplicates(points, B, cells, lines, source, notes)
         return cls(points=points, B=B, cells=cells, source=str(source), notes=notes, lines=lines)
 

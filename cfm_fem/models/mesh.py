@@ -329,7 +329,7 @@ def build_mesh(
         simplices, kind = fm.cells, "native"
     elif method == "native":
         raise CfmInputError(
-            f"interpolation 'native' needs {'triangles' if dim == 2 else 'tetrahedra'} in the "
+            f"--interpolation native needs {'triangles' if dim == 2 else 'tetrahedra'} in the "
             "export; this map has none",
             file=src,
         )
@@ -346,7 +346,10 @@ def build_mesh(
             if len(simplices) == 0:
                 simplices = None
         if simplices is None and method == "grid":
-            raise CfmInputError("interpolation 'grid' needs nodes on a rectilinear grid", file=src)
+            raise CfmInputError(
+                "--interpolation grid needs nodes on a rectilinear grid; use auto or delaunay",
+                file=src,
+            )
     tie = None  # Delaunay: the nodes of cells flat on the nodes, which keep their move
     lone = None  # Delaunay: kept hull slivers flat on the nodes, on their moved nodes alone
     if simplices is None:

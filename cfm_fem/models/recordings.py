@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import CfmInputError, CfmInputWarning
 
-__all__ = ["KINDS", "Recording", "check_hall_scale"]
+__all__ = ["KINDS", "Recording", "check_hall_scale", "check_tracker_scale"]
 
 KINDS = ("tracker", "hall")
 
@@ -256,5 +256,68 @@ def check_hall_scale(B_meas, B_ref, *, source, reference: str | None = None) -> 
             )
         raise CfmInputError(f"{what}; {hint}", file=source)
     msg = f"{source}: {what}; check the units and that the reference is the right field"
+    warnings.warn(msg, CfmInputWarning, stacklevel=3)
+    return [msg]
+
+
+#: Length units a tracker recording may have been written in by mistake, and their size in mm.
+_LENGTH_SLIPS = {"m": 1000.0, "cm": 10.0, "in": 25.4, "um": 1e-3}
+#: Median distance (mm) of the measured probe positions from their nominal ones above which a
+#: tracker recording is a gross mismatch: bench errors are micrometres, at most a few tenths.
+TRACKER_GROSS_MM = 1.0
+
+
+def check_tracker_scale(cmd, meas, nominal, *, source) -> list:
+    """Refuse a tracker recording written in another length unit than mm (a unit slip).
+
+    The measured probe positions are compared with the nominal ones the bench gives for the
+    commanded positions (``nominal(cmd)``: commanded positions plus the tool offset, in mm).
+    Bench errors are micrometres; when the median distance exceeds `TRACKER_GROSS_MM`, the
+    recording is read again as if in each unit of `_LENGTH_SLIPS` (m, cm, in, um): if one of
+    them brings the median distance under `TRACKER_GROSS_MM` and to a hundredth of what it was,
+    it is an error naming that unit. Any other gross mismatch gives a warning and a note (a
+    wrong tool offset or magnet placement could explain it).
+
+    Parameters
+    ----------
+    cmd, meas : ndarray, shape (n, 3), mm
+        Commanded axis positions and measured probe positions, as read.
+    nominal : callable
+        ``nominal(cmd)`` -> ndarray, shape (n, 3), mm: the bench's nominal probe positions.
+    source : str
+        The recording, for messages.
+
+    Returns
+    -------
+    list of str
+        Notes (empty when the positions agree within `TRACKER_GROSS_MM`).
+
+    Raises
+    ------
+    CfmInputError
+        The positions fit in another unit; the message names it and the option to pass.
+    """
+    cmd = np.asarray(cmd, dtype=float)
+    meas = np.asarray(meas, dtype=float)
+    if not len(cmd):
+        return []
+    gap = float(np.median(np.linalg.norm(meas - nominal(cmd), axis=1)))
+    if not gap > TRACKER_GROSS_MM:
+        return []
+    for unit, mm in _LENGTH_SLIPS.items():
+        other = float(np.median(np.linalg.norm(meas * mm - nominal(cmd * mm), axis=1)))
+        if other < TRACKER_GROSS_MM and other < 0.01 * gap:
+            raise CfmInputError(
+                f"the measured positions are {gap:.4g} mm from their nominal ones (median), "
+                f"{other:.3g} mm if the recording is in {unit}: its positions look like {unit}, "
+                f"not mm; the recording format is in mm: pass --recording-length-unit {unit} "
+                "(length_unit= from Python) or convert the file",
+                file=source,
+            )
+    msg = (
+        f"{source}: the measured positions are {gap:.4g} mm from their nominal ones (median); "
+        "bench errors are micrometres: check the recording's length unit, the bench's tool "
+        "offset ([frame] tool_offset_mm) and the axis order"
+    )
     warnings.warn(msg, CfmInputWarning, stacklevel=3)
     return [msg]

@@ -35,7 +35,7 @@ from ..models.iso230 import evaluate_records
 from ..models.kinematics.monte_carlo import KinematicsResult, pool_table_iv, run_kinematics
 from ..models.multipole import UNIT
 from ..models.probe import HallProbe
-from ..models.recordings import Recording, check_hall_scale
+from ..models.recordings import Recording, check_hall_scale, check_tracker_scale
 from .coupled import CoupledResult, pool_table_v, run_coupled
 
 __all__ = [
@@ -163,9 +163,10 @@ def _with_norm(e: np.ndarray) -> np.ndarray:
     return np.column_stack([e, np.sqrt((e**2).sum(1))])
 
 
-def check_within_strokes(rec: Recording, bench: Bench) -> None:
+def check_within_strokes(rec: Recording, bench: Bench) -> list:
     """Refuse a tracker recording with a commanded position outside the bench's strokes (the
-    bench model has no errors there); the first such row is named."""
+    bench model has no errors there; the first such row is named) or in another length unit
+    than mm (`check_tracker_scale`); returns the notes of a gross mismatch."""
     outside = bench.outside_stroke(rec.cmd)
     if outside.any():
         i = int(np.argmax(outside))
@@ -175,6 +176,9 @@ def check_within_strokes(rec: Recording, bench: Bench) -> None:
             file=rec.source,
             line=int(rec.lines[i]) or None,
         )
+    if rec.meas is None:
+        return []
+    return check_tracker_scale(rec.cmd, rec.meas, bench.nominal_probe_mm, source=rec.source)
 
 
 def compare_tracker(

@@ -49,6 +49,7 @@ from ..models.kinematics.geometry import draw_error_sets, kernel_geometry, noise
 from ..models.mc import symmetric_interval
 from ..models.multipole import UNIT
 from ..models.probe import HallProbe, apply_probe
+from ..threads import check_memory
 
 __all__ = [
     "CoupledResult",
@@ -264,6 +265,11 @@ def _probe_factors_rng(seed: int, i: int) -> np.random.Generator:
     )
 
 
+#: Bytes held per trial at once: the 21 errors of every trial and their chain terms, and per
+#: point of a block its positions, fields, flags and probe draws (about 100 bytes).
+TRIAL_BYTES = 8 * 21 * 2 + 400
+
+
 @threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def run_coupled(
     field_model: FieldModel,
@@ -316,6 +322,7 @@ def run_coupled(
     trials = int(trials)
     if trials < 2 * max(int(batches), 1):
         raise CfmInputError(f"trials must be at least 2 per batch ({2 * batches}); got {trials}")
+    check_memory("--trials", trials, TRIAL_BYTES, "trials")
     notes = []
     pts, region = _scan_points(field_model, points, region)
     n = len(pts)
@@ -399,12 +406,16 @@ def _nominal(field_model: FieldModel, bench: Bench, pts):
         raise CfmInputError(
             f"scan point {i} at {pts[i].tolist()} mm (magnet frame) needs axis positions "
             f"{np.round(q[i], 3).tolist()} mm, outside the strokes {bench.strokes_mm.tolist()}; "
-            "check [magnet] translation_mm of the bench"
+            f"check the scan region (--radius, --step, --z) and [magnet] translation_mm of the "
+            f"bench {bench.source}"
         )
     B_nom, inside = field_model.field(pts)
     if not inside.all():
         i = int(np.argmax(~inside))
-        raise CfmInputError(f"scan point {i} at {pts[i].tolist()} mm is outside the field map")
+        raise CfmInputError(
+            f"scan point {i} at {pts[i].tolist()} mm is outside the field map; check the scan "
+            "region (--radius, --step, --z)"
+        )
     return q, B_nom
 
 

@@ -40,11 +40,13 @@ class DesignAnswer:
 
     Attributes
     ----------
-    up_max_um : float
-        The answer, um (NaN when no U_p > 0 of the sweep gives U_f > 0).
-    u_up_max_um : float
+    up_max_um : float or None
+        The answer, um; None when the sweep bounds no U_p: method "unbounded" (U_f is 0 at
+        every U_p of the sweep: the field does not vary over the perturbation, so no U_p
+        exceeds the target) or "undetermined" (no node has a U_f figure).
+    u_up_max_um : float or None
         Its Monte Carlo standard uncertainty, um.
-    low_bias_bound_um : float
+    low_bias_bound_um : float or None
         The finite trial count biases the answer low (the safe side) by up to this, um:
         r ``up_max_um``, r the relative standard error of one interval end.
     uf_max_units, coverage : float
@@ -61,9 +63,9 @@ class DesignAnswer:
         Nodes with a U_f figure in the region, per U_p.
     """
 
-    up_max_um: float
-    u_up_max_um: float
-    low_bias_bound_um: float
+    up_max_um: float | None
+    u_up_max_um: float | None
+    low_bias_bound_um: float | None
     uf_max_units: float
     coverage: float
     method: str
@@ -77,6 +79,18 @@ class DesignAnswer:
 
     def sentence(self) -> str:
         """``U_p <= 23.4 +- 0.3 um keeps U_f <= 10 units over 95 % of the nodes``."""
+        share = f"over {100 * self.coverage:g} % of the nodes"
+        if self.method == "unbounded":
+            return (
+                f"no largest U_p: U_f stays 0 units {share} at every U_p of the sweep (up to "
+                f"{max(self.up_um):g} um), below the target {self.uf_max_units:g} units: the "
+                "field does not vary over the perturbed positions (uniform field?)"
+            )
+        if self.method == "undetermined":
+            return (
+                f"no U_p determined for U_f <= {self.uf_max_units:g} units {share}: no node of "
+                "the region has a U_f figure at a U_p > 0 of the sweep"
+            )
         return (
             f"U_p <= {self.up_max_um:.4g} +- {self.u_up_max_um:.2g} um keeps U_f <= "
             f"{self.uf_max_units:g} units over {100 * self.coverage:g} % of the nodes "
@@ -105,8 +119,10 @@ def _crossing(up, p, target):
             t = (target - lo) / (hi - lo) if hi > lo else 1.0
             return up[k - 1] + t * (up[k] - up[k - 1]), "interpolated"
     k = int(np.nanargmax(np.where(up > 0, up, np.nan))) if (up > 0).any() else -1
-    if k < 0 or not p[k] > 0:
+    if k < 0 or not np.isfinite(p[k]):
         return float("nan"), "undetermined"
+    if not p[k] > 0:  # U_f is 0 at the largest U_p: the field does not vary there
+        return float("nan"), "unbounded"
     return up[k] * target / p[k], "extrapolated"
 
 
@@ -162,11 +178,12 @@ def admissible_up(
         ufb = np.maximum(low * (1.0 + rel_mc_std * z[0]), high * (1.0 + rel_mc_std * z[1]))
         boot_p[b] = _percentiles(ufb, complete, coverage)
         boot_a[b] = _crossing(up, boot_p[b], uf_max)[0]
-    u_p = np.nanstd(boot_p, axis=0, ddof=1)
+    u_p = _std(boot_p)
+    found = bool(np.isfinite(answer))
     return DesignAnswer(
-        up_max_um=float(answer),
-        u_up_max_um=float(np.nanstd(boot_a, ddof=1)),
-        low_bias_bound_um=float(rel_mc_std * answer),
+        up_max_um=float(answer) if found else None,
+        u_up_max_um=float(_std(boot_a[:, None])[0]) if found else None,
+        low_bias_bound_um=float(rel_mc_std * answer) if found else None,
         uf_max_units=float(uf_max),
         coverage=float(coverage),
         method=method,
@@ -175,3 +192,14 @@ def admissible_up(
         u_percentile_units=[None if not np.isfinite(v) else float(v) for v in u_p],
         nodes=[int(complete[:, k].sum()) for k in range(len(up))],
     )
+
+
+def _std(replicates) -> np.ndarray:
+    """Standard deviation over the bootstrap replicates (axis 0) of each column, NaN where
+    fewer than two are finite (no warning)."""
+    ok = np.isfinite(replicates)
+    out = np.full(replicates.shape[1], np.nan)
+    enough = ok.sum(axis=0) >= 2
+    if enough.any():
+        out[enough] = np.nanstd(replicates[:, enough], axis=0, ddof=1)
+    return out

@@ -14,6 +14,7 @@ only when a cluster is asked for.
 from __future__ import annotations
 
 import contextlib
+import os
 
 import numpy as np
 
@@ -42,6 +43,10 @@ def _import_distributed():
     return distributed
 
 
+#: Most local Dask worker processes per CPU: more only compete for the CPUs and the memory.
+MAX_WORKERS_PER_CPU = 4
+
+
 def check_scale_out(scheduler: str | None = None, workers: int | None = None) -> None:
     """The checks of `dask_client` that need no cluster, for a command to run before any work.
 
@@ -56,6 +61,12 @@ def check_scale_out(scheduler: str | None = None, workers: int | None = None) ->
         raise CfmInputError("give either --scheduler or --workers, not both")
     if workers is not None and workers < 1:
         raise CfmInputError(f"--workers must be >= 1; got {workers}")
+    most = MAX_WORKERS_PER_CPU * (os.cpu_count() or 1)
+    if workers is not None and workers > most:
+        raise CfmInputError(
+            f"--workers must be at most {most} ({MAX_WORKERS_PER_CPU} per CPU of this machine; "
+            f"each is a process with its own copy of the map); got {workers}"
+        )
     _import_distributed()
 
 
@@ -92,19 +103,27 @@ def dask_client(scheduler: str | None = None, workers: int | None = None):
                 client = distributed.Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s")
             except (OSError, TimeoutError, ValueError) as exc:
                 raise CfmInputError(
-                    f"cannot reach the Dask scheduler {scheduler!r}: {exc}; expected the address "
+                    f"--scheduler: cannot reach the Dask scheduler {scheduler!r}: {exc}; "
+                    "expected the address "
                     "of a running scheduler such as tcp://HOST:8786"
                 ) from None
         else:
-            cluster = stack.enter_context(
-                distributed.LocalCluster(
-                    n_workers=int(workers),
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address=None,
-                    host="127.0.0.1",
+            try:
+                cluster = stack.enter_context(
+                    distributed.LocalCluster(
+                        n_workers=int(workers),
+                        threads_per_worker=1,
+                        processes=True,
+                        dashboard_address=None,
+                        host="127.0.0.1",
+                    )
                 )
-            )
+            except (OSError, RuntimeError, TimeoutError) as exc:  # "Nanny failed to start"
+                raise CfmInputError(
+                    f"--workers {workers}: Dask could not start a local cluster of {workers} "
+                    f"worker process(es) ({exc}); expected fewer workers, or the memory and "
+                    "process limits for them"
+                ) from None
             client = distributed.Client(cluster)
         stack.enter_context(client)
         yield client

@@ -13,6 +13,7 @@ from collections import namedtuple
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
@@ -36,7 +37,7 @@ from ...models.sweep import (
     up_label,
     uses_harmonic,
 )
-from ...threads import map_blocks
+from ...threads import check_memory, map_blocks
 
 __all__ = [
     "node_keys",
@@ -133,27 +134,62 @@ def edge_fit_gradients(mesh: SimplexMesh, B: np.ndarray, cells_per_block: int = 
     return grad
 
 
-def check_options(trials: int, axis_scale, b_ref_T: float | None) -> None:
+#: Smallest B_ref, as a share of the map's largest |B|: below it, field errors in units of
+#: 1e-4 B_ref reach 1e13 units per tesla of error and overflow for absurd values (1e-300 T).
+MIN_B_REF_SHARE = 1e-9
+
+
+def trial_bytes(n_columns: int, mode: str = "gauss") -> float:
+    """Bytes a sweep holds per Monte Carlo trial, whatever the map's size.
+
+    Each kernel thread keeps per node the trials of every U_p column and component (a
+    (n_columns, 3, trials) and a (n_columns, trials) array) and some 17 scratch rows of
+    ``trials`` values; mode htm also keeps the 21 geometric errors and their chain terms of
+    every trial.
+
+    Parameters
+    ----------
+    n_columns : int
+        U_p values (mode gauss) or bench columns (mode htm).
+    mode : {'gauss', 'htm'}
+
+    Returns
+    -------
+    float
+        Bytes per trial.
+    """
+    per_thread = 8.0 * (4 * max(int(n_columns), 1) + 24)
+    shared = 8.0 * 2 * 21 if mode == "htm" else 0.0
+    return numba.get_num_threads() * per_thread + shared
+
+
+def check_options(
+    trials: int, axis_scale, b_ref_T: float | None, n_columns: int = 1, mode: str = "gauss"
+) -> None:
     """The checks of a `SweepConfig` that need no map: the command line runs them before it
     reads the map (which can take minutes), `_check_config` again for a Python caller.
 
     Raises
     ------
     CfmInputError
-        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0.
+        ``trials`` < 20, an axis scale negative, not finite or all 0, ``b_ref_T`` not > 0, or
+        more trials than the memory holds (`cfm_fem.threads.check_memory`, `trial_bytes`).
     """
     if trials < 20:
         raise CfmInputError(f"--trials must be at least 20 for a 95 % interval; got {trials}")
+    check_memory("--trials", trials, trial_bytes(n_columns, mode), "trials")
     if any(not np.isfinite(a) or a < 0 for a in axis_scale) or max(axis_scale) == 0:
-        raise CfmInputError(f"axis scale must be finite, >= 0 and not all 0; got {axis_scale}")
+        raise CfmInputError(
+            f"--axis-scale (axis_scale) must be finite, >= 0 and not all 0; got {axis_scale}"
+        )
     if b_ref_T is not None and not (np.isfinite(b_ref_T) and b_ref_T > 0):
-        raise CfmInputError(f"B_ref must be a positive field in T; got {b_ref_T}")
+        raise CfmInputError(f"--b-ref (B_ref) must be a positive field in T; got {b_ref_T}")
 
 
 def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     if cfg.mode not in ("gauss", "htm"):
         raise CfmInputError(f"--mode must be gauss or htm; got {cfg.mode!r}")
-    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T)
+    check_options(cfg.trials, cfg.axis_scale, cfg.b_ref_T, len(cfg.up_um), cfg.mode)
     if not 0.5 < cfg.coverage < 1.0:
         raise CfmInputError(f"coverage must be in (0.5, 1); got {cfg.coverage}")
     if cfg.outside not in OUTSIDE_RULES:
@@ -177,8 +213,8 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if up_max_mm * 5.0 > extent:
         raise CfmInputError(
-            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
-            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            f"--up: U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its "
+            f"smallest extent of {extent:g} mm, so most perturbed points would leave the map",
             file=fm.source,
         )
 
@@ -434,6 +470,13 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
         raise CfmInputError(
             "the map's field is zero everywhere; give B_ref explicitly", file=fm.source
         )
+    if b_ref < MIN_B_REF_SHARE * fm.b_max:  # units of 1e-4 B_ref would overflow
+        raise CfmInputError(
+            f"--b-ref {b_ref:g} T is below {MIN_B_REF_SHARE:g} of the map's largest |B| "
+            f"({fm.b_max:.6g} T): its units (1e-4 B_ref) would be meaningless or overflow; "
+            "expected the reference field of the magnet, in T",
+            file=fm.source,
+        )
     eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
     start_cells = _kernels.octant_cells(
         mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
@@ -442,9 +485,11 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
     if cfg.mode == "htm":
         htm, unreachable = _htm_arrays(cfg, fm)
         if unreachable.all():
+            bench = cfg.bench
+            where = "the packaged bench" if bench is None else bench.source
             raise CfmInputError(
-                "no node of the map is within the strokes of the bench's axes; check the magnet "
-                "placement in the bench file ([magnet] rotation_deg, translation_mm)",
+                f"no node of the map is within the strokes of the bench's axes; check the magnet "
+                f"placement in the bench file {where} ([magnet] rotation_deg, translation_mm)",
                 file=fm.source,
             )
         if unreachable.any():

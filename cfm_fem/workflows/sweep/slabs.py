@@ -399,8 +399,8 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if not htm and sigma * 5.0 > extent:
         raise CfmInputError(
-            f"U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its smallest "
-            f"extent of {extent:g} mm, so most perturbed points would leave the map",
+            f"--up: U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its "
+            f"smallest extent of {extent:g} mm, so most perturbed points would leave the map",
             file=file,
         )
     n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
@@ -415,7 +415,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         keys = [np.unique(lattice_keys(d, span)) for d in st.distinct]
     kind = cfg.interpolation
     if kind == "native":
-        raise CfmInputError("interpolation 'native' needs tetrahedra in the export; this map has "
+        raise CfmInputError("--interpolation native needs tetrahedra in the export; this map has "
                             "none", file=file)  # fmt: skip
     grid_shape = None if keys is None else tuple(len(k) for k in keys)
     if kind in ("auto", "grid"):
