@@ -125,3 +125,20 @@ def test_inputs_that_ended_in_nnls_tracebacks_run(synth_hall, tmp_path, case):
                  "--out", str(out)]) == 0  # fmt: skip
     s = json.loads((out / "diagnosis.json").read_text())
     assert all(np.isfinite(s["fit"]["noise_std"]))
+
+
+def test_a_tracker_whose_repetitions_are_identical_runs(tmp_path, capsys):
+    """Repetitions that agree to the last digit leave no scatter to fit a noise floor to: the
+    diagnosis still runs and writes finite figures."""
+    rows = ["point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas"]
+    for i, (x, y, z) in enumerate([(0, 20, 0), (10, 20, 50), (20, 40, 100), (30, 60, 150),
+                                   (40, 80, 200), (50, 100, 250)]):  # fmt: skip
+        for rep in (0, 1):
+            rows.append(f"{i},{rep},{x},{y},{z},{x + 0.0021},{y - 59.9978},{z + 500.0013}")
+    rec = tmp_path / "same_reps.csv"
+    rec.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "d"
+    assert main(["diagnose", "--tracker", str(rec), "--no-report", "--out", str(out)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    fit = json.loads((out / "diagnosis.json").read_text())["fit"]
+    assert np.isfinite(fit["rms_before"]) and np.isfinite(fit["chi2_dof_before"])

@@ -3,9 +3,11 @@ recordings, locate significant residuals, attribute them to catalogued physical 
 model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
 DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
---reference FIELD: a field map (any format cfm-fem reads; with --field-model linear, the default,
-read between its nodes by its linear interpolant with the curvature corrected, second-order
-accurate), a harmonics CSV (2-D multipole), or
+--reference FIELD: a field map (any format cfm-fem reads; read between its nodes by its linear
+interpolant, --field-model linear, the default, whose interpolation error is added to the noise;
+by the linear interpolant with its curvature corrected, second-order accurate, --field-model
+curvature; or by the per-node harmonic fits, --field-model harmonic), a harmonics CSV (2-D
+multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
 itself (global, or in z windows).
 """
@@ -54,7 +56,7 @@ def add_args(p):
         "(batch runs)",
     )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
-    add_field_model_arg(p, "--reference")
+    add_field_model_arg(p, "--reference", curvature=True)
 
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
@@ -148,10 +150,12 @@ def _reference(spec, rec, r_ref=None, args=None):
         from ..models.harmonic import fit_harmonic
 
         interp = fit_harmonic(fm.points, fm.B, source=fm.source)
-    else:
+    elif field_model == "curvature":
         from ..models.curvature import CurvatureCorrected
 
         interp = CurvatureCorrected(LinearInterpolator(fm), spacing)
+    else:
+        interp = LinearInterpolator(fm)
 
     def fn(p):
         b, inside = interp.field_at(p)
@@ -179,8 +183,9 @@ def _reference(spec, rec, r_ref=None, args=None):
             (desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"),
         )
     fn.nodes = fm.points  # the interpolation is exact there
-    fn.error_var = interp.error_var
-    desc = desc[:-1] + ", interpolated linearly with its curvature corrected)"
+    if field_model == "curvature":
+        fn.error_var = interp.error_var
+        desc = desc[:-1] + ", interpolated linearly with its curvature corrected)"
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 
 
