@@ -5,8 +5,7 @@ analysis). Each fringe scan, placed at the nominal offset of its ``Zmagnet`` col
 Hall-map recording of the overlap with the body scan and diagnosed with the command line against
 the body scan (``--reference``, inches). The magnet shift the diagnosis finds (released in
 ``magnet_misalignment``, else calibrated within the survey prior) is printed beside the shift the
-owners' offsets imply (``tests/test_diagnose_emphatic.py`` explains the conversion). The
-shift is the final model's (``calibration.parameters_final``: fitted beside the effects found).
+owners' offsets imply (``tests/test_diagnose_emphatic.py`` explains the conversion).
 
     python scripts/diagnose_emphatic.py [--data ../shared/data/emphatic] [--out emphatic/]
 """
@@ -82,11 +81,9 @@ def main(argv=None) -> int:
         if cli(argv) != 0:
             return 1
         s = json.loads((out / side / "diagnosis.json").read_text())
-        # the shift as the final model fits it (the effects beside it), released or not
-        p = {d["name"]: (d["value"], d["std"]) for d in s["calibration"]["parameters_final"]}
+        p = {d["name"]: (d["value"], d["std"]) for d in s["calibration"]["parameters"]}
         for e in s["effects"]:
-            p.update({k: (v, e["param_std"][k]) for k, v in e["params"].items()
-                      if k in e["param_std"]})  # fmt: skip
+            p.update({k: (v, e["param_std"][k]) for k, v in e["params"].items()})
         cells = [
             f"{p[k][0]:.0f} +- {p[k][1]:.0f} (owners {OWNERS[side][k]:.0f})"
             for k in ("magnet_dx", "magnet_dy", "magnet_dz")

@@ -135,28 +135,20 @@ def read_recording_args(args):
     )
 
 
-def add_field_model_arg(p, what: str, auto: bool = False, curvature: bool = False) -> None:
+def add_field_model_arg(p, what: str, auto: bool = False) -> None:
     """Add ``--field-model``: how the map ``what`` is modelled between nodes. ``auto``: offer
-    and default to "auto" (harmonic on a 3-D map, linear on a planar one), else default linear;
-    ``curvature``: offer "curvature" (the linear interpolant with its curvature corrected)."""
-    choices = ["auto", "linear", "harmonic"] if auto else ["linear", "harmonic"]
-    help_text = (
-        f"the field of {what} between its nodes: linear interpolation in its cells, or per node "
-        "a least-squares fit of a harmonic potential's gradient (div B = curl B = 0) to its "
-        "nearest nodes (3-D maps)"
-    )
-    if curvature:
-        choices.append("curvature")
-        help_text += ", or the linear interpolant less its second-order error (curvature)"
+    and default to "auto" (harmonic on a 3-D map, linear on a planar one), else default linear."""
     p.add_argument(
         "--field-model",
-        choices=choices,
+        choices=["auto", "linear", "harmonic"] if auto else ["linear", "harmonic"],
         default="auto" if auto else "linear",
-        help=help_text
+        help=f"the field of {what} between its nodes: linear interpolation in its cells, or per "
+        "node a least-squares fit of a harmonic potential's gradient (div B = curl B = 0) to its "
+        "nearest nodes (3-D maps); "
         + (
-            "; auto (default): harmonic on a 3-D map, linear on a planar one"
+            "auto (default): harmonic on a 3-D map, linear on a planar one"
             if auto
-            else "; default linear"
+            else "default linear"
         ),
     )
 

@@ -3,11 +3,7 @@ recordings, locate significant residuals, attribute them to catalogued physical 
 model comparison and held-out error, model them and advise. Writes DIR/diagnosis.json,
 DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
---reference FIELD: a field map (any format cfm-fem reads; read between its nodes by its linear
-interpolant, --field-model linear, the default, whose interpolation error is added to the noise;
-by the linear interpolant with its curvature corrected, second-order accurate, --field-model
-curvature; or by the per-node harmonic fits, --field-model harmonic), a harmonics CSV (2-D
-multipole), or
+--reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
 itself (global, or in z windows).
 """
@@ -56,7 +52,7 @@ def add_args(p):
         "(batch runs)",
     )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
-    add_field_model_arg(p, "--reference", curvature=True)
+    add_field_model_arg(p, "--reference")
 
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
@@ -145,15 +141,10 @@ def _reference(spec, rec, r_ref=None, args=None):
     from ..models.interpolation import LinearInterpolator
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
-    spacing = node_spacing_mm(fm.points)
     if field_model == "harmonic":
         from ..models.harmonic import fit_harmonic
 
         interp = fit_harmonic(fm.points, fm.B, source=fm.source)
-    elif field_model == "curvature":
-        from ..models.curvature import CurvatureCorrected
-
-        interp = CurvatureCorrected(LinearInterpolator(fm), spacing)
     else:
         interp = LinearInterpolator(fm)
 
@@ -174,6 +165,7 @@ def _reference(spec, rec, r_ref=None, args=None):
             file=rec.source,
             line=int(rec.lines[i]) or None,
         )
+    spacing = node_spacing_mm(fm.points)
     desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
     if field_model == "harmonic":  # smooth between nodes: no interpolation error to add
         return (
@@ -183,9 +175,6 @@ def _reference(spec, rec, r_ref=None, args=None):
             (desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"),
         )
     fn.nodes = fm.points  # the interpolation is exact there
-    if field_model == "curvature":
-        fn.error_var = interp.error_var
-        desc = desc[:-1] + ", interpolated linearly with its curvature corrected)"
     return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
 
 
@@ -236,8 +225,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    import numpy as np
-
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
     from ..workflows.diagnose.problem import hall_problem, tracker_problem
@@ -258,19 +245,10 @@ def _run(args) -> int:
         fn, b_ref, spacing, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
             b_ref = args.b_ref
-        if not (np.isfinite(b_ref) and b_ref > 0):
-            raise CfmInputError(
-                f"--reference {args.reference}: its field is zero everywhere (B_ref = max |B| "
-                f"= {b_ref:g} T), so field errors have no unit; expected a non-zero field, or "
-                "give --b-ref T"
-            )
         nodes = getattr(fn, "nodes", None)
-        err = getattr(fn, "error_var", None)
-        if err is not None:  # a map with its curvature corrected: smooth to second order
-            prob = hall_problem(rec, fn, b_ref, bench, ref_error_var=err)
-        else:
-            prob = hall_problem(rec, fn, b_ref, bench, smooth=spacing is None,
-                                ref_spacing_mm=spacing, ref_nodes=nodes)  # fmt: skip
+        prob = hall_problem(
+            rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes
+        )
         prob.notes.append(f"reference: {desc}")
         src = args.hall_map
     print(f"cfm-fem diagnose: {len(rec)} rows from {src}", file=sys.stderr)
@@ -285,10 +263,7 @@ def _run(args) -> int:
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:
         ps = ", ".join(
-            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}"
-            if k in e["param_std"]
-            else f"{k}={v:.3g} {e['units'][k]} (at its {e['at_bound'][k]} bound)"
-            for k, v in e["params"].items()
+            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}" for k, v in e["params"].items()
         )
         print(f"  {e['name']}: delta BIC {e['delta_bic']}; {ps}")
     print(

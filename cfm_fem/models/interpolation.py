@@ -139,25 +139,6 @@ class LinearInterpolator:
             NaN where the point is outside the mesh (never extrapolated).
         inside : ndarray, shape (k,), bool
         """
-        B, cell, _ = self.locate(points)
-        return B, cell >= 0
-
-    def locate(self, points):
-        """Interpolated B, the containing cell and the mesh-frame coordinates of ``points``.
-
-        Parameters
-        ----------
-        points : array_like, shape (k, 3), mm
-
-        Returns
-        -------
-        B : ndarray, shape (k, 3), T
-            NaN outside the mesh.
-        cell : ndarray, shape (k,), int64
-            Index into ``mesh.simplices``; negative outside the mesh.
-        local : ndarray, shape (k, dim), mm
-            ``mesh.to_local(points)``.
-        """
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
         if self._tree is None:
             self._tree = scipy.spatial.cKDTree(self.mesh.coords)
@@ -183,7 +164,7 @@ class LinearInterpolator:
             cell[found] = c2[c2 >= 0]
             # a walk that starts in the containing cell takes no step
             B[found] = interpolate_points(m, self.fieldmap.B, local[found], cell[found])[0]
-        return B, cell, local
+        return B, cell >= 0
 
     def _cells_around(self, local):
         """Containing cell of each point (k, dim), -1 if none, by testing every cell whose

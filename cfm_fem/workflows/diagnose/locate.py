@@ -106,36 +106,14 @@ def planes(pos):
     return out
 
 
-#: Fewest planes along an axis for their own scatter to set the scale of the plane test.
-_MIN_PLANES_SCALE = 5
-
-
-def _holm(p, alpha: float) -> np.ndarray:
-    """Holm's step-down rejections (bool, same shape as ``p``) at family-wise level alpha."""
-    p = np.asarray(p, dtype=float)
-    order = np.argsort(p, kind="stable")
-    m = p.size
-    reject = np.zeros(m, dtype=bool)
-    for rank, i in enumerate(order):
-        if p[i] > alpha / (m - rank):
-            break
-        reject[i] = True
-    return reject
-
-
 def isolated_planes(prob, z_row, q: float = 0.01) -> list:
     """Planes whose mean residual departs from what their neighbours predict: a bad plane
     (a settling artefact at the start of every line, a glitch), not a smooth effect.
 
-    Per axis and component, the standardised plane means m_k are compared with the line through
-    their neighbours (interior planes: (m_{k-1} + m_{k+1}) / 2, variance 3/2; end planes: 2 m_1
-    - m_2 extrapolated, variance 6). The departures d_k and the means m_k of a component are
-    divided by the robust scatter of its departures over the planes of every axis (1.4826 times
-    their median absolute value, at least 1, with ``_MIN_PLANES_SCALE`` planes or more): a
-    noise model a little too small, or residuals correlated within a plane, widens every d_k
-    alike and is no bad plane. All planes of all axes and components form one family, tested at
-    family-wise level ``q`` (Holm), and a plane must also be significant on its own mean (same
-    family): on a clean map the chance of any plane flagged is at most about ``q``.
+    Per axis and component, the standardised plane means m_k are compared with the line
+    through their neighbours (interior planes: (m_{k-1} + m_{k+1}) / 2, variance 3/2; end
+    planes: 2 m_1 - m_2 extrapolated, variance 6); the p-values of all planes form one family
+    (Benjamini-Hochberg at ``q``) and a plane must also be significant on its own mean.
 
     Returns
     -------
@@ -143,31 +121,23 @@ def isolated_planes(prob, z_row, q: float = 0.01) -> list:
         ``axis``, ``position_mm``, ``component``, ``z_isolated``, ``z_mean``, ``rows`` (bool
         (n,)), strongest first.
     """
-    rows = []  # (axis, position, component, d, m, rows of the plane)
+    cand = []
     for a, _, vals, inv in planes(prob.pos):
         cnt = np.bincount(inv).astype(float)
         for c in range(3):
             m = np.bincount(inv, z_row[:, c]) / np.sqrt(cnt)
-            d = np.empty(vals.size)
+            k = vals.size
+            d = np.empty(k)
             d[1:-1] = (m[1:-1] - 0.5 * (m[:-2] + m[2:])) / np.sqrt(1.5)
             d[0] = (m[0] - 2 * m[1] + m[2]) / np.sqrt(6.0)
             d[-1] = (m[-1] - 2 * m[-2] + m[-3]) / np.sqrt(6.0)
-            rows += [(a, float(vals[j]), c, d[j], m[j], inv == j) for j in range(vals.size)]
-    if not rows:
+            for j in range(k):
+                cand.append((a, float(vals[j]), c, float(d[j]), float(m[j]), inv == j))
+    if not cand:
         return []
-    comp = np.array([t[2] for t in rows])
-    d = np.array([t[3] for t in rows])
-    m = np.array([t[4] for t in rows])
-    for c in range(3):  # the component's own scatter of departures, over every axis's planes
-        sel = comp == c
-        if sel.sum() >= _MIN_PLANES_SCALE:
-            width = max(1.0, 1.4826 * float(np.median(np.abs(d[sel]))))
-            d[sel] /= width
-            m[sel] /= width
-    cand = [(*t[:3], float(di), float(mi), t[5]) for t, di, mi in zip(rows, d, m, strict=True)]
-    p_iso = 2 * stats.norm.sf(np.abs(d))
-    p_mean = 2 * stats.norm.sf(np.abs(m))
-    hit = _holm(p_iso, q) & _holm(p_mean, q)
+    p_iso = np.array([2 * stats.norm.sf(abs(t[3])) for t in cand])
+    p_mean = np.array([2 * stats.norm.sf(abs(t[4])) for t in cand])
+    hit = benjamini_hochberg(p_iso, q) & benjamini_hochberg(p_mean, q)
     out = [
         {
             "axis": COMP[t[0]],

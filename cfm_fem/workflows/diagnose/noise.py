@@ -4,16 +4,13 @@ Every reading scatters by the instrument's own noise (the Hall probe's, the trac
 does not depend on where the probe is, plus the bench's vibration and reading jitter seen through
 the field gradient (``var_known``, from the bench model). The variance of an observation is
 
-    sigma_ic**2 = a_c + b * var_known_ic
+    sigma_ic**2 = a_c + b_c * var_known_ic
 
-with the floor ``a_c`` (per component) and the scale ``b`` of the bench model's vibration (one for
-the three components: the bench vibrates as a whole) both estimated from the data, both >= 0, and
-no component's model below its own scatter: its floor is raised until the mean ratio of its squared
-scatter to its modelled variance is at most 1, so a component whose gradient vanishes over most of
-the map cannot end with a variance the data contradict. The floor holds where the gradient vanishes
-(beyond the magnet ends), the scale lets the data say how much vibration the bench really has (the
-bench file may describe another bench). Against a piecewise-linear reference (an FEM or measured
-map), the variance of its interpolation error is added (:func:`reference_error_var`): the reference
+with the floor ``a_c`` and the scale ``b_c`` of the bench model's vibration both estimated from
+the data, per component, and both >= 0. The floor holds where the gradient vanishes (beyond the
+magnet ends), the scale lets the data say how much vibration the bench really has (the bench
+file may describe another bench). Against a piecewise-linear reference (an FEM or measured map),
+the variance of its interpolation error is added (:func:`reference_error_var`): the reference
 is not exact between its nodes, and that error is no effect of the bench or the probe.
 
 Where the data come from:
@@ -47,8 +44,6 @@ __all__ = [
 #: plane, a glitch), left out of the noise estimate; they are for `locate` to find.
 _OUTLIER_Z = 5.0
 _MIN_TRIPLES = 10
-#: A component whose residual rms is below this fraction of the data's rms is rounding.
-_ROUNDING = 1e-9
 
 
 @dataclass
@@ -80,78 +75,34 @@ class NoiseModel:
         return np.sqrt(v if var_ref is None else v + var_ref)
 
 
-def _fit_floor_scale(s2, v, w_dof, mult=1.0, comp=None):
-    """IRLS fit of E[s2] = mult * (a_c + b v), a_c, b >= 0; s2, v, w_dof, comp shape (k,).
+def _fit_floor_scale(s2, v, w_dof, mult=1.0):
+    """IRLS fit of E[s2] = mult * (a + b v), a, b >= 0; s2, v, w_dof shape (k,).
 
-    ``comp`` (ints 0..2, default all 0) says which component each entry belongs to: each has
-    its own floor a_c, the vibration scale b is shared. The bench vibrates as a whole, and the
-    components see that one motion through their own gradients; a scale per component would
-    let a component whose gradient vanishes over most of the map (on the axis of a sextupole,
-    where the field grows as r^2) set its scale from the few points where it does not and
-    collapse its noise there. The scale has a weak prior N(1, 1) (the bench file's vibration
-    as stated): it decides only when the data cannot tell the floors from the vibration (v
-    nearly the same at every point), and then splits the variance as the bench file says.
-
-    The fit runs in units of each component's mean square, so its weights 1 / m^2 stay finite
-    whatever the size of the residuals; a component with no scatter at all gets a zero floor.
-
-    Returns
-    -------
-    a : ndarray, shape (3,)
-    b : float
+    The scale b has a weak prior N(1, 1) (the bench file's vibration as stated): it decides
+    only when the data cannot tell the floor from the vibration (v nearly the same at every
+    point), and then splits the variance as the bench file says.
     """
-    s2, v = np.asarray(s2, dtype=float), np.asarray(v, dtype=float)
-    comp = np.zeros(s2.size, dtype=np.int64) if comp is None else np.asarray(comp)
-    a_out = np.zeros(3)
-    unit = np.array([float(np.mean(s2[comp == c])) if np.any(comp == c) else 0.0
-                     for c in range(3)])  # fmt: skip
-    live = np.isfinite(unit) & (unit > 0.0)
-    keep = live[comp] & np.isfinite(s2) & np.isfinite(v)
-    if not keep.any():
-        return a_out, 0.0
-    s2, v, w_dof, comp = s2[keep], v[keep], np.asarray(w_dof, dtype=float)[keep], comp[keep]
-    cs = np.flatnonzero(live)
-    s2, v = s2 / unit[comp], v / unit[comp]
+    if s2.size == 0:
+        return 0.0, 0.0
     use_b = bool(np.any(v > 0))
-    X = np.column_stack([mult * (comp == c) for c in cs] + ([mult * v] if use_b else []))
-    m = np.ones(s2.size)
+    cols = [np.full(s2.size, mult)] + ([mult * v] if use_b else [])
+    X = np.column_stack(cols)
+    m = np.full(s2.size, max(float(np.mean(s2)), 1e-300))
     coef = np.zeros(X.shape[1])
     for _ in range(20):
         sw = np.sqrt(w_dof / (2.0 * m**2))
         A, y = X * sw[:, None], s2 * sw
         if use_b:
-            A = np.vstack([A, np.r_[np.zeros(len(cs)), 1.0]])
+            A = np.vstack([A, [0.0, 1.0]])
             y = np.r_[y, 1.0]
         coef, _ = nnls(A, y)
-        m_new = np.maximum(X @ coef, 1e-12)
+        m_new = np.maximum(X @ coef, 1e-12 * float(np.mean(s2)) + 1e-300)
         if np.allclose(m_new, m, rtol=1e-6):
             break
         m = m_new
-    b = float(coef[-1]) if use_b else 0.0
-    a = coef[: len(cs)].copy()
-    for k in range(len(cs)):  # no component below its own scatter (module docstring)
-        a[k] = _floor_at_least(s2[comp == cs[k]], mult * v[comp == cs[k]] * b,
-                               w_dof[comp == cs[k]], mult, a[k])  # fmt: skip
-    a_out[cs] = a * unit[cs]
-    return a_out, b
-
-
-def _floor_at_least(s2, vib, w, mult, a):
-    """The smallest floor >= ``a`` at which the weighted mean of s2 / (mult a + vib) is at
-    most 1 (bisection; all in the units of the IRLS)."""
-
-    def ratio(x):
-        return float(np.sum(w * s2 / np.maximum(mult * x + vib, 1e-300)) / np.sum(w))
-
-    if s2.size == 0 or ratio(a) <= 1.0:
-        return a
-    lo, hi = a, max(a, float(np.max(s2)) / mult)
-    while ratio(hi) > 1.0:
-        hi *= 2.0
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if ratio(mid) > 1.0 else (lo, mid)
-    return hi
+    a = float(coef[0])
+    b = float(coef[1]) if use_b else 0.0
+    return a, b
 
 
 def line_triples(pos, tol: float = 1e-3):
@@ -189,23 +140,14 @@ def line_triples(pos, tol: float = 1e-3):
 def _from_repeats(point, resid, vk, n_points):
     cnt = np.bincount(point, minlength=n_points).astype(float)
     rep_ok = cnt >= 2
-    s2, v, w, comp = [], [], [], []
+    floor, scale = np.zeros(3), np.zeros(3)
     for c in range(3):
         mean = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
         dev2 = np.bincount(point, (resid[:, c] - mean[point]) ** 2, n_points)
-        vc = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
-        s2.append(dev2[rep_ok] / (cnt[rep_ok] - 1))
-        v.append(vc[rep_ok])
-        w.append(cnt[rep_ok] - 1)
-        comp.append(np.full(int(rep_ok.sum()), c))
-    s2, v, w, comp = map(np.concatenate, (s2, v, w, comp))
-    floor, b = _fit_floor_scale(s2, v, w, 1.0, comp)
-    return floor, np.full(3, b), float(np.sum(cnt[rep_ok] - 1))
-
-
-#: At most this fraction of the second differences is left out as gross outliers: beyond it
-#: the noise model, not the readings, is what fails (a bad plane is a few % of a map).
-_MAX_OUTLIER_FRACTION = 0.2
+        v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
+        s2 = dev2[rep_ok] / (cnt[rep_ok] - 1)
+        floor[c], scale[c] = _fit_floor_scale(s2, v[rep_ok], cnt[rep_ok] - 1)
+    return floor, scale, float(np.sum(cnt[rep_ok] - 1))
 
 
 def _from_lines(point, pos_pt, resid, vk, n_points):
@@ -213,29 +155,23 @@ def _from_lines(point, pos_pt, resid, vk, n_points):
     if len(tri) < _MIN_TRIPLES:
         return None
     cnt = np.bincount(point, minlength=n_points).astype(float)
-    e2, vv = [], []
+    floor, scale = np.zeros(3), np.zeros(3)
     for c in range(3):
         r = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
         v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
-        e2.append((r[tri[:, 0]] - 2 * r[tri[:, 1]] + r[tri[:, 2]]) ** 2)
+        e2 = (r[tri[:, 0]] - 2 * r[tri[:, 1]] + r[tri[:, 2]]) ** 2
         # per-triple weights of the floor and of the vibration (point means of one reading each)
-        vv.append((v[tri[:, 0]] + 4 * v[tri[:, 1]] + v[tri[:, 2]]) / 6.0)
-    e2, vv = np.concatenate(e2), np.concatenate(vv)
-    comp = np.repeat(np.arange(3), len(tri))
-    keep = np.ones(e2.size, dtype=bool)
-    n_max = int(_MAX_OUTLIER_FRACTION * len(tri))
-    for _ in range(3):  # exclude gross outliers against the current model
-        a, b = _fit_floor_scale(e2[keep], vv[keep], np.ones(keep.sum()), 6.0, comp[keep])
-        ratio = e2 / np.maximum(6.0 * (a[comp] + b * vv), 1e-300)
-        new = ratio <= _OUTLIER_Z**2
-        for c in range(3):  # the largest ones only, at most n_max per component
-            out = np.flatnonzero(~new & (comp == c))
-            if out.size > n_max:
-                new[out[np.argsort(-ratio[out], kind="stable")[n_max:]]] = True
-        if np.array_equal(new, keep):
-            break
-        keep = new
-    return a, np.full(3, b), float(len(tri))
+        vv = (v[tri[:, 0]] + 4 * v[tri[:, 1]] + v[tri[:, 2]]) / 6.0
+        keep = np.ones(e2.size, dtype=bool)
+        for _ in range(3):  # exclude gross outliers against the current model
+            a, b = _fit_floor_scale(e2[keep], vv[keep], np.ones(keep.sum()), 6.0)
+            model = 6.0 * (a + b * vv)
+            new = e2 <= _OUTLIER_Z**2 * np.maximum(model, 1e-300)
+            if np.array_equal(new, keep):
+                break
+            keep = new
+        floor[c], scale[c] = a, b
+    return floor, scale, float(len(tri))
 
 
 def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
@@ -271,23 +207,11 @@ def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
             source = "one reading per point: second differences of the residuals along scan lines"
         else:
             dof = max(prob.n - edf / 3.0, 1.0)
-            comp = np.repeat(np.arange(3), prob.n)
-            floor, b = _fit_floor_scale(
-                resid.T.ravel() ** 2, vk.T.ravel(), np.ones(3 * prob.n), 1.0, comp
-            )
-            floor, scale = floor * prob.n / dof, np.full(3, b * prob.n / dof)
+            floor, scale = np.zeros(3), np.zeros(3)
+            for c in range(3):
+                floor[c], scale[c] = _fit_floor_scale(resid[:, c] ** 2, vk[:, c], np.ones(prob.n))
+            floor, scale = floor * prob.n / dof, scale * prob.n / dof
             source = "one reading per point, no scan lines: the residuals themselves (n - edf)"
-    # a component the model reproduces to rounding (a field component identically zero in
-    # both the recording and the reference) shows no noise at all; it is given the smallest
-    # floor of the others rather than a weight that would let it steer every fit
-    rms = np.sqrt(np.mean(np.asarray(resid, dtype=float) ** 2, axis=0))
-    dead = rms <= _ROUNDING * max(float(np.sqrt(np.mean(prob.y**2))), 1e-300)
-    if dead.any() and not dead.all():
-        floor[dead] = floor[~dead].min()
-        source += (
-            f"; component(s) {', '.join('xyz'[c] for c in np.flatnonzero(dead))} reproduced "
-            "to rounding (no scatter): given the smallest floor of the others"
-        )
     tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)
     floor = np.maximum(floor, tiny)
     return NoiseModel(floor=floor, scale=scale, source=source, dof=dof)

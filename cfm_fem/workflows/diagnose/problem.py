@@ -283,8 +283,7 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
 
     Five-point stencil: exact for fields polynomial up to degree 5 along each axis, so the
     Laplace identity sum_j d^2 B_i / dx_j^2 = 0 of a harmonic reference holds to rounding (the
-    averaging signatures rely on it). 0 where a stencil point lies outside the map a reference
-    comes from (NaN there): no curvature is known at that point."""
+    averaging signatures rely on it)."""
     b0 = f(p)
     out = np.empty((len(p), 3, 3))
     for j in range(3):
@@ -293,7 +292,6 @@ def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
         out[:, :, j] = (-f(p + 2 * e) + 16 * f(p + e) - 30 * b0 + 16 * f(p - e) - f(p - 2 * e)) / (
             12 * h**2
         )
-    out[~np.isfinite(out)] = 0.0
     return out
 
 
@@ -419,31 +417,19 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
     node spacing: a shorter step sees no curvature inside a cell), default ``h``.
 
-    A smooth reference is evaluated at the moved points (expanded as below at a point the move
-    takes off the border of the map it comes from). A map interpolated linearly between
+    A smooth reference is evaluated at the moved points. A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
     to the next, and a point moved outside it has no value. Its field is expanded to second
     order about the points instead (value, gradient and Hessian by differences of step ``h``:
     node values on a map with nodes either side of each point), which holds the second-order
     terms of the move."""
+    from scipy.spatial.transform import Rotation
 
     fn = posed_field(field_fn, pose)
     if not np.any(pose):
         return field_fn(upts), field_jacobian(field_fn, upts, h), fn
     if smooth:
-        B, G = fn(upts), field_jacobian(fn, upts, h)
-        out = ~np.isfinite(B).all(1)  # moved off a map's border: expanded about the point
-        if out.any():
-            B[out], G[out] = _expanded(field_fn, upts[out], pose, h, h2)
-        return B, G, fn
-    return (*_expanded(field_fn, upts, pose, h, h2), fn)
-
-
-def _expanded(field_fn, upts, pose, h, h2):
-    """Field and gradient at ``upts`` with the magnet at ``pose``, expanded to second order
-    about the points (:func:`_field_at_pose`)."""
-    from scipy.spatial.transform import Rotation
-
+        return fn(upts), field_jacobian(fn, upts, h), fn
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
     d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
     B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
@@ -451,7 +437,7 @@ def _expanded(field_fn, upts, pose, h, h2):
     Hd = np.einsum("nijk,nk->nij", H, d)
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
     G = G + Hd
-    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R)
+    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
 
 
 #: Prior std of the magnet-to-bench registration where neither the caller nor the bench file
@@ -515,7 +501,6 @@ def hall_problem(
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
     pose=None,
-    ref_error_var=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -553,11 +538,6 @@ def hall_problem(
     pose : ndarray, shape (6,), optional
         Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
         None: the nominal placement.
-    ref_error_var : callable, optional
-        ``ref_error_var(points (k, 3) mm) -> (k, 3) T^2``: variance of a smooth reference's
-        own error between the nodes of the map it comes from (a map interpolated with its
-        curvature corrected, :class:`~cfm_fem.models.curvature.CurvatureCorrected`), added
-        to the noise.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -567,8 +547,7 @@ def hall_problem(
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
-                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
-                      ref_error_var=ref_error_var)  # fmt: skip
+                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
@@ -611,16 +590,7 @@ def hall_problem(
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
-    if ref_error_var is not None:
-        var_ref = np.asarray(ref_error_var(upts), dtype=float)[uinv]
-        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
-        notes.append(
-            "reference map interpolated between its nodes linearly with its curvature "
-            "corrected (second-order accurate): the error that leaves (rms "
-            f"{rms:.3g} units over the readings, from its third derivatives) is added to the "
-            "noise"
-        )
-    elif ref_spacing_mm is not None and not smooth:
+    if ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         notes.append(

@@ -56,9 +56,7 @@ def markdown(summary: dict, source: str = "") -> str:
         )
         lines.append("| parameter | value | std | unit |\n|---|---|---|---|")
         for k, v in e["params"].items():
-            sd = e["param_std"].get(k)
-            sd = f"{sd:.2g}" if sd is not None else f"at its {e['at_bound'][k]} bound"
-            lines.append(f"| {k} | {v:.4g} | {sd} | {e['units'][k]} |")
+            lines.append(f"| {k} | {v:.4g} | {e['param_std'][k]:.2g} | {e['units'][k]} |")
         if e["not_determined"]:
             lines.append(f"\nNot determined by these data: {', '.join(e['not_determined'])}.")
         lines.append("")

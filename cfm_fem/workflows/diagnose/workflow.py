@@ -257,18 +257,11 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     if phys:  # a linearised non-linear or constrained effect: report its physical parameters
         e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
         pn = list(phys)
-        # a parameter on a bound of its range: (value, None, unit, "lower" | "upper")
-        bound = {n: phys[n][3] for n in pn if len(phys[n]) > 3 and phys[n][3]}
-        sd = [0.0 if n in bound else phys[n][1] for n in pn]
-        ok = _determined(c0.name, pn, sd)
+        ok = _determined(c0.name, pn, [phys[n][1] for n in pn])
         e["params"] = {n: phys[n][0] for n, k in zip(pn, ok, strict=True) if k}
-        e["param_std"] = {
-            n: phys[n][1] for n, k in zip(pn, ok, strict=True) if k and n not in bound
-        }
+        e["param_std"] = {n: phys[n][1] for n, k in zip(pn, ok, strict=True) if k}
         e["units"] = {n: phys[n][2] for n, k in zip(pn, ok, strict=True) if k}
         e["not_determined"] = [n for n, k in zip(pn, ok, strict=True) if not k]
-        if bound:  # reported as the bound it is, with no std
-            e["at_bound"] = bound
         e["param_corr"] = None
         if "lack_of_fit" in e:
             shaped = c0.cols.model_dependent
@@ -327,9 +320,7 @@ def _noise_doc(prob, noise) -> dict:
         "vibration_scale": [float(v) for v in noise.scale],
         "dof": noise.dof,
         "model": "sigma^2 = floor_std^2 + vibration_scale * (bench vibration through the "
-        "gradient)^2 per component, a floor per component and one vibration scale (the same "
-        "for the three: one bench), both estimated from the data, no component below its "
-        "own scatter",
+        "gradient)^2, per component, both estimated from the data",
     }
 
 
@@ -427,22 +418,6 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
     )
 
 
-def _final_baseline(model, fit1, base) -> list:
-    """The baseline parameters (registration, gains, bench) as the final model fits them,
-    the accepted effects beside them: ``name``, ``unit``, ``value``, ``std``. The calibration
-    (``calibration.parameters``) fits the baseline alone, so a signature it lacks (an offset,
-    say) can pull a parameter it trades with, such as a shift along a fringe against a common
-    gain."""
-    out = []
-    for nm in base.names:
-        if nm in model.names:
-            i = model.names.index(nm)
-            std = float(np.sqrt(max(fit1.cov[i, i], 0.0)))
-            out.append({"name": nm, "unit": model.units[i], "value": float(fit1.theta[i]),
-                        "std": std})  # fmt: skip
-    return out
-
-
 def _outlier_entries(isolated) -> list:
     return [
         {
@@ -527,10 +502,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "outliers": [{k: v for k, v in d.items() if k != "rows"} for d in isolated],
         "untestable": a.untestable,
         "overlaps": [{"a": x, "b": y, "overlap": round(v, 3)} for x, y, v in ov],
-        "calibration": {
-            **cal.calib,
-            "parameters_final": _final_baseline(sel.model, fit1, cal.base),
-        },
+        "calibration": cal.calib,
         "thresholds": o,
         "kind": prob.kind,
         "notes": p.notes + [n for n in [registration_note(p)] if n],
