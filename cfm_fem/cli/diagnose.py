@@ -225,6 +225,8 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
+    import numpy as np
+
     from ..io.bench_toml import read_bench, read_reference_bench
     from ..io.diagnosis_out import write_diagnosis
     from ..workflows.diagnose.problem import hall_problem, tracker_problem
@@ -245,6 +247,12 @@ def _run(args) -> int:
         fn, b_ref, spacing, desc = _reference(args.reference, rec, args.r_ref, args)
         if args.b_ref is not None:
             b_ref = args.b_ref
+        if not (np.isfinite(b_ref) and b_ref > 0):
+            raise CfmInputError(
+                f"--reference {args.reference}: its field is zero everywhere (B_ref = max |B| "
+                f"= {b_ref:g} T), so field errors have no unit; expected a non-zero field, or "
+                "give --b-ref T"
+            )
         nodes = getattr(fn, "nodes", None)
         prob = hall_problem(
             rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes

@@ -82,7 +82,7 @@ def _fit_floor_scale(s2, v, w_dof, mult=1.0):
     only when the data cannot tell the floor from the vibration (v nearly the same at every
     point), and then splits the variance as the bench file says.
     """
-    if s2.size == 0:
+    if s2.size == 0 or not float(np.mean(s2)) > 0.0:  # no scatter at all: nothing to fit
         return 0.0, 0.0
     use_b = bool(np.any(v > 0))
     cols = [np.full(s2.size, mult)] + ([mult * v] if use_b else [])
