@@ -12,7 +12,7 @@ Three kinds of case, each run as one command with a timeout:
 - bench tables: the packaged bench without one of its optional tables or keys (``[grid]`` or
   one axis of it, ``[vibration]``, ``[reading_delay]``, ``[magnet]``, ``[assumptions]``, an
   error's ``unit``, ``[frame] stack``) or with an impossible reading delay, then mutated;
-- options: one option of one of the nine commands (every option their parsers declare) set to
+- options: one option of one of the commands (every option their parsers declare) set to
   a token (``nan``, ``inf``, ``-1``, ``1e14``, ``""``, a folder, a file of the wrong kind,
   ...), the other options left at a valid, fast setting.
 
@@ -189,11 +189,13 @@ BASES = {
                  "--out", "{out}"],
     "synth": ["synth", "tracker", "--bench", "{bench}", "--grid", "2,2,2", "--reps", "2",
               "--out", "{out}.csv"],
+    "quality": ["quality", "{map}", "--r-ref", "2", "--up", "10", "--trials", "40",
+                "--budget-trials", "40", "--out", "{out}"],
 }  # fmt: skip
 
 #: Commands each kind of file is given to: (command, options that replace or extend its base).
 FILE_USES = {
-    "map": [("sweep", []), ("design", []), ("fig4", []),
+    "map": [("sweep", []), ("design", []), ("fig4", []), ("quality", []),
             ("coupled", ["--field", "{map}", "--bench", "{bench}"])],
     "bench": [("kinematics", []), ("tolerance", []), ("coupled", []), ("compare", []),
               ("diagnose", []), ("synth", []),
@@ -218,6 +220,7 @@ OPTION_TOKENS = ["nan", "inf", "-inf", "-1", "0", "1", "-0", "1e14", "1e999", "1
 
 #: Options whose value is a file or folder: a refusal may name the file instead of the option.
 FILE_OPTIONS = {"--bench", "--field", "--tracker", "--hall-map", "--reference", "--harmonics",
+                "--tolerances",
                 "--out"}  # fmt: skip
 
 
@@ -349,7 +352,7 @@ def make_cases(n: int, rng: random.Random, seeds_only: bool = False, commands=No
             if okind == "flag":
                 value = True
             elif choices and rng.random() < 0.6:
-                value = rng.choice(choices)
+                value = str(rng.choice(choices))
             else:
                 value = rng.choice(OPTION_TOKENS)
             argv = _apply(BASES[cmd], [option, value])
@@ -560,7 +563,7 @@ def main(argv=None) -> int:
     p.add_argument("--keep", default="fuzz_failures", help="folder for failing inputs")
     p.add_argument("--subprocess", action="store_true", help="one interpreter per case")
     p.add_argument("--seeds-only", action="store_true", help="run the seeds unmutated (all ok)")
-    p.add_argument("--commands", help="comma-separated commands to fuzz (default: all nine)")
+    p.add_argument("--commands", help="comma-separated commands to fuzz (default: all)")
     p.add_argument("--kinds", default="files,tables,options",
                    help="kinds of case: files, tables, options (default: all)")  # fmt: skip
     p.add_argument("-v", "--verbose", action="store_true", help="print each case's outcome")

@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import CfmInputError
 from ..models.quality.harmonics import N_HARMONICS, VECTOR_NAMES
 from ._files import check_regular
-from .compare_out import _cell, _finite, write_run
+from .compare_out import NO_FIGURE, _cell, _finite, write_run
 
 __all__ = [
     "TOLERANCE_NAMES",
@@ -235,10 +235,11 @@ def planes_csv(run) -> str:
     buf = io.StringIO()
     buf.write(f"# harmonics per plane at R_ref = {run.plan.r_ref_mm:g} mm, main order "
               f"{run.main_order}; {run.plan.describe()}\n")  # fmt: skip
+    buf.write(f"# {NO_FIGURE}\n")
     buf.write(",".join(header) + "\n")
     for p in range(len(run.plan.z)):
         row = [run.plan.z[p], *c[p].real, *c[p].imag, *rel[p].real, *rel[p].imag]
-        buf.write(",".join(_cell(x) for x in row) + "\n")
+        buf.write(",".join(_cell(x, header[j]) for j, x in enumerate(row)) + "\n")
     return buf.getvalue()
 
 

@@ -74,8 +74,9 @@ def budget_figure(budget: dict) -> bytes:
     """U95 of centre x, y, roll and magnetic length per error group."""
     groups = budget["groups"]
     names = [g["name"] for g in groups]
-    panels = [("centre x (um)", [1e3 * g["U95_centre_mm"][0] for g in groups]),
-              ("centre y (um)", [1e3 * g["U95_centre_mm"][1] for g in groups]),
+    centre = [g["U95_centre_mm"] or (None, None) for g in groups]  # None: no centre
+    panels = [("centre x (um)", [None if c[0] is None else 1e3 * c[0] for c in centre]),
+              ("centre y (um)", [None if c[1] is None else 1e3 * c[1] for c in centre]),
               ("roll (mrad)", [g["U95_roll_mrad"] for g in groups]),
               ("magnetic length (mm)", [g["U95_magnetic_length_mm"] for g in groups])]  # fmt: skip
     fig, axes = plt.subplots(1, 4, figsize=(13, 3.2), sharey=True)
@@ -140,7 +141,8 @@ def quality_report(run, summary: dict, command_line: str | None = None) -> HtmlR
                   t["determined"]] for t in summary["tolerances"]])  # fmt: skip
         r.paragraph("determined: the bench gives the quantity with U95 within its tolerance.",
                     "note")  # fmt: skip
-    if run.mc is not None:
+    has_centre = None not in (summary["centre_mm"] or [None])  # a dipole has none
+    if run.mc is not None and has_centre:
         r.heading("Magnetic centre")
         r.figure("centre.png", centre_figure(summary, run.mc.deviations),
                  "Centre of each Monte Carlo trial minus the map's, their mean (the bench's "

@@ -10,6 +10,7 @@ between nodes), take the harmonics, centre, roll and magnetic length
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -338,48 +339,63 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
     if mode == "htm" and up_um is not None:
         raise CfmInputError("--up applies to mode gauss; mode htm takes its errors from the bench")
     fm, bench, tolerances = _read_inputs(fieldmap, bench, mode, tolerances, reader)
-    notes = list(fm.notes)
-    plan, b_nodes = scan_plan(fm, sampling, float(r_ref_mm), radius_mm, dz_mm, int(n_angles), notes)
-    notes += plan.notes
-    if rigidity_Tm is not None and energy_gev is not None:
-        raise CfmInputError("give --rigidity or --energy, not both")
-    if energy_gev is not None:
-        rigidity_Tm = rigidity_from_energy(float(energy_gev), particle)
-    needs_model = uncertainty or b_nodes is None or rigidity_Tm is not None
-    model, model_desc = _field_model(fm, field_model) if needs_model else (None, "none")
-    local = LocalField(model, plan.points, b_nodes) if model is not None else None
-    b_nom = b_nodes if b_nodes is not None else local.B_nominal
-    planes = fit_planes(plan, b_nom)
-    integ = np.einsum("pn,p->n", planes, plan.weights_mm)
-    n_main = main_order_of(integ) if main_order is None else int(main_order)
-    if not 1 <= n_main <= plan.n_orders:
-        raise CfmInputError(f"--main-order must be 1 .. {plan.n_orders}; got {main_order}")
-    z_len = _length_plane(plan, planes, n_main, notes)
-    _end_notes(plan, planes, n_main, notes)
-    nominal = quality_numbers(planes, plan, n_main, z_len)
-    mc, groups, src_desc = None, [], "none"
-    if uncertainty:
-        src, src_desc = _sources(mode, up_um, bench, probe, centre_magnet)
-        kw = dict(seed=seed, digits=digits, progress=progress)
-        vec = nominal.vector()
-        mc = run_quality_mc(plan, local, src, vec, n_main, z_len, trials=trials,
-                            batch_trials=batch_trials, max_trials=max_trials, **kw)  # fmt: skip
-        if not mc.converged and trials is None:
-            notes.append(f"the adaptive Monte Carlo stopped at {mc.trials} trials before the "
-                         f"numerical tolerance of {digits} digit(s) was reached")  # fmt: skip
-        if mc.lost:
-            notes.append(f"{mc.lost} trial(s) moved a scan point outside the field model and "
-                         "were left out")  # fmt: skip
-        if budget:
-            groups = [run_quality_mc(plan, local, g, vec, n_main, z_len, trials=budget_trials,
-                                     **kw) for g in budget_groups(src)]  # fmt: skip
-    traj = None
-    if rigidity_Tm is not None:
-        traj = _trajectory(model, plan, nominal, mc, n_main, float(rigidity_Tm),
-                           trajectory_step_mm, energy_gev, particle)  # fmt: skip
-    return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, traj,
-                      fm.source, model_desc, src_desc, fm.n_nodes, notes, provenance,
-                      time.perf_counter() - t0)  # fmt: skip
+    with _naming(fm.source):  # a refusal of the analysis names the map
+        notes = list(fm.notes)
+        plan, b_nodes = scan_plan(
+            fm, sampling, float(r_ref_mm), radius_mm, dz_mm, int(n_angles), notes
+        )
+        notes += plan.notes
+        if rigidity_Tm is not None and energy_gev is not None:
+            raise CfmInputError("give --rigidity or --energy, not both")
+        if energy_gev is not None:
+            rigidity_Tm = rigidity_from_energy(float(energy_gev), particle)
+        needs_model = uncertainty or b_nodes is None or rigidity_Tm is not None
+        model, model_desc = _field_model(fm, field_model) if needs_model else (None, "none")
+        local = LocalField(model, plan.points, b_nodes) if model is not None else None
+        b_nom = b_nodes if b_nodes is not None else local.B_nominal
+        planes = fit_planes(plan, b_nom)
+        integ = np.einsum("pn,p->n", planes, plan.weights_mm)
+        n_main = main_order_of(integ) if main_order is None else int(main_order)
+        if not 1 <= n_main <= plan.n_orders:
+            raise CfmInputError(f"--main-order must be 1 .. {plan.n_orders}; got {main_order}")
+        z_len = _length_plane(plan, planes, n_main, notes)
+        _end_notes(plan, planes, n_main, notes)
+        nominal = quality_numbers(planes, plan, n_main, z_len)
+        mc, groups, src_desc = None, [], "none"
+        if uncertainty:
+            src, src_desc = _sources(mode, up_um, bench, probe, centre_magnet)
+            kw = dict(seed=seed, digits=digits, progress=progress)
+            vec = nominal.vector()
+            mc = run_quality_mc(plan, local, src, vec, n_main, z_len, trials=trials,
+                                batch_trials=batch_trials, max_trials=max_trials, **kw)  # fmt: skip
+            if not mc.converged and trials is None:
+                notes.append(f"the adaptive Monte Carlo stopped at {mc.trials} trials before the "
+                             f"numerical tolerance of {digits} digit(s) was reached")  # fmt: skip
+            if mc.lost:
+                notes.append(f"{mc.lost} trial(s) moved a scan point outside the field model and "
+                             "were left out")  # fmt: skip
+            if budget:
+                groups = [run_quality_mc(plan, local, g, vec, n_main, z_len, trials=budget_trials,
+                                         **kw) for g in budget_groups(src)]  # fmt: skip
+        traj = None
+        if rigidity_Tm is not None:
+            traj = _trajectory(model, plan, nominal, mc, n_main, float(rigidity_Tm),
+                               trajectory_step_mm, energy_gev, particle)  # fmt: skip
+        return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, traj,
+                          fm.source, model_desc, src_desc, fm.n_nodes, notes, provenance,
+                          time.perf_counter() - t0)  # fmt: skip
+
+
+@contextmanager
+def _naming(source):
+    """Re-raise a `CfmInputError` that names no file as one naming ``source``: the analysis of
+    that map is what could not go on."""
+    try:
+        yield
+    except CfmInputError as exc:
+        if exc.file is not None:
+            raise
+        raise CfmInputError(exc.what, line=exc.line, column=exc.column, file=source) from None
 
 
 def _trajectory(model, plan, nominal, mc, n_main, rigidity, step, energy, particle) -> dict:
