@@ -371,6 +371,32 @@ class Bench:
         q = np.asarray(q_cmd, dtype=np.float64)
         return np.any((q < -1e-9) | (q > self.strokes_mm + 1e-9), axis=1)
 
+    def axis_positions_within_strokes(self, points_magnet_mm, check: str) -> np.ndarray:
+        """`axis_positions_for` of scan points, refusing a point beyond the strokes.
+
+        Parameters
+        ----------
+        points_magnet_mm : ndarray, shape (n, 3), mm
+        check : str
+            What the user should check, for the message (e.g. the scan options).
+
+        Returns
+        -------
+        ndarray, shape (n, 3), mm
+        """
+        pts = np.asarray(points_magnet_mm, dtype=np.float64)
+        q = np.ascontiguousarray(self.axis_positions_for(pts))
+        out = self.outside_stroke(q)
+        if out.any():
+            i = int(np.argmax(out))
+            raise CfmInputError(
+                f"scan point {i} at {np.round(pts[i], 6).tolist()} mm (magnet frame) needs axis "
+                f"positions {np.round(q[i], 3).tolist()} mm, outside the strokes "
+                f"{self.strokes_mm.tolist()}; check {check} and [magnet] translation_mm of the "
+                f"bench {self.source}"
+            )
+        return q
+
     def with_errors(self, errors) -> Bench:
         """A copy with other error specs (used by the tolerance design)."""
         return replace(self, errors=tuple(errors))

@@ -399,16 +399,7 @@ def _scan_points(field_model: FieldModel, points, region):
 def _nominal(field_model: FieldModel, bench: Bench, pts):
     """Commanded axis positions (n, 3) mm and nominal field (n, 3) T of the scan points;
     refuses points outside the strokes or the field map."""
-    q = np.ascontiguousarray(bench.axis_positions_for(pts))
-    out_of_stroke = bench.outside_stroke(q)
-    if out_of_stroke.any():
-        i = int(np.argmax(out_of_stroke))
-        raise CfmInputError(
-            f"scan point {i} at {pts[i].tolist()} mm (magnet frame) needs axis positions "
-            f"{np.round(q[i], 3).tolist()} mm, outside the strokes {bench.strokes_mm.tolist()}; "
-            f"check the scan region (--radius, --step, --z) and [magnet] translation_mm of the "
-            f"bench {bench.source}"
-        )
+    q = bench.axis_positions_within_strokes(pts, "the scan region (--radius, --step, --z)")
     B_nom, inside = field_model.field(pts)
     if not inside.all():
         i = int(np.argmax(~inside))

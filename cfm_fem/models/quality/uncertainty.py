@@ -97,16 +97,7 @@ class _Displacer:
         self.r_probe = np.eye(3)
         if src.mode == "htm":
             b = src.bench
-            q = np.ascontiguousarray(b.axis_positions_for(points))
-            out = b.outside_stroke(q)
-            if out.any():
-                i = int(np.argmax(out))
-                raise CfmInputError(
-                    f"scan point {np.round(points[i], 6).tolist()} mm (magnet frame) needs axis "
-                    f"positions {np.round(q[i], 3).tolist()} mm, outside the strokes "
-                    f"{b.strokes_mm.tolist()}; check [magnet] translation_mm of the bench"
-                )
-            self.q = q
+            self.q = b.axis_positions_within_strokes(points, "the scan (--radius, --dz)")
             self.geo = kernel_geometry(b)
             self.keys = noise_keys(seed)
             self.r_bm = b.bench_to_magnet_rotation()
