@@ -147,6 +147,12 @@ def _circle_planes(fm: FieldMap, dz_mm, r_mm):
     k0, k1 = int(np.ceil(z0 / dz_mm - 1e-9)), int(np.floor(z1 / dz_mm + 1e-9))
     if k1 - k0 + 1 > 100_000:
         raise CfmInputError(f"--dz {dz_mm:g} mm asks for {k1 - k0 + 1} planes; expected fewer")
+    if k1 - k0 + 1 < 2:
+        raise CfmInputError(
+            f"--dz {dz_mm:g} mm leaves fewer than 2 planes in the map's z range "
+            f"[{z0:g}, {z1:g}] mm; expected a smaller spacing",
+            file=fm.source,
+        )
     return dz_mm * np.arange(k0, k1 + 1), dz_mm
 
 
@@ -184,6 +190,12 @@ def scan_plan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
                 return plan, fm.B[idx]
     r_in = inscribed_radius(fm.points[:, :2])
     r = CIRCLE_FRACTION * r_in if radius_mm is None else float(radius_mm)
+    if radius_mm is not None and not r <= r_in:
+        raise CfmInputError(
+            f"--radius {r:g} mm: circles beyond the largest disk about the axis the map covers "
+            f"(r = {r_in:.6g} mm); expected a radius within it",
+            file=fm.source,
+        )
     if not r > 0:
         raise CfmInputError(
             "the line x = y = 0 is not inside the map; harmonics are taken about it",
