@@ -89,6 +89,7 @@ def _bad(argv, out, capsys):
         (["--r-ref", "4", "--up", "10", "--sampling", "circles", "--radius", "30"], "--radius 30"),
         (["--r-ref", "4", "--up", "10", "--sampling", "circles", "--dz", "1e9"], "--dz 1e+09"),
         (["--r-ref", "4", "--up", "10", "--energy", "-1"], "positive kinetic energy in GeV"),
+        (["--r-ref", "4", "--up", "10", "--rigidity", "1e-300"], "--rigidity 1e-300 T m"),
         (["--r-ref", "4", "--up", "10", "--rigidity", "1", "--energy", "2"], "not allowed"),
         (["--r-ref", "4", "--mode", "htm", "--bench", "none.toml"], "none.toml"),
     ],

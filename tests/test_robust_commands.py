@@ -378,3 +378,15 @@ def test_an_absurdly_small_b_ref_is_refused_before_the_run(tmp_path, capsys):
             "--b-ref", "1e-300", "--out", out]  # fmt: skip
     err = _refused(argv, capsys, out)
     assert "--b-ref 1e-300 T is below 1e-09 of the map's largest |B|" in err
+
+
+def test_a_perturbation_too_large_for_the_map_names_the_axis_scale(tmp_path, capsys):
+    ax = np.linspace(0.0, 4.0, 5)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    rows = "\n".join(",".join(f"{v:.17g}" for v in r) for r in np.c_[pts, 0.1 * pts + 1.0])
+    path = tmp_path / "map.csv"
+    path.write_text("x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n" + rows + "\n")
+    argv = ["sweep", str(path), "--up", "10", "--axis-scale", "1e14", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--axis-scale" in err and "map.csv" in err and "Traceback" not in err

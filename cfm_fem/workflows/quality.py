@@ -180,9 +180,9 @@ def scan_plan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
     if sampling in ("auto", "nodes"):
         try:
             plan = plan_from_nodes(fm.points, r_ref_mm, r_fit_mm=radius_mm, source=fm.source)
-        except CfmInputError:
+        except CfmInputError as exc:
             if sampling == "nodes":
-                raise
+                raise CfmInputError(f"--sampling nodes: {exc.what}", file=exc.file) from None
         else:
             tree = scipy.spatial.cKDTree(fm.points)
             dist, idx = tree.query(plan.points)

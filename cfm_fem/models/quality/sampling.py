@@ -57,7 +57,7 @@ class LocalField:
             i = int(np.argmax(~inside[0]))
             raise CfmInputError(
                 f"scan point {self.points[i].round(6).tolist()} mm is outside the field "
-                "model of the map; choose a smaller radius or z range"
+                f"model of the map ({_model_name(model)}); choose a smaller --radius or z range"
             )
         self.model_at_points = m0[0]
         self.B_nominal = self.model_at_points if B_nominal is None else np.asarray(B_nominal)
@@ -114,3 +114,10 @@ class LocalField:
         b = b - self.model_at_points[None] + self.B_nominal[None]
         b[~inside] = np.nan
         return b, inside
+
+
+def _model_name(model) -> str:
+    """The ``--field-model`` of ``model`` and how far it reaches, for messages."""
+    if isinstance(model, HarmonicFit):
+        return "--field-model harmonic: each node's fit, within its reach"
+    return "--field-model linear: the interpolant ends at the nodes' hull"

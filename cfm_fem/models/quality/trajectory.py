@@ -75,6 +75,11 @@ def track(field_at, rigidity_Tm: float, z_start: float, z_end: float, *, step_mm
     k = charge / (1000.0 * rigidity_Tm)  # 1 / (B rho) in 1 / (T mm)
 
     def deriv(state):
+        if not np.all(np.isfinite(state)):  # a step far longer than the radius of curvature
+            raise CfmInputError(
+                f"--rigidity {rigidity_Tm:g} T m bends the orbit on a radius far below the "
+                f"{step_mm:g} mm step; expected a rigidity the map's field bends by degrees"
+            )
         b, inside = field_at(state[None, :3])
         if not inside[0]:
             raise CfmInputError(

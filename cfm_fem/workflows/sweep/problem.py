@@ -48,6 +48,7 @@ __all__ = [
     "serial_map",
     "prepare_sweep",
     "fallback_note",
+    "up_too_large",
     "check_options",
     "node_gradients",
     "sweep_gradients",
@@ -212,11 +213,20 @@ def _check_config(cfg: SweepConfig, fm: FieldMap, mesh: SimplexMesh):
     extent = np.ptp(mesh.coords, axis=0).min()  # smallest in-plane / in-volume extent, mm
     up_max_mm = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if up_max_mm * 5.0 > extent:
-        raise CfmInputError(
-            f"--up: U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its "
-            f"smallest extent of {extent:g} mm, so most perturbed points would leave the map",
-            file=fm.source,
-        )
+        raise CfmInputError(up_too_large(cfg, extent), file=fm.source)
+
+
+def up_too_large(cfg: SweepConfig, extent_mm: float) -> str:
+    """The refusal of a largest U_p (times the largest --axis-scale) that 5 times exceeds the
+    map's smallest extent ``extent_mm``."""
+    scale = max(cfg.axis_scale)
+    what = f"--up: U_p of {max(cfg.up_um):g} um"
+    if scale != 1.0:
+        what = f"--up, --axis-scale: U_p of {max(cfg.up_um):g} um times {scale:g}"
+    return (
+        f"{what} is too large for this map: 5 U_p exceeds its smallest extent of "
+        f"{extent_mm:g} mm, so most perturbed points would leave the map"
+    )
 
 
 #: Mesh arrays of the sweep kernels (`SweepProblem.mesh_arrays`), the `SweepProblem` fields of

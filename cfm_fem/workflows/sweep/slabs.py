@@ -126,6 +126,7 @@ from .problem import (
     prepare_sweep,
     serial_map,
     sweep_gradients,
+    up_too_large,
     with_bench,
 )
 from .slab_plan import (
@@ -398,11 +399,7 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     else:
         sigma = max(cfg.up_um) * 1e-3 * max(cfg.axis_scale)
     if not htm and sigma * 5.0 > extent:
-        raise CfmInputError(
-            f"--up: U_p of {max(cfg.up_um):g} um is too large for this map: 5 U_p exceeds its "
-            f"smallest extent of {extent:g} mm, so most perturbed points would leave the map",
-            file=file,
-        )
+        raise CfmInputError(up_too_large(cfg, extent), file=file)
     n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
     if n_slabs is None:
         n_slabs = slabs_for_memory(n_rows, max_memory, n_col)
