@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["streams", "temperature", "speeds_for", "SPEED_CYCLE", "TEMP_NOISE_K"]
+__all__ = [
+    "streams",
+    "temperature",
+    "speeds_for",
+    "circle_harmonics",
+    "SPEED_CYCLE",
+    "TEMP_NOISE_K",
+]
 
 #: Speed of each repetition, cycled: stop-and-go, then on the fly at 10, 5 and 20 mm/s.
 SPEED_CYCLE = (0.0, 10.0, 5.0, 20.0)
@@ -37,3 +44,22 @@ def temperature(t_s, rng: np.random.Generator):
 def speeds_for(n_reps: int, cycle=SPEED_CYCLE) -> list:
     """Speed of each repetition (mm/s, 0 = stop-and-go)."""
     return [float(cycle[r % len(cycle)]) for r in range(n_reps)]
+
+
+def circle_harmonics(field, r_ref_mm: float, n_max: int, z_mm: float) -> np.ndarray:
+    """2-D multipole coefficients of ``field(points (m, 3) mm) -> B (m, 3) T`` on a circle of
+    radius ``r_ref_mm`` at ``z_mm``: B_y + i B_x = sum_n (B_n + i A_n) ((x + i y) / r_ref)^(n - 1)
+    (Fourier analysis, 256 points).
+
+    Returns
+    -------
+    ndarray, shape (n_max, 3)
+        Rows (n, B_n, A_n), T at r_ref.
+    """
+    m = 256
+    th = 2.0 * np.pi * np.arange(m) / m
+    p = np.stack([r_ref_mm * np.cos(th), r_ref_mm * np.sin(th), np.full(m, z_mm)], -1)
+    b = field(p)
+    c = np.fft.fft(b[:, 1] + 1j * b[:, 0]) / m  # coefficient of e^{i k th}, k = n - 1
+    n = np.arange(1, n_max + 1)
+    return np.stack([n, c[n - 1].real, c[n - 1].imag], -1)

@@ -15,6 +15,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from .common import circle_harmonics
+
 __all__ = [
     "BORE_MM",
     "LENGTH_MM",
@@ -150,10 +152,4 @@ def harmonics_2d(r_ref_mm: float = 10.0, n_max: int = 40, z_mm: float = 0.0) -> 
     ndarray, shape (n_max, 3)
         Rows (n, B_n, A_n), T at r_ref.
     """
-    m = 256
-    th = 2.0 * np.pi * np.arange(m) / m
-    p = np.stack([r_ref_mm * np.cos(th), r_ref_mm * np.sin(th), np.full(m, z_mm)], -1)
-    b = field(p)
-    c = np.fft.fft(b[:, 1] + 1j * b[:, 0]) / m  # coefficient of e^{i k th}, k = n - 1
-    n = np.arange(1, n_max + 1)
-    return np.stack([n, c[n - 1].real, c[n - 1].imag], -1)
+    return circle_harmonics(field, r_ref_mm, n_max, z_mm)

@@ -25,6 +25,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from .common import circle_harmonics
+
 __all__ = [
     "ORDER_NAMES",
     "source",
@@ -159,13 +161,7 @@ def harmonics_2d(spec: dict, r_ref_mm: float, n_max: int = 40, z_mm: float = 0.0
     ndarray, shape (n_max, 3)
         Rows (n, B_n, A_n), T at r_ref.
     """
-    m = 256
-    th = 2.0 * np.pi * np.arange(m) / m
-    p = np.stack([r_ref_mm * np.cos(th), r_ref_mm * np.sin(th), np.full(m, z_mm)], -1)
-    b = field(spec, p)
-    c = np.fft.fft(b[:, 1] + 1j * b[:, 0]) / m
-    n = np.arange(1, n_max + 1)
-    return np.stack([n, c[n - 1].real, c[n - 1].imag], -1)
+    return circle_harmonics(lambda p: field(spec, p), r_ref_mm, n_max, z_mm)
 
 
 def axis_profile(spec: dict, z_mm, radii=(0.25, 0.5, 0.75, 1.0)) -> np.ndarray:
