@@ -114,3 +114,115 @@ def check_memory(what: str, count: float, per_unit: float, unit: str, fixed: flo
         f"{gigabytes(free)} is available, of which this run plans on "
         f"{100 * MEMORY_SHARE:.0f} %: {fits}"
     )
+
+
+#: Fewest seconds one core needs for one unit of Monte Carlo work (a field or position
+#: evaluation at one point in one trial): no kernel of cfm_fem comes near it, so a run this
+#: floor puts beyond `MAX_RUN_SECONDS` cannot end in any useful time.
+MIN_SECONDS_PER_EVALUATION = 1e-9
+#: Longest run a command starts: a week.
+MAX_RUN_SECONDS = 7 * 86400.0
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` for a message: ``'3.2 days'``, ``'41 years'``."""
+    days = seconds / 86400.0
+    return f"{days:.2g} days" if days < 365 else f"{days / 365.25:,.3g} years"
+
+
+def check_run_time(what: str, count: float, evaluations_per_unit: float, unit: str,
+                   cores: int | None = None) -> None:  # fmt: skip
+    """Refuse, before starting, Monte Carlo work that no machine ends within a week.
+
+    The estimate is a lower bound: ``count * evaluations_per_unit`` evaluations at
+    `MIN_SECONDS_PER_EVALUATION` each, spread over ``cores`` (default: numba's threads). Work
+    within the bound starts and shows its progress with the time left.
+
+    Parameters
+    ----------
+    what : str
+        The work and the option that sizes it, for the message (``'tolerance --check'``).
+    count : float
+        The size the option asks for (trials).
+    evaluations_per_unit : float
+        Point evaluations per unit of ``count`` (scan points times passes).
+    unit : str
+        The unit's name, plural (``'trials'``).
+    cores : int, optional
+
+    Raises
+    ------
+    CfmInputError
+        The lower bound exceeds `MAX_RUN_SECONDS`; the message gives it and the largest
+        ``count`` within the bound.
+    """
+    from .errors import CfmInputError
+
+    cores = max(int(numba.get_num_threads() if cores is None else cores), 1)
+    per_unit = float(evaluations_per_unit) * MIN_SECONDS_PER_EVALUATION / cores
+    seconds = float(count) * per_unit
+    if not seconds > MAX_RUN_SECONDS:
+        return
+    most = int(MAX_RUN_SECONDS // per_unit) if per_unit > 0 else 0
+    raise CfmInputError(
+        f"{what}: {count:,.0f} {unit} of {evaluations_per_unit:,.0f} point evaluations each "
+        f"would take at least {_duration(seconds)} on {cores} core(s), even at "
+        f"{MIN_SECONDS_PER_EVALUATION * 1e9:g} ns an evaluation; at most about {most:,} {unit} "
+        "end within a week"
+    )
+
+
+#: Seconds of work after which `paced` compares the run's pace with its size.
+PACE_CHECK_SECONDS = 2.0
+
+
+def paced(what: str, total: float, unit: str, progress=None, after: float = PACE_CHECK_SECONDS):
+    """A progress callback that refuses the run once its pace shows it cannot end in a week.
+
+    After ``after`` seconds of work the time per unit done so far, times ``total``, estimates
+    the run's length; beyond `MAX_RUN_SECONDS` the next call raises. It checks once, so a
+    later pass over the same units (counted again) costs nothing. Outputs are written after
+    the work, so a refusal leaves nothing half-written.
+
+    Parameters
+    ----------
+    what : str
+        The work and the option that sizes it, for the message (``'--budget-trials'``).
+    total : float
+        Units the run will do.
+    unit : str
+        The unit's name, plural.
+    progress : callable(int), optional
+        Called with each count, after the check.
+    after : float, s
+
+    Returns
+    -------
+    callable(int)
+    """
+    import threading
+    import time
+
+    from .errors import CfmInputError
+
+    state = {"done": 0, "start": time.monotonic(), "checked": False}
+    lock = threading.Lock()
+
+    def update(n: int = 1) -> None:
+        with lock:
+            state["done"] += n
+            elapsed = time.monotonic() - state["start"]
+            if not state["checked"] and elapsed >= after and state["done"] > 0:
+                state["checked"] = True
+                estimate = elapsed / state["done"] * float(total)
+                if estimate > MAX_RUN_SECONDS:
+                    most = int(MAX_RUN_SECONDS / elapsed * state["done"])
+                    raise CfmInputError(
+                        f"{what}: {float(total):,.0f} {unit} would take about "
+                        f"{_duration(estimate)} at this run's pace ({state['done']:,} in "
+                        f"{elapsed:.1f} s); at most about {most:,} {unit} end within a week"
+                    )
+        if progress is not None:
+            progress(n)
+
+    return update

@@ -17,7 +17,7 @@ def test_log_progress_writes_plain_lines_with_count_percentage_and_time(monkeypa
         bar.update(150)
     lines = log.getvalue().splitlines()
     assert "\r" not in log.getvalue()
-    assert re.fullmatch(r"cfm-fem: 50 / 200 nodes \(25 %\), \d+ s", lines[0])
+    assert re.fullmatch(r"cfm-fem: 50 / 200 nodes \(25 %\), \d+ s, about \d+ s left", lines[0])
     assert lines[1].startswith("cfm-fem: 200 / 200 nodes (100 %), ")
     assert len(lines) == 2  # the last line gave the final count: no closing line repeats it
 
@@ -59,3 +59,15 @@ def test_kinematics_progress_counts_trials_not_passes():
     step = _per_pass(one.append, 1)
     step(7)
     assert one == [7]
+
+
+def test_log_progress_states_the_time_left_from_the_pace_so_far(monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(_progress.time, "monotonic", lambda: clock[0])
+    log = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", log)
+    with _progress.progress_bar(1000, "trials", interval=5.0) as bar:
+        clock[0] = 600.0  # 10 of 1000 trials in 10 min: 990 min to go
+        bar.update(10)
+    first = log.getvalue().splitlines()[0]
+    assert first == "cfm-fem: 10 / 1,000 trials (1 %), 600 s, about 16.5 h left"

@@ -25,7 +25,7 @@ from cfm_fem.io._atomic import write_json
 from cfm_fem.io.bench_toml import DEFAULT_NOTE, parse_bench
 from cfm_fem.io.recordings import read_tracker, write_tracker
 from cfm_fem.models.recordings import check_tracker_scale
-from cfm_fem.threads import check_memory
+from cfm_fem.threads import check_memory, check_run_time, paced
 from cfm_fem.workflows.design import admissible_up
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,6 +158,54 @@ def test_absurd_trial_counts_are_refused_before_any_work(tmp_path, capsys, argv)
     err = _refused([a.replace("{map}", str(path)) for a in argv] + ["--out", out], capsys, out)
     assert "--trials: 100,000,000,000,000 trials need about" in err and "trials fit" in err
     assert not out.exists(), "a chunk manifest or lock was left"
+
+
+def test_check_run_time_refuses_work_no_machine_ends_within_a_week():
+    with pytest.raises(CfmInputError) as info:
+        check_run_time("tolerance --check", 1e14, 936, "trials", cores=2)
+    msg = str(info.value)
+    assert msg.startswith("tolerance --check: 100,000,000,000,000 trials of 936 point")
+    assert "1.48 years on 2 core(s)" in msg and "trials end within a week" in msg
+    check_run_time("tolerance --check", 1e9, 936, "trials", cores=2)  # 468 s at the floor
+
+
+def test_paced_refuses_once_the_pace_shows_the_run_cannot_end_within_a_week(monkeypatch):
+    import cfm_fem.threads as threads
+
+    clock = [0.0]
+    monkeypatch.setattr("time.monotonic", lambda: clock[0])
+    seen = []
+    update = paced("--budget-trials", 1e9, "trials", seen.append, after=2.0)
+    update(100)  # before the check: counted and passed on
+    clock[0] = 4.0  # 200 trials in 4 s: 1e9 trials take 231 days
+    with pytest.raises(CfmInputError) as info:
+        update(100)
+    assert "--budget-trials: 1,000,000,000 trials would take about 2.3e+02 days" in str(info.value)
+    assert "at most about 30,240,000 trials end within a week" in str(info.value)
+    assert seen == [100]
+    fine = paced("--trials", 1e5, "trials", after=2.0)  # 1e5 trials: 33 min at that pace
+    fine(100)
+    clock[0] = 8.0
+    fine(100)
+    assert threads.MAX_RUN_SECONDS == 7 * 86400.0
+
+
+def test_tolerance_check_beyond_any_run_time_is_refused(tmp_path, capsys):
+    out = tmp_path / "out"
+    err = _refused(["tolerance", "--target", "30", "--check", "1e14", "--out", out], capsys, out)
+    assert "tolerance --check: 100,000,000,000,000 trials" in err and "within a week" in err
+
+
+@pytest.mark.parametrize("option", ["--tracker", "--hall-map"])
+def test_an_empty_recording_name_is_named_as_such(tmp_path, capsys, option):
+    argv = ["diagnose", option, ""] + (["--reference", "fit:3"] if option == "--hall-map" else [])
+    err = _refused(argv + ["--out", tmp_path / "d"], capsys)
+    assert "'': an empty file name; expected a recording" in err
+
+
+def test_an_empty_field_map_name_is_named_as_such(tmp_path, capsys):
+    err = _refused(["sweep", "", "--out", tmp_path / "s"], capsys)
+    assert "'': an empty file name; expected a field-map file" in err
 
 
 def test_synth_grid_too_large_for_memory(tmp_path, capsys):
@@ -390,3 +438,10 @@ def test_a_perturbation_too_large_for_the_map_names_the_axis_scale(tmp_path, cap
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "--axis-scale" in err and "map.csv" in err and "Traceback" not in err
+
+
+def test_quality_names_the_perturbation_that_moves_every_point_off_the_map(tmp_path, capsys):
+    argv = ["quality", ROOT / "meshes" / "quadrupole_opera.table", "--r-ref", "3", "--up", "1e6",
+            "--trials", "40", "--no-budget", "--out", tmp_path / "q"]  # fmt: skip
+    err = _refused(argv, capsys, tmp_path / "q")
+    assert "displaced by --up 1e+06 um left the field model" in err

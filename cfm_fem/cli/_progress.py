@@ -16,7 +16,8 @@ LOG_INTERVAL_S = 5.0
 class LogProgress:
     """What a tqdm bar offers the commands (``update``, ``total``, ``refresh``, ``write``,
     ``close``), written as a plain line at most every ``interval`` seconds: a log file gets
-    ``cfm-fem: 20,000 / 46,051 nodes (43 %), 12 s`` and no carriage returns. Nothing is
+    ``cfm-fem: 20,000 / 46,051 nodes (43 %), 12 s, about 16 s left`` and no carriage
+    returns. Nothing is
     written for work that ends within the first interval.
     """
 
@@ -33,7 +34,11 @@ class LogProgress:
             done += f" / {self.total:,} {self.unit} ({100.0 * self.n / self.total:.0f} %)"
         else:
             done += f" {self.unit}"
-        return f"cfm-fem: {done}, {now - self._start:.0f} s"
+        elapsed = now - self._start
+        line = f"cfm-fem: {done}, {elapsed:.0f} s"
+        if self.total and 0 < self.n < self.total:
+            line += f", about {_left(elapsed / self.n * (self.total - self.n))} left"
+        return line
 
     def update(self, n: int = 1) -> None:
         with self._lock:
@@ -55,6 +60,15 @@ class LogProgress:
             if self._said is not None and self._said != (self.n, self.total):
                 print(self._line(time.monotonic()), file=self.file, flush=True)
             self._said = None
+
+
+def _left(seconds: float) -> str:
+    """A remaining time for a progress line: ``'40 s'``, ``'12 min'``, ``'3.5 h'``."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h" if seconds < 172800 else f"{seconds / 86400:.1f} days"
 
 
 def _is_terminal(stream) -> bool:

@@ -126,10 +126,11 @@ def read_recording_args(args):
     ``--recording-*-unit`` options."""
     from ..io.recording_units import read_recording_in_units
 
-    if args.tracker and args.recording_field_unit is not None:
+    tracker = args.tracker is not None
+    if tracker and args.recording_field_unit is not None:
         raise CfmInputError("--recording-field-unit applies to --hall-map only (a tracker "
                             "recording has no field)")  # fmt: skip
-    kind, path = ("tracker", args.tracker) if args.tracker else ("hall", args.hall_map)
+    kind, path = ("tracker", args.tracker) if tracker else ("hall", args.hall_map)
     return read_recording_in_units(
         path, kind, args.recording_length_unit, args.recording_field_unit
     )

@@ -57,11 +57,11 @@ def add_args(p):
 def run(args) -> int:
     check_out_dir(args.out)
     check_common(args)
-    if args.hall_map and not args.reference:
+    if args.hall_map is not None and not args.reference:
         raise CfmInputError("--hall-map needs --reference FIELD (harmonics .csv or FEM export)")
-    if args.tracker and args.reference:
+    if args.tracker is not None and args.reference:
         raise CfmInputError("--reference applies to --hall-map only")
-    if args.tracker:
+    if args.tracker is not None:
         refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
     if not args.tracker_u_um >= 0:
         raise CfmInputError(f"--tracker-u-um must be >= 0; got {args.tracker_u_um}")
@@ -69,7 +69,7 @@ def run(args) -> int:
 
     with output_lock(args.out, args.command_line):  # one run at a time in --out
         bench, bench_note = load_bench(args)
-        if args.tracker:
+        if args.tracker is not None:
             return _tracker(args, bench, bench_note)
         return _hall(args, bench, bench_note)
 

@@ -206,7 +206,7 @@ def _report(summary, arrays, source):
 
 def run(args) -> int:
     check_out_dir(args.out)
-    if args.tracker:
+    if args.tracker is not None:
         if args.reference:
             raise CfmInputError("--reference is for --hall-map only")
         if args.b_ref is not None:  # tracker residuals are in um: B_ref has no use there
@@ -233,7 +233,7 @@ def _run(args) -> int:
     from ..workflows.diagnose.workflow import diagnose
 
     bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
-    if args.tracker:
+    if args.tracker is not None:
         from ..workflows.compare import check_within_strokes
 
         rec = read_recording_args(args)

@@ -175,8 +175,12 @@ def _run(args) -> int:
     if mode == "htm":
         inputs["bench"] = bench_input(args.bench)
     prov = provenance(inputs, args.command_line)
-    total = None if args.trials is None else args.trials
-    with progress_bar(total, "trials") as bar:
+    with progress_bar(args.trials, "trials") as bar:
+
+        def set_total(n: int) -> None:
+            bar.total = n
+            bar.refresh()
+
         res = run_quality(
             args.field, args.r_ref, up_um=args.up, mode=mode, bench=args.bench,
             trials=args.trials, seed=args.seed, main_order=args.main_order, probe=args.probe,
@@ -187,6 +191,7 @@ def _run(args) -> int:
             rigidity_Tm=args.rigidity, energy_gev=args.energy, particle=args.particle,
             trajectory_step_mm=args.trajectory_step,
             reader=reader_kwargs(args), provenance=prov, progress=bar.update,
+            progress_total=set_total,
         )  # fmt: skip
     paths = res.write(args.out, args.command_line)
     _print_summary(res.summary)

@@ -103,7 +103,12 @@ def _run(args) -> int:
     if args.check:
         with progress_bar(args.check, "trials") as bar:  # exact=False: one pass over the trials
             res = run_kinematics(
-                plan_bench, trials=args.check, seed=args.seed, exact=False, progress=bar.update
+                plan_bench,
+                trials=args.check,
+                seed=args.seed,
+                exact=False,
+                progress=bar.update,
+                option="tolerance --check",
             )
         d["plan_check_mc"] = {a: res.pooled[a] for a in "xyz"}
         d["plan_check_mc"]["trials"] = res.trials

@@ -15,6 +15,7 @@ meshio    VTU, VTK, Gmsh ``.msh``, XDMF, ...     :mod:`cfm_fem.io.meshfile`
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from ..errors import CfmInputError
@@ -58,6 +59,8 @@ def detect_format(path) -> str:
     ``0``) means Opera, a Tecplot header (``.dat``) goes to meshio, anything else is a table.
     Other extensions go to meshio.
     """
+    if os.fspath(path) in ("", b""):  # Path("") is the current folder
+        raise CfmInputError("an empty file name; expected a field-map file", file=path)
     if Path(path).is_dir():  # else "unknown mesh file extension ''" for a folder
         raise CfmInputError("this is a folder; expected a field-map file", file=path)
     if not Path(path).exists():  # before the extension: a typo'd name has the wrong one

@@ -49,6 +49,8 @@ def open_regular(path, what: str = "a file", reading: str = "the file"):
     CfmInputError
         The file cannot be opened, or it is a folder, a FIFO, a socket or a device.
     """
+    if os.fspath(path) in ("", b""):
+        raise CfmInputError(f"an empty file name; expected {what}", file=path)
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except OSError as exc:

@@ -38,6 +38,7 @@ from ..models.quality import (
 )
 from ..models.quality.harmonics import VECTOR_NAMES, inscribed_radius
 from ..models.quality.trajectory import rigidity_from_energy, track
+from ..threads import check_run_time, paced
 
 __all__ = ["QualityRun", "run_quality", "scan_plan", "SAMPLINGS", "PROBES"]
 
@@ -281,7 +282,8 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                 rigidity_Tm: float | None = None, energy_gev: float | None = None,
                 particle: str = "electron",
                 trajectory_step_mm: float = 0.5, reader: dict | None = None,
-                provenance: dict | None = None, progress=None) -> QualityRun:  # fmt: skip
+                provenance: dict | None = None, progress=None,
+                progress_total=None) -> QualityRun:  # fmt: skip
     """Field quality of a map and its uncertainty from a bench (``cfm-fem quality``).
 
     Parameters
@@ -336,7 +338,9 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
     provenance : dict, optional
         Recorded in ``quality.json``.
     progress : callable(int), optional
-        Called with the trials finished.
+        Called with the trials finished (the budget's included).
+    progress_total : callable(int), optional
+        Called once with the trials the run will do, when ``trials`` fixes them.
 
     Returns
     -------
@@ -378,6 +382,16 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
             src, src_desc = _sources(mode, up_um, bench, probe, centre_magnet)
             kw = dict(seed=seed, digits=digits, progress=progress)
             vec = nominal.vector()
+            n_pts, most = len(plan.points), trials if trials is not None else max_trials
+            option = "--trials" if trials is not None else "--max-trials"
+            check_run_time(option, most, n_pts, "trials")
+            groups_src = budget_groups(src) if budget else []
+            if budget:
+                check_run_time("--budget-trials", budget_trials, n_pts * len(groups_src),
+                               "trials")  # fmt: skip
+            if progress_total is not None and trials is not None:
+                progress_total(trials + budget_trials * len(groups_src))
+            kw["progress"] = paced(option, most, "trials", progress)
             mc = run_quality_mc(plan, local, src, vec, n_main, z_len, trials=trials,
                                 batch_trials=batch_trials, max_trials=max_trials, **kw)  # fmt: skip
             if not mc.converged and trials is None:
@@ -387,8 +401,10 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                 notes.append(f"{mc.lost} trial(s) moved a scan point outside the field model and "
                              "were left out")  # fmt: skip
             if budget:
+                kw["progress"] = paced("--budget-trials", budget_trials * len(groups_src),
+                                       "trials", progress)  # fmt: skip
                 groups = [run_quality_mc(plan, local, g, vec, n_main, z_len, trials=budget_trials,
-                                         **kw) for g in budget_groups(src)]  # fmt: skip
+                                         **kw) for g in groups_src]  # fmt: skip
         traj = None
         if rigidity_Tm is not None:
             traj = _trajectory(model, plan, nominal, mc, n_main, float(rigidity_Tm),

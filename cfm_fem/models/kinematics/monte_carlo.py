@@ -13,6 +13,7 @@ import numpy as np
 
 from ... import _kernels as K
 from ...errors import CfmInputError
+from ...threads import check_run_time, paced
 from ..bench import ERROR_NAMES, Bench
 from ..mc import numerical_tolerance, symmetric_ranks
 from .geometry import _keys, kernel_geometry
@@ -277,6 +278,7 @@ def run_kinematics(
     max_trials: int = 10_000_000,
     progress=None,
     point_index=None,
+    option: str = "--trials",
 ) -> KinematicsResult:
     """Monte Carlo of the probe position error over the scan grid (paper section III-A).
 
@@ -332,6 +334,8 @@ def run_kinematics(
         Index of each point of ``q_cmd`` in the full grid: it keys the point's vibration and
         delay stream, so a block of points run alone (e.g. on a Dask worker) draws the same
         numbers as in the full run. Default 0 .. n-1.
+    option : str
+        The option that set ``trials``, for the message refusing a run no machine ends.
 
     Returns
     -------
@@ -340,6 +344,9 @@ def run_kinematics(
     timer = _Timer()
     q, pidx = _points(bench, q_cmd, point_index, trials, adaptive_digits)
     npts = q.shape[0]
+    most = max_trials if adaptive_digits is not None else trials
+    check_run_time(option, most, npts, "trials")
+    progress = paced(option, most, "trials", progress)
     eng = _Engine(bench, seed, BLOCK)
     notes = []
 

@@ -260,9 +260,11 @@ def run_quality_mc(plan: ScanPlan, local: LocalField, src: Sources, nominal_vect
         edges.append(b + batch_trials)
     dev = np.concatenate(values)
     if len(dev) < 2:
+        cause = (f"--up {src.up_mm * 1e3:g} um" if src.mode == "gauss"
+                 else "the bench's errors (--bench)")  # fmt: skip
         raise CfmInputError(
-            "the displaced scan points left the field model in (nearly) every trial; choose a "
-            "smaller radius or z range"
+            f"the scan points displaced by {cause} left the field model in (nearly) every "
+            "trial; choose a smaller --up, --radius or z range"
         )
     mean, std, low, high, u95 = _stats(dev)
     return McQuality(dev, mean, std, low, high, u95, spread, delta, bool(conv), len(dev), lost,
