@@ -75,8 +75,9 @@ def run(args) -> int:
 
 
 def _tracker(args, bench, bench_note) -> int:
-    from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
+    from ..io.compare_out import tracker_points_csv, tracker_summary
     from ..io.provenance import bench_input, provenance
+    from ..io.run_files import write_run
     from ..models.kinematics.budget import uncertainty_budget
     from ..workflows.compare import compare_tracker
 
@@ -115,9 +116,10 @@ def _tracker(args, bench, bench_note) -> int:
 
 
 def _hall(args, bench, bench_note) -> int:
-    from ..io.compare_out import hall_points_csv, hall_summary, write_run
+    from ..io.compare_out import hall_points_csv, hall_summary
     from ..io.provenance import bench_input, provenance
     from ..io.reference_field import read_reference
+    from ..io.run_files import write_run
     from ..models.probe import HallProbe
     from ..workflows.compare import compare_hall
     from ..workflows.coupled import field_budget

@@ -213,10 +213,11 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
+    from ..io.compare_out import coupled_points_csv, coupled_summary
     from ..io.harmonics import qfdp4_path, read_qfdp4
     from ..io.provenance import bench_input, provenance
     from ..io.reference_field import read_reference
+    from ..io.run_files import write_run
     from ..models.field_model import FieldModel
     from ..models.kinematics.budget import uncertainty_budget
     from ..models.probe import HallProbe

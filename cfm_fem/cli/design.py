@@ -82,8 +82,8 @@ def run(args) -> int:
 def _run(args, up) -> int:
     from .. import _kernels
     from ..io import read_field
-    from ..io.compare_out import write_run
     from ..io.provenance import provenance
+    from ..io.run_files import write_run
     from ..io.sweep_out import write_sweep
     from ..models.sweep import SweepConfig
     from ..report.sweep import write_sweep_report

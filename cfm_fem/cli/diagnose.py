@@ -197,7 +197,7 @@ def _report(summary, arrays, source):
     """(report.html text, PNG figures by file name) of a diagnosis."""
     from ..report.diagnosis import diagnosis_report
     from ..report.plots import png_bytes
-    from ..workflows.diagnose.report import figures
+    from ..report.diagnosis_figures import figures
 
     images = {f"{name}.png": png_bytes(fig) for name, fig in figures(summary, arrays).items()}
     rep = diagnosis_report(summary, images, source)

@@ -55,8 +55,8 @@ def run(args) -> int:
 
 def _run(args, up) -> int:
     from ..io import read_field
-    from ..io.compare_out import write_run
     from ..io.provenance import provenance
+    from ..io.run_files import write_run
     from ..workflows.fig4 import fig4_summary, plane_nodes, run_fig4
 
     fm = read_field(args.field, **reader_kwargs(args))

@@ -147,7 +147,7 @@ def _run(args) -> int:
     )
     summary = kinematics_summary(res, bench, budget=budget, gum=gum, extra={"provenance": prov})
     paths = write_kinematics(args.out, res, bench, summary)
-    from ..io.compare_out import write_run
+    from ..io.run_files import write_run
     from ..report.kinematics import kinematics_report  # matplotlib: loaded only when used
 
     rep = kinematics_report(res, summary)
