@@ -220,32 +220,32 @@ def run_compare(recording, reference=None, bench=None, *, trials: int = COUPLED_
                         progress=progress, **options)  # fmt: skip
 
 
-def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, progress=None):
+def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None,
+                 field_model: str = "linear", progress=None, **reader):  # fmt: skip
     """What the simulation leaves out of a recording (``cfm-fem diagnose``).
 
-    ``reference`` (Hall maps): a harmonics file, a field map or FieldMap, or None for QFDp4.
-    Returns a `cfm_fem.workflows.diagnose.workflow.Diagnosis`; its ``summary`` is
-    ``diagnosis.json``.
+    Parameters
+    ----------
+    recording : Recording or path-like
+        A tracker recording or a Hall map (`read_recording`).
+    reference : str, path-like, FieldMap or None
+        Hall maps: a harmonics file, a field map, ``fit:DEG`` / ``fitz:DEG``; None: QFDp4.
+    bench : Bench, path-like or None
+        None: the packaged CFM reference bench.
+    b_ref_T, r_ref_mm, field_model
+        As ``--b-ref``, ``--r-ref``, ``--field-model``.
+    **reader
+        How a field map reference is read (``fmt``, ``length_unit``, ... of `read_map`).
+
+    Returns
+    -------
+    cfm_fem.workflows.diagnose.run.DiagnoseRun
+        ``.summary`` is ``diagnosis.json``; ``.write(out_dir)`` writes the command's files.
     """
-    import numpy as np
+    from .workflows.diagnose.run import run_diagnose as run
 
-    from .workflows.diagnose.problem import hall_problem, tracker_problem
-    from .workflows.diagnose.workflow import diagnose as run
-
-    rec = _recording(recording)
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    if rec.kind == "tracker":
-        return run(tracker_problem(rec, b), progress=progress)
-    model = _reference(reference)
-    b_ref = model.b_ref_T if b_ref_T is None else float(b_ref_T)
-    smooth = model.multipole is not None
-
-    def field_fn(p):
-        return model.field(np.asarray(p, dtype=np.float64))[0]
-
-    prob = hall_problem(rec, field_fn, b_ref, b, smooth=smooth)
-    prob.notes.append(f"reference: {model.describe()}")
-    return run(prob, progress=progress)
+    return run(_recording(recording), reference, bench, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm,
+               field_model=field_model, reader=reader or None, progress=progress)  # fmt: skip
 
 
 def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0):
