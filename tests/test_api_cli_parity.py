@@ -1,0 +1,141 @@
+"""The command line and the Python API run the same orchestration: the same inputs and seed give
+the same files, number for number (`scripts/compare_outputs.py` compares them, skipping run
+times, paths and provenance).
+
+Each command runs small (few trials, few points) so that each test takes seconds.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cfm_fem
+from cfm_fem.cli import main
+from cfm_fem.io.recordings import write_hall_map, write_tracker
+
+ROOT = Path(__file__).resolve().parents[1]
+HARMONICS = ROOT / "cfm_fem" / "data" / "qfdp4_harmonics.csv"
+
+
+def _compare_outputs():
+    spec = importlib.util.spec_from_file_location(
+        "compare_outputs", ROOT / "scripts" / "compare_outputs.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+compare_outputs = _compare_outputs()
+
+
+def assert_same_outputs(cli_dir: Path, api_dir: Path, at_least: int = 10) -> int:
+    """Every number of every file the CLI wrote equals the API's; returns the count."""
+    tally = compare_outputs.compare_dirs(cli_dir, api_dir)
+    assert not tally.diffs, "\n".join(tally.diffs[:20])
+    assert tally.files >= 1 and tally.values >= at_least, (tally.files, tally.values)
+    return tally.values
+
+
+def _cli(argv) -> None:
+    assert main([str(a) for a in argv]) == 0
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """A small tracker recording, a Hall map of QFDp4 and a Hall map of a gridded field map
+    (the map as a CSV table, the recording read from it with a gain error and noise)."""
+    from cfm_fem.io.harmonics import read_qfdp4
+    from cfm_fem.workflows.synthetic import synthetic_hall_map, synthetic_tracker
+
+    d = tmp_path_factory.mktemp("recordings")
+    bench = cfm_fem.read_bench()
+    tracker = synthetic_tracker(bench, seed=3, reps=3, grid=(2, 2, 2), reversal_um=4.0,
+                                iso_targets=3, iso_runs=2)  # fmt: skip
+    write_tracker(d / "tracker.csv", tracker)
+    pts = np.array([[x, 0.0, z] for x in (-6.0, -2.0, 2.0, 6.0) for z in (-40.0, 0.0, 40.0)])
+    hall = synthetic_hall_map(read_qfdp4(), bench, seed=4, reps=3, points=pts)
+    write_hall_map(d / "hall.csv", hall)
+    # a field map: a quadrupole of 20 T/m with a sextupole, on a grid, written as a CSV table
+    ax = np.linspace(-8.0, 8.0, 9)
+    grid = np.stack(np.meshgrid(ax, ax, np.linspace(-50.0, 50.0, 11), indexing="ij"), -1)
+    grid = grid.reshape(-1, 3)
+    x, y = grid[:, 0], grid[:, 1]
+    B = np.c_[0.02 * y + 1e-4 * x * y, 0.02 * x + 0.5e-4 * (x**2 - y**2), 0 * x + 1e-3]
+    lines = ["x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]"]
+    lines += [",".join(repr(float(v)) for v in row) for row in np.c_[grid, B]]
+    (d / "map.csv").write_text("\n".join(lines) + "\n")
+    rng = np.random.default_rng(5)
+    cmd = hall.cmd
+    b_map = np.c_[0.02 * cmd[:, 1], 0.02 * cmd[:, 0], 0 * cmd[:, 0] + 1e-3] * (1 + 3e-4)
+    fem = type(hall)(**{**hall.__dict__, "B": b_map + rng.normal(0, 3e-6, b_map.shape)})
+    write_hall_map(d / "hall_fem.csv", fem)
+    return d
+
+
+# --------------------------------------------------------------------------- diagnose
+
+
+def test_diagnose_tracker_cli_equals_api(recordings, tmp_path):
+    rec = recordings / "tracker.csv"
+    _cli(["diagnose", "--tracker", rec, "--no-report", "--out", tmp_path / "cli"])
+    run = cfm_fem.run_diagnose(rec)
+    run.write(tmp_path / "api", report=False)
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api")
+    assert (
+        run.summary["fit"] == json.loads((tmp_path / "cli" / "diagnosis.json").read_text())["fit"]
+    )
+
+
+def test_diagnose_hall_on_harmonics_cli_equals_api(recordings, tmp_path):
+    rec = recordings / "hall.csv"
+    _cli(["diagnose", "--hall-map", rec, "--reference", HARMONICS, "--no-report",
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_diagnose(rec)  # reference None: the same QFDp4 harmonics
+    run.write(tmp_path / "api", report=False)
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api")
+
+
+def test_diagnose_hall_on_field_map_cli_equals_api(recordings, tmp_path):
+    """Against a field map the API adds the map's interpolation error to the noise, as the
+    command line does, and refuses points outside the map with the same message."""
+    rec, ref = recordings / "hall_fem.csv", recordings / "map.csv"
+    _cli(["diagnose", "--hall-map", rec, "--reference", ref, "--no-report",
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_diagnose(rec, ref)
+    run.write(tmp_path / "api", report=False)
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api")
+    assert any("nodes 2 mm apart" in n for n in run.summary["notes"]), run.summary["notes"]
+    # a recording beyond the map: the same refusal from both
+    far = recordings / "hall.csv"  # x up to 6 mm, z up to 40 mm: inside; move it out
+    text = far.read_text().replace(",40.0,", ",90.0,")
+    out_of_map = tmp_path / "far.csv"
+    out_of_map.write_text(text)
+    with pytest.raises(cfm_fem.CfmInputError, match="outside the reference field map"):
+        cfm_fem.run_diagnose(out_of_map, ref)
+    assert main(["diagnose", "--hall-map", str(out_of_map), "--reference", str(ref),
+                 "--out", str(tmp_path / "no")]) == 2  # fmt: skip
+
+
+def test_diagnose_api_checks_the_strokes_and_the_point_count(recordings, tmp_path):
+    lines = (recordings / "tracker.csv").read_text().splitlines(keepends=True)
+    header = [ln for ln in lines if ln.startswith(("#", "point_id"))]
+    rows = [ln for ln in lines if ln not in header]
+    few = tmp_path / "few.csv"
+    few.write_text("".join(header + rows[:1]))
+    with pytest.raises(cfm_fem.CfmInputError, match="the noise estimate needs repetitions"):
+        cfm_fem.run_diagnose(few)
+    cols = header[-1].strip().split(",")
+    k = cols.index("x_cmd")
+    beyond = rows[0].split(",")
+    beyond[k] = "900.0"
+    beyond[0] = "999"  # a point of its own
+    far = tmp_path / "far.csv"
+    far.write_text("".join(header + [",".join(beyond)] + rows[1:]))
+    with pytest.raises(cfm_fem.CfmInputError, match="outside the strokes"):
+        cfm_fem.run_diagnose(far)
