@@ -148,51 +148,33 @@ def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0
     return KinematicsTable(res, b)
 
 
-def _reference(field, b_ref_T=None, r_ref_mm=None):
-    """A `FieldModel` from a FieldMap, a path (harmonics or map) or None (QFDp4)."""
-    from .models.field import FieldMap
-    from .workflows.coupled import FieldModel
-
-    if field is None:
-        from .io.harmonics import read_qfdp4
-
-        return FieldModel.from_multipole(read_qfdp4())
-    if isinstance(field, FieldMap):
-        return FieldModel.from_map(field, b_ref_T)
-    from .io.reference_field import read_reference
-
-    return read_reference(field, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm)
-
-
-def run_coupled(points, field=None, bench=None, *, trials: int = COUPLED_TRIALS, seed: int = 0,
-            b_ref_T=None, r_ref_mm=None, progress=None, **options):  # fmt: skip
+def run_coupled(points=None, field=None, bench=None, *, trials: int = COUPLED_TRIALS,
+                seed: int = 0, progress=None, **options):  # fmt: skip
     """Coupled Monte Carlo of the field error at scan points (``cfm-fem coupled``, Table V).
 
     Parameters
     ----------
-    points : ndarray, shape (n, 3), mm
-        Scan points, magnet frame (e.g. `cfm_fem.workflows.coupled.default_region`).
+    points : ndarray, shape (n, 3), mm, optional
+        Scan points, magnet frame (e.g. `cfm_fem.workflows.coupled.default_region`); None: the
+        command line's region (``radius_mm``, ``step_mm``, ``z_mm`` options).
     field : FieldMap, path-like or None
         Harmonics file or field map; None: the paper's QFDp4.
     bench : Bench, path-like or None
     **options
-        ``probe``, ``align``, ``batches`` of `cfm_fem.workflows.coupled.run_coupled`.
+        Other arguments of `cfm_fem.workflows.coupled_run.run_coupled`: ``probe``, ``align``,
+        ``centre_magnet``, ``b_ref_T``, ``r_ref_mm``, ``field_model``, ``budget`` (the
+        positioning-only / probe-only split, default True as the command line), ...
 
     Returns
     -------
-    cfm_fem.workflows.results.CoupledTable
+    cfm_fem.workflows.coupled_run.CoupledRun
+        A `cfm_fem.workflows.results.CoupledTable`; ``.summary`` is ``summary.json`` and
+        ``.write(out_dir)`` writes the command's files.
     """
-    import numpy as np
+    from .workflows.coupled_run import run_coupled as run
 
-    from .workflows.coupled import run_coupled as run
-    from .workflows.results import CoupledTable
-
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    model = _reference(field, b_ref_T, r_ref_mm)
-    pts = np.asarray(points, dtype=np.float64)
-    res = run(model, b, pts, trials=int(trials), seed=int(seed), progress=progress,
-                      **options)  # fmt: skip
-    return CoupledTable(res, b)
+    return run(field, bench, points, trials=int(trials), seed=int(seed), progress=progress,
+               **options)  # fmt: skip
 
 
 def _recording(recording):
@@ -205,19 +187,23 @@ def run_compare(recording, reference=None, bench=None, *, trials: int = COUPLED_
             seed: int = 0, progress=None, **options):  # fmt: skip
     """A recording against the simulation (``cfm-fem compare``).
 
-    A tracker recording gives a `cfm_fem.workflows.compare.TrackerComparison` (Table IV both sides,
+    A tracker recording is compared with the kinematic Monte Carlo (Table IV both sides,
     ``pooled_exp`` / ``pooled_sim`` per axis); a Hall map, with ``reference`` (harmonics file,
-    field map or FieldMap; None: QFDp4), a `cfm_fem.workflows.compare.HallComparison` (Table V).
-    """
-    from .workflows.compare import compare_hall, compare_tracker
+    field map or FieldMap; None: QFDp4), with the coupled Monte Carlo (Table V).
 
-    rec = _recording(recording)
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    if rec.kind == "tracker":
-        return compare_tracker(rec, b, trials=int(trials), seed=int(seed), progress=progress,
-                               **options)  # fmt: skip
-    return compare_hall(rec, _reference(reference), b, trials=int(trials), seed=int(seed),
-                        progress=progress, **options)  # fmt: skip
+    ``options``: other arguments of `cfm_fem.workflows.compare_run.run_compare`
+    (``tracker_u_um``, ``probe``, ``align``, ``centre_magnet``, ``budget``, ...).
+
+    Returns
+    -------
+    cfm_fem.workflows.compare_run.CompareRun
+        The comparison's attributes (``pooled_exp``, ...) are the run's; ``.summary`` is
+        ``compare.json`` and ``.write(out_dir)`` writes the command's files.
+    """
+    from .workflows.compare_run import run_compare as run
+
+    return run(_recording(recording), reference, bench, trials=int(trials), seed=int(seed),
+               progress=progress, **options)  # fmt: skip
 
 
 def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None,

@@ -42,6 +42,32 @@ def assert_same_outputs(cli_dir: Path, api_dir: Path, at_least: int = 10) -> int
     return tally.values
 
 
+class _NoFigures:
+    """A report without figures: both front ends build their report through the same call,
+    and the comparison reads numbers only, so the tests skip matplotlib's seconds."""
+
+    images: dict = {}
+
+    def render(self) -> str:
+        return "<html></html>"
+
+
+@pytest.fixture(autouse=True)
+def no_figures(monkeypatch):
+    import cfm_fem.report.kinematics
+    import cfm_fem.report.quality
+    import cfm_fem.report.runs
+    import cfm_fem.report.sweep
+
+    for mod, name in ((cfm_fem.report.runs, "coupled_report"),
+                      (cfm_fem.report.runs, "tracker_report"),
+                      (cfm_fem.report.runs, "hall_report"),
+                      (cfm_fem.report.kinematics, "kinematics_report"),
+                      (cfm_fem.report.quality, "quality_report")):  # fmt: skip
+        monkeypatch.setattr(mod, name, lambda *a, **k: _NoFigures())
+    monkeypatch.setattr(cfm_fem.report.sweep, "write_sweep_report", lambda *a, **k: [])
+
+
 def _cli(argv) -> None:
     assert main([str(a) for a in argv]) == 0
 
@@ -139,3 +165,44 @@ def test_diagnose_api_checks_the_strokes_and_the_point_count(recordings, tmp_pat
     far.write_text("".join(header + [",".join(beyond)] + rows[1:]))
     with pytest.raises(cfm_fem.CfmInputError, match="outside the strokes"):
         cfm_fem.run_diagnose(far)
+
+
+# --------------------------------------------------------------------------- coupled, compare
+
+
+def test_coupled_cli_equals_api(tmp_path):
+    _cli(["coupled", "--trials", 200, "--step", 5, "--z", "-20,20", "--seed", 1,
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_coupled(step_mm=5.0, z_mm=[-20.0, 20.0], trials=200, seed=1)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=200)
+    assert run.summary["field_budget"]["trials"] == 200  # the split, as the command line's
+
+
+def test_coupled_on_a_field_map_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["coupled", "--field", ref, "--trials", 100, "--step", 3, "--z", 0, "--no-budget",
+          "--centre-magnet", "--seed", 2, "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_coupled(None, ref, step_mm=3.0, z_mm=[0.0], trials=100, seed=2,
+                              budget=False, centre_magnet=True)  # fmt: skip
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)
+
+
+def test_compare_tracker_cli_equals_api(recordings, tmp_path):
+    rec = recordings / "tracker.csv"
+    _cli(["compare", "--tracker", rec, "--trials", 300, "--tracker-u-um", 2, "--seed", 3,
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_compare(rec, trials=300, seed=3, tracker_u_um=2.0)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)
+    assert run.pooled_exp["x"] == run.comparison.pooled_exp["x"]
+
+
+def test_compare_hall_cli_equals_api(recordings, tmp_path):
+    rec = recordings / "hall.csv"
+    _cli(["compare", "--hall-map", rec, "--reference", HARMONICS, "--trials", 200, "--seed", 4,
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_compare(rec, HARMONICS, trials=200, seed=4)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)

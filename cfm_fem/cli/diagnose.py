@@ -10,11 +10,9 @@ itself (global, or in z windows).
 
 from __future__ import annotations
 
-import sys
-
 from ..errors import CfmInputError
 from ._checks import check_out_dir
-from ._progress import progress_bar
+from ._progress import announcer, progress_bar
 from ._reader import (
     add_field_model_arg,
     add_reader_args,
@@ -80,7 +78,7 @@ def _run(args) -> int:
             rec, args.reference, args.bench, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
             field_model=args.field_model, reader=reader_kwargs(args),
             command_line=getattr(args, "command_line", None), progress=bar.update,
-            on_start=lambda line: bar.write(f"cfm-fem diagnose: {line}", file=sys.stderr),
+            on_start=announcer(bar, "diagnose"),
         )  # fmt: skip
     paths = res.write(args.out, report=not args.no_report)
     _print(res.summary)

@@ -263,8 +263,9 @@ def run_diagnose(rec, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None
         For the provenance.
     progress : callable(int), optional
         Called after each candidate fit.
-    on_start : callable(str), optional
-        Called once the inputs are checked, with a line naming the recording.
+    on_start : callable(str, int or None), optional
+        Called once the inputs are checked, with a line naming the recording and the number
+        of fits to come (None: not known in advance).
 
     Returns
     -------
@@ -302,7 +303,7 @@ def run_diagnose(rec, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None
         prob.notes.append(f"reference: {desc}")
     source = str(rec.source)
     if on_start is not None:
-        on_start(f"{len(rec)} rows from {source}")
+        on_start(f"{len(rec)} rows from {source}", None)
     d = diagnose(prob, progress=progress)
     from ...io.provenance import provenance
 
