@@ -134,18 +134,18 @@ def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0
     """Probe positioning error over the scan grid (``cfm-fem kinematics``, Table IV).
 
     ``bench``: a `Bench`, a path, or None (the reference bench); ``options``: other arguments
-    of `cfm_fem.models.kinematics.monte_carlo.run_kinematics` (``q_cmd``, ``adaptive_digits``, ...).
+    of `cfm_fem.workflows.kinematics.run_kinematics` (``adaptive_digits``, ``fast_intervals``,
+    ``workers``, ``q_cmd``, ...).
 
     Returns
     -------
-    cfm_fem.workflows.results.KinematicsTable
+    cfm_fem.workflows.kinematics.KinematicsRun
+        A `cfm_fem.workflows.results.KinematicsTable`; ``.summary`` is ``summary.json`` and
+        ``.write(out_dir)`` writes the command's files.
     """
-    from .models.kinematics import run_kinematics as run
-    from .workflows.results import KinematicsTable
+    from .workflows.kinematics import run_kinematics as run
 
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    res = run(b, int(trials), int(seed), progress=progress, **options)
-    return KinematicsTable(res, b)
+    return run(bench, trials=int(trials), seed=int(seed), progress=progress, **options)
 
 
 def run_coupled(points=None, field=None, bench=None, *, trials: int = COUPLED_TRIALS,

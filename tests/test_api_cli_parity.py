@@ -206,3 +206,16 @@ def test_compare_hall_cli_equals_api(recordings, tmp_path):
     run = cfm_fem.run_compare(rec, HARMONICS, trials=200, seed=4)
     run.write(tmp_path / "api")
     assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+def test_kinematics_cli_equals_api(tmp_path):
+    _cli(["kinematics", "--trials", 300, "--seed", 7, "--out", tmp_path / "cli"])
+    run = cfm_fem.run_kinematics(trials=300, seed=7)
+    run.write(tmp_path / "api")
+    n = assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=1000)
+    assert n > 936 * 3  # every point's statistics
+    written = json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert written["axes"]["x"]["U_p_um"] == run.axis("x")["U_p_um"]
