@@ -15,8 +15,6 @@ Examples
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from .errors import CfmInputError
 
 __all__ = [
@@ -81,15 +79,9 @@ def read_recording(path, kind: str | None = None, *, length_unit=None, field_uni
     return convert_recording(readers[kind](path), length_unit, field_unit)
 
 
-def _field_map(field):
-    from .models.field import FieldMap
-
-    return field if isinstance(field, FieldMap) else read_map(field)
-
-
 def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIALS, seed: int = 0,
-          mode: str = "gauss", bench=None, progress=None, **config):  # fmt: skip
-    """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory.
+          mode: str = "gauss", bench=None, progress=None, **options):  # fmt: skip
+    """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory unless ``out_dir`` is given.
 
     Parameters
     ----------
@@ -102,31 +94,23 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
         Mode htm: the bench (default the reference bench).
     progress : callable(int), optional
         Called with the nodes finished.
-    **config
-        Other `cfm_fem.models.sweep.SweepConfig` fields: ``b_ref_T``, ``axis_scale``, ``outside``,
-        ``interpolation``, ``hull_slivers``, ``chunk_nodes``, ``region`` (a
-        `cfm_fem.models.region.Region` or its text, as ``--region``: ``"cylinder:7,-30:30"``).
+    **options
+        Other arguments of `cfm_fem.workflows.sweep.run.run_sweep`: the
+        `cfm_fem.models.sweep.SweepConfig` fields (``b_ref_T``, ``axis_scale``, ``outside``,
+        ``interpolation``, ``hull_slivers``, ``chunk_nodes``, ``field_model``, ``region`` as a
+        `cfm_fem.models.region.Region` or its text, as ``--region``: ``"cylinder:7,-30:30"``),
+        ``reader`` (`read_map` options), and with ``out_dir`` the command line's ``pieces``,
+        ``slabs``, ``resume``, ``table``, ...
 
     Returns
     -------
-    cfm_fem.workflows.results.SweepMaps
+    cfm_fem.workflows.sweep.run.SweepRun
+        A `cfm_fem.workflows.results.SweepMaps` (``result`` None after a run by slabs).
     """
-    from .models.sweep import SweepConfig, summarize
-    from .workflows.results import SweepMaps
-    from .workflows.sweep.in_memory import run_sweep as run
+    from .workflows.sweep.run import run_sweep as run
 
-    if isinstance(bench, str | Path):
-        bench = read_bench(bench)
-    if isinstance(config.get("region"), str):
-        from .models.region import parse_region
-
-        config["region"] = parse_region(config["region"])
-    if mode == "htm" and bench is None:
-        bench = read_bench()
-    cfg = SweepConfig(up_um=[float(u) for u in up_um], trials=int(trials), seed=int(seed),
-                      mode=mode, bench=bench, **config)  # fmt: skip
-    res = run(_field_map(field), cfg, progress=progress)
-    return SweepMaps(res, summarize(res))
+    return run(field, up_um, trials=int(trials), seed=int(seed), mode=mode, bench=bench,
+               progress=progress, **options)  # fmt: skip
 
 
 def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0, progress=None,

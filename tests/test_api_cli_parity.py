@@ -219,3 +219,32 @@ def test_kinematics_cli_equals_api(tmp_path):
     assert n > 936 * 3  # every point's statistics
     written = json.loads((tmp_path / "cli" / "summary.json").read_text())
     assert written["axes"]["x"]["U_p_um"] == run.axis("x")["U_p_um"]
+
+
+# --------------------------------------------------------------------------- sweep, design
+
+
+def test_sweep_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["sweep", ref, "--up", "0:20:10", "--trials", 100, "--seed", 3, "--region",
+          "cylinder:6,-30:30", "--out", tmp_path / "cli"])  # fmt: skip
+    maps = cfm_fem.run_sweep(ref, [0, 10, 20], trials=100, seed=3, region="cylinder:6,-30:30")
+    maps.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891 * 3)
+
+
+def test_sweep_by_pieces_with_a_table_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["sweep", ref, "--up", "5,15", "--trials", 60, "--seed", 4, "--pieces", 2,
+          "--table", "csv", "--chunk-nodes", 300, "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_sweep(ref, [5, 15], trials=60, seed=4, pieces=2, table="csv",
+                            chunk_nodes=300, out_dir=tmp_path / "api")  # fmt: skip
+    assert run.written == [] and (tmp_path / "api" / "nodes.csv").is_file()
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891 * 2)
+
+
+def test_sweep_htm_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["sweep", ref, "--mode", "htm", "--trials", 40, "--seed", 5, "--out", tmp_path / "cli"])
+    cfm_fem.run_sweep(ref, mode="htm", trials=40, seed=5).write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891)
