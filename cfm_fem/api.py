@@ -218,33 +218,44 @@ def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, r_ref_m
                field_model=field_model, reader=reader or None, progress=progress)  # fmt: skip
 
 
-def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0):
+def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0,
+               **options):  # fmt: skip
     """Largest U_p that keeps U_f <= ``uf_max`` units over ``coverage`` of the nodes of a
     sweep (``cfm-fem design``), with its Monte Carlo standard uncertainty.
 
     Parameters
     ----------
-    maps : cfm_fem.workflows.results.SweepMaps
-        A mode-gauss sweep with increasing U_p.
+    maps : cfm_fem.workflows.results.SweepMaps, path-like or FieldMap
+        A mode-gauss sweep with increasing U_p; or a field map, swept first as the command
+        line does (``options``: ``up_um``, ``trials`` (default 10,000), ``b_ref_T``,
+        ``outside``, ``field_model``, ``reader``, ``progress`` of
+        `cfm_fem.workflows.design_run.run_design`).
     uf_max : float
         Units of 1e-4 B_ref.
     coverage : float
-    region : str or ndarray (3, 2), optional
-        ``"xmin:xmax,ymin:ymax,zmin:zmax"`` (mm) or bounds; default every node.
+    region : str or Region, optional
+        ``"xmin:xmax,ymin:ymax,zmin:zmax"`` or ``"cylinder:R,zmin:zmax"`` (mm); default every
+        node.
+    seed : int
 
     Returns
     -------
-    cfm_fem.workflows.design.DesignAnswer
+    cfm_fem.workflows.design.DesignAnswer or cfm_fem.workflows.design_run.DesignRun
+        The answer for a sweep given; for a map, the run (``.write(out_dir)`` writes the
+        command's files; the answer's attributes are the run's).
     """
-    from .workflows.design import admissible_up, parse_region, region_mask
+    from .workflows.results import SweepMaps
 
-    box = parse_region(region) if isinstance(region, str) else region
-    res = maps.result
-    inside = region_mask(maps.points, box)
-    ends = res.to_units(res.stats[inside][:, :, 3, 2:4])
-    return admissible_up(maps.up_um, ends[..., 0], ends[..., 1], res.complete()[inside], uf_max,
-                         coverage=coverage, rel_mc_std=maps.summary["uf_relative_mc_std"],
-                         seed=seed)  # fmt: skip
+    if isinstance(maps, SweepMaps):
+        from .workflows.design_run import design_answer
+
+        if options:
+            raise CfmInputError(f"{', '.join(options)}: for a field map, not for a sweep")
+        return design_answer(maps, uf_max, coverage=coverage, region=region, seed=seed)
+    from .workflows.design_run import run_design as run
+
+    options.setdefault("trials", SWEEP_TRIALS)
+    return run(maps, uf_max, coverage=coverage, region=region, seed=seed, **options)
 
 
 def run_quality(field, r_ref_mm: float, *, up_um=None, mode=None, bench=None, trials=None,

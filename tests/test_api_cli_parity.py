@@ -248,3 +248,17 @@ def test_sweep_htm_cli_equals_api(recordings, tmp_path):
     _cli(["sweep", ref, "--mode", "htm", "--trials", 40, "--seed", 5, "--out", tmp_path / "cli"])
     cfm_fem.run_sweep(ref, mode="htm", trials=40, seed=5).write(tmp_path / "api")
     assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891)
+
+
+def test_design_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["design", ref, "--uf-max", 20, "--up", "0:20:10", "--trials", 80, "--seed", 6,
+          "--region", "-4:4,-4:4,:", "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_design(ref, 20.0, up_um=[0, 10, 20], trials=80, seed=6,
+                             region="-4:4,-4:4,:")  # fmt: skip
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891 * 3)
+    written = json.loads((tmp_path / "cli" / "design.json").read_text())
+    assert written["up_max_um"] == run.up_max_um
+    again = cfm_fem.run_design(run.maps, 20.0, region="-4:4,-4:4,:", seed=6)
+    assert again.up_max_um == run.up_max_um  # the question asked of the sweep alone
