@@ -262,3 +262,24 @@ def test_design_cli_equals_api(recordings, tmp_path):
     assert written["up_max_um"] == run.up_max_um
     again = cfm_fem.run_design(run.maps, 20.0, region="-4:4,-4:4,:", seed=6)
     assert again.up_max_um == run.up_max_um  # the question asked of the sweep alone
+
+
+# --------------------------------------------------------------------------- quality
+
+
+def test_quality_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["quality", ref, "--r-ref", 5, "--up", 10, "--trials", 20, "--no-budget", "--seed", 8,
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_quality(ref, 5.0, up_um=10.0, trials=20, seed=8, budget=False)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)
+
+
+def test_quality_htm_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["quality", ref, "--r-ref", 5, "--trials", 20, "--no-budget", "--seed", 9,
+          "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_quality(ref, 5.0, mode="htm", trials=20, budget=False, seed=9)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)

@@ -92,12 +92,12 @@ def run(args) -> int:
 
 def _run(args) -> int:
     from ..io._atomic import atomic_paths, json_text, write_text
-    from ..io.bench_toml import read_bench, read_reference_bench, write_bench
+    from ..io.bench_toml import resolve_bench, write_bench
     from ..io.kinematics_out import bench_description
     from ..models.kinematics.budget import design_tolerances
     from ..models.kinematics.monte_carlo import run_kinematics
 
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    bench, _ = resolve_bench(args.bench)
     d = design_tolerances(bench, np.asarray(args.target) * 1e-3)
     plan_bench = bench.scaled_errors(_plan_factors(bench, d["plan"]))
     if args.check:
