@@ -283,3 +283,26 @@ def test_quality_htm_cli_equals_api(recordings, tmp_path):
     run = cfm_fem.run_quality(ref, 5.0, mode="htm", trials=20, budget=False, seed=9)
     run.write(tmp_path / "api")
     assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=100)
+
+
+# --------------------------------------------------------------------------- the API's checks
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda m, r: cfm_fem.run_sweep(m, [float("nan")], trials=20), "must be finite"),
+        (lambda m, r: cfm_fem.run_sweep(m, [10, 10], trials=20), "10"),
+        (lambda m, r: cfm_fem.run_sweep(m, bench=cfm_fem.read_bench(), trials=20), "--bench"),
+        (lambda m, r: cfm_fem.run_coupled(z_mm=[float("inf")], trials=20), "--z must be"),
+        (lambda m, r: cfm_fem.run_coupled(step_mm=1e-4, trials=20), "scan points"),
+        (lambda m, r: cfm_fem.run_compare(r, trials=20, tracker_u_um=-1.0), "--tracker-u-um"),
+        (lambda m, r: cfm_fem.run_compare(r, m, trials=20), "--reference applies"),
+        (lambda m, r: cfm_fem.run_diagnose(r, b_ref_T=1.0), "--b-ref is for --hall-map"),
+        (lambda m, r: cfm_fem.run_kinematics(trials=1), "--trials must be >= 2"),
+        (lambda m, r: cfm_fem.run_design(m, 0.0, trials=20), "--uf-max must be > 0"),
+    ],
+)
+def test_the_api_refuses_what_the_command_line_refuses(recordings, call, message):
+    with pytest.raises(cfm_fem.CfmInputError, match=message):
+        call(recordings / "map.csv", recordings / "tracker.csv")

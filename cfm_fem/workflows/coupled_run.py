@@ -130,6 +130,8 @@ def scan_region(fm: FieldModel, radius_mm=None, step_mm: float = 2.0, z_mm=None)
     from .coupled import default_region
 
     z = None if z_mm is None else [float(v) for v in z_mm]
+    if z is not None and (not z or not all(np.isfinite(z))):
+        raise CfmInputError(f"--z must be comma-separated finite numbers in mm; got {z_mm!r}")
     if fm.multipole is not None:
         r = fm.multipole.r_ref if radius_mm is None else radius_mm
         z = list(DEFAULT_Z_MM) if z is None else z

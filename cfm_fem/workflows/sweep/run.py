@@ -16,6 +16,10 @@ from ...errors import CfmInputError
 from ..inputs import bench_provenance, choose_bench, field_map
 from ..results import SweepMaps
 
+#: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
+#: maps and exhaust the memory before anything is computed).
+MAX_UP_VALUES = 1000
+
 __all__ = ["SweepRun", "run_sweep", "check_options", "check_mode_options", "parse_size"]
 
 
@@ -71,6 +75,23 @@ def check_mode_options(mode: str, bench=None, up_given: bool = False, axis_scale
         )
 
 
+def check_up_values(up_um, option: str = "--up") -> None:
+    """Refuse U_p values that are not finite, negative, more than `MAX_UP_VALUES` or the same
+    map twice."""
+    import math
+
+    from .problem import check_up_distinct
+
+    values = list(up_um)
+    if not values or any(not math.isfinite(v) or v < 0 for v in values):
+        shown = ", ".join(f"{v:g}" for v in values)
+        raise CfmInputError(f"{option} values must be finite and >= 0 um; got {shown or 'none'}")
+    if len(values) > MAX_UP_VALUES:
+        raise CfmInputError(f"{option} gives {len(values)} U_p values; expected at most "
+                            f"{MAX_UP_VALUES}")  # fmt: skip
+    check_up_distinct(values, option)
+
+
 def check_options(*, up_um, trials: int, seed: int, mode: str = "gauss", bench=None,
                   axis_scale=None, b_ref_T=None, chunk_nodes: int = 20000, pieces=None,
                   scheduler=None, workers=None, slabs=None, max_memory=None, region=None,
@@ -90,6 +111,7 @@ def check_options(*, up_um, trials: int, seed: int, mode: str = "gauss", bench=N
 
     check_mode_options(mode, bench, up_given, axis_scale)
     check_seed(seed)
+    check_up_values(up_um)
     if chunk_nodes < 1:
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {chunk_nodes}")
     if pieces is not None and pieces < 1:
