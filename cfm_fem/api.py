@@ -52,10 +52,9 @@ def read_map(path, **options):
 
 def read_bench(path=None):
     """A bench description (TOML); None: the packaged CFM reference bench."""
-    from .io.bench_toml import read_bench as read
-    from .io.bench_toml import read_reference_bench
+    from .io.bench_toml import resolve_bench
 
-    return read_reference_bench() if path is None else read(path)
+    return resolve_bench(path).bench
 
 
 def read_recording(path, kind: str | None = None, *, length_unit=None, field_unit=None):
