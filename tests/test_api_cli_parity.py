@@ -306,3 +306,34 @@ def test_quality_htm_cli_equals_api(recordings, tmp_path):
 def test_the_api_refuses_what_the_command_line_refuses(recordings, call, message):
     with pytest.raises(cfm_fem.CfmInputError, match=message):
         call(recordings / "map.csv", recordings / "tracker.csv")
+
+
+# --------------------------------------------------------------------------- the comparison
+
+
+def test_compare_outputs_finds_a_changed_number_and_skips_run_times(tmp_path):
+    import meshio
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, value, seconds in ((a, 1.5, 3.0), (b, 1.5, 9.0)):
+        d.mkdir()
+        doc = {"x": [value, float("nan")], "seconds": seconds, "provenance": {"t": seconds}}
+        (d / "s.json").write_text(json.dumps(doc).replace("NaN", "null"))
+        (d / "p.csv").write_text("# comment\nname,u\nn1,0.25\nn2,\n")
+        pts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        cells = [("tetra", np.array([[0, 1, 2, 3]]))]
+        meshio.write(d / "m.vtu", meshio.Mesh(pts, cells, point_data={"U": np.arange(4.0)}))
+    tally = compare_outputs.compare_dirs(a, b)
+    assert not tally.diffs and tally.files == 3 and tally.values >= 4 + 2 + 2
+    (b / "s.json").write_text(json.dumps({"x": [1.5000000000000002, None], "seconds": 1}))
+    (b / "p.csv").write_text("name,u\nn1,0.25\nn2,7\n")
+    mesh = meshio.read(b / "m.vtu")
+    mesh.point_data["U"][2] += 1e-15
+    meshio.write(b / "m.vtu", mesh)
+    (b / "extra.json").write_text("{}")
+    diffs = "\n".join(compare_outputs.compare_dirs(a, b).diffs)
+    assert "s.json.x[0]: 1.5 vs 1.5000000000000002" in diffs
+    assert "p.csv column 'u' row 2" in diffs
+    assert "m.vtu: point data 'U' differs" in diffs
+    assert "extra.json: only in the new run" in diffs
+    assert "seconds" not in diffs and "provenance" not in diffs
