@@ -15,8 +15,6 @@ Examples
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from .errors import CfmInputError
 
 __all__ = [
@@ -54,10 +52,9 @@ def read_map(path, **options):
 
 def read_bench(path=None):
     """A bench description (TOML); None: the packaged CFM reference bench."""
-    from .io.bench_toml import read_bench as read
-    from .io.bench_toml import read_reference_bench
+    from .io.bench_toml import resolve_bench
 
-    return read_reference_bench() if path is None else read(path)
+    return resolve_bench(path).bench
 
 
 def read_recording(path, kind: str | None = None, *, length_unit=None, field_unit=None):
@@ -81,15 +78,9 @@ def read_recording(path, kind: str | None = None, *, length_unit=None, field_uni
     return convert_recording(readers[kind](path), length_unit, field_unit)
 
 
-def _field_map(field):
-    from .models.field import FieldMap
-
-    return field if isinstance(field, FieldMap) else read_map(field)
-
-
 def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIALS, seed: int = 0,
-          mode: str = "gauss", bench=None, progress=None, **config):  # fmt: skip
-    """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory.
+          mode: str = "gauss", bench=None, progress=None, **options):  # fmt: skip
+    """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory unless ``out_dir`` is given.
 
     Parameters
     ----------
@@ -102,31 +93,23 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
         Mode htm: the bench (default the reference bench).
     progress : callable(int), optional
         Called with the nodes finished.
-    **config
-        Other `cfm_fem.models.sweep.SweepConfig` fields: ``b_ref_T``, ``axis_scale``, ``outside``,
-        ``interpolation``, ``hull_slivers``, ``chunk_nodes``, ``region`` (a
-        `cfm_fem.models.region.Region` or its text, as ``--region``: ``"cylinder:7,-30:30"``).
+    **options
+        Other arguments of `cfm_fem.workflows.sweep.run.run_sweep`: the
+        `cfm_fem.models.sweep.SweepConfig` fields (``b_ref_T``, ``axis_scale``, ``outside``,
+        ``interpolation``, ``hull_slivers``, ``chunk_nodes``, ``field_model``, ``region`` as a
+        `cfm_fem.models.region.Region` or its text, as ``--region``: ``"cylinder:7,-30:30"``),
+        ``reader`` (`read_map` options), and with ``out_dir`` the command line's ``pieces``,
+        ``slabs``, ``resume``, ``table``, ...
 
     Returns
     -------
-    cfm_fem.workflows.results.SweepMaps
+    cfm_fem.workflows.sweep.run.SweepRun
+        A `cfm_fem.workflows.results.SweepMaps` (``result`` None after a run by slabs).
     """
-    from .models.sweep import SweepConfig, summarize
-    from .workflows.results import SweepMaps
-    from .workflows.sweep.in_memory import run_sweep as run
+    from .workflows.sweep.run import run_sweep as run
 
-    if isinstance(bench, str | Path):
-        bench = read_bench(bench)
-    if isinstance(config.get("region"), str):
-        from .models.region import parse_region
-
-        config["region"] = parse_region(config["region"])
-    if mode == "htm" and bench is None:
-        bench = read_bench()
-    cfg = SweepConfig(up_um=[float(u) for u in up_um], trials=int(trials), seed=int(seed),
-                      mode=mode, bench=bench, **config)  # fmt: skip
-    res = run(_field_map(field), cfg, progress=progress)
-    return SweepMaps(res, summarize(res))
+    return run(field, up_um, trials=int(trials), seed=int(seed), mode=mode, bench=bench,
+               progress=progress, **options)  # fmt: skip
 
 
 def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0, progress=None,
@@ -134,65 +117,47 @@ def run_kinematics(bench=None, *, trials: int = KINEMATICS_TRIALS, seed: int = 0
     """Probe positioning error over the scan grid (``cfm-fem kinematics``, Table IV).
 
     ``bench``: a `Bench`, a path, or None (the reference bench); ``options``: other arguments
-    of `cfm_fem.models.kinematics.monte_carlo.run_kinematics` (``q_cmd``, ``adaptive_digits``, ...).
+    of `cfm_fem.workflows.kinematics.run_kinematics` (``adaptive_digits``, ``fast_intervals``,
+    ``workers``, ``q_cmd``, ...).
 
     Returns
     -------
-    cfm_fem.workflows.results.KinematicsTable
+    cfm_fem.workflows.kinematics.KinematicsRun
+        A `cfm_fem.workflows.results.KinematicsTable`; ``.summary`` is ``summary.json`` and
+        ``.write(out_dir)`` writes the command's files.
     """
-    from .models.kinematics import run_kinematics as run
-    from .workflows.results import KinematicsTable
+    from .workflows.kinematics import run_kinematics as run
 
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    res = run(b, int(trials), int(seed), progress=progress, **options)
-    return KinematicsTable(res, b)
+    return run(bench, trials=int(trials), seed=int(seed), progress=progress, **options)
 
 
-def _reference(field, b_ref_T=None, r_ref_mm=None):
-    """A `FieldModel` from a FieldMap, a path (harmonics or map) or None (QFDp4)."""
-    from .models.field import FieldMap
-    from .workflows.coupled import FieldModel
-
-    if field is None:
-        from .io.harmonics import read_qfdp4
-
-        return FieldModel.from_multipole(read_qfdp4())
-    if isinstance(field, FieldMap):
-        return FieldModel.from_map(field, b_ref_T)
-    from .io.reference_field import read_reference
-
-    return read_reference(field, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm)
-
-
-def run_coupled(points, field=None, bench=None, *, trials: int = COUPLED_TRIALS, seed: int = 0,
-            b_ref_T=None, r_ref_mm=None, progress=None, **options):  # fmt: skip
+def run_coupled(points=None, field=None, bench=None, *, trials: int = COUPLED_TRIALS,
+                seed: int = 0, progress=None, **options):  # fmt: skip
     """Coupled Monte Carlo of the field error at scan points (``cfm-fem coupled``, Table V).
 
     Parameters
     ----------
-    points : ndarray, shape (n, 3), mm
-        Scan points, magnet frame (e.g. `cfm_fem.workflows.coupled.default_region`).
+    points : ndarray, shape (n, 3), mm, optional
+        Scan points, magnet frame (e.g. `cfm_fem.workflows.coupled.default_region`); None: the
+        command line's region (``radius_mm``, ``step_mm``, ``z_mm`` options).
     field : FieldMap, path-like or None
         Harmonics file or field map; None: the paper's QFDp4.
     bench : Bench, path-like or None
     **options
-        ``probe``, ``align``, ``batches`` of `cfm_fem.workflows.coupled.run_coupled`.
+        Other arguments of `cfm_fem.workflows.coupled_run.run_coupled`: ``probe``, ``align``,
+        ``centre_magnet``, ``b_ref_T``, ``r_ref_mm``, ``field_model``, ``budget`` (the
+        positioning-only / probe-only split, default True as the command line), ...
 
     Returns
     -------
-    cfm_fem.workflows.results.CoupledTable
+    cfm_fem.workflows.coupled_run.CoupledRun
+        A `cfm_fem.workflows.results.CoupledTable`; ``.summary`` is ``summary.json`` and
+        ``.write(out_dir)`` writes the command's files.
     """
-    import numpy as np
+    from .workflows.coupled_run import run_coupled as run
 
-    from .workflows.coupled import run_coupled as run
-    from .workflows.results import CoupledTable
-
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    model = _reference(field, b_ref_T, r_ref_mm)
-    pts = np.asarray(points, dtype=np.float64)
-    res = run(model, b, pts, trials=int(trials), seed=int(seed), progress=progress,
-                      **options)  # fmt: skip
-    return CoupledTable(res, b)
+    return run(field, bench, points, trials=int(trials), seed=int(seed), progress=progress,
+               **options)  # fmt: skip
 
 
 def _recording(recording):
@@ -205,76 +170,91 @@ def run_compare(recording, reference=None, bench=None, *, trials: int = COUPLED_
             seed: int = 0, progress=None, **options):  # fmt: skip
     """A recording against the simulation (``cfm-fem compare``).
 
-    A tracker recording gives a `cfm_fem.workflows.compare.TrackerComparison` (Table IV both sides,
+    A tracker recording is compared with the kinematic Monte Carlo (Table IV both sides,
     ``pooled_exp`` / ``pooled_sim`` per axis); a Hall map, with ``reference`` (harmonics file,
-    field map or FieldMap; None: QFDp4), a `cfm_fem.workflows.compare.HallComparison` (Table V).
+    field map or FieldMap; None: QFDp4), with the coupled Monte Carlo (Table V).
+
+    ``options``: other arguments of `cfm_fem.workflows.compare_run.run_compare`
+    (``tracker_u_um``, ``probe``, ``align``, ``centre_magnet``, ``budget``, ...).
+
+    Returns
+    -------
+    cfm_fem.workflows.compare_run.CompareRun
+        The comparison's attributes (``pooled_exp``, ...) are the run's; ``.summary`` is
+        ``compare.json`` and ``.write(out_dir)`` writes the command's files.
     """
-    from .workflows.compare import compare_hall, compare_tracker
+    from .workflows.compare_run import run_compare as run
 
-    rec = _recording(recording)
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    if rec.kind == "tracker":
-        return compare_tracker(rec, b, trials=int(trials), seed=int(seed), progress=progress,
-                               **options)  # fmt: skip
-    return compare_hall(rec, _reference(reference), b, trials=int(trials), seed=int(seed),
-                        progress=progress, **options)  # fmt: skip
+    return run(_recording(recording), reference, bench, trials=int(trials), seed=int(seed),
+               progress=progress, **options)  # fmt: skip
 
 
-def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, progress=None):
+def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None,
+                 field_model: str = "linear", progress=None, **reader):  # fmt: skip
     """What the simulation leaves out of a recording (``cfm-fem diagnose``).
 
-    ``reference`` (Hall maps): a harmonics file, a field map or FieldMap, or None for QFDp4.
-    Returns a `cfm_fem.workflows.diagnose.workflow.Diagnosis`; its ``summary`` is
-    ``diagnosis.json``.
+    Parameters
+    ----------
+    recording : Recording or path-like
+        A tracker recording or a Hall map (`read_recording`).
+    reference : str, path-like, FieldMap or None
+        Hall maps: a harmonics file, a field map, ``fit:DEG`` / ``fitz:DEG``; None: QFDp4.
+    bench : Bench, path-like or None
+        None: the packaged CFM reference bench.
+    b_ref_T, r_ref_mm, field_model
+        As ``--b-ref``, ``--r-ref``, ``--field-model``.
+    **reader
+        How a field map reference is read (``fmt``, ``length_unit``, ... of `read_map`).
+
+    Returns
+    -------
+    cfm_fem.workflows.diagnose.run.DiagnoseRun
+        ``.summary`` is ``diagnosis.json``; ``.write(out_dir)`` writes the command's files.
     """
-    import numpy as np
+    from .workflows.diagnose.run import run_diagnose as run
 
-    from .workflows.diagnose.problem import hall_problem, tracker_problem
-    from .workflows.diagnose.workflow import diagnose as run
-
-    rec = _recording(recording)
-    b = bench if bench is not None and not isinstance(bench, str | Path) else read_bench(bench)
-    if rec.kind == "tracker":
-        return run(tracker_problem(rec, b), progress=progress)
-    model = _reference(reference)
-    b_ref = model.b_ref_T if b_ref_T is None else float(b_ref_T)
-    smooth = model.multipole is not None
-
-    def field_fn(p):
-        return model.field(np.asarray(p, dtype=np.float64))[0]
-
-    prob = hall_problem(rec, field_fn, b_ref, b, smooth=smooth)
-    prob.notes.append(f"reference: {model.describe()}")
-    return run(prob, progress=progress)
+    return run(_recording(recording), reference, bench, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm,
+               field_model=field_model, reader=reader or None, progress=progress)  # fmt: skip
 
 
-def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0):
+def run_design(maps, uf_max: float, *, coverage: float = 0.95, region=None, seed: int = 0,
+               **options):  # fmt: skip
     """Largest U_p that keeps U_f <= ``uf_max`` units over ``coverage`` of the nodes of a
     sweep (``cfm-fem design``), with its Monte Carlo standard uncertainty.
 
     Parameters
     ----------
-    maps : cfm_fem.workflows.results.SweepMaps
-        A mode-gauss sweep with increasing U_p.
+    maps : cfm_fem.workflows.results.SweepMaps, path-like or FieldMap
+        A mode-gauss sweep with increasing U_p; or a field map, swept first as the command
+        line does (``options``: ``up_um``, ``trials`` (default 10,000), ``b_ref_T``,
+        ``outside``, ``field_model``, ``reader``, ``progress`` of
+        `cfm_fem.workflows.design_run.run_design`).
     uf_max : float
         Units of 1e-4 B_ref.
     coverage : float
-    region : str or ndarray (3, 2), optional
-        ``"xmin:xmax,ymin:ymax,zmin:zmax"`` (mm) or bounds; default every node.
+    region : str or Region, optional
+        ``"xmin:xmax,ymin:ymax,zmin:zmax"`` or ``"cylinder:R,zmin:zmax"`` (mm); default every
+        node.
+    seed : int
 
     Returns
     -------
-    cfm_fem.workflows.design.DesignAnswer
+    cfm_fem.workflows.design.DesignAnswer or cfm_fem.workflows.design_run.DesignRun
+        The answer for a sweep given; for a map, the run (``.write(out_dir)`` writes the
+        command's files; the answer's attributes are the run's).
     """
-    from .workflows.design import admissible_up, parse_region, region_mask
+    from .workflows.results import SweepMaps
 
-    box = parse_region(region) if isinstance(region, str) else region
-    res = maps.result
-    inside = region_mask(maps.points, box)
-    ends = res.to_units(res.stats[inside][:, :, 3, 2:4])
-    return admissible_up(maps.up_um, ends[..., 0], ends[..., 1], res.complete()[inside], uf_max,
-                         coverage=coverage, rel_mc_std=maps.summary["uf_relative_mc_std"],
-                         seed=seed)  # fmt: skip
+    if isinstance(maps, SweepMaps):
+        from .workflows.design_run import design_answer
+
+        if options:
+            raise CfmInputError(f"{', '.join(options)}: for a field map, not for a sweep")
+        return design_answer(maps, uf_max, coverage=coverage, region=region, seed=seed)
+    from .workflows.design_run import run_design as run
+
+    options.setdefault("trials", SWEEP_TRIALS)
+    return run(maps, uf_max, coverage=coverage, region=region, seed=seed, **options)
 
 
 def run_quality(field, r_ref_mm: float, *, up_um=None, mode=None, bench=None, trials=None,

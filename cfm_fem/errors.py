@@ -7,6 +7,7 @@ import re
 __all__ = [
     "CfmInputError",
     "CfmInputWarning",
+    "interrupted",
     "location",
     "MAX_SEED",
     "check_seed",
@@ -109,3 +110,14 @@ def check_seed(seed, option: str = "--seed") -> None:
         raise CfmInputError(f"{option} must be an integer in [0, 2**63); got {seed!r}")
     if not 0 <= int(seed) < MAX_SEED:
         raise CfmInputError(f"{option} must be in [0, 2**63); got {seed}")
+
+
+def interrupted(exc) -> bool:
+    """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

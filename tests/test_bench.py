@@ -213,3 +213,30 @@ def test_magnet_placement_round_trip(ref):
     # a bench-frame error vector seen in the magnet frame
     np.testing.assert_allclose(b.bench_to_magnet_rotation() @ r, np.eye(3), atol=1e-15)
     assert not b.outside_stroke(q[:1] * 0 + 10).any() and b.outside_stroke(q[:1] * 0 - 1).all()
+
+
+def test_resolve_bench_says_what_was_assumed(tmp_path):
+    """One choice of bench for every command: the model given, a file, or the packaged
+    reference bench, with the sentence the outputs print about it."""
+    from importlib import resources
+
+    from cfm_fem.io.bench_toml import DEFAULT_NOTE, resolve_bench
+
+    bench, sentence = resolve_bench(None)
+    assert sentence == "bench model (packaged CFM reference bench)"
+    assert bench.name == read_reference_bench().name
+    same, said = resolve_bench(bench)
+    assert same is bench and bench.name in said
+    text = (resources.files("cfm_fem.data") / "cfm_reference_bench.toml").read_text()
+    given = tmp_path / "full.toml"
+    given.write_text(text)
+    assert resolve_bench(given).sentence == f"bench model {given}"
+    start = text.index("[grid]")
+    end = text.index("\n# ----", start)
+    short = tmp_path / "no_grid.toml"
+    short.write_text(text[:start] + text[end:])
+    bench, sentence = resolve_bench(str(short))
+    assert sentence.startswith(f"bench model {short}; not in the file, defaults taken: [grid] x_mm")
+    assert sum(n.startswith(DEFAULT_NOTE) for n in bench.assumptions) == 3
+    assert sentence.count("[grid]") == 3
+    assert len(bench.grid_points()) == 9 * 8 * 13  # the reference bench's point counts

@@ -25,12 +25,12 @@ import numpy as np
 import pytest
 
 from cfm_fem.cli import main
-from cfm_fem.cli.diagnose import node_spacing_mm
 from cfm_fem.io import read_field
 from cfm_fem.io.recordings import write_hall_map
 from cfm_fem.models.interpolation import LinearInterpolator
 from cfm_fem.models.recordings import Recording
 from cfm_fem.workflows.diagnose.problem import hall_problem
+from cfm_fem.workflows.diagnose.run import node_spacing_mm
 from cfm_fem.workflows.diagnose.workflow import diagnose
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "emphatic"

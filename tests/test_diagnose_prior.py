@@ -78,10 +78,10 @@ def test_bench_file_prior_reaches_the_fit(tmp_path):
     the default prior on the same recording."""
     pytest.importorskip("magpylib")
     from cfm_fem.cli import main
-    from cfm_fem.cli.diagnose import _reference
     from cfm_fem.io.recordings import read_hall_map
     from cfm_fem.simulation import write_case
     from cfm_fem.workflows.diagnose.problem import hall_problem
+    from cfm_fem.workflows.diagnose.run import reference_field as _reference
     from cfm_fem.workflows.diagnose.workflow import _calibrate
 
     files = write_case("null_hall", 20260107, tmp_path, size="small")

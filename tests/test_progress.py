@@ -48,7 +48,7 @@ def test_log_progress_limits_lines_to_one_per_interval(monkeypatch):
 
 
 def test_kinematics_progress_counts_trials_not_passes():
-    from cfm_fem.cli.kinematics import _per_pass
+    from cfm_fem.workflows.kinematics import _per_pass
 
     seen = []
     step = _per_pass(seen.append, 2)  # exact intervals: every trial runs twice

@@ -355,7 +355,7 @@ def _small_map(tmp_path) -> Path:
 
 def test_the_chunk_store_outlives_a_stop_before_the_report(tmp_path, capsys, monkeypatch):
     """A run stopped while its report is written resumes from its chunks, all of them."""
-    import cfm_fem.cli.sweep as sweep_cli
+    import cfm_fem.report.sweep
 
     path, out = _small_map(tmp_path), tmp_path / "out"
     argv = ["sweep", str(path), "--up", "10", "--trials", "20", "--chunk-nodes", "64",
@@ -364,7 +364,7 @@ def test_the_chunk_store_outlives_a_stop_before_the_report(tmp_path, capsys, mon
     def stop(out):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(sweep_cli, "_write_report", stop)
+    monkeypatch.setattr(cfm_fem.report.sweep, "write_sweep_report", stop)
     assert main(argv) == 1
     assert list((out / ".cfm_fem_chunks").glob("*")), "the chunk store was deleted"
     monkeypatch.undo()

@@ -29,10 +29,10 @@ def test_bench_errors_move_the_probe_as_the_tools_columns():
 
 @pytest.fixture(scope="module")
 def hall_problem_small(tmp_path_factory):
-    from cfm_fem.cli.diagnose import _reference
     from cfm_fem.io.bench_toml import read_reference_bench
     from cfm_fem.io.recordings import read_hall_map
     from cfm_fem.workflows.diagnose.problem import hall_problem
+    from cfm_fem.workflows.diagnose.run import reference_field as _reference
 
     f = write_case("null_hall", 11, tmp_path_factory.mktemp("conv"), size="small")
     rec = read_hall_map(f["recording"])

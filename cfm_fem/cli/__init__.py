@@ -22,7 +22,7 @@ import warnings
 from pathlib import Path
 
 from .. import __version__
-from ..errors import CfmInputError, CfmInputWarning, printable
+from ..errors import CfmInputError, CfmInputWarning, interrupted, printable
 
 __all__ = ["main"]
 
@@ -179,17 +179,6 @@ def _disk_full_message(full: OSError, out, freed: int) -> str:
         f"written there were removed, and it needs more than the {free} now free: free some "
         "space or write to another folder"
     )
-
-
-def interrupted(exc) -> bool:
-    """True for Ctrl-C, also when numba reports it as a SystemError raised from it."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def main(argv=None) -> int:

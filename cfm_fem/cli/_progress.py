@@ -105,3 +105,20 @@ def note_first_compile(*kernels) -> None:
             "install or upgrade: some 30 s more); later runs load them from numba's cache",
             file=sys.stderr,
         )
+
+
+def announcer(bar, command: str):
+    """The ``on_start`` callback the workflows call once their inputs are checked: it prints
+    ``cfm-fem <command>: <line>`` on stderr above ``bar`` and sets the bar's total (and unit)
+    to the work the workflow counts; a ``line`` None sets the total only."""
+
+    def on_start(line: str | None, total: int | None = None, unit: str | None = None) -> None:
+        if line is not None:
+            bar.write(f"cfm-fem {command}: {line}", file=sys.stderr)
+        if unit is not None:
+            bar.unit = unit
+        if total is not None:
+            bar.total = total
+            bar.refresh()
+
+    return on_start

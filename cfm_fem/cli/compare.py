@@ -10,20 +10,17 @@ the Fig. 13 view. Writes DIR/compare.json, DIR/points.csv, DIR/report.html and P
 
 from __future__ import annotations
 
-import sys
-
 from ..errors import CfmInputError
 from ._checks import check_out_dir
-from ._progress import progress_bar
+from ._progress import announcer, progress_bar
 from ._reader import (
     add_field_model_arg,
     add_reader_args,
     add_recording_args,
     read_recording_args,
     reader_kwargs,
-    refuse_reader_options,
 )
-from .coupled import add_common, check_common, load_bench
+from .coupled import add_common, check_common
 
 NAME = "compare"
 HELP = "recordings against the simulation: Table IV / Fig. 12 (tracker), Table V / Fig. 13 (Hall)"
@@ -55,122 +52,35 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..workflows.compare_run import check_options
+
     check_out_dir(args.out)
     check_common(args)
     if args.hall_map is not None and not args.reference:
         raise CfmInputError("--hall-map needs --reference FIELD (harmonics .csv or FEM export)")
-    if args.tracker is not None and args.reference:
-        raise CfmInputError("--reference applies to --hall-map only")
-    if args.tracker is not None:
-        refuse_reader_options(args, "--tracker reads no field map (--hall-map --reference does)")
-    if not args.tracker_u_um >= 0:
-        raise CfmInputError(f"--tracker-u-um must be >= 0; got {args.tracker_u_um}")
+    kind = "tracker" if args.tracker is not None else "hall"
+    check_options(kind, args.reference, args.tracker_u_um, reader_kwargs(args))
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):  # one run at a time in --out
-        bench, bench_note = load_bench(args)
-        if args.tracker is not None:
-            return _tracker(args, bench, bench_note)
-        return _hall(args, bench, bench_note)
+        return _run(args)
 
 
-def _tracker(args, bench, bench_note) -> int:
-    from ..io.compare_out import tracker_points_csv, tracker_summary, write_run
-    from ..io.provenance import bench_input, provenance
-    from ..models.kinematics.budget import uncertainty_budget
-    from ..workflows.compare import compare_tracker
+def _run(args) -> int:
+    from ..workflows.compare_run import run_compare
 
     rec = read_recording_args(args)
-    print(
-        f"cfm-fem compare: {args.tracker}: {len(rec)} readings; {args.trials} trials",
-        file=sys.stderr,
-    )
     with progress_bar(None, "trials") as bar:
-        comp = compare_tracker(
-            rec,
-            bench,
-            trials=args.trials,
-            seed=args.seed,
-            tracker_u_um=args.tracker_u_um,
-            progress=bar.update,
-        )
-    if bench_note:
-        comp.notes.append(bench_note)
-    prov = provenance(
-        {"bench": bench_input(args.bench), "tracker": args.tracker}, args.command_line
-    )
-    summary = tracker_summary(
-        comp, bench, budget=uncertainty_budget(bench, comp.cmd), extra={"provenance": prov}
-    )
-    from ..report.runs import tracker_report  # matplotlib: loaded only when used
-
-    rep = tracker_report(comp, summary, args.command_line)
-    files = {"compare.json": summary, "points.csv": tracker_points_csv(comp)}
-    files.update(rep.images)
-    files["report.html"] = rep.render()
-    paths = write_run(args.out, files)
-    _print_tracker(summary)
-    print(f"wrote {', '.join(str(p) for p in paths)}")
-    return 0
-
-
-def _hall(args, bench, bench_note) -> int:
-    from ..io.compare_out import hall_points_csv, hall_summary, write_run
-    from ..io.provenance import bench_input, provenance
-    from ..io.reference_field import read_reference
-    from ..models.probe import HallProbe
-    from ..workflows.compare import compare_hall
-    from ..workflows.coupled import field_budget
-
-    rec = read_recording_args(args)
-    ref = read_reference(
-        args.reference, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
-        field_model=args.field_model, **reader_kwargs(args),
-    )  # fmt: skip
-    probe = HallProbe(model=args.probe)
-    _, pts = rec.point_cmd()
-    print(
-        f"cfm-fem compare: {args.hall_map}: {len(rec)} readings at {len(pts)} points; "
-        f"{args.trials} trials",
-        file=sys.stderr,
-    )
-    with progress_bar(len(pts), "points") as bar:
-        comp = compare_hall(
-            rec,
-            ref,
-            bench,
-            probe=probe,
-            trials=args.trials,
-            seed=args.seed,
-            align=args.align,
-            progress=bar.update,
-        )
-    if bench_note:
-        comp.notes.append(bench_note)
-    fb = None
-    if not args.no_budget:
-        fb = field_budget(
-            ref,
-            bench,
-            pts,
-            probe=probe,
-            trials=min(args.trials, 20_000),
-            seed=args.seed,
-            align=args.align,
-        )
-    prov = provenance(
-        {"bench": bench_input(args.bench), "hall_map": args.hall_map, "reference": args.reference},
-        args.command_line,
-    )
-    summary = hall_summary(comp, bench, field_budget=fb, extra={"provenance": prov})
-    from ..report.runs import hall_report
-
-    rep = hall_report(comp, summary, args.command_line)
-    files = {"compare.json": summary, "points.csv": hall_points_csv(comp)}
-    files.update(rep.images)
-    files["report.html"] = rep.render()
-    paths = write_run(args.out, files)
-    _print_hall(summary)
+        res = run_compare(
+            rec, args.reference, args.bench, trials=args.trials, seed=args.seed,
+            tracker_u_um=args.tracker_u_um, probe=args.probe, align=args.align,
+            centre_magnet=args.centre_magnet, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
+            field_model=args.field_model, reader=reader_kwargs(args), budget=not args.no_budget,
+            command_line=args.command_line, progress=bar.update,
+            on_start=announcer(bar, "compare"),
+        )  # fmt: skip
+    paths = res.write(args.out)
+    (_print_tracker if args.tracker is not None else _print_hall)(res.summary)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 

@@ -7,23 +7,9 @@ DIR/points.csv (per point and component), DIR/report.html and its PNG figures.
 
 from __future__ import annotations
 
-import sys
-from typing import TYPE_CHECKING
-
-import numpy as np
-
-from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import progress_bar
-from ._reader import (
-    add_field_model_arg,
-    add_reader_args,
-    reader_kwargs,
-    refuse_reader_options,
-)
-
-if TYPE_CHECKING:
-    from ..models.field_model import FieldModel
+from ._checks import check_out_dir, trial_count_type
+from ._progress import announcer, progress_bar
+from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
 
 NAME = "coupled"
 HELP = "field error E_f from positioning and probe together (eq. 12-14): Table V"
@@ -113,20 +99,9 @@ def add_args(p):
 
 
 def check_common(args):
-    if args.trials < 20:
-        raise CfmInputError(f"--trials must be >= 20; got {args.trials}")
-    check_seed(args.seed)
+    from ..workflows.coupled_run import check_trials
 
-
-def load_bench(args):
-    """The bench (reference bench by default), centred when ``--centre-magnet``; and a note."""
-    from ..io.bench_toml import read_bench, read_reference_bench
-    from ..workflows.coupled import centred_on_travel
-
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
-    if args.centre_magnet:
-        return centred_on_travel(bench), "magnet moved to mid-travel of X and Y (--centre-magnet)"
-    return bench, None
+    check_trials(args.trials, args.seed)
 
 
 def _parse_z(text):
@@ -135,152 +110,30 @@ def _parse_z(text):
     return number_list(text, "--z", what="numbers in mm")
 
 
-#: Most scan points of --radius/--step: each point is a full Monte Carlo of --trials (default
-#: 1e5) probe positions, so 100,000 points are already hours; --step 0.002 (metres typed as mm)
-#: would ask for 78.5 million points and a 1.2 GB array before the run.
-MAX_REGION_POINTS = 100_000
-
-
-def _region(args, fm: FieldModel):
-    from ..workflows.coupled import default_region
-
-    z = None if args.z is None else _parse_z(args.z)
-    if fm.multipole is not None:
-        r = fm.multipole.r_ref if args.radius is None else args.radius
-        z = [-100.0, -50.0, 0.0, 50.0, 100.0] if z is None else z
-        what = f"R_ref = {fm.multipole.r_ref:g} mm" if args.radius is None else "--radius"
-    else:
-        pts = fm.fieldmap.points
-        half = min(np.abs(pts[:, 0]).max(), np.abs(pts[:, 1]).max())
-        r = 0.8 * half if args.radius is None else args.radius
-        if z is None:
-            z0, z1 = pts[:, 2].min(), pts[:, 2].max()
-            z = list(np.linspace(0.75 * z0 + 0.25 * z1, 0.25 * z0 + 0.75 * z1, 5))
-        what = "0.8 x the map's transverse extent" if args.radius is None else "--radius"
-    if not (r > 0 and args.step > 0):
-        raise CfmInputError("--radius and --step must be > 0 mm")
-    n_est = np.pi * (r / args.step) ** 2 * len(z)  # grid points inside the circle, all planes
-    if not n_est <= MAX_REGION_POINTS:
-        raise CfmInputError(
-            f"--step {args.step:g} mm inside r <= {r:g} mm ({what}) on {len(z)} plane(s) asks "
-            "for about "
-            f"{n_est:.3g} scan points; expected at most {MAX_REGION_POINTS:,} (the step is in mm: "
-            f"{r * np.sqrt(np.pi * len(z) / MAX_REGION_POINTS):.2g} mm or more here)"
-        )
-    pts = default_region(r, args.step, z)
-    desc = (
-        f"transverse grid step {args.step:g} mm inside r <= {r:g} mm ({what}), "
-        f"z planes {', '.join(f'{v:g}' for v in z)} mm (magnet frame); {len(pts)} points"
-    )
-    return pts, desc
-
-
-def _check_region_inside(args, fm, points, field_path) -> None:
-    """Name the map and the options when the scan region leaves a field map (the default region
-    is centred on the z axis, which a map need not be)."""
-    if fm.multipole is not None:
-        return
-    _, inside = fm.field(points)
-    if inside.all():
-        return
-    i = int(np.argmax(~inside))
-    pts = fm.fieldmap.points
-    span = ", ".join(
-        f"{a} {lo:g}..{hi:g}" for a, lo, hi in zip("xyz", pts.min(0), pts.max(0), strict=True)
-    )
-    why = "the default region is centred on the z axis: " if args.radius is None else ""
-    raise CfmInputError(
-        f"scan point {points[i].tolist()} mm is outside the field map, which spans {span} mm; "
-        f"{why}set --radius and --z to a region inside the map",
-        file=field_path,
-    )
-
-
 def run(args) -> int:
     check_out_dir(args.out)
     check_common(args)
-    if args.field is None:
-        refuse_reader_options(args, "without --field the bundled QFDp4 harmonics are used")
-        if args.field_model != "linear":
-            raise CfmInputError(
-                "--field-model applies to a field map given with --field; without --field the "
-                "bundled QFDp4 harmonics are used"
-            )
+    z = None if args.z is None else _parse_z(args.z)
     from ..io.lock import output_lock
 
     with output_lock(args.out, args.command_line):  # one run at a time in --out
-        return _run(args)
+        return _run(args, z)
 
 
-def _run(args) -> int:
-    from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
-    from ..io.harmonics import qfdp4_path, read_qfdp4
-    from ..io.provenance import bench_input, provenance
-    from ..io.reference_field import read_reference
-    from ..models.field_model import FieldModel
-    from ..models.kinematics.budget import uncertainty_budget
-    from ..models.probe import HallProbe
-    from ..workflows.coupled import field_budget, run_coupled
+def _run(args, z) -> int:
+    from ..workflows.coupled_run import run_coupled
 
-    bench, bench_note = load_bench(args)
-    if args.field is None:
-        fm = FieldModel.from_multipole(read_qfdp4())
-        field_path = qfdp4_path()
-    else:
-        fm = read_reference(
-            args.field, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
-            field_model=args.field_model, **reader_kwargs(args),
-        )  # fmt: skip
-        field_path = args.field
-    points, region = _region(args, fm)
-    _check_region_inside(args, fm, points, field_path)
-    probe = HallProbe(model=args.probe)
-    print(
-        f"cfm-fem coupled: {fm.describe()}; {region}; {args.trials} trials, seed {args.seed}, "
-        f"align {args.align}",
-        file=sys.stderr,
-    )
-    with progress_bar(len(points), "points") as bar:
+    with progress_bar(None, "points") as bar:
         res = run_coupled(
-            fm,
-            bench,
-            points,
-            probe=probe,
-            trials=args.trials,
-            seed=args.seed,
-            align=args.align,
-            region=region,
-            progress=bar.update,
-        )
-    fb = None
-    if not args.no_budget:
-        fb = field_budget(
-            fm,
-            bench,
-            points,
-            probe=probe,
-            trials=min(args.trials, 20_000),
-            seed=args.seed,
-            align=args.align,
-        )
-    if bench_note:
-        res.notes.append(bench_note)
-    prov = provenance({"bench": bench_input(args.bench), "field": field_path}, args.command_line)
-    summary = coupled_summary(
-        res,
-        bench,
-        field_budget=fb,
-        bench_budget=uncertainty_budget(bench, res.q_cmd),
-        extra={"provenance": prov},
-    )
-    from ..report.runs import coupled_report  # matplotlib: loaded only when used
-
-    rep = coupled_report(res, summary, args.command_line)
-    files = {"summary.json": summary, "points.csv": coupled_points_csv(res)}
-    files.update(rep.images)
-    files["report.html"] = rep.render()
-    paths = write_run(args.out, files)
-    print_table_v(summary)
+            args.field, args.bench, radius_mm=args.radius, step_mm=args.step, z_mm=z,
+            trials=args.trials, seed=args.seed, probe=args.probe, align=args.align,
+            centre_magnet=args.centre_magnet, b_ref_T=args.b_ref, r_ref_mm=args.r_ref,
+            field_model=args.field_model, reader=reader_kwargs(args), budget=not args.no_budget,
+            command_line=args.command_line, progress=bar.update,
+            on_start=announcer(bar, "coupled"),
+        )  # fmt: skip
+    paths = res.write(args.out)
+    print_table_v(res.summary)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
 

@@ -9,12 +9,9 @@ uncertainty of the answer comes from a bootstrap of the nodes' U_f. Writes the s
 
 from __future__ import annotations
 
-import sys
-
-from ..errors import CfmInputError
 from . import option_type
 from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import note_first_compile, progress_bar
+from ._progress import announcer, note_first_compile, progress_bar
 from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
 
 NAME = "design"
@@ -59,19 +56,14 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..workflows.design_run import check_question
+    from ..workflows.sweep.problem import check_options
     from .sweep import parse_up_range
 
     check_out_dir(args.out)
     check_seed(args.seed)
     up = parse_up_range(args.up)
-    if any(b <= a for a, b in zip(up, up[1:], strict=False)):
-        raise CfmInputError(f"--up values must increase; got {args.up!r}")
-    if not args.uf_max > 0:
-        raise CfmInputError(f"--uf-max must be > 0 units; got {args.uf_max}")
-    if not 0 < args.coverage <= 1:
-        raise CfmInputError(f"--coverage must be in (0, 1]; got {args.coverage}")
-    from ..workflows.sweep.problem import check_options
-
+    check_question(up, args.uf_max, args.coverage)
     check_options(args.trials, (1.0, 1.0, 1.0), args.b_ref, len(up))
     from ..io.lock import output_lock
 
@@ -81,55 +73,19 @@ def run(args) -> int:
 
 def _run(args, up) -> int:
     from .. import _kernels
-    from ..io import read_field
-    from ..io.compare_out import write_run
-    from ..io.provenance import provenance
-    from ..io.sweep_out import write_sweep
-    from ..models.sweep import SweepConfig
-    from ..report.sweep import write_sweep_report
-    from ..workflows.design import admissible_up, region_mask
-    from ..workflows.sweep.in_memory import run_sweep
+    from ..workflows.design_run import run_design
 
-    fm = read_field(args.field, **reader_kwargs(args))
-    inside = region_mask(fm.points, args.region)
-    if not inside.any():
-        raise CfmInputError(f"--region holds none of the {fm.n_nodes} nodes of {args.field}")
-    cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
-                      outside=args.outside, field_model=args.field_model,
-                      region=args.region)  # fmt: skip
-    print(f"cfm-fem design: {fm.n_nodes} nodes from {fm.source} ({int(inside.sum())} in the "
-          f"region); U_p = {', '.join(f'{u:g}' for u in up)} um; {cfg.trials} trials per node",
-          file=sys.stderr)  # fmt: skip
     note_first_compile(_kernels.gauss_sweep)
-    with progress_bar(fm.n_nodes, "nodes") as bar:
-        res = run_sweep(fm, cfg, progress=bar.update)
-    prov = provenance({"field": args.field}, args.command_line)
-    prov.update(seed=cfg.seed, trials=cfg.trials)
-    summary = write_sweep(args.out, res, prov, remove_stale=True)
-    ends = res.to_units(res.stats[inside][:, :, 3, 2:4])  # |B|: symmetric 95 % interval
-    ans = admissible_up(
-        up, ends[..., 0], ends[..., 1], res.complete()[inside], args.uf_max,
-        coverage=args.coverage, rel_mc_std=summary["uf_relative_mc_std"], seed=args.seed,
-    )  # fmt: skip
-    doc = {
-        "answer": ans.sentence(),
-        **ans.to_dict(),
-        "region_mm": None if args.region is None else args.region.to_json(),
-        "region_nodes": int(inside.sum()),
-        "b_ref_T": summary["b_ref_T"],
-        "field_model": summary["field_model"],
-        "trials": cfg.trials,
-        "seed": cfg.seed,
-        "definition": "largest U_p whose coverage quantile of U_f over the region's nodes with "
-        "a U_f figure is <= uf_max (cfm_fem.workflows.design); u_up_max_um: standard deviation "
-        "of a "
-        "bootstrap that redraws both interval ends of every node within their Monte Carlo "
-        "standard errors. At finite trials U_f is biased slightly high (the larger of two "
-        "noisy ends), so the answer errs low, on the safe side",
-        "provenance": prov,
-    }
-    write_run(args.out, {"design.json": doc})
-    write_sweep_report(args.out, design=doc)
+    with progress_bar(None, "nodes") as bar:
+        res = run_design(
+            args.field, args.uf_max, up_um=up, coverage=args.coverage, region=args.region,
+            trials=args.trials, seed=args.seed, b_ref_T=args.b_ref, outside=args.outside,
+            field_model=args.field_model, reader=reader_kwargs(args),
+            command_line=args.command_line, progress=bar.update,
+            on_start=announcer(bar, "design"),
+        )  # fmt: skip
+    res.write(args.out)
+    ans = res.answer
     print(ans.sentence())
     for u, p, s in zip(ans.up_um, ans.percentile_units, ans.u_percentile_units, strict=True):
         text = "-" if p is None else f"{p:.4g} +- {'-' if s is None else f'{s:.2g}'}"

@@ -7,10 +7,8 @@ Writes DIR/fig4.json, DIR/fig4.csv, DIR/fig4_curve.png, DIR/fig4_plane.png and D
 
 from __future__ import annotations
 
-import sys
-
 from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import progress_bar
+from ._progress import announcer, progress_bar
 from ._reader import add_field_model_arg, add_reader_args, reader_kwargs
 from .sweep import parse_up_range
 
@@ -54,40 +52,16 @@ def run(args) -> int:
 
 
 def _run(args, up) -> int:
-    from ..io import read_field
-    from ..io.compare_out import write_run
-    from ..io.provenance import provenance
-    from ..workflows.fig4 import fig4_summary, plane_nodes, run_fig4
+    from ..workflows.fig4_run import run_fig4
 
-    fm = read_field(args.field, **reader_kwargs(args))
-    print(
-        f"cfm-fem fig4: {fm.n_nodes} nodes from {args.field}; U_p = "
-        f"{', '.join(f'{u:g}' for u in up)} um; {args.trials} trials",
-        file=sys.stderr,
-    )
-    with progress_bar(fm.n_nodes, "nodes") as bar:
+    with progress_bar(None, "nodes") as bar:
         res = run_fig4(
-            fm, up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
-            field_model=args.field_model, progress=bar.update,
+            args.field, up, trials=args.trials, seed=args.seed, b_ref_T=args.b_ref,
+            field_model=args.field_model, reader=reader_kwargs(args),
+            command_line=args.command_line, progress=bar.update, on_start=announcer(bar, "fig4"),
         )  # fmt: skip
-    summary = fig4_summary(res)
-    summary["provenance"] = provenance({"field": args.field}, args.command_line)
-    pts, uf = plane_nodes(res)
-    from ..report.runs import fig4_report  # matplotlib: loaded only when used
-
-    rep = fig4_report(summary, pts, uf, args.command_line)
-    rows = ["U_p_um,nodes,p50_units,p95_units,max_units,analytic_units,paper_units"]
-    for r in summary["table"]:
-        rows.append(
-            ",".join(
-                "" if r[k] is None else f"{r[k]:.6g}"
-                for k in ("up_um", "nodes", "p50", "p95", "max", "analytic", "paper")
-            )
-        )
-    files = {"fig4.json": summary, "fig4.csv": "\n".join(rows) + "\n"}
-    files.update(rep.images)
-    files["report.html"] = rep.render()
-    paths = write_run(args.out, files)
+    paths = res.write(args.out)
+    summary = res.summary
     # the body nodes that kept every trial: fewer at U_p > 0 (surface nodes lose trials)
     print(
         f"U_f (95 %) over the magnet-body nodes (|z| <= {summary['body_half_length_mm']:g} mm) "

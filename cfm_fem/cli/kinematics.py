@@ -8,12 +8,10 @@ DIR/report.html, and prints the result beside the paper's simulated Table IV.
 
 from __future__ import annotations
 
-import sys
 import textwrap
 
-from ..errors import CfmInputError
-from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import note_first_compile, progress_bar
+from ._checks import check_out_dir, trial_count_type
+from ._progress import announcer, note_first_compile, progress_bar
 from .sweep import add_scale_out_args
 
 NAME = "kinematics"
@@ -52,29 +50,11 @@ def add_args(p):
 
 def check_options(args) -> None:
     """Every check of the options that needs no file read, run before the bench is read (a bad
-    bench would otherwise be reported instead of the bad option) and before any output.
+    bench would otherwise be reported instead of the bad option) and before any output
+    (`cfm_fem.workflows.kinematics.check_options`, and an ``--out`` that cannot be a folder)."""
+    from ..workflows.kinematics import check_options as check
 
-    Raises
-    ------
-    CfmInputError
-        ``--trials`` < 2 (without ``--adaptive``), ``--adaptive`` not 1..4, a seed numba cannot
-        take, ``--workers`` < 1 or Dask missing, ``--adaptive`` with ``--scheduler``/``--workers``,
-        or an ``--out`` that cannot be a folder.
-    """
-    from ..workflows.sweep.distributed import check_scale_out
-
-    if args.adaptive is None and args.trials < 2:
-        raise CfmInputError(f"--trials must be >= 2; got {args.trials}")
-    if args.adaptive is not None and not 1 <= args.adaptive <= 4:
-        raise CfmInputError(f"--adaptive must be 1..4 significant digits; got {args.adaptive}")
-    check_seed(args.seed)
-    # the conflict first: installing Dask, as the next check would say, would not help
-    if args.adaptive is not None and (args.scheduler is not None or args.workers is not None):
-        raise CfmInputError(
-            "--adaptive stops on the pooled result of all points and cannot be split over Dask "
-            "workers; drop --scheduler/--workers or --adaptive"
-        )
-    check_scale_out(args.scheduler, args.workers)
+    check(args.trials, args.seed, args.adaptive, args.scheduler, args.workers)
     check_out_dir(args.out)
 
 
@@ -87,73 +67,22 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..io.bench_toml import read_bench, read_reference_bench
-    from ..io.kinematics_out import kinematics_summary, write_kinematics
-    from ..io.provenance import bench_input, provenance
-    from ..models.kinematics.budget import gum_check, uncertainty_budget
-    from ..models.kinematics.monte_carlo import run_kinematics
-    from ..workflows.sweep.distributed import dask_client, run_kinematics_dask
+    from ..workflows.kinematics import run_kinematics
 
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
-    npts = len(bench.grid_points())
-    passes = 1 if args.fast_intervals else 2
-    print(
-        f"cfm-fem kinematics: {bench.name} ({bench.source}); {npts} points; "
-        + (f"adaptive to {args.adaptive} digits" if args.adaptive else f"{args.trials} trials")
-        + f", seed {args.seed}",
-        file=sys.stderr,
-    )
-    on_dask = args.scheduler is not None or args.workers is not None
-    if not on_dask:  # (Dask workers compile in their own processes)
+    if args.scheduler is None and args.workers is None:  # Dask workers compile on their own
         from .. import _kernels
 
         note_first_compile(_kernels.pass_keep)
-    if on_dask:
-        with dask_client(args.scheduler, args.workers) as client:
-            with progress_bar(npts, "points") as bar:
-                res = run_kinematics_dask(
-                    client,
-                    bench,
-                    args.trials,
-                    args.seed,
-                    exact=not args.fast_intervals,
-                    progress=bar.update,
-                )
-    else:
-        total = None if args.adaptive else args.trials
-        with progress_bar(total, "trials") as bar:
-            res = run_kinematics(
-                bench,
-                trials=args.trials,
-                seed=args.seed,
-                exact=not args.fast_intervals,
-                adaptive_digits=args.adaptive,
-                progress=_per_pass(bar.update, 1 if args.adaptive else passes),
-            )
-    budget = uncertainty_budget(bench, res.q_cmd)
-    gum = gum_check(bench, res)
-    prov = provenance({"bench": bench_input(args.bench)}, args.command_line)  # packaged or given
-    prov.update(
-        bench_name=bench.name,
-        seed=int(args.seed),
-        trials=int(res.trials),
-        backend=(
-            f"dask scheduler {args.scheduler}"
-            if args.scheduler
-            else f"dask LocalCluster, {args.workers} worker process(es)"
-            if args.workers
-            else "this process (numba threads)"
-        ),
-    )
-    summary = kinematics_summary(res, bench, budget=budget, gum=gum, extra={"provenance": prov})
-    paths = write_kinematics(args.out, res, bench, summary)
-    from ..io.compare_out import write_run
-    from ..report.kinematics import kinematics_report  # matplotlib: loaded only when used
-
-    rep = kinematics_report(res, summary)
-    report = write_run(args.out, {**rep.images, "report.html": rep.render()})
-    print_table_iv(summary)
-    print(f"wrote {paths['summary']}, {paths['csv']}, {paths['vtu']}, {report[-1]}")
+    with progress_bar(None, "trials") as bar:
+        res = run_kinematics(
+            args.bench, trials=args.trials, seed=args.seed, adaptive_digits=args.adaptive,
+            fast_intervals=args.fast_intervals, scheduler=args.scheduler, workers=args.workers,
+            command_line=args.command_line, progress=bar.update,
+            on_start=announcer(bar, "kinematics"),
+        )  # fmt: skip
+    paths = res.write(args.out)
+    print_table_iv(res.summary)
+    print(f"wrote {paths['summary']}, {paths['csv']}, {paths['vtu']}, {paths['report']}")
     return 0
 
 
@@ -216,19 +145,3 @@ def print_table_iv(s: dict) -> None:
             f"converged={a['converged']}"
         )
     print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in s["seconds"].items()))
-
-
-def _per_pass(update, passes: int):
-    """A progress callback for work that runs every trial ``passes`` times (the exact
-    intervals take a second pass): it advances ``update`` in trials, so that the bar of a
-    20,000-trial run ends at 20,000 trials."""
-    state = {"draws": 0, "shown": 0}
-
-    def step(n: int = 1) -> None:
-        state["draws"] += n
-        now = state["draws"] // passes
-        if now > state["shown"]:
-            update(now - state["shown"])
-            state["shown"] = now
-
-    return step

@@ -18,9 +18,9 @@ import textwrap
 from pathlib import Path
 
 from ..errors import CfmInputError
-from . import interrupted, option_type
-from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import note_first_compile, progress_bar
+from . import option_type
+from ._checks import check_out_dir, trial_count_type
+from ._progress import announcer, note_first_compile, progress_bar
 from ._reader import add_reader_args, reader_kwargs
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -182,155 +182,6 @@ def add_slab_args(p):
     )
 
 
-def _size(text) -> float:
-    """'2G', '500M', '1.5GB', '800000000' to bytes."""
-    t = text.strip().upper().removesuffix("B").removesuffix("I")
-    mult = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}.get(t[-1:], 1)
-    try:
-        v = float(t[:-1] if t[-1:] in "KMGT" else t) * mult
-    except ValueError:
-        v = -1.0
-    if not (v > 0 and v < float("inf")):
-        raise CfmInputError(f"--max-memory must be a size such as 2G or 500M; got {text!r}")
-    return v
-
-
-def _remove_stale_maps(out) -> None:
-    """After a successful run: remove the maps of an earlier run in ``out`` that this run does
-    not use (`cfm_fem.io.sweep_out.remove_stale_maps`: only files a sweep wrote), and the
-    temporaries a killed run left (`cfm_fem.io.sweep_out.remove_leftover_temporaries`), and
-    say so. The writers leave these to it (``remove_stale=False``): it names them."""
-    from ..io.sweep_out import remove_earlier_outputs
-
-    temps, removed, kept = remove_earlier_outputs(out)
-    if temps:
-        shown = ", ".join(temps[:3]) + (", ..." if len(temps) > 3 else "")
-        print(f"cfm-fem sweep: removed {len(temps)} leftover temporary file(s) of an interrupted "
-              f"run from {out}: {shown}", file=sys.stderr)  # fmt: skip
-    if removed:
-        pieces, items = {}, []
-        for r in removed:
-            top, _, rest = r.partition("/")
-            if not rest and not r.endswith("/"):
-                items.append(top)
-            elif rest:
-                pieces[top] = pieces.get(top, 0) + 1
-        for top, n in pieces.items():
-            gone = f"{top}/" in removed
-            items.append(f"{top}/ ({n} piece(s){', folder removed' if gone else ''})")
-        n_files = sum(not r.endswith("/") for r in removed)
-        print(f"cfm-fem sweep: removed {n_files} map file(s) of an earlier run from {out} that "
-              f"are not part of this run (sweep.pvd does not name them): "
-              f"{', '.join(items)}", file=sys.stderr)  # fmt: skip
-    if kept:
-        print(f"cfm-fem sweep: note: left in {out}: {', '.join(kept)}: named like a map, but "
-              "not part of this run and not written by cfm-fem sweep", file=sys.stderr)  # fmt: skip
-
-
-def _check_slab_options(args) -> None:
-    """The checks of ``--slabs`` / ``--max-memory`` that need no file, before any output."""
-    if args.slabs is not None and args.slabs < 1:
-        raise CfmInputError(f"--slabs must be >= 1; got {args.slabs}")
-    if args.max_memory:
-        _size(args.max_memory)
-    if args.pieces:
-        raise CfmInputError("--slabs/--max-memory cannot be combined with --pieces (slabs are "
-                            "written as pieces already)")  # fmt: skip
-    if args.region is not None:
-        raise CfmInputError("--region cannot be combined with --slabs/--max-memory (the "
-                            "out-of-core run summarises every node); leave one out")  # fmt: skip
-
-
-def _run_slabs(args, up):
-    """Dispatch of ``--slabs`` / ``--max-memory``: (exit code, None), or (None, the map or
-    None) when the map must be run in memory (a map that is not 3-D comes back as read while
-    staging: the file is read, and its warnings given, once). Options checked
-    (`_check_slab_options`); the caller holds the lock of ``--out``, and a run that fails
-    leaves the folder as it was (`cfm_fem.io.lock.output_lock`)."""
-    from ..io.provenance import bench_input, file_sha256, provenance
-    from ..io.streaming import is_streamable
-    from ..models.sweep import SweepConfig
-    from ..workflows.sweep.distributed import dask_chunk_map, dask_client
-    from ..workflows.sweep.resume import describe_sweep
-    from ..workflows.sweep.slabs import SLAB_WORK, run_slab_sweep
-
-    budget = _size(args.max_memory) if args.max_memory else None
-    kind = is_streamable(args.field, args.fmt)
-    if kind is not None:  # the streaming readers bypass read_field: refuse its way
-        from ..io import check_solution
-
-        check_solution(args.field, kind, args.solution)
-    if kind is None:
-        print(
-            f"cfm-fem sweep: {args.field} is not a plain or Opera table: it is read whole "
-            "(not streamed) and the statistics are written as pieces",
-            file=sys.stderr,
-        )
-        return None, None
-    bench = None
-    if args.mode == "htm":
-        from ..io.bench_toml import read_bench, read_reference_bench
-
-        bench = read_bench(args.bench) if args.bench else read_reference_bench()
-    cfg = SweepConfig(up_um=up, trials=args.trials, seed=args.seed, axis_scale=args.axis_scale,
-                      b_ref_T=args.b_ref, interpolation=args.interpolation, mode=args.mode,
-                      bench=bench, chunk_nodes=args.chunk_nodes, outside=args.outside,
-                      hull_slivers=args.hull_slivers, field_model=args.field_model)  # fmt: skip
-    bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None  # packaged or given
-    prov = provenance({"field": args.field, "bench": bench_entry}, args.command_line)
-    prov.update(seed=cfg.seed, trials=cfg.trials, backend="this process, slabs (out of core)")
-    what = (f"U_p = {', '.join(f'{u:g}' for u in up)} um" if cfg.mode == "gauss" else
-            f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
-    print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
-          f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
-    _note_compile(cfg.mode)
-    description = describe_sweep(cfg, file_sha256(args.field), reader_kwargs(args),
-                                 bench_entry and bench_entry["sha256"])  # fmt: skip
-    description.update(slabs=args.slabs, max_memory=args.max_memory)
-    flat = []  # a map that is not 3-D, as staged (run in memory, not read again)
-    try:
-        with dask_client(args.scheduler, args.workers) as client:
-            if client is not None:  # the workers map the staged rows in DIR: a shared folder
-                prov["backend"] = _backend(args) + ", slabs (out of core)"
-            # the node count is known only once the file is staged (inside run_slab_sweep),
-            # which then sets the bar's total; it advances by blocks of --chunk-nodes nodes
-            # within each slab (slab by slab on Dask workers); messages go above it
-            # (tqdm's write), not into its line
-            with progress_bar(None, "nodes") as bar:
-
-                def set_total(n, bar=bar):
-                    bar.total = n
-                    bar.refresh()
-
-                summary = run_slab_sweep(
-                    args.field, cfg, args.out, n_slabs=args.slabs, max_memory=budget, fmt=kind,
-                    length_unit=args.length_unit, field_unit=args.field_unit,
-                    zero_rows=args.zero_rows, provenance=prov,
-                    log=lambda m: bar.write(f"cfm-fem sweep: {m}", file=sys.stderr),
-                    progress=bar.update, progress_total=set_total, description=description,
-                    resume=args.resume,
-                    keep=args.keep_chunks,
-                    map_chunks=None if client is None else dask_chunk_map(client),
-                    flat_map=flat.append,
-                    remove_stale=False,  # removed below, and named
-                )  # fmt: skip
-    except (KeyboardInterrupt, SystemError) as exc:
-        if not interrupted(exc):
-            raise
-        store = Path(args.out) / SLAB_WORK
-        done = len(list(store.glob("results/slab*/done.json")))
-        if done:
-            print(f"cfm-fem sweep: {done} finished slab(s) kept in {store}; run the same "
-                  "command with --resume to continue", file=sys.stderr)  # fmt: skip
-        raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
-    if summary is None:
-        print("cfm-fem sweep: the map is not 3-D: run in memory", file=sys.stderr)
-        return None, (flat[0] if flat else None)
-    _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _finish(args, summary)
-    return 0, None
-
-
 def add_scale_out_args(p):
     """``--scheduler`` and ``--workers`` (shared with ``kinematics``)."""
     g = p.add_mutually_exclusive_group()
@@ -390,39 +241,20 @@ def _note_compile(mode: str) -> None:
 
 
 def run(args) -> int:
-    if args.bench is not None and args.mode != "htm":  # gauss draws N(0, U_p): no bench in it
-        raise CfmInputError(
-            "--bench is used by --mode htm only (mode gauss has no bench model); "
-            "add --mode htm or leave out --bench"
-        )
-    given = [o for o, v in (("--up", args.up), ("--axis-scale", args.axis_scale)) if v is not None]
-    if given and args.mode == "htm":  # htm draws the probe error from the bench: no U_p in it
-        raise CfmInputError(
-            f"{' and '.join(given)} {'is' if len(given) == 1 else 'are'} used by --mode gauss "
-            "only (--mode htm draws the probe error from the bench model); leave "
-            f"{'it' if len(given) == 1 else 'them'} out"
-        )
+    from ..workflows.sweep.run import check_mode_options, check_options
+
+    up_given = args.up is not None
+    check_mode_options(args.mode, args.bench, up_given, args.axis_scale)
     args.up = "0:50:10" if args.up is None else args.up
-    args.axis_scale = (1.0, 1.0, 1.0) if args.axis_scale is None else args.axis_scale
     check_out_dir(args.out)
-    check_seed(args.seed)
     up = parse_up_range(args.up)
-    if args.chunk_nodes < 1:
-        raise CfmInputError(f"--chunk-nodes must be >= 1; got {args.chunk_nodes}")
-    if args.pieces is not None and args.pieces < 1:
-        raise CfmInputError(f"--pieces must be >= 1; got {args.pieces}")
     # before the map is read and meshed (minutes for a large one), not after
-    from ..workflows.sweep.distributed import check_scale_out
-    from ..workflows.sweep.problem import check_options
-
-    check_options(args.trials, args.axis_scale, args.b_ref, len(up), args.mode)
-    check_scale_out(args.scheduler, args.workers)
-    if args.slabs is not None or args.max_memory is not None:
-        _check_slab_options(args)
-    if args.table is not None:
-        from ..io.sweep_table import check_table_format
-
-        check_table_format(args.table)
+    check_options(
+        up_um=up, trials=args.trials, seed=args.seed, mode=args.mode, bench=args.bench,
+        axis_scale=args.axis_scale, b_ref_T=args.b_ref, chunk_nodes=args.chunk_nodes,
+        pieces=args.pieces, scheduler=args.scheduler, workers=args.workers, slabs=args.slabs,
+        max_memory=args.max_memory, region=args.region, table=args.table, up_given=up_given,
+    )  # fmt: skip
     # the options are checked before the numerics are imported and the lock of --out is taken:
     # a typo is answered at once, also for a folder in use
     from ..io.lock import output_lock
@@ -433,156 +265,24 @@ def run(args) -> int:
 
 def _run(args, up) -> int:
     """The sweep, once the options are checked and the lock of ``--out`` is held."""
-    from ..io import read_field
-    from ..io.bench_toml import read_bench, read_reference_bench
-    from ..io.provenance import bench_input, file_sha256, provenance
-    from ..io.sweep_out import write_sweep, write_sweep_pieces
-    from ..models.sweep import SweepConfig
-    from ..workflows.sweep.distributed import dask_chunk_map, dask_client
-    from ..workflows.sweep.in_memory import run_sweep
-    from ..workflows.sweep.pieces import run_sweep_pieces
-    from ..workflows.sweep.problem import chunk_ranges
-    from ..workflows.sweep.resume import ResumableRun, describe_sweep
+    from ..workflows.sweep.run import run_sweep
 
-    fm = None
-    if args.slabs is not None or args.max_memory is not None:  # out of core
-        rc, fm = _run_slabs(args, up)  # fm: a map that is not 3-D, read while staging
-        if rc is not None:
-            return rc
-        args.pieces = args.pieces or args.slabs or 8  # read whole: statistics still by pieces
-    bench = None
-    if args.bench is not None:
-        bench = read_bench(args.bench)
-    elif args.mode == "htm":
-        bench = read_reference_bench()
-    if fm is None:
-        fm = read_field(args.field, **reader_kwargs(args))
-    cfg = SweepConfig(
-        up_um=up,
-        trials=args.trials,
-        seed=args.seed,
-        axis_scale=args.axis_scale,
-        b_ref_T=args.b_ref,
-        interpolation=args.interpolation,
-        mode=args.mode,
-        bench=bench,
-        chunk_nodes=args.chunk_nodes,
-        outside=args.outside,
-        hull_slivers=args.hull_slivers,
-        field_model=args.field_model,
-        region=args.region,
-    )
-    what = (
-        f"U_p = {', '.join(f'{u:g}' for u in up)} um"
-        if cfg.mode == "gauss"
-        else "mode htm: bench model " + (args.bench or "(packaged CFM reference bench)")
-    )
-    print(
-        f"cfm-fem sweep: {fm.n_nodes} nodes from {fm.source}; {what}; "
-        f"{cfg.trials} trials per node, seed {cfg.seed}",
-        file=sys.stderr,
-    )
-    _note_compile(cfg.mode)
-    read_options = reader_kwargs(args)
-    # the bench used, the packaged one included: a default-bench run and one given a copy of
-    # the same file have the same key (same numbers), and both name the file they used
-    bench_entry = bench_input(args.bench) if cfg.mode == "htm" else None
-    bench_sha = bench_entry and bench_entry["sha256"]
-    description = describe_sweep(cfg, file_sha256(args.field), read_options, bench_sha)
-    runner = ResumableRun(args.out, description, resume=args.resume)
-    runner.check()  # a store made by another run: refuse before any work
-    if not args.resume and runner.store.completed():
-        print(
-            f"cfm-fem sweep: {len(runner.store.completed())} chunk(s) of an earlier run in "
-            f"{runner.store.path} are discarded (add --resume to continue that run instead)",
-            file=sys.stderr,
-        )
-    try:
-        with dask_client(args.scheduler, args.workers) as client:
-            mapper = runner.mapper(None if client is None else dask_chunk_map(client))
-            with progress_bar(fm.n_nodes, "nodes") as bar:
-                if args.pieces:
-                    res = run_sweep_pieces(fm, cfg, mapper, progress=bar.update)
-                else:
-                    res = run_sweep(fm, cfg, progress=bar.update, map_chunks=mapper)
-    except (KeyboardInterrupt, SystemError) as exc:
-        if not interrupted(exc):
-            raise
-        if runner.store.completed():
-            print(
-                f"cfm-fem sweep: {len(runner.store.completed())} finished chunk(s) kept in "
-                f"{runner.store.path}; run the same command with --resume to continue",
-                file=sys.stderr,
-            )
-        raise KeyboardInterrupt from None  # numba wraps a Ctrl-C in a SystemError
-    if args.resume:
-        print(
-            f"resumed: {runner.loaded} chunk(s) read from {runner.store.path}, "
-            f"{runner.computed} computed"
-            + (
-                f" ({runner.rejected} unreadable chunk file(s) recomputed)"
-                if runner.rejected
-                else ""
-            ),
-            file=sys.stderr,
-        )
-    prov = provenance({"field": args.field, "bench": bench_entry}, args.command_line)
-    prov.update(
-        seed=cfg.seed,
-        trials=cfg.trials,
-        run_key=runner.key,
-        backend=_backend(args),
-        resumed_chunks=runner.loaded,
-    )
-    res.mesh = res.mesh.for_output()  # point location is done: its arrays are freed here
-    if args.pieces:
-        chunks = chunk_ranges(fm.n_nodes, cfg.chunk_nodes)
-        summary = write_sweep_pieces(
-            args.out,
-            res,
-            args.pieces,
-            lambda nodes: runner.gather(nodes, chunks),
-            prov,
-            remove_stale=False,
-        )
-    else:
-        summary = write_sweep(args.out, res, prov, remove_stale=False)
-    _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _finish(args, summary, runner)
+    _note_compile(args.mode)
+    with progress_bar(None, "nodes") as bar:
+        res = run_sweep(
+            args.field, up, trials=args.trials, seed=args.seed, mode=args.mode,
+            bench=args.bench, axis_scale=args.axis_scale, b_ref_T=args.b_ref,
+            interpolation=args.interpolation, chunk_nodes=args.chunk_nodes,
+            outside=args.outside, hull_slivers=args.hull_slivers, field_model=args.field_model,
+            region=args.region, reader=reader_kwargs(args), out_dir=args.out,
+            pieces=args.pieces, resume=args.resume, keep_chunks=args.keep_chunks,
+            scheduler=args.scheduler, workers=args.workers, slabs=args.slabs,
+            max_memory=args.max_memory, table=args.table, command_line=args.command_line,
+            progress=bar.update, on_start=announcer(bar, "sweep"),
+            log=lambda m: bar.write(f"cfm-fem sweep: {m}", file=sys.stderr),
+        )  # fmt: skip
+    _print_summary(res.summary, args.out, args.table)
     return 0
-
-
-def _finish(args, summary, runner=None) -> None:
-    """The per-node table (``--table``), the report and the printed summary, once the maps,
-    ``sweep.pvd`` and ``summary.json`` are written; the chunk store of ``runner`` goes after
-    every output, so a run stopped before then resumes from it."""
-    from ..io.sweep_table import remove_stale_table, write_sweep_table
-
-    gone = remove_stale_table(args.out, args.table)
-    if gone:
-        print(f"cfm-fem sweep: removed {', '.join(gone)} of an earlier run from {args.out} "
-              "(this run writes no such table)", file=sys.stderr)  # fmt: skip
-    if args.table is not None:
-        write_sweep_table(args.out, args.table)
-    _write_report(args.out)
-    if runner is not None:
-        runner.finish(keep=args.keep_chunks)
-    _print_summary(summary, args.out, args.table)
-
-
-def _write_report(out) -> None:
-    """``report.html`` and its figures, from the outputs just written."""
-    from ..report.sweep import write_sweep_report  # matplotlib: loaded only when used
-
-    write_sweep_report(out)
-
-
-def _backend(args) -> str:
-    if args.scheduler:
-        return f"dask scheduler {args.scheduler}"
-    if args.workers:
-        return f"dask LocalCluster, {args.workers} worker process(es)"
-    return "this process (numba threads)"
 
 
 def _explain_outside(s):

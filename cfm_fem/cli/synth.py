@@ -125,12 +125,12 @@ def _given(args) -> str:
 
 def run(args) -> int:
     grid, offset = _check(args)
-    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.bench_toml import resolve_bench
     from ..io.harmonics import read_harmonics, read_qfdp4
     from ..io.recordings import write_hall_map, write_tracker
     from ..workflows.synthetic import synthetic_hall_map, synthetic_tracker
 
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
+    bench, _ = resolve_bench(args.bench)
     if args.kind == "tracker":
         rec = synthetic_tracker(
             bench, seed=args.seed, reps=args.reps or 5, grid=grid,

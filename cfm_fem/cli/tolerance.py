@@ -11,21 +11,16 @@ first. ``--check N`` verifies the plan's U_p with an N-trial Monte Carlo of the 
 from __future__ import annotations
 
 import textwrap
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import CfmInputError
 from . import option_type
-from ._checks import check_out_dir, check_seed, trial_count_type
+from ._checks import check_out_dir, trial_count_type
 from ._progress import progress_bar
 
 NAME = "tolerance"
 HELP = "design in reverse: loosen/tighten the 21 tolerances to meet a target U_p per axis"
-
-
-#: Largest --target (um): 1 m, far beyond any bench stroke; larger values only overflow U_p^2.
-MAX_TARGET_UM = 1e6
 
 
 def _target(text):
@@ -37,16 +32,6 @@ def _target(text):
     if len(v) != 3 or any(not (x > 0) for x in v):
         raise CfmInputError(f"--target must be one or three positive numbers in um; got {text!r}")
     return v
-
-
-def _check_target(v):
-    # here, not in `_target`: argparse replaces a type function's message with its own
-    if any(not x <= MAX_TARGET_UM for x in v):
-        shown = ",".join(f"{x:g}" for x in v)
-        raise CfmInputError(
-            f"--target must be at most {MAX_TARGET_UM:g} um (1 m) per axis; got {shown} "
-            "(larger values only overflow U_p^2)"
-        )
 
 
 def add_args(p):
@@ -76,12 +61,11 @@ def add_args(p):
 
 
 def run(args) -> int:
+    from ..workflows.tolerance import check_options
+
     if args.out:
         check_out_dir(args.out)
-    check_seed(args.seed)
-    _check_target(args.target)
-    if args.check < 0 or args.check == 1:
-        raise CfmInputError(f"--check must be 0 or >= 2 trials; got {args.check}")
+    check_options(args.target, args.check, args.seed)
     if not args.out:
         return _run(args)
     from ..io.lock import output_lock
@@ -91,65 +75,19 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from ..io._atomic import atomic_paths, json_text, write_text
-    from ..io.bench_toml import read_bench, read_reference_bench, write_bench
-    from ..io.kinematics_out import bench_description
-    from ..models.kinematics.budget import design_tolerances
-    from ..models.kinematics.monte_carlo import run_kinematics
+    from ..workflows.tolerance import run_tolerance
 
-    bench = read_reference_bench() if args.bench is None else read_bench(args.bench)
-    d = design_tolerances(bench, np.asarray(args.target) * 1e-3)
-    plan_bench = bench.scaled_errors(_plan_factors(bench, d["plan"]))
-    if args.check:
-        with progress_bar(args.check, "trials") as bar:  # exact=False: one pass over the trials
-            res = run_kinematics(
-                plan_bench,
-                trials=args.check,
-                seed=args.seed,
-                exact=False,
-                progress=bar.update,
-                option="tolerance --check",
-            )
-        d["plan_check_mc"] = {a: res.pooled[a] for a in "xyz"}
-        d["plan_check_mc"]["trials"] = res.trials
-    _print(d)
+    if not args.check:
+        res = run_tolerance(args.target, args.bench, seed=args.seed)
+    else:
+        with progress_bar(args.check, "trials") as bar:
+            res = run_tolerance(args.target, args.bench, check_trials=args.check,
+                                seed=args.seed, progress=bar.update)  # fmt: skip
+    _print(res.design)
     if args.out:
-        from ..models.kinematics.budget import UP_SHARE_MEANING
-        from ..report.tolerance import tolerance_report  # matplotlib: loaded only when used
-
-        d["bench"] = bench_description(bench)
-        doc = _inf_as_text(d)
-        rep = tolerance_report(doc, UP_SHARE_MEANING, getattr(args, "command_line", None))
-        out = Path(args.out)
-        names = ["tolerance.json", "bench_plan.toml", "report.html", *rep.images]
-        with atomic_paths([out / n for n in names]) as (tj, tb, th, *images):
-            write_text(tj, json_text(doc))
-            write_bench(tb, plan_bench)
-            write_text(th, rep.render())
-            for path, png in zip(images, rep.images.values(), strict=True):
-                path.write_bytes(png)
+        res.write(args.out, getattr(args, "command_line", None))
         print(f"wrote {args.out}/tolerance.json, bench_plan.toml and report.html")
     return 0
-
-
-def _inf_as_text(obj):
-    """``obj`` with every infinite float as the string ``"inf"`` (JSON has no infinity): a factor
-    is infinite when its error does not matter, which a bench without errors makes of all."""
-    if isinstance(obj, dict):
-        return {k: _inf_as_text(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_inf_as_text(v) for v in obj]
-    if isinstance(obj, float | np.floating) and np.isinf(obj):
-        return "inf" if obj > 0 else "-inf"
-    return obj
-
-
-def _plan_factors(bench, plan):
-    f = np.ones(len(bench.errors))
-    names = [e.name for e in bench.errors]
-    for step in plan:
-        f[names.index(step["name"])] = step["factor"]
-    return f
 
 
 def _fmt3(v):

@@ -12,6 +12,7 @@ import re
 import tomllib
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,7 +31,15 @@ from ..models.mc import PDF_PARAMETERS, Pdf
 from ._atomic import write_text
 from ._files import open_regular
 
-__all__ = ["read_bench", "read_reference_bench", "bench_to_toml", "write_bench", "REFERENCE_BENCH"]
+__all__ = [
+    "read_bench",
+    "read_reference_bench",
+    "resolve_bench",
+    "BenchChoice",
+    "bench_to_toml",
+    "write_bench",
+    "REFERENCE_BENCH",
+]
 
 #: Name of the shipped reference bench inside the package data.
 REFERENCE_BENCH = "cfm_reference_bench.toml"
@@ -341,6 +350,51 @@ def read_reference_bench() -> Bench:
     ref = resources.files("cfm_fem.data").joinpath(REFERENCE_BENCH)
     with resources.as_file(ref) as p:
         return read_bench(p)
+
+
+class BenchChoice(NamedTuple):
+    """The bench a command runs on (`resolve_bench`), unpacked as ``bench, sentence``."""
+
+    bench: Bench
+    #: What was assumed: the packaged reference bench, or the defaults the file leaves out.
+    sentence: str
+
+
+#: How outputs name the packaged bench when no bench is given.
+PACKAGED_BENCH = "(packaged CFM reference bench)"
+
+
+def resolve_bench(bench=None) -> BenchChoice:
+    """The bench of a command: the one given, the file named, or the packaged reference bench.
+
+    Parameters
+    ----------
+    bench : Bench, path-like or None
+        A bench model, a bench TOML file, or None for the packaged CFM reference bench
+        (`read_reference_bench`).
+
+    Returns
+    -------
+    BenchChoice
+        ``(bench, sentence)``: the model, and the sentence outputs print about it, e.g.
+        ``"bench model (packaged CFM reference bench)"`` or ``"bench model b.toml; not in the
+        file, defaults taken: [grid] ..."``.
+
+    Raises
+    ------
+    CfmInputError
+        The file cannot be read or describes no valid bench (`read_bench`).
+    """
+    if isinstance(bench, Bench):
+        model, origin = bench, f"bench model {bench.name} ({bench.source})"
+    elif bench is None:
+        model, origin = read_reference_bench(), f"bench model {PACKAGED_BENCH}"
+    else:
+        model, origin = read_bench(bench), f"bench model {bench}"
+    taken = [n.removeprefix(DEFAULT_NOTE) for n in model.assumptions if n.startswith(DEFAULT_NOTE)]
+    if taken and bench is not None:
+        origin += f"; not in the file, defaults taken: {'; '.join(taken)}"
+    return BenchChoice(model, origin)
 
 
 def parse_bench(text: str, source: str = "<string>") -> Bench:

@@ -1,21 +1,20 @@
-"""Outputs of ``cfm-fem coupled``, ``cfm-fem compare`` and ``cfm-fem fig4``: JSON, CSV, PNG, HTML.
+"""Outputs of ``cfm-fem coupled``, ``cfm-fem compare`` and ``cfm-fem fig4``: JSON and CSV.
 
 The ``*_summary`` functions build the JSON documents (plain dicts), the ``*_csv`` functions the
-per-point tables (text); `write_run` puts everything of one run on disk, each file atomically,
-only after everything was computed.
+per-point tables (text); `cfm_fem.io.run_files.write_run` puts everything of one run on disk,
+each file atomically, only after everything was computed.
 """
 
 from __future__ import annotations
 
 import io
-from pathlib import Path
 
 import numpy as np
 
 from ..models.field_model import PAPER_TABLE_V, QUANTITIES
-from ._atomic import atomic_path, write_json, write_text
 from ._finite import check_finite
 from .kinematics_out import PAPER_TABLE_IV, bench_description
+from .run_files import write_run
 
 __all__ = [
     "coupled_summary",
@@ -295,53 +294,3 @@ def hall_points_csv(comp) -> str:
             f"{comp.b_ref_T!r} T"
         ],
     )
-
-
-# --------------------------------------------------------------------------- writing
-
-
-def _finite(obj):
-    """JSON has no NaN: non-finite floats become null (arrays become lists first)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _finite(obj.tolist())
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
-
-
-def write_run(out_dir, files: dict) -> list[Path]:
-    """Write the files of one run into ``out_dir`` (created), each atomically.
-
-    Parameters
-    ----------
-    out_dir : path-like
-    files : dict of file name -> dict (JSON), str (text) or bytes (binary, e.g. PNG)
-
-    Returns
-    -------
-    list of Path
-        The files written, in the order given.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for name, content in files.items():
-        path = out / name
-        if isinstance(content, dict):
-            write_json(path, _finite(content))
-        elif isinstance(content, str):
-            write_text(path, content)
-        else:
-            with atomic_path(path) as tmp:
-                tmp.write_bytes(bytes(content))
-        written.append(path)
-    return written

@@ -15,7 +15,9 @@ import numpy as np
 from ..errors import CfmInputError
 from ..models.quality.harmonics import N_HARMONICS, VECTOR_NAMES
 from ._files import check_regular
-from .compare_out import NO_FIGURE, _cell, _finite, write_run
+from .compare_out import NO_FIGURE, _cell
+from .run_files import json_ready as _finite
+from .run_files import write_run
 
 __all__ = [
     "TOLERANCE_NAMES",

@@ -1,7 +1,7 @@
 """Reports a person would rather look at: PNG figures (matplotlib, Agg) and self-contained HTML.
 
 Nothing here opens files: figures come back as PNG bytes and reports as HTML text; the writers
-in :mod:`cfm_fem.io.compare_out` put them on disk atomically.
+(:mod:`cfm_fem.io.run_files`) put them on disk atomically.
 """
 
 from .html import HtmlReport

@@ -179,7 +179,7 @@ def write_sweep_report(out_dir, command_line: str | None = None, design: dict | 
     list of Path
         The files written.
     """
-    from ..io.compare_out import write_run
+    from ..io.run_files import write_run
     from ..io.sweep_maps import iter_map_nodes, read_summary
 
     summary = read_summary(out_dir)

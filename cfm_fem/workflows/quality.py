@@ -123,12 +123,12 @@ class QualityRun:
 
 def _read_inputs(fieldmap, bench, mode, tolerances, reader):
     from ..io import read_field
-    from ..io.bench_toml import read_bench, read_reference_bench
+    from ..io.bench_toml import resolve_bench
     from ..io.quality_out import read_tolerances
 
     fm = fieldmap if isinstance(fieldmap, FieldMap) else read_field(fieldmap, **(reader or {}))
-    if mode == "htm" and not hasattr(bench, "errors"):
-        bench = read_reference_bench() if bench is None else read_bench(bench)
+    if mode == "htm":
+        bench, _ = resolve_bench(bench)
     if tolerances is not None and not isinstance(tolerances, dict):
         tolerances = read_tolerances(tolerances)
     return fm, bench, tolerances

@@ -201,7 +201,8 @@ class CoupledTable:
     def write(self, out_dir, provenance: dict | None = None) -> list:
         """Write ``summary.json``, ``points.csv`` and ``report.html`` (as ``cfm-fem
         coupled``); return their paths."""
-        from ..io.compare_out import coupled_points_csv, coupled_summary, write_run
+        from ..io.compare_out import coupled_points_csv, coupled_summary
+        from ..io.run_files import write_run
         from ..report.runs import coupled_report
 
         extra = {"provenance": provenance} if provenance else None
