@@ -14,7 +14,7 @@ data on the half's rows, gives the drop the effect should make there (the noncen
 half's test). An effect whose signature the baseline reproduces on a half (a quadratic error
 function along the split axis looks linear on half its stroke) has little to show there, and
 failing a test that had little power is no sign of a local structure; a half whose test would
-find the effect with a probability below `MIN_POWER` is left out.
+find the effect less likely than not (power below `MIN_POWER`) is left out.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ __all__ = ["neighbouring_halves", "unstable_in"]
 #: Level of the per-half test (each half must show the effect at this level).
 ALPHA_HALF = 0.01
 #: Power below which a half's test is not made (the effect as fitted on the whole map).
-MIN_POWER = 0.9
+MIN_POWER = 0.5
 
 
 def neighbouring_halves(pos) -> list:
