@@ -9,7 +9,8 @@ per unit of each physical parameter) or a string saying why the recording cannot
 Positioning (tracker), displacement of the probe in the bench frame:
 
 * ``thermal_drift``: screw/frame expansion growing with time (or temperature when logged):
-  E_a += tau (d_a + s_a q_a), d in um/h (um/K), s in ppm/h (ppm/K).
+  E_a += tau (d_a + s_a q_a), d in um/h (um/K), s in ppm/h (ppm/K); each axis's offset drift,
+  scale drift, or both, is a function of its own.
 * ``reversal``: backlash, E_a += b_a dir_a / 2 (b = full hysteresis width, um).
 * ``reading_delay``: position read late in on-the-fly scans, E_a += tau_ms 1e-3 v_a, v_a the
   signed velocity of axis a at acquisition (recorded, or inferred from the scan: only the
@@ -227,7 +228,15 @@ def thermal_drift(prob):
         J[:, a, a] = tau * UM
         J[:, a, 3 + a] = tau * q[:, a] * 1e-6
     names = [f"drift_{a}" for a in "xyz"] + [f"scale_drift_{a}" for a in "xyz"]
-    return _cols(J, names, [f"um/{u}"] * 3 + [f"ppm/{u}"] * 3, "thermal_drift")
+    blk = _cols(J, names, [f"um/{u}"] * 3 + [f"ppm/{u}"] * 3, "thermal_drift")
+    # per axis: its offset drift, its scale drift, or both; one axis at a time, the choice
+    # among the nine accounted for (a drift of one axis must not pay for six parameters)
+    blk.families = (
+        [(f"drift_{a}", [i]) for i, a in enumerate("xyz")]
+        + [(f"scale_drift_{a}", [3 + i]) for i, a in enumerate("xyz")]
+        + [(f"drift_{a}+scale_drift_{a}", [i, 3 + i]) for i, a in enumerate("xyz")]
+    )
+    return blk
 
 
 def reversal(prob):

@@ -20,7 +20,8 @@ A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``al
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
 plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
 (folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
-RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``); for a
+RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``), over
+the folds whose training data determine the new signature (:func:`determined_folds`); for a
 prior release, whose data already steer the calibration, the conflict is replicated in every
 fold on its own (Stouffer z > ``cv_z``) and the held-out chi2 is no worse than the released
 freedom's own estimation noise explains (:func:`_release_within_its_freedom`).
@@ -106,10 +107,10 @@ def folds_of(prob: Problem, k: int = 5) -> np.ndarray:
     return prob.point % k
 
 
-def cv_rms(prob: Problem, sigma, cols: Columns, folds) -> tuple[float, np.ndarray]:
-    """Held-out RMS (display units) and the per-row held-out chi2 (sum over the components of
-    the squared residual in units of its sigma), for paired tests: weighting by the noise keeps
-    the quiet readings from being drowned by the noisy ones."""
+def cv_rms(prob: Problem, sigma, cols: Columns, folds, rows=None) -> tuple[float, np.ndarray]:
+    """Held-out RMS (display units; over ``rows``, default all) and the per-row held-out chi2
+    (sum over the components of the squared residual in units of its sigma), for paired tests:
+    weighting by the noise keeps the quiet readings from being drowned by the noisy ones."""
     rms = np.empty(prob.n)
     chi2 = np.empty(prob.n)
     for f in np.unique(folds):
@@ -118,7 +119,44 @@ def cv_rms(prob: Problem, sigma, cols: Columns, folds) -> tuple[float, np.ndarra
         r = fit.resid[test]
         rms[test] = ((r * prob.to_display) ** 2).mean(1)
         chi2[test] = ((r / sigma[test]) ** 2).sum(1)
-    return float(np.sqrt(rms.mean())), chi2
+    return float(np.sqrt(rms[slice(None) if rows is None else rows].mean())), chi2
+
+
+def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
+                     min_survival: float = 0.05) -> np.ndarray:  # fmt: skip
+    """Rows whose fold the other folds can predict with the candidate's new columns.
+
+    A fold is left out of the held-out test when, on the rows trained without it, some new
+    column of ``trial`` has less than ``min_survival`` of its whitened signature outside the
+    span of the ``model`` columns (no priors): the training data cannot tell that parameter
+    from the baseline, so its value, and the fold's prediction, is arbitrary. (A step from the
+    second of three repetitions on is a constant over the last two: the fold of the first
+    repetition cannot test it.)
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    new = np.arange(model.p, trial.p)
+    use = np.ones(prob.n, dtype=bool)
+    if new.size == 0:
+        return use
+    for f in np.unique(folds):
+        train = folds != f
+        A = _whiten(model.J[train], sigma[train])
+        W = _whiten(trial.J[train][..., new], sigma[train])
+        ok = np.isfinite(A).all(1) & np.isfinite(W).all(1)
+        A, W = A[ok], W[ok]
+        sc = np.linalg.norm(A, axis=0)
+        sc[sc == 0] = 1.0
+        u, sv, _ = np.linalg.svd(A / sc, full_matrices=False)
+        u = u[:, sv > 1e-8 * sv[0]] if sv.size else u[:, :0]
+        norm = np.linalg.norm(W, axis=0)
+        rest = np.linalg.norm(W - u @ (u.T @ W), axis=0)
+        surv = np.where(norm > 0, rest / np.where(norm > 0, norm, 1.0), 0.0)
+        if surv.min() < min_survival:
+            use[folds == f] = False
+    return use
 
 
 def _release_within_its_freedom(diff, k: int, folds, cv_z: float) -> bool:
@@ -466,7 +504,7 @@ def select_effects(
     cv_z: float = 2.0,
     max_effects: int = 4,
     k_folds: int = 5,
-    min_survival: float = 0.2,
+    min_survival: float = 0.05,
     absorbed=(),
     progress=None,
 ) -> Selection:
@@ -536,10 +574,12 @@ def select_effects(
             if n_cv == 2:  # the best two plausible ones get the held-out test
                 break
             n_cv += 1
-            cvb, eb = cv_rms(prob, sigma, model, folds)
-            cva, ea = cv_rms(prob, sigma, c.trial, folds)
-            diff = eb - ea
-            z = float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
+            use = determined_folds(prob, sigma, model, c.trial, folds)
+            cvb, eb = cv_rms(prob, sigma, model, folds, rows=use)
+            cva, ea = cv_rms(prob, sigma, c.trial, folds, rows=use)
+            diff = (eb - ea)[use]
+            z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
+                 if diff.size > 1 else -np.inf)  # fmt: skip
             better = cva < cvb
             if not c.has_new:  # a prior conflict: replicated in every fold on its own, and
                 # the held-out error no worse than the released freedom explains (where the
