@@ -186,6 +186,7 @@ def mesh_aperture(
     h_far,
     end_width,
     magnet_length,
+    *,
     radial_grading=DEFAULT_RADIAL_GRADING,
     verbose=False,
 ):

@@ -25,9 +25,8 @@ def cluster():
         processes=True,
         host="127.0.0.1",
         dashboard_address=None,
-    ) as c:
-        with distributed.Client(c) as client:
-            yield c, client
+    ) as c, distributed.Client(c) as client:
+        yield c, client
 
 
 def _map(n=7):

@@ -78,9 +78,9 @@ def test_identical_directions_have_no_reversal():
     np.testing.assert_array_equal(r.reversal, 0)
     # 2 s + 2 s + 0 = 4 s = R_i up: bidirectional values fall back to the unidirectional ones
     np.testing.assert_allclose(r.repeatability, r.repeatability_up)
-    assert r.R == pytest.approx(r.R_up)
-    assert r.E == pytest.approx(r.E_up) and r.M == pytest.approx(r.E_up)
-    assert r.A == pytest.approx(r.A_up) and r.A_up == pytest.approx(r.A_down)
+    assert pytest.approx(r.R_up) == r.R
+    assert pytest.approx(r.E_up) == r.E and pytest.approx(r.E_up) == r.M
+    assert pytest.approx(r.A_up) == r.A and r.A_up == pytest.approx(r.A_down)
 
 
 def test_constant_offset_and_scale_error():
@@ -92,8 +92,8 @@ def test_constant_offset_and_scale_error():
     k = 1e-5  # scale error: x = k P in both directions
     ramp = np.repeat((k * p)[:, None], 5, axis=1)
     r = evaluate_bidirectional(p, ramp, ramp)
-    assert r.E == pytest.approx(k * 800) and r.M == pytest.approx(k * 800)
-    assert r.A == pytest.approx(k * 800)
+    assert pytest.approx(k * 800) == r.E and pytest.approx(k * 800) == r.M
+    assert pytest.approx(k * 800) == r.A
 
 
 def test_pure_backlash_shows_only_in_reversal_and_bidirectional_values():

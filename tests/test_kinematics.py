@@ -146,7 +146,7 @@ def test_the_seam_kernels_are_callable_from_user_njit(bench):
     q = bench.grid_points()[:10]
 
     @numba.njit
-    def user_kernel(
+    def user_kernel(  # noqa: PLR0917 (the seam kernel's own signature)
         params,
         q,
         sig,
@@ -294,7 +294,7 @@ def test_windows_narrow_and_stay_exact(bench, monkeypatch):
     )  # narrowings at 4096, 8192, 16384 trials
     seen = []
 
-    def spy(values, off, cap, fill, below, lo, hi, klo, khi):
+    def spy(values, off, cap, fill, below, lo, hi, klo, khi):  # noqa: PLR0917 (narrow's)
         before = (hi - lo).copy()
         narrow(values, off, cap, fill, below, lo, hi, klo, khi)
         seen.append((before, hi - lo, fill.copy(), khi - klo + 1))
@@ -531,7 +531,7 @@ def test_one_pass_kernels_match_numpy(bench):
     acc = np.zeros((npts, 4, 2))
     below = np.zeros((npts, 4, 2), np.int64)
     store = kin.monte_carlo._Store(npts, 200)
-    eng.keep(0, n, q, pidx, shift, lo, hi, acc, below, store)
+    eng.keep(0, n, q, pidx, shift=shift, lo=lo, hi=hi, acc=acc, below=below, store=store)
     d = vals - shift[..., None]
     np.testing.assert_allclose(acc[..., 0], d.sum(-1), rtol=1e-11, atol=1e-15)
     np.testing.assert_allclose(acc[..., 1], (d * d).sum(-1), rtol=1e-11, atol=1e-15)

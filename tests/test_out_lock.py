@@ -206,9 +206,8 @@ def test_python_writers_refuse_a_folder_in_use(tmp_path):
         with pytest.raises(CfmInputError, match=says):
             run_slab_sweep(tmp_path / "map.csv", SweepConfig(up_um=[1.0]), out, n_slabs=2,
                            description={"run": 2})  # fmt: skip
-        with pytest.raises(CfmInputError, match=says):
-            with output_lock(out):
-                pass
+        with pytest.raises(CfmInputError, match=says), output_lock(out):
+            pass
         assert _snapshot(out) == before
     finally:
         os.close(fd)

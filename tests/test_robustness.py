@@ -260,7 +260,7 @@ def test_implausible_map_values_are_refused_before_anything_is_written(
 def test_implausible_recording_values_are_refused(tmp_path, column, value):
     from cfm_fem.io.recordings import read_tracker
 
-    names = "point_id,rep,x_cmd,y_cmd,z_cmd,x_meas,y_meas,z_meas,t_s".split(",")
+    names = ["point_id", "rep", "x_cmd", "y_cmd", "z_cmd", "x_meas", "y_meas", "z_meas", "t_s"]
     rows = [[str(i), "0", "1", "2", "3", "1", "2", "3", str(i)] for i in range(4)]
     rows[2][names.index(column)] = value
     path = tmp_path / "t.csv"

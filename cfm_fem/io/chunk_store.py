@@ -103,9 +103,8 @@ class ChunkStore:
 
     def save(self, start: int, stop: int, arrays: dict) -> None:
         """Write the arrays of one chunk atomically (uncompressed ``.npz``)."""
-        with atomic_path(self.chunk_path(start, stop), suffix=".npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
+        with atomic_path(self.chunk_path(start, stop), suffix=".npz") as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
 
     def load(self, start: int, stop: int) -> dict | None:
         """Arrays of one chunk, or None if the file is missing or unreadable."""

@@ -282,6 +282,29 @@ def barycentric_transforms(coords, simplices):
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
+def _grid_simplices(coords, method: str, src, notes: list):
+    """Kuhn simplices of nodes on a rectilinear grid (a note when grid points are missing), or
+    None when the nodes are not on one (refused for ``method`` "grid")."""
+    simplices = None
+    lattice = _lattice(coords)
+    if lattice is not None:
+        simplices = kuhn_simplices(*lattice)
+        missing = int((lattice[1] < 0).sum())
+        if missing:
+            notes.append(
+                f"nodes on a rectilinear grid with {missing} grid point(s) missing: cells "
+                "touching a missing point are left out, not bridged"
+            )
+        if len(simplices) == 0:
+            simplices = None
+    if simplices is None and method == "grid":
+        raise CfmInputError(
+            "--interpolation grid needs nodes on a rectilinear grid; use auto or delaunay",
+            file=src,
+        )
+    return simplices
+
+
 def build_mesh(
     fm: FieldMap,
     method: str = "auto",
@@ -334,22 +357,8 @@ def build_mesh(
             file=src,
         )
     if simplices is None and method in ("auto", "grid"):
-        lattice = _lattice(coords)
-        if lattice is not None:
-            simplices, kind = kuhn_simplices(*lattice), "grid"
-            missing = int((lattice[1] < 0).sum())
-            if missing:
-                notes.append(
-                    f"nodes on a rectilinear grid with {missing} grid point(s) missing: cells "
-                    "touching a missing point are left out, not bridged"
-                )
-            if len(simplices) == 0:
-                simplices = None
-        if simplices is None and method == "grid":
-            raise CfmInputError(
-                "--interpolation grid needs nodes on a rectilinear grid; use auto or delaunay",
-                file=src,
-            )
+        simplices = _grid_simplices(coords, method, src, notes)
+        kind = "grid" if simplices is not None else kind
     tie = None  # Delaunay: the nodes of cells flat on the nodes, which keep their move
     lone = None  # Delaunay: kept hull slivers flat on the nodes, on their moved nodes alone
     if simplices is None:

@@ -123,11 +123,7 @@ def signatures(cfg: dict, ctx: dict, names, base=None, grad=None) -> dict:
             else:
                 s = np.cross(np.eye(3)[k], base - centre) * 1e-6
             out[eff, p] = s
-        elif eff == "bench":
-            e = dict(cfg["bench"]["errors"])
-            e[p] += 1.0
-            out[eff, p] = forward(cfg, ctx, {}, noisy=False, errors=e) - base
-        elif eff == "parameter_bias":
+        elif eff == "bench" or eff == "parameter_bias":
             e = dict(cfg["bench"]["errors"])
             e[p] += 1.0
             out[eff, p] = forward(cfg, ctx, {}, noisy=False, errors=e) - base

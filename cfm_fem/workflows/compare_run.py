@@ -127,8 +127,8 @@ def run_compare(rec, reference=None, bench=None, *, trials: int = 100_000, seed:
     else:
         fm, ref_path = reference_model(reference, b_ref_T=b_ref_T, r_ref_mm=r_ref_mm,
                                        field_model=field_model, reader=reader)  # fmt: skip
-        comp, extra = _hall(rec, fm, model, trials, seed, probe, align, budget, progress,
-                            on_start)  # fmt: skip
+        comp, extra = _hall(rec, fm, model, trials=trials, seed=seed, probe=probe, align=align,
+                            budget=budget, progress=progress, on_start=on_start)  # fmt: skip
         inputs = {"bench": bench_provenance(bench), "hall_map": _source(rec),
                   "reference": None if ref_path is None else str(ref_path)}  # fmt: skip
         build = hall_summary
@@ -155,7 +155,7 @@ def _tracker(rec, bench, trials, seed, tracker_u_um, progress, on_start):
     return comp, {"budget": uncertainty_budget(bench, comp.cmd)}
 
 
-def _hall(rec, fm, bench, trials, seed, probe, align, budget, progress, on_start):
+def _hall(rec, fm, bench, *, trials, seed, probe, align, budget, progress, on_start):
     """The comparison of a Hall map and the summary's extra arguments."""
     from ..models.probe import HallProbe
     from .compare import compare_hall

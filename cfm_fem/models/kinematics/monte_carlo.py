@@ -223,14 +223,14 @@ class _Engine:
     def pilot(self, a, n, q, pidx, out):
         K.pass_pilot(self.model, a, n, q, pidx, out)
 
-    def window(self, a, n, q, pidx, shift, wlo, winv, acc, below, whist):
+    def window(self, a, n, q, pidx, *, shift, wlo, winv, acc, below, whist):
         """Generic pass 1 over trials a .. a+n-1 (counts in slot windows)."""
         K.pass_window(self.model, a, n, q, pidx, shift, wlo, winv, acc, below, whist)
 
-    def capture(self, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf):
+    def capture(self, a, n, q, pidx, *, wlo, winv, target, vlo, vhi, offset, fill, buf):
         K.pass_capture(self.model, a, n, q, pidx, wlo, winv, target, vlo, vhi, offset, fill, buf)
 
-    def keep(self, a, n, q, pidx, shift, lo, hi, acc, below, store):
+    def keep(self, a, n, q, pidx, *, shift, lo, hi, acc, below, store):
         """The one-pass counting and keeping over the prepared block of trials a .. a+n-1
         (`_kernels.pass_keep` on the hot path, `_kernels.pass_keep_model` otherwise)."""
         g = self.g
@@ -372,13 +372,14 @@ def run_kinematics(
     cap = _store_capacity(total, p, kth, n_pilot)
     if npts * 8 * (cap + 1) * 8 <= STORE_BYTES:
         low, high, method = _one_pass_intervals(
-            eng, q, pidx, shift, pil, probs, cap, total, p, acc, window_slots, progress, timer,
-            notes, bench.source,
+            eng, q, pidx, shift, pil, probs, cap=cap, total=total, p=p, acc=acc,
+            window_slots=window_slots, progress=progress, timer=timer, notes=notes,
+            source=bench.source,
         )  # fmt: skip
     else:
         acc, low, high, sub_notes, method = _two_pass_intervals(
-            eng, q, pidx, pil, probs, total, p, exact, window_slots, progress, timer=timer,
-            source=bench.source,
+            eng, q, pidx, pil, probs, total=total, p=p, exact=exact, window_slots=window_slots,
+            progress=progress, timer=timer, source=bench.source,
         )  # fmt: skip
         notes += sub_notes
 
@@ -426,7 +427,7 @@ def _points(bench: Bench, q_cmd, point_index, trials, adaptive_digits):
 
 
 def _one_pass_intervals(
-    eng, q, pidx, shift, pil, probs, cap, total, p, acc, window_slots, progress, timer, notes,
+    eng, q, pidx, shift, pil, probs, *, cap, total, p, acc, window_slots, progress, timer, notes,
     source,
 ):  # fmt: skip
     """Intervals of every point in one pass with kept values (`_one_pass`); points whose window
@@ -439,7 +440,8 @@ def _one_pass_intervals(
     """
     lo, hi = _value_windows(pil[..., :-1])
     store = _Store(q.shape[0], cap)
-    ends = _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress)
+    ends = _one_pass(eng, q, pidx, shift, lo, hi, store=store, total=total, p=p, acc=acc,
+                     progress=progress)  # fmt: skip
     del store
     _mean_std(shift, acc, total, source)  # refuses NaN positions before any recount
     timer.mark("pass")
@@ -453,8 +455,8 @@ def _one_pass_intervals(
     if len(redo):
         sub = np.ascontiguousarray(q[redo])
         _, r_low, r_high, sub_notes, _ = _two_pass_intervals(
-            eng, sub, pidx[redo], pil[redo], probs, total, p, True, window_slots, None,
-            source=source,
+            eng, sub, pidx[redo], pil[redo], probs, total=total, p=p, exact=True,
+            window_slots=window_slots, progress=None, source=source,
         )  # fmt: skip
         low[redo], high[redo] = r_low, r_high
         notes.append(
@@ -486,7 +488,8 @@ def _sums_only(eng, a, n, q, pidx, shift, acc):
     npts = q.shape[0]
     lo = np.full((npts, 4, 2), np.inf)
     hi = np.full((npts, 4, 2), -np.inf)
-    eng.keep(a, n, q, pidx, shift, lo, hi, acc, np.zeros((npts, 4, 2), np.int64), _Store(npts, 0))
+    eng.keep(a, n, q, pidx, shift=shift, lo=lo, hi=hi, acc=acc,
+             below=np.zeros((npts, 4, 2), np.int64), store=_Store(npts, 0))  # fmt: skip
 
 
 class _Store:
@@ -568,7 +571,7 @@ def _narrow_ranks(rank, total, seen):
     return np.maximum(klo, 1).astype(np.int64), np.minimum(khi, seen).astype(np.int64)
 
 
-def _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
+def _one_pass(eng, q, pidx, shift, lo, hi, *, store, total, p, acc, progress):
     """The one pass: sums into ``acc`` and the interval ends (npts, 4, 2), NaN where a window
     lost its end or overflowed (that point needs the two-pass way). ``lo``, ``hi``:
     the pilot windows (narrowed in place); ``store``: a `_Store` of `_store_capacity`."""
@@ -587,7 +590,7 @@ def _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
             klo, khi = _narrow_ranks(rank, total, a)
             K.narrow_windows(*flat, lo.reshape(-1), hi.reshape(-1), klo.ravel(), khi.ravel())
         n = eng.prepare(a, b)
-        eng.keep(a, n, q, pidx, shift, lo, hi, acc, below, store)
+        eng.keep(a, n, q, pidx, shift=shift, lo=lo, hi=hi, acc=acc, below=below, store=store)
         if progress is not None:
             progress(n)
     ends = np.empty((npts, 4, 2))
@@ -598,7 +601,7 @@ def _one_pass(eng, q, pidx, shift, lo, hi, store, total, p, acc, progress):
     return ends
 
 
-def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots, progress,
+def _two_pass_intervals(eng, q, pidx, pil, probs, *, total, p, exact, window_slots, progress,
                         timer=None, source=None):  # fmt: skip
     """The two-pass way: counting pass, widening of missed windows, then the pass that keeps
     the values of the target slots. ``source``: the bench file, named when its positions are
@@ -614,7 +617,8 @@ def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots,
     whist = np.zeros((npts, 4, 2, window_slots), dtype=np.int64)
     for a, b in _blocks(0, total, eng.block):
         n = eng.prepare(a, b)
-        eng.window(a, n, q, pidx, shift, wlo, winv, acc, below, whist)
+        eng.window(a, n, q, pidx, shift=shift, wlo=wlo, winv=winv, acc=acc, below=below,
+                   whist=whist)  # fmt: skip
         if progress is not None:
             progress(n)
     _mean_std(shift, acc, total, source)  # NaN positions would miss every window for ever
@@ -649,7 +653,8 @@ def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots,
         q_sel, p_sel = np.ascontiguousarray(q[sel]), pidx[sel]
         for a, b in _blocks(0, total, eng.block):
             n = eng.prepare(a, b)
-            eng.window(a, n, q_sel, p_sel, shift[sel], wlo[sel], winv[sel], junk, b_sel, h_sel)
+            eng.window(a, n, q_sel, p_sel, shift=shift[sel], wlo=wlo[sel], winv=winv[sel],
+                       acc=junk, below=b_sel, whist=h_sel)  # fmt: skip
         below[sel], whist[sel] = b_sel, h_sel
         slot, within = _locate(ranks, below, whist)
     if widened:
@@ -673,7 +678,8 @@ def _two_pass_intervals(eng, q, pidx, pil, probs, total, p, exact, window_slots,
         vhi = wlo + (slot + 1) * width + slack
         for a, b in _blocks(0, total, eng.block):
             n = eng.prepare(a, b)
-            eng.capture(a, n, q, pidx, wlo, winv, slot, vlo, vhi, offset, fill, buf)
+            eng.capture(a, n, q, pidx, wlo=wlo, winv=winv, target=slot, vlo=vlo, vhi=vhi,
+                        offset=offset, fill=fill, buf=buf)  # fmt: skip
             if progress is not None:
                 progress(n)
         if not np.array_equal(fill, count):  # same samples, same slots: cannot happen
