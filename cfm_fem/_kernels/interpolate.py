@@ -520,6 +520,42 @@ def _value_in(res, i, values, g, grad, k, x, y, z):
 
 
 @nb.njit(**FJIT)
+def _walk_group(pts, res, s0, transform, neighbors, simplices, values, bary):
+    """Values of a group's points by walks from cell ``s0`` (NaN outside the mesh); returns
+    how many points were walked."""
+    for i in range(len(pts)):
+        s = locate(pts[i], s0, transform, neighbors, bary)
+        if s >= 0:
+            _interp_in(s, bary, simplices, values, res[i])
+        else:
+            res[i, :] = np.nan
+    return len(pts)
+
+
+@nb.njit(**FJIT)
+def _values_from_deepest(res, pf, n, g, coords, values, grad, best, ns):
+    """res[i] from the gradient of the deepest cone cell of each of the n points around node g
+    (``pf``: the points, flat)."""
+    x0, x1, x2 = coords[g, 0], coords[g, 1], coords[g, 2]
+    if values.shape[1] == 3:  # a field: three components unrolled
+        rf = res.reshape(-1)
+        vg0, vg1, vg2 = values[g, 0], values[g, 1], values[g, 2]
+        for i in range(n):
+            x = pf[3 * i] - x0
+            y = pf[3 * i + 1] - x1
+            z = pf[3 * i + 2] - x2
+            k = _tag_cell(best[i], ns)
+            rf[3 * i] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
+            rf[3 * i + 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
+            rf[3 * i + 2] = vg2 + grad[k, 6] * x + grad[k, 7] * y + grad[k, 8] * z
+    else:
+        for i in range(n):
+            k = _tag_cell(best[i], ns)
+            _value_in(res, i, values, g, grad, k, pf[3 * i] - x0, pf[3 * i + 1] - x1,
+                      pf[3 * i + 2] - x2)  # fmt: skip
+
+
+@nb.njit(**FJIT)
 def _group_block(points, group_start, group_node, q0, q1, simplices, transform, neighbors,
                  coords, values, star_start, star, out, n_max, s_max):  # fmt: skip
     """Groups q0 .. q1-1 of `interpolate_groups`; returns how many points were walked."""
@@ -550,13 +586,7 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
         res = out[i0 : i0 + n]
         if ns == 0 or ns > STAR_MAX_CELLS:  # a node in no cell, or a degenerate fan: walk
             s0 = np.int64(star[c0]) if ns > 0 else np.int64(0)
-            for i in range(n):
-                walked += 1
-                s = locate(pts[i], s0, transform, neighbors, bary)
-                if s >= 0:
-                    _interp_in(s, bary, simplices, values, res[i])
-                else:
-                    res[i, :] = np.nan
+            walked += _walk_group(pts, res, s0, transform, neighbors, simplices, values, bary)
             continue
         ctol, r2 = _cone_tables(
             g, c0, ns, star, simplices, transform, values, cone, cone32, grad, far
@@ -578,22 +608,7 @@ def _group_block(points, group_start, group_node, q0, q1, simplices, transform, 
             for j in range(3 * group_start[q + 1], 3 * group_start[q + 2], 8):
                 _prefetch(points, j)
         _deepest_cells(cone32, ns, e0, e1, e2, n, best)
-        if nc == 3:  # a field: the values of every point from its deepest cell
-            rf = res.reshape(-1)
-            vg0, vg1, vg2 = values[g, 0], values[g, 1], values[g, 2]
-            for i in range(n):
-                x = pf[3 * i] - x0
-                y = pf[3 * i + 1] - x1
-                z = pf[3 * i + 2] - x2
-                k = _tag_cell(best[i], ns)
-                rf[3 * i] = vg0 + grad[k, 0] * x + grad[k, 1] * y + grad[k, 2] * z
-                rf[3 * i + 1] = vg1 + grad[k, 3] * x + grad[k, 4] * y + grad[k, 5] * z
-                rf[3 * i + 2] = vg2 + grad[k, 6] * x + grad[k, 7] * y + grad[k, 8] * z
-        else:
-            for i in range(n):
-                k = _tag_cell(best[i], ns)
-                _value_in(res, i, values, g, grad, k, pf[3 * i] - x0, pf[3 * i + 1] - x1,
-                          pf[3 * i + 2] - x2)  # fmt: skip
+        _values_from_deepest(res, pf, n, g, coords, values, grad, best, ns)
         n_unsure = 0
         for i in range(n):  # (thr is inf for a non-finite point: never > it)
             n_unsure += not best[i] > thr[i]
