@@ -199,6 +199,10 @@ def test_htm_u95_matches_brute_force():
         for i, r in zip(fitted, ratio, strict=True)
         if abs(r - 1) > 0.10
     }
+    print(
+        "U95 tool / brute force:",
+        {NAMES[i]: round(float(r), 3) for i, r in zip(fitted, ratio, strict=True)},
+    )
     assert not bad, bad
     # the bench's errors matter: the centre moves by micrometres
     assert tool[NAMES.index("centre_x")] > 1e-3

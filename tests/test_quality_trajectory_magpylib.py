@@ -80,6 +80,11 @@ def test_trajectory_through_a_magpylib_dipole_map(dipole_map):
     t = res.summary["trajectory"]
     assert res.main_order == 1
     deflection, sagitta, exit_mm = reference_orbit(coll, GZ[0], GZ[-1])
+    print(
+        f"deflection {t['deflection_mrad']:.9g} mrad, reference {deflection:.9g} mrad; "
+        f"sagitta {t['sagitta_mm']:.9g} mm, reference {sagitta:.9g} mm; exit "
+        f"{np.round(t['exit_mm'], 6).tolist()} mm, reference {np.round(exit_mm, 6).tolist()}"
+    )
     assert 20.0 < deflection < 30.0 and sagitta > 1.0  # the case is a bend of degrees' order
     assert t["deflection_mrad"] == pytest.approx(deflection, rel=1e-6)
     assert t["deflection_x_mrad"] == pytest.approx(-deflection, rel=1e-6)
@@ -170,6 +175,10 @@ def test_trajectory_u95_matches_a_brute_force_trajectory_monte_carlo(dipole_map)
                       rigidity_Tm=RIGIDITY)  # fmt: skip
     t = res.summary["trajectory"]
     ref, nominal = brute_force_trajectory_u95(coll, 300, seed=8)
+    print(
+        f"U95 of the deflection {t['U95_deflection_mrad']:.4g} mrad, brute force {ref:.4g} "
+        f"mrad, of {nominal:.6g} mrad"
+    )
     assert nominal == pytest.approx(t["deflection_mrad"], rel=1e-4)  # trilinear, RK4 in z
     assert t["U95_deflection_mrad"] == pytest.approx(ref, rel=0.05)
     assert ref > 1e-3 * nominal  # the probe's gain alone gives 2.5e-3 of it

@@ -192,7 +192,7 @@ def _stats(dev):
 @threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
 def run_quality_mc(plan: ScanPlan, local: LocalField, src: Sources, nominal_vector,
                    main_order: int, z_length: float, *, seed: int = 0, trials: int | None = None,
-                   batch_trials: int = 500, max_trials: int = 10_000, digits: int = 1,
+                   batch_trials: int = 500, max_trials: int = 20_000, digits: int = 1,
                    progress=None) -> McQuality:  # fmt: skip
     """Monte Carlo of the field quality (module docstring).
 
