@@ -54,12 +54,12 @@ def u95(dev) -> np.ndarray:
     return np.maximum(np.abs(low), np.abs(high))
 
 
-def adaptive_stop(dev, batch: int, digits: int) -> int | None:
+def adaptive_stop(dev, batch: int, digits: int, main_order: int) -> int | None:
     """Trials at which the adaptive rule stops on these trials (None: not within them)."""
     values = []
     for b in range(0, len(dev) - batch + 1, batch):
         values.append(dev[b : b + batch])
-        if _check(values, digits)[0]:
+        if _check(values, digits, ignore=main_order - 1)[0]:
             return b + batch
     return None
 
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     many = np.array(blocks) >= 8
     s2n = np.mean(rel[many] ** 2 * np.array(counts)[many, None], axis=0)
     needed = s2n * (2 / TARGET) ** 2
-    stops = [adaptive_stop(d, 500, args.digits) for d in devs]
+    stops = [adaptive_stop(d, 500, args.digits, n_main) for d in devs]
     print(f"{fm.source}: {len(plan.points)} scan points, {args.seeds} seeds x {n_use} trials, "
           f"{seconds:.0f} s")  # fmt: skip
     head = "".join(f"{f'{c}({b})':>11}" for c, b in zip(counts, blocks, strict=True))
