@@ -71,7 +71,7 @@ class QualityDesign:
     method : {"bisection", "unbounded", "undetermined"}
         "unbounded": U95 at the start value is 0 (below 1e-9 of the limit: the quantity does
         not depend on the scan points' places); "undetermined": the map's value of the
-        quantity is undefined, or U95 stays above the limit down to 1e-6 of the start value.
+        quantity is undefined, or no bracket within `MAX_STEPS` steps of the guess.
     evaluations : list of (float, float)
         (U_p um, U95) of every Monte Carlo run, in order.
     trials, seed : int
@@ -216,10 +216,12 @@ def quality_up_max(fieldmap, r_ref_mm: float, quantity: str, max_value: float, *
             return undetermined
     else:
         lo = hi / BRACKET
-        while not below(lo):
+        for _ in range(MAX_STEPS):
+            if below(lo):
+                break
             lo, hi = lo / BRACKET, lo
-            if lo < 1e-6 * start_um:
-                return undetermined
+        else:
+            return undetermined
     for _ in range(MAX_STEPS):  # bisect
         if hi - lo <= rel_tol * hi:
             break
