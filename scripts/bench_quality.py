@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--map", default=str(ROOT / "meshes" / "quadrupole.vtu"))
     ap.add_argument("--r-ref", type=float, default=10.0)
-    ap.add_argument("--max-trials", type=int, default=10_000)
+    ap.add_argument("--max-trials", type=int, default=20_000)
     ap.add_argument("--budget-trials", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)

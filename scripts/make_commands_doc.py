@@ -57,7 +57,9 @@ EXAMPLES = [
         "The paper's design question: the largest U_p that keeps U_f at or below a target over "
         "a share of the nodes (default 95 %) of the map or of a `--region`, with its Monte Carlo "
         "uncertainty. Writes the sweep's outputs, `design.json` and a report with the answer on "
-        "top.",
+        "top. With `--quantity Q --max X --r-ref MM`: the largest U_p that keeps U95 of a "
+        "field-quality figure of `cfm-fem quality` (b_n, a_n, centre, roll, length) within X, "
+        "by bisection with the quality Monte Carlo in mode gauss; writes `design.json`.",
     ),
     (
         "kinematics",

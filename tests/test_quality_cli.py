@@ -130,3 +130,19 @@ def test_a_dipole_main_order_writes_its_report_without_a_centre(map_file, tmp_pa
     doc = json.loads((out / "quality.json").read_text())
     assert doc["main_order"] == 1 and None in (doc["centre_mm"] or [None])
     assert (out / "budget.png").exists() and not (out / "centre.png").exists()
+
+
+def test_summary_says_when_the_adaptive_rule_reached_its_digits(map_file, capsys):
+    from cfm_fem.cli.quality import _print_summary
+    from cfm_fem.workflows.quality import run_quality
+
+    done = run_quality(map_file, R_REF, up_um=10.0, seed=1, budget=False, batch_trials=200,
+                       max_trials=20_000)  # fmt: skip
+    capped = run_quality(map_file, R_REF, up_um=10.0, seed=1, budget=False, batch_trials=100,
+                         max_trials=300, digits=2)  # fmt: skip
+    fixed = run_quality(map_file, R_REF, up_um=10.0, seed=1, budget=False, trials=100)
+    assert done.mc.converged and not capped.mc.converged
+    for res, said in ((done, True), (capped, False), (fixed, False)):
+        _print_summary(res.summary)
+        err = capsys.readouterr().err
+        assert ("the adaptive rule reached 1 digit(s)" in err) is said, err

@@ -50,9 +50,10 @@ def add_args(p):
     p.add_argument(
         "--max-trials",
         type=trial_count_type("--max-trials"),
-        default=10_000,
+        default=20_000,
         metavar="N",
-        help="cap of the adaptive procedure (default 10000)",
+        help="cap of the adaptive procedure (default 20000; on the bundled quadrupole the "
+        "1-digit rule stops near 11000 trials)",
     )
     p.add_argument("--digits", type=int, default=1, choices=[1, 2],
                    help="significant digits the adaptive procedure asks of each standard "
@@ -206,9 +207,15 @@ def _print_summary(s: dict) -> None:
         v = "-" if v is None else f"{v * scale:.{digits}g}"
         return v if e is None else f"{v} +- {e * scale:.2g}"
 
+    tol = u.get("numerical_tolerance") or {}
+    how = ""
+    if tol.get("converged") is not None:
+        how = (f"; the adaptive rule reached {tol['digits']} digit(s)" if tol["converged"]
+               else "")  # fmt: skip
     print(f"main order {s['main_order']}, R_ref = {s['r_ref_mm']:g} mm, z "
           f"{s['z_range_mm'][0]:g} .. {s['z_range_mm'][1]:g} mm; U95 from {u.get('trials')} "
-          f"trials (mode {u.get('mode')}, seed {u.get('seed')})", file=sys.stderr)  # fmt: skip
+          f"trials (mode {u.get('mode')}, seed {u.get('seed')}{how})",
+          file=sys.stderr)  # fmt: skip
     c, uc = s["centre_mm"], s["U95_centre_mm"] or [None, None]
     print(f"centre x {pm(c[0], uc[0], 1e3)} um, y {pm(c[1], uc[1], 1e3)} um")
     print(f"roll {pm(s['roll_mrad'], s['U95_roll_mrad'])} mrad")

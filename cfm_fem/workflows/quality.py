@@ -278,7 +278,7 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                 radius_mm: float | None = None, dz_mm: float | None = None, n_angles: int = 64,
                 centre_magnet: bool = False, tolerances=None, budget: bool = True,
                 budget_trials: int = 200, digits: int = 1, batch_trials: int = 500,
-                max_trials: int = 10_000, uncertainty: bool = True,
+                max_trials: int = 20_000, uncertainty: bool = True,
                 rigidity_Tm: float | None = None, energy_gev: float | None = None,
                 particle: str = "electron",
                 trajectory_step_mm: float = 0.5, reader: dict | None = None,
