@@ -13,6 +13,9 @@ With --quantity: bisects on U_p with the quality Monte Carlo in mode gauss
 
 from __future__ import annotations
 
+import sys
+
+from ..errors import CfmInputError
 from . import option_type
 from ._checks import check_out_dir, check_seed, trial_count_type
 from ._progress import announcer, note_first_compile, progress_bar
@@ -119,9 +122,9 @@ def _run(args, up) -> int:
 
 
 def _run_quality_design(args) -> int:
-    from ..io.compare_out import write_run
     from ..io.lock import output_lock
     from ..io.provenance import provenance
+    from ..io.run_files import write_run
     from ..workflows.design_quality import QUANTITIES, quality_up_max
 
     for flag, value in (("--quantity", args.quantity), ("--max", args.max),
