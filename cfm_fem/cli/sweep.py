@@ -548,14 +548,15 @@ def _run(args, up) -> int:
     else:
         summary = write_sweep(args.out, res, prov, remove_stale=False)
     _remove_stale_maps(args.out)  # the new outputs are complete: now the old maps can go
-    _finish(args, summary, runner)
+    _finish(args, summary, runner, res)
     return 0
 
 
-def _finish(args, summary, runner=None) -> None:
+def _finish(args, summary, runner=None, result=None) -> None:
     """The per-node table (``--table``), the report and the printed summary, once the maps,
     ``sweep.pvd`` and ``summary.json`` are written; the chunk store of ``runner`` goes after
-    every output, so a run stopped before then resumes from it."""
+    every output, so a run stopped before then resumes from it. ``result``: the sweep's result
+    in memory, the report's figures drawn from it."""
     from ..io.sweep_table import remove_stale_table, write_sweep_table
 
     gone = remove_stale_table(args.out, args.table)
@@ -564,17 +565,18 @@ def _finish(args, summary, runner=None) -> None:
               "(this run writes no such table)", file=sys.stderr)  # fmt: skip
     if args.table is not None:
         write_sweep_table(args.out, args.table)
-    _write_report(args.out)
+    _write_report(args.out, result)
     if runner is not None:
         runner.finish(keep=args.keep_chunks)
     _print_summary(summary, args.out, args.table)
 
 
-def _write_report(out) -> None:
-    """``report.html`` and its figures, from the outputs just written."""
+def _write_report(out, result=None) -> None:
+    """``report.html`` and its figures, from the outputs just written (their figures from
+    ``result`` when it is in memory)."""
     from ..report.sweep import write_sweep_report  # matplotlib: loaded only when used
 
-    write_sweep_report(out)
+    write_sweep_report(out, result=result)
 
 
 def _backend(args) -> str:
