@@ -20,7 +20,7 @@ from pathlib import Path
 from ..errors import CfmInputError
 from . import interrupted, option_type
 from ._checks import check_out_dir, check_seed, trial_count_type
-from ._progress import note_first_compile, progress_bar
+from ._progress import progress_bar
 from ._reader import add_reader_args, reader_kwargs
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -283,7 +283,7 @@ def _run_slabs(args, up):
             f"mode htm: bench model {args.bench or '(packaged CFM reference bench)'}")  # fmt: skip
     print(f"cfm-fem sweep: streaming {args.field} ({kind}) into slabs; {what}; {cfg.trials} "
           f"trials per node, seed {cfg.seed}", file=sys.stderr)  # fmt: skip
-    _note_compile(cfg.mode)
+    _note_compile(cfg)
     description = describe_sweep(cfg, file_sha256(args.field), reader_kwargs(args),
                                  bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=args.slabs, max_memory=args.max_memory)
@@ -383,10 +383,25 @@ def parse_up_range(text: str) -> list[float]:
     return values
 
 
-def _note_compile(mode: str) -> None:
+def _note_compile(cfg) -> None:
+    """Say, before the bar, which of the kernels this sweep runs numba compiles this time: the
+    harmonic fit and sweep under the harmonic field model of a 3-D map (a planar map, known
+    once meshed, runs the linear sweep), the linear sweep otherwise; the smaller set-up
+    kernels load or compile as they are first used."""
     from .. import _kernels
+    from ..models.sweep import uses_harmonic
 
-    note_first_compile(_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep)
+    if uses_harmonic(cfg.field_model, 3):
+        htm = cfg.mode == "htm"
+        sweep = _kernels.harmonic_htm_sweep if htm else _kernels.harmonic_gauss_sweep
+        kernels = (_kernels.harmonic_fit_block, sweep)
+    else:
+        kernels = (_kernels.gauss_sweep if cfg.mode == "gauss" else _kernels.htm_sweep,)
+    missing = [k.py_func.__name__ for k in kernels if not _kernels.kernels_cached(k)]
+    if missing:
+        print(f"cfm-fem sweep: compiling {', '.join(missing)} for this machine (the first run "
+              "after an install or upgrade; later runs load them from numba's cache)",
+              file=sys.stderr)  # fmt: skip
 
 
 def run(args) -> int:
@@ -482,7 +497,7 @@ def _run(args, up) -> int:
         f"{cfg.trials} trials per node, seed {cfg.seed}",
         file=sys.stderr,
     )
-    _note_compile(cfg.mode)
+    _note_compile(cfg)
     read_options = reader_kwargs(args)
     # the bench used, the packaged one included: a default-bench run and one given a copy of
     # the same file have the same key (same numbers), and both name the file they used

@@ -49,7 +49,7 @@ def run_sweep(
     """
     t0 = time.perf_counter()
     cfg = with_bench(cfg)
-    mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh)
+    mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh, lazy=True)
     n = fm.n_nodes
     n_col = len(HTM_PARTS) if cfg.mode == "htm" else len(cfg.up_um)
     stats = np.full((n, n_col, 4, 6), np.nan)

@@ -45,7 +45,7 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     """
     t0 = time.perf_counter()
     cfg = with_bench(cfg)
-    mesh, problem, b_ref = prepare_sweep(fm, cfg)
+    mesh, problem, b_ref = prepare_sweep(fm, cfg, lazy=True)
     n = fm.n_nodes
     htm = cfg.mode == "htm"
     n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
