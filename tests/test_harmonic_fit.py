@@ -329,3 +329,21 @@ def test_planar_or_tiny_maps_are_refused():
         fit_harmonic(pts, np.ones_like(pts), k=5)
     with pytest.raises(CfmInputError, match="degrees"):
         fit_harmonic(pts, np.ones_like(pts), min_degree=1)
+
+
+@pytest.mark.parametrize("layout", ["grid", "cloud"])
+def test_neighbour_order_kernel_is_its_twin_bit_for_bit(layout):
+    """`canonical_neighbours` orders candidates as its numpy twin `_canonical` does, to the
+    bit: squared distances, then x, y, z on the ties of a grid's shells."""
+    if layout == "grid":
+        ax = np.arange(-4.0, 5.0) * 0.7
+        pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    else:
+        pts = _cloud(600)
+    centres = pts[::5]
+    _, cand = scipy.spatial.cKDTree(pts).query(centres, 48)
+    cand = np.ascontiguousarray(cand[:, ::-1])  # the kernel must sort, not keep the order
+    nbr, d2 = K.canonical_neighbours(pts, centres, cand)
+    want_nbr, want_d2 = harmonic._canonical(pts, centres, cand)
+    np.testing.assert_array_equal(nbr, want_nbr)
+    np.testing.assert_array_equal(d2, want_d2)

@@ -114,6 +114,47 @@ def test_report_of_pieces_counts_each_node_once(runs):
     assert a == b
 
 
+def test_report_drawn_from_memory_is_the_one_drawn_from_the_maps(grid_map, tmp_path):
+    """The command line draws the figures from the result in memory: the same digest, and
+    the same figures, as from the maps read back; for maps written whole and as pieces."""
+    from cfm_fem.io import read_field
+    from cfm_fem.io.sweep_maps import iter_map_nodes
+    from cfm_fem.io.sweep_out import write_sweep, write_sweep_pieces
+    from cfm_fem.models.sweep import SweepConfig
+    from cfm_fem.report.sweep import write_sweep_report
+    from cfm_fem.workflows.sweep.in_memory import run_sweep
+    from cfm_fem.workflows.sweep.pieces import run_sweep_pieces
+    from cfm_fem.workflows.sweep.resume import ResumableRun
+
+    fm = read_field(grid_map)
+    cfg = SweepConfig(up_um=[0.0, 20.0, 40.0], trials=300, seed=2)
+    res = run_sweep(fm, cfg)
+    runner = ResumableRun(tmp_path / "pc", {"test": 1})
+    compact = run_sweep_pieces(fm, cfg, runner.mapper())
+    gather = lambda nodes: runner.gather(nodes, [(0, fm.n_nodes)])  # noqa: E731
+    for out, result in ((tmp_path / "one", res), (tmp_path / "pc", compact)):
+        if result is res:
+            s = write_sweep(out, result)
+        else:
+            s = write_sweep_pieces(out, result, 3, gather)
+        memory = SweepDigest.of_result(result, s["uf_units"]["max"])
+        maps = SweepDigest(s["uf_units"]["max"])
+        for k, pts, arr in iter_map_nodes(out):
+            maps.add(k, pts, arr["U_f_units"], arr["complete"] == 1)
+        for k in range(3):
+            np.testing.assert_array_equal(memory.histogram(k)[1], maps.histogram(k)[1])
+            a, b = memory.plane(k), maps.plane(k)
+            assert a.y_mm == b.y_mm
+            order_a, order_b = np.lexsort(a.points.T), np.lexsort(b.points.T)
+            np.testing.assert_array_equal(a.points[order_a], b.points[order_b])
+            np.testing.assert_array_equal(a.uf[order_a], b.uf[order_b])
+        write_sweep_report(out)
+        read_back = {n: (out / n).read_bytes() for n in ("uf_slices.png", "uf_histograms.png")}
+        write_sweep_report(out, result=result)
+        for name, png in read_back.items():
+            assert (out / name).read_bytes() == png
+
+
 def test_digest_keeps_the_nodes_nearest_the_plane_in_bounded_memory(monkeypatch):
     monkeypatch.setattr(sweep_digest, "MAX_PLANE_NODES", 50)
     rng = np.random.default_rng(1)

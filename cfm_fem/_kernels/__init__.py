@@ -41,6 +41,7 @@ from .harmonic_fit import (
     FIT_LEVERAGE_DET_MIN,
     FIT_PIVOT_MIN,
     FIT_TAPER,
+    canonical_neighbours,
     harmonic_fit_block,
 )
 from .harmonic_parts import (
@@ -314,6 +315,7 @@ __all__ = [
     "CHECK_HARMONIC",
     "CHECK_FREE",
     "harmonic_fit_block",
+    "canonical_neighbours",
 ]
 
 drop_stale_kernels(sort_values)  # before any kernel is compiled or loaded

@@ -432,3 +432,54 @@ def _free_fit_rms(ft, b, work):
                 s += work[j, npar + 1] / norm[j] * ft[j, i]
             rss += s * s
     return np.sqrt(rss)
+
+
+@nb.njit(**JIT)
+def canonical_neighbours(points, centres, cand):
+    """Candidates of each centre sorted by (squared distance, x, y, z): an order that does
+    not depend on the map's row order (the twin: `cfm_fem.models.harmonic._canonical`).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3), mm
+    centres : ndarray, shape (m, 3), mm
+    cand : ndarray, shape (m, c), int64
+        Indices into ``points``: each centre's candidate neighbours.
+
+    Returns
+    -------
+    nbr : ndarray, shape (m, c), int64
+        ``cand`` of each row in that order.
+    d2 : ndarray, shape (m, c), mm^2
+        Their squared distances, (dx^2 + dy^2) + dz^2 as numpy sums them.
+    """
+    m, c = cand.shape
+    nbr = np.empty((m, c), dtype=np.int64)
+    d2 = np.empty((m, c))
+    for i in range(m):
+        for j in range(c):
+            g = cand[i, j]
+            dx = points[g, 0] - centres[i, 0]
+            dy = points[g, 1] - centres[i, 1]
+            dz = points[g, 2] - centres[i, 2]
+            d = dx * dx + dy * dy + dz * dz
+            # insertion: shift the larger keys up (c is some 50: no faster sort needed)
+            t = j
+            while t > 0 and _after(points, nbr[i, t - 1], d2[i, t - 1], g, d):
+                nbr[i, t] = nbr[i, t - 1]
+                d2[i, t] = d2[i, t - 1]
+                t -= 1
+            nbr[i, t] = g
+            d2[i, t] = d
+    return nbr, d2
+
+
+@nb.njit(inline="always", **JIT)
+def _after(points, a, da, b, db):
+    """Whether node ``a`` (squared distance ``da``) sorts after node ``b`` (``db``)."""
+    if da != db:
+        return da > db
+    for k in range(3):
+        if points[a, k] != points[b, k]:
+            return points[a, k] > points[b, k]
+    return False

@@ -20,7 +20,7 @@ from pathlib import Path
 from ..errors import CfmInputError
 from . import option_type
 from ._checks import check_out_dir, trial_count_type
-from ._progress import announcer, note_first_compile, progress_bar
+from ._progress import announcer, progress_bar
 from ._reader import add_reader_args, reader_kwargs
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
@@ -234,10 +234,25 @@ def parse_up_range(text: str) -> list[float]:
     return values
 
 
-def _note_compile(mode: str) -> None:
+def _note_compile(mode: str, field_model: str) -> None:
+    """Say, before the bar, which of the kernels this sweep runs numba compiles this time: the
+    harmonic fit and sweep under the harmonic field model of a 3-D map (a planar map, known
+    once meshed, runs the linear sweep), the linear sweep otherwise; the smaller set-up
+    kernels load or compile as they are first used."""
     from .. import _kernels
+    from ..models.sweep import uses_harmonic
 
-    note_first_compile(_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep)
+    if uses_harmonic(field_model, 3):
+        htm = mode == "htm"
+        sweep = _kernels.harmonic_htm_sweep if htm else _kernels.harmonic_gauss_sweep
+        kernels = (_kernels.harmonic_fit_block, sweep)
+    else:
+        kernels = (_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep,)
+    missing = [k.py_func.__name__ for k in kernels if not _kernels.kernels_cached(k)]
+    if missing:
+        print(f"cfm-fem sweep: compiling {', '.join(missing)} for this machine (the first run "
+              "after an install or upgrade; later runs load them from numba's cache)",
+              file=sys.stderr)  # fmt: skip
 
 
 def run(args) -> int:
@@ -267,7 +282,7 @@ def _run(args, up) -> int:
     """The sweep, once the options are checked and the lock of ``--out`` is held."""
     from ..workflows.sweep.run import run_sweep
 
-    _note_compile(args.mode)
+    _note_compile(args.mode, args.field_model)
     with progress_bar(None, "nodes") as bar:
         res = run_sweep(
             args.field, up, trials=args.trials, seed=args.seed, mode=args.mode,

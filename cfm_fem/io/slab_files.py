@@ -22,7 +22,7 @@ from ..models.field import FieldMap
 from ..models.mesh import (
     FLAT_TOL,
 )
-from ..models.sweep import SweepResult, _gum_u
+from ..models.sweep import SweepResult
 from ._atomic import write_json
 from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
@@ -48,7 +48,8 @@ __all__ = [
     "make_per_node_file",
     "open_per_node",
     "drop_pages",
-    "write_slab_outputs",
+    "read_slab_piece",
+    "SlabMapWriter",
 ]
 
 #: Work folder of a resumable out-of-core run (staged rows, per-slab results, manifest).
@@ -293,59 +294,78 @@ def make_per_node_file(path: Path, dtype, shape, resume: bool) -> None:
     np.lib.format.open_memmap(path, "w+", dtype, shape).flush()
 
 
-def write_slab_outputs(out: Path, store: SlabStore, K: int, cfg, b_ref, summary):
-    """One piece per slab and U_p value, the .pvtu indices, sweep.pvd, summary.json."""
-    retire_index(out)  # an interrupted write leaves no earlier run's summary beside new maps
-    prov = summary["provenance"]
-    htm = cfg.mode == "htm"
-    labels = summary["columns"]
-    ups = summary["up_um"]
-    written = {k: [] for k in range(len(labels))}
-    example = {}
-    for p in range(K):
-        ids = np.asarray(store.load(p, "ids"))
-        cells = np.asarray(store.load(p, "cells"))
-        nodes = np.union1d(ids, cells.ravel())
-        names = ["points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos",
-                 "volume"]  # fmt: skip
-        harmonic = "harmonic" in summary
-        if harmonic:
-            names += ["fit_degree", "fit_residual"]
-        g = store.gather(nodes, K, names)
-        sub = FieldMap(points=g["points"], B=g["B"], source=summary["source"])
-        if htm:
-            sigma_mm, corr = g["pos"][:, :, 1], g["pos"][:, :, 2]
-        else:
-            corr = None
-            sigma_mm = (np.asarray(ups)[:, None] * 1e-3 * np.asarray(cfg.axis_scale)[None])[None]
+#: Per-node arrays a slab piece's map is made of (`SlabStore.gather`); ``fit_*`` with the
+#: harmonic field model only.
+PIECE_ARRAYS = ("points", "B", "stats", "n_out", "n_lost", "n_left", "star", "gradient", "pos",
+                "volume")  # fmt: skip
 
-        piece_cells = np.searchsorted(nodes, cells)
-        ghost = ghost_flags(np.isin(nodes, ids))  # halo nodes: copies of another slab's nodes
-        res = SweepResult(fieldmap=sub, mesh=None, config=cfg, b_ref_T=b_ref, stats=g["stats"],
-                          n_outside=g["n_out"], n_walk_failed=g["n_lost"],
-                          linear_in_up=g["star"], gradient=g["gradient"],
-                          gum_u=_gum_u(g["gradient"], g["B"], b_ref, sigma_mm, corr), seconds=0.0,
-                          positioning=g["pos"] if htm else None,
-                          n_left_out=g["n_left"],
-                          field_fit=({"degree": g["fit_degree"], "residual_T": g["fit_residual"]}
-                                     if harmonic else None),
-                          node_volume_mm3=g["volume"])  # fmt: skip
-        for k, label in enumerate(labels):
-            path = out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
+
+def read_slab_piece(store: SlabStore, p: int, K: int, harmonic: bool):
+    """The nodes of slab ``p``'s map piece: its own nodes and the halo nodes its cells use.
+
+    Returns
+    -------
+    cells : ndarray, shape (c, 4), int64
+        The piece's cells in local indices (into the rows of ``arrays``).
+    ghost : ndarray, shape (m,), uint8
+        `ghost_flags`: 1 at halo nodes (copies of another slab's nodes).
+    arrays : dict of ndarray
+        `PIECE_ARRAYS` (and ``fit_degree``, ``fit_residual`` if ``harmonic``), m rows each.
+    """
+    ids = np.asarray(store.load(p, "ids"))
+    cells = np.asarray(store.load(p, "cells"))
+    nodes = np.union1d(ids, cells.ravel())
+    names = list(PIECE_ARRAYS) + (["fit_degree", "fit_residual"] if harmonic else [])
+    arrays = store.gather(nodes, K, names)
+    return np.searchsorted(nodes, cells), ghost_flags(np.isin(nodes, ids)), arrays
+
+
+class SlabMapWriter:
+    """Writes an out-of-core run's maps: one piece per slab and U_p value (`write_piece`), then
+    the .pvtu indices, sweep.pvd and summary.json (`finish`).
+
+    Parameters
+    ----------
+    out : Path
+    summary : dict
+        The run's summary (``columns``, ``up_um``, ``provenance``).
+    cfg : SweepConfig
+    b_ref : float
+        B_ref, T.
+    """
+
+    def __init__(self, out: Path, summary: dict, cfg, b_ref: float):
+        self.out, self.summary, self.cfg, self.b_ref = Path(out), summary, cfg, float(b_ref)
+        self.labels, self.ups = summary["columns"], summary["up_um"]
+        self.written = {k: [] for k in range(len(self.labels))}
+        self.example = {}
+        retire_index(self.out)  # an interrupted write leaves no earlier summary beside new maps
+
+    def write_piece(self, p: int, res: SweepResult, cells, ghost) -> None:
+        """Write slab ``p``'s piece of every column's map: ``res`` (its nodes, in the order of
+        `read_slab_piece`), ``cells`` and ``ghost`` as that returns them."""
+        prov = self.summary["provenance"]
+        for k, label in enumerate(self.labels):
+            path = self.out / vtu_name(label).removesuffix(".vtu") / f"piece_{p:04d}.vtu"
             data = dict(_point_data(res, k), **{GHOST_ARRAY: ghost})
-            fields = map_field_data(ups[k], label, b_ref, cfg, prov, piece=p)
-            write_vtu(path, sub.points, piece_cells, data, fields)
-            written[k].append(path)
-            example[k] = {name: v[:1] for name, v in data.items()}
-    entries = []
-    for k, label in enumerate(labels):
-        path = out / vtu_name(label).replace(".vtu", ".pvtu")
-        write_pvtu(path, written[k], example[k], provenance=prov)
-        entries.append((float(k) if htm else float(ups[k]), path))
-    write_pvd(out / "sweep.pvd", entries, provenance=prov)
-    write_paraview_script(out)
-    summary["pieces"] = K
-    write_json(out / "summary.json", summary)
+            fields = map_field_data(self.ups[k], label, self.b_ref, self.cfg, prov, piece=p)
+            write_vtu(path, res.fieldmap.points, cells, data, fields)
+            self.written[k].append(path)
+            self.example[k] = {name: v[:1] for name, v in data.items()}
+
+    def finish(self, K: int) -> None:
+        """The .pvtu index of each column, sweep.pvd, the ParaView script and summary.json."""
+        prov = self.summary["provenance"]
+        htm = self.cfg.mode == "htm"
+        entries = []
+        for k, label in enumerate(self.labels):
+            path = self.out / vtu_name(label).replace(".vtu", ".pvtu")
+            write_pvtu(path, self.written[k], self.example[k], provenance=prov)
+            entries.append((float(k) if htm else float(self.ups[k]), path))
+        write_pvd(self.out / "sweep.pvd", entries, provenance=prov)
+        write_paraview_script(self.out)
+        self.summary["pieces"] = K
+        write_json(self.out / "summary.json", self.summary)
 
 
 def read_manifest(work: Path) -> dict | None:

@@ -242,7 +242,13 @@ def neighbourhoods(tree, points, centres, k: int) -> tuple[np.ndarray, np.ndarra
     kq = min(k + _NBR_MARGIN, n)
     while todo.size:
         _, cand = tree.query(centres[todo], kq, workers=numba.get_num_threads())
-        cand, d2 = _canonical(points, centres[todo], cand.reshape(len(todo), kq))
+        cand = cand.reshape(len(todo), kq)
+        cen = centres[todo]
+
+        def block(i0, i1, cand=cand, cen=cen):
+            return _kernels.canonical_neighbours(points, cen[i0:i1], cand[i0:i1])
+
+        cand, d2 = map_blocks(block, len(todo), _FIT_BLOCK * 16)
         # complete unless the last candidate ties with the k-th (to rounding: the tree's
         # distances may round otherwise)
         done = d2[:, kq - 1] > d2[:, k - 1] * (1.0 + 1e-12) if kq < n else np.ones(todo.size, bool)
@@ -255,7 +261,7 @@ def neighbourhoods(tree, points, centres, k: int) -> tuple[np.ndarray, np.ndarra
 
 def _canonical(points, centres, cand):
     """Candidates ``cand`` (m, c) of ``centres`` (m, 3) sorted by (squared distance, x, y, z):
-    (nbr (m, c), d2)."""
+    (nbr (m, c), d2). The numpy twin of `cfm_fem._kernels.canonical_neighbours`."""
     p = points[cand]
     d2 = np.sum((p - centres[:, None, :]) ** 2, axis=2)
     order = np.lexsort((p[..., 2], p[..., 1], p[..., 0], d2), axis=-1)

@@ -348,6 +348,75 @@ def _gum_u(gradient, B, b_ref, sigma_mm, corr=None, block: int = 1 << 16):
     return out
 
 
+def gauss_sigma_mm(up_um, axis_scale) -> np.ndarray:
+    """Per-axis standard deviation of the gauss perturbation, shape (1, n_up, 3), mm.
+
+    Parameters
+    ----------
+    up_um : sequence of float, length n_up, um
+    axis_scale : sequence of float, length 3
+        Per-axis multiplier of U_p (`SweepConfig.axis_scale`).
+    """
+    scales = np.asarray(up_um, dtype=np.float64) * 1e-3
+    return (scales[:, None] * np.asarray(axis_scale, dtype=np.float64)[None, :])[None]
+
+
+def assemble_result(fieldmap, mesh, config, b_ref_T, parts, gradient, **extra) -> SweepResult:
+    """The `SweepResult` of a map or of part of one, from its chunk-result arrays and node
+    gradients: the one place a result is put together, its GUM figures computed here.
+
+    Parameters
+    ----------
+    fieldmap : FieldMap
+        The nodes of the result (a whole map, a piece or a slab's own nodes).
+    mesh : SimplexMesh or None
+    config : SweepConfig
+    b_ref_T : float
+        B_ref of the whole run, T.
+    parts : tuple
+        (stats (n, n_col, 4, 6) T, n_outside (n, n_col), n_walk_failed (n, n_col),
+        linear_in_up (n,)[, positioning]) as
+        `cfm_fem.workflows.sweep.problem.SweepProblem.run_chunk` returns them; positioning
+        (n, n_col, 3, 3) in mode htm, None or of shape (n, 0, 3, 3) in mode gauss.
+    gradient : ndarray, shape (n, 3, 3), T/mm
+    **extra
+        The optional fields of `SweepResult`: ``n_left_out``, ``field_fit``,
+        ``node_volume_mm3``, ``seconds`` (default 0).
+
+    Returns
+    -------
+    SweepResult
+        ``gum_u`` from the gradient and, in mode gauss, U_p of each column times
+        ``config.axis_scale``; in mode htm the standard deviations and correlations of each
+        node's probe error.
+    """
+    stats, n_out, n_lost, star = parts[:4]
+    pos = parts[4] if len(parts) > 4 else None
+    if pos is not None and pos.shape[1] == 0:
+        pos = None
+    if pos is None:
+        gum_u = _gum_u(
+            gradient, fieldmap.B, b_ref_T, gauss_sigma_mm(config.up_um, config.axis_scale)
+        )
+    else:
+        gum_u = _gum_u(gradient, fieldmap.B, b_ref_T, pos[:, :, 1], pos[:, :, 2])
+    extra.setdefault("seconds", 0.0)
+    return SweepResult(
+        fieldmap=fieldmap,
+        mesh=mesh,
+        config=config,
+        b_ref_T=b_ref_T,
+        stats=stats,
+        n_outside=n_out,
+        n_walk_failed=n_lost,
+        linear_in_up=star,
+        gradient=gradient,
+        gum_u=gum_u,
+        positioning=pos,
+        **extra,
+    )
+
+
 def _gum_mean(gradient, B, b_ref, mean_mm):
     """Linearised systematic error g . mean per node, column and component, shape
     (n, n_col, 4), T; ``mean_mm`` (n, n_col, 3): mean probe position error per map axis."""
@@ -628,32 +697,21 @@ class CompactSweep(SweepResult):
 
 def _part_result(compact, nodes, parts) -> SweepResult:
     """Full `SweepResult` of the nodes ``nodes`` from their chunk-result arrays ``parts``."""
-    stats, n_out, n_lost, star = parts[:4]
-    positioning = parts[4] if len(parts) > 4 and parts[4].shape[1] > 0 else None
     fm = compact.fieldmap
     sub = FieldMap(points=fm.points[nodes], B=fm.B[nodes], source=fm.source)
-    grad = compact.gradient[nodes]
-    sigma = compact.sigma_mm if positioning is None else positioning[:, :, 1]
-    corr = None if positioning is None else positioning[:, :, 2]
-    extra = {} if positioning is None else {"positioning": positioning}
-    extra["node_volume_mm3"] = compact.node_volumes()[nodes]
+    extra = {"node_volume_mm3": compact.node_volumes()[nodes]}
     if compact.field_fit is not None:
         extra["field_fit"] = {
             key: v[nodes] if isinstance(v, np.ndarray) else v
             for key, v in compact.field_fit.items()
         }
-    return SweepResult(
-        fieldmap=sub,
-        mesh=compact.mesh,
-        config=compact.config,
-        b_ref_T=compact.b_ref_T,
-        stats=stats,
-        n_outside=n_out,
-        n_walk_failed=n_lost,
-        linear_in_up=star,
-        gradient=grad,
-        gum_u=_gum_u(grad, sub.B, compact.b_ref_T, sigma, corr),
-        seconds=0.0,
+    return assemble_result(
+        sub,
+        compact.mesh,
+        compact.config,
+        compact.b_ref_T,
+        parts,
+        compact.gradient[nodes],
         **extra,
     )
 

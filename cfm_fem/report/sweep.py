@@ -169,10 +169,14 @@ def sweep_report(
     return rep
 
 
-def write_sweep_report(out_dir, command_line: str | None = None, design: dict | None = None):
+def write_sweep_report(
+    out_dir, command_line: str | None = None, design: dict | None = None, result=None
+):
     """Write ``report.html`` and its PNG figures beside a written sweep (its ``summary.json``
     and maps, read back one file at a time: bounded memory also for maps written as pieces);
-    ``design``: the answer of ``cfm-fem design``, shown on top.
+    ``design``: the answer of ``cfm-fem design``, shown on top; ``result``: the
+    `cfm_fem.models.sweep.SweepResult` (or `cfm_fem.models.sweep.CompactSweep`) the maps were
+    written from, still in memory: the figures are drawn from it and the maps not read back.
 
     Returns
     -------
@@ -183,8 +187,11 @@ def write_sweep_report(out_dir, command_line: str | None = None, design: dict | 
     from ..io.sweep_maps import iter_map_nodes, read_summary
 
     summary = read_summary(out_dir)
-    digest = SweepDigest(summary["uf_units"]["max"])
-    for k, points, arrays in iter_map_nodes(out_dir):
-        digest.add(k, points, arrays["U_f_units"], arrays["complete"] == 1)
+    if result is not None:
+        digest = SweepDigest.of_result(result, summary["uf_units"]["max"])
+    else:
+        digest = SweepDigest(summary["uf_units"]["max"])
+        for k, points, arrays in iter_map_nodes(out_dir):
+            digest.add(k, points, arrays["U_f_units"], arrays["complete"] == 1)
     rep = sweep_report(summary, digest, command_line, design)
     return write_run(out_dir, {**rep.images, "report.html": rep.render()})

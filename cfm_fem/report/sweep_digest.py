@@ -89,6 +89,25 @@ class SweepDigest:
             keep.sort()
             col.points, col.uf = col.points[keep], col.uf[keep]
 
+    @classmethod
+    def of_result(cls, res, uf_max) -> SweepDigest:
+        """The digest of a sweep result held in memory: the same as one fed the maps written
+        from it (U_f rounded to float32, as the maps store it), without reading them back.
+
+        Parameters
+        ----------
+        res : `cfm_fem.models.sweep.SweepResult` (or `cfm_fem.models.sweep.CompactSweep`)
+        uf_max : sequence of float or None
+            As for `SweepDigest`.
+        """
+        digest = cls(uf_max)
+        uf = res.uf_units().astype(np.float32)
+        complete = res.complete()
+        points = res.fieldmap.points
+        for k in range(uf.shape[1]):
+            digest.add(k, points, uf[:, k], complete[:, k])
+        return digest
+
     def histogram(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(bin edges (BINS + 1,), units; counts (BINS,)) of U_f in column ``k``."""
         return self.columns[k].edges, self.columns[k].counts

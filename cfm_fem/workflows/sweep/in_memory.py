@@ -8,7 +8,7 @@ import numpy as np
 
 from ...models.field import FieldMap
 from ...models.mesh import SimplexMesh
-from ...models.sweep import HTM_PARTS, SweepConfig, SweepResult, _gum_u
+from ...models.sweep import HTM_PARTS, SweepConfig, assemble_result
 from .problem import (
     chunk_ranges,
     field_fit_info,
@@ -49,7 +49,7 @@ def run_sweep(
     """
     t0 = time.perf_counter()
     cfg = with_bench(cfg)
-    mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh)
+    mesh, problem, b_ref = prepare_sweep(fm, cfg, mesh, lazy=True)
     n = fm.n_nodes
     n_col = len(HTM_PARTS) if cfg.mode == "htm" else len(cfg.up_um)
     stats = np.full((n, n_col, 4, 6), np.nan)
@@ -68,28 +68,13 @@ def run_sweep(
             progress(b - a)
     if not done.all():
         raise RuntimeError(f"{int((~done).sum())} nodes were not computed by the chunk mapper")
-    sigma_mm = problem.scales_mm[:, None] * problem.axis_scale[None, :]  # (n_up, 3)
     fit = problem.harmonic
     # the kernels' own arrays (octant start cells, exact-search buckets and face excess: 0.4 GB
     # on a 1e6-node non-convex map) are done with: freed before the gradients' temporaries
     del problem
     gradient = sweep_gradients(mesh, fm.B, fit)
-    if positioning is None:
-        gum_u = _gum_u(gradient, fm.B, b_ref, sigma_mm[None])
-    else:
-        gum_u = _gum_u(gradient, fm.B, b_ref, positioning[:, :, 1], positioning[:, :, 2])
-    return SweepResult(
-        fieldmap=fm,
-        mesh=mesh,
-        config=cfg,
-        b_ref_T=b_ref,
-        stats=stats,
-        n_outside=n_out,
-        n_walk_failed=n_lost,
-        linear_in_up=star,
-        gradient=gradient,
-        gum_u=gum_u,
-        seconds=time.perf_counter() - t0,
-        positioning=positioning,
-        field_fit=field_fit_info(fit),
-    )
+    parts = (stats, n_out, n_lost, star, positioning)
+    return assemble_result(
+        fm, mesh, cfg, b_ref, parts, gradient,
+        seconds=time.perf_counter() - t0, field_fit=field_fit_info(fit),
+    )  # fmt: skip

@@ -24,11 +24,6 @@ from .problem import chunk_ranges, field_fit_info, prepare_sweep, sweep_gradient
 __all__ = ["run_sweep_pieces"]
 
 
-def _sigma_mm(problem):
-    """Per-axis standard deviation of the gauss perturbation, shape (1, n_up, 3), mm."""
-    return (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None]
-
-
 def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> CompactSweep:
     """Run a sweep keeping only the per-node summary quantities in memory.
 
@@ -50,7 +45,7 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
     """
     t0 = time.perf_counter()
     cfg = with_bench(cfg)
-    mesh, problem, b_ref = prepare_sweep(fm, cfg)
+    mesh, problem, b_ref = prepare_sweep(fm, cfg, lazy=True)
     n = fm.n_nodes
     htm = cfg.mode == "htm"
     n_col = len(HTM_PARTS) if htm else len(cfg.up_um)
@@ -71,7 +66,6 @@ def run_sweep_pieces(fm: FieldMap, cfg: SweepConfig, mapper, progress=None) -> C
         disagree=np.zeros((n, n_col, 4), dtype=bool),
         field_fit=field_fit_info(problem.harmonic),
     )
-    compact.sigma_mm = None if htm else _sigma_mm(problem)
     u_abs = np.full((n, n_col), np.nan)
     # htm: |mean|^2 + |std|^2 of the probe error per node and column, mm^2 (8 bytes per node
     # and column, kept so that the column U_p equals SweepResult.column_up_um bit for bit)

@@ -447,8 +447,16 @@ def with_bench(cfg: SweepConfig) -> SweepConfig:
     return dataclasses.replace(cfg, bench=read_reference_bench())
 
 
-def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = None):
+def prepare_sweep(
+    fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = None, *, lazy: bool = False
+):
     """Check the configuration and build the mesh and the `SweepProblem`.
+
+    ``lazy``: under the harmonic field model in mode gauss, the linear kernel's search arrays
+    (octant start cells, exact-search buckets) are built only if some node's fit fails and
+    that node takes the linear interpolant; else the problem has none (empty start cells) and
+    runs the harmonic kernel only. Default: always built (callers that run the linear kernel
+    on any node, or hand the arrays on, as the slabs do).
 
     Returns
     -------
@@ -487,10 +495,8 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
             "expected the reference field of the magnet, in T",
             file=fm.source,
         )
-    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
-    start_cells = _kernels.octant_cells(
-        mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps
-    )
+    deferred = lazy and cfg.mode == "gauss" and uses_harmonic(cfg.field_model, mesh.dim)
+    start_cells = None if deferred else _start_cells(mesh)
     htm = None
     if cfg.mode == "htm":
         htm, unreachable = _htm_arrays(cfg, fm)
@@ -509,13 +515,18 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
                 f"{int(unreachable.sum())} node(s) lie outside the strokes of the bench's axes: "
                 "no statistics (NaN)"
             )
+    harmonic = _harmonic_fit(fm, cfg, mesh)
+    if start_cells is None and not harmonic.use.all():  # nodes that take the linear model
+        start_cells = _start_cells(mesh)
     problem = SweepProblem(
         coords=mesh.coords,
         values=np.ascontiguousarray(fm.B),
         simplices=mesh.simplices,
         transform=mesh.transform,
         neighbors=mesh.neighbors,
-        start_cells=start_cells,
+        start_cells=(
+            np.empty((0, 1 << mesh.dim), dtype=np.int64) if start_cells is None else start_cells
+        ),
         basis=np.ascontiguousarray(mesh.basis),
         axis_scale=np.asarray(cfg.axis_scale, dtype=np.float64),
         scales_mm=np.asarray(cfg.up_um, dtype=np.float64) * 1e-3,
@@ -528,11 +539,17 @@ def prepare_sweep(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh | None = Non
             if cfg.outside == "extrapolate"
             else np.empty((0, 3, mesh.dim))
         ),
-        search=exact_search(mesh),
+        search=None if start_cells is None else exact_search(mesh),
         keys=node_keys(fm.points),
-        harmonic=_harmonic_fit(fm, cfg, mesh),
+        harmonic=harmonic,
     )
     return mesh, problem, b_ref
+
+
+def _start_cells(mesh: SimplexMesh) -> np.ndarray:
+    """The linear kernel's octant start cells of every node (`_kernels.octant_cells`)."""
+    eps = 1e-7 * float(np.ptp(mesh.coords, axis=0).max())
+    return _kernels.octant_cells(mesh.coords, mesh.node_cell, mesh.transform, mesh.neighbors, eps)
 
 
 def _harmonic_fit(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh):
@@ -582,7 +599,10 @@ def sweep_gradients(mesh: SimplexMesh, B: np.ndarray, fit=None) -> np.ndarray:
     -------
     ndarray, shape (n, 3, 3), T/mm, ``[i, c, j] = dB_c/dx_j``
     """
-    grad = node_gradients(mesh, B)
+    if fit is not None and fit.use.all():  # no node takes the linear interpolant
+        grad = np.empty((len(B), 3, 3))
+    else:
+        grad = node_gradients(mesh, B)
     if fit is not None:
         from ...models.harmonic_basis import field_basis
 

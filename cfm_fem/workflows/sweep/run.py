@@ -369,7 +369,7 @@ def _on_disk(job, fm) -> SweepRun:
     else:
         summary = write_sweep(out, res, prov, remove_stale=False)
     _remove_stale_maps(out, job.log)  # the new outputs are complete: now the old maps can go
-    written = _finish(job, runner)
+    written = _finish(job, runner, res)
     return SweepRun(res, summary, written)
 
 
@@ -467,10 +467,11 @@ def _remove_stale_maps(out, log) -> None:
                   "this run and not written by cfm-fem sweep")  # fmt: skip
 
 
-def _finish(job, runner=None) -> list:
+def _finish(job, runner=None, result=None) -> list:
     """The per-node table, the report, once the maps, ``sweep.pvd`` and ``summary.json`` are
     written; the chunk store of ``runner`` goes after every output, so a run stopped before
-    then resumes from it. Returns the files written."""
+    then resumes from it. ``result``: the sweep's result in memory, the report's figures drawn
+    from it. Returns the files written."""
     from ...io.sweep_table import remove_stale_table, write_sweep_table
 
     out = Path(job.out_dir)
@@ -484,7 +485,7 @@ def _finish(job, runner=None) -> list:
     if job.report:
         from ...report.sweep import write_sweep_report  # matplotlib: loaded only when used
 
-        written = list(write_sweep_report(out) or [])
+        written = list(write_sweep_report(out, result=result) or [])
     if runner is not None:
         runner.finish(keep=job.keep_chunks)
     return written

@@ -97,7 +97,6 @@ from ...io.slab_files import (
     stage,
     staged_fieldmap,
     temp_work_dir,
-    write_slab_outputs,
 )
 from ...io.sweep_out import (
     remove_earlier_outputs,
@@ -107,27 +106,29 @@ from ...models.mesh import (
     build_mesh,
     delaunay_coords,
     morton_order,
-    sliver_note,
-    tie_note,
 )
-from ...models.node_weights import node_volumes, weighted_percentiles
+from ...models.node_weights import node_volumes
 from ...models.sweep import (
     HTM_PARTS,
     SweepConfig,
-    SweepResult,
-    _gum_u,
-    harmonic_summary,
+    assemble_result,
     summarize,
     uses_harmonic,
 )
 from .problem import (
-    fallback_note,
     field_fit_info,
     prepare_sweep,
     serial_map,
     sweep_gradients,
     up_too_large,
     with_bench,
+)
+from .slab_outputs import (
+    disk_percentiles,
+    disk_weighted_percentiles,
+    merge_slabs,
+    write_slab_outputs,
+    zero_sums,
 )
 from .slab_plan import (
     SlabPlan,
@@ -164,79 +165,6 @@ GONE_ROWS_FACTOR = 2.0
 #: Rows a slab + halo may always grow to for those slivers (little memory, and the same
 #: numbers as the in-memory run).
 SMALL_SLAB_ROWS = 20_000
-
-
-def disk_percentiles(chunks, qs, in_memory_limit: int = 1 << 22):
-    """``np.percentile(values, qs)`` (linear) of values given in chunks, bit for bit.
-
-    Parameters
-    ----------
-    chunks : callable() -> iterable of ndarray
-        Yields the values (float64, finite) chunk by chunk; called several times.
-    qs : sequence of float
-        Percentiles, 0..100.
-    in_memory_limit : int
-        Up to this many values they are gathered and numpy is called; beyond, exact order
-        statistics are found by histogram refinement, O(chunk) memory.
-
-    Returns
-    -------
-    list of float or None
-        None for every q when there are no values.
-    """
-    n = sum(len(c) for c in chunks())
-    if n == 0:
-        return [None for _ in qs]
-    if n <= in_memory_limit:
-        vals = np.concatenate(list(chunks()))
-        return [float(np.percentile(vals, q)) for q in qs]
-    out = []
-    for q in qs:
-        # numpy's linear method: virtual index (n - 1) * q / 100, then its _lerp
-        vi = np.asarray((n - 1) * np.true_divide(q, 100))
-        prev = np.floor(vi)
-        gamma = np.asarray(vi - prev)
-        i0 = int(prev)
-        i1 = min(i0 + 1, n - 1)
-        a, b = _order_stat(chunks, i0), _order_stat(chunks, i1)
-        a, b = np.float64(a), np.float64(b)
-        diff = b - a
-        res = np.add(a, diff * gamma)
-        if gamma >= 0.5:
-            res = np.subtract(b, diff * (1 - gamma))
-        out.append(float(res))
-    return out
-
-
-def _order_stat(chunks, rank, bins: int = 4096, gather: int = 1 << 20):
-    """The value of 0-based ``rank`` in sorted order, by histogram refinement."""
-    lo, hi = np.inf, -np.inf
-    for c in chunks():
-        if len(c):
-            lo, hi = min(lo, c.min()), max(hi, c.max())
-    below = 0  # values < lo
-    while True:
-        sel = [c[(c >= lo) & (c <= hi)] for c in chunks()]
-        count = sum(len(s) for s in sel)
-        if count <= gather or lo == hi:
-            vals = np.sort(np.concatenate(sel))
-            return float(vals[rank - below])
-        edges = np.linspace(lo, hi, bins + 1)
-        hist = np.zeros(bins, dtype=np.int64)
-        for s in sel:
-            hist += np.bincount(
-                np.clip(np.searchsorted(edges, s, side="right") - 1, 0, bins - 1), minlength=bins
-            )
-        cum = np.cumsum(hist)
-        j = int(np.searchsorted(cum, rank - below, side="right"))
-        below += int(cum[j - 1]) if j else 0
-        new_lo = edges[j]
-        new_hi = edges[j + 1] if j + 1 < bins else hi
-        new_hi = np.nextafter(new_hi, -np.inf) if j + 1 < bins else new_hi
-        if new_lo == lo and new_hi == hi:  # cannot split further
-            vals = np.sort(np.concatenate(sel))
-            return float(vals[rank - below])
-        lo, hi = new_lo, max(new_hi, new_lo)
 
 
 def run_slab_sweep(
@@ -343,8 +271,10 @@ def run_slab_sweep(
                     flat_map(staged_fieldmap(st, path))
                 finished = True
                 return None
-            summary = _run(st, path, cfg, out, work, n_slabs, max_memory, provenance, halo_cells,
-                           log, progress, t0, resume, map_chunks, progress_total)  # fmt: skip
+            summary = _run(st, path, cfg, out, work, n_slabs=n_slabs, max_memory=max_memory,
+                           prov=provenance, halo_cells=halo_cells, log=log, progress=progress,
+                           t0=t0, resume=resume, map_chunks=map_chunks,
+                           progress_total=progress_total)  # fmt: skip
             finished = True
         except CfmInputError:
             finished = True  # bad input: nothing kept
@@ -379,16 +309,38 @@ def _slab_work_dir(out: Path, description: dict, resume: bool) -> Path:
     return new_work_dir(work, {"key": key, "run": description})
 
 
-def _zero_sums(n_col: int) -> dict:
-    """The counts a slab adds to the run's summary (`_summary`)."""
-    return dict(n_out=np.zeros(n_col, np.int64), n_lost=np.zeros(n_col, np.int64), processed=0,
-                star=0, dis=np.zeros((n_col, 4), np.int64), cells=0, halo_nodes=0,
-                unreachable=0, slivers=0, ties=0)  # fmt: skip
+@dataclass
+class _Layout:
+    """How an out-of-core run cuts its map: the mesh kind and the slabs with their halo."""
+
+    cfg: SweepConfig
+    b_ref: float
+    sigma: float  # mm: the halo's probe error (std of the largest U_p; htm: its reach / 6)
+    n_col: int
+    n_slabs: int
+    span: float  # mm: the map's longest side
+    kind: str  # "grid" or "delaunay"
+    grid_shape: tuple | None
+    halo_cells: float
+    step: float = 0.0  # mm: cell size
+    halo: float = 0.0  # mm
+    plan: SlabPlan | None = None
+    reach: str = ""
+
+    @property
+    def htm(self) -> bool:
+        return self.cfg.mode == "htm"
+
+    def cut(self, st, step: float) -> None:
+        """Slabs of cells of size ``step`` (mm) with the halo they need."""
+        self.step = step
+        self.halo = self.halo_cells * step + 6.0 * self.sigma
+        self.plan = plan_slabs(st, self.n_slabs, self.halo)
 
 
-def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
-         resume=False, map_chunks=None, progress_total=None):  # fmt: skip
-    file = str(path)
+def _layout(st, cfg, file, n_slabs, max_memory, halo_cells) -> _Layout:
+    """The run's `_Layout` before duplicates are merged (options refused with a
+    `CfmInputError` naming ``file``)."""
     n_rows = len(st.rows)
     htm = cfg.mode == "htm"
     b_ref = st.b_max if cfg.b_ref_T is None else float(cfg.b_ref_T)
@@ -417,20 +369,42 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     grid_shape = None if keys is None else tuple(len(k) for k in keys)
     if kind in ("auto", "grid"):
         kind = "grid" if grid_shape is not None and min(grid_shape) >= 2 else "delaunay"
+    lay = _Layout(
+        cfg=cfg,
+        b_ref=b_ref,
+        sigma=sigma,
+        n_col=n_col,
+        n_slabs=n_slabs,
+        span=span,
+        kind=kind,
+        grid_shape=grid_shape,
+        halo_cells=halo_cells,
+        reach="the bench's largest probe error" if htm else "6 sigma of the largest U_p",
+    )
     if kind == "grid":
-        step = float(np.diff(keys[axis]).max()) * span * 1e-9
+        lay.cut(st, float(np.diff(keys[axis]).max()) * span * 1e-9)
     else:
-        step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
-    halo = halo_cells * step + 6.0 * sigma
-    plan = plan_slabs(st, n_slabs, halo)
-    K = plan.n_slabs
-    reach = "the bench's largest probe error" if htm else "6 sigma of the largest U_p"
-    log(f"slabs: {K} along {'xyz'[plan.axis]}, halo {halo:.4g} mm ({halo_cells:g} cells of "
-        f"{step:.4g} mm + {reach}, {6 * sigma * 1e3:.4g} um); {n_rows} rows staged")  # fmt: skip
-    # pass A: duplicates (and the grid test: one node per lattice point)
+        lay.cut(st, float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0))
+    return lay
+
+
+def _merge_duplicates(st, lay: _Layout, file, log):
+    """Pass A over the slabs: duplicate rows merged (and the grid test: one node per lattice
+    point); a sparse grid under ``--interpolation auto`` becomes Delaunay (``lay`` re-cut).
+
+    Returns
+    -------
+    dropped : ndarray, int64
+        Rows merged into an earlier one.
+    notes : list of str
+    """
+    n_rows = len(st.rows)
+    log(f"slabs: {lay.plan.n_slabs} along {'xyz'[lay.plan.axis]}, halo {lay.halo:.4g} mm "
+        f"({lay.halo_cells:g} cells of {lay.step:.4g} mm + {lay.reach}, "
+        f"{6 * lay.sigma * 1e3:.4g} um); {n_rows} rows staged")  # fmt: skip
     dropped = []
-    for k in range(K):
-        rows, _ = extract_slab(st, plan, k, 1e-6)  # a group split by an edge is seen by both
+    for k in range(lay.plan.n_slabs):
+        rows, _ = extract_slab(st, lay.plan, k, 1e-6)  # a group split by an edge is seen by both
         dropped.append(merge_duplicates(st, rows, file))
         st.release()
     dropped = np.unique(np.concatenate(dropped)) if dropped else np.empty(0, np.int64)
@@ -438,41 +412,24 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
     notes = list(st.notes)
     if len(dropped):
         msg = f"{file}: merged {len(dropped)} duplicate node(s) with identical position and field"
-        warnings.warn(msg, CfmInputWarning, stacklevel=3)
+        warnings.warn(msg, CfmInputWarning, stacklevel=4)
         notes.append(msg)
-    if (
-        kind == "grid"
-        and cfg.interpolation == "auto"
-        and np.prod(grid_shape, dtype=float) > 4.0 * n
-    ):
-        kind = "delaunay"
-        step = float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0)
-        halo = halo_cells * step + 6.0 * sigma
-        plan = plan_slabs(st, n_slabs, halo)
-        K = plan.n_slabs
-    if kind == "grid":
-        missing = int(np.prod(grid_shape)) - n
+    auto = lay.cfg.interpolation == "auto"
+    if lay.kind == "grid" and auto and np.prod(lay.grid_shape, dtype=float) > 4.0 * n:
+        lay.kind = "delaunay"
+        lay.cut(st, float(np.prod(st.hi - st.lo) / n_rows) ** (1.0 / 3.0))
+    if lay.kind == "grid":
+        missing = int(np.prod(lay.grid_shape)) - n
         if missing:
             notes.append(f"nodes on a rectilinear grid with {missing} grid point(s) missing: "
                          "cells touching a missing point are left out, not bridged")  # fmt: skip
+    return dropped, notes
 
-    # the whole map's hull: a slab removes the hull slivers the whole map removes
-    hull = hull_points(st) if kind == "delaunay" and cfg.hull_slivers == "remove" else None
-    store = SlabStore(work / "results")
-    harmonic = uses_harmonic(cfg.field_model, 3)  # slabs cut 3-D maps only
-    for name, dtype, cols in (("uf", np.float64, n_col), ("complete", np.bool_, n_col),
-                              ("volume", np.float64, 1), ("e2", np.float64, n_col),
-                              ("fit", np.float64, 2)):  # fmt: skip
-        if name not in ("e2", "fit") or (htm if name == "e2" else harmonic):
-            make_per_node_file(work / f"{name}.npy", dtype, (n, cols), resume)
-    job = _SlabJob(st=st, plan=plan, dropped=dropped, cfg=cfg, file=file, kind=kind, halo=halo,
-                   b_ref=b_ref, n_col=n_col, htm=htm, span=span, work=work,
-                   hull=hull)  # fmt: skip
-    if map_chunks is None:  # slabs run here: progress block by block within each slab
-        job.progress = progress
+
+def _run_slabs(job, store, K, resume, map_chunks, progress, log):
+    """Run every slab not finished by an interrupted run; returns ({slab: record}, number of
+    slabs taken from that run)."""
     records = {}
-    if progress_total is not None:
-        progress_total(n)
     for k in range(K):
         record = store.done(k) if resume else None
         if record is not None:  # finished by an interrupted run with the same key
@@ -487,70 +444,43 @@ def _run(st, path, cfg, out, work, n_slabs, max_memory, prov, halo_cells, log, p
         records[k] = record
         if progress is not None:  # the rest of the slab's nodes, now that it is saved
             early = 0 if job.progress is None else _reported_early(record["nodes"],
-                                                                   cfg.chunk_nodes)  # fmt: skip
+                                                                   job.cfg.chunk_nodes)  # fmt: skip
             progress(record["nodes"] - early)
-    sums, template, mesh_notes = _zero_sums(n_col), None, []
-    for k in range(K):  # merged in slab order: the same summary however the slabs ran
-        record = records[k]
-        for key, v in record["sums"].items():
-            sums[key] = sums[key] + (np.asarray(v, dtype=np.int64) if np.ndim(v) else v)
-        mesh_notes += [m for m in record["mesh_notes"] if m not in mesh_notes]
-        template = template or record["template"]
-    e2_all = open_per_node(work / "e2.npy", "r") if htm else None
-    uf_all = open_per_node(work / "uf.npy", "r")
-    ok_all = open_per_node(work / "complete.npy", "r")
-    vol_all = open_per_node(work / "volume.npy", "r")
-    if htm:  # as SweepResult.column_up_um, over the whole map
-        ups = [float(np.sqrt(np.nanmean(e2_all[:, k])) * 1e3) for k in range(n_col)]
-        if sums["unreachable"]:
-            notes.append(f"{sums['unreachable']} node(s) lie outside the strokes of the bench's "
-                         "axes: no statistics (NaN)")  # fmt: skip
-    else:
-        ups = [float(u) for u in cfg.up_um]
-    if sums["ties"]:
-        mesh_notes.append(tie_note(int(sums["ties"]), span))
-    if sums["slivers"]:
-        mesh_notes.append(sliver_note(int(sums["slivers"])))
-    if harmonic:
-        n_linear = int((open_per_node(work / "fit.npy", "r")[:, 0] == 0).sum())
-        if n_linear:
-            rule = template["harmonic"]["fallback_rule"]
-            mesh_notes.append(fallback_note(n_linear, n, rule))
-    summary = _summary(template, ups, n, (uf_all, ok_all, vol_all), sums, notes + mesh_notes,
-                       kind, file)  # fmt: skip
-    if harmonic:  # the whole map's fits, from the per-node file and the slabs' boxes
-        boxes = [records[k]["fit_box"] for k in range(K) if records[k].get("fit_box")]
-        box = None
-        if boxes:
-            box = [np.min([b[0] for b in boxes], axis=0).tolist(),
-                   np.max([b[1] for b in boxes], axis=0).tolist()]  # fmt: skip
-        fit_all = open_per_node(work / "fit.npy", "r")
-        summary.update(harmonic_summary(fit_all[:, 0].astype(np.int64),
-                                        fit_all[:, 1] / b_ref * 1e4, box,
-                                        template["harmonic"]))  # fmt: skip
-        del fit_all
-    summary["slabs"] = {
-        "count": K,
-        "axis": "xyz"[plan.axis],
-        "edges_mm": [float(e) for e in plan.edges],
-        "halo_mm": float(halo),
-        "halo_rule": f"{halo_cells:g} cell sizes ({step:.6g} mm) + {reach} "
-        f"({6 * sigma * 1e3:.6g} um), doubled per slab where a cell of an own node was not "
-        "certified",
-        "halo_outside_nodes": int(sums["halo_nodes"]),
-    }
+    return records, reused
+
+
+def _run(st, path, cfg, out, work, *, n_slabs, max_memory, prov, halo_cells, log, progress, t0,
+         resume=False, map_chunks=None, progress_total=None):  # fmt: skip
+    """The out-of-core run once staged: layout, duplicates, slabs, summary and outputs."""
+    file = str(path)
+    lay = _layout(st, cfg, file, n_slabs, max_memory, halo_cells)
+    cfg = lay.cfg
+    dropped, notes = _merge_duplicates(st, lay, file, log)
+    n = len(st.rows) - len(dropped)
+    # the whole map's hull: a slab removes the hull slivers the whole map removes
+    hull = hull_points(st) if lay.kind == "delaunay" and cfg.hull_slivers == "remove" else None
+    store = SlabStore(work / "results")
+    harmonic = uses_harmonic(cfg.field_model, 3)  # slabs cut 3-D maps only
+    for name, dtype, cols in (("uf", np.float64, lay.n_col), ("complete", np.bool_, lay.n_col),
+                              ("volume", np.float64, 1), ("e2", np.float64, lay.n_col),
+                              ("fit", np.float64, 2)):  # fmt: skip
+        if name not in ("e2", "fit") or (lay.htm if name == "e2" else harmonic):
+            make_per_node_file(work / f"{name}.npy", dtype, (n, cols), resume)
+    job = _SlabJob(st=st, plan=lay.plan, dropped=dropped, cfg=cfg, file=file, kind=lay.kind,
+                   halo=lay.halo, b_ref=lay.b_ref, n_col=lay.n_col, htm=lay.htm, span=lay.span,
+                   work=work, hull=hull)  # fmt: skip
+    if map_chunks is None:  # slabs run here: progress block by block within each slab
+        job.progress = progress
+    if progress_total is not None:
+        progress_total(n)
+    K = lay.plan.n_slabs
+    records, reused = _run_slabs(job, store, K, resume, map_chunks, progress, log)
+    summary = merge_slabs(records, K, work, lay, n, notes, file)
     if reused:
         summary["notes"].append(f"resumed: {reused} of {K} slabs taken from the interrupted run")
-    if sums["halo_nodes"]:
-        summary["notes"].append(
-            f"{sums['halo_nodes']} node(s) had trials whose walk reached the halo border of their "
-            f"slab: those trials are counted as outside"
-            + (" and left out (not extrapolated)" if cfg.outside == "extrapolate" else "")
-            + " (use fewer slabs or a wider halo)"
-        )
     summary["seconds"] = time.perf_counter() - t0
     summary["provenance"] = prov or {}
-    write_slab_outputs(out, store, K, cfg, b_ref, summary)
+    write_slab_outputs(out, store, K, cfg, lay.b_ref, summary)
     return summary
 
 
@@ -646,7 +576,7 @@ class _SlabJob:
         st, plan, cfg, file = self.st, self.plan, self.cfg, self.file
         kind, b_ref, n_col, htm, span = self.kind, self.b_ref, self.n_col, self.htm, self.span
         store = SlabStore(self.work / "results")
-        sums = _zero_sums(n_col)
+        sums = zero_sums(n_col)
         messages = []
         own, ids, pts, B, lfm, mesh, gone, boxes, cert, cert_gone = self._certified_slab(
             k, messages
@@ -658,8 +588,9 @@ class _SlabJob:
         lcfg = dataclasses.replace(cfg, b_ref_T=b_ref)
         mesh, problem, _ = prepare_sweep(lfm, lcfg, mesh)
         gp, start_l, nb_b, search_b = _sentinel_problem(
-            problem, mesh, cert, gone, cert_gone, boxes, plan, st, kind, span, len(ids)
-        )
+            problem, mesh, cert, gone, cert_gone, boxes=boxes, plan=plan, st=st, kind=kind,
+            span=span, nl=len(ids),
+        )  # fmt: skip
         own_ids = ids[own]
         own_local = np.flatnonzero(own)
         own_keys = problem.keys[own_local]  # hashes of the coordinates, as the whole map's
@@ -694,22 +625,16 @@ class _SlabJob:
             fit_box = [lin.min(axis=0).tolist(), lin.max(axis=0).tolist()] if len(lin) else None
         sub = FieldMap(points=pts[own], B=B[own], source=file)
         if htm:
-            sigma_mm, corr = pos[:, :, 1], pos[:, :, 2]  # per-node std and correlations
             q_own = cfg.bench.axis_positions_for(pts[own])
             sums["unreachable"] += int(cfg.bench.outside_stroke(q_own).sum())
             e2_all = self.per_node("e2")
             e2_all[own_ids] = (pos[:, :, 0] ** 2).sum(-1) + (pos[:, :, 1] ** 2).sum(-1)
             e2_all.flush()
             del e2_all
-        else:
-            sigma_mm, corr = (problem.scales_mm[:, None] * problem.axis_scale[None, :])[None], None
         volume = node_volumes(mesh)[0][own]  # the halo holds every cell around an own node
-        res = SweepResult(fieldmap=sub, mesh=mesh, config=cfg, b_ref_T=b_ref, stats=stats,
-                          n_outside=n_out, n_walk_failed=n_lost, linear_in_up=star,
-                          gradient=grad, seconds=0.0,
-                          gum_u=_gum_u(grad, sub.B, b_ref, sigma_mm, corr),
-                          positioning=pos if htm else None, n_left_out=n_left,
-                          field_fit=fit, node_volume_mm3=volume)  # fmt: skip
+        res = assemble_result(sub, mesh, cfg, b_ref, (stats, n_out, n_lost, star,
+                              pos if htm else None), grad, n_left_out=n_left, field_fit=fit,
+                              node_volume_mm3=volume)  # fmt: skip
         uf, complete = res.uf_units(), res.complete()
         uf_all, ok_all = self.per_node("uf"), self.per_node("complete")
         vol_all = self.per_node("volume")
@@ -750,7 +675,7 @@ def _fit_arrays(fit) -> dict:
     return {"fit_degree": fit["degree"], "fit_residual": fit["residual_T"]}
 
 
-def _sentinel_problem(problem, mesh, cert, gone, cert_gone, boxes, plan, st, kind, span, nl):
+def _sentinel_problem(problem, mesh, cert, gone, cert_gone, *, boxes, plan, st, kind, span, nl):
     """The slab's problem with a sentinel node (NaN field) and cell (zero transform) that
     suspect faces lead to: faces to an uncertified cell, or border faces not provably on the
     map's hull.
@@ -823,126 +748,3 @@ def _run_blocks(problem, nodes, keys, block: int, progress=None):
 def _reported_early(nodes: int, block: int) -> int:
     """Nodes of a slab of ``nodes`` own nodes that `_run_blocks` reported before it ended."""
     return block * ((nodes - 1) // block) if nodes > 0 else 0
-
-
-def disk_weighted_percentiles(chunks, qs, in_memory_limit: int = 1 << 22, bins: int = 4096):
-    """`cfm_fem.models.node_weights.weighted_percentiles` of values and weights given in
-    chunks: the same figures, in O(chunk) memory beyond ``in_memory_limit`` values.
-
-    Parameters
-    ----------
-    chunks : callable() -> iterable of (ndarray, ndarray)
-        Yields (values, weights) chunk by chunk (values finite, weights >= 0); called several
-        times.
-    qs : sequence of float
-        Percentiles, 0..100.
-
-    Returns
-    -------
-    list of float or None
-    """
-    pairs = lambda: ((v[w > 0], w[w > 0]) for v, w in chunks())  # noqa: E731
-    n = sum(len(v) for v, _ in pairs())
-    if n == 0:
-        return [None for _ in qs]
-    if n <= in_memory_limit:
-        parts = list(pairs())
-        return weighted_percentiles(
-            np.concatenate([v for v, _ in parts]), np.concatenate([w for _, w in parts]), qs
-        )
-    total = sum(float(w.sum()) for _, w in pairs())
-    return [_weighted_stat(pairs, q / 100.0 * total * (1.0 - 1e-12), in_memory_limit, bins)
-            for q in qs]  # fmt: skip
-
-
-def _weighted_stat(pairs, target, gather, bins):
-    """The smallest value whose cumulative weight (values in increasing order) reaches
-    ``target``, by weighted histogram refinement."""
-    lo, hi = np.inf, -np.inf
-    for v, _ in pairs():
-        if len(v):
-            lo, hi = min(lo, v.min()), max(hi, v.max())
-    below = 0.0  # weight of the values < lo
-    while True:
-        sel = [(v[(v >= lo) & (v <= hi)], w[(v >= lo) & (v <= hi)]) for v, w in pairs()]
-        count = sum(len(v) for v, _ in sel)
-        if count <= gather or lo == hi:
-            vals = np.concatenate([v for v, _ in sel])
-            order = np.argsort(vals, kind="stable")
-            cum = below + np.cumsum(np.concatenate([w for _, w in sel])[order])
-            i = min(int(np.searchsorted(cum, target, side="left")), len(vals) - 1)
-            return float(vals[order[i]])
-        edges = np.linspace(lo, hi, bins + 1)
-        hist = np.zeros(bins)
-        for v, w in sel:
-            idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, bins - 1)
-            hist += np.bincount(idx, weights=w, minlength=bins)
-        cum = below + np.cumsum(hist)
-        j = min(int(np.searchsorted(cum, target, side="left")), bins - 1)
-        below = float(cum[j - 1]) if j else below
-        new_lo = edges[j]
-        new_hi = np.nextafter(edges[j + 1], -np.inf) if j + 1 < bins else hi
-        if new_lo == lo and new_hi == hi:  # cannot split further
-            gather = count
-            continue
-        lo, hi = new_lo, max(new_hi, new_lo)
-
-
-def _summary(template, ups, n, per_node, sums, notes, kind, file):
-    uf_all, ok_all, vol_all = per_node
-    s = dict(template)
-    n_col = len(ups)
-    step = 1 << 20
-
-    def blocks(k):
-        for a in range(0, n, step):
-            ok = np.array(ok_all[a : a + step, k])
-            yield np.array(uf_all[a : a + step, k])[ok], np.array(vol_all[a : a + step, 0])[ok]
-            for arr in (uf_all, ok_all, vol_all):  # one block resident at a time
-                drop_pages(getattr(arr, "_mmap", None))
-
-    def column(k):
-        return lambda: (v for v, _ in blocks(k))
-
-    pct = {"p50": [], "p95": [], "p99": [], "max": []}
-    per = {"p50": [], "p95": [], "p99": [], "max": []}
-    uf_nodes, uf_volume = [], []
-    for k in range(n_col):
-        vals = disk_percentiles(column(k), [50, 95, 99, 100])
-        for name, v in zip(per, vals, strict=True):
-            per[name].append(v)
-        weighted = disk_weighted_percentiles(lambda k=k: blocks(k), [50, 95, 99])
-        for name, v in zip(("p50", "p95", "p99"), weighted, strict=True):
-            pct[name].append(v)
-        pct["max"].append(per["max"][-1])
-        uf_nodes.append(int(sum(len(c) for c in column(k)())))
-        uf_volume.append(sum(float(w.sum()) for _, w in blocks(k)))
-    volume = sum(float(np.asarray(vol_all[a : a + step, 0]).sum()) for a in range(0, n, step))
-    n_samples = max(sums["processed"], 1) * s["trials"]
-    s["up_um"] = list(ups)
-    s["uf_units"] = pct
-    s["uf_units_per_node"] = per
-    s["region_nodes"] = int(n)
-    s["region_volume_mm3"] = volume
-    s["uf_volume_fraction"] = [v / volume if volume > 0 else None for v in uf_volume]
-    s["uf_nodes"] = uf_nodes
-    s["nodes"] = int(n)
-    s["processed_nodes"] = int(sums["processed"])
-    s["outside_fraction"] = [float(v / n_samples) for v in sums["n_out"]]
-    s["walk_failed_fraction"] = [float(v / n_samples) for v in sums["n_lost"]]
-    s["gum_disagree_fraction"] = [
-        {name: (float(sums["dis"][k, c] / uf_nodes[k]) if uf_nodes[k] else None)
-         for c, name in enumerate(("Bx", "By", "Bz", "absB"))}
-        for k in range(n_col)
-    ]  # fmt: skip
-    s["gum_disagree_nodes"] = [
-        {name: int(sums["dis"][k, c]) for c, name in enumerate(("Bx", "By", "Bz", "absB"))}
-        for k in range(n_col)
-    ]
-    s["linear_in_up_fraction"] = (
-        float(sums["star"] / sums["processed"]) if sums["processed"] else None
-    )
-    s["interpolation"] = s["interpolation"].rsplit(";", 1)[0] + f"; {sums['cells']} simplices"
-    s["notes"] = list(notes)
-    s["source"] = file
-    return s
