@@ -407,8 +407,9 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                                          **kw) for g in groups_src]  # fmt: skip
         traj = None
         if rigidity_Tm is not None:
-            traj = _trajectory(model, plan, nominal, mc, n_main, float(rigidity_Tm),
-                               trajectory_step_mm, energy_gev, particle)  # fmt: skip
+            traj = _trajectory(model, plan, nominal, mc, n_main, rigidity=float(rigidity_Tm),
+                               step=trajectory_step_mm, energy=energy_gev,
+                               particle=particle)  # fmt: skip
         return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, traj,
                           fm.source, model_desc, src_desc, fm.n_nodes, notes, provenance,
                           time.perf_counter() - t0)  # fmt: skip
@@ -426,7 +427,7 @@ def _naming(source):
         raise CfmInputError(exc.what, line=exc.line, column=exc.column, file=source) from None
 
 
-def _trajectory(model, plan, nominal, mc, n_main, rigidity, step, energy, particle) -> dict:
+def _trajectory(model, plan, nominal, mc, n_main, *, rigidity, step, energy, particle) -> dict:
     """The ``trajectory`` entry of quality.json: an orbit along the axis through the map."""
     t = track(model.field_at, rigidity, float(plan.z[0]), float(plan.z[-1]), step_mm=step)
     straight = float(nominal.integrated[0].real) / (1000.0 * rigidity) * 1e3
