@@ -27,6 +27,7 @@ __all__ = [
     "run_compare",
     "run_diagnose",
     "run_design",
+    "run_design_quality",
     "run_quality",
     "SWEEP_TRIALS",
 ]
@@ -289,3 +290,37 @@ def run_quality(field, r_ref_mm: float, *, up_um=None, mode=None, bench=None, tr
 
     return run(field, r_ref_mm, up_um=up_um, mode=mode, bench=bench, trials=trials, seed=seed,
                progress=progress, **options)  # fmt: skip
+
+
+def run_design_quality(field, r_ref_mm: float, quantity: str, max_value: float, *,
+                       trials: int = 2000, seed: int = 0, progress=None, **options):  # fmt: skip
+    """Largest U_p that keeps U95 of a field-quality figure within ``max_value``
+    (``cfm-fem design FIELD --quantity Q --max X --r-ref MM``).
+
+    Parameters
+    ----------
+    field : path-like or FieldMap
+    r_ref_mm : float, mm
+        Reference radius of the harmonics.
+    quantity : str
+        ``b1`` .. ``b15``, ``a1`` .. ``a15`` (units), ``centre_x_um``, ``centre_y_um``,
+        ``roll_mrad`` or ``magnetic_length_mm``.
+    max_value : float
+        Limit of its U95, in the quantity's unit.
+    trials : int
+        Trials of the quality Monte Carlo per U_p, as the command line's default.
+    seed : int
+    progress : callable(int), optional
+    **options
+        Other arguments of `cfm_fem.workflows.design_quality.quality_up_max` (``probe``,
+        ``field_model``, ``sampling``, ``reader``, ...).
+
+    Returns
+    -------
+    cfm_fem.workflows.design_quality.QualityDesign
+        ``.summary()`` is ``design.json``; ``.write(out_dir)`` writes it.
+    """
+    from .workflows.design_quality import quality_up_max
+
+    return quality_up_max(field, r_ref_mm, quantity, max_value, trials=trials, seed=seed,
+                          progress=progress, **options)  # fmt: skip

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+import cfm_fem
 from cfm_fem.cli import main
 from cfm_fem.io import write_field
 from cfm_fem.models.field import FieldMap
@@ -63,8 +64,12 @@ def test_cli_writes_design_json(quad, tmp_path, capsys):
             "--trials", str(TRIALS), "--seed", "3", "--out", str(out)]  # fmt: skip
     assert main(argv) == 0, capsys.readouterr().err
     doc = json.loads((out / "design.json").read_text())
-    ref = quality_up_max(quad, R_REF, "b3", 1.0, trials=TRIALS, seed=3)
+    ref = cfm_fem.run_design_quality(quad, R_REF, "b3", 1.0, trials=TRIALS, seed=3)
     assert doc["up_max_um"] == pytest.approx(ref.up_max_um, rel=1e-12)
+    api = json.loads(json.dumps(ref.summary()))  # the API's design.json, as the CLI writes it
+    assert {k: v for k, v in doc.items() if k != "provenance"} == {
+        k: v for k, v in api.items() if k != "provenance"
+    }
     assert doc["answer"].startswith("U_p <= ") and doc["unit"] == "units"
     assert doc["evaluations"][0]["up_um"] == 10.0
 

@@ -124,7 +124,6 @@ def _run(args, up) -> int:
 def _run_quality_design(args) -> int:
     from ..io.lock import output_lock
     from ..io.provenance import provenance
-    from ..io.run_files import write_run
     from ..workflows.design_quality import QUANTITIES, quality_up_max
 
     for flag, value in (("--quantity", args.quantity), ("--max", args.max),
@@ -146,16 +145,7 @@ def _run_quality_design(args) -> int:
             ans = quality_up_max(args.field, args.r_ref, args.quantity, args.max, trials=trials,
                                  seed=args.seed, field_model=_quality_model(args.field_model),
                                  reader=reader_kwargs(args), progress=bar.update)  # fmt: skip
-        prov = provenance({"field": args.field}, args.command_line)
-        doc = {
-            "answer": ans.sentence(), **ans.to_dict(), "r_ref_mm": args.r_ref,
-            "definition": "largest U_p (um, N(0, U_p^2) per axis and scan point) whose U95 of "
-            "the quantity, from the Monte Carlo of cfm-fem quality in mode gauss with the same "
-            "seed at every U_p, is <= max (cfm_fem.workflows.design_quality); u_up_max_um: U_p "
-            "times the relative spread of U95 over the run's batches",
-            "provenance": prov,
-        }  # fmt: skip
-        write_run(args.out, {"design.json": doc})
+        ans.write(args.out, provenance({"field": args.field}, args.command_line))
     print(ans.sentence())
     for up, u in ans.evaluations:
         print(f"  U_p = {up:.4g} um: U95({args.quantity}) = {u:.4g} {ans.unit}")

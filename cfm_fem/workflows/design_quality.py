@@ -77,6 +77,8 @@ class QualityDesign:
     trials, seed : int
     probe : str
     main_order : int
+    r_ref_mm : float, mm
+        Reference radius of the harmonics.
     """
 
     quantity: str
@@ -91,6 +93,7 @@ class QualityDesign:
     seed: int = 0
     probe: str = "paper"
     main_order: int = 0
+    r_ref_mm: float = 0.0
 
     def sentence(self) -> str:
         """``U_p <= 12.3 +- 0.4 um keeps U95(b3) <= 1 units``."""
@@ -109,6 +112,23 @@ class QualityDesign:
         out = dict(self.__dict__)
         out["evaluations"] = [{"up_um": u, "U95": v} for u, v in self.evaluations]
         return out
+
+    def summary(self, provenance: dict | None = None) -> dict:
+        """The content of ``design.json``."""
+        return {
+            "answer": self.sentence(), **self.to_dict(),
+            "definition": "largest U_p (um, N(0, U_p^2) per axis and scan point) whose U95 of "
+            "the quantity, from the Monte Carlo of cfm-fem quality in mode gauss with the same "
+            "seed at every U_p, is <= max (cfm_fem.workflows.design_quality); u_up_max_um: U_p "
+            "times the relative spread of U95 over the run's batches",
+            "provenance": provenance or {},
+        }  # fmt: skip
+
+    def write(self, out_dir, provenance: dict | None = None) -> list:
+        """Write ``out_dir/design.json``; returns the paths written."""
+        from ..io.run_files import write_run
+
+        return write_run(out_dir, {"design.json": self.summary(provenance)})
 
 
 def quality_up_max(fieldmap, r_ref_mm: float, quantity: str, max_value: float, *,
@@ -190,7 +210,8 @@ def quality_up_max(fieldmap, r_ref_mm: float, quantity: str, max_value: float, *
         return value
 
     base = dict(quantity=quantity, unit=unit, max_value=float(max_value), trials=int(trials),
-                seed=int(seed), probe=probe, main_order=n_main)  # fmt: skip
+                seed=int(seed), probe=probe, main_order=n_main,
+                r_ref_mm=float(r_ref_mm))  # fmt: skip
     if not np.isfinite(vec[j]):
         return QualityDesign(up_max_um=None, u_up_max_um=None, u95_at_answer=None,
                              method="undetermined", evaluations=evaluations, **base)  # fmt: skip

@@ -65,7 +65,7 @@ def prior_conflicts(model, fit, base, released, alpha: float, blocks=(), kind="h
         if not (np.isfinite(s) and s > 0):
             continue
         C = float(fit.cov[i, i])
-        if C >= 0.9 * s**2:
+        if 0.9 * s**2 <= C:
             continue  # the data say little about it on its own
         z = (fit.theta[i] - model.prior_mean[i]) / np.sqrt(s**2 - C)
         rows.append((nm, i, float(z), float(2 * stats.norm.sf(abs(z)))))

@@ -296,7 +296,7 @@ def _conflict(model: Columns, current: Fit, names, alpha):
         if not np.isfinite(s2):
             continue  # already released
         C = float(current.cov[i, i])
-        det = C < 0.5 * s2  # the data tell more than the prior
+        det = 0.5 * s2 > C  # the data tell more than the prior
         z = (current.theta[i] - model.prior_mean[i]) / np.sqrt(max(s2 - C, 1e-300))
         out.append(
             {
