@@ -52,7 +52,7 @@ def add_args(p):
         "(batch runs)",
     )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
-    add_field_model_arg(p, "--reference")
+    add_field_model_arg(p, "--reference", auto=True)
 
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
@@ -77,12 +77,9 @@ def _check_enough(rec):
 
 def node_spacing_mm(points) -> float:
     """Typical node spacing of a map (median distance to the nearest other node), mm."""
-    import numpy as np
-    from scipy.spatial import cKDTree
+    from ..workflows.diagnose.reference import node_spacing_mm as spacing
 
-    d, _ = cKDTree(points).query(points, k=2)
-    d = d[:, 1]
-    return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
+    return spacing(points)
 
 
 def _is_harmonics(spec) -> bool:
@@ -104,8 +101,8 @@ def _reference(spec, rec, r_ref=None, args=None):
 
     from ..workflows.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
-    field_model = "linear" if args is None else args.field_model
-    if field_model != "linear" and (spec.startswith(("fit:", "fitz:")) or _is_harmonics(spec)):
+    field_model = "auto" if args is None else args.field_model
+    if field_model != "auto" and (spec.startswith(("fit:", "fitz:")) or _is_harmonics(spec)):
         raise CfmInputError(
             f"--field-model applies to a field map; --reference {spec} is a field model of its own"
         )
@@ -138,15 +135,10 @@ def _reference(spec, rec, r_ref=None, args=None):
         mp = read_harmonics(path, r_ref_mm=r_ref)
         return mp.field, mp.b_ref, None, f"2-D multipole {path.name}"
     from ..io import read_field
-    from ..models.interpolation import LinearInterpolator
+    from ..workflows.diagnose.reference import reference_model
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
-    if field_model == "harmonic":
-        from ..models.harmonic import fit_harmonic
-
-        interp = fit_harmonic(fm.points, fm.B, source=fm.source)
-    else:
-        interp = LinearInterpolator(fm)
+    interp, kind, why = reference_model(fm, field_model)
 
     def fn(p):
         b, inside = interp.field_at(p)
@@ -166,16 +158,22 @@ def _reference(spec, rec, r_ref=None, args=None):
             line=int(rec.lines[i]) or None,
         )
     spacing = node_spacing_mm(fm.points)
-    desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart)"
-    if field_model == "harmonic":  # smooth between nodes: no interpolation error to add
+    desc = f"FEM map {path.name} (nodes {spacing:.3g} mm apart"
+    b_ref = float(np.nanmax(np.linalg.norm(fm.B, axis=1)))
+    if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
+        fn.error_var = interp.error_var
+        fb = f", {interp.n_fallback} node(s) read linearly" if interp.n_fallback else ""
         return (
             fn,
-            float(np.nanmax(np.linalg.norm(fm.B, axis=1))),
+            b_ref,
             None,
-            (desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"),
+            (
+                f"{desc}, read between nodes by a harmonic fit per node to its {interp.fit.k} "
+                f"nearest, exact at the nodes{fb})"
+            ),
         )
     fn.nodes = fm.points  # the interpolation is exact there
-    return fn, float(np.nanmax(np.linalg.norm(fm.B, axis=1))), spacing, desc
+    return fn, b_ref, spacing, f"{desc}, read linearly between nodes{'; ' + why if why else ''})"
 
 
 def _provenance(args) -> dict:
@@ -255,7 +253,14 @@ def _run(args) -> int:
             )
         nodes = getattr(fn, "nodes", None)
         prob = hall_problem(
-            rec, fn, b_ref, bench, smooth=spacing is None, ref_spacing_mm=spacing, ref_nodes=nodes
+            rec,
+            fn,
+            b_ref,
+            bench,
+            smooth=spacing is None,
+            ref_spacing_mm=spacing,
+            ref_nodes=nodes,
+            ref_error=getattr(fn, "error_var", None),
         )
         prob.notes.append(f"reference: {desc}")
         src = args.hall_map

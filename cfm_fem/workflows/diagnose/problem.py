@@ -501,6 +501,7 @@ def hall_problem(
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
     pose=None,
+    ref_error=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -538,6 +539,11 @@ def hall_problem(
     pose : ndarray, shape (6,), optional
         Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
         None: the nominal placement.
+    ref_error : callable, optional
+        ``ref_error(points (m, 3) mm) -> variance (m, 3) T^2`` of a smooth reference's own
+        error between its nodes (a map read by its harmonic fits,
+        :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`), added to
+        the noise.
     """
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
@@ -547,7 +553,8 @@ def hall_problem(
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
-                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes)  # fmt: skip
+                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
+                      ref_error=ref_error)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
@@ -597,6 +604,14 @@ def hall_problem(
             f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
             f"its interpolation error (rms {rms:.3g} units over the readings, from its "
             "curvature) is added to the noise"
+        )
+    elif ref_error is not None:
+        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        notes.append(
+            f"reference map read between nodes by its harmonic fits: their own error (rms "
+            f"{rms:.3g} units over the readings, from the spread of the nearest nodes' fits) "
+            "is added to the noise"
         )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
