@@ -276,7 +276,10 @@ def _run(args) -> int:
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:
         ps = ", ".join(
-            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}" for k, v in e["params"].items()
+            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}"
+            if k in e["param_std"]
+            else f"{k}={v:.3g} {e['units'][k]} (at its {e['at_bound'][k]} bound)"
+            for k, v in e["params"].items()
         )
         print(f"  {e['name']}: delta BIC {e['delta_bic']}; {ps}")
     print(
