@@ -5,7 +5,10 @@ DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
-itself (global, or in z windows).
+itself (global, or in z windows). A 3-D field map is read between its nodes by the harmonic
+fits of its nodes, exact at the nodes, when they hold at every reading (--field-model auto, the
+default); otherwise, or on a planar map, linearly. Either way the reference's own error between
+its nodes is estimated and added to the noise.
 """
 
 from __future__ import annotations
@@ -139,6 +142,14 @@ def _reference(spec, rec, r_ref=None, args=None):
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
     interp, kind, why = reference_model(fm, field_model)
+    if kind == "harmonic" and field_model == "auto":
+        served = interp.fit.field_at(rec.cmd)[1]
+        if not served.all():  # a smooth reading needs a fit at every reading (module doc)
+            interp, kind = interp.linear, "linear"
+            why = (
+                f"the harmonic fits do not hold at {int((~served).sum())} of {len(served)} "
+                "readings (noise in the map, currents or iron near them)"
+            )
 
     def fn(p):
         b, inside = interp.field_at(p)
