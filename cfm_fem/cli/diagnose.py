@@ -6,9 +6,9 @@ DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
 itself (global, or in z windows). A 3-D field map is read between its nodes by the harmonic
-fits of its nodes, exact at the nodes, when they hold at every reading (--field-model auto, the
-default); otherwise, or on a planar map, linearly. Either way the reference's own error between
-its nodes is estimated and added to the noise.
+fits of its nodes, exact at the nodes (--field-model auto, the default), and linearly where the
+fits fail Laplace's test; a planar map, or one whose fits hold at no reading, linearly. Either
+way the reference's own error between its nodes is estimated and added to the noise.
 """
 
 from __future__ import annotations
@@ -142,13 +142,13 @@ def _reference(spec, rec, r_ref=None, args=None):
 
     fm = read_field(path, **({} if args is None else reader_kwargs(args)))
     interp, kind, why = reference_model(fm, field_model)
+    served = interp.fit.field_at(rec.cmd)[1] if kind == "harmonic" else None
     if kind == "harmonic" and field_model == "auto":
-        served = interp.fit.field_at(rec.cmd)[1]
-        if not served.all():  # a smooth reading needs a fit at every reading (module doc)
+        if not served.any():  # no fit holds near the readings: the map is read linearly
             interp, kind = interp.linear, "linear"
             why = (
-                f"the harmonic fits do not hold at {int((~served).sum())} of {len(served)} "
-                "readings (noise in the map, currents or iron near them)"
+                f"the harmonic fits hold at none of the {len(served)} readings (noise in the "
+                "map, currents or iron near them)"
             )
 
     def fn(p):
@@ -173,7 +173,8 @@ def _reference(spec, rec, r_ref=None, args=None):
     b_ref = float(np.nanmax(np.linalg.norm(fm.B, axis=1)))
     if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
         fn.error_var = interp.error_var
-        fb = f", {interp.n_fallback} node(s) read linearly" if interp.n_fallback else ""
+        n_lin = int((~served).sum())
+        fb = f"; {n_lin} of {len(served)} readings read linearly: no fit holds" if n_lin else ""
         return (
             fn,
             b_ref,

@@ -82,14 +82,20 @@ class NodeExactHarmonic:
 
     def field_at(self, points) -> tuple[np.ndarray, np.ndarray]:
         """B (m, 3) T at ``points`` (m, 3) mm and ``inside`` (m,) bool (the map's cells hold
-        the point). Just outside the cells, within a harmonic fit's reach, the fit serves
-        uncorrected (a finite difference at the map's border); NaN beyond."""
+        the point). Outside the cells (a finite difference or a moved magnet at the map's
+        border) the nearest usable node's fit serves, uncorrected, so the field has no hole
+        there; NaN only on a map with no usable fit."""
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         b_lin, inside = self.linear.field_at(p)
         h, ok = self.fit.field_at(p)
         corr, _ = self._resid.field_at(p)
         out = b_lin.copy()
         out[ok] = h[ok] + np.where(np.isfinite(corr[ok]), corr[ok], 0.0)
+        far = ~np.isfinite(out).all(1)
+        idx, used, tree = self.fit._used
+        if far.any() and idx.size:  # beyond the cells and every reach: the nearest fit's
+            near, _ = neighbourhoods(tree, used, p[far], 1)
+            out[far] = self._eval_node(idx[near[:, 0]], p[far])
         return out, inside
 
     def __call__(self, points) -> np.ndarray:
