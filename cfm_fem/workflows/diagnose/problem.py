@@ -488,6 +488,12 @@ def _prior_note(prior: dict) -> str:
     )
 
 
+#: Finite-difference step of the gradient of a smooth reference, mm.
+STEP_SMOOTH_MM = 0.05
+#: Finite-difference step of the gradient of a map read linearly, mm.
+STEP_MAP_MM = 0.5
+
+
 def hall_problem(
     rec,
     field_fn,
@@ -497,7 +503,7 @@ def hall_problem(
     reg_std_rad: float | None = None,
     gain_std_pct: float = 0.15,
     smooth: bool = True,
-    h: float = 0.5,
+    h: float | None = None,
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
     pose=None,
@@ -528,8 +534,12 @@ def hall_problem(
         Prior std of each Hall element's gain (S_HP of Table I), percent.
     smooth : bool
         False for piecewise-linear references (second derivatives not used).
-    h : float, mm
-        Step of the finite-difference gradient.
+    h : float, mm, optional
+        Step of the finite-difference gradient; None: :data:`STEP_SMOOTH_MM` for a smooth
+        reference (a difference quotient over a shorter step is closer to the derivative: on
+        the axis of an octupole, where the gradient vanishes, a 0.5 mm step reads
+        B(0.5 mm) / 0.5 mm), :data:`STEP_MAP_MM` for a map read linearly (differences over its
+        nodes 0.5 mm either side of a reading read node values).
     ref_spacing_mm : float, optional
         Node spacing of a piecewise-linear reference map: its interpolation error is estimated
         (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and added to the noise.
@@ -545,6 +555,8 @@ def hall_problem(
         :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`), added to
         the noise.
     """
+    if h is None:
+        h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
     p = rec.cmd
