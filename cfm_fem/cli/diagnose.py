@@ -97,15 +97,17 @@ def _reference(spec, rec, r_ref=None, args=None):
     """(field function, b_ref, node spacing, description); node spacing (mm) None for a smooth
     reference (harmonics, fitted polynomial), else the map's, whose linear interpolation error
     the diagnosis adds to the noise; ``r_ref`` (mm) for a harmonics file; ``args``: the
-    command line's reader options (`_reader`), for a field map."""
+    command line's reader options (`_reader`) and ``--field-model``, for a field map (None: a
+    map read linearly)."""
     from pathlib import Path
 
     import numpy as np
 
     from ..workflows.diagnose.harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
-    field_model = "auto" if args is None else args.field_model
-    if field_model != "auto" and (spec.startswith(("fit:", "fitz:")) or _is_harmonics(spec)):
+    field_model = "linear" if args is None else args.field_model
+    own = spec.startswith(("fit:", "fitz:")) or _is_harmonics(spec)
+    if args is not None and field_model != "auto" and own:
         raise CfmInputError(
             f"--field-model applies to a field map; --reference {spec} is a field model of its own"
         )
