@@ -175,6 +175,7 @@ def _reference(spec, rec, r_ref=None, args=None):
     b_ref = float(np.nanmax(np.linalg.norm(fm.B, axis=1)))
     if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
         fn.error_var = interp.error_var
+        fn.nodes, fn.spacing = fm.points, spacing  # exact at its nodes, as a linear map
         n_lin = int((~served).sum())
         fb = f"; {n_lin} of {len(served)} readings read linearly: no fit holds" if n_lin else ""
         return (
@@ -266,13 +267,14 @@ def _run(args) -> int:
                 "give --b-ref T"
             )
         nodes = getattr(fn, "nodes", None)
+        step = spacing if spacing is not None else getattr(fn, "spacing", None)
         prob = hall_problem(
             rec,
             fn,
             b_ref,
             bench,
             smooth=spacing is None,
-            ref_spacing_mm=spacing,
+            ref_spacing_mm=step,
             ref_nodes=nodes,
             ref_error=getattr(fn, "error_var", None),
         )

@@ -541,8 +541,10 @@ def hall_problem(
         B(0.5 mm) / 0.5 mm), :data:`STEP_MAP_MM` for a map read linearly (differences over its
         nodes 0.5 mm either side of a reading read node values).
     ref_spacing_mm : float, optional
-        Node spacing of a piecewise-linear reference map: its interpolation error is estimated
-        (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and added to the noise.
+        Node spacing of a reference map. Read linearly (``smooth`` False), its interpolation
+        error is estimated (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and
+        added to the noise. Either way, when every reading lies on a node, the curvature of the
+        field there (``ctx['node_step']``) is taken from second differences of node values.
     ref_nodes : ndarray, shape (k, 3), mm, optional
         Nodes of that map: the error vanishes at a node and grows to its full size half a
         spacing away, so it is scaled by the distance to the nearest node.
@@ -627,7 +629,7 @@ def hall_problem(
         )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
-        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes) if not smooth else None,
+        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes),
         "reference_fn": field_fn,
         "B0": B0,
         "G": G,
