@@ -1,7 +1,7 @@
 """A handful of the randomized family's cases (`cfm_fem.simulation.family`), diagnosed by the
 command line as a user runs it and scored against the truth written beside them.
 
-The nulls are the kinds of clean map the diagnosis once took for effects: a sextupole scanned
+The nulls test the reference reading and the noise model on clean maps: a sextupole scanned
 on the fly through both ends against a coarse FEM-like grid read between its nodes (seed 5), a
 dipole on circles through both ends where the field gradient vanishes beyond the ends (17, the
 noise floor), an octupole on a grid whose axis readings see no gradient (26), a dipole grid
