@@ -191,7 +191,7 @@ def run_compare(recording, reference=None, bench=None, *, trials: int = COUPLED_
 
 
 def run_diagnose(recording, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None,
-                 field_model: str = "linear", progress=None, **reader):  # fmt: skip
+                 field_model: str = "auto", progress=None, **reader):  # fmt: skip
     """What the simulation leaves out of a recording (``cfm-fem diagnose``).
 
     Parameters

@@ -5,7 +5,10 @@ DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
-itself (global, or in z windows).
+itself (global, or in z windows). A 3-D field map is read between its nodes by the harmonic
+fits of its nodes, exact at the nodes (--field-model auto, the default), and linearly where the
+fits fail Laplace's test; a planar map, or one whose fits hold at no reading, linearly. Either
+way the reference's own error between its nodes is estimated and added to the noise.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ def add_args(p):
         "(batch runs)",
     )
     add_reader_args(p, "--reference", "when it is a field map (not a harmonics .csv or fit:DEG)")
-    add_field_model_arg(p, "--reference")
+    add_field_model_arg(p, "--reference", auto=True)
 
 
 def run(args) -> int:
@@ -91,7 +94,10 @@ def _print(s: dict) -> None:
     print(f"mismatch: {s['mismatch']}")
     for e in s["effects"]:
         ps = ", ".join(
-            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}" for k, v in e["params"].items()
+            f"{k}={v:.3g}+-{e['param_std'][k]:.2g} {e['units'][k]}"
+            if k in e["param_std"]
+            else f"{k}={v:.3g} {e['units'][k]} (at its {e['at_bound'][k]} bound)"
+            for k, v in e["params"].items()
         )
         print(f"  {e['name']}: delta BIC {e['delta_bic']}; {ps}")
     print(

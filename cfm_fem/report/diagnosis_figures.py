@@ -56,7 +56,9 @@ def markdown(summary: dict, source: str = "") -> str:
         )
         lines.append("| parameter | value | std | unit |\n|---|---|---|---|")
         for k, v in e["params"].items():
-            lines.append(f"| {k} | {v:.4g} | {e['param_std'][k]:.2g} | {e['units'][k]} |")
+            sd = e["param_std"].get(k)
+            sd = f"{sd:.2g}" if sd is not None else f"at its {e['at_bound'][k]} bound"
+            lines.append(f"| {k} | {v:.4g} | {sd} | {e['units'][k]} |")
         if e["not_determined"]:
             lines.append(f"\nNot determined by these data: {', '.join(e['not_determined'])}.")
         lines.append("")

@@ -416,10 +416,10 @@ def sensor_volume_averaging(prob):
             "second derivatives to average"
         )
     if "H" not in ctx:
-        if ctx.get("smooth", True):
-            H = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)
-        else:  # readings on the map's nodes: second differences of node values
+        if step is not None:  # readings on a map's nodes: second differences of node values
             H = np.einsum("nijj->nij", field_hessian(ctx["reference_fn"], ctx["upts"], step))
+        else:
+            H = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)
         ctx["H"] = H[ctx["uinv"]]
     H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
     # largest change the plausible sensitive volume (5 mm side, w = 1.04 mm^2) could make

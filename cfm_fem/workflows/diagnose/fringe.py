@@ -406,6 +406,11 @@ def _truncation_bias(fitted, omitted, z, th, a):
     return np.linalg.lstsq(fitted.reshape(-1, p), left, rcond=None)[0]
 
 
+#: Shortest fringe length of the Fermi summary, as a fraction of the z span of the planes that
+#: define it: a shorter end is a step between two planes, whose length the planes cannot set.
+LAMBDA_MIN_FRACTION = 0.01
+
+
 def _fermi_summary(obs, values, cov, th0):
     """The Fermi profile's edges and length fitted to per-plane profile values.
 
@@ -428,6 +433,9 @@ def _fermi_summary(obs, values, cov, th0):
     -------
     dict or None
         {"z_entry", "z_exit", "lambda": (value, std, "mm")}; None with fewer than three planes.
+        A length on a bound of its range (`LAMBDA_MIN_FRACTION` of the planes' z span, the
+        span) is (value, None, "mm", "lower" | "upper"): a bound, not an estimate; the edges
+        are then fitted with it held there (left out if that fit is singular).
     """
     from scipy.optimize import least_squares
 
@@ -440,19 +448,27 @@ def _fermi_summary(obs, values, cov, th0):
     c = cov[np.ix_(idx, idx)]
 
     w = 1.0 / np.sqrt(np.maximum(np.diag(c), 1e-300))
+    span = float(np.ptp(z))
+    lo = np.array([-np.inf, -np.inf, LAMBDA_MIN_FRACTION * span])
+    hi = np.array([np.inf, np.inf, span])
+    start = np.clip(np.asarray(th0, dtype=float), lo + 1e-9 * span, hi - 1e-9 * span)
 
     def fit(keep):
         def resid(th):
-            if not th[2] > 0:
-                return np.full(keep.sum(), 1e12)
             d = fringe_derivatives(z[keep], th[0], th[1], th[2], 2)
             return w[keep] * (d[order[keep], np.arange(keep.sum())] - y[keep])
 
-        r = least_squares(resid, th0, x_scale=[1.0, 1.0, 0.1])
-        return r.x, r.jac, float(r.fun @ r.fun)
+        r = least_squares(resid, start, x_scale=[1.0, 1.0, 0.1], bounds=(lo, hi))
+        return r.x, r.jac, float(r.fun @ r.fun), r.active_mask
 
     every = np.ones(len(z), dtype=bool)
-    th, jac, chi2 = fit(every)
+    th, jac, chi2, active = fit(every)
+    names = ("z_entry", "z_exit", "lambda")
+    if active[2]:  # the length sits on a bound: the data set no value, nor a std, for it
+        bound = "lower" if active[2] < 0 else "upper"
+        return {"lambda": (float(th[2]), None, "mm", bound)} | _edges_with_lambda_held(
+            fit, th, jac, chi2, z
+        )
     dof = max(len(z) - 3, 1)
     try:
         var = np.diag(np.linalg.inv(jac.T @ jac)) * max(1.0, chi2 / dof)
@@ -463,10 +479,22 @@ def _fermi_summary(obs, values, cov, th0):
     n = len(planes)
     var = var + (n - 1) / n * ((jk - jk.mean(0)) ** 2).sum(0)
     sd = np.sqrt(var)
-    return {
-        name: (float(th[k]), float(sd[k]), "mm")
-        for k, name in enumerate(("z_entry", "z_exit", "lambda"))
-    }
+    return {name: (float(th[k]), float(sd[k]), "mm") for k, name in enumerate(names)}
+
+
+def _edges_with_lambda_held(fit, th, jac, chi2, z) -> dict:
+    """The edges' std with the length held at its bound (the fit's own, scaled by its reduced
+    chi2 where above 1, plus the jackknife spread over the planes)."""
+    dof = max(len(z) - 2, 1)
+    try:
+        var = np.diag(np.linalg.inv(jac[:, :2].T @ jac[:, :2])) * max(1.0, chi2 / dof)
+    except np.linalg.LinAlgError:
+        return {}
+    planes = np.unique(z)
+    jk = np.array([fit(z != zp)[0][:2] for zp in planes])
+    n = len(planes)
+    sd = np.sqrt(var + (n - 1) / n * ((jk - jk.mean(0)) ** 2).sum(0))
+    return {n: (float(th[k]), float(sd[k]), "mm") for k, n in enumerate(("z_entry", "z_exit"))}
 
 
 def _plane_block(prob, blk, th, a, inside, shape):
@@ -566,7 +594,7 @@ def _plane_block(prob, blk, th, a, inside, shape):
         cov_t = cov + np.diag([trunc.get(n, 0.0) ** 2 for n in nm])
         fermi = _fermi_summary(obs, values, cov_t, th) or _fermi_summary(every, values, cov_t, th)
         for name in shape:
-            if fermi is not None:
+            if fermi is not None and name in fermi:
                 res[name] = fermi[name]
         return res
 

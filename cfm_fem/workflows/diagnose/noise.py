@@ -30,7 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
 __all__ = [
     "NoiseModel",
@@ -76,33 +75,45 @@ class NoiseModel:
 
 
 def _fit_floor_scale(s2, v, w_dof, mult=1.0):
-    """IRLS fit of E[s2] = mult * (a + b v), a, b >= 0; s2, v, w_dof shape (k,).
+    """Maximum-likelihood fit of E[s2] = mult * (a + b v), a, b >= 0; s2, v, w_dof shape (k,).
+
+    Each ``s2`` is a sample variance with ``w_dof`` degrees of freedom: s2 ~ m chi2_k / k with
+    m = mult (a + b v), so the negative log-likelihood is sum k/2 (s2 / m + log m). Unlike a
+    least-squares fit of s2 (whose weights follow the largest variances), the likelihood lets
+    the points where the bench's vibration is small decide the floor: a floor cannot collapse
+    below the scatter of the readings where the field gradient vanishes.
 
     The scale b has a weak prior N(1, 1) (the bench file's vibration as stated): it decides
     only when the data cannot tell the floor from the vibration (v nearly the same at every
     point), and then splits the variance as the bench file says.
     """
+    from scipy.optimize import minimize
+
+    s2 = np.asarray(s2, dtype=float)
+    v = np.asarray(v, dtype=float)
+    k = np.asarray(w_dof, dtype=float)
     if s2.size == 0 or not float(np.mean(s2)) > 0.0:  # no scatter at all: nothing to fit
         return 0.0, 0.0
     use_b = bool(np.any(v > 0))
-    cols = [np.full(s2.size, mult)] + ([mult * v] if use_b else [])
-    X = np.column_stack(cols)
-    m = np.full(s2.size, max(float(np.mean(s2)), 1e-300))
-    coef = np.zeros(X.shape[1])
-    for _ in range(20):
-        sw = np.sqrt(w_dof / (2.0 * m**2))
-        A, y = X * sw[:, None], s2 * sw
-        if use_b:
-            A = np.vstack([A, [0.0, 1.0]])
-            y = np.r_[y, 1.0]
-        coef, _ = nnls(A, y)
-        m_new = np.maximum(X @ coef, 1e-12 * float(np.mean(s2)) + 1e-300)
-        if np.allclose(m_new, m, rtol=1e-6):
-            break
-        m = m_new
-    a = float(coef[0])
-    b = float(coef[1]) if use_b else 0.0
-    return a, b
+    if not use_b:  # the floor alone: its estimate in closed form
+        return float(np.sum(k * s2) / np.sum(k)) / mult, 0.0
+    S = float(np.sum(k * s2) / np.sum(k)) / mult  # variance scale of the problem
+    sn, vn = s2 / (mult * S), v / S
+    tiny = 1e-12
+
+    def nll(x):
+        a, b = x
+        m = np.maximum(a + b * vn, tiny)
+        r = 0.5 * k * (sn / m + np.log(m))
+        g = 0.5 * k * (1.0 / m - sn / m**2)
+        return float(r.sum() + 0.5 * (b - 1.0) ** 2), np.array([g.sum(), (g * vn).sum() + b - 1.0])
+
+    low = vn <= np.quantile(vn, 0.25)
+    a0 = max(float(np.sum(k[low] * sn[low]) / np.sum(k[low])), 1e-6)
+    res = minimize(nll, [a0, 1.0], jac=True, method="L-BFGS-B",
+                   bounds=[(tiny, None), (0.0, None)])  # fmt: skip
+    a, b = res.x
+    return float(a) * S, float(b)
 
 
 def line_triples(pos, tol: float = 1e-3):

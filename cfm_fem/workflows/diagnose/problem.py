@@ -488,6 +488,12 @@ def _prior_note(prior: dict) -> str:
     )
 
 
+#: Finite-difference step of the gradient of a smooth reference, mm.
+STEP_SMOOTH_MM = 0.05
+#: Finite-difference step of the gradient of a map read linearly, mm.
+STEP_MAP_MM = 0.5
+
+
 def hall_problem(
     rec,
     field_fn,
@@ -497,10 +503,11 @@ def hall_problem(
     reg_std_rad: float | None = None,
     gain_std_pct: float = 0.15,
     smooth: bool = True,
-    h: float = 0.5,
+    h: float | None = None,
     ref_spacing_mm: float | None = None,
     ref_nodes=None,
     pose=None,
+    ref_error=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -527,18 +534,31 @@ def hall_problem(
         Prior std of each Hall element's gain (S_HP of Table I), percent.
     smooth : bool
         False for piecewise-linear references (second derivatives not used).
-    h : float, mm
-        Step of the finite-difference gradient.
+    h : float, mm, optional
+        Step of the finite-difference gradient; None: :data:`STEP_SMOOTH_MM` for a smooth
+        reference (a difference quotient over a shorter step is closer to the derivative: on
+        the axis of an octupole, where the gradient vanishes, a 0.5 mm step reads
+        B(0.5 mm) / 0.5 mm), :data:`STEP_MAP_MM` for a map read linearly (differences over its
+        nodes 0.5 mm either side of a reading read node values).
     ref_spacing_mm : float, optional
-        Node spacing of a piecewise-linear reference map: its interpolation error is estimated
-        (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and added to the noise.
+        Node spacing of a reference map. Read linearly (``smooth`` False), its interpolation
+        error is estimated (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and
+        added to the noise. Either way, when every reading lies on a node, the curvature of the
+        field there (``ctx['node_step']``) is taken from second differences of node values.
     ref_nodes : ndarray, shape (k, 3), mm, optional
         Nodes of that map: the error vanishes at a node and grows to its full size half a
         spacing away, so it is scaled by the distance to the nearest node.
     pose : ndarray, shape (6,), optional
         Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
         None: the nominal placement.
+    ref_error : callable, optional
+        ``ref_error(points (m, 3) mm) -> variance (m, 3) T^2`` of a smooth reference's own
+        error between its nodes (a map read by its harmonic fits,
+        :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`), added to
+        the noise.
     """
+    if h is None:
+        h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
     ids, point = np.unique(rec.point_id, return_inverse=True)
     point = point.reshape(-1)
     p = rec.cmd
@@ -547,7 +567,8 @@ def hall_problem(
     pose = np.zeros(len(REG_NAMES)) if pose is None else np.asarray(pose, dtype=float)
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
-                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes)  # fmt: skip
+                      ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
+                      ref_error=ref_error)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
@@ -598,9 +619,17 @@ def hall_problem(
             f"its interpolation error (rms {rms:.3g} units over the readings, from its "
             "curvature) is added to the noise"
         )
+    elif ref_error is not None:
+        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        notes.append(
+            f"reference map read between nodes by its harmonic fits: their own error (rms "
+            f"{rms:.3g} units over the readings, from the spread of the nearest nodes' fits) "
+            "is added to the noise"
+        )
     t_h, d, speed, temp = _aux(rec)
     ctx = {
-        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes) if not smooth else None,
+        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes),
         "reference_fn": field_fn,
         "B0": B0,
         "G": G,

@@ -13,6 +13,7 @@ import numpy as np
 
 from ...errors import CfmInputError
 from ..inputs import bench_provenance, choose_bench, recording, refuse_reader_options
+from .reference import node_spacing_mm
 
 __all__ = ["DiagnoseRun", "check_options", "run_diagnose", "reference_field", "node_spacing_mm",
            "MIN_POINTS_SINGLE"]  # fmt: skip
@@ -86,15 +87,6 @@ def check_enough(rec) -> None:
         )
 
 
-def node_spacing_mm(points) -> float:
-    """Typical node spacing of a map (median distance to the nearest other node), mm."""
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(points).query(points, k=2)
-    d = d[:, 1]
-    return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
-
-
 def _is_harmonics(spec) -> bool:
     from ...io.reference_field import is_harmonics_file
 
@@ -128,8 +120,9 @@ def reference_field(spec, rec, r_ref=None, field_model: str = "linear", reader=N
         The Hall map: every commanded point must lie in a field map.
     r_ref : float, optional, mm
         R_ref of a harmonics file that does not state it.
-    field_model : {"linear", "harmonic"}
-        A field map between its nodes (`cfm_fem.models.harmonic.fit_harmonic` for harmonic).
+    field_model : {"auto", "harmonic", "linear"}
+        A field map between its nodes: the node-exact harmonic fits where they hold (auto: on
+        a 3-D map; `cfm_fem.workflows.diagnose.reference.reference_model`), or linear.
     reader : dict, optional
         Keyword arguments of `cfm_fem.io.read_field` for a field map file; refused otherwise.
 
@@ -144,7 +137,7 @@ def reference_field(spec, rec, r_ref=None, field_model: str = "linear", reader=N
 
     text = None if isinstance(spec, FieldMap) else str(spec)
     own_model = text is not None and (text.startswith(("fit:", "fitz:")) or _is_harmonics(text))
-    if field_model != "linear" and own_model:
+    if field_model not in ("auto", "linear") and own_model:
         raise CfmInputError(
             f"--field-model applies to a field map; --reference {text} is a field model of its own"
         )
@@ -168,21 +161,24 @@ def reference_field(spec, rec, r_ref=None, field_model: str = "linear", reader=N
 
 
 def _map_reference(spec, rec, field_model, reader):
-    """`reference_field` of a field map (file or `FieldMap`)."""
+    """`reference_field` of a field map (file or `FieldMap`): read between its nodes by the
+    node-exact harmonic fits where they hold (auto, harmonic), else linearly
+    (`cfm_fem.workflows.diagnose.reference.reference_model`); the function carries the
+    reference's own error estimate (``error_var``) when the harmonic fits serve."""
     from ...models.field import FieldMap
-    from ...models.interpolation import LinearInterpolator
     from ..inputs import field_map
+    from .reference import reference_model
 
     if isinstance(spec, FieldMap):
         refuse_reader_options(reader, "--reference is a field map already read")
     fm = field_map(spec, reader)
     name = Path(str(spec)).name if not isinstance(spec, FieldMap) else str(fm.source)
-    if field_model == "harmonic":
-        from ...models.harmonic import fit_harmonic
-
-        interp = fit_harmonic(fm.points, fm.B, source=fm.source)
-    else:
-        interp = LinearInterpolator(fm)
+    interp, kind, why = reference_model(fm, field_model)
+    served = interp.fit.field_at(rec.cmd)[1] if kind == "harmonic" else None
+    if kind == "harmonic" and field_model == "auto" and not served.any():
+        interp, kind = interp.linear, "linear"  # no fit holds near the readings
+        why = (f"the harmonic fits hold at none of the {len(served)} readings (noise in the "
+               "map, currents or iron near them)")  # fmt: skip
 
     def fn(p):
         b, _ = interp.field_at(p)
@@ -203,12 +199,16 @@ def _map_reference(spec, rec, field_model, reader):
             line=int(rec.lines[i]) or None,
         )
     spacing = node_spacing_mm(fm.points)
-    desc = f"FEM map {name} (nodes {spacing:.3g} mm apart)"
+    desc = f"FEM map {name} (nodes {spacing:.3g} mm apart"
     b_ref = float(np.nanmax(np.linalg.norm(fm.B, axis=1)))
-    if field_model == "harmonic":  # smooth between nodes: no interpolation error to add
-        return fn, b_ref, None, desc[:-1] + f", harmonic fit per node to its {interp.k} nearest)"
-    fn.nodes = fm.points  # the interpolation is exact there
-    return fn, b_ref, spacing, desc
+    fn.nodes = fm.points  # exact there, either way
+    if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
+        fn.error_var, fn.spacing = interp.error_var, spacing
+        n_lin = int((~served).sum())
+        fb = f"; {n_lin} of {len(served)} readings read linearly: no fit holds" if n_lin else ""
+        return fn, b_ref, None, (f"{desc}, read between nodes by a harmonic fit per node to its "
+                                 f"{interp.fit.k} nearest, exact at the nodes{fb})")  # fmt: skip
+    return fn, b_ref, spacing, f"{desc}, read linearly between nodes{'; ' + why if why else ''})"
 
 
 def check_options(kind, reference, b_ref_T=None, r_ref_mm=None, reader=None) -> None:
@@ -238,7 +238,7 @@ def _reference_input(reference):
 
 
 def run_diagnose(rec, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None,
-                 field_model: str = "linear", reader=None, command_line=None, progress=None,
+                 field_model: str = "auto", reader=None, command_line=None, progress=None,
                  on_start=None) -> DiagnoseRun:  # fmt: skip
     """What the simulation leaves out of a recording (``cfm-fem diagnose``).
 
@@ -297,9 +297,10 @@ def run_diagnose(rec, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None
                 f"= {b_ref:g} T), so field errors have no unit; expected a non-zero field, or "
                 "give --b-ref T"
             )
-        nodes = getattr(fn, "nodes", None)
+        step = spacing if spacing is not None else getattr(fn, "spacing", None)
         prob = hall_problem(rec, fn, b_ref, bench_model, smooth=spacing is None,
-                            ref_spacing_mm=spacing, ref_nodes=nodes)  # fmt: skip
+                            ref_spacing_mm=step, ref_nodes=getattr(fn, "nodes", None),
+                            ref_error=getattr(fn, "error_var", None))  # fmt: skip
         prob.notes.append(f"reference: {desc}")
     source = str(rec.source)
     if on_start is not None:

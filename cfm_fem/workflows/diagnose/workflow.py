@@ -257,11 +257,18 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     if phys:  # a linearised non-linear or constrained effect: report its physical parameters
         e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
         pn = list(phys)
-        ok = _determined(c0.name, pn, [phys[n][1] for n in pn])
+        # a parameter on a bound of its range: (value, None, unit, "lower" | "upper")
+        bound = {n: phys[n][3] for n in pn if len(phys[n]) > 3 and phys[n][3]}
+        sd = [0.0 if n in bound else phys[n][1] for n in pn]
+        ok = _determined(c0.name, pn, sd)
         e["params"] = {n: phys[n][0] for n, k in zip(pn, ok, strict=True) if k}
-        e["param_std"] = {n: phys[n][1] for n, k in zip(pn, ok, strict=True) if k}
+        e["param_std"] = {
+            n: phys[n][1] for n, k in zip(pn, ok, strict=True) if k and n not in bound
+        }
         e["units"] = {n: phys[n][2] for n, k in zip(pn, ok, strict=True) if k}
         e["not_determined"] = [n for n, k in zip(pn, ok, strict=True) if not k]
+        if bound:  # reported as the bound it is, with no std
+            e["at_bound"] = bound
         e["param_corr"] = None
         if "lack_of_fit" in e:
             shaped = c0.cols.model_dependent

@@ -1,0 +1,44 @@
+"""A handful of the randomized family's cases (`cfm_fem.simulation.family`), diagnosed by the
+command line as a user runs it and scored against the truth written beside them.
+
+The nulls test the reference reading and the noise model on clean maps: a sextupole scanned
+on the fly through both ends against a coarse FEM-like grid read between its nodes (seed 5), a
+dipole on circles through both ends where the field gradient vanishes beyond the ends (17, the
+noise floor), an octupole on a grid whose axis readings see no gradient (26), a dipole grid
+against a coarse grid (27). On each, nothing may be claimed, no plane called bad and no
+mismatch stated. The full family proof is `scripts/prove_diagnosis.py --family`
+(docs/diagnosis_family.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from cfm_fem.cli import main
+from cfm_fem.simulation import write_family_case
+
+pytestmark = pytest.mark.slow  # a few command-line runs of 5-20 s each
+
+
+def _diagnose(seed, role, tmp_path):
+    files = write_family_case(seed, tmp_path / "case", "small", role=role)
+    out = tmp_path / "out"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["diagnose", *files["args"], "--no-report", "--out", str(out)]) == 0
+    truth = json.loads(Path(files["truth"]).read_text())
+    return json.loads((out / "diagnosis.json").read_text()), truth
+
+
+@pytest.mark.parametrize("seed", [5, 17, 26, 27])
+def test_a_clean_family_map_raises_no_alarm(seed, tmp_path):
+    d, truth = _diagnose(seed, "null", tmp_path)
+    assert truth["role"] == "null" and truth["kind"] == "hall"
+    assert d["effects"] == [], [e["name"] for e in d["effects"]]
+    assert d["located"] == [] and d["outliers"] == [], d["located"]
+    assert d["mismatch"] is False
+    assert 0.8 < d["fit"]["chi2_dof_before"] < 1.25, d["fit"]["chi2_dof_before"]
