@@ -70,7 +70,7 @@ def _conflict_advice(conflicts):
 
 
 def advise(
-    prob, o, cal, sel, blocks, absorption, absorbed, implausible, untestable, conflicts, loc1
+    prob, o, cal, sel, blocks, *, absorption, absorbed, implausible, untestable, conflicts, loc1
 ):
     """Advice sentences and the overlaps of the strongest candidates.
 

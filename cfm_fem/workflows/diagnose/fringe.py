@@ -497,6 +497,17 @@ def _edges_with_lambda_held(fit, th, jac, chi2, z) -> dict:
     return {n: (float(th[k]), float(sd[k]), "mm") for k, n in enumerate(("z_entry", "z_exit"))}
 
 
+def _near_ends(zs, th, inside) -> np.ndarray:
+    """Which planes ``zs`` (mm) lie within `PLANE_REACH` Fermi lengths of an end the data cover
+    (``th``: entry, exit, length; ``inside``: whether each end is covered)."""
+    zi, zo, lam = th
+    near = np.zeros(len(zs), dtype=bool)
+    for edge, ok in zip((zi, zo), inside, strict=True):
+        if ok:
+            near |= np.abs(zs - edge) <= PLANE_REACH * lam
+    return near
+
+
 def _plane_block(prob, blk, th, a, inside, shape):
     """The soft ends measured plane by plane: near each end the data cover, every z plane of
     at least `PLANE_MIN_POINTS` points gets its own profile values g - 1, g', g'', ... (the
@@ -519,11 +530,7 @@ def _plane_block(prob, blk, th, a, inside, shape):
     B0u = ctx["field_fn"](upts)
     zs, plane = np.unique(np.round(upts[:, 2], 6), return_inverse=True)
     plane = plane.reshape(-1)
-    zi, zo, lam = th
-    near = np.zeros(len(zs), dtype=bool)
-    for edge, ok in zip((zi, zo), inside, strict=True):
-        if ok:
-            near |= np.abs(zs - edge) <= PLANE_REACH * lam
+    near = _near_ends(zs, th, inside)
     Jp, names, units, freed, short = [], [], [], np.zeros(len(zs), dtype=bool), []
     slots = []  # (rows of the plane, first column, layers)
     trunc = {}  # truncation bias of the values of planes that separate too few layers
@@ -603,7 +610,7 @@ def _plane_block(prob, blk, th, a, inside, shape):
         return [where.get(n, "") for n in nm]
 
     n_lead = len(lead)
-    fermi_rows = fringe_derivatives(prob.pos[:, 2], zi, zo, lam, 2 * PLANE_LAYERS + 2)
+    fermi_rows = fringe_derivatives(prob.pos[:, 2], *th, 2 * PLANE_LAYERS + 2)
 
     def profile(theta):
         """Per row g, g', ... (2 `PLANE_LAYERS` + 3 rows): the fitted values of the planes that
@@ -621,6 +628,33 @@ def _plane_block(prob, blk, th, a, inside, shape):
     out.physical = physical
     out.profile = profile
     return out
+
+
+def _edges_of(zi, zo, lam):
+    """``physical(names, theta, cov)`` of the soft-end block linearised at the edges ``zi``,
+    ``zo`` and length ``lam`` (mm): the amplitude, and each edge and the length moved by its
+    fitted increment over the amplitude, with the std of that ratio (delta method)."""
+    centre = {"dz_entry": ("z_entry", zi), "dz_exit": ("z_exit", zo), "dlambda": ("lambda", lam)}
+
+    def physical(nm, theta, cov):
+        nm = list(nm)
+        if "amplitude" not in nm:
+            return None
+        ia = nm.index("amplitude")
+        a = theta[ia]
+        out = {"amplitude": (float(a), float(np.sqrt(max(cov[ia, ia], 0.0))), "1")}
+        for k, n in enumerate(nm):
+            if n not in centre:
+                continue
+            grad = np.zeros(len(nm))
+            grad[k] = 1.0 / a
+            grad[ia] = -theta[k] / a**2
+            name, c0 = centre[n]
+            sd = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+            out[name] = (float(c0 + theta[k] / a), sd, "mm")
+        return out
+
+    return physical
 
 
 def fringe_field_3d(prob):
@@ -728,26 +762,7 @@ def fringe_field_3d(prob):
         if done or (free and not moved):
             break
     zi, zo, lam = th
-    centre = {"dz_entry": ("z_entry", zi), "dz_exit": ("z_exit", zo), "dlambda": ("lambda", lam)}
-
-    def physical(nm, theta, cov):
-        nm = list(nm)
-        if "amplitude" not in nm:
-            return None
-        ia = nm.index("amplitude")
-        a = theta[ia]
-        out = {"amplitude": (float(a), float(np.sqrt(max(cov[ia, ia], 0.0))), "1")}
-        for k, n in enumerate(nm):
-            if n not in centre:
-                continue
-            grad = np.zeros(len(nm))
-            grad[k] = 1.0 / a
-            grad[ia] = -theta[k] / a**2
-            name, c0 = centre[n]
-            sd = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
-            out[name] = (float(c0 + theta[k] / a), sd, "mm")
-        return out
-
+    physical = _edges_of(zi, zo, lam)
     blk.physical = physical
     # where the soft-end model carries the signal: a real end is not exactly this profile
     g = fringe_profile(prob.pos[:, 2], zi, zo, lam)[0]

@@ -499,6 +499,7 @@ def hall_problem(
     field_fn,
     b_ref: float,
     bench: Bench | None,
+    *,
     reg_std_mm: float | None = None,
     reg_std_rad: float | None = None,
     gain_std_pct: float = 0.15,

@@ -333,7 +333,7 @@ def _release_set(prob, sigma, model, conflict, alpha):
     return S
 
 
-def _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
+def _evaluate(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
     """Evidence of one candidate effect (both parts, module docstring)."""
     parts = {}
     if blk.p:
@@ -424,13 +424,14 @@ def _screen(sigma, model, current, J):
         return 0.0
 
 
-def _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n):
+def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
     """Evidence of a candidate; an effect made of several error functions (``families``) is
     the best of its functions tested one by one, corrected for the choice among them. The
     functions are ranked by the drop of the objective each gives on its own (one projection
     each), and the best is evaluated in full."""
     if not blk.families:
-        return _evaluate(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+        return _evaluate(prob, sigma, model, current, blk, name, alpha=alpha, bic_min=bic_min,
+                         log_n=log_n)  # fmt: skip
     m = len(blk.families)
     if current.q_data is None:
         current.q_data = _model_basis(sigma, model)
@@ -442,7 +443,8 @@ def _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_
     sub = blk.subset(idx)
     sub.families = None
     sub.multiplicity = blk.multiplicity * m
-    c = _evaluate(prob, sigma, model, current, sub, name, alpha, bic_min, log_n)
+    c = _evaluate(prob, sigma, model, current, sub, name, alpha=alpha, bic_min=bic_min,
+                  log_n=log_n)  # fmt: skip
     if c is not None:
         c.family = label
     return c
@@ -494,10 +496,40 @@ def _plausibility(c: Candidate, model_p: int) -> str:
     return implausible_reason(names, np.array(est), np.array(sd), np.array(bnd), why, unit)
 
 
+def _holm(round_c) -> None:
+    """Holm-adjusted p-values (``p_holm``) over one round's candidates."""
+    order = sorted(round_c, key=lambda c: c.p_value)
+    m = len(order)
+    running = 0.0
+    for i, c in enumerate(order):
+        running = max(running, min(1.0, (m - i) * c.p_value))
+        c.p_holm = running
+
+
+def _predicts_held_out(prob, sigma, model, c: Candidate, folds, cv_z: float) -> bool:
+    """The held-out test of a candidate (module docstring); sets its ``cv_before``,
+    ``cv_after`` and ``cv_z``."""
+    use = determined_folds(prob, sigma, model, c.trial, folds)
+    cvb, eb = cv_rms(prob, sigma, model, folds, rows=use)
+    cva, ea = cv_rms(prob, sigma, c.trial, folds, rows=use)
+    diff = (eb - ea)[use]
+    z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
+         if diff.size > 1 else -np.inf)  # fmt: skip
+    better = cva < cvb
+    if not c.has_new:  # a prior conflict: replicated in every fold on its own, and the
+        # held-out error no worse than the released freedom explains (where the data outweigh
+        # the prior, the predictions barely change)
+        better = _release_within_its_freedom(diff, len(c.released), folds, cv_z)
+        z = _replicated_conflict(prob, sigma, c.trial, c.released, model, folds)
+    c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
+    return bool(z > cv_z and better)
+
+
 def select_effects(
     prob: Problem,
     sigma_fn,
     blocks: dict,
+    *,
     prior_release=(),
     bic_min: float = 10.0,
     alpha: float = 0.01,
@@ -539,7 +571,8 @@ def select_effects(
         for name, blk in blocks.items():
             if name in done:
                 continue
-            c = _evaluate_block(prob, sigma, model, current, blk, name, alpha, bic_min, log_n)
+            c = _evaluate_block(prob, sigma, model, current, blk, name, alpha=alpha,
+                                bic_min=bic_min, log_n=log_n)  # fmt: skip
             if progress:
                 progress(1)
             if c is None:
@@ -548,13 +581,7 @@ def select_effects(
             round_c.append(c)
         if not round_c:
             break
-        # Holm over this round's candidates
-        order = sorted(round_c, key=lambda c: c.p_value)
-        m = len(order)
-        running = 0.0
-        for i, c in enumerate(order):
-            running = max(running, min(1.0, (m - i) * c.p_value))
-            c.p_holm = running
+        _holm(round_c)
         for c in round_c:
             cands[c.name] = c
         ok = [c for c in round_c if c.delta_bic > bic_min and c.p_holm < alpha]
@@ -574,20 +601,7 @@ def select_effects(
             if n_cv == 2:  # the best two plausible ones get the held-out test
                 break
             n_cv += 1
-            use = determined_folds(prob, sigma, model, c.trial, folds)
-            cvb, eb = cv_rms(prob, sigma, model, folds, rows=use)
-            cva, ea = cv_rms(prob, sigma, c.trial, folds, rows=use)
-            diff = (eb - ea)[use]
-            z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
-                 if diff.size > 1 else -np.inf)  # fmt: skip
-            better = cva < cvb
-            if not c.has_new:  # a prior conflict: replicated in every fold on its own, and
-                # the held-out error no worse than the released freedom explains (where the
-                # data outweigh the prior, the predictions barely change)
-                better = _release_within_its_freedom(diff, len(c.released), folds, cv_z)
-                z = _replicated_conflict(prob, sigma, c.trial, c.released, model, folds)
-            c.cv_before, c.cv_after, c.cv_z = cvb, cva, z
-            if not (z > cv_z and better):
+            if not _predicts_held_out(prob, sigma, model, c, folds, cv_z):
                 c.status = "fails held-out test"
                 continue
             why = unstable_in(prob, sigma, model, c.trial, c.k)

@@ -91,6 +91,7 @@ def _pdg_displacement(bench: Bench, q, amps: dict):
 def tracker_twin(
     seed: int = 0,
     effects: dict | None = None,
+    *,
     n_reps: int = 10,
     bench: Bench | None = None,
     tracker_noise_um: float = 5.0,
@@ -242,6 +243,7 @@ def fringe_edges(params: dict) -> tuple[float, float, float]:
 def hall_twin(
     seed: int = 0,
     effects: dict | None = None,
+    *,
     n_reps: int = 10,
     multipole=None,
     bench: Bench | None = None,

@@ -482,8 +482,8 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     released = {n for c in sel.accepted for n in c.released}
     conflicts = prior_conflicts(sel.model, fit1, cal.base, released, o["alpha"], p.baseline, p.kind)
     advice, ov = advise(
-        p, o, cal, sel, a.blocks, a.absorption, a.absorbed, implausible, a.untestable,
-        conflicts, loc1,
+        p, o, cal, sel, a.blocks, absorption=a.absorption, absorbed=a.absorbed,
+        implausible=implausible, untestable=a.untestable, conflicts=conflicts, loc1=loc1,
     )  # fmt: skip
     outliers = _outlier_entries(isolated)
     if outliers:
