@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from .priors import effect_columns
 from .problem import UM, URAD
 
 __all__ = [
@@ -562,14 +563,13 @@ def _plane_block(prob, blk, th, a, inside, shape):
         units.append("T")
     if not freed.any():
         return None
-    from .effects import _cols
 
     in_planes = freed[plane[uinv]]
     amp = blk.J[..., :1] * ~in_planes[:, None, None]  # the Fermi profile beyond those planes
     first = [amp] if np.any(amp) else []
     J = np.concatenate(first + [c[uinv] for c in Jp], axis=-1)
     lead = ["amplitude"] if first else []
-    out = _cols(J, lead + names, ["1"] * len(lead) + units, "fringe_field_3d")
+    out = effect_columns(J, lead + names, ["1"] * len(lead) + units, "fringe_field_3d")
     out.bounds_why = [""] * out.p
     out.replaces, out.var_known = blk.replaces, blk.var_known
     out.model_rows = in_planes
@@ -659,7 +659,6 @@ def _edges_of(zi, zo, lam):
 
 def fringe_field_3d(prob):
     from .calibrate import fit_map, stack
-    from .effects import _cols
     from .problem import noise_sigma
 
     ctx = prob.ctx
@@ -725,7 +724,7 @@ def fringe_field_3d(prob):
             e = np.zeros(3)
             e[k] = 1e-3 * th[2]
             cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
-        blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
+        blk = effect_columns(np.stack(cols, -1), names, units, "fringe_field_3d")
         blk.bounds_why = [""] * len(names)
         for j, k in enumerate(free):
             if k < 2:  # the edge (th + increment / a, a ~ 1) must stay in the data's z range
