@@ -180,7 +180,7 @@ def reading_delay(prob):
 
 
 def position_dependent_geometric(prob):
-    bench = prob.ctx["bench"]
+    bench = prob.ctx.bench
     q = prob.q
     upts, inv = np.unique(np.round(q, 9), axis=0, return_inverse=True)
     inv = inv.reshape(-1)
@@ -219,7 +219,7 @@ def _sag(u):
 
 
 def arm_deflection(prob):
-    bench = prob.ctx["bench"]
+    bench = prob.ctx.bench
     u = prob.q / bench.strokes_mm
     J = np.zeros((prob.n, 3, 2))
     J[:, 1, 0] = -_sag(u[:, 0]) * UM
@@ -237,7 +237,7 @@ def parameter_bias(prob):
 
 
 def probe_misalignment(prob):
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = np.zeros((prob.n, 3, 6))
     names = []
     k = 0
@@ -255,7 +255,7 @@ def probe_misalignment(prob):
 def sensor_offset(prob):
     """Hall elements displaced relative to one another (their centroid held fixed: a shift
     common to the three elements is a registration shift, ``magnet_misalignment``)."""
-    G = prob.ctx["G"]
+    G = prob.ctx.G
     # free parameters: elements x and y along each direction j relative to the centroid;
     # element z = -(x + y), so its column enters both with a minus sign
     J = np.zeros((prob.n, 3, 6))
@@ -293,7 +293,7 @@ def magnet_misalignment(prob):
 
 
 def planar_hall(prob):
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = np.zeros((prob.n, 3, 3))
     for i in range(3):
         j, k = [c for c in range(3) if c != i]
@@ -319,28 +319,28 @@ def magnet_temperature(prob):
             "no temperature log (temp_C) nor time (t_s): a magnet temperature change is a "
             "uniform scale, the same as a common Hall gain"
         )
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = (B * 1e-6 * tau[:, None])[..., None]
     return effect_columns(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
 
 
 def sensor_volume_averaging(prob):
     ctx = prob.ctx
-    step = ctx.get("node_step")
-    if not ctx.get("smooth", True) and step is None:
+    step = ctx.node_step
+    if not ctx.smooth and step is None:
         return (
             "the reference map is piecewise linear and the readings lie between its nodes: no "
             "second derivatives to average"
         )
-    if "H" not in ctx:
+    if ctx.H is None:
         if step is not None:  # readings on a map's nodes: second differences of node values
-            H = np.einsum("nijj->nij", field_hessian(ctx["reference_fn"], ctx["upts"], step))
+            H = np.einsum("nijj->nij", field_hessian(ctx.reference_fn, ctx.upts, step))
         else:
-            H = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)
-        ctx["H"] = H[ctx["uinv"]]
-    H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
+            H = field_hessian_diag(ctx.field_fn, ctx.upts, 1.0)
+        ctx.H = H[ctx.uinv]
+    H = ctx.H  # (n, 3 comps, 3 dirs) T/mm^2
     # largest change the plausible sensitive volume (5 mm side, w = 1.04 mm^2) could make
-    if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx["b_ref"]:
+    if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx.b_ref:
         return (
             "the reference field has no curvature at the mapped points (d2B/dx^2 = 0, as in a "
             "pure quadrupole): averaging over the sensitive volume leaves a field linear in "

@@ -67,7 +67,7 @@ def _kinds(prob):
 
             kinds.append((f"step_{'xyz'[a]}", "um", col))
         return kinds
-    G = prob.ctx["G"]
+    G = prob.ctx.G
     for i in range(3):
 
         def off(after, i=i):

@@ -71,7 +71,7 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
 def _registration_prior_doc(prob: Problem) -> dict | None:
     """The registration prior the calibration used (1 sigma per axis, um and urad) and the
     source of each (an argument, the bench file's key, or the default)."""
-    prior = prob.ctx.get("registration_prior")
+    prior = prob.ctx.registration_prior
     if prior is None:
         return None
     doc = {
