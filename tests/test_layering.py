@@ -152,3 +152,52 @@ def test_an_upward_import_is_named(where, source, expected):
 )
 def test_allowed_imports_pass(where, source):
     assert violations(PACKAGE / where, source) == []
+
+
+def _package_graph(folder: Path) -> dict:
+    """Module -> the sibling modules it imports (``from .x import``, inside functions too)."""
+    graph = {}
+    for path in folder.glob("*.py"):
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module:
+                deps.add(node.module.split(".")[0])
+        graph[path.stem] = deps & {p.stem for p in folder.glob("*.py")}
+    return graph
+
+
+def _cycle(graph: dict) -> list:
+    """One import cycle of ``graph`` as a list of modules, or []."""
+    state, stack = {}, []
+
+    def visit(m):
+        state[m] = "open"
+        stack.append(m)
+        for d in sorted(graph.get(m, ())):
+            if state.get(d) == "open":
+                return stack[stack.index(d) :] + [d]
+            if d not in state:
+                found = visit(d)
+                if found:
+                    return found
+        state[m] = "done"
+        stack.pop()
+        return []
+
+    for m in sorted(graph):
+        if m not in state:
+            found = visit(m)
+            if found:
+                return found
+    return []
+
+
+@pytest.mark.parametrize("package", ["workflows/diagnose", "workflows/sweep", "models/quality"])
+def test_no_import_cycle_within_a_package(package):
+    cycle = _cycle(_package_graph(PACKAGE / package))
+    assert not cycle, f"{package}: {' -> '.join(cycle)}"
+
+
+def test_an_import_cycle_is_found():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set()}) == []

@@ -83,8 +83,8 @@ import numpy as np
 
 from ...models.bench import ERROR_NAMES
 from ...models.kinematics.chain import probe_errors_for_bench
-from .calibrate import Columns
 from .fringe import fringe_field_3d
+from .priors import PLAUSIBLE, bounds_for, effect_columns
 from .problem import UM, URAD, field_hessian, field_hessian_diag
 from .step_event import step_event
 
@@ -100,89 +100,6 @@ __all__ = [
 ]
 
 W_MAX_MM2 = 25.0 / 24.0  # a^2/24 of a 5 mm sensitive volume, mm^2
-WIDE = 1e6  # prior std of effect parameters (display units): effectively none, keeps cov finite
-
-
-#: Physically plausible range of each parameter, display units: effect -> [(name prefix,
-#: low, high, why)]; the first matching prefix applies. Generous on purpose: they reject fits that
-#: need an unphysical value, not unusual benches.
-PLAUSIBLE = {
-    "thermal_drift": [
-        ("drift_", -50.0, 50.0, "an axis drifting by more than 50 um/h (um/K) is not thermal"),
-        ("scale_drift_", -100.0, 100.0, "screw/frame expansion beyond 100 ppm/h (ppm/K)"),
-    ],
-    "reversal": [("backlash_", -200.0, 200.0, "backlash beyond 0.2 mm on a precision stage")],
-    "reading_delay": [
-        ("tau", 0.0, 200.0, "a reading delay is positive (read late) and below 0.2 s"),
-    ],
-    "position_dependent_geometric": [
-        ("eps", -1000.0, 1000.0, "angular error beyond 1 mrad over the stroke"),
-        ("delta", -1000.0, 1000.0, "straightness/scale error beyond 1 mm over the stroke"),
-    ],
-    "arm_deflection": [
-        ("sag_", 0.0, 500.0, "a load deflection sags downwards (gravity), below 0.5 mm"),
-    ],
-    "parameter_bias": [
-        ("delta", -500.0, 500.0, "a constant axis error beyond 0.5 mm"),
-        ("eps", -2000.0, 2000.0, "an angular error beyond 2 mrad"),
-        ("alpha", -2000.0, 2000.0, "a squareness error beyond 2 mrad"),
-    ],
-    "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
-    "sensor_offset": [("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart")],
-    "magnet_misalignment": [
-        ("magnet_d", -10000.0, 10000.0, "a magnet 10 mm off its survey or nominal placement"),
-        ("magnet_", -10000.0, 10000.0, "a magnet rotated 10 mrad off its survey"),
-    ],
-    "planar_hall": [("k_", -0.1, 0.1, "a planar Hall term beyond 10 % at 1 T")],
-    "hall_offset_gain": [
-        ("offset_", -1000.0, 1000.0, "a Hall offset beyond 1 mT after zeroing"),
-        ("gain_", -5.0, 5.0, "a Hall gain error beyond 5 %"),
-    ],
-    "magnet_temperature": [
-        ("beta", -2500.0, 2500.0, "a field temperature coefficient beyond ferrite's 0.2 %/K"),
-    ],
-    "fringe_field_3d": [
-        ("amplitude", 0.0, 2.0, "a magnet end takes the field from its body value to zero"),
-        ("d", -1e4, 1e4, "an end or fringe length moved by more than 10 m"),
-    ],
-    "sensor_volume_averaging": [
-        ("dw_", -1042.0, 1042.0, "differences of a^2/24 with a sensitive size a <= 5 mm"),
-    ],
-    "step_event": [
-        ("step_", -2000.0, 2000.0, "a jump of the probe position beyond 2 mm"),
-        ("offset_step_", -2000.0, 2000.0, "a jump of a Hall offset beyond 2 mT"),
-    ],
-}
-
-
-def bounds_for(effect: str, names) -> tuple[np.ndarray, list]:
-    """Plausible [low, high] (display units) and the reason of each parameter of ``effect``.
-
-    Parameters
-    ----------
-    effect : str
-    names : sequence of str
-
-    Returns
-    -------
-    bounds : ndarray, shape (len(names), 2)
-    why : list of str
-    """
-    out = np.tile([-np.inf, np.inf], (len(names), 1))
-    why = [""] * len(names)
-    for i, nm in enumerate(names):
-        for prefix, lo, hi, reason in PLAUSIBLE.get(effect, []):
-            if nm.startswith(prefix):
-                out[i] = lo, hi
-                why[i] = reason
-                break
-    return out, why
-
-
-def _cols(J, names, units, group, std=WIDE):
-    p = J.shape[-1]
-    bounds, _ = bounds_for(group, names)
-    return Columns(J, names, units, np.zeros(p), np.full(p, float(std)), group, bounds=bounds)
 
 
 def _release(prob, groups, effect, names=None, J=None, new_names=(), new_units=()):
@@ -198,7 +115,7 @@ def _release(prob, groups, effect, names=None, J=None, new_names=(), new_units=(
     if not rel:
         return None
     J = np.zeros((prob.n, 3, 0)) if J is None else J
-    blk = _cols(J, list(new_names), list(new_units), effect)
+    blk = effect_columns(J, list(new_names), list(new_units), effect)
     blk.release = tuple(rel)
     blk.release_bounds = bounds_for(effect, rel)[0]
     return blk
@@ -228,7 +145,7 @@ def thermal_drift(prob):
         J[:, a, a] = tau * UM
         J[:, a, 3 + a] = tau * q[:, a] * 1e-6
     names = [f"drift_{a}" for a in "xyz"] + [f"scale_drift_{a}" for a in "xyz"]
-    blk = _cols(J, names, [f"um/{u}"] * 3 + [f"ppm/{u}"] * 3, "thermal_drift")
+    blk = effect_columns(J, names, [f"um/{u}"] * 3 + [f"ppm/{u}"] * 3, "thermal_drift")
     # per axis: its offset drift, its scale drift, or both; one axis at a time, the choice
     # among the nine accounted for (a drift of one axis must not pay for six parameters)
     blk.families = (
@@ -249,7 +166,7 @@ def reversal(prob):
     J = np.zeros((prob.n, 3, len(ok)))
     for k, a in enumerate(ok):
         J[:, a, k] = 0.5 * d[:, a] * UM
-    return _cols(J, [f"backlash_{'xyz'[a]}" for a in ok], ["um"] * len(ok), "reversal")
+    return effect_columns(J, [f"backlash_{'xyz'[a]}" for a in ok], ["um"] * len(ok), "reversal")
 
 
 def reading_delay(prob):
@@ -259,11 +176,11 @@ def reading_delay(prob):
         )
     J = np.zeros((prob.n, 3, 1))
     J[:, :, 0] = prob.vel * 1e-3  # tau in ms -> mm
-    return _cols(J, ["tau"], ["ms"], "reading_delay")
+    return effect_columns(J, ["tau"], ["ms"], "reading_delay")
 
 
 def position_dependent_geometric(prob):
-    bench = prob.ctx["bench"]
+    bench = prob.ctx.bench
     q = prob.q
     upts, inv = np.unique(np.round(q, 9), axis=0, return_inverse=True)
     inv = inv.reshape(-1)
@@ -288,7 +205,7 @@ def position_dependent_geometric(prob):
         names += [f"{ERROR_NAMES[k]}_u{order}" for k in idx]
         units += ["urad" if u == URAD else "um" for u in unit]
     J = np.concatenate(cols, axis=-1)
-    blk = _cols(J, names, units, "position_dependent_geometric")
+    blk = effect_columns(J, names, units, "position_dependent_geometric")
     m = len(idx)
     # per error function: its linear term alone, or linear and quadratic together
     blk.families = [(ERROR_NAMES[k], [i]) for i, k in enumerate(idx)] + [
@@ -302,12 +219,12 @@ def _sag(u):
 
 
 def arm_deflection(prob):
-    bench = prob.ctx["bench"]
+    bench = prob.ctx.bench
     u = prob.q / bench.strokes_mm
     J = np.zeros((prob.n, 3, 2))
     J[:, 1, 0] = -_sag(u[:, 0]) * UM
     J[:, 1, 1] = -_sag(u[:, 2]) * UM
-    return _cols(J, ["sag_x", "sag_z"], ["um", "um"], "arm_deflection")
+    return effect_columns(J, ["sag_x", "sag_z"], ["um", "um"], "arm_deflection")
 
 
 def parameter_bias(prob):
@@ -320,7 +237,7 @@ def parameter_bias(prob):
 
 
 def probe_misalignment(prob):
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = np.zeros((prob.n, 3, 6))
     names = []
     k = 0
@@ -330,7 +247,7 @@ def probe_misalignment(prob):
                 J[:, i, k] = B[:, j] * 1e-3
                 names.append(f"m_{'xyz'[i]}{'xyz'[j]}")
                 k += 1
-    blk = _cols(J, names, ["mrad"] * 6, "probe_misalignment")
+    blk = effect_columns(J, names, ["mrad"] * 6, "probe_misalignment")
     blk.element = (0, 0, 1, 1, 2, 2)
     return blk
 
@@ -338,7 +255,7 @@ def probe_misalignment(prob):
 def sensor_offset(prob):
     """Hall elements displaced relative to one another (their centroid held fixed: a shift
     common to the three elements is a registration shift, ``magnet_misalignment``)."""
-    G = prob.ctx["G"]
+    G = prob.ctx.G
     # free parameters: elements x and y along each direction j relative to the centroid;
     # element z = -(x + y), so its column enters both with a minus sign
     J = np.zeros((prob.n, 3, 6))
@@ -348,7 +265,7 @@ def sensor_offset(prob):
             J[:, i, 2 * j + k] = G[:, i, j] * UM
             J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
             names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
-    blk = _cols(J, names, ["um"] * 6, "sensor_offset")
+    blk = effect_columns(J, names, ["um"] * 6, "sensor_offset")
     blk.physical = _element_offsets
     return blk
 
@@ -376,12 +293,12 @@ def magnet_misalignment(prob):
 
 
 def planar_hall(prob):
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = np.zeros((prob.n, 3, 3))
     for i in range(3):
         j, k = [c for c in range(3) if c != i]
         J[:, i, i] = B[:, j] * B[:, k]
-    blk = _cols(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
+    blk = effect_columns(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
     blk.element = (0, 1, 2)
     return blk
 
@@ -402,28 +319,28 @@ def magnet_temperature(prob):
             "no temperature log (temp_C) nor time (t_s): a magnet temperature change is a "
             "uniform scale, the same as a common Hall gain"
         )
-    B = prob.ctx["B0"]
+    B = prob.ctx.B0
     J = (B * 1e-6 * tau[:, None])[..., None]
-    return _cols(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
+    return effect_columns(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
 
 
 def sensor_volume_averaging(prob):
     ctx = prob.ctx
-    step = ctx.get("node_step")
-    if not ctx.get("smooth", True) and step is None:
+    step = ctx.node_step
+    if not ctx.smooth and step is None:
         return (
             "the reference map is piecewise linear and the readings lie between its nodes: no "
             "second derivatives to average"
         )
-    if "H" not in ctx:
+    if ctx.H is None:
         if step is not None:  # readings on a map's nodes: second differences of node values
-            H = np.einsum("nijj->nij", field_hessian(ctx["reference_fn"], ctx["upts"], step))
+            H = np.einsum("nijj->nij", field_hessian(ctx.reference_fn, ctx.upts, step))
         else:
-            H = field_hessian_diag(ctx["field_fn"], ctx["upts"], 1.0)
-        ctx["H"] = H[ctx["uinv"]]
-    H = ctx["H"]  # (n, 3 comps, 3 dirs) T/mm^2
+            H = field_hessian_diag(ctx.field_fn, ctx.upts, 1.0)
+        ctx.H = H[ctx.uinv]
+    H = ctx.H  # (n, 3 comps, 3 dirs) T/mm^2
     # largest change the plausible sensitive volume (5 mm side, w = 1.04 mm^2) could make
-    if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx["b_ref"]:
+    if np.max(np.abs(H)) * W_MAX_MM2 < 1e-7 * ctx.b_ref:
         return (
             "the reference field has no curvature at the mapped points (d2B/dx^2 = 0, as in a "
             "pure quadrupole): averaging over the sensitive volume leaves a field linear in "
@@ -433,7 +350,7 @@ def sensor_volume_averaging(prob):
     J = np.stack(
         [0.5 * (H[..., 0] - H[..., 1]), (2 * H[..., 2] - H[..., 0] - H[..., 1]) / 3.0], axis=-1
     )
-    return _cols(J * 1e-3, ["dw_xy", "dw_z"], ["1e-3 mm^2"] * 2, "sensor_volume_averaging")
+    return effect_columns(J * 1e-3, ["dw_xy", "dw_z"], ["1e-3 mm^2"] * 2, "sensor_volume_averaging")
 
 
 def averaging_params(a_mm) -> dict:

@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from .priors import effect_columns
 from .problem import UM, URAD
 
 __all__ = [
@@ -233,16 +234,16 @@ def _baseline_3d(prob, base):
         ``(a, th) -> (J3 (n, 3, base.p), var_known (n, 3))``.
     """
     ctx = prob.ctx
-    uinv = ctx["uinv"]
-    B0, G, V = ctx["B0"], ctx["G"], ctx["V"][uinv]
-    if "U" not in ctx:
-        ctx["U"] = potential_layers(ctx["field_fn"], ctx["upts"])
-    if "HU" not in ctx:
-        ctx["HU"] = _layer_hessians(ctx["field_fn"], ctx["upts"])
-    U, HU = ctx["U"][:, uinv], ctx["HU"][:, uinv]
+    uinv = ctx.uinv
+    B0, G, V = ctx.B0, ctx.G, ctx.V[uinv]
+    if ctx.U is None:
+        ctx.U = potential_layers(ctx.field_fn, ctx.upts)
+    if ctx.HU is None:
+        ctx.HU = _layer_hessians(ctx.field_fn, ctx.upts)
+    U, HU = ctx.U[:, uinv], ctx.HU[:, uinv]
     z, p = prob.pos[:, 2], prob.pos
-    disp = ctx.get("bench_disp")
-    bench = ctx.get("bench")
+    disp = ctx.bench_disp
+    bench = ctx.bench
 
     def j3(a, th, prof=None):
         """J3 and var_known with the Fermi profile (a, th), or with ``prof`` (rows g, g', ...
@@ -523,11 +524,11 @@ def _plane_block(prob, blk, th, a, inside, shape):
     (`_truncation_bias`).
     """
     ctx = prob.ctx
-    upts, uinv = ctx["upts"], ctx["uinv"]
-    if "U" not in ctx:
-        ctx["U"] = potential_layers(ctx["field_fn"], upts)
-    U, Vu = ctx["U"], ctx["V"]
-    B0u = ctx["field_fn"](upts)
+    upts, uinv = ctx.upts, ctx.uinv
+    if ctx.U is None:
+        ctx.U = potential_layers(ctx.field_fn, upts)
+    U, Vu = ctx.U, ctx.V
+    B0u = ctx.field_fn(upts)
     zs, plane = np.unique(np.round(upts[:, 2], 6), return_inverse=True)
     plane = plane.reshape(-1)
     near = _near_ends(zs, th, inside)
@@ -562,14 +563,13 @@ def _plane_block(prob, blk, th, a, inside, shape):
         units.append("T")
     if not freed.any():
         return None
-    from .effects import _cols
 
     in_planes = freed[plane[uinv]]
     amp = blk.J[..., :1] * ~in_planes[:, None, None]  # the Fermi profile beyond those planes
     first = [amp] if np.any(amp) else []
     J = np.concatenate(first + [c[uinv] for c in Jp], axis=-1)
     lead = ["amplitude"] if first else []
-    out = _cols(J, lead + names, ["1"] * len(lead) + units, "fringe_field_3d")
+    out = effect_columns(J, lead + names, ["1"] * len(lead) + units, "fringe_field_3d")
     out.bounds_why = [""] * out.p
     out.replaces, out.var_known = blk.replaces, blk.var_known
     out.model_rows = in_planes
@@ -659,25 +659,24 @@ def _edges_of(zi, zo, lam):
 
 def fringe_field_3d(prob):
     from .calibrate import fit_map, stack
-    from .effects import _cols
     from .problem import noise_sigma
 
     ctx = prob.ctx
-    upts, uinv = ctx["upts"], ctx["uinv"]
+    upts, uinv = ctx.upts, ctx.uinv
     z = upts[:, 2]
     if np.ptp(z) <= 0:
         return "a single z plane: no z-dependence to see"
-    G = ctx["G"]
+    G = ctx.G
     dz = np.abs(G[:, :, 2]).max()
     if dz > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300):
         return (
             "the reference field varies along z (a 3-D map): the magnet ends are part of it, "
             "and the effect describes ends missing from a 2-D reference"
         )
-    if "V" not in ctx or "W3" not in ctx:
-        ctx["V"], ctx["W3"] = _scalar_potential(ctx["field_fn"], upts)
-    B0u = ctx["field_fn"](upts)
-    Vu, W3u = ctx["V"], ctx["W3"]
+    if ctx.V is None or ctx.W3 is None:
+        ctx.V, ctx.W3 = _scalar_potential(ctx.field_fn, upts)
+    B0u = ctx.field_fn(upts)
+    Vu, W3u = ctx.V, ctx.W3
 
     def delta(th):
         """Change of the reading from the 2-D reference to the field with soft ends (a = 1):
@@ -725,7 +724,7 @@ def fringe_field_3d(prob):
             e = np.zeros(3)
             e[k] = 1e-3 * th[2]
             cols.append((per_a(th + e) - per_a(th - e)) / (2 * e[k]))
-        blk = _cols(np.stack(cols, -1), names, units, "fringe_field_3d")
+        blk = effect_columns(np.stack(cols, -1), names, units, "fringe_field_3d")
         blk.bounds_why = [""] * len(names)
         for j, k in enumerate(free):
             if k < 2:  # the edge (th + increment / a, a ~ 1) must stay in the data's z range

@@ -234,7 +234,7 @@ def vibration_covariance(prob, model, fit, sigma, noise: NoiseModel) -> np.ndarr
 
     The fit weighs each component of a reading on its own (``sigma``), but the bench's
     vibration moves the probe as a whole: one displacement d of the probe changes every
-    component, dB = L d (``L`` = ``prob.ctx['lever']``, T/mm per bench-frame displacement), so
+    component, dB = L d (``L`` = ``prob.ctx.lever``, T/mm per bench-frame displacement), so
     the components of one reading covary by sqrt(scale_a scale_b) (L diag(v) L^T)_ab, ``v``
     the bench's vibration variance per axis and ``scale`` the noise model's. With S the
     readings' covariance (its diagonal sigma^2), C the fit's posterior covariance and P the
@@ -244,7 +244,7 @@ def vibration_covariance(prob, model, fit, sigma, noise: NoiseModel) -> np.ndarr
     Parameters
     ----------
     prob : Problem
-        A Hall map with ``ctx['lever']`` (n, 3, 3) and ``ctx['axis_var']`` (3,), mm^2.
+        A Hall map with ``ctx.lever`` (n, 3, 3) and ``ctx.axis_var`` (3,), mm^2.
     model : Columns
     fit : Fit
         ``fit_map(prob.y, sigma, model)``.
@@ -258,12 +258,12 @@ def vibration_covariance(prob, model, fit, sigma, noise: NoiseModel) -> np.ndarr
         ``fit.cov`` where the problem has no lever or the model brings its own vibration
         variance (:attr:`Columns.var_known`).
     """
-    lever = prob.ctx.get("lever")
+    lever = prob.ctx.lever
     if lever is None or model.var_known is not None:
         return fit.cov
     root = np.sqrt(np.clip(noise.scale, 0.0, None))
     Lv = lever * root[None, :, None]
-    S = np.einsum("nik,k,njk->nij", Lv, prob.ctx["axis_var"], Lv)
+    S = np.einsum("nik,k,njk->nij", Lv, prob.ctx.axis_var, Lv)
     idx = np.arange(3)
     S[:, idx, idx] = sigma**2
     w = np.where(np.isfinite(sigma), 1.0 / sigma**2, 0.0)

@@ -22,6 +22,7 @@ from ...models.bench import AXES, ERROR_NAMES, Bench
 from ...models.kinematics.chain import sensitivities
 from ...models.recordings import check_hall_scale
 from .calibrate import Columns
+from .context import ProblemContext
 from .motion import axis_velocities
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian", "subset_rows"]
@@ -61,7 +62,7 @@ class Problem:
     var_known : ndarray, shape (n, 3)
         Variance known from the bench model (vibration + delay through the gradient), y units^2.
     baseline : list of Columns
-    ctx : dict
+    ctx : ProblemContext
         Model pieces the effect catalogue needs (field values, gradients, bench).
     notes : list of str
     """
@@ -80,7 +81,7 @@ class Problem:
     unit: str
     var_known: np.ndarray
     baseline: list
-    ctx: dict = field(default_factory=dict)
+    ctx: ProblemContext = field(default_factory=ProblemContext)
     notes: list = field(default_factory=list)
     vel: np.ndarray | None = None
     var_ref: np.ndarray | None = None
@@ -107,11 +108,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
     def take(a):
         return a[keep] if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n else a
 
-    _, point = np.unique(prob.point[keep], return_inverse=True)
-    whole = ("upts", "V", "W3", "U", "HU", "point_ids", "pose", "axis_var")  # not per row
-    ctx = {k: take(v) if k not in whole else v for k, v in prob.ctx.items()}
-    if "point_ids" in prob.ctx:
-        ctx["point_ids"] = prob.ctx["point_ids"][np.unique(prob.point[keep])]
+    kept, point = np.unique(prob.point[keep], return_inverse=True)
     return replace(
         prob,
         y=prob.y[keep],
@@ -138,7 +135,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
             )
             for b in prob.baseline
         ],
-        ctx=ctx,
+        ctx=prob.ctx.subset(keep, kept),
         notes=list(prob.notes),
         vel=take(prob.vel),
         var_ref=take(prob.var_ref),
@@ -247,7 +244,7 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float | None = None,
         unit="um",
         var_known=np.zeros_like(y),
         baseline=[base, regc],
-        ctx={"bench": bench, "nominal": nominal, "point_ids": ids, "registration_prior": prior},
+        ctx=ProblemContext(bench=bench, nominal=nominal, point_ids=ids, registration_prior=prior),
         notes=notes,
         vel=_velocities(rec, notes),
     )
@@ -545,7 +542,7 @@ def hall_problem(
         Node spacing of a reference map. Read linearly (``smooth`` False), its interpolation
         error is estimated (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`) and
         added to the noise. Either way, when every reading lies on a node, the curvature of the
-        field there (``ctx['node_step']``) is taken from second differences of node values.
+        field there (``ctx.node_step``) is taken from second differences of node values.
     ref_nodes : ndarray, shape (k, 3), mm, optional
         Nodes of that map: the error vanishes at a node and grows to its full size half a
         spacing away, so it is scaled by the distance to the nearest node.
@@ -581,7 +578,7 @@ def hall_problem(
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
-    ctx_vib = {}  # the vibration's lever (n, 3, 3) and variance per axis (3,), with a bench
+    lever = axis_var = None  # the vibration's lever (n, 3, 3) and variance per axis (3,)
     q = np.zeros_like(p)
     disp = None
     if bench is not None:
@@ -605,9 +602,8 @@ def hall_problem(
         blocks.append(bench_columns(bench, q, lever_to=lever))
         # probe displacement (magnet frame, mm per display unit) of each bench error
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
-        nv = bench.noise_std_mm() ** 2
-        var_known = np.einsum("nik,k->ni", lever**2, nv)
-        ctx_vib = {"lever": lever, "axis_var": nv}
+        axis_var = bench.noise_std_mm() ** 2
+        var_known = np.einsum("nik,k->ni", lever**2, axis_var)
     blocks += reg_gain
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
@@ -629,25 +625,26 @@ def hall_problem(
             "is added to the noise"
         )
     t_h, d, speed, temp = _aux(rec)
-    ctx = {
-        "node_step": _node_step(upts, ref_spacing_mm, ref_nodes),
-        "reference_fn": field_fn,
-        "B0": B0,
-        "G": G,
-        "field_fn": fn_posed,
-        "b_ref": b_ref,
-        "pose": pose,
-        "rows": np.arange(len(p)),
-        "registration_prior": prior,
-        "rebuild": rebuild,
-        "smooth": smooth,
-        "upts": upts,
-        "uinv": uinv,
-        "point_ids": ids,
-        "bench": bench,
-        "bench_disp": disp,
-        **ctx_vib,
-    }
+    ctx = ProblemContext(
+        node_step=_node_step(upts, ref_spacing_mm, ref_nodes),
+        reference_fn=field_fn,
+        B0=B0,
+        G=G,
+        field_fn=fn_posed,
+        b_ref=b_ref,
+        pose=pose,
+        rows=np.arange(len(p)),
+        registration_prior=prior,
+        rebuild=rebuild,
+        smooth=smooth,
+        upts=upts,
+        uinv=uinv,
+        point_ids=ids,
+        bench=bench,
+        bench_disp=disp,
+        lever=lever,
+        axis_var=axis_var,
+    )
     return Problem(
         kind="hall",
         y=y,
@@ -694,6 +691,7 @@ def noise_sigma(
 
 
 __all__ += [
+    "ProblemContext",
     "noise_sigma",
     "bench_columns",
     "field_hessian_diag",

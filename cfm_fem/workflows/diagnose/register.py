@@ -32,11 +32,11 @@ def applies(prob: Problem) -> bool:
     (the soft ends are ``fringe_field_3d``'s). Between the nodes of a linear map its curvature
     is not known better than its own interpolation error (added to the noise), which is of
     the order of the second-order terms of a move of up to a node spacing."""
-    if prob.kind != "hall" or "rebuild" not in prob.ctx:
+    if prob.kind != "hall" or prob.ctx.rebuild is None:
         return False
-    if not prob.ctx.get("smooth", True) and prob.ctx.get("node_step") is None:
+    if not prob.ctx.smooth and prob.ctx.node_step is None:
         return False
-    G = prob.ctx["G"]
+    G = prob.ctx.G
     return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
 
 
@@ -51,9 +51,9 @@ def _objective(prob: Problem):
 
 def repose(prob: Problem, pose) -> Problem:
     """The same problem (same rows) linearised at the registration ``pose`` (um, urad)."""
-    full = prob.ctx["rebuild"](pose=np.asarray(pose, dtype=float))
+    full = prob.ctx.rebuild(pose=np.asarray(pose, dtype=float))
     full.notes = list(prob.notes)  # with what the caller added
-    rows = prob.ctx["rows"]
+    rows = prob.ctx.rows
     if len(rows) == full.n:
         return full
     keep = np.zeros(full.n, dtype=bool)
@@ -67,7 +67,7 @@ def pose_step(prob: Problem, model, fit) -> tuple[np.ndarray, bool]:
     Parameters
     ----------
     prob : Problem
-        A Hall-map problem linearised at ``prob.ctx['pose']``.
+        A Hall-map problem linearised at ``prob.ctx.pose``.
     model : Columns
         The model fitted (its registration columns named as :data:`REG_NAMES`).
     fit : Fit
@@ -78,7 +78,7 @@ def pose_step(prob: Problem, model, fit) -> tuple[np.ndarray, bool]:
     moved : bool
         Some step exceeds ``STEP_TOL`` times its std.
     """
-    pose = np.array(prob.ctx["pose"], dtype=float)
+    pose = np.array(prob.ctx.pose, dtype=float)
     new = pose.copy()
     moved = False
     for k, nm in enumerate(REG_NAMES):
@@ -103,7 +103,7 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
         pose, moved = pose_step(prob, base, fit)
         if not moved:
             break
-        start = np.asarray(prob.ctx["pose"], dtype=float)
+        start = np.asarray(prob.ctx.pose, dtype=float)
         for _half in range(4):
             trial = repose(prob, pose)
             obj_t, base_t, fit_t = _objective(trial)
@@ -118,7 +118,7 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
 
 def registration_note(prob: Problem) -> str | None:
     """What the non-linear registration did, for the notes of the diagnosis."""
-    pose = prob.ctx.get("pose") if prob.kind == "hall" else None
+    pose = prob.ctx.pose if prob.kind == "hall" else None
     if pose is None or not np.any(pose):
         return None
     moved = ", ".join(f"{n} {v:.4g}" for n, v in zip(REG_NAMES, pose, strict=True))

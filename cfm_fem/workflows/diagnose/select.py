@@ -37,6 +37,7 @@ import numpy as np
 from scipy import stats
 
 from .calibrate import Columns, Fit, fit_map, released_in, stack
+from .priors import bounds_for
 from .problem import Problem
 from .stability import unstable_in
 
@@ -487,7 +488,6 @@ def _plausibility(c: Candidate, model_p: int) -> str:
             sd.append(st[i])
             bnd.append(blk.bounds[j])
             unit.append(blk.units[j])
-    from .effects import bounds_for
 
     why = bounds_for(c.name, names)[1]
     if c.has_new and blk.bounds_why is not None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .calibrate import Columns, fit_map, stack
+from .priors import bounds_for
 from .problem import UM, noise_sigma
 
 __all__ = ["step_event", "change_points"]
@@ -66,7 +67,7 @@ def _kinds(prob):
 
             kinds.append((f"step_{'xyz'[a]}", "um", col))
         return kinds
-    G = prob.ctx["G"]
+    G = prob.ctx.G
     for i in range(3):
 
         def off(after, i=i):
@@ -125,7 +126,6 @@ def step_event(prob):
         info[name] = best[2]
     if not cols:
         return "no change point leaves a signature beyond the calibrated model"
-    from .effects import bounds_for
 
     J = np.stack(cols, axis=-1)
     p = J.shape[-1]

@@ -21,6 +21,7 @@ from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .conflicts import prior_conflicts
 from .locate import isolated_planes, locate
 from .noise import estimate_noise, vibration_covariance
+from .priors import WIDE, bounds_for
 from .problem import Problem, noise_sigma, subset_rows
 from .register import applies, pose_step, register, registration_note, repose
 from .select import cv_rms, select_effects, structural_absorption
@@ -70,7 +71,7 @@ def diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
 def _registration_prior_doc(prob: Problem) -> dict | None:
     """The registration prior the calibration used (1 sigma per axis, um and urad) and the
     source of each (an argument, the bench file's key, or the default)."""
-    prior = prob.ctx.get("registration_prior")
+    prior = prob.ctx.registration_prior
     if prior is None:
         return None
     doc = {
@@ -146,9 +147,9 @@ def _candidates(prob: Problem, cal) -> tuple[dict, dict, dict, list]:
 def _determined(effect: str, names, std) -> np.ndarray:
     """True where the data determine a parameter: its standard uncertainty is below a quarter of
     its plausible range (or, without a range, far below the catalogue's vague prior)."""
-    bounds, _ = fx.bounds_for(effect, names)
+    bounds, _ = bounds_for(effect, names)
     width = bounds[:, 1] - bounds[:, 0]
-    limit = np.where(np.isfinite(width), 0.25 * width, 0.5 * fx.WIDE)
+    limit = np.where(np.isfinite(width), 0.25 * width, 0.5 * WIDE)
     return np.asarray(std) < limit
 
 
