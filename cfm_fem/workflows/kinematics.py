@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from ..errors import CfmInputError, check_seed
 from .inputs import bench_provenance, choose_bench
 from .results import KinematicsTable
+from .sweep.distributed import backend_description
 
 __all__ = ["KinematicsRun", "run_kinematics", "check_options"]
 
@@ -70,14 +71,6 @@ def check_options(trials: int, seed: int, adaptive_digits=None, scheduler=None,
             "workers; drop --scheduler/--workers or --adaptive"
         )
     check_scale_out(scheduler, workers)
-
-
-def _backend(scheduler, workers) -> str:
-    if scheduler:
-        return f"dask scheduler {scheduler}"
-    if workers:
-        return f"dask LocalCluster, {workers} worker process(es)"
-    return "this process (numba threads)"
 
 
 def run_kinematics(bench=None, *, trials: int = 1_000_000, seed: int = 0, adaptive_digits=None,
@@ -141,7 +134,7 @@ def run_kinematics(bench=None, *, trials: int = 1_000_000, seed: int = 0, adapti
     gum = gum_check(model, res)
     prov = provenance({"bench": bench_provenance(bench)}, command_line)  # packaged or given
     prov.update(bench_name=model.name, seed=int(seed), trials=int(res.trials),
-                backend=_backend(scheduler, workers))  # fmt: skip
+                backend=backend_description(scheduler, workers))  # fmt: skip
     summary = kinematics_summary(res, model, budget=budget, gum=gum, extra={"provenance": prov})
     return KinematicsRun(res, model, summary, sentence)
 

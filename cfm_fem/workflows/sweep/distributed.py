@@ -21,6 +21,7 @@ import numpy as np
 from ...errors import CfmInputError
 
 __all__ = [
+    "backend_description",
     "check_scale_out",
     "dask_client",
     "dask_chunk_map",
@@ -45,6 +46,16 @@ def _import_distributed():
 
 #: Most local Dask worker processes per CPU: more only compete for the CPUs and the memory.
 MAX_WORKERS_PER_CPU = 4
+
+
+def backend_description(scheduler: str | None = None, workers: int | None = None) -> str:
+    """Where a run's trials ran, for the provenance: a Dask scheduler, a local cluster of
+    ``workers`` processes, or this process."""
+    if scheduler:
+        return f"dask scheduler {scheduler}"
+    if workers:
+        return f"dask LocalCluster, {workers} worker process(es)"
+    return "this process (numba threads)"
 
 
 def check_scale_out(scheduler: str | None = None, workers: int | None = None) -> None:

@@ -15,6 +15,7 @@ from pathlib import Path
 from ...errors import CfmInputError
 from ..inputs import bench_provenance, choose_bench, field_map
 from ..results import SweepMaps
+from .distributed import backend_description
 
 #: Most U_p values one sweep accepts (a typo such as 0:50:0.001 would otherwise ask for 50,001
 #: maps and exhaust the memory before anything is computed).
@@ -138,14 +139,6 @@ def _check_slab_options(slabs, max_memory, pieces, region) -> None:
     if region is not None:
         raise CfmInputError("--region cannot be combined with --slabs/--max-memory (the "
                             "out-of-core run summarises every node); leave one out")  # fmt: skip
-
-
-def _backend(scheduler, workers) -> str:
-    if scheduler:
-        return f"dask scheduler {scheduler}"
-    if workers:
-        return f"dask LocalCluster, {workers} worker process(es)"
-    return "this process (numba threads)"
 
 
 def _say(log, text: str) -> None:
@@ -358,7 +351,7 @@ def _on_disk(job, fm) -> SweepRun:
         _say(job.log, f"resumed: {runner.loaded} chunk(s) read from {runner.store.path}, "
                       f"{runner.computed} computed{rejected}")  # fmt: skip
     prov = _provenance(job, bench_entry, run_key=runner.key,
-                       backend=_backend(job.scheduler, job.workers),
+                       backend=backend_description(job.scheduler, job.workers),
                        resumed_chunks=runner.loaded)  # fmt: skip
     res.mesh = res.mesh.for_output()  # point location is done: its arrays are freed here
     if job.pieces:
@@ -407,7 +400,8 @@ def _run_slabs(job):
     try:
         with dask_client(job.scheduler, job.workers) as client:
             if client is not None:  # the workers map the staged rows in DIR: a shared folder
-                prov["backend"] = _backend(job.scheduler, job.workers) + ", slabs (out of core)"
+                where = backend_description(job.scheduler, job.workers)
+                prov["backend"] = where + ", slabs (out of core)"
             summary = run_slab_sweep(
                 job.field, cfg, out, n_slabs=job.slabs, max_memory=budget, fmt=kind,
                 length_unit=reader.get("length_unit"), field_unit=reader.get("field_unit"),
