@@ -2,7 +2,7 @@
 None), a recording (object or file), a field map (object or file) with the reader's options, and
 the provenance entry of a bench.
 
-The command line and `cfm_fem.api` both call the entries; these helpers let each entry take
+The command line and `cfm_fem.api` both call the entries; these functions let each entry take
 either what the command line has already read (with its own messages) or a path.
 """
 
