@@ -171,15 +171,27 @@ def _reference(coll, z_half=90.0, dz=0.4, n_theta=64):
     return integ, abs(integ[main]) / (centre_plane * phase).real
 
 
+def _ring_nodes():
+    """Nodes of the Halbach rings' maps (mm): a 12 x 12 grid of 1 mm over |z| <= 90 mm."""
+    g = np.arange(-5.5, 5.51, 1.0)
+    x, y, z = np.meshgrid(g, g, np.arange(-90.0, 90.01, 2.0), indexing="ij")
+    return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+
+
+def _assert_harmonics(res, ref, order):
+    """The map's integrated b_n, a_n within 0.05 units of the circles' (main ``order``)."""
+    units = 1e4 * ref[:15] / abs(ref[order - 1])
+    np.testing.assert_allclose(res.nominal.b_units, units.real, atol=0.05)
+    np.testing.assert_allclose(res.nominal.a_units, units.imag, atol=0.05)
+
+
 @pytest.fixture(scope="module")
 def quad_map(tmp_path_factory):
     from cfm_fem.io import read_field, write_field
 
     dx, dy, roll = 0.05, -0.03, 2e-3
     coll = _halbach(2, dx, dy, roll)
-    g = np.arange(-5.5, 5.51, 1.0)
-    x, y, z = np.meshgrid(g, g, np.arange(-90.0, 90.01, 2.0), indexing="ij")
-    pts = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    pts = _ring_nodes()
     path = tmp_path_factory.mktemp("quality") / "halbach_quad.csv"
     write_field(path, FieldMap.from_arrays(pts, _field(coll, pts)))
     return read_field(path), coll, (dx, dy, roll)
@@ -190,9 +202,7 @@ def test_magpylib_quadrupole_moved_and_rolled(quad_map):
     res = run_quality(fm, R_REF, uncertainty=False)
     ref, ref_length = _reference(coll)
     assert res.main_order == 2
-    units = 1e4 * ref[:15] / abs(ref[1])
-    np.testing.assert_allclose(res.nominal.b_units, units.real, atol=0.05)
-    np.testing.assert_allclose(res.nominal.a_units, units.imag, atol=0.05)
+    _assert_harmonics(res, ref, 2)
     assert res.nominal.centre_mm == pytest.approx([dx, dy], abs=1e-3)
     assert res.nominal.roll_mrad == pytest.approx(roll * 1e3, abs=0.01)
     assert res.nominal.length_mm == pytest.approx(ref_length, abs=0.02)
@@ -201,15 +211,11 @@ def test_magpylib_quadrupole_moved_and_rolled(quad_map):
 def test_magpylib_sextupole_centre():
     dx, dy = -0.04, 0.06
     coll = _halbach(3, dx, dy)
-    g = np.arange(-5.5, 5.51, 1.0)
-    x, y, z = np.meshgrid(g, g, np.arange(-90.0, 90.01, 2.0), indexing="ij")
-    pts = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    pts = _ring_nodes()
     res = _quality(pts, _field(coll, pts))
     ref, ref_length = _reference(coll)
     assert res.main_order == 3
-    units = 1e4 * ref[:15] / abs(ref[2])
-    np.testing.assert_allclose(res.nominal.b_units, units.real, atol=0.05)
-    np.testing.assert_allclose(res.nominal.a_units, units.imag, atol=0.05)
+    _assert_harmonics(res, ref, 3)
     assert res.nominal.centre_mm == pytest.approx([dx, dy], abs=1e-3)
     assert res.nominal.length_mm == pytest.approx(ref_length, abs=0.02)
 
@@ -222,15 +228,11 @@ def test_magpylib_dipole_with_ends_rolled():
     on the axis; the plane fit over the map's nodes lies between the two."""
     roll = 1.5e-3
     coll = _halbach(1, roll=roll)
-    g = np.arange(-5.5, 5.51, 1.0)
-    x, y, z = np.meshgrid(g, g, np.arange(-90.0, 90.01, 2.0), indexing="ij")
-    pts = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    pts = _ring_nodes()
     res = _quality(pts, _field(coll, pts))
     ref, ref_length = _reference(coll)
     assert res.main_order == 1
-    units = 1e4 * ref[:15] / abs(ref[0])
-    np.testing.assert_allclose(res.nominal.b_units, units.real, atol=0.05)
-    np.testing.assert_allclose(res.nominal.a_units, units.imag, atol=0.05)
+    _assert_harmonics(res, ref, 1)
     assert res.nominal.roll_mrad == pytest.approx(roll * 1e3, abs=0.01)
     on_axis = abs(ref[0]) / np.hypot(*_field(coll, np.zeros((1, 3)))[0, :2])
     assert ref_length < res.nominal.length_mm < on_axis
