@@ -188,32 +188,38 @@ def test_hall_null_is_the_baseline_within_the_noise(order):
 
 def test_family_summary_per_stratum():
     from cfm_fem.simulation.family_summary import markdown_family, summarise_family
+    from cfm_fem.simulation.scoring import clopper_pearson_upper
 
-    def run(seed, magnet, expected=None, claimed=(), sigma=None, pulls=None):
+    def run(seed, magnet, expected=None, claimed=(), sigma=None, pulls=None, mismatch=False):
         strata = {k: "a" for k in ("source", "ends", "scan", "noise", "reference")}
         strata |= {"magnet": magnet, "bench_stack": "Z-X-Y" if seed % 2 else "X-Y-Z"}
         null = expected is None
         return {"seed": seed, "role": "null" if null else "effect", "kind": "hall",
                 "expected": expected, "strata": strata, "sigma": sigma,
-                "false_alarm": bool(claimed) if null else None,
+                "false_alarm": bool(claimed) if null else None, "mismatch": mismatch,
                 "rank1": None if null else bool(claimed) and claimed[0] == expected,
                 "detected": None if null else expected in claimed,
                 "pulls": {expected: pulls} if pulls else {}}  # fmt: skip
 
-    runs = [run(s, "quadrupole") for s in range(98)] + [run(98, "dipole", claimed=["x"])]
+    runs = [run(s, "quadrupole") for s in range(97)] + [run(98, "dipole", claimed=["x"])]
+    runs += [run(97, "quadrupole", mismatch=True)]  # a residual located, nothing claimed
     runs += [run(200 + s, "dipole", "planar_hall", ["planar_hall"], 6.5, {"k_x": 0.1 * s - 1})
              for s in range(18)]  # fmt: skip
     runs += [run(300, "dipole", "planar_hall", [], 7.0), run(301, "dipole", "planar_hall", [], 5.5)]
     out = summarise_family(runs)
-    assert out["pooled"]["nulls"]["false_alarms"] == [1, 99]
+    assert out["pooled"]["nulls"]["false_alarms"] == [2, 99]
+    assert out["pooled"]["nulls"]["claimed"] == [1, 99]
     quad = out["strata"]["magnet"]["quadrupole"]["nulls"]
-    assert quad["false_alarms"] == [0, 98]
-    assert quad["cp95_upper"] == pytest.approx(1.0 - 0.05 ** (1.0 / 98))  # exact for k = 0
+    assert quad["false_alarms"] == [1, 98]
+    assert quad["seeds"] == [97]
+    assert out["strata"]["noise"]["a"]["nulls"]["cp95_upper"] == pytest.approx(
+        clopper_pearson_upper(2, 99)
+    )
     dip = out["strata"]["magnet"]["dipole"]
     assert dip["nulls"]["seeds"] == [98]
     assert dip["effects"]["rank1_strong"] == [18, 19]  # the 5.5 sigma miss is not counted
     assert dip["effects"]["missed_seeds"] == [(300, "planar_hall"), (301, "planar_hall")]
-    assert out["goals"]["false_alarm_pooled"] is False  # 1 in 99 > 1 %
+    assert out["goals"]["false_alarm_pooled"] is False  # 2 in 99 > 1 %
     assert out["goals"]["rank1_per_magnet"] is False  # 18 / 19 < 95 %
     assert out["per_effect"]["planar_hall"]["pull_n"] == 18
     assert "| magnet | dipole |" in markdown_family(out, "header")

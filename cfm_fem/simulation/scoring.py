@@ -61,9 +61,10 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
     -------
     dict
         ``claimed`` (effect names, strongest first), ``detected``, ``rank1``, ``false_alarm``
-        (a null with any effect claimed), ``other_claims``, ``pulls`` {effect: {param: pull}} of
-        every reported parameter with a known truth (not those the diagnosis reports as
-        ``model_dependent``), ``step`` (step case only).
+        (a null with any effect claimed), ``alarm`` (a null with any effect claimed or a mismatch
+        stated: a residual located, a plane called bad, a prior conflict), ``other_claims``,
+        ``pulls`` {effect: {param: pull}} of every reported parameter with a known truth (not
+        those the diagnosis reports as ``model_dependent``), ``step`` (step case only).
     """
     names = [e["name"] for e in summary["effects"]]
     expected = truth.get("expected")
@@ -87,6 +88,7 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
         "detected": None if expected is None else expected in names,
         "rank1": None if expected is None else bool(names) and names[0] == expected,
         "false_alarm": bool(names) if expected is None else None,
+        "alarm": (bool(names) or bool(summary.get("mismatch"))) if expected is None else None,
         "other_claims": [n for n in names if n != expected],
         "pulls": pulls,
     }
