@@ -18,9 +18,11 @@ from .api import (
     run_design,
     run_design_quality,
     run_diagnose,
+    run_fig4,
     run_kinematics,
     run_quality,
     run_sweep,
+    run_tolerance,
 )
 from .errors import CfmInputError, CfmInputWarning
 from .models.field import FieldMap
@@ -40,7 +42,9 @@ __all__ = [
     "run_design",
     "run_design_quality",
     "run_diagnose",
+    "run_fig4",
     "run_kinematics",
     "run_quality",
     "run_sweep",
+    "run_tolerance",
 ]

@@ -29,6 +29,8 @@ __all__ = [
     "run_design",
     "run_design_quality",
     "run_quality",
+    "run_fig4",
+    "run_tolerance",
     "SWEEP_TRIALS",
 ]
 
@@ -324,3 +326,68 @@ def run_design_quality(field, r_ref_mm: float, quantity: str, max_value: float, 
 
     return quality_up_max(field, r_ref_mm, quantity, max_value, trials=trials, seed=seed,
                           progress=progress, **options)  # fmt: skip
+
+
+def run_fig4(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 2000, seed: int = 0,
+             b_ref_T=None, field_model: str = "linear", progress=None, **reader):  # fmt: skip
+    """U_f (95 %) against U_p over a magnet's body, as the paper's Fig. 4 (``cfm-fem fig4``).
+
+    Parameters
+    ----------
+    field : path-like or FieldMap
+    up_um : sequence of float, um
+        U_p values, as ``--up``.
+    trials : int
+        Trials per node and U_p, as the command line's default.
+    seed : int
+    b_ref_T : float, optional, T
+        B_ref (default max |B| of the map).
+    field_model : {"linear", "harmonic"}
+        As ``--field-model``.
+    progress : callable(int), optional
+        Called with the nodes finished.
+    **reader
+        How the map is read (``fmt``, ``length_unit``, ... of `read_map`).
+
+    Returns
+    -------
+    cfm_fem.workflows.fig4_run.Fig4Run
+        ``.summary`` is ``fig4.json``; ``.write(out_dir)`` writes the command's files.
+    """
+    from .workflows.fig4_run import run_fig4 as run
+
+    return run(field, up_um, trials=int(trials), seed=int(seed), b_ref_T=b_ref_T,
+               field_model=field_model, reader=reader or None, progress=progress)  # fmt: skip
+
+
+def run_tolerance(target_um, bench=None, *, check_trials: int = 0, seed: int = 0,
+                  progress=None):  # fmt: skip
+    """How far each of a bench's 21 tolerances may go for a target U_p (``cfm-fem tolerance``).
+
+    Parameters
+    ----------
+    target_um : float or sequence of 3 float, um
+        Target U_p, one value for every axis or X, Y, Z, as ``--target``.
+    bench : Bench, path-like or None
+        None: the packaged CFM reference bench.
+    check_trials : int
+        As ``--check``: verify the plan with a Monte Carlo of this many trials (0: no check).
+    seed : int
+        Of the check.
+    progress : callable(int), optional
+        Called with the trials of the check finished.
+
+    Returns
+    -------
+    cfm_fem.workflows.tolerance.ToleranceRun
+        ``.design`` is ``tolerance.json``'s content; ``.write(out_dir)`` writes the command's
+        files.
+    """
+    import numpy as np
+
+    from .workflows.tolerance import run_tolerance as run
+
+    target = np.atleast_1d(np.asarray(target_um, dtype=float)).tolist()
+    if len(target) == 1:
+        target = target * 3
+    return run(target, bench, check_trials=int(check_trials), seed=int(seed), progress=progress)

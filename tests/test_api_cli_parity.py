@@ -58,8 +58,11 @@ def no_figures(monkeypatch):
     import cfm_fem.report.quality
     import cfm_fem.report.runs
     import cfm_fem.report.sweep
+    import cfm_fem.report.tolerance
 
     for mod, name in ((cfm_fem.report.runs, "coupled_report"),
+                      (cfm_fem.report.runs, "fig4_report"),
+                      (cfm_fem.report.tolerance, "tolerance_report"),
                       (cfm_fem.report.runs, "tracker_report"),
                       (cfm_fem.report.runs, "hall_report"),
                       (cfm_fem.report.kinematics, "kinematics_report"),
@@ -221,6 +224,15 @@ def test_kinematics_cli_equals_api(tmp_path):
     assert written["axes"]["x"]["U_p_um"] == run.axis("x")["U_p_um"]
 
 
+def test_tolerance_cli_equals_api(tmp_path):
+    _cli(["tolerance", "--target", "9,9,12", "--check", 200, "--seed", 4, "--out",
+          tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_tolerance([9, 9, 12], check_trials=200, seed=4)
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=21 * 3)
+    assert cfm_fem.run_tolerance(10.0).design["target_um"] == [10.0, 10.0, 10.0]
+
+
 # --------------------------------------------------------------------------- sweep, design
 
 
@@ -248,6 +260,15 @@ def test_sweep_htm_cli_equals_api(recordings, tmp_path):
     _cli(["sweep", ref, "--mode", "htm", "--trials", 40, "--seed", 5, "--out", tmp_path / "cli"])
     cfm_fem.run_sweep(ref, mode="htm", trials=40, seed=5).write(tmp_path / "api")
     assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=891)
+
+
+def test_fig4_cli_equals_api(recordings, tmp_path):
+    ref = recordings / "map.csv"
+    _cli(["fig4", ref, "--up", "0:20:10", "--trials", 60, "--seed", 2, "--field-model",
+          "harmonic", "--out", tmp_path / "cli"])  # fmt: skip
+    run = cfm_fem.run_fig4(ref, [0, 10, 20], trials=60, seed=2, field_model="harmonic")
+    run.write(tmp_path / "api")
+    assert_same_outputs(tmp_path / "cli", tmp_path / "api", at_least=3 * 4)
 
 
 def test_design_cli_equals_api(recordings, tmp_path):
@@ -301,6 +322,9 @@ def test_quality_htm_cli_equals_api(recordings, tmp_path):
         (lambda m, r: cfm_fem.run_diagnose(r, b_ref_T=1.0), "--b-ref is for --hall-map"),
         (lambda m, r: cfm_fem.run_kinematics(trials=1), "--trials must be >= 2"),
         (lambda m, r: cfm_fem.run_design(m, 0.0, trials=20), "--uf-max must be > 0"),
+        (lambda m, r: cfm_fem.run_tolerance(-1.0), "--target must be"),
+        (lambda m, r: cfm_fem.run_tolerance(5.0, check_trials=1), "--check must be"),
+        (lambda m, r: cfm_fem.run_fig4(m, [float("nan")], trials=20), "must be finite"),
     ],
 )
 def test_the_api_refuses_what_the_command_line_refuses(recordings, call, message):

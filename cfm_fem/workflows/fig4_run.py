@@ -87,8 +87,10 @@ def run_fig4(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 2000, seed: 
     from .fig4 import run_fig4 as run
     from .inputs import field_map
     from .sweep.problem import check_options
+    from .sweep.run import check_up_values
 
     up = [float(u) for u in up_um]
+    check_up_values(up)
     check_seed(seed)
     check_options(trials, (1.0, 1.0, 1.0), b_ref_T, len(up))
     fm = field_map(field, reader)
