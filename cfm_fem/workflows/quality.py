@@ -28,12 +28,12 @@ from ..models.quality import (
     QualityNumbers,
     ScanPlan,
     Sources,
+    analyse,
     budget_groups,
     fit_planes,
     main_order_of,
     plan_from_nodes,
     plan_on_circles,
-    quality_numbers,
     run_quality_mc,
 )
 from ..models.quality.harmonics import VECTOR_NAMES, inscribed_radius
@@ -376,7 +376,8 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
             raise CfmInputError(f"--main-order must be 1 .. {plan.n_orders}; got {main_order}")
         z_len = _length_plane(plan, planes, n_main, notes)
         _end_notes(plan, planes, n_main, notes)
-        nominal = quality_numbers(planes, plan, n_main, z_len)
+        nominal = analyse(plan, b_nom, n_main, z_len)
+        planes = fit_planes(plan, b_nom, on_circle=True)  # planes.csv: C_n on r = R_ref
         mc, groups, src_desc = None, [], "none"
         if uncertainty:
             src, src_desc = _sources(mode, up_um, bench, probe, centre_magnet)

@@ -2,7 +2,7 @@
 
 Each trial t moves every scan point p_i by a displacement e[t, i] (magnet frame), reads the
 field there from the model between nodes (`LocalField`), passes it through the Hall probe, and
-redoes the analysis (`fit_planes`, `quality_numbers`) with the scan points at their nominal
+redoes the analysis (`analyse`) with the scan points at their nominal
 places, as the measurement would. The displacements:
 
 ``gauss``
@@ -41,7 +41,7 @@ from ..bench import ERROR_NAMES, Bench, ReadingDelay
 from ..kinematics.geometry import draw_error_sets, kernel_geometry, noise_keys
 from ..mc import numerical_tolerance, symmetric_interval
 from ..probe import HallProbe
-from .harmonics import VECTOR_NAMES, ScanPlan, fit_planes, quality_numbers
+from .harmonics import VECTOR_NAMES, ScanPlan, analyse
 from .sampling import LocalField
 
 __all__ = [
@@ -242,8 +242,7 @@ def run_quality_mc(plan: ScanPlan, local: LocalField, src: Sources, nominal_vect
             m = min(chunk, b - t0)
             B, _ = local.read(disp(t0, m))
             B = _probe_read(src.probe, B, t0, seed, disp.r_probe)
-            planes = fit_planes(plan, B)
-            rows.append(quality_numbers(planes, plan, main_order, z_length).vector())
+            rows.append(analyse(plan, B, main_order, z_length).vector())
             if progress is not None:
                 progress(m)
         v = np.concatenate(rows) - nominal_vector[None]
