@@ -49,6 +49,7 @@ __all__ = [
     "McQuality",
     "run_quality_mc",
     "budget_groups",
+    "trial_reader",
     "GAUSS_STREAM",
     "PROBE_STREAM",
 ]
@@ -118,6 +119,19 @@ class _Displacer:
         pidx = np.arange(self.n, dtype=np.int64)
         K.coupled_probe_errors(params, t0, self.q, pidx, *self.keys, self.geo, out)
         return out @ self.r_bm.T
+
+
+def trial_reader(src: Sources, points, seed: int):
+    """``read(local, t0, m) -> B (m, n, 3)``: the readings of trials t0 .. t0 + m - 1 at
+    ``points`` (n, 3) mm (those of ``local``, a `LocalField`), each moved as the Monte Carlo
+    moves a scan point and read through the trial's probe; NaN where a reading left the model."""
+    disp = _Displacer(src, points, seed)
+
+    def read(local: LocalField, t0: int, m: int) -> np.ndarray:
+        b, _ = local.read(disp(t0, m))
+        return _probe_read(src.probe, b, t0, seed, disp.r_probe)
+
+    return read
 
 
 def _probe_read(probe: HallProbe, B, t0: int, seed: int, r_probe) -> np.ndarray:
