@@ -105,6 +105,27 @@ def test_circle_plan_matches_node_plan_on_a_2d_field():
     )
 
 
+@pytest.mark.parametrize("sampling", ["nodes", "circles"])
+def test_uniform_dipole_has_no_other_harmonic(sampling):
+    """A uniform field (a pure dipole, rolled by 2 mrad): no other harmonic beyond 1e-6 of it,
+    in the integral and in every plane, whether the map's nodes are fitted or circles are read
+    from the local harmonic model between them."""
+    pts = _grid(z=np.linspace(-20, 20, 21))
+    theta = 2e-3
+    res = _quality(pts, _moved_rolled(pts, {1: 0.8}, 0.0, 0.0, theta), sampling=sampling,
+                   dz_mm=1.5)  # fmt: skip
+    assert res.main_order == 1 and res.plan.sampling == sampling
+    c = res.nominal.integrated / (res.plan.z[-1] - res.plan.z[0])
+    print(f"{sampling}: other harmonics up to {np.nanmax(np.abs(c[1:])) / 0.8:.2g} of the dipole "
+          f"integrated, {np.nanmax(np.abs(res.planes[:, 1:])) / 0.8:.2g} in a plane")  # fmt: skip
+    assert abs(c[0] - 0.8 * np.exp(-1j * theta)) <= 1e-6 * 0.8
+    fitted = slice(1, res.plan.n_orders)
+    assert np.all(np.abs(c[fitted]) <= 1e-6 * 0.8)
+    assert np.all(np.abs(res.planes[:, fitted]) <= 1e-6 * 0.8)
+    assert res.nominal.roll_mrad == pytest.approx(theta * 1e3, abs=1e-6)
+    assert res.nominal.length_mm == pytest.approx(res.plan.z[-1] - res.plan.z[0], rel=1e-9)
+
+
 def test_plans_refuse_what_they_cannot_fit():
     rng = np.random.default_rng(1)
     cloud = rng.uniform(-5, 5, (400, 3))
