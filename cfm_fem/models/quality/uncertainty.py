@@ -94,12 +94,12 @@ class Sources:
 class _Displacer:
     """Displacements (m, n, 3) mm of trials t0 .. t0 + m - 1 at the scan points."""
 
-    def __init__(self, src: Sources, points, seed: int):
+    def __init__(self, src: Sources, points, seed: int, what: str = "the scan (--radius, --dz)"):
         self.src, self.seed, self.n = src, int(seed), len(points)
         self.r_probe = np.eye(3)
         if src.mode == "htm":
             b = src.bench
-            self.q = b.axis_positions_within_strokes(points, "the scan (--radius, --dz)")
+            self.q = b.axis_positions_within_strokes(points, what)
             self.geo = kernel_geometry(b)
             self.keys = noise_keys(seed)
             self.r_bm = b.bench_to_magnet_rotation()
@@ -125,7 +125,7 @@ def trial_reader(src: Sources, points, seed: int):
     """``read(local, t0, m) -> B (m, n, 3)``: the readings of trials t0 .. t0 + m - 1 at
     ``points`` (n, 3) mm (those of ``local``, a `LocalField`), each moved as the Monte Carlo
     moves a scan point and read through the trial's probe; NaN where a reading left the model."""
-    disp = _Displacer(src, points, seed)
+    disp = _Displacer(src, points, seed, "the nodes around the trajectory")
 
     def read(local: LocalField, t0: int, m: int) -> np.ndarray:
         b, _ = local.read(disp(t0, m))
