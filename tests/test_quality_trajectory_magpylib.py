@@ -255,6 +255,7 @@ def brute_force_position_u95(coll, up_mm, trials, seed, z0, z1, chunk=250):
     return max(-low, high), nominal
 
 
+@pytest.mark.slow
 def test_position_only_deflection_u95_matches_a_brute_force_trajectory_monte_carlo(tmp_path):
     """--up with an exact probe: the orbit sees the reading errors of the nodes around it
     (the linear model between nodes, whose readings the brute force redoes on its own)."""
