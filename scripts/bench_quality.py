@@ -29,10 +29,10 @@ from cfm_fem.models.probe import HallProbe
 from cfm_fem.models.quality import (
     LocalField,
     Sources,
+    analyse,
     budget_groups,
     fit_planes,
     main_order_of,
-    quality_numbers,
     run_quality_mc,
 )
 from cfm_fem.workflows.quality import run_quality, scan_plan
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     local = LocalField(fit, plan.points)
     planes = fit_planes(plan, local.B_nominal)
     n_main = main_order_of(np.einsum("pn,p->n", planes, plan.weights_mm))
-    nominal = quality_numbers(planes, plan, n_main, 0.0).vector()
+    nominal = analyse(plan, local.B_nominal, n_main, 0.0).vector()
     times["sampling_s"] = time.perf_counter() - t
     src = Sources("htm", bench=read_reference_bench(), probe=HallProbe("paper"))
     t = time.perf_counter()

@@ -35,9 +35,9 @@ from cfm_fem.models.quality import (
     VECTOR_NAMES,
     LocalField,
     Sources,
+    analyse,
     fit_planes,
     main_order_of,
-    quality_numbers,
     run_quality_mc,
 )
 from cfm_fem.models.quality.uncertainty import _check
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     local = LocalField(fit_harmonic(fm.points, fm.B), plan.points)
     planes = fit_planes(plan, local.B_nominal)
     n_main = main_order_of(np.einsum("pn,p->n", planes, plan.weights_mm))
-    nominal = quality_numbers(planes, plan, n_main, 0.0).vector()
+    nominal = analyse(plan, local.B_nominal, n_main, 0.0).vector()
     src = Sources("htm", bench=read_reference_bench(), probe=HallProbe("paper"))
     devs = []
     for seed in range(args.seeds):

@@ -5,8 +5,9 @@ The reference reads the bundled bench TOML with `tomllib`, draws its 21 geometri
 vibration and reading delay with numpy, composes the HTM chain of the stack (4 x 4 matrices,
 rotations Rz Ry Rx, squareness tilting the upper axis of each pair), moves the scan points by
 the probe error, evaluates the exact field there and redoes the analysis with its own
-least-squares harmonic fit. The field: a quadrupole of four magnetic line charges of finite
-length (closed form, a potential field with ends), mapped on a 1 mm grid.
+least-squares harmonic fit (the centre plane's on the circle r = R_ref by `quality_circle_fit`).
+The field: a quadrupole of four magnetic line charges of finite length (closed form, a
+potential field with ends), mapped on a 1 mm grid.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from importlib import resources
 
 import numpy as np
 import pytest
+from quality_circle_fit import circle_operator
 
 from cfm_fem.models.field import FieldMap
 from cfm_fem.models.quality import VECTOR_NAMES
@@ -146,7 +148,10 @@ def analyse(b, xy, n_orders):
     rel = np.full((len(b), 15), np.nan + 0j)
     rel[:, :n_orders] = 1e4 * integ / np.abs(main)[:, None]
     roll = -np.angle(main) / 2 * 1e3
-    centre_plane = c[:, len(Z_PLANES) // 2, 1]
+    mid = b[:, len(Z_PLANES) // 2]  # the plane z = 0: its quadrupole on the circle r = R_REF
+    centre_plane = np.concatenate([mid[..., 1], mid[..., 0]], axis=-1) @ circle_operator(
+        xy, HALF_XY, R_REF, 2
+    )
     length = np.abs(main) / (centre_plane * np.exp(-1j * np.angle(main))).real
     # centre: root of F(u) = sum_n C_n u^(n-1), u = d / R_REF, by Newton from -C_1 / C_2
     u = -integ[:, 0] / main

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pytest
+from quality_circle_fit import circle_operator
 
 from cfm_fem.models.field import FieldMap
 from cfm_fem.models.quality import VECTOR_NAMES
@@ -46,6 +47,7 @@ def brute_force(trials, up_mm, seed):
     pinv = np.linalg.pinv(design)  # fit at r = 5 mm = R_REF
     wz = np.array([5.0, 10.0, 10.0, 10.0, 5.0])  # trapezoid over the planes
     pts = np.concatenate([np.column_stack([xy, np.full(k, z)]) for z in Z_PLANES])
+    on_circle = circle_operator(xy, 5.0, R_REF, 2)  # the quadrupole on r = R_REF, plane z = 0
 
     def analyse(b):  # b (M, P k, 3) -> (M, 8)
         b = b.reshape(len(b), len(Z_PLANES), k, 3)
@@ -54,7 +56,8 @@ def brute_force(trials, up_mm, seed):
         integ = np.einsum("mpn,p->mn", c, wz)
         rel = 1e4 * integ / np.abs(integ[:, 1:2])
         roll = -np.angle(integ[:, 1]) / 2 * 1e3
-        length = np.abs(integ[:, 1]) / (c[:, 2, 1] * np.exp(-1j * np.angle(integ[:, 1]))).real
+        central = np.concatenate([b[:, 2, :, 1], b[:, 2, :, 0]], axis=-1) @ on_circle
+        length = np.abs(integ[:, 1]) / (central * np.exp(-1j * np.angle(integ[:, 1]))).real
         # centre: the root d of F(d) = sum C_n (d/R)^(n-1) near -C_1 / C_2 (Newton, 8 steps)
         poly = np.polynomial.polynomial
         u = -integ[:, 0] / integ[:, 1]

@@ -156,6 +156,7 @@ def quality_summary(run) -> dict:
             "radius_mm": run.plan.r_fit_mm, "planes": run.plan.n_planes,
             "points_per_plane": run.plan.per_plane, "orders_fitted": run.plan.n_orders,
             "condition_number": run.plan.condition,
+            "pseudo_multipole_orders": run.plan.pseudo_orders,
         },
         "field": {"source": run.source, "nodes": run.n_nodes, "model": run.model_description},
         "definitions": DEFINITIONS,
@@ -207,17 +208,23 @@ def _uncertainty(run) -> dict:
 
 DEFINITIONS = {
     "harmonics": "F = B_y + i B_x = sum (B_n + i A_n) (w / R_ref)^(n-1), w = x + i y about the "
-    "map's line x = y = 0, European n; least-squares fit of each plane's (B_x, B_y) at the scan "
-    "points, integrated over z by the trapezoid rule; null where an order is not determined",
+    "map's line x = y = 0, European n; least-squares fit of the 2-D multipoles to each plane's "
+    "(B_x, B_y) at the scan points, integrated over z by the trapezoid rule; null where an order "
+    "is not determined",
+    "planes": "planes.csv: C_n of each plane on the circle r = R_ref (node sampling: fit of the "
+    "2-D multipoles and the pseudo-multipoles r^2 Re(c w^m), m = 0 .. "
+    "sampling.pseudo_multipole_orders; circle sampling: the sampled circle's Fourier "
+    "coefficients scaled to R_ref as a 2-D field)",
     "units": "b_n, a_n = 1e4 (B_n, A_n) / |B_N + i A_N| of the integrated harmonics, "
     "N = main_order",
     "centre_mm": "point about which the integrated harmonic of order main_order - 1 vanishes "
     "(exact feed-down, Newton's method); null for a dipole",
     "roll_mrad": "-atan2(A_N, B_N) / N of the integrated main harmonic (a normal magnet rolled "
     "by +theta about +z gives +theta)",
-    "magnetic_length_mm": "integrated main harmonic over its value in the plane length_plane_mm "
-    "(z = 0 when the map holds it), both projected on the phase of the integral: integrated "
-    "B_N over B_N for a magnet without roll",
+    "magnetic_length_mm": "integrated main harmonic over the main harmonic on the circle "
+    "r = R_ref in the plane length_plane_mm (z = 0 when the map holds it), both projected on "
+    "the phase of the integral: integrated B_N over B_N on that circle for a magnet without "
+    "roll",
     "main_integral_Tmm": "|integral of B_N + i A_N| over z at R_ref",
     "U95": "max(|low|, |high|) of the 95 % probabilistically symmetric interval of the "
     "deviation from the map's value over the Monte Carlo trials",

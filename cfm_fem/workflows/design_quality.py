@@ -30,9 +30,9 @@ from ..models.probe import HallProbe
 from ..models.quality import (
     LocalField,
     Sources,
+    analyse,
     fit_planes,
     main_order_of,
-    quality_numbers,
     run_quality_mc,
 )
 
@@ -192,7 +192,7 @@ def quality_up_max(fieldmap, r_ref_mm: float, quantity: str, max_value: float, *
     n_main = n_main if main_order is None else int(main_order)
     z_len = 0.0 if plan.z[0] <= 0.0 <= plan.z[-1] else float(plan.z[np.argmax(
         np.abs(planes[:, n_main - 1]))])  # fmt: skip
-    vec = quality_numbers(planes, plan, n_main, z_len).vector()
+    vec = analyse(plan, local.B_nominal, n_main, z_len).vector()
     from ..models.quality import VECTOR_NAMES
 
     col, factor, unit = QUANTITIES[quantity]

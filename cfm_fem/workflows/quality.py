@@ -19,8 +19,9 @@ import scipy.spatial
 
 from ..errors import CfmInputError
 from ..models.field import FieldMap
-from ..models.harmonic import fit_harmonic
+from ..models.harmonic import HarmonicFit, fit_harmonic
 from ..models.interpolation import LinearInterpolator
+from ..models.mc import symmetric_interval
 from ..models.probe import HallProbe
 from ..models.quality import (
     LocalField,
@@ -28,16 +29,18 @@ from ..models.quality import (
     QualityNumbers,
     ScanPlan,
     Sources,
+    analyse,
     budget_groups,
     fit_planes,
     main_order_of,
     plan_from_nodes,
     plan_on_circles,
-    quality_numbers,
     run_quality_mc,
 )
-from ..models.quality.harmonics import VECTOR_NAMES, inscribed_radius
+from ..models.quality.harmonics import inscribed_radius
+from ..models.quality.orbit_mc import OrbitField, deflection_deviations, orbit_response
 from ..models.quality.trajectory import rigidity_from_energy, track
+from ..models.quality.uncertainty import CHUNK_POINTS, trial_reader
 from ..threads import check_run_time, paced
 
 __all__ = ["QualityRun", "run_quality", "scan_plan", "SAMPLINGS", "PROBES"]
@@ -376,8 +379,9 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
             raise CfmInputError(f"--main-order must be 1 .. {plan.n_orders}; got {main_order}")
         z_len = _length_plane(plan, planes, n_main, notes)
         _end_notes(plan, planes, n_main, notes)
-        nominal = quality_numbers(planes, plan, n_main, z_len)
-        mc, groups, src_desc = None, [], "none"
+        nominal = analyse(plan, b_nom, n_main, z_len)
+        planes = fit_planes(plan, b_nom, on_circle=True)  # planes.csv: C_n on r = R_ref
+        mc, groups, src_desc, src = None, [], "none", None
         if uncertainty:
             src, src_desc = _sources(mode, up_um, bench, probe, centre_magnet)
             kw = dict(seed=seed, digits=digits, progress=progress)
@@ -407,9 +411,16 @@ def run_quality(fieldmap, r_ref_mm: float, *, up_um=None, mode: str | None = Non
                                          **kw) for g in groups_src]  # fmt: skip
         traj = None
         if rigidity_Tm is not None:
-            traj = _trajectory(model, plan, nominal, mc, n_main, rigidity=float(rigidity_Tm),
-                               step=trajectory_step_mm, energy=energy_gev,
-                               particle=particle)  # fmt: skip
+            traj = _trajectory(model, fm, plan, nominal, mc, src, seed,
+                               rigidity=float(rigidity_Tm), step=trajectory_step_mm,
+                               energy=energy_gev, particle=particle)  # fmt: skip
+            linear, reads = traj["linear_reads"] or (0, 0)
+            if linear:
+                notes.append(
+                    f"the trajectory read {linear} of its {reads} field values from the linear "
+                    "interpolant, where the harmonic model of the nearest node does not reach "
+                    "(map planes further apart than twice the models' reach)"
+                )
         return QualityRun(plan, planes, nominal, n_main, z_len, mc, groups, tolerances, traj,
                           fm.source, model_desc, src_desc, fm.n_nodes, notes, provenance,
                           time.perf_counter() - t0)  # fmt: skip
@@ -427,9 +438,12 @@ def _naming(source):
         raise CfmInputError(exc.what, line=exc.line, column=exc.column, file=source) from None
 
 
-def _trajectory(model, plan, nominal, mc, n_main, *, rigidity, step, energy, particle) -> dict:
-    """The ``trajectory`` entry of quality.json: an orbit along the axis through the map."""
-    t = track(model.field_at, rigidity, float(plan.z[0]), float(plan.z[-1]), step_mm=step)
+def _trajectory(model, fm, plan, nominal, mc, src, seed, *, rigidity, step, energy,
+                particle) -> dict:  # fmt: skip
+    """The ``trajectory`` entry of quality.json: an orbit along the axis through the map, and
+    the U95 of its deflection from the Monte Carlo's trials (`orbit_mc`)."""
+    orbit_field = OrbitField(model, fm) if isinstance(model, HarmonicFit) else model
+    t = track(orbit_field.field_at, rigidity, float(plan.z[0]), float(plan.z[-1]), step_mm=step)
     straight = float(nominal.integrated[0].real) / (1000.0 * rigidity) * 1e3
     out = {
         "rigidity_Tm": rigidity, "energy_GeV": energy,
@@ -439,15 +453,28 @@ def _trajectory(model, plan, nominal, mc, n_main, *, rigidity, step, energy, par
         "deflection_y_mrad": t["deflection_y_mrad"], "sagitta_mm": t["sagitta_mm"],
         "exit_mm": t["exit_mm"].tolist(),
         "straight_line_deflection_mrad": straight, "U95_deflection_mrad": None,
+        "trials": None, "linear_reads": None,
         "definition": "RK4 orbit from (0, 0, z_min) along +z to the plane z_max through the "
-        "model between nodes, positive charge (B_y > 0 bends towards -x); "
+        "model between nodes (harmonic: each point from the model of its nearest node, the "
+        "linear interpolant where that model does not reach: linear_reads of the orbit's "
+        "field readings), positive charge (B_y > 0 bends towards -x); "
         "straight_line_deflection_mrad: integrated B_1 at R_ref over B rho (small angles); "
-        "U95_deflection_mrad: the deflection times the relative U95 of the integrated main "
-        "harmonic (dipoles; the deflection is proportional to it at small angles)",
+        "U95_deflection_mrad: U95 of the deflection through the measured map, trial by trial: "
+        "the reading errors of the nodes whose values the orbit's field uses, moved and read "
+        "as the Monte Carlo's scan points, carried to the exit direction to first order",
     }  # fmt: skip
-    if mc is not None and n_main == 1:
-        j = VECTOR_NAMES.index("main_integral")
-        out["U95_deflection_mrad"] = float(
-            t["deflection_mrad"] * mc.u95[j] / float(nominal.main_integral_Tmm)
-        )
+    if isinstance(orbit_field, OrbitField):
+        out["linear_reads"] = [orbit_field.linear_reads, orbit_field.reads]
+    if mc is not None:
+        resp = orbit_response(orbit_field, t)
+        trials = mc.trials + mc.lost
+        pts = fm.points[resp.nodes]
+        chunk = max(1, CHUNK_POINTS // max(len(pts), 1))
+        dev = deflection_deviations(resp, model, fm.points, fm.B, trial_reader(src, pts, seed),
+                                    trials, chunk)  # fmt: skip
+        dev = dev[np.isfinite(dev)]
+        if dev.size >= 2:
+            low, high = symmetric_interval(dev, 0.95)
+            out["U95_deflection_mrad"] = float(max(abs(low), abs(high)))
+            out["trials"] = int(dev.size)
     return out

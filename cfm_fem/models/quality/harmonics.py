@@ -9,16 +9,24 @@ about the line x = y = 0 of the map frame, lengths in mm, fields in T.
 A `ScanPlan` is the set of points where the field is read: the nodes of each z plane of a map
 inside the largest disk about the axis that the plane covers (`plan_from_nodes`), or points on a
 circle in each of a series of planes, read from the model between nodes (`plan_on_circles`).
-Every plane holds the same (x, y) points, so the plane fits are one linear operator and the
-integral of the plane harmonics over z is the fit of the integrated field: in the fringe field,
-where B_x, B_y of a plane are not a 2-D potential field, the plane harmonics are least-squares
-projections that depend on the sampled disk, but their integral over a map that holds the whole
-magnet is exact.
+Every plane holds the same (x, y) points, so the plane fits are linear operators.
 
-A plane's harmonics are the least-squares fit of the 2-D multipole expansion, orders 1 ..
-`ScanPlan.n_orders`, to (B_x, B_y) at its points, solved at the radius of the sampled disk (well
-conditioned) and rescaled to R_ref by (R_ref / r)^(n-1). Orders the points cannot determine
-(condition number of the fit above `MAX_CONDITION`) are not fitted and reported as NaN.
+Two fits of a plane, both least squares on (B_x, B_y) at its points, solved at the radius of the
+sampled disk (well conditioned):
+
+* the **2-D fit** (`ScanPlan.pinv`): the 2-D multipole expansion, orders 1 .. `ScanPlan.n_orders`,
+  rescaled to R_ref by (R_ref / r)^(n-1). Its integral over z is the fit of the integrated
+  field, which is a 2-D potential field when the map holds the whole magnet: the integrated
+  harmonics. Orders the points cannot determine (condition number above `MAX_CONDITION`) are
+  not fitted and reported as NaN.
+* the **circle fit** (`ScanPlan.pinv_circle`): in a plane of a 3-D field, (B_x, B_y) is the
+  in-plane gradient of the scalar potential, which holds besides the 2-D multipoles r^m e^(i m
+  theta) the pseudo-multipoles r^(2k) r^m e^(i m theta), k >= 1, of the z derivatives of the
+  multipoles: -r^2 C_n'' / (4 n) is the first, large in the ends and the centre of a short
+  magnet. The fit takes the 2-D multipoles and the first pseudo-multipoles (k = 1, m = 0 ..
+  `PSEUDO_ORDERS`) and returns C_n on the circle r = R_ref: the coefficient of e^(i (n-1)
+  theta) of F on that circle. The plane harmonics (`planes.csv`) and the main harmonic in the
+  plane of the magnetic length are these.
 """
 
 from __future__ import annotations
@@ -44,6 +52,9 @@ __all__ = [
     "QualityNumbers",
     "quality_numbers",
     "centre_from_harmonics",
+    "length_plane_value",
+    "analyse",
+    "PSEUDO_ORDERS",
 ]
 
 #: Harmonics reported: n = 1 .. N_HARMONICS.
@@ -52,6 +63,11 @@ N_HARMONICS = 15
 MAX_CONDITION = 1e8
 #: Fewest planes a map needs for an integral over z.
 MIN_PLANES = 2
+#: Highest order m of the pseudo-multipoles r^2 r^m e^(i m theta) of the circle fit.
+PSEUDO_ORDERS = 8
+#: Points of the circle r = R_ref on which the circle fit's polynomials are Fourier-analysed
+#: (exact for polynomials of degree below it).
+_CIRCLE_POINTS = 64
 
 
 @dataclass
@@ -72,13 +88,18 @@ class ScanPlan:
     n_orders : int
         Orders fitted (the rest are NaN).
     pinv : ndarray, shape (2 n_orders, 2 k)
-        Least-squares operator: [B_1..B_N, A_1..A_N] at R_ref from [B_y of the k points, B_x of
-        the k points].
+        2-D fit: [B_1..B_N, A_1..A_N] at R_ref from [B_y of the k points, B_x of the k points].
     weights_mm : ndarray, shape (P,), mm
         Trapezoid weights of the planes: integral over z = sum of weights x plane values.
     sampling : {"nodes", "circles"}
     condition : float
         Condition number of the fit (at r_fit).
+    pinv_circle : ndarray, shape (2 n_orders, 2 k)
+        Circle fit: [B_1..B_N, A_1..A_N] on the circle r = R_ref from the same readings.
+    pseudo_orders : int or None
+        Highest order m of the circle fit's pseudo-multipoles (-1: none fit the points); None
+        on circles, where the circle fit is the circle's own Fourier analysis, scaled to R_ref
+        as a 2-D field.
     notes : list of str
     """
 
@@ -92,6 +113,8 @@ class ScanPlan:
     weights_mm: np.ndarray
     sampling: str
     condition: float
+    pinv_circle: np.ndarray
+    pseudo_orders: int | None
     notes: list = field(default_factory=list)
 
     @property
@@ -131,6 +154,41 @@ def _operator(xy, r_fit, r_ref, n_max=N_HARMONICS):
         f"the {len(xy)} points of a plane inside r <= {r_fit:g} mm cannot determine even a "
         "dipole; expected points around the axis x = y = 0"
     )
+
+
+def _potential_columns(xy, r_fit, n_orders, pseudo_orders) -> np.ndarray:
+    """Matrix (2k, M) taking the circle fit's coefficients to [B_y; B_x] at xy (k, 2).
+
+    Columns: the 2-D multipoles of `_design` (F = (w / r_fit)^(n-1), n = 1 .. n_orders), then
+    the in-plane gradients of the potentials Re(c rho^2 u^m), u = w / r_fit, rho = |u|, c = 1
+    and i (1 only for m = 0), m = 0 .. pseudo_orders.
+    """
+    u = (xy[:, 0] + 1j * xy[:, 1]) / r_fit
+    rho2 = np.abs(u) ** 2
+    cols = [_design(xy, r_fit, n_orders)]
+    for m in range(pseudo_orders + 1):
+        um = u**m
+        dm = m * rho2 * u ** max(m - 1, 0)  # d/dx of rho^2 u^m = 2 x um + dm, d/dy 2 y um + i dm
+        gx, gy = 2 * u.real * um + dm, 2 * u.imag * um + 1j * dm
+        for c in (1.0, 1j) if m > 0 else (1.0,):
+            cols.append(np.concatenate([(c * gy).real, (c * gx).real])[:, None])
+    return np.hstack(cols)
+
+
+def _circle_operator(xy, r_fit, r_ref, n_orders):
+    """(pinv_circle (2N, 2k), pseudo-multipole orders) of the circle fit at the points xy (k,
+    2): the most orders m <= `PSEUDO_ORDERS` whose fit stays within `MAX_CONDITION` (-1: none)."""
+    th = 2 * np.pi * np.arange(_CIRCLE_POINTS) / _CIRCLE_POINTS
+    ring = r_ref * np.column_stack([np.cos(th), np.sin(th)])
+    fourier = np.exp(-1j * np.outer(np.arange(n_orders), th)) / _CIRCLE_POINTS  # (N, 64)
+    for m in range(PSEUDO_ORDERS, -2, -1):
+        a = _potential_columns(xy, r_fit, n_orders, m)
+        s = np.linalg.svd(a, compute_uv=False) if a.shape[1] <= a.shape[0] else [1.0, 0.0]
+        if s[-1] > 0 and s[0] / s[-1] <= MAX_CONDITION:
+            on_ring = _potential_columns(ring, r_fit, n_orders, m)  # (128, M)
+            c = fourier @ (on_ring[:_CIRCLE_POINTS] + 1j * on_ring[_CIRCLE_POINTS:])  # (N, M)
+            return np.vstack([c.real, c.imag]) @ np.linalg.pinv(a), m
+    raise AssertionError("the 2-D fit alone is within MAX_CONDITION")  # _operator checked it
 
 
 def _trapezoid_weights(z) -> np.ndarray:
@@ -220,6 +278,7 @@ def plan_from_nodes(points, r_ref_mm: float, *, r_fit_mm: float | None = None,
         )
     disk = xy[np.hypot(xy[:, 0], xy[:, 1]) <= r_fit * (1 + 1e-9)]
     pinv, n, cond = _operator(disk, r_fit, r_ref_mm)
+    pinv_circle, pseudo = _circle_operator(disk, r_fit, r_ref_mm, n)
     z = zp[keep]
     notes = []
     if (~keep).any():
@@ -228,7 +287,8 @@ def plan_from_nodes(points, r_ref_mm: float, *, r_fit_mm: float | None = None,
         notes.append(f"fit radius {r_fit:g} mm exceeds the disk the map covers ({r_in:.6g} mm)")
     scan = np.column_stack([np.tile(disk, (z.size, 1)), np.repeat(z, len(disk))])
     return ScanPlan(scan, z, len(disk), r_fit, float(r_ref_mm), n, pinv,
-                    _trapezoid_weights(z), "nodes", cond, notes)  # fmt: skip
+                    _trapezoid_weights(z), "nodes", cond, pinv_circle, pseudo,
+                    notes)  # fmt: skip
 
 
 def plan_on_circles(z, r_mm: float, r_ref_mm: float, n_angles: int = 64) -> ScanPlan:
@@ -258,35 +318,74 @@ def plan_on_circles(z, r_mm: float, r_ref_mm: float, n_angles: int = 64) -> Scan
     pinv, n, cond = _operator(xy, r_mm, r_ref_mm, min(N_HARMONICS, (n_angles - 1) // 2))
     scan = np.column_stack([np.tile(xy, (z.size, 1)), np.repeat(z, n_angles)])
     return ScanPlan(scan, z, n_angles, float(r_mm), float(r_ref_mm), n, pinv,
-                    _trapezoid_weights(z), "circles", cond, [])  # fmt: skip
+                    _trapezoid_weights(z), "circles", cond, pinv, None, [])  # fmt: skip
 
 
-def fit_planes(plan: ScanPlan, B) -> np.ndarray:
-    """Harmonics of every plane from the field at the scan points.
+def fit_planes(plan: ScanPlan, B, *, on_circle: bool = False, planes=None) -> np.ndarray:
+    """Harmonics of planes from the field at the scan points.
 
     Parameters
     ----------
     plan : ScanPlan
     B : ndarray, shape (..., n, 3), T
         Field at ``plan.points`` (any leading shape, e.g. trials).
+    on_circle : bool
+        False: the 2-D fit (whose integral over z is the integrated harmonics); True: the
+        circle fit, C_n on the circle r = R_ref (module docstring).
+    planes : array_like of int, optional
+        Indices of the planes to fit; default all.
 
     Returns
     -------
     ndarray, shape (..., P, N_HARMONICS), complex, T at R_ref
-        C_n = B_n + i A_n; NaN past ``plan.n_orders``.
+        C_n = B_n + i A_n; NaN past ``plan.n_orders``. P: the planes asked for.
     """
     B = np.asarray(B, dtype=np.float64)
     lead = B.shape[:-2]
     k, n = plan.per_plane, plan.n_orders
     b = B.reshape(lead + (plan.n_planes, k, 3))
-    rows = int(np.prod(lead + (plan.n_planes,)))
+    if planes is not None:
+        b = b[..., np.asarray(planes, dtype=np.int64), :, :]
+    n_planes = b.shape[-3]
+    op = plan.pinv_circle if on_circle else plan.pinv
+    rows = int(np.prod(lead + (n_planes,)))
     by = np.ascontiguousarray(b[..., 1]).reshape(rows, k)
     bx = np.ascontiguousarray(b[..., 0]).reshape(rows, k)
-    coef = by @ plan.pinv[:, :k].T + bx @ plan.pinv[:, k:].T  # (rows, 2N), [B_y, B_x] columns
-    coef = coef.reshape(lead + (plan.n_planes, 2 * n))
-    out = np.full(lead + (plan.n_planes, N_HARMONICS), np.nan + 0j)
+    coef = by @ op[:, :k].T + bx @ op[:, k:].T  # (rows, 2N), [B_y, B_x] columns
+    coef = coef.reshape(lead + (n_planes, 2 * n))
+    out = np.full(lead + (n_planes, N_HARMONICS), np.nan + 0j)
     out[..., :n] = coef[..., :n] + 1j * coef[..., n:]
     return out
+
+
+def length_plane_value(plan: ScanPlan, B, main_order: int, z_length: float) -> np.ndarray:
+    """Main harmonic on the circle r = R_ref in the plane z_length (circle fit of the two planes
+    around it, linear between them).
+
+    Parameters
+    ----------
+    plan : ScanPlan
+    B : ndarray, shape (..., n, 3), T
+        Field at ``plan.points``.
+    main_order : int
+    z_length : float, mm
+        Inside the planes' range.
+
+    Returns
+    -------
+    ndarray, shape (...), complex, T
+    """
+    z = plan.z
+    j = int(np.clip(np.searchsorted(z, z_length), 1, z.size - 1))
+    t = (z_length - z[j - 1]) / (z[j] - z[j - 1])
+    c = fit_planes(plan, B, on_circle=True, planes=[j - 1, j])[..., main_order - 1]
+    return (1 - t) * c[..., 0] + t * c[..., 1]
+
+
+def analyse(plan: ScanPlan, B, main_order: int, z_length: float) -> QualityNumbers:
+    """`quality_numbers` of the field ``B`` (..., n, 3) T at the scan points."""
+    return quality_numbers(fit_planes(plan, B), plan, main_order,
+                           length_plane_value(plan, B, main_order, z_length))  # fmt: skip
 
 
 # --------------------------------------------------------------------------- field quality
@@ -307,8 +406,9 @@ class QualityNumbers:
     roll_mrad : ndarray, shape (...), mrad
         -atan2(A_N, B_N) / N of the integrated main harmonic.
     length_mm : ndarray, shape (...), mm
-        Magnetic length: integral of the main harmonic over its value in the length plane, both
-        projected on the phase of the integral (for a magnet without roll, integral B_N over B_N).
+        Magnetic length: integral of the main harmonic over its value on the circle r = R_ref in
+        the length plane, both projected on the phase of the integral (for a magnet without
+        roll, integral B_N over B_N on that circle).
     main_integral_Tmm : ndarray, shape (...), T mm
         |integral of C_N| at R_ref.
     """
@@ -382,25 +482,19 @@ def centre_from_harmonics(c, main_order: int, r_ref_mm: float, iterations: int =
     return (u * r_ref_mm).reshape(shape)
 
 
-def _length_plane_value(planes_main, z, z_length):
-    """Main harmonic of each trial in the plane z_length, linear between the planes around it."""
-    j = int(np.clip(np.searchsorted(z, z_length), 1, z.size - 1))
-    t = (z_length - z[j - 1]) / (z[j] - z[j - 1])
-    return (1 - t) * planes_main[..., j - 1] + t * planes_main[..., j]
-
-
-def quality_numbers(planes, plan: ScanPlan, main_order: int, z_length: float) -> QualityNumbers:
+def quality_numbers(planes, plan: ScanPlan, main_order: int, central) -> QualityNumbers:
     """Integrated harmonics, centre, roll and magnetic length from plane harmonics.
 
     Parameters
     ----------
     planes : ndarray, shape (..., P, N_HARMONICS), complex, T at R_ref
-        `fit_planes` output.
+        `fit_planes` output (2-D fit).
     plan : ScanPlan
     main_order : int
         N, 1 .. plan.n_orders.
-    z_length : float, mm
-        Plane of the magnetic length's reference value (inside the planes' range).
+    central : ndarray, shape (...), complex, T
+        Main harmonic on the circle r = R_ref in the plane of the magnetic length
+        (`length_plane_value`).
 
     Returns
     -------
@@ -413,7 +507,6 @@ def quality_numbers(planes, plan: ScanPlan, main_order: int, z_length: float) ->
         rel = 1e4 * integ / mod[..., None]
         roll = -np.angle(cm) / main_order * 1e3
         phase = np.exp(-1j * np.angle(cm))
-        central = _length_plane_value(planes[..., main_order - 1], plan.z, z_length)
         length = mod / (central * phase).real
     if main_order >= 2:
         d = centre_from_harmonics(integ, main_order, plan.r_ref_mm)

@@ -60,8 +60,11 @@ def track(field_at, rigidity_Tm: float, z_start: float, z_end: float, *, step_mm
     Returns
     -------
     dict
-        ``path_mm`` (n, 3), ``deflection_mrad``, ``deflection_x_mrad``, ``deflection_y_mrad``,
-        ``sagitta_mm``, ``exit_mm`` (3,), ``step_mm``, ``rigidity_Tm``.
+        ``path_mm`` (n, 3), ``stages`` (4 (n - 1), 6) (position, mm, and direction at which
+        each Runge-Kutta stage reads the field), ``stage_weights_mm`` (4 (n - 1),) (their
+        weights h / 6, h / 3, h / 3, h / 6 in the step), ``charge``, ``deflection_mrad``,
+        ``deflection_x_mrad``, ``deflection_y_mrad``, ``sagitta_mm``, ``exit_mm`` (3,),
+        ``step_mm``, ``rigidity_Tm``.
 
     Raises
     ------
@@ -90,16 +93,18 @@ def track(field_at, rigidity_Tm: float, z_start: float, z_end: float, *, step_mm
         return np.concatenate([t, k * np.cross(t, b[0])])
 
     s = np.array([x0, y0, z_start, 0.0, 0.0, 1.0])
-    path = [s[:3].copy()]
+    path, stages, weights = [s[:3].copy()], [], []
     max_steps = int(10 * (z_end - z_start) / step_mm) + 10
     for _ in range(max_steps):
         h = step_mm
         if s[2] + h * s[5] > z_end:  # land on the exit plane (t_z > 0 in a map's dipole)
             h = (z_end - s[2]) / s[5]
-        k1 = deriv(s)
-        k2 = deriv(s + 0.5 * h * k1)
-        k3 = deriv(s + 0.5 * h * k2)
-        k4 = deriv(s + h * k3)
+        k1 = deriv(s1 := s)
+        k2 = deriv(s2 := s + 0.5 * h * k1)
+        k3 = deriv(s3 := s + 0.5 * h * k2)
+        k4 = deriv(s4 := s + h * k3)
+        stages += [s1, s2, s3, s4]
+        weights += [h / 6.0, h / 3.0, h / 3.0, h / 6.0]
         s = s + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         s[3:] /= np.linalg.norm(s[3:])
         path.append(s[:3].copy())
@@ -115,6 +120,9 @@ def track(field_at, rigidity_Tm: float, z_start: float, z_end: float, *, step_mm
     dist = np.linalg.norm(rel - np.outer(rel @ chord, chord), axis=1)
     return {
         "path_mm": path,
+        "stages": np.array(stages),
+        "stage_weights_mm": np.array(weights),
+        "charge": int(charge),
         "deflection_mrad": float(np.arccos(np.clip(t_end[2], -1.0, 1.0)) * 1e3),
         "deflection_x_mrad": float(np.arctan2(t_end[0], t_end[2]) * 1e3),
         "deflection_y_mrad": float(np.arctan2(t_end[1], t_end[2]) * 1e3),

@@ -2,7 +2,7 @@
 
 Each trial t moves every scan point p_i by a displacement e[t, i] (magnet frame), reads the
 field there from the model between nodes (`LocalField`), passes it through the Hall probe, and
-redoes the analysis (`fit_planes`, `quality_numbers`) with the scan points at their nominal
+redoes the analysis (`analyse`) with the scan points at their nominal
 places, as the measurement would. The displacements:
 
 ``gauss``
@@ -41,7 +41,7 @@ from ..bench import ERROR_NAMES, Bench, ReadingDelay
 from ..kinematics.geometry import draw_error_sets, kernel_geometry, noise_keys
 from ..mc import numerical_tolerance, symmetric_interval
 from ..probe import HallProbe
-from .harmonics import VECTOR_NAMES, ScanPlan, fit_planes, quality_numbers
+from .harmonics import VECTOR_NAMES, ScanPlan, analyse
 from .sampling import LocalField
 
 __all__ = [
@@ -49,6 +49,7 @@ __all__ = [
     "McQuality",
     "run_quality_mc",
     "budget_groups",
+    "trial_reader",
     "GAUSS_STREAM",
     "PROBE_STREAM",
 ]
@@ -93,12 +94,12 @@ class Sources:
 class _Displacer:
     """Displacements (m, n, 3) mm of trials t0 .. t0 + m - 1 at the scan points."""
 
-    def __init__(self, src: Sources, points, seed: int):
+    def __init__(self, src: Sources, points, seed: int, what: str = "the scan (--radius, --dz)"):
         self.src, self.seed, self.n = src, int(seed), len(points)
         self.r_probe = np.eye(3)
         if src.mode == "htm":
             b = src.bench
-            self.q = b.axis_positions_within_strokes(points, "the scan (--radius, --dz)")
+            self.q = b.axis_positions_within_strokes(points, what)
             self.geo = kernel_geometry(b)
             self.keys = noise_keys(seed)
             self.r_bm = b.bench_to_magnet_rotation()
@@ -118,6 +119,19 @@ class _Displacer:
         pidx = np.arange(self.n, dtype=np.int64)
         K.coupled_probe_errors(params, t0, self.q, pidx, *self.keys, self.geo, out)
         return out @ self.r_bm.T
+
+
+def trial_reader(src: Sources, points, seed: int):
+    """``read(local, t0, m) -> B (m, n, 3)``: the readings of trials t0 .. t0 + m - 1 at
+    ``points`` (n, 3) mm (those of ``local``, a `LocalField`), each moved as the Monte Carlo
+    moves a scan point and read through the trial's probe; NaN where a reading left the model."""
+    disp = _Displacer(src, points, seed, "the nodes around the trajectory")
+
+    def read(local: LocalField, t0: int, m: int) -> np.ndarray:
+        b, _ = local.read(disp(t0, m))
+        return _probe_read(src.probe, b, t0, seed, disp.r_probe)
+
+    return read
 
 
 def _probe_read(probe: HallProbe, B, t0: int, seed: int, r_probe) -> np.ndarray:
@@ -242,8 +256,7 @@ def run_quality_mc(plan: ScanPlan, local: LocalField, src: Sources, nominal_vect
             m = min(chunk, b - t0)
             B, _ = local.read(disp(t0, m))
             B = _probe_read(src.probe, B, t0, seed, disp.r_probe)
-            planes = fit_planes(plan, B)
-            rows.append(quality_numbers(planes, plan, main_order, z_length).vector())
+            rows.append(analyse(plan, B, main_order, z_length).vector())
             if progress is not None:
                 progress(m)
         v = np.concatenate(rows) - nominal_vector[None]
