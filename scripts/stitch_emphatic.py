@@ -7,7 +7,8 @@ of the magnet between the two scans (a fringe reading at p sees B_body(p - t), t
 ``magnet_d*``) and one gain g per field component. Body nodes with |x|, |y| <= 10 mm whose
 stencil lies in the fringe scan are used. The standard errors are those of the least-squares fit
 with the residuals' own variance; each gain has a prior (:data:`GAIN_PRIOR_PCT`, as the
-diagnosis' Hall gains), ``--free-gains`` drops it. Independent of ``cfm-fem diagnose``: the check on its answer.
+diagnosis' Hall gains), ``--free-gains`` drops it. Independent of ``cfm-fem diagnose``: the
+check on its answer.
 
     python scripts/stitch_emphatic.py [--data ../shared/data/emphatic] [--sides small,large]
 """
@@ -107,8 +108,14 @@ class QuadraticGrid:
         return out
 
 
-def stitch(fringe_points, fringe_B, body_points, body_B, half_width_mm: float = HALF_WIDTH_MM,
-           gain_prior_pct: float | None = GAIN_PRIOR_PCT):
+def stitch(
+    fringe_points,
+    fringe_B,
+    body_points,
+    body_B,
+    half_width_mm: float = HALF_WIDTH_MM,
+    gain_prior_pct: float | None = GAIN_PRIOR_PCT,
+):
     """Translation (um) and gains (%) of the fringe scan against the body scan (module
     docstring).
 
@@ -153,6 +160,12 @@ def stitch(fringe_points, fringe_B, body_points, body_B, half_width_mm: float = 
     }
 
 
+def _pair(s: dict, what: str):
+    """Values and standard errors of ``shift`` (um) or ``gain`` (%) of a `stitch` result."""
+    unit = "um" if what == "shift" else "pct"
+    return s[f"{what}_{unit}"], s[f"{what}_std_{unit}"]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     here = Path(__file__).resolve().parents[1]
@@ -163,13 +176,14 @@ def main(argv=None) -> int:
     data = Path(a.data)
     prior = None if a.free_gains else GAIN_PRIOR_PCT
     body_p, body_B = read_scan(data / BODY, 3)  # Zmagnet: the magnet frame
-    print("| scan | body nodes | shift um (x, y, z) | gains % (x, y, z) | rms units | corr(dz, g_z) |")
+    print("| scan | body nodes | shift um (x, y, z) | gains % (x, y, z) | rms units "
+          "| corr(dz, g_z) |")  # fmt: skip
     print("|---|---|---|---|---|---|")
     for side in a.sides.split(","):
         p, B = read_scan(data / FILES[side], 2)  # Z(stage), placed by the owners' offset
         s = stitch(p - np.asarray(OWNERS_OFFSET_MM[side]), B, body_p, body_B, gain_prior_pct=prior)
-        sh = ", ".join(f"{v:.1f} +- {e:.1f}" for v, e in zip(s["shift_um"], s["shift_std_um"]))
-        g = ", ".join(f"{v:.3f} +- {e:.3f}" for v, e in zip(s["gain_pct"], s["gain_std_pct"]))
+        sh = ", ".join(f"{v:.1f} +- {e:.1f}" for v, e in zip(*_pair(s, "shift"), strict=True))
+        g = ", ".join(f"{v:.3f} +- {e:.3f}" for v, e in zip(*_pair(s, "gain"), strict=True))
         print(f"| {side} aperture | {s['n']} | {sh} | {g} | {s['rms_units']:.3f} "
               f"| {s['corr'][2, 5]:+.3f} |")  # fmt: skip
     return 0

@@ -84,7 +84,7 @@ class NodeExactHarmonic:
         self._fm, self._curved = fm, None
 
     @property
-    def curved(self) -> "CurvatureCorrected":
+    def curved(self) -> CurvatureCorrected:
         """The map read by :class:`CurvatureCorrected` where no fit holds (built when first
         needed)."""
         if self._curved is None:
@@ -204,8 +204,10 @@ NOISE_NODES = 27
 #: central first, then shifted into the map for a node near its border (the derivatives of
 #: order 1 and 2 exact for a cubic either way).
 _STENCILS = {
-    1: (((-1, 1), (-0.5, 0.5)), ((0, 1, 2), (-1.5, 2.0, -0.5)), ((-2, -1, 0), (0.5, -2.0, 1.5))),
-    2: (((-1, 0, 1), (1, -2, 1)), ((0, 1, 2, 3), (2, -5, 4, -1)), ((-3, -2, -1, 0), (-1, 4, -5, 2))),
+    1: (((-1, 1), (-0.5, 0.5)), ((0, 1, 2), (-1.5, 2.0, -0.5)),
+        ((-2, -1, 0), (0.5, -2.0, 1.5))),
+    2: (((-1, 0, 1), (1, -2, 1)), ((0, 1, 2, 3), (2, -5, 4, -1)),
+        ((-3, -2, -1, 0), (-1, 4, -5, 2))),
     3: (((-2, -1, 1, 2), (-0.5, 1, -1, 0.5)), ((0, 1, 2, 3), (-1, 3, -3, 1)),
         ((-3, -2, -1, 0), (-1, 3, -3, 1))),
     4: (((-2, -1, 0, 1, 2), (1, -4, 6, -4, 1)), ((0, 1, 2, 3, 4), (1, -4, 6, -4, 1)),
@@ -220,7 +222,7 @@ def _axis_derivative(f, order: int, h: float) -> np.ndarray:
     for offs, wts in _STENCILS[order]:
         if not all(o in f for o in offs):
             continue
-        d = sum(w * f[o] for o, w in zip(offs, wts)) / h**order
+        d = sum(w * f[o] for o, w in zip(offs, wts, strict=True)) / h**order
         val = d if val is None else np.where(np.isfinite(val), val, d)
     return val
 
@@ -265,7 +267,7 @@ def _node_derivatives(lin, nodes, steps):
         d2[:, :, j] = _axis_derivative(f, 2, steps[j])
         d3[:, :, j] = _axis_derivative(f, 3, steps[j])
         d4[:, :, j] = _axis_derivative(f, 4, steps[j])
-        d6 = sum(w * f[o] for o, w in zip(range(-3, 4), _D6))
+        d6 = sum(w * f[o] for o, w in zip(range(-3, 4), _D6, strict=True))
         has = np.flatnonzero(np.isfinite(d6).all(1))
         if has.size:  # the map's own noise: a robust local level
             _, near = cKDTree(nodes[has]).query(nodes, k=min(NOISE_NODES, has.size))
