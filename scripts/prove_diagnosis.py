@@ -176,6 +176,9 @@ def run_family(a) -> int:
     jobs = [(s, r, str(out), size, a.keep) for s, r in family_jobs(a.family, a.first_seed, share)]
     if a.only_kind:  # the seeds whose drawn recording is of that kind
         jobs = [j for j in jobs if draw_config(j[0], size, j[1])["kind"] == a.only_kind]
+    if a.only_reference:  # the Hall seeds whose drawn reference is of that kind
+        ref = a.only_reference
+        jobs = [j for j in jobs if draw_config(j[0], size, j[1]).get("reference") == ref]
     t0 = time.perf_counter()
     if a.family_merge:
         runs = {}
@@ -333,6 +336,11 @@ def main(argv=None) -> int:
         "--only-kind",
         choices=("hall", "tracker"),
         help="--family: run only the seeds whose drawn recording is of this kind",
+    )
+    ap.add_argument(
+        "--only-reference",
+        choices=("exact", "coarse", "harmonics"),
+        help="--family: run only the Hall seeds whose drawn reference is of this kind",
     )
     ap.add_argument(
         "--family-merge",

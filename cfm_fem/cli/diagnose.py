@@ -6,9 +6,10 @@ DIR/report.html with PNG plots, and residual maps DIR/residual_*.vtu.
 --reference FIELD: a field map (any format cfm-fem reads), a harmonics CSV (2-D multipole), or
 'fit:DEG' / 'fitz:DEG' to fit a curl- and div-free harmonic polynomial of degree DEG to the map
 itself (global, or in z windows). A 3-D field map is read between its nodes by the harmonic
-fits of its nodes, exact at the nodes (--field-model auto, the default), and linearly where the
-fits fail Laplace's test; a planar map, or one whose fits hold at no reading, linearly. Either
-way the reference's own error between its nodes is estimated and added to the noise.
+fits of its nodes, exact at the nodes (--field-model auto, the default), and where the fits fail
+Laplace's test (a measured map, currents or iron) linearly corrected by the field's curvature
+from differences of its node values; a planar map linearly. Either way the reference's own
+error between its nodes (and a measured map's own noise) is estimated and added to the noise.
 """
 
 from __future__ import annotations

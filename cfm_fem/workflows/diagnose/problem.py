@@ -531,7 +531,9 @@ def hall_problem(
     gain_std_pct : float
         Prior std of each Hall element's gain (S_HP of Table I), percent.
     smooth : bool
-        False for piecewise-linear references (second derivatives not used).
+        False for a map read between its nodes from differences of its node values (linear,
+        or corrected by its curvature): its field is expanded about the readings, never
+        evaluated at moved points.
     h : float, mm, optional
         Step of the finite-difference gradient; None: :data:`STEP_SMOOTH_MM` for a smooth
         reference (a difference quotient over a shorter step is closer to the derivative: on
@@ -550,10 +552,12 @@ def hall_problem(
         Registration (um, urad; order of :data:`REG_NAMES`) the model is linearised at;
         None: the nominal placement.
     ref_error : callable, optional
-        ``ref_error(points (m, 3) mm) -> variance (m, 3) T^2`` of a smooth reference's own
-        error between its nodes (a map read by its harmonic fits,
-        :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`), added to
-        the noise.
+        ``ref_error(points (m, 3) mm) -> variance (m, 3) T^2`` of a reference map's own error
+        between its nodes, added to the noise in place of the linear estimate: a map read by
+        its harmonic fits (``smooth``,
+        :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`) or by the
+        curvature-corrected reading (not ``smooth``,
+        :meth:`~cfm_fem.workflows.diagnose.reference.CurvatureCorrected.error_var`).
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -608,21 +612,21 @@ def hall_problem(
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
-    if ref_spacing_mm is not None and not smooth:
+    if ref_error is not None:
+        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
+        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
+        how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
+               "the spread of the nearest nodes' fits)" if smooth else
+               "corrected by its curvature: its own error (rms {:.3g} units over the readings, "
+               "from the map's fourth differences)")  # fmt: skip
+        notes.append(f"reference map read between nodes {how.format(rms)} is added to the noise")
+    elif ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         notes.append(
             f"reference map interpolated linearly between nodes {ref_spacing_mm:.3g} mm apart: "
             f"its interpolation error (rms {rms:.3g} units over the readings, from its "
             "curvature) is added to the noise"
-        )
-    elif ref_error is not None:
-        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
-        rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
-        notes.append(
-            f"reference map read between nodes by its harmonic fits: their own error (rms "
-            f"{rms:.3g} units over the readings, from the spread of the nearest nodes' fits) "
-            "is added to the noise"
         )
     t_h, d, speed, temp = _aux(rec)
     ctx = ProblemContext(

@@ -8,14 +8,16 @@ per-node harmonic fits of :func:`cfm_fem.models.harmonic.fit_harmonic` (a Maxwel
 polynomial around each node, fitted to its nearest nodes), corrected so that it reproduces the
 map exactly at every node: the harmonic fits' own residuals at the nodes are interpolated
 linearly and added. Where a node's fit fails Laplace's test (currents, iron, noise in the
-export) or a point lies beyond every usable fit's reach, the linear interpolant serves.
+export) or a point lies beyond every usable fit's reach, :class:`CurvatureCorrected` serves: the
+linear interpolant corrected by the field's second and third derivatives from differences of
+the node values, with no field equation assumed.
 
 The model's error between nodes is estimated from the model itself (:meth:`error_var`): at a
 point, the fits of its three nearest usable nodes all describe the field there; their largest
 departure from the nearest node's fit is the size of the truncation error of the local
 polynomials. It vanishes at a node (the model is exact there) and is scaled up to its full size
-half a node spacing away. Where the linear interpolant serves, its error is estimated from the
-map's curvature (:func:`~cfm_fem.workflows.diagnose.noise.reference_error_var`).
+half a node spacing away. Where :class:`CurvatureCorrected` serves, its error is estimated from
+the map's fourth differences (:meth:`CurvatureCorrected.error_var`).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from ...errors import CfmInputError
 from ...models.harmonic import fit_harmonic, neighbourhoods
 from ...models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
-__all__ = ["NodeExactHarmonic", "node_spacing_mm", "SPREAD_NODES"]
+__all__ = ["NodeExactHarmonic", "CurvatureCorrected", "node_spacing_mm", "SPREAD_NODES"]
 
 #: Nearest usable nodes whose fits are compared at a point to estimate the model's error.
 SPREAD_NODES = 3
@@ -79,6 +81,15 @@ class NodeExactHarmonic:
         self._resid = type(linear)(replace(fm, B=resid))
         self._gmat = field_basis(MAX_DEGREE)
         self._exps = monomial_exponents(MAX_DEGREE)
+        self._fm, self._curved = fm, None
+
+    @property
+    def curved(self) -> CurvatureCorrected:
+        """The map read by :class:`CurvatureCorrected` where no fit holds (built when first
+        needed)."""
+        if self._curved is None:
+            self._curved = CurvatureCorrected(self._fm, self.linear)
+        return self._curved
 
     def field_at(self, points) -> tuple[np.ndarray, np.ndarray]:
         """B (m, 3) T at ``points`` (m, 3) mm and ``inside`` (m,) bool (the map's cells hold
@@ -90,6 +101,8 @@ class NodeExactHarmonic:
         h, ok = self.fit.field_at(p)
         corr, _ = self._resid.field_at(p)
         out = b_lin.copy()
+        if (~ok).any():
+            out[~ok] = self.curved(p[~ok])
         out[ok] = h[ok] + np.where(np.isfinite(corr[ok]), corr[ok], 0.0)
         far = ~np.isfinite(out).all(1)
         idx, used, tree = self.fit._used
@@ -117,10 +130,8 @@ class NodeExactHarmonic:
         """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (module
         docstring): the largest squared departure of the next usable nodes' fits from the
         nearest one's, times (2 d / spacing)^2 up to 1, d the distance to the nearest node;
-        the linear interpolant's curvature estimate where it serves."""
+        :meth:`CurvatureCorrected.error_var` where no fit holds."""
         from scipy.spatial import cKDTree
-
-        from .noise import reference_error_var
 
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         idx, used, tree = self.fit._used
@@ -134,13 +145,269 @@ class NodeExactHarmonic:
                 dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], p[ok]) - b1))
             var[ok] = dev**2
         if (~ok).any():
-            var[~ok] = reference_error_var(self.linear_fn, p[~ok], self.spacing_mm)
+            var[~ok] = self.curved.error_var(p[~ok])
         d, _ = cKDTree(self.fit.centers).query(p)
         return var * np.clip(2.0 * d / self.spacing_mm, 0.0, 1.0)[:, None] ** 2
 
     def linear_fn(self, points) -> np.ndarray:
         """The linear interpolant's field (NaN outside)."""
         return self.linear.field_at(points)[0]
+
+
+#: Pairs (j, k) of the second moments and second derivatives, in storage order.
+PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+#: Triples (j, k, l) of the third moments and third derivatives, in storage order.
+TRIPLES = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (0, 0, 1), (0, 0, 2), (1, 1, 0), (1, 1, 2),
+           (2, 2, 0), (2, 2, 1), (0, 1, 2))  # fmt: skip
+#: How many ordered triples each of :data:`TRIPLES` stands for.
+TRIPLE_COUNT = np.array([1, 1, 1, 3, 3, 3, 3, 3, 3, 6], dtype=float)
+
+
+def axis_steps(points, spacing_mm: float) -> np.ndarray:
+    """Node spacing along each axis (3,), mm: the median step between a map's distinct
+    coordinates on that axis where the map is a grid; ``spacing_mm`` along an axis whose
+    distinct coordinates are closer than half of it (scattered nodes) or single."""
+    out = np.full(3, float(spacing_mm))
+    for j in range(3):
+        u = np.unique(np.round(points[:, j], 3))
+        if len(u) > 1:
+            step = float(np.median(np.diff(u)))
+            if step >= 0.5 * spacing_mm:
+                out[j] = step
+    return out
+
+
+class _NodeValues:
+    """Other values at a map's nodes, read by the map's linear interpolant (same cells)."""
+
+    def __init__(self, linear, values):
+        import copy
+        from types import SimpleNamespace
+
+        self._lin = copy.copy(linear)
+        self._lin.fieldmap = SimpleNamespace(B=np.ascontiguousarray(values, dtype=float))
+
+    def __call__(self, points) -> np.ndarray:
+        return self._lin.field_at(points)[0]
+
+
+#: Weights of the sixth difference (a smooth field's is h^6 d^6B/dx^6: small).
+_D6 = (1, -6, 15, -20, 15, -6, 1)
+#: Variance of a sixth difference of independent node errors, in units of their variance.
+D6_NOISE_GAIN = float(sum(w * w for w in _D6))
+#: Median of chi-square with one degree of freedom: a median of squares over it estimates
+#: their variance.
+CHI2_1_MEDIAN = 0.4549364231195724
+#: Nodes over which the median of the sixth differences is taken (the local noise level).
+NOISE_NODES = 27
+#: Difference stencils (offsets, weights) of the derivatives of order 1-4 along an axis:
+#: central first, then shifted into the map for a node near its border (the derivatives of
+#: order 1 and 2 exact for a cubic either way).
+_STENCILS = {
+    1: (((-1, 1), (-0.5, 0.5)), ((0, 1, 2), (-1.5, 2.0, -0.5)),
+        ((-2, -1, 0), (0.5, -2.0, 1.5))),
+    2: (((-1, 0, 1), (1, -2, 1)), ((0, 1, 2, 3), (2, -5, 4, -1)),
+        ((-3, -2, -1, 0), (-1, 4, -5, 2))),
+    3: (((-2, -1, 1, 2), (-0.5, 1, -1, 0.5)), ((0, 1, 2, 3), (-1, 3, -3, 1)),
+        ((-3, -2, -1, 0), (-1, 3, -3, 1))),
+    4: (((-2, -1, 0, 1, 2), (1, -4, 6, -4, 1)), ((0, 1, 2, 3, 4), (1, -4, 6, -4, 1)),
+        ((-4, -3, -2, -1, 0), (1, -4, 6, -4, 1))),
+}  # fmt: skip
+
+
+def _axis_derivative(f, order: int, h: float) -> np.ndarray:
+    """Derivative of the given order from values ``f[offset]`` at nodes + offset h e_j: the
+    first stencil of :data:`_STENCILS` whose values all exist; NaN where none does."""
+    val = None
+    for offs, wts in _STENCILS[order]:
+        if not all(o in f for o in offs):
+            continue
+        d = sum(w * f[o] for o, w in zip(offs, wts, strict=True)) / h**order
+        val = d if val is None else np.where(np.isfinite(val), val, d)
+    return val
+
+
+def _node_derivatives(lin, nodes, steps):
+    """Second, third and fourth derivatives of a map's field at its nodes, by differences of
+    its node values (steps ``steps`` (3,) mm along the axes).
+
+    Returns
+    -------
+    d2 : ndarray, shape (n, c, 6), units of the values / mm^2
+        d^2 B_i / dx_j dx_k for the pairs of :data:`PAIRS`.
+    d3 : ndarray, shape (n, c, 10), / mm^3
+        d^3 B_i / dx_j dx_k dx_l for the triples of :data:`TRIPLES`: along an axis from the
+        values, mixed ones as the first derivative of the second ones.
+    d4 : ndarray, shape (n, c, 3), / mm^4
+        d^4 B_i / dx_j^4.
+    noise : ndarray, shape (n, c), units of the values squared
+        Variance of the node values' own errors: the largest over the axes of the median
+        squared central sixth difference over the :data:`NOISE_NODES` nearest nodes that
+        have one, over what independent errors of unit variance give
+        (:data:`D6_NOISE_GAIN` times :data:`CHI2_1_MEDIAN`); 0 where no axis has seven
+        nodes. A smooth field's sixth differences add little; a median leaves a single
+        departing node out (the fit locates it).
+
+    Central differences, else the ones shifted into the map (a node near its border); where
+    neither fits, 0 (NaN for d4). Mixed second derivatives: the central cross difference,
+    else first derivatives along one axis, then the other (three-point stencils, shifted in
+    near the border: exact for a cubic field).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(nodes)
+    f0 = lin(nodes)
+    c = f0.shape[1]
+    d2, d3, d4 = np.zeros((n, c, 6)), np.zeros((n, c, 10)), np.zeros((n, c, 3))
+    noise = np.zeros((n, c))
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = steps[j]
+        f = {s: (f0 if s == 0 else lin(nodes + s * e)) for s in range(-6, 7)}
+        d2[:, :, j] = _axis_derivative(f, 2, steps[j])
+        d3[:, :, j] = _axis_derivative(f, 3, steps[j])
+        d4[:, :, j] = _axis_derivative(f, 4, steps[j])
+        d6 = sum(w * f[o] for o, w in zip(range(-3, 4), _D6, strict=True))
+        has = np.flatnonzero(np.isfinite(d6).all(1))
+        if has.size:  # the map's own noise: a robust local level
+            _, near = cKDTree(nodes[has]).query(nodes, k=min(NOISE_NODES, has.size))
+            med = np.median(d6[has[near.reshape(n, -1)]] ** 2, axis=1)
+            noise = np.fmax(noise, med / (D6_NOISE_GAIN * CHI2_1_MEDIAN))
+    d2[:, :, :3] = np.where(np.isfinite(d2[:, :, :3]), d2[:, :, :3], 0.0)
+    d3[:, :, :3] = np.where(np.isfinite(d3[:, :, :3]), d3[:, :, :3], 0.0)
+    for q, (j, k) in enumerate(PAIRS[3:], start=3):
+        ej, ek = np.zeros(3), np.zeros(3)
+        ej[j], ek[k] = steps[j], steps[k]
+        m = (lin(nodes + ej + ek) - lin(nodes + ej - ek) - lin(nodes - ej + ek)
+             + lin(nodes - ej - ek)) / (4 * steps[j] * steps[k])  # fmt: skip
+        bad = np.flatnonzero(~np.isfinite(m).all(1))
+        if bad.size:  # near the border: first derivatives along j, then along k, shifted in
+            g = {}
+            for b in range(-2, 3):
+                f = {a: lin(nodes[bad] + a * ej + b * ek) for a in range(-2, 3)}
+                g[b] = _axis_derivative(f, 1, steps[j])
+            m[bad] = _axis_derivative(g, 1, steps[k])
+        d2[:, :, q] = np.where(np.isfinite(m), m, 0.0)
+    return d2, d3, d4, noise
+
+
+class CurvatureCorrected:
+    """A map's field between its nodes: the linear interpolant corrected by the field's
+    curvature, exact at the nodes.
+
+    Read linearly, a point p with interpolation weights w_i on the nodes x_i of its cell gets
+    sum_i w_i B(x_i) = B(p) + H : M2 / 2 + T : M3 / 6 + ..., with M2, M3 the second and third
+    moments sum_i w_i (x_i - p)^(x2, x3) of its cell (zero at a node; h^2/4 and 0 midway
+    between two nodes h apart along an axis) and H, T the field's second and third
+    derivatives. The model subtracts those terms: M2 and M3 are read by the same interpolant
+    from the coordinates' powers at the nodes, H and T by differences of the map's node
+    values, interpolated linearly from its nodes. On a regular grid, midway between nodes
+    along an axis, this is the four-point cubic reading (-B(-1) + 9 B(0) + 9 B(1) - B(2)) / 16.
+    No field equation is assumed: it serves maps whose harmonic fits fail (a measured map
+    with noise, one with currents or iron).
+
+    Its own error (:meth:`error_var`) is the next term along each axis, from the map's fourth
+    differences: e_j = (M2_jj / h_j^2) d4_j h_j^4 / 8 (3/128 d4 h^4 midway, the cubic
+    reading's error there, exceeded by a third); where a fourth difference cannot be formed (a
+    map fewer than five nodes long) the correction's own size H_jj M2_jj / 2 serves (the
+    linear reading's error). The fourth-order terms of mixed axes, left out of the model,
+    are taken as large as the geometric means of those along the axes: the error is
+    (sum_j sqrt(e_j))^2. A measured map's node values carry their own errors (noise, a plane
+    of a scan placed off its recorded position), which every reading inherits, at a node as
+    between nodes: their variance, estimated near each node from the map's sixth differences
+    (:func:`_node_derivatives`), is added.
+
+    Parameters
+    ----------
+    fm : FieldMap
+    linear : LinearInterpolator
+        The map's linear interpolant (its cells are the model's).
+
+    Attributes
+    ----------
+    steps : ndarray, shape (3,), mm
+        Node spacing along each axis.
+    """
+
+    def __init__(self, fm, linear):
+        self.linear = linear
+        self.spacing_mm = node_spacing_mm(fm.points)
+        self.steps = axis_steps(fm.points, self.spacing_mm)
+        self._c = fm.points.mean(0)
+        x = fm.points - self._c
+        n = len(x)
+        d2, d3, d4, noise = _node_derivatives(self.linear_fn, fm.points, self.steps)
+        # mixed third derivatives: first differences of the second ones
+        hess = _NodeValues(linear, d2.reshape(n, -1))
+        for q, (j, k, l) in enumerate(TRIPLES[3:], start=3):
+            pair = PAIRS.index((j, k)) if j != k else j
+            e = np.zeros(3)
+            e[l] = self.steps[l]
+            f = {s: hess(fm.points + s * e).reshape(n, 3, 6)[:, :, pair] for s in (-2, -1, 1, 2)}
+            f[0] = d2[:, :, pair]
+            t = _axis_derivative(f, 1, self.steps[l])
+            d3[:, :, q] = np.where(np.isfinite(t), t, 0.0)
+        self._mom = _NodeValues(linear, _powers(x))
+        self._deriv = _NodeValues(
+            linear, np.concatenate([d.reshape(n, -1) for d in (d2, d3, d4, noise)], axis=1)
+        )
+
+    def _terms(self, p):
+        """Linear reading (m, 3), second (m, 6) and third (m, 10) moments of the cells, and
+        the derivatives d2 (m, 3, 6), d3 (m, 3, 10), d4 (m, 3, 3) and the map's noise variance
+        (m, 3) at points ``p`` (m, 3) mm."""
+        m = len(p)
+        b_lin = self.linear_fn(p)
+        mom = self._mom(p)  # L[x_j x_k], L[x_j x_k x_l]
+        q = p - self._c
+        pw = _powers(q)
+        m2 = mom[:, :6] - pw[:, :6]
+        m3 = np.empty((m, 10))
+        for t, (j, k, l) in enumerate(TRIPLES):
+            pair = [PAIRS.index(tuple(sorted(ab))) for ab in ((k, l), (j, l), (j, k))]
+            m3[:, t] = (mom[:, 6 + t] - q[:, j] * mom[:, pair[0]] - q[:, k] * mom[:, pair[1]]
+                        - q[:, l] * mom[:, pair[2]] + 2.0 * pw[:, 6 + t])  # fmt: skip
+        der = self._deriv(p)
+        d2 = der[:, :18].reshape(m, 3, 6)
+        d3 = der[:, 18:48].reshape(m, 3, 10)
+        d4 = der[:, 48:57].reshape(m, 3, 3)
+        return b_lin, m2, m3, d2, d3, d4, np.maximum(der[:, 57:60], 0.0)
+
+    def field_at(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """B (m, 3) T at ``points`` (m, 3) mm and ``inside`` (m,) bool; NaN outside the
+        map's cells (never extrapolated)."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        b_lin, m2, m3, d2, d3, _, _ = self._terms(p)
+        w2 = m2 * np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])  # off-diagonal pairs twice
+        corr = 0.5 * np.einsum("niq,nq->ni", d2, w2)
+        corr += np.einsum("nit,nt->ni", d3, m3 * TRIPLE_COUNT) / 6.0
+        return b_lin - corr, np.isfinite(b_lin).all(1)
+
+    def __call__(self, points) -> np.ndarray:
+        return self.field_at(points)[0]
+
+    def error_var(self, points) -> np.ndarray:
+        """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (class
+        docstring); zero at a node."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        _, m2, _, d2, _, d4, noise = self._terms(p)
+        diag = m2[:, None, :3]  # (m, 1, 3): M2_jj
+        h2 = self.steps**2
+        err = np.where(np.isfinite(d4), diag / h2 * np.abs(d4) * h2**2 / 8.0,
+                       0.5 * np.abs(d2[:, :, :3]) * diag)  # fmt: skip
+        err = np.where(np.isfinite(err), err, 0.0)
+        return np.sqrt(np.abs(err)).sum(-1) ** 4 + noise
+
+    def linear_fn(self, points) -> np.ndarray:
+        """The linear interpolant's field (NaN outside)."""
+        return self.linear.field_at(points)[0]
+
+
+def _powers(x) -> np.ndarray:
+    """Second and third powers of coordinates (m, 3): (m, 16), pairs of :data:`PAIRS` then
+    triples of :data:`TRIPLES`."""
+    return np.stack([x[:, a] * x[:, b] for a, b in PAIRS]
+                    + [x[:, a] * x[:, b] * x[:, c] for a, b, c in TRIPLES], axis=1)  # fmt: skip
 
 
 def reference_model(fm, field_model: str):
@@ -150,14 +417,14 @@ def reference_model(fm, field_model: str):
     ----------
     fm : FieldMap
     field_model : {'auto', 'harmonic', 'linear'}
-        auto: :class:`NodeExactHarmonic` on a 3-D map, the linear interpolant on a planar one
-        (or one too small for the harmonic fits); harmonic: :class:`NodeExactHarmonic`, refused
-        on a planar map; linear: the linear interpolant.
+        auto: :class:`NodeExactHarmonic` on a 3-D map, :class:`CurvatureCorrected` on one
+        too small for the harmonic fits, the linear interpolant on a planar one; harmonic:
+        :class:`NodeExactHarmonic`, refused on a planar map; linear: the linear interpolant.
 
     Returns
     -------
-    model : NodeExactHarmonic or LinearInterpolator
-    kind : {'harmonic', 'linear'}
+    model : NodeExactHarmonic, CurvatureCorrected or LinearInterpolator
+    kind : {'harmonic', 'curved', 'linear'}
     why : str
         Why the model was chosen (for the notes); empty when asked for by name.
     """
@@ -171,4 +438,6 @@ def reference_model(fm, field_model: str):
     except CfmInputError as e:
         if field_model == "harmonic":
             raise
-        return lin, "linear", f"read linearly between nodes: {e}"
+        if lin.mesh.dim < 3:  # a plane: no differences across it
+            return lin, "linear", f"read linearly between nodes: {e}"
+        return CurvatureCorrected(fm, lin), "curved", str(e)

@@ -176,7 +176,7 @@ def _map_reference(spec, rec, field_model, reader):
     interp, kind, why = reference_model(fm, field_model)
     served = interp.fit.field_at(rec.cmd)[1] if kind == "harmonic" else None
     if kind == "harmonic" and field_model == "auto" and not served.any():
-        interp, kind = interp.linear, "linear"  # no fit holds near the readings
+        interp, kind = interp.curved, "curved"  # no fit holds near the readings
         why = (f"the harmonic fits hold at none of the {len(served)} readings (noise in the "
                "map, currents or iron near them)")  # fmt: skip
 
@@ -205,9 +205,15 @@ def _map_reference(spec, rec, field_model, reader):
     if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
         fn.error_var, fn.spacing = interp.error_var, spacing
         n_lin = int((~served).sum())
-        fb = f"; {n_lin} of {len(served)} readings read linearly: no fit holds" if n_lin else ""
+        fb = (f"; {n_lin} of {len(served)} readings, where no fit holds, read linearly "
+              "corrected by the field's curvature") if n_lin else ""  # fmt: skip
         return fn, b_ref, None, (f"{desc}, read between nodes by a harmonic fit per node to its "
                                  f"{interp.fit.k} nearest, exact at the nodes{fb})")  # fmt: skip
+    if kind == "curved":  # the linear reading corrected by the curvature; its error estimated
+        fn.error_var = interp.error_var
+        return fn, b_ref, spacing, (f"{desc}, read between nodes linearly corrected by the "
+                                    "field's second and third differences, exact at the nodes; "
+                                    f"{why})")  # fmt: skip
     return fn, b_ref, spacing, f"{desc}, read linearly between nodes{'; ' + why if why else ''})"
 
 
