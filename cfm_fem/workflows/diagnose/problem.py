@@ -554,6 +554,7 @@ def hall_problem(
     pose=None,
     ref_error=None,
     bench_at=None,
+    hessian=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -605,6 +606,9 @@ def hall_problem(
     bench_at : ndarray, shape (21,), optional
         The bench errors (um, urad; order of ``ERROR_NAMES``) the bench columns are linearised
         at (:func:`bench_expansion`); None: their prior means.
+    hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
+        The reference's Hessian at the distinct points (computed once, then passed on by
+        ``ctx.rebuild``).
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -650,10 +654,13 @@ def hall_problem(
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
         at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
-        H = None
-        if np.any(at):
+        if hessian is None and np.any(at):
+            # the curvature at the nominal placement: a move of the magnet changes it to
+            # second order only, so every relinearisation of this map reuses it
             h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
-            H = field_hessian(fn_posed, upts, h2)[uinv]
+            hessian = field_hessian(field_fn, upts, h2)
+            rebuild = partial(rebuild, hessian=hessian)
+        H = None if hessian is None else hessian[uinv]
         Bb, Gb = bench_expansion(bench, q, p, at, B0, G, H)
         lever = np.einsum("nij,jk->nik", Gb, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
