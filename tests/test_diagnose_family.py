@@ -10,8 +10,8 @@ probe by tens of um (18, 2026: the second-order terms of the move, left to a lin
 zero errors, looked like volume averaging or a bench error in conflict with its prior), an
 octupole sparse map with one reading near 4.4 sigma among hundreds (2006), and a tracker
 circle scan with one plane near 4 sigma among the planes tested (2067). On each, nothing may
-be claimed, no plane called bad and no mismatch stated. The full family proof is `scripts/prove_diagnosis.py --family`
-(docs/diagnosis_family.md).
+be claimed, no plane called bad and no mismatch stated. The full family proof is
+`scripts/prove_diagnosis.py --family` (docs/diagnosis_family.md).
 """
 
 from __future__ import annotations
