@@ -399,22 +399,23 @@ def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
 
 
 def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
-    """Field and gradient where the bench's errors ``theta`` put the probe (Gauss-Newton).
+    """The field where the bench's errors ``theta`` put the probe, to second order.
 
     The bench columns model a reading as the field at the probe's point, moved by the errors
-    along their linear sensitivities D. Linearised at zero errors, B(p) + G D theta leaves
-    out the second-order terms of the move (d^T H d / 2 and the change of the gradient along
-    d), which on a multipole scanned far from the bench's origin (angular errors of tens of
-    urad on levers of hundreds of mm: moves of tens of um) are above a Hall probe's noise and
-    share the signature of a sensor's volume averaging. Linearised at ``theta`` instead, the
-    reading is
+    along their linear sensitivities D: B(p) + G D theta. That line leaves out the
+    second-order term of the move, d^T H d / 2, which on a multipole scanned far from the
+    bench's origin (angular errors of tens of urad on levers of hundreds of mm: moves of tens
+    of um) is above a Hall probe's noise and shares the signature of a sensor's volume
+    averaging. Expanded at ``theta`` instead, a reading is
 
-        B(p + d) + G(p + d) D (theta' - theta),  B(p + d) = B + (G + H d / 2) d,
-        G(p + d) = G + H d,
+        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + d^T H d / 2,
 
     d the exact move of the bench's kinematic chain, H the reference's Hessian over a step of
     half a mm or a node spacing (a reference read between nodes is not differentiable at them
-    on the scale of the move; its curvature over a cell is).
+    on the scale of the move; its curvature over a cell is). The columns keep the gradient at
+    ``p``, so their span (what the baseline can absorb) stays that of the bench; the change of
+    the gradient along d multiplies theta' - theta, which the Gauss-Newton iterations
+    (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) make small.
 
     Parameters
     ----------
@@ -422,27 +423,27 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
     q : ndarray, shape (n, 3), mm
         Axis positions of the readings.
     p : ndarray, shape (n, 3), mm
-        The readings' points, magnet frame (unused but for the shape check).
+        The readings' points, magnet frame.
     theta : ndarray, shape (21,)
         The errors, in the bench columns' units (um, urad).
     B0, G : ndarray, shapes (n, 3) T and (n, 3, 3) T/mm
         Field and gradient at ``p``.
-    H : ndarray, shape (n, 3, 3, 3), T/mm^2
-        Hessian at ``p``.
+    H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
+        Hessian at ``p`` (None only with all errors zero).
 
     Returns
     -------
-    B, G : ndarray, shapes (n, 3) T and (n, 3, 3) T/mm
-        At the moved points.
+    ndarray, shape (n, 3), T
+        B(p + d) to second order.
     """
     unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
     th = np.asarray(theta, dtype=float) * unit  # mm, rad
     if not np.any(th) or len(p) != len(B0):
-        return B0, G
+        return B0
     R = bench.bench_to_magnet_rotation()
     d = probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T  # exact move, magnet frame
     Hd = np.einsum("nijk,nk->nij", H, d)
-    return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d), G + Hd
+    return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
 
 
 def _node_step(upts, spacing_mm, nodes):
@@ -661,11 +662,11 @@ def hall_problem(
             hessian = field_hessian(field_fn, upts, h2)
             rebuild = partial(rebuild, hessian=hessian)
         H = None if hessian is None else hessian[uinv]
-        Bb, Gb = bench_expansion(bench, q, p, at, B0, G, H)
-        lever = np.einsum("nij,jk->nik", Gb, R)  # dB per bench-frame probe displacement
+        Bb = bench_expansion(bench, q, p, at, B0, G, H)
+        lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
-        # linearised at the errors ``at``: B(p + d(at)) + G_at D (theta - at)
+        # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
         y = y - (Bb - B0) + np.einsum("nkp,p->nk", bcols.J, at)
         # probe displacement (magnet frame, mm per display unit) of each bench error
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
