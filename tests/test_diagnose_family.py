@@ -7,9 +7,9 @@ dipole on circles through both ends where the field gradient vanishes beyond the
 noise floor), an octupole on a grid whose axis readings see no gradient (26), a dipole grid
 against a coarse grid (27), a sextupole grid whose bench moves the probe by tens of um (18: the
 second-order terms of the move, left to a linearisation at zero errors, looked like volume
-averaging), an octupole sparse map with one reading near 4.4 sigma among hundreds (2006), and a tracker
-circle scan with one plane near 4 sigma among the planes tested (2067). On each, nothing may
-be claimed, no plane called bad and no mismatch stated. The full family proof is
+averaging), an octupole sparse map with one reading near 4.4 sigma among hundreds (2006), and
+a tracker circle scan with one plane near 4 sigma among the planes tested (2067). On each,
+nothing may be claimed, no plane called bad and no mismatch stated. The full family proof is
 `scripts/prove_diagnosis.py --family` (docs/diagnosis_family.md).
 """
 
