@@ -8,10 +8,11 @@ and gradient re-evaluated with the magnet moved there) and the pose is moved to 
 registration until the step is far below its standard uncertainty. The reported uncertainties
 are those of the final linearisation.
 
-The bench's errors move the probe by tens of um on a long lever; the bench columns are first
-linearised at the errors the calibrated baseline fits (Gauss-Newton from their prior
-means, :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`), kept when it lowers the MAP
-objective.
+The bench's errors move the probe by tens of um on a long lever; a Hall map's readings are
+first expanded to second order in that move at the errors the calibrated baseline fits
+(Gauss-Newton from their prior means,
+:func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`), each step kept when it lowers the
+MAP objective.
 """
 
 from __future__ import annotations
@@ -101,8 +102,8 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     kept): the problem linearised at the registration it fits.
 
     A step that raises the MAP objective is halved (three times at most, then the pose stays).
-    A problem :func:`applies` rejects keeps its pose. The bench columns of a Hall map are
-    first linearised at the errors the baseline fits (:func:`bench_step`).
+    A problem :func:`applies` rejects keeps its pose. A Hall map's readings are first expanded
+    at the bench errors the baseline fits (:func:`bench_step`).
     """
     prob = bench_step(prob)
     if not applies(prob):
@@ -126,9 +127,9 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
 
 
 def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
-    """A Hall map's problem with its bench columns linearised at the errors the calibrated
-    baseline fits (Gauss-Newton, while each step lowers the MAP objective, until the steps
-    are below ``STEP_TOL`` of their std); else ``prob`` itself."""
+    """A Hall map's problem expanded at the bench errors the calibrated baseline fits
+    (Gauss-Newton, while each step lowers the MAP objective, until the steps are below
+    ``STEP_TOL`` of their std); else ``prob`` itself."""
     if prob.kind != "hall" or prob.ctx.rebuild is None or prob.ctx.bench is None:
         return prob
     obj, base, fit = _objective(prob)
