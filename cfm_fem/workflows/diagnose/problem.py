@@ -605,8 +605,8 @@ def hall_problem(
         :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`), added to
         the noise.
     bench_at : ndarray, shape (21,), optional
-        The bench errors (um, urad; order of ``ERROR_NAMES``) the bench columns are linearised
-        at (:func:`bench_expansion`); None: their prior means.
+        The bench errors (um, urad; order of ``ERROR_NAMES``) the readings are expanded at
+        (:func:`bench_expansion`); None: their prior means.
     hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
         The reference's Hessian at the distinct points (computed once, then passed on by
         ``ctx.rebuild``).
