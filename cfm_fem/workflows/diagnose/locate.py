@@ -3,8 +3,12 @@
 Per point and component, the mean residual over the repetitions is standardised by its predicted
 standard deviation (sigma / sqrt(R)) and tested two-sided; per-group means (repetition, time block,
 approach direction, speed, region of the volume) likewise. All p-values of one analysis form one
-family controlled by Benjamini-Hochberg at level ``q``. A global lack-of-fit F test compares the
-scatter of the point means with the pure error of the repetitions.
+family. Whether the recording departs from the model anywhere is decided family-wise: the
+smallest p-value against ``alpha / m`` (Bonferroni over the m tests, a max-statistic test whose
+false-alarm rate on a clean recording is at most ``alpha`` whatever the number of readings).
+Only then are the locations named, by Benjamini-Hochberg at level ``q`` over the same family. A
+global lack-of-fit F test compares the scatter of the point means with the pure error of the
+repetitions.
 """
 
 from __future__ import annotations
@@ -14,7 +18,14 @@ from scipy import stats
 
 from .problem import Problem
 
-__all__ = ["standardised", "locate", "benjamini_hochberg", "planes", "isolated_planes"]
+__all__ = [
+    "standardised",
+    "locate",
+    "benjamini_hochberg",
+    "gated_discoveries",
+    "planes",
+    "isolated_planes",
+]
 
 COMP = "xyz"
 
@@ -33,6 +44,16 @@ def benjamini_hochberg(p, q: float) -> np.ndarray:
         kmax = np.flatnonzero(below).max()
         out[order[: kmax + 1]] = True
     return out
+
+
+def gated_discoveries(p, q: float, alpha: float | None) -> np.ndarray:
+    """Discoveries of Benjamini-Hochberg at ``q``, kept only when the family as a whole is
+    significant at the family-wise level ``alpha``: min p <= alpha / m (Bonferroni on the
+    smallest p-value). ``alpha`` None: BH alone (its family-wise rate on a clean family is q)."""
+    p = np.asarray(p, dtype=np.float64)
+    if p.size == 0 or (alpha is not None and not p.min() * p.size <= alpha):
+        return np.zeros(p.size, dtype=bool)
+    return benjamini_hochberg(p, q)
 
 
 def standardised(prob: Problem, resid, sigma):
@@ -106,14 +127,17 @@ def planes(pos):
     return out
 
 
-def isolated_planes(prob, z_row, q: float = 0.01) -> list:
+def isolated_planes(prob, z_row, q: float = 0.01, alpha: float | None = None) -> list:
     """Planes whose mean residual departs from what their neighbours predict: a bad plane
     (a settling artefact at the start of every line, a glitch), not a smooth effect.
 
     Per axis and component, the standardised plane means m_k are compared with the line
     through their neighbours (interior planes: (m_{k-1} + m_{k+1}) / 2, variance 3/2; end
     planes: 2 m_1 - m_2 extrapolated, variance 6); the p-values of all planes form one family
-    (Benjamini-Hochberg at ``q``) and a plane must also be significant on its own mean.
+    (Benjamini-Hochberg at ``q``) and a plane must also be significant on its own mean. With
+    ``alpha``, a plane is called bad only when both its departure from its neighbours and its
+    own mean also pass Bonferroni over the planes tested (family-wise rate <= ``alpha`` on a
+    clean recording, :func:`gated_discoveries`).
 
     Returns
     -------
@@ -138,6 +162,8 @@ def isolated_planes(prob, z_row, q: float = 0.01) -> list:
     p_iso = np.array([2 * stats.norm.sf(abs(t[3])) for t in cand])
     p_mean = np.array([2 * stats.norm.sf(abs(t[4])) for t in cand])
     hit = benjamini_hochberg(p_iso, q) & benjamini_hochberg(p_mean, q)
+    if alpha is not None:
+        hit &= (p_iso * p_iso.size <= alpha) & (p_mean * p_mean.size <= alpha)
     out = [
         {
             "axis": COMP[t[0]],
@@ -153,8 +179,19 @@ def isolated_planes(prob, z_row, q: float = 0.01) -> list:
     return sorted(out, key=lambda d: -abs(d["z_isolated"]))
 
 
-def locate(prob: Problem, resid, sigma, q: float = 0.01, frame: str = "", edf: float = 0.0) -> dict:
+def locate(
+    prob: Problem,
+    resid,
+    sigma,
+    q: float = 0.01,
+    frame: str = "",
+    edf: float = 0.0,
+    alpha: float | None = None,
+) -> dict:
     """Where the residuals are significant.
+
+    ``q``: the Benjamini-Hochberg level naming the locations; ``alpha``: the family-wise level
+    of the decision that anything is located (module docstring), None: BH alone.
 
     Returns
     -------
@@ -186,7 +223,7 @@ def locate(prob: Problem, resid, sigma, q: float = 0.01, frame: str = "", edf: f
                 gz.append((label, c, float(zc[m, c].sum() / np.sqrt(max(v, 1e-12)))))
     p_g = np.array([2 * stats.norm.sf(abs(z)) for _, _, z in gz])
     allp = np.concatenate([p_pt.reshape(-1), p_g])
-    disc = benjamini_hochberg(allp, q)
+    disc = gated_discoveries(allp, q, alpha)
     sig_pt = disc[: p_pt.size].reshape(p_pt.shape)
     sig_g = disc[p_pt.size :]
     located = []

@@ -19,7 +19,7 @@ from functools import partial
 import numpy as np
 
 from ...models.bench import AXES, ERROR_NAMES, Bench
-from ...models.kinematics.chain import sensitivities
+from ...models.kinematics.chain import probe_errors_for_bench, sensitivities
 from ...models.recordings import check_hall_scale
 from .calibrate import Columns
 from .context import ProblemContext
@@ -398,6 +398,54 @@ def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
     return out
 
 
+def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
+    """The field where the bench's errors ``theta`` put the probe, to second order.
+
+    The bench columns model a reading as the field at the probe's point, moved by the errors
+    along their linear sensitivities D: B(p) + G D theta. That line leaves out the
+    second-order term of the move, d^T H d / 2, which on a multipole scanned far from the
+    bench's origin (angular errors of tens of urad on levers of hundreds of mm: moves of tens
+    of um) is above a Hall probe's noise and shares the signature of a sensor's volume
+    averaging. Expanded at ``theta`` instead, a reading is
+
+        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + d^T H d / 2,
+
+    d the exact move of the bench's kinematic chain, H the reference's Hessian over a step of
+    half a mm or a node spacing (a reference read between nodes is not differentiable at them
+    on the scale of the move; its curvature over a cell is). The columns keep the gradient at
+    ``p``, so their span (what the baseline can absorb) stays that of the bench; the change of
+    the gradient along d multiplies theta' - theta, which the Gauss-Newton iterations
+    (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) make small.
+
+    Parameters
+    ----------
+    bench : Bench
+    q : ndarray, shape (n, 3), mm
+        Axis positions of the readings.
+    p : ndarray, shape (n, 3), mm
+        The readings' points, magnet frame.
+    theta : ndarray, shape (21,)
+        The errors, in the bench columns' units (um, urad).
+    B0, G : ndarray, shapes (n, 3) T and (n, 3, 3) T/mm
+        Field and gradient at ``p``.
+    H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
+        Hessian at ``p`` (None only with all errors zero).
+
+    Returns
+    -------
+    ndarray, shape (n, 3), T
+        B(p + d) to second order.
+    """
+    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
+    th = np.asarray(theta, dtype=float) * unit  # mm, rad
+    if not np.any(th) or len(p) != len(B0):
+        return B0
+    R = bench.bench_to_magnet_rotation()
+    d = probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T  # exact move, magnet frame
+    Hd = np.einsum("nijk,nk->nij", H, d)
+    return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
+
+
 def _node_step(upts, spacing_mm, nodes):
     """The node spacing of a linear reference map when every reading's point is one of its
     nodes (second differences of that step then read the map's node values), else None."""
@@ -506,6 +554,8 @@ def hall_problem(
     ref_nodes=None,
     pose=None,
     ref_error=None,
+    bench_at=None,
+    hessian=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -558,6 +608,12 @@ def hall_problem(
         :meth:`~cfm_fem.workflows.diagnose.reference.NodeExactHarmonic.error_var`) or by the
         curvature-corrected reading (not ``smooth``,
         :meth:`~cfm_fem.workflows.diagnose.reference.CurvatureCorrected.error_var`).
+    bench_at : ndarray, shape (21,), optional
+        The bench errors (um, urad; order of ``ERROR_NAMES``) the readings are expanded at
+        (:func:`bench_expansion`); None: their prior means.
+    hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
+        The reference's Hessian at the distinct points (computed once, then passed on by
+        ``ctx.rebuild``).
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -570,7 +626,7 @@ def hall_problem(
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
                       ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
-                      ref_error=ref_error)  # fmt: skip
+                      ref_error=ref_error, bench_at=bench_at)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
@@ -602,8 +658,20 @@ def hall_problem(
                 )
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
+        at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
+        if hessian is None and np.any(at):
+            # the curvature at the nominal placement: a move of the magnet changes it to
+            # second order only, so every relinearisation of this map reuses it
+            h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
+            hessian = field_hessian(field_fn, upts, h2)
+            rebuild = partial(rebuild, hessian=hessian)
+        H = None if hessian is None else hessian[uinv]
+        Bb = bench_expansion(bench, q, p, at, B0, G, H)
         lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
-        blocks.append(bench_columns(bench, q, lever_to=lever))
+        bcols = bench_columns(bench, q, lever_to=lever)
+        blocks.append(bcols)
+        # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
+        y = y - (Bb - B0) + np.einsum("nkp,p->nk", bcols.J, at)
         # probe displacement (magnet frame, mm per display unit) of each bench error
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         axis_var = bench.noise_std_mm() ** 2

@@ -7,16 +7,23 @@ linearised at a pose (:func:`~cfm_fem.workflows.diagnose.problem.hall_problem`: 
 and gradient re-evaluated with the magnet moved there) and the pose is moved to the fitted
 registration until the step is far below its standard uncertainty. The reported uncertainties
 are those of the final linearisation.
+
+The bench's errors move the probe by tens of um on a long lever; a Hall map's readings are
+first expanded to second order in that move at the errors the calibrated baseline fits
+(Gauss-Newton from their prior means,
+:func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`), each step kept when it lowers the
+MAP objective.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ...models.bench import ERROR_NAMES
 from .calibrate import fit_map, stack
 from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
 
-__all__ = ["applies", "register", "repose", "pose_step", "registration_note"]
+__all__ = ["applies", "register", "repose", "pose_step", "bench_step", "registration_note"]
 
 #: Converged when every registration step is below this fraction of its std.
 STEP_TOL = 0.05
@@ -49,9 +56,10 @@ def _objective(prob: Problem):
     return fit.objective, base, fit
 
 
-def repose(prob: Problem, pose) -> Problem:
-    """The same problem (same rows) linearised at the registration ``pose`` (um, urad)."""
-    full = prob.ctx.rebuild(pose=np.asarray(pose, dtype=float))
+def repose(prob: Problem, pose, **kw) -> Problem:
+    """The same problem (same rows) linearised at the registration ``pose`` (um, urad);
+    ``kw``: other arguments of the rebuild (``bench_at``)."""
+    full = prob.ctx.rebuild(pose=np.asarray(pose, dtype=float), **kw)
     full.notes = list(prob.notes)  # with what the caller added
     rows = prob.ctx.rows
     if len(rows) == full.n:
@@ -94,8 +102,10 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     kept): the problem linearised at the registration it fits.
 
     A step that raises the MAP objective is halved (three times at most, then the pose stays).
-    A problem :func:`applies` rejects is returned unchanged.
+    A problem :func:`applies` rejects keeps its pose. A Hall map's readings are first expanded
+    at the bench errors the baseline fits (:func:`bench_step`).
     """
+    prob = bench_step(prob)
     if not applies(prob):
         return prob
     obj, base, fit = _objective(prob)
@@ -113,6 +123,29 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
         else:
             break
         prob, obj, base, fit = trial, obj_t, base_t, fit_t
+    return prob
+
+
+def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
+    """A Hall map's problem expanded at the bench errors the calibrated baseline fits
+    (Gauss-Newton, while each step lowers the MAP objective, until the steps are below
+    ``STEP_TOL`` of their std); else ``prob`` itself."""
+    if prob.kind != "hall" or prob.ctx.rebuild is None or prob.ctx.bench is None:
+        return prob
+    obj, base, fit = _objective(prob)
+    if not set(ERROR_NAMES) <= set(base.names):
+        return prob
+    for _ in range(max_iter):
+        at = np.array([fit.theta[base.names.index(n)] for n in ERROR_NAMES])
+        trial = repose(prob, prob.ctx.pose, bench_at=at)
+        obj_t, base_t, fit_t = _objective(trial)
+        if obj_t > obj * (1.0 + 1e-9):
+            break
+        step = np.array([fit_t.theta[base_t.names.index(n)] for n in ERROR_NAMES]) - at
+        std = np.array([fit_t.std[base_t.names.index(n)] for n in ERROR_NAMES])
+        prob, obj, base, fit = trial, obj_t, base_t, fit_t
+        if np.all(np.abs(step) <= STEP_TOL * np.maximum(std, 1e-12)):
+            break
     return prob
 
 

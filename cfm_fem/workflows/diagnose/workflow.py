@@ -28,8 +28,24 @@ from .select import cv_rms, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
 
-#: Decision thresholds (documented in the outputs).
-DEFAULTS = {"bic_min": 10.0, "alpha": 0.01, "cv_z": 2.0, "fdr_q": 0.01, "overlap_max": 0.9}
+#: Decision thresholds (documented in the outputs). ``null_alpha``: the family-wise rate at
+#: which a clean recording is said to differ from the model by a test other than an effect's
+#: claim; its three families (residuals located, planes called bad, calibrated parameters in
+#: conflict with their priors) share it equally (Bonferroni), whatever the number of readings,
+#: planes or parameters tested. ``fdr_q`` then names the locations (Benjamini-Hochberg).
+DEFAULTS = {
+    "bic_min": 10.0,
+    "alpha": 0.01,
+    "cv_z": 2.0,
+    "fdr_q": 0.01,
+    "overlap_max": 0.9,
+    "null_alpha": 0.005,
+}
+
+
+def _family_alpha(o: dict) -> float:
+    """The family-wise level of each of the three non-claim alarm families (``DEFAULTS``)."""
+    return o["null_alpha"] / 3.0
 
 
 @dataclass
@@ -398,7 +414,8 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
         return noise_sigma(prob, resid, edf, var_known)[0]
 
     cal = _calibrate(prob)
-    loc0 = locate(prob, cal.fit_b.resid, cal.sigma0, q=o["fdr_q"], edf=cal.fit_b.edf)
+    fw = _family_alpha(o)
+    loc0 = locate(prob, cal.fit_b.resid, cal.sigma0, q=o["fdr_q"], edf=cal.fit_b.edf, alpha=fw)
     blocks, untestable, absorption, absorbed = _candidates(prob, cal)
     sel = select_effects(
         prob,
@@ -411,7 +428,7 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
         progress=progress,
     )
     fit1 = fit_map(prob.y, sel.sigma, sel.model)
-    loc1 = locate(prob, fit1.resid, sel.sigma, q=o["fdr_q"], edf=fit1.edf)
+    loc1 = locate(prob, fit1.resid, sel.sigma, q=o["fdr_q"], edf=fit1.edf, alpha=fw)
     return SimpleNamespace(
         prob=prob,
         cal=cal,
@@ -448,7 +465,7 @@ def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
     idx = np.arange(prob.n)
     out = np.zeros(prob.n, dtype=bool)
     for _ in range(max_planes):
-        iso = isolated_planes(a.prob, a.loc1["z_row"], q=o["fdr_q"])
+        iso = isolated_planes(a.prob, a.loc1["z_row"], q=o["fdr_q"], alpha=_family_alpha(o))
         if not iso:
             break
         top = dict(iso[0])
@@ -481,7 +498,9 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         if c["status"] == "implausible fit"
     ]
     released = {n for c in sel.accepted for n in c.released}
-    conflicts = prior_conflicts(sel.model, fit1, cal.base, released, o["alpha"], p.baseline, p.kind)
+    conflicts = prior_conflicts(
+        sel.model, fit1, cal.base, released, _family_alpha(o), p.baseline, p.kind
+    )
     advice, ov = advise(
         p, o, cal, sel, a.blocks, absorption=a.absorption, absorbed=a.absorbed,
         implausible=implausible, untestable=a.untestable, conflicts=conflicts, loc1=loc1,
