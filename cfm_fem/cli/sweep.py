@@ -53,9 +53,11 @@ def add_args(p):
     p.add_argument(
         "--trials",
         type=trial_count_type(),
-        default=10000,
+        default=None,
         metavar="N",
-        help="trials per node and U_p (default 10000)",
+        help="plain Monte Carlo with N trials per node and U_p (default: under the harmonic "
+        "field model in mode gauss, as many trials as U_f's precision needs, 1000 to 64000 "
+        "per node; 10000 elsewhere)",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument(
