@@ -29,6 +29,10 @@ from .harmonic_bounds import (
     remainder_bounds,
     symmetric3_norm,
 )
+from .harmonic_cv import (
+    harmonic_cv_sweep,
+    normal_quantile,
+)
 from .harmonic_fit import (
     CHECK_FREE,
     CHECK_HARMONIC,
@@ -58,10 +62,6 @@ from .harmonic_stats import (
     tail_quantile_z,
     tail_stats,
     whole_sample_stats,
-)
-from .harmonic_cv import (
-    harmonic_cv_sweep,
-    normal_quantile,
 )
 from .harmonic_sweep import (
     harmonic_gauss_sweep,

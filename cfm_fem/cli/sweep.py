@@ -257,6 +257,15 @@ def _note_compile(mode: str, field_model: str) -> None:
               file=sys.stderr)  # fmt: skip
 
 
+def _trials_text(s) -> str:
+    """'10000 trials per node', or the adaptive estimator's range."""
+    if s.get("estimator") == "adaptive":
+        from ..models.sweep import ADAPTIVE_PLAN
+
+        return f"adaptive estimator, {ADAPTIVE_PLAN[0]} to {ADAPTIVE_PLAN[1]} trials per node"
+    return f"{s['trials']} trials per node"
+
+
 def run(args) -> int:
     from ..workflows.sweep.run import check_mode_options, check_options
 
@@ -339,7 +348,7 @@ def _print_summary(s, out, table=None):
             f"({s['interpolation']})"
         )
     print(
-        f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {s['trials']} trials per node, "
+        f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {_trials_text(s)}, "
         f"U_f of one node known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo)"
     )
     if "region_description" in s:
