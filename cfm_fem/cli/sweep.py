@@ -236,17 +236,30 @@ def parse_up_range(text: str) -> list[float]:
     return values
 
 
-def _note_compile(mode: str, field_model: str) -> None:
+def _note_compile(mode: str, field_model: str, adaptive: bool = False) -> None:
     """Say, before the bar, which of the kernels this sweep runs numba compiles this time: the
     harmonic fit and sweep under the harmonic field model of a 3-D map (a planar map, known
     once meshed, runs the linear sweep), the linear sweep otherwise; the smaller set-up
-    kernels load or compile as they are first used."""
+    kernels load or compile as they are first used. ``adaptive``: the adaptive estimator's
+    kernel in mode gauss (no ``--trials``)."""
     from .. import _kernels
     from ..models.sweep import uses_harmonic
 
     if uses_harmonic(field_model, 3):
         htm = mode == "htm"
         sweep = _kernels.harmonic_htm_sweep if htm else _kernels.harmonic_gauss_sweep
+        if adaptive and not htm:
+            from ..workflows.sweep import compile_ahead
+
+            sweep = _kernels.harmonic_cv_sweep
+            if compile_ahead.start():  # beside the map's reading and fit, on another core
+                kernels = (_kernels.harmonic_fit_block,)
+                missing = [k.py_func.__name__ for k in kernels if not _kernels.kernels_cached(k)]
+                print(f"cfm-fem sweep: compiling {', '.join(missing + [sweep.py_func.__name__])} "
+                      "for this machine (the first run after an install or upgrade; the sweep's "
+                      "kernel in a second process while the map is read and fitted; later runs "
+                      "load them from numba's cache)", file=sys.stderr)  # fmt: skip
+                return
         kernels = (_kernels.harmonic_fit_block, sweep)
     else:
         kernels = (_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep,)
@@ -293,7 +306,7 @@ def _run(args, up) -> int:
     """The sweep, once the options are checked and the lock of ``--out`` is held."""
     from ..workflows.sweep.run import run_sweep
 
-    _note_compile(args.mode, args.field_model)
+    _note_compile(args.mode, args.field_model, args.trials is None)
     with progress_bar(None, "nodes") as bar:
         res = run_sweep(
             args.field, up, trials=args.trials, seed=args.seed, mode=args.mode,

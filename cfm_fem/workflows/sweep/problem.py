@@ -414,6 +414,10 @@ class SweepProblem:
         """`harmonic_cv_sweep` at every node; the nodes one of whose trials left the model's
         reach get the plain Monte Carlo of ``trials`` trials (`harmonic_gauss_sweep`)."""
         from ...models.sweep import ADAPTIVE_PLAN
+        from .compile_ahead import model_arrays, wait
+
+        model = model_arrays(*model)
+        wait()  # a first run: the kernel compiled beside the fit
 
         def block(i0, i1):
             return _kernels.harmonic_cv_sweep(

@@ -260,6 +260,16 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int | None = None
     return _on_disk(job, fm)
 
 
+def _trials(cfg) -> str:
+    """'10000 trials per node', or the adaptive estimator's range."""
+    if cfg.estimator == "adaptive" and cfg.mode == "gauss":
+        from ...models.sweep import ADAPTIVE_PLAN
+
+        return (f"{ADAPTIVE_PLAN[0]} to {ADAPTIVE_PLAN[1]} trials per node as U_f's precision "
+                f"needs ({cfg.trials} where the plain Monte Carlo runs)")  # fmt: skip
+    return f"{cfg.trials} trials per node"
+
+
 def _what(job) -> str:
     cfg = job.cfg
     if cfg.mode == "gauss":
@@ -282,8 +292,8 @@ def _in_memory(job) -> SweepRun:
 def _started(job, fm) -> None:
     if job.on_start is not None:
         cfg = job.cfg
-        job.on_start(f"{fm.n_nodes} nodes from {fm.source}; {_what(job)}; {cfg.trials} trials "
-                     f"per node, seed {cfg.seed}", fm.n_nodes, "nodes")  # fmt: skip
+        job.on_start(f"{fm.n_nodes} nodes from {fm.source}; {_what(job)}; {_trials(cfg)}, "
+                     f"seed {cfg.seed}", fm.n_nodes, "nodes")  # fmt: skip
 
 
 class _dask:
@@ -402,8 +412,8 @@ def _run_slabs(job):
     bench_entry = bench_provenance(job.bench_spec) if cfg.mode == "htm" else None
     prov = _provenance(job, bench_entry, backend="this process, slabs (out of core)")
     if job.on_start is not None:
-        job.on_start(f"streaming {job.field} ({kind}) into slabs; {_what(job)}; {cfg.trials} "
-                     f"trials per node, seed {cfg.seed}", None, "nodes")  # fmt: skip
+        job.on_start(f"streaming {job.field} ({kind}) into slabs; {_what(job)}; {_trials(cfg)}, "
+                     f"seed {cfg.seed}", None, "nodes")  # fmt: skip
     description = describe_sweep(cfg, _field_sha(job.field), reader,
                                  bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=job.slabs, max_memory=job.max_memory)
