@@ -295,6 +295,28 @@ def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats
 
 
 @nb.njit(**JIT)
+def _buffers(n_up, size, p):
+    """Work arrays of `harmonic_cv_sweep` for ``size`` trials per node: (the trial arrays of
+    `_add_trials`, the statistics' work arrays, the first-order parts' tails)."""
+    bufs = (np.empty((3, PART_BLOCK)), np.empty(PART_BLOCK, dtype=np.bool_), np.empty((3, size)),
+            np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, size)), np.empty((4, size)),
+            np.empty(PART_BLOCK), np.zeros(4), np.zeros((4, 2)))  # fmt: skip
+    work = (np.empty(size), np.empty(size), np.empty(size), np.empty(size))
+    return bufs, work, np.empty((2, 4, size - coverage_count(size, p) + 1))
+
+
+@nb.njit(**JIT)
+def _grown(n_up, size, p, old, n):
+    """`_buffers` for ``size`` trials, the first n trials of ``old`` (its trial arrays)
+    carried over."""
+    bufs, work, x_tails = _buffers(n_up, size, p)
+    bufs[2][:, :n] = old[2][:, :n]
+    bufs[4][:, :, :n] = old[4][:, :, :n]
+    bufs[5][:, :n] = old[5][:, :n]
+    return bufs, work, x_tails
+
+
+@nb.njit(**JIT)
 def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     """Statistics of B(x + N(0, U_p)) - B(x) at each node under its harmonic model, by the
     adaptive control-variate estimator (module docstring).
@@ -331,14 +353,9 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     used = np.zeros(k_nodes, dtype=np.int64)
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
-    vals = np.empty((n_up, 4, cap))
-    xu = np.empty((4, cap))
-    bufs = (np.empty((3, PART_BLOCK)), np.empty(PART_BLOCK, dtype=np.bool_), np.empty((3, cap)),
-            np.empty(N_SLOTS * PART_PITCH), vals, xu, np.empty(PART_BLOCK), np.zeros(4),
-            np.zeros((4, 2)))  # fmt: skip
-    work = (np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap))
+    size = min(4 * pilot, cap)  # most nodes need no more; grown for those that do
+    bufs, work, x_tails = _buffers(n_up, size, p)
     x_st = np.empty((4, 6))
-    x_tails = np.empty((2, 4, cap - coverage_count(cap, p) + 1))
     se = np.empty(2)
     sig1 = np.empty(4)
     b_hat = np.zeros(3)
@@ -365,12 +382,16 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         n = 0
         target = min(pilot, cap)
         while True:
+            if target > size:
+                size = min(2 * size, cap)
+                bufs, work, x_tails = _grown(n_up, size, p, bufs, n)
             d2max = _add_trials(key, fkey, n, target, sigma_axes, inv, cexp, b0, abs0, b_hat,
                                 scales, bufs)  # fmt: skip
             n = target
             if d2max > reach2:  # beyond the model's support: the plain Monte Carlo's node
                 n = 0
                 break
+            vals, xu = bufs[4], bufs[5]
             worst = _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails,
                                     stats[i], se, 3, 4)  # |B| decides  # fmt: skip
             if worst <= rel_se or n >= cap:  # then the components
