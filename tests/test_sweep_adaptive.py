@@ -109,3 +109,38 @@ def test_normal_quantile_matches_scipy():
 
     for p in (0.001, 0.025, 0.5, 0.975, 0.999):
         assert _kernels.normal_quantile(p) == pytest.approx(norm.ppf(p), abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    "n, coupling, noise", [(1000, 1.0, 1e-3), (4000, 1.0, 0.05), (1000, 0.0, 0.5)]
+)
+def test_cv_statistics_kernel_matches_its_numpy_twin(n, coupling, noise):
+    """`cv_stats` (and the tails of `sample_tails` it takes) against `testing.cv_stats`, on
+    errors near their first-order part (the difference estimator) and independent of it (the
+    plain figures, whose estimated variance is then the smaller)."""
+    from cfm_fem import testing
+    from cfm_fem._kernels import harmonic_cv as hcv
+    from cfm_fem._kernels.order_stats import _intervals, coverage_count
+
+    rng = np.random.default_rng(n)
+    z = rng.standard_normal((2, n))
+    s, sig1 = 0.02, 3.0
+    xu = sig1 * z[0]
+    y = coupling * s * xu + noise * s * sig1 * (z[1] ** 2 - 1.0 + 0.3 * z[0] ** 2)
+    q = coverage_count(n, 0.95)
+    h = n - q
+    work = tuple(np.empty(n) for _ in range(4))
+    x_tails = (np.empty(h), np.empty(h))
+    x_st = np.empty(6)
+    x_st[0], x_st[1] = hcv.sample_tails(xu, n, h, *x_tails, work[2], work[3])
+    np.testing.assert_array_equal(x_tails[0], np.sort(xu)[:h])
+    np.testing.assert_array_equal(x_tails[1], np.sort(xu)[n - h :])
+    _intervals(*x_tails, n, q, x_st)
+    out, se = np.empty(6), np.empty(2)
+    zq = _kernels.normal_quantile(0.975)
+    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se)
+    ref_out, ref_se = testing.cv_stats(y, xu, s, sig1)
+    np.testing.assert_allclose(out, ref_out, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(se, ref_se, rtol=1e-9, atol=1e-18)
+    plain = np.sort(y)[h // 2 - 1]  # the plain symmetric low end (h even here)
+    assert (out[2] == plain) == (coupling == 0.0)
