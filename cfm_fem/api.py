@@ -81,7 +81,7 @@ def read_recording(path, kind: str | None = None, *, length_unit=None, field_uni
     return convert_recording(readers[kind](path), length_unit, field_unit)
 
 
-def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIALS, seed: int = 0,
+def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int | None = None, seed: int = 0,
           mode: str = "gauss", bench=None, progress=None, **options):  # fmt: skip
     """U_f maps for a sweep of U_p (``cfm-fem sweep``), in memory unless ``out_dir`` is given.
 
@@ -90,7 +90,11 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
     field : path-like or FieldMap
     up_um : sequence of float
         U_p values, um (mode gauss).
-    trials, seed : int
+    trials : int or None
+        Plain Monte Carlo with this many trials per node and U_p; None (default): the
+        adaptive estimator where it applies (`cfm_fem.models.sweep.ESTIMATORS`), else
+        `SWEEP_TRIALS` plain trials.
+    seed : int
     mode : {"gauss", "htm"}
     bench : Bench or path-like, optional
         Mode htm: the bench (default the reference bench).
@@ -111,7 +115,8 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = SWEEP_TRIAL
     """
     from .workflows.sweep.run import run_sweep as run
 
-    return run(field, up_um, trials=int(trials), seed=int(seed), mode=mode, bench=bench,
+    trials = None if trials is None else int(trials)
+    return run(field, up_um, trials=trials, seed=int(seed), mode=mode, bench=bench,
                progress=progress, **options)  # fmt: skip
 
 

@@ -662,3 +662,58 @@ def harmonic_fit_checks(u, b) -> np.ndarray:
         rss = np.sum((a @ np.linalg.lstsq(a, rhs, rcond=None)[0] - rhs) ** 2)
         out.append(np.sqrt(rss / (3 * np.sum(sw**2))))
     return np.array(out)
+
+
+def cv_stats(y, xu, s, sig1, p=0.95):
+    """Twin of `_kernels.harmonic_cv.cv_stats` by full sorts: the statistics of one quantity
+    from n trials' errors ``y`` (T) and first-order parts per unit U_p ``xu`` (T/mm), U_p
+    ``s`` (mm), exact standard deviation ``sig1`` of ``xu`` (T/mm).
+
+    Returns
+    -------
+    out : ndarray, shape (6,), T
+        mean, std, symmetric low/high, shortest low/high.
+    se : ndarray, shape (2,), T
+        Standard errors of the symmetric ends.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    xu = np.asarray(xu, dtype=np.float64)
+    n = len(y)
+    q = coverage_count(n, p)
+    h = n - q
+    ys, xs = np.sort(y), np.sort(xu)
+    r = max(h // 2 if h % 2 == 0 else (h + 1) // 2, 1)
+
+    def figures(srt, v):
+        low, high = srt[:h], srt[n - h :]
+        best = int(np.argmin(high - low))
+        return np.array([v.mean(), v.std(ddof=1), low[r - 1], high[r - 1], low[best], high[best]])
+
+    fy, fx = figures(ys, y), figures(xs, xu)
+    m = min(max(r // 2, 1), r - 1, h - r)
+    w = n / (2.0 * m)
+    zq = float(K.normal_quantile(0.5 * (1.0 + p)))
+    ifx = s * sig1 / (math.exp(-0.5 * zq * zq) / math.sqrt(2.0 * math.pi))
+    a_lo, a_hi = r / n, (h - r + 1) / n
+    var = {}
+    for side, srt_y, srt_x, a in (
+        ("lo", ys[:h], xs[:h], a_lo),
+        ("hi", ys[n - h :], xs[n - h :], a_hi),
+    ):
+        i = r - 1
+        ify = (srt_y[i + m] - srt_y[i - m]) * w
+        d = ((srt_y[i + m] - s * srt_x[i + m]) - (srt_y[i - m] - s * srt_x[i - m])) * w
+        if side == "lo":
+            c = np.sum((y <= fy[2]) & (xu > fx[2]))
+        else:
+            c = np.sum((y >= fy[3]) & (xu < fx[3]))
+        var[side] = (a * (1 - a) * ify**2, a * (1 - a) * d**2 + 2.0 * (c / n) * abs(ify * ifx))
+    if var["lo"][1] + var["hi"][1] < var["lo"][0] + var["hi"][0]:
+        ex = s * sig1
+        exact = np.array([0.0, ex, -zq * ex, zq * ex, -zq * ex, zq * ex])
+        out = exact + (fy - s * fx)
+        se = np.sqrt(np.array([var["lo"][1], var["hi"][1]]) / n)
+    else:
+        out = fy
+        se = np.sqrt(np.array([var["lo"][0], var["hi"][0]]) / n)
+    return out, se

@@ -42,11 +42,14 @@ def csv_map(grid_csv):
     return grid_csv(6, curved_field)
 
 
-@pytest.mark.parametrize("model", ["linear", "harmonic"])
+@pytest.mark.parametrize("model", ["linear", "harmonic", "adaptive"])
 def test_dask_chunks_are_bit_identical_to_one_process(cluster, model):
+    """Also the adaptive estimator ("adaptive": the harmonic model, trial counts per node)."""
     from cfm_fem.workflows.sweep.distributed import dask_chunk_map
 
     _, client = cluster
+    estimator = "adaptive" if model == "adaptive" else "plain"
+    model = "harmonic" if model == "adaptive" else model
     pts, B = _map()
     if model == "harmonic":  # a field the harmonic fits hold at every node
         from test_sweep_harmonic import exact_field
@@ -56,12 +59,22 @@ def test_dask_chunks_are_bit_identical_to_one_process(cluster, model):
     ref = run_sweep(
         fm,
         SweepConfig(
-            up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=10**6, field_model=model
+            up_um=[0.0, 25.0, 60.0],
+            trials=300,
+            seed=11,
+            chunk_nodes=10**6,
+            field_model=model,
+            estimator=estimator,
         ),
     )
     for chunk in (37, 128):  # odd sizes, many chunks, completion order differs from node order
         cfg = SweepConfig(
-            up_um=[0.0, 25.0, 60.0], trials=300, seed=11, chunk_nodes=chunk, field_model=model
+            up_um=[0.0, 25.0, 60.0],
+            trials=300,
+            seed=11,
+            chunk_nodes=chunk,
+            field_model=model,
+            estimator=estimator,
         )
         res = run_sweep(fm, cfg, map_chunks=dask_chunk_map(client))
         np.testing.assert_array_equal(res.stats, ref.stats)  # NaN == NaN, bit for bit

@@ -11,7 +11,8 @@ sweep), `coupled` (probe errors of the coupled Monte Carlo), `htm_sweep` (the be
 `harmonic` (evaluation of local harmonic field models), `harmonic_parts` (their homogeneous
 parts at many displacements, generated), `harmonic_fit` (their fit per node), `harmonic_bounds`
 (their bounds over a ball), `harmonic_stats` (statistics of their field changes),
-`harmonic_sweep` (both sweeps under them).
+`harmonic_sweep` (both sweeps under them), `harmonic_cv` (the adaptive control-variate
+estimator of the Gaussian sweep under them).
 This namespace re-exports the public names of every module.
 """
 
@@ -27,6 +28,10 @@ from .harmonic_bounds import (
     inverse_multinomials,
     remainder_bounds,
     symmetric3_norm,
+)
+from .harmonic_cv import (
+    harmonic_cv_sweep,
+    normal_quantile,
 )
 from .harmonic_fit import (
     CHECK_FREE,
@@ -302,6 +307,8 @@ __all__ = [
     "keep_candidates",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
+    "harmonic_cv_sweep",
+    "normal_quantile",
     "FIT_PIVOT_MIN",
     "FIT_TAPER",
     "FIT_EQ_PER_UNKNOWN",

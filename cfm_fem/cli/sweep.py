@@ -53,9 +53,11 @@ def add_args(p):
     p.add_argument(
         "--trials",
         type=trial_count_type(),
-        default=10000,
+        default=None,
         metavar="N",
-        help="trials per node and U_p (default 10000)",
+        help="plain Monte Carlo with N trials per node and U_p (default: under the harmonic "
+        "field model in mode gauss, as many trials as U_f's precision needs, 1000 to 64000 "
+        "per node; 10000 elsewhere)",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument(
@@ -234,17 +236,30 @@ def parse_up_range(text: str) -> list[float]:
     return values
 
 
-def _note_compile(mode: str, field_model: str) -> None:
+def _note_compile(mode: str, field_model: str, adaptive: bool = False) -> None:
     """Say, before the bar, which of the kernels this sweep runs numba compiles this time: the
     harmonic fit and sweep under the harmonic field model of a 3-D map (a planar map, known
     once meshed, runs the linear sweep), the linear sweep otherwise; the smaller set-up
-    kernels load or compile as they are first used."""
+    kernels load or compile as they are first used. ``adaptive``: the adaptive estimator's
+    kernel in mode gauss (no ``--trials``)."""
     from .. import _kernels
     from ..models.sweep import uses_harmonic
 
     if uses_harmonic(field_model, 3):
         htm = mode == "htm"
         sweep = _kernels.harmonic_htm_sweep if htm else _kernels.harmonic_gauss_sweep
+        if adaptive and not htm:
+            from ..workflows.sweep import compile_ahead
+
+            sweep = _kernels.harmonic_cv_sweep
+            if compile_ahead.start():  # beside the map's reading and fit, on another core
+                kernels = (_kernels.harmonic_fit_block,)
+                missing = [k.py_func.__name__ for k in kernels if not _kernels.kernels_cached(k)]
+                print(f"cfm-fem sweep: compiling {', '.join(missing + [sweep.py_func.__name__])} "
+                      "for this machine (the first run after an install or upgrade; the sweep's "
+                      "kernel in a second process while the map is read and fitted; later runs "
+                      "load them from numba's cache)", file=sys.stderr)  # fmt: skip
+                return
         kernels = (_kernels.harmonic_fit_block, sweep)
     else:
         kernels = (_kernels.gauss_sweep if mode == "gauss" else _kernels.htm_sweep,)
@@ -253,6 +268,15 @@ def _note_compile(mode: str, field_model: str) -> None:
         print(f"cfm-fem sweep: compiling {', '.join(missing)} for this machine (the first run "
               "after an install or upgrade; later runs load them from numba's cache)",
               file=sys.stderr)  # fmt: skip
+
+
+def _trials_text(s) -> str:
+    """'10000 trials per node', or the adaptive estimator's range."""
+    if s.get("estimator") == "adaptive":
+        from ..models.sweep import ADAPTIVE_PLAN
+
+        return f"adaptive estimator, {ADAPTIVE_PLAN[0]} to {ADAPTIVE_PLAN[1]} trials per node"
+    return f"{s['trials']} trials per node"
 
 
 def run(args) -> int:
@@ -282,7 +306,7 @@ def _run(args, up) -> int:
     """The sweep, once the options are checked and the lock of ``--out`` is held."""
     from ..workflows.sweep.run import run_sweep
 
-    _note_compile(args.mode, args.field_model)
+    _note_compile(args.mode, args.field_model, args.trials is None)
     with progress_bar(None, "nodes") as bar:
         res = run_sweep(
             args.field, up, trials=args.trials, seed=args.seed, mode=args.mode,
@@ -337,7 +361,7 @@ def _print_summary(s, out, table=None):
             f"({s['interpolation']})"
         )
     print(
-        f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {s['trials']} trials per node, "
+        f"B_ref = {s['b_ref_T']:.6g} T ({s['b_ref_rule']}); {_trials_text(s)}, "
         f"U_f of one node known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo)"
     )
     if "region_description" in s:

@@ -121,7 +121,7 @@ def sweep_report(
     rep = HtmlReport("Field uncertainty U_f over the map (cfm-fem sweep)")
     rep.paragraph(
         f"Map {s['source']} ({s['nodes']} nodes). B_ref = {s['b_ref_T']:.6g} T "
-        f"({s['b_ref_rule']}); units = 1e-4 B_ref. {s['trials']} trials per node, seed "
+        f"({s['b_ref_rule']}); units = 1e-4 B_ref. {s.get('estimator_rule', s['trials'])}; seed "
         f"{s['seed']}; U_f of one node "
         f"known to +-{100 * s['uf_relative_mc_std']:.1f} % (1 sigma, Monte Carlo). Mode "
         f"{s['mode']}: {s['perturbation']}."

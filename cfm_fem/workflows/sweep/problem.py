@@ -35,6 +35,7 @@ from ...models.sweep import (
     SweepConfig,
     reference_field,
     up_label,
+    uses_adaptive,
     uses_harmonic,
 )
 from ...threads import check_memory, map_blocks
@@ -289,6 +290,8 @@ class SweepProblem:
     keys: np.ndarray | None = None
     # field model "harmonic": the per-node fits (`cfm_fem.models.harmonic.HarmonicFit`)
     harmonic: object | None = None
+    # mode gauss under the harmonic model: "adaptive" (`harmonic_cv_sweep`) or "plain"
+    estimator: str = "plain"
 
     def search_arrays(self) -> tuple:
         """The kernels' ``search`` argument (`cfm_fem.models.mesh.exact_search`)."""
@@ -378,14 +381,9 @@ class SweepProblem:
         )  # fmt: skip
         extrapolate = self.exit_grad is not None and self.exit_grad.shape[0] > 0
         if self.htm is None:
-
-            def block(i0, i1):
-                return _kernels.harmonic_gauss_sweep(
-                    nodes[i0:i1], keys[i0:i1], model, self.axis_scale, self.scales_mm,
-                    int(self.trials), int(self.seed), float(self.coverage), extrapolate,
-                )  # fmt: skip
-
-            s, o, lost, star = map_blocks(block, len(nodes), 32)
+            if self.estimator == "adaptive":
+                return self._adaptive_kernel(nodes, keys, model, extrapolate)
+            s, o, lost, star = self._plain_harmonic(nodes, keys, model, extrapolate)
             return s, o, lost, star, np.empty((len(nodes), 0, 3, 3))
         h = self.htm
         parts = []
@@ -402,6 +400,38 @@ class SweepProblem:
         stats, n_out, n_lost, pos = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
         pos = pos.reshape(len(nodes), len(HTM_PARTS), 3, 3)
         return stats, n_out, n_lost, np.zeros(len(nodes), dtype=bool), pos
+
+    def _plain_harmonic(self, nodes, keys, model, extrapolate):
+        def block(i0, i1):
+            return _kernels.harmonic_gauss_sweep(
+                nodes[i0:i1], keys[i0:i1], model, self.axis_scale, self.scales_mm,
+                int(self.trials), int(self.seed), float(self.coverage), extrapolate,
+            )  # fmt: skip
+
+        return map_blocks(block, len(nodes), 32)
+
+    def _adaptive_kernel(self, nodes, keys, model, extrapolate):
+        """`harmonic_cv_sweep` at every node; the nodes one of whose trials left the model's
+        reach get the plain Monte Carlo of ``trials`` trials (`harmonic_gauss_sweep`)."""
+        from ...models.sweep import ADAPTIVE_PLAN
+        from .compile_ahead import model_arrays, wait
+
+        model = model_arrays(*model)
+        wait()  # a first run: the kernel compiled beside the fit
+
+        def block(i0, i1):
+            return _kernels.harmonic_cv_sweep(
+                nodes[i0:i1], keys[i0:i1], model, self.axis_scale, self.scales_mm,
+                int(self.seed), float(self.coverage), ADAPTIVE_PLAN,
+            )  # fmt: skip
+
+        s, o, lost, star, used = map_blocks(block, len(nodes), 64)
+        plain = used == 0
+        if plain.any():
+            parts = self._plain_harmonic(nodes[plain], keys[plain], model, extrapolate)
+            for out, part in zip((s, o, lost, star), parts, strict=True):
+                out[plain] = part
+        return s, o, lost, star, np.empty((len(nodes), 0, 3, 3))
 
     def mesh_arrays(self) -> SweepMesh:
         """The mesh arrays the sweep kernels take, as one named tuple."""
@@ -542,6 +572,7 @@ def prepare_sweep(
         search=None if start_cells is None else exact_search(mesh),
         keys=node_keys(fm.points),
         harmonic=harmonic,
+        estimator="adaptive" if uses_adaptive(cfg, harmonic is not None) else "plain",
     )
     return mesh, problem, b_ref
 

@@ -106,6 +106,7 @@ def describe_sweep(cfg, field_sha256: str, read_options: dict, bench_sha256=None
         "bench_sha256": bench_sha256,
         "up_um": [float(u) for u in cfg.up_um],
         "trials": int(cfg.trials),
+        "estimator": cfg.estimator,
         "seed": int(cfg.seed),
         "axis_scale": [float(a) for a in cfg.axis_scale],
         "interpolation": cfg.interpolation,

@@ -117,6 +117,7 @@ def check_options(*, up_um, trials: int, seed: int, mode: str = "gauss", bench=N
         raise CfmInputError(f"--chunk-nodes must be >= 1; got {chunk_nodes}")
     if pieces is not None and pieces < 1:
         raise CfmInputError(f"--pieces must be >= 1; got {pieces}")
+    trials = DEFAULT_TRIALS if trials is None else trials
     check_config(trials, axis_scale or (1.0, 1.0, 1.0), b_ref_T, len(up_um), mode)
     check_scale_out(scheduler, workers)
     if slabs is not None or max_memory is not None:
@@ -171,7 +172,11 @@ class _Job:
     bench_sentence: object
 
 
-def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 10_000, seed: int = 0,
+#: Plain trials per node when ``trials`` is not given (the adaptive estimator's nodes aside).
+DEFAULT_TRIALS = 10_000
+
+
+def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int | None = None, seed: int = 0,
               mode: str = "gauss", bench=None, axis_scale=None, b_ref_T=None,
               interpolation: str = "auto", chunk_nodes: int = 20000, outside: str = "exclude",
               hull_slivers: str = "remove", field_model: str = "auto", region=None, reader=None,
@@ -186,7 +191,11 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 10_000, see
     field : path-like or FieldMap
     up_um : sequence of float, um
         U_p values (mode gauss).
-    trials, seed : int
+    trials : int or None
+        Plain Monte Carlo with this many trials per node and U_p. None (default): the adaptive
+        estimator at the nodes under a harmonic model in mode gauss (`SweepConfig.estimator`),
+        `DEFAULT_TRIALS` plain trials at the others.
+    seed : int
     mode : {"gauss", "htm"}
     bench : Bench, path-like or None
         Mode htm: the bench (None: the packaged CFM reference bench).
@@ -218,6 +227,8 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 10_000, see
     from ...models.sweep import SweepConfig
 
     up = [float(u) for u in up_um]
+    estimator = "adaptive" if trials is None else "plain"
+    trials = DEFAULT_TRIALS if trials is None else trials
     if isinstance(region, str):
         region = parse_region(region)
     check_options(up_um=up, trials=trials, seed=seed, mode=mode, bench=bench,
@@ -233,7 +244,8 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 10_000, see
                       axis_scale=tuple(axis_scale or (1.0, 1.0, 1.0)), b_ref_T=b_ref_T,
                       interpolation=interpolation, mode=mode, bench=model,
                       chunk_nodes=chunk_nodes, outside=outside, hull_slivers=hull_slivers,
-                      field_model=field_model, region=region)  # fmt: skip
+                      field_model=field_model, region=region,
+                      estimator=estimator)  # fmt: skip
     job = _Job(field, cfg, bench, dict(reader or {}), out_dir, pieces, resume, keep_chunks,
                scheduler, workers, slabs, max_memory, table, report, command_line, progress,
                on_start, log, sentence)  # fmt: skip
@@ -246,6 +258,16 @@ def run_sweep(field, up_um=(0, 10, 20, 30, 40, 50), *, trials: int = 10_000, see
             return done
         job.pieces = job.pieces or slabs or 8  # read whole: statistics still by pieces
     return _on_disk(job, fm)
+
+
+def _trials(cfg) -> str:
+    """'10000 trials per node', or the adaptive estimator's range."""
+    if cfg.estimator == "adaptive" and cfg.mode == "gauss":
+        from ...models.sweep import ADAPTIVE_PLAN
+
+        return (f"{ADAPTIVE_PLAN[0]} to {ADAPTIVE_PLAN[1]} trials per node as U_f's precision "
+                f"needs ({cfg.trials} where the plain Monte Carlo runs)")  # fmt: skip
+    return f"{cfg.trials} trials per node"
 
 
 def _what(job) -> str:
@@ -270,8 +292,8 @@ def _in_memory(job) -> SweepRun:
 def _started(job, fm) -> None:
     if job.on_start is not None:
         cfg = job.cfg
-        job.on_start(f"{fm.n_nodes} nodes from {fm.source}; {_what(job)}; {cfg.trials} trials "
-                     f"per node, seed {cfg.seed}", fm.n_nodes, "nodes")  # fmt: skip
+        job.on_start(f"{fm.n_nodes} nodes from {fm.source}; {_what(job)}; {_trials(cfg)}, "
+                     f"seed {cfg.seed}", fm.n_nodes, "nodes")  # fmt: skip
 
 
 class _dask:
@@ -390,8 +412,8 @@ def _run_slabs(job):
     bench_entry = bench_provenance(job.bench_spec) if cfg.mode == "htm" else None
     prov = _provenance(job, bench_entry, backend="this process, slabs (out of core)")
     if job.on_start is not None:
-        job.on_start(f"streaming {job.field} ({kind}) into slabs; {_what(job)}; {cfg.trials} "
-                     f"trials per node, seed {cfg.seed}", None, "nodes")  # fmt: skip
+        job.on_start(f"streaming {job.field} ({kind}) into slabs; {_what(job)}; {_trials(cfg)}, "
+                     f"seed {cfg.seed}", None, "nodes")  # fmt: skip
     description = describe_sweep(cfg, _field_sha(job.field), reader,
                                  bench_entry and bench_entry["sha256"])  # fmt: skip
     description.update(slabs=job.slabs, max_memory=job.max_memory)

@@ -1,0 +1,405 @@
+"""Adaptive control-variate estimator of the sweep's statistics under the harmonic model.
+
+At a node, with U_p = s, the error of quantity c (Bx, By, Bz, |B|) of a trial is
+Y = F_c(x + s d) - F_c(x), d = W^T z / h (z standard normals, W the per-axis scale, h the
+node's length scale). Its first-order part X = s g_c . d is normal with mean 0 and standard
+deviation s sigma_c, sigma_c known exactly from the model's gradient (for |B|, g = b_hat . grad
+B). On the same trials (common random numbers) Y - X is small, so each statistic is
+estimated as the exact value for X plus the sample's difference of Y and X (a difference
+estimator), e.g. the 2.5 % quantile
+
+    q_Y ~ -z s sigma_c + (q^_Y - q^_X),   z = Phi^-1((1 + p) / 2),
+
+and likewise the mean (0), the standard deviation (s sigma_c) and the shortest interval
+(-+ z s sigma_c for a normal X). The estimator's standard error is the asymptotic one of a
+difference of two sample quantiles, sqrt(Var(psi_Y - psi_X) / n) with
+psi = (1{V <= q_V} - a) / f_V(q_V), f_X exact and f_Y from the spacing of the order statistics
+around q^_Y. Where the plain sample quantile has the smaller estimated variance (a first-order
+part that follows Y poorly, as near a zero of |B|) the plain statistics of Y are kept.
+
+Trials are drawn ``pilot`` first, then doubled up to ``cap`` until the standard error of
+both ends of |B|'s symmetric interval is at most ``rel_se`` of U_f = max(|low|, |high|) at
+every U_p. Trial t of a node is the same whatever the node's neighbours, chunk or thread
+(`normals_by_index`), and the node's trial count depends on its own trials only, so the
+numbers are the same whatever the chunking.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .harmonic import expand_node
+from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
+from .harmonic_stats import changes_block, first_order_abs
+from .options import JIT
+from .order_stats import _intervals, coverage_count, select_inplace, sums_and_tails
+from .rng import STREAM_FALLBACK, STREAM_SWEEP, normals_by_index, stream_key, trial_key
+from .sweep import sweep_outputs
+
+
+@nb.njit(**JIT)
+def normal_quantile(prob):
+    """Phi^-1(prob) of the standard normal, 0 < prob < 1 (bisection on erfc, 64 steps)."""
+    lo = -40.0
+    hi = 40.0
+    for _ in range(64):
+        mid = 0.5 * (lo + hi)
+        if 0.5 * math.erfc(-mid / math.sqrt(2.0)) < prob:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+#: Gaps of `shell_sort` (Ciura's, extended by x 2.25).
+SHELL_GAPS = np.array([1, 4, 10, 23, 57, 132, 301, 701, 1577, 3548, 7983, 17961, 40412])
+
+
+@nb.njit(**JIT)
+def shell_sort(a):
+    """Sort ``a`` (finite values) in place: Shell's sort, a few lines that compile in a
+    fraction of a second and sort the few thousand values of a tail in O(n^1.3)."""
+    n = a.shape[0]
+    k = 0
+    while k + 1 < SHELL_GAPS.shape[0] and SHELL_GAPS[k + 1] < n:
+        k += 1
+    for j in range(k, -1, -1):
+        gap = SHELL_GAPS[j]
+        for i in range(gap, n):
+            x = a[i]
+            m = i
+            while m >= gap and a[m - gap] > x:
+                a[m] = a[m - gap]
+                m -= gap
+            a[m] = x
+
+
+@nb.njit(**JIT)
+def sample_tails(a, n, h, low, high, scratch, copy):
+    """Mean, std (ddof 1) of a[:n] and its h smallest (``low[:h]``) and h largest
+    (``high[:h]``) values, both ascending; ``a`` is left unchanged.
+
+    ``scratch`` and ``copy`` (>= n) are work space: the tails beyond mean -+ 1.3 std are
+    gathered (`sums_and_tails`) and the h extreme values of each selected, or, if a tail is
+    thinner than h, selected from a copy of the whole sample; then sorted (`shell_sort`).
+    """
+    shift, s1, s2, n_lo, n_hi = sums_and_tails(a, n, scratch, n)
+    mean = shift + s1 / n
+    std = math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1))
+    if n_lo >= h and n_hi >= h and std > 0.0:
+        select_inplace(scratch, np.int64(0), n_lo - 1, h - 1)
+        select_inplace(scratch, n - n_hi, n - 1, n - h)
+        low[:h] = scratch[:h]
+        high[:h] = scratch[n - h : n]
+    else:
+        copy[:n] = a[:n]
+        select_inplace(copy, np.int64(0), n - 1, h - 1)
+        select_inplace(copy, h, n - 1, n - h)
+        low[:h] = copy[:h]
+        high[:h] = copy[n - h : n]
+    shell_sort(low[:h])
+    shell_sort(high[:h])
+    return mean, std
+
+
+@nb.njit(**JIT)
+def _spacing(y_tail, x_tail, s, i, m, n):
+    """Slope in probability of the order statistics of Y and of Y - s X around order
+    statistic i of n (sorted tails ``y_tail``, ``x_tail``; 2m order statistics apart): the
+    inverse density 1 / f_Y and its difference from 1 / f_X. The second comes from the
+    differences of paired order statistics, which on common random numbers vary far less
+    than either."""
+    w = n / (2.0 * m)
+    inv_fy = (y_tail[i + m] - y_tail[i - m]) * w
+    d_inv = ((y_tail[i + m] - s * x_tail[i + m]) - (y_tail[i - m] - s * x_tail[i - m])) * w
+    return inv_fy, d_inv
+
+
+@nb.njit(**JIT)
+def _crossings(y, xu, n, y_lo, x_lo, y_hi, x_hi):
+    """Trials on the tail side of Y's quantile but not of X's: Y <= y_lo < ... with
+    X > x_lo, and Y >= y_hi with X < x_hi."""
+    c_lo = 0
+    c_hi = 0
+    for t in range(n):
+        c_lo += (y[t] <= y_lo) & (xu[t] > x_lo)
+        c_hi += (y[t] >= y_hi) & (xu[t] < x_hi)
+    return c_lo, c_hi
+
+
+@nb.njit(**JIT)
+def _variances(a, inv_fy, inv_fx, d_inv, p10):
+    """n times the asymptotic variance of the plain sample quantile of Y and of the difference
+    estimator, at probability ``a``: Var(psi_Y - psi_X) = a (1 - a) (1/f_Y - 1/f_X)^2
+    + 2 p10 / (f_Y f_X), with ``d_inv`` = 1/f_Y - 1/f_X and ``p10`` the share of trials on
+    the tail side of Y's quantile and not of X's."""
+    v_plain = a * (1.0 - a) * inv_fy * inv_fy
+    v_cv = a * (1.0 - a) * d_inv * d_inv + 2.0 * p10 * abs(inv_fy * inv_fx)
+    return v_plain, v_cv
+
+
+@nb.njit(**JIT)
+def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
+    """Statistics of one quantity at one U_p from the n trials' errors ``y`` and first-order
+    parts per unit U_p ``xu``, into ``out`` (6: mean, std, symmetric low/high, shortest
+    low/high, T) and the standard errors of the symmetric ends into ``se`` (2, T).
+
+    Parameters
+    ----------
+    y, xu : ndarray, shape (>= n,), T and T/mm
+    n, q : int
+        Trials and the count of the coverage interval (`coverage_count`).
+    s : float, mm
+        U_p.
+    sig1 : float, T/mm
+        Exact standard deviation of ``xu``.
+    zq : float
+        Phi^-1((1 + p) / 2).
+    x_st : ndarray, shape (6,)
+        The same figures of the sample ``xu`` (mean, std, low, high, shortest low, shortest
+        high; T/mm).
+    x_tails : tuple of 2 ndarray, shape (>= n - q,)
+        The n - q smallest and largest values of ``xu``, ascending.
+    work : tuple
+        (low, high, scratch, copy) work arrays (>= n).
+    """
+    low, high, scratch, copy = work
+    h = n - q
+    mean, std = sample_tails(y, n, h, low, high, scratch, copy)
+    out[0] = mean
+    out[1] = std
+    _intervals(low, high, n, q, out)
+    r = h // 2 if h % 2 == 0 else (h + 1) // 2
+    r = max(r, 1)
+    m = min(max(r // 2, 1), r - 1, h - r)
+    if m < 1:  # too few trials in a tail for a density: the plain figures, no error estimate
+        se[0] = np.nan
+        se[1] = np.nan
+        return
+    a_lo = r / n
+    a_hi = (h - r + 1) / n
+    ify_lo, d_lo = _spacing(low, x_tails[0], s, r - 1, m, n)
+    ify_hi, d_hi = _spacing(high, x_tails[1], s, r - 1, m, n)
+    ifx = s * sig1 / (math.exp(-0.5 * zq * zq) / math.sqrt(2.0 * math.pi))
+    c_lo, c_hi = _crossings(y, xu, n, out[2], x_st[2], out[3], x_st[3])
+    vp_lo, vc_lo = _variances(a_lo, ify_lo, ifx, d_lo, c_lo / n)
+    vp_hi, vc_hi = _variances(a_hi, ify_hi, ifx, d_hi, c_hi / n)
+    if vc_lo + vc_hi < vp_lo + vp_hi:  # the first-order part helps: difference estimator
+        ex = s * sig1
+        out[0] = mean - s * x_st[0]
+        out[1] = ex + (std - s * x_st[1])
+        out[2] = -zq * ex + (out[2] - s * x_st[2])
+        out[3] = zq * ex + (out[3] - s * x_st[3])
+        out[4] = -zq * ex + (out[4] - s * x_st[4])
+        out[5] = zq * ex + (out[5] - s * x_st[5])
+        se[0] = math.sqrt(vc_lo / n)
+        se[1] = math.sqrt(vc_hi / n)
+    else:
+        se[0] = math.sqrt(vp_lo / n)
+        se[1] = math.sqrt(vp_hi / n)
+
+
+@nb.njit(**JIT)
+def _first_order_sigmas(cexp, lin, sigma_axes, inv, b_hat, out):
+    """Standard deviation per unit U_p of the first-order part of each quantity, T/mm:
+    |(cexp[c, lin[a]] * sigma_axes[a] / h)_a| for the components, with b_hat . cexp for |B|."""
+    for c in range(4):
+        v = 0.0
+        for a in range(3):
+            if c < 3:
+                g = cexp[c, lin[a]]
+            else:
+                g = b_hat[0] * cexp[0, lin[a]] + b_hat[1] * cexp[1, lin[a]]
+                g += b_hat[2] * cexp[2, lin[a]]
+            v += (g * sigma_axes[a] * inv) ** 2
+        out[c] = math.sqrt(v)
+
+
+@nb.njit(**JIT)
+def _linear_monomials(exps):
+    """Rows of ``exps`` (M, 3) of the monomials x, y and z."""
+    lin = np.zeros(3, dtype=np.int64)
+    for m in range(exps.shape[0]):
+        if exps[m, 0] + exps[m, 1] + exps[m, 2] == 1:
+            for a in range(3):
+                if exps[m, a] == 1:
+                    lin[a] = m
+    return lin
+
+
+@nb.njit(**JIT)
+def _add_trials(key, fkey, t0, t1, sigma_axes, inv, cexp, b0, abs0, b_hat, scales, bufs):
+    """Draw trials t0 .. t1-1 and put their errors at every U_p into ``vals`` and their
+    first-order parts per unit U_p into ``xu``; returns the largest squared displacement per
+    unit U_p (mm^2/mm^2)."""
+    zb, ok, u, parts, vals, xu, lin_abs, shift, sums = bufs
+    d2max = 0.0
+    for b0_ in range(t0, t1, PART_BLOCK):
+        m = min(PART_BLOCK, t1 - b0_)
+        normals_by_index(key, fkey, b0_, m, zb, ok)
+        for t in range(m):
+            d0 = sigma_axes[0] * zb[0, t]
+            d1 = sigma_axes[1] * zb[1, t]
+            d2 = sigma_axes[2] * zb[2, t]
+            u[0, b0_ + t] = d0 * inv
+            u[1, b0_ + t] = d1 * inv
+            u[2, b0_ + t] = d2 * inv
+            d2max = max(d2max, d0 * d0 + d1 * d1 + d2 * d2)
+        homogeneous_parts(cexp, u, b0_, m, parts)
+        first_order_abs(parts, m, b_hat, lin_abs)
+        for t in range(m):
+            xu[0, b0_ + t] = parts[t]
+            xu[1, b0_ + t] = parts[PART_PITCH + t]
+            xu[2, b0_ + t] = parts[2 * PART_PITCH + t]
+            xu[3, b0_ + t] = lin_abs[t]
+        for k in range(scales.shape[0]):
+            if scales[k] > 0.0:
+                changes_block(parts, m, scales[k], b0, abs0, vals[k], b0_, shift, sums)
+    return d2max
+
+
+@nb.njit(**JIT)
+def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats_i, se, c0, c1):
+    """The statistics of quantities c0 .. c1-1 of one node from its n trials into
+    ``stats_i`` (n_up, 4, 6); returns the largest ratio of a standard error of |B|'s interval
+    ends to U_f over the U_p values (0 unless c1 = 4)."""
+    q = coverage_count(n, p)
+    h = n - q
+    scratch, copy = work[2], work[3]
+    for c in range(c0, c1):  # the first-order parts' figures, per unit U_p (scaled below)
+        mean, std = sample_tails(xu[c], n, h, x_tails[0, c], x_tails[1, c], scratch, copy)
+        x_st[c, 0] = mean
+        x_st[c, 1] = std
+        _intervals(x_tails[0, c], x_tails[1, c], n, q, x_st[c])
+    worst = 0.0
+    for k in range(scales.shape[0]):
+        s = scales[k]
+        if s == 0.0:  # no displacement: every error is exactly zero
+            stats_i[k] = 0.0
+            continue
+        for c in range(c0, c1):  # |B| last: ``se`` is then its
+            x_tc = (x_tails[0, c], x_tails[1, c])
+            cv_stats(vals[k, c], xu[c], n, q, s, sig1[c], zq, x_st[c], x_tc, work, stats_i[k, c],
+                     se)  # fmt: skip
+        uf = max(abs(stats_i[k, 3, 2]), abs(stats_i[k, 3, 3]))
+        if c1 < 4:
+            continue
+        if uf > 0.0:
+            worst = max(worst, se[0] / uf, se[1] / uf)
+        elif se[0] > 0.0 or se[1] > 0.0:
+            worst = np.inf
+    return worst
+
+
+@nb.njit(**JIT)
+def _buffers(n_up, size, p):
+    """Work arrays of `harmonic_cv_sweep` for ``size`` trials per node: (the trial arrays of
+    `_add_trials`, the statistics' work arrays, the first-order parts' tails)."""
+    bufs = (np.empty((3, PART_BLOCK)), np.empty(PART_BLOCK, dtype=np.bool_), np.empty((3, size)),
+            np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, size)), np.empty((4, size)),
+            np.empty(PART_BLOCK), np.zeros(4), np.zeros((4, 2)))  # fmt: skip
+    work = (np.empty(size), np.empty(size), np.empty(size), np.empty(size))
+    return bufs, work, np.empty((2, 4, size - coverage_count(size, p) + 1))
+
+
+@nb.njit(**JIT)
+def _grown(n_up, size, p, old, n):
+    """`_buffers` for ``size`` trials, the first n trials of ``old`` (its trial arrays)
+    carried over."""
+    bufs, work, x_tails = _buffers(n_up, size, p)
+    bufs[2][:, :n] = old[2][:, :n]
+    bufs[4][:, :, :n] = old[4][:, :, :n]
+    bufs[5][:, :n] = old[5][:, :n]
+    return bufs, work, x_tails
+
+
+@nb.njit(**JIT)
+def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
+    """Statistics of B(x + N(0, U_p)) - B(x) at each node under its harmonic model, by the
+    adaptive control-variate estimator (module docstring).
+
+    Parameters
+    ----------
+    nodes, keys : ndarray, shape (k,), int64
+        Node rows and random-stream ids, as in `harmonic_gauss_sweep` (the same trials).
+    model : tuple
+        As `harmonic_gauss_sweep`.
+    sigma_axes : ndarray, shape (3,)
+        Per-axis multiplier of U_p.
+    scales : ndarray, shape (n_up,), mm
+        U_p values.
+    seed : int
+    p : float
+        Coverage probability.
+    plan : tuple (int, int, float)
+        Pilot trials, most trials, and the target standard error of U_f relative to U_f.
+
+    Returns
+    -------
+    stats, n_out, n_lost, star
+        As `harmonic_gauss_sweep` (n_out, n_lost zero; star False).
+    used : ndarray, shape (k,), int64
+        Trials each node took; 0 where a trial left the node's reach (its model's support):
+        such nodes have no statistics here and are left to the plain Monte Carlo.
+    """
+    pilot, cap, rel_se = plan
+    coords, hcoef, hdeg, hscale, hreach, gmat, exps = model
+    k_nodes = nodes.shape[0]
+    n_up = scales.shape[0]
+    stats, n_out, n_lost, star = sweep_outputs(k_nodes, n_up)
+    used = np.zeros(k_nodes, dtype=np.int64)
+    skey = stream_key(seed, STREAM_SWEEP)
+    fkey = stream_key(seed, STREAM_FALLBACK)
+    size = min(4 * pilot, cap)  # most nodes need no more; grown for those that do
+    bufs, work, x_tails = _buffers(n_up, size, p)
+    x_st = np.empty((4, 6))
+    se = np.empty(2)
+    sig1 = np.empty(4)
+    b_hat = np.zeros(3)
+    cexp = np.zeros((3, gmat.shape[1]))
+    lin = _linear_monomials(exps)
+    zq = normal_quantile(0.5 * (1.0 + p))
+    smax = 0.0
+    for k in range(n_up):
+        smax = max(smax, scales[k])
+    for i in range(k_nodes):
+        g = nodes[i]
+        deg = hdeg[g]
+        n_mono = (deg + 1) * (deg + 2) * (deg + 3) // 6
+        expand_node(hcoef[g], (deg + 1) * (deg + 3), gmat, n_mono, cexp)
+        cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
+        b0 = cexp[:, 0]
+        abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
+        for c in range(3):
+            b_hat[c] = b0[c] / abs0 if abs0 > 0.0 else 0.0
+        inv = 1.0 / hscale[g]
+        _first_order_sigmas(cexp, lin, sigma_axes, inv, b_hat, sig1)
+        key = trial_key(skey, keys[i])
+        reach2 = (hreach[g] / smax) ** 2 if smax > 0.0 else np.inf
+        n = 0
+        target = min(pilot, cap)
+        while True:
+            if target > size:
+                size = min(2 * size, cap)
+                bufs, work, x_tails = _grown(n_up, size, p, bufs, n)
+            d2max = _add_trials(key, fkey, n, target, sigma_axes, inv, cexp, b0, abs0, b_hat,
+                                scales, bufs)  # fmt: skip
+            n = target
+            if d2max > reach2:  # beyond the model's support: the plain Monte Carlo's node
+                n = 0
+                break
+            vals, xu = bufs[4], bufs[5]
+            worst = _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails,
+                                    stats[i], se, 3, 4)  # |B| decides  # fmt: skip
+            if worst <= rel_se or n >= cap:  # then the components
+                _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats[i],
+                                se, 0, 3)  # fmt: skip
+                break
+            target = min(2 * n, cap)
+        used[i] = n
+        if n == 0:
+            stats[i] = np.nan
+    return stats, n_out, n_lost, star, used

@@ -1,0 +1,72 @@
+"""Compile the adaptive sweep kernel in a second process while this one reads and fits the map.
+
+On the first run after an install numba compiles every kernel a sweep uses. The harmonic fit's
+kernel is needed at once, the sweep's only after the fit: `start` compiles the sweep's in a
+child process (on another core) into numba's on-disk cache, and `wait`, called just before the
+kernel's first use, waits for that process, so that this one then loads the compiled code.
+The child compiles the kernel for the argument types the sweep passes (`model_arrays`).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+
+from ... import _kernels
+
+__all__ = ["start", "wait", "compile_now", "model_arrays"]
+
+_pending: list = []
+
+
+def start() -> bool:
+    """Start compiling `harmonic_cv_sweep` in a child process unless numba's cache holds it;
+    True if a process was started."""
+    if _pending or _kernels.kernels_cached(_kernels.harmonic_cv_sweep):
+        return False
+    code = "from cfm_fem.workflows.sweep.compile_ahead import compile_now; compile_now()"
+    _pending.append(
+        subprocess.Popen(
+            [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+    )
+    return True
+
+
+def wait() -> None:
+    """Wait for the process `start` began, if any (it compiles into the cache this process
+    then reads; if it failed, the first call compiles here as it would have anyway)."""
+    while _pending:
+        _pending.pop().wait()
+
+
+def model_arrays(coords, coef, degree, scale, reach_mm, gmat, exps) -> tuple:
+    """The ``model`` argument of the harmonic kernels, every array C-contiguous and writable,
+    so that its numba types are those `compile_now` compiles for."""
+
+    def c(a, dtype):
+        a = np.ascontiguousarray(a, dtype=dtype)
+        return a if a.flags.writeable else a.copy()
+
+    return (
+        c(coords, np.float64), c(coef, np.float64), c(degree, np.int64), c(scale, np.float64),
+        c(reach_mm, np.float64), c(gmat, np.float64), c(exps, np.int64),
+    )  # fmt: skip
+
+
+def compile_now() -> None:
+    """Call `harmonic_cv_sweep` once on a one-node model: numba compiles it into its cache."""
+    from ...models.harmonic_basis import field_basis, monomial_exponents
+    from ...models.sweep import ADAPTIVE_PLAN
+
+    gmat = field_basis()
+    model = model_arrays(
+        np.zeros((1, 3)), np.zeros((1, gmat.shape[2])), np.ones(1), np.ones(1), np.ones(1),
+        gmat, monomial_exponents(),
+    )  # fmt: skip
+    nodes = np.zeros(1, dtype=np.int64)
+    _kernels.harmonic_cv_sweep(
+        nodes, nodes.copy(), model, np.ones(3), np.array([0.0, 0.01]), 0, 0.95, ADAPTIVE_PLAN
+    )
