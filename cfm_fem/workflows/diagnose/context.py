@@ -77,6 +77,9 @@ class ProblemContext:
     node_step : float, mm, or None
         Node spacing of a linear reference map when every reading lies on one of its nodes
         (second differences of that step read node values), else None.
+    reference_3d : bool
+        Hall map: the reference is a map whose nodes span z (it holds the magnet's ends where
+        its nodes reach them); False for 2-D harmonics, a planar map and a tracker.
     upts : ndarray, shape (m, 3), mm, or None
         Hall map: the distinct measured positions (magnet frame).
     uinv : ndarray, shape (n,), int, or None
@@ -118,6 +121,7 @@ class ProblemContext:
     rebuild: Callable | None = None
     smooth: bool = True
     node_step: float | None = None
+    reference_3d: bool = False
     upts: np.ndarray | None = None
     uinv: np.ndarray | None = _row_field()
     bench_disp: np.ndarray | None = _row_field()

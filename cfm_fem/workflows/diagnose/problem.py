@@ -699,6 +699,7 @@ def hall_problem(
     t_h, d, speed, temp = _aux(rec)
     ctx = ProblemContext(
         node_step=_node_step(upts, ref_spacing_mm, ref_nodes),
+        reference_3d=ref_nodes is not None and bool(np.ptp(np.asarray(ref_nodes)[:, 2]) > 0),
         reference_fn=field_fn,
         B0=B0,
         G=G,
