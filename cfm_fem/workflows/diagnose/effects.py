@@ -36,8 +36,10 @@ Field (Hall map), change of the measured field in the magnet frame:
   the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
   common to all three is the magnet's registration, ``magnet_misalignment``).
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
-* ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components.
-* ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %).
+* ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components; each
+  element's k_i is a function of its own.
+* ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %); each element's offset
+  is a function of its own.
 * ``magnet_temperature``: Delta B = beta (T - T_mean) B (ppm/K; ppm/h against time without a
   temperature log).
 * ``fringe_field_3d`` (:mod:`~cfm_fem.workflows.diagnose.fringe`): soft magnet ends that a
@@ -343,6 +345,9 @@ def planar_hall(prob):
         J[:, i, i] = B[:, j] * B[:, k]
     blk = effect_columns(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
     blk.element = (0, 1, 2)
+    # each element's planar term is a function of its own (a plate's own coefficient), the
+    # choice among the three accounted for: a term of one element must not pay for three
+    blk.families = [(f"k_{a}", [i]) for i, a in enumerate("xyz")]
     return blk
 
 
