@@ -480,11 +480,14 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     if c is not None:
         c.family = label
         w = family_weights(score)
+        # other functions, not the chosen one's own order (its linear term with or without the
+        # quadratic, an offset drift with or without the scale drift): the BIC chose that order
         c.alternatives = [
             (blk.families[i][0], list(blk.families[i][1]), float(w[i]))
             for i in np.argsort(-w, kind="stable")
-            if w[i] >= ALT_MIN_WEIGHT
-        ]
+            if w[i] >= ALT_MIN_WEIGHT and (list(blk.families[i][1]) == list(idx)
+                                           or not set(blk.families[i][1]) & set(idx))
+        ]  # fmt: skip
         c.family_block = blk
     return c
 
@@ -510,7 +513,8 @@ def model_average(prob, sigma, model: Columns, c: Candidate) -> dict | None:
     and a pitch seen through the probe's lever; a quadratic profile and a linear one over a
     short stroke). The function chosen is then a coin toss, and its parameter's std, conditional
     on that choice, says nothing of it. Each alternative of non-negligible posterior weight
-    (``c.alternatives``) whose parameters the data determine (posterior std below half the
+    (``c.alternatives``: other functions, not another order of the chosen one's) whose
+    parameters the data determine (posterior std below half the
     prior's) is fitted in place of the chosen one in the final ``model``; each
     parameter is reported with the mixture's mean and std over the alternatives (zero where a
     function lacks it): std^2 = sum_f w_f (var_f + theta_f^2) - mean^2.
