@@ -20,7 +20,7 @@ A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``al
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
 plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
 (folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
-chi2 (noise-weighted) drops, significantly in the paired test of the rows (z > ``cv_z``) or
+RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``) or
 replicated in every fold beyond its parameters' estimation cost (:func:`_replicated_gain`), over
 the folds whose training data determine the new signature (:func:`determined_folds`); for a
 prior release, whose data already steer the calibration, the conflict is replicated in every
@@ -617,9 +617,7 @@ def _predicts_held_out(prob, sigma, model, c: Candidate, folds, cv_z: float) -> 
     diff = (eb - ea)[use]
     z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
          if diff.size > 1 else -np.inf)  # fmt: skip
-    # the noise-weighted held-out error drops (the RMS in display units is ruled by the noisiest
-    # readings, and an effect that lives where the probe is quiet would not move it)
-    better = diff.sum() > 0
+    better = cva < cvb
     if c.has_new and better and not z > cv_z:
         z = max(z, _replicated_gain(diff, folds[use], c.k, cv_z))
     if not c.has_new:  # a prior conflict: replicated in every fold on its own, and the
