@@ -52,3 +52,23 @@ def test_a_clean_tracker_recording_calls_no_plane_bad(tmp_path):
     assert truth["role"] == "null" and truth["kind"] == "tracker"
     assert d["outliers"] == [] and d["located"] == [], d["located"]
     assert d["effects"] == [] and d["mismatch"] is False
+
+
+@pytest.mark.parametrize(
+    "seed",
+    [
+        1003,  # planar Hall k_y of 0.18 1/T near one end of an octupole, 6.6 sigma
+        1014,  # one element's offset (0.34 uT, solenoid grid), against a step of that element
+        1030,  # a temperature coefficient whose true change (2.5 mK) is below the log's noise
+    ],
+)
+def test_concealed_hall_effect_ranked_first(seed, tmp_path):
+    d, truth = _diagnose(seed, "effect", tmp_path)
+    assert truth["kind"] == "hall"
+    assert d["effects"], d["candidates"]
+    first = d["effects"][0]
+    assert first["name"] == truth["expected"], d["candidates"]
+    drawn = truth["effects"][truth["expected"]]
+    for p, v in first["params"].items():  # every reported parameter within 3.5 std of its truth
+        t = drawn.get(p, 0.0)
+        assert abs(v - t) < 3.5 * first["param_std"][p], (p, v, t, first["param_std"][p])

@@ -43,3 +43,23 @@ def test_tracker_null_claims_nothing(seed, tmp_path):
     s, truth = _diagnose(seed, "null", tmp_path)
     assert truth["expected"] is None
     assert s["effects"] == [] and s["mismatch"] is False, s["candidates"]
+
+
+@pytest.mark.parametrize(
+    "seed",
+    [
+        1148,  # straightness delta_x(x), 6.4 sigma, and the pitch eps_y(x) through the lever
+        1252,  # the same pair on lines, 7.2 sigma: the data weigh them about equally
+    ],
+)
+def test_indistinguishable_error_functions_are_averaged(seed, tmp_path):
+    s, truth = _diagnose(seed, "effect", tmp_path)
+    e = s["effects"][0]
+    assert e["name"] == truth["expected"] == "position_dependent_geometric"
+    assert len(e["alternatives"]) >= 2, e
+    assert abs(sum(a["weight"] for a in e["alternatives"]) - 1.0) < 0.01
+    drawn = truth["effects"][truth["expected"]]
+    assert set(drawn) <= set(e["params"]), e["params"]
+    for p, v in e["params"].items():  # the std covers which function it is
+        t = drawn.get(p, 0.0)
+        assert abs(v - t) < 3.0 * e["param_std"][p], (p, v, t, e["param_std"][p])

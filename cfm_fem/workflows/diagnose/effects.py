@@ -36,8 +36,10 @@ Field (Hall map), change of the measured field in the magnet frame:
   the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
   common to all three is the magnet's registration, ``magnet_misalignment``).
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
-* ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components.
-* ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %).
+* ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components; each
+  element's k_i is a function of its own.
+* ``hall_offset_gain``: Delta B_i = o_i + g_i B_i (offset uT, gain %); each element's offset
+  is a function of its own.
 * ``magnet_temperature``: Delta B = beta (T - T_mean) B (ppm/K; ppm/h against time without a
   temperature log).
 * ``fringe_field_3d`` (:mod:`~cfm_fem.workflows.diagnose.fringe`): soft magnet ends that a
@@ -121,11 +123,54 @@ def _release(prob, groups, effect, names=None, J=None, new_names=(), new_units=(
     return blk
 
 
+#: Highest degree of the polynomial in time that a logged temperature is smoothed with.
+TEMP_MAX_DEGREE = 6
+
+
+def smooth_temperature(t_h, temp) -> np.ndarray:
+    """A logged temperature smoothed in time (K, shape (n,)).
+
+    A magnet's or a frame's temperature follows the hall's slowly (a thermal time constant of
+    many minutes), while the logging sensor adds its own noise to every reading; over a short
+    map the true change may be smaller than that noise, and a regression on the raw log then
+    takes the sensor's noise for the magnet's temperature and loses the effect (errors in the
+    variable). The log is fitted with a Legendre polynomial in time whose degree (at most
+    :data:`TEMP_MAX_DEGREE`) the Bayesian information criterion chooses; readings at one time
+    share its value.
+
+    Parameters
+    ----------
+    t_h : ndarray, shape (n,), h
+    temp : ndarray, shape (n,), K (or degC)
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    t = np.asarray(t_h, dtype=float)
+    y = np.asarray(temp, dtype=float)
+    span = np.ptp(t)
+    if span <= 0 or y.size < 3:
+        return y
+    u = 2.0 * (t - t.min()) / span - 1.0
+    best, fitted = np.inf, y
+    for deg in range(min(TEMP_MAX_DEGREE, np.unique(t).size - 1) + 1):
+        V = np.polynomial.legendre.legvander(u, deg)
+        coef = np.linalg.lstsq(V, y, rcond=None)[0]
+        rss = float(((y - V @ coef) ** 2).sum())
+        bic = y.size * np.log(max(rss, 1e-300) / y.size) + (deg + 1) * np.log(y.size)
+        if bic < best:
+            best, fitted = bic, V @ coef
+    return fitted
+
+
 def _time_var(prob):
-    """Temperature change since the first acquisition (K) or time since start (h)."""
+    """Temperature change since the first acquisition (K; the log smoothed in time when the
+    times are known, :func:`smooth_temperature`) or time since start (h)."""
     if prob.temp is not None and np.ptp(prob.temp) > 0:
         first = np.argmin(prob.t_h) if prob.t_h is not None else 0
-        return prob.temp - prob.temp[first], "K"
+        temp = prob.temp if prob.t_h is None else smooth_temperature(prob.t_h, prob.temp)
+        return temp - temp[first], "K"
     if prob.t_h is not None and np.ptp(prob.t_h) > 0:
         return prob.t_h, "h"
     return None, None
@@ -300,6 +345,9 @@ def planar_hall(prob):
         J[:, i, i] = B[:, j] * B[:, k]
     blk = effect_columns(J, [f"k_{a}" for a in "xyz"], ["1/T"] * 3, "planar_hall")
     blk.element = (0, 1, 2)
+    # each element's planar term is a function of its own (a plate's own coefficient), the
+    # choice among the three accounted for: a term of one element must not pay for three
+    blk.families = [(f"k_{a}", [i]) for i, a in enumerate("xyz")]
     return blk
 
 
@@ -309,7 +357,12 @@ def hall_offset_gain(prob):
     for i in range(3):
         J[:, i, i] = 1e-6
     names = [f"offset_{a}" for a in "xyz"]
-    return _release(prob, ("probe",), "hall_offset_gain", None, J, names, ["uT"] * 3)
+    blk = _release(prob, ("probe",), "hall_offset_gain", None, J, names, ["uT"] * 3)
+    # one element's offset at a time, the choice among the three accounted for: an offset of
+    # one element must not pay for three parameters (a step of that element from the first
+    # repetitions on, one parameter, would otherwise take its place)
+    blk.families = [(nm, [i]) for i, nm in enumerate(names)]
+    return blk
 
 
 def magnet_temperature(prob):

@@ -20,7 +20,8 @@ A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``al
 survival is at least ``min_survival`` (else: absorbed), its fitted parameters are physically
 plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
 (folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
-RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``), over
+RMS drops, significantly in the paired test of the noise-weighted errors (z > ``cv_z``) or
+replicated in every fold beyond its parameters' estimation cost (:func:`_replicated_gain`), over
 the folds whose training data determine the new signature (:func:`determined_folds`); for a
 prior release, whose data already steer the calibration, the conflict is replicated in every
 fold on its own (Stouffer z > ``cv_z``) and the held-out chi2 is no worse than the released
@@ -49,6 +50,8 @@ __all__ = [
     "cv_rms",
     "structural_absorption",
     "implausible_reason",
+    "family_weights",
+    "model_average",
 ]
 
 
@@ -77,6 +80,9 @@ class Candidate:
     has_new: bool = True
     reason: str = ""
     family: str | None = None
+    alternatives: list = field(default_factory=list)
+    family_block: Columns | None = None
+    averaged: dict | None = None
 
 
 @dataclass
@@ -173,6 +179,31 @@ def _release_within_its_freedom(diff, k: int, folds, cv_z: float) -> bool:
     scale = n_folds / max(n_folds - 1, 1)
     allowed = scale * (k + cv_z * np.sqrt(2.0 * k))
     return bool(diff.sum() > -allowed)
+
+
+def _replicated_gain(diff, folds, k: float, cv_z: float) -> float:
+    """Held-out evidence of a new signature concentrated on few readings: its total held-out
+    chi2 gain, replicated in every fold.
+
+    The paired test over rows has little power when the signature lives on a few points (a
+    planar Hall term where two field components are large together, near one end): the other
+    rows' differences are noise that swamps the mean. Fitted on the other folds, a real effect
+    lowers the held-out chi2 of every fold, and of all together by more than the cost the
+    estimation noise of ``k`` parameters adds to it (mean c = k K / (K - 1), std
+    s = sqrt(2 k) K / (K - 1), :func:`_release_within_its_freedom`); an outlier of one
+    repetition helps its own fold only.
+
+    Returns
+    -------
+    float
+        (total gain - c) / s when every fold gains, else -inf.
+    """
+    labels = np.unique(folds)
+    if labels.size < 2 or any(diff[folds == f].sum() <= 0 for f in labels):
+        return -np.inf
+    scale = labels.size / (labels.size - 1)
+    k = max(float(k), 0.5)
+    return float((diff.sum() - scale * k) / (scale * np.sqrt(2.0 * k)))
 
 
 def _replicated_conflict(prob, sigma, trial, released, model, folds) -> float:
@@ -448,7 +479,78 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
                   log_n=log_n)  # fmt: skip
     if c is not None:
         c.family = label
+        w = family_weights(score)
+        # other functions, not the chosen one's own order (its linear term with or without the
+        # quadratic, an offset drift with or without the scale drift): the BIC chose that order
+        c.alternatives = [
+            (blk.families[i][0], list(blk.families[i][1]), float(w[i]))
+            for i in np.argsort(-w, kind="stable")
+            if w[i] >= ALT_MIN_WEIGHT and (list(blk.families[i][1]) == list(idx)
+                                           or not set(blk.families[i][1]) & set(idx))
+        ]  # fmt: skip
+        c.family_block = blk
     return c
+
+
+#: Functions of an effect whose posterior weight (:func:`family_weights`) is at least this are
+#: averaged into the reported parameters (:func:`model_average`); the others are negligible.
+ALT_MIN_WEIGHT = 0.01
+
+
+def family_weights(score) -> np.ndarray:
+    """Posterior weights of an effect's alternative functions from their BIC scores (drop of the
+    objective less k ln n: the weight of each is exp(score / 2), normalised)."""
+    s = np.asarray(score, dtype=float)
+    w = np.exp(0.5 * (s - s.max()))
+    return w / w.sum()
+
+
+def model_average(prob, sigma, model: Columns, c: Candidate) -> dict | None:
+    """The parameters of an effect found as one of several functions, averaged over the
+    functions the data cannot tell apart.
+
+    Two error functions may have nearly the same signature on a scan (a straightness along x
+    and a pitch seen through the probe's lever; a quadratic profile and a linear one over a
+    short stroke). The function chosen is then a coin toss, and its parameter's std, conditional
+    on that choice, says nothing of it. Each alternative of non-negligible posterior weight
+    (``c.alternatives``: other functions, not another order of the chosen one's) whose
+    parameters the data determine (posterior std below half the
+    prior's) is fitted in place of the chosen one in the final ``model``; each
+    parameter is reported with the mixture's mean and std over the alternatives (zero where a
+    function lacks it): std^2 = sum_f w_f (var_f + theta_f^2) - mean^2.
+
+    Returns
+    -------
+    dict or None
+        ``params`` {name: (mean, std, std of the chosen function's own fit or None)},
+        ``alternatives`` [(label, weight, names)]; None when one function carries the weight.
+    """
+    if not c.has_new or c.family_block is None or len(c.alternatives) < 2:
+        return None
+    own = list(c.cols.names)
+    rest = model.subset([i for i, n in enumerate(model.names) if n not in own])
+    runs = []
+    for label, idx, w in c.alternatives:
+        sub = c.family_block.subset(idx)
+        sub.families = None
+        if set(sub.names) & set(rest.names):
+            continue  # the function is in the model already (found in another round)
+        f = fit_map(prob.y, sigma, stack([rest, sub]))
+        if np.any(f.std[rest.p :] > 0.5 * sub.prior_std):
+            continue  # the data do not determine the function's parameters: no estimate
+        runs.append((label, w, dict(zip(sub.names, zip(f.theta[rest.p :], f.std[rest.p :],
+                                                        strict=True), strict=True))))  # fmt: skip
+    tot = sum(w for _, w, _ in runs)
+    if len(runs) < 2 or tot <= 0:
+        return None
+    names = list(dict.fromkeys(own + [n for _, _, p in runs for n in p]))
+    chosen = next((p for _, _, p in runs if set(p) == set(own)), {})
+    out = {}
+    for nm in names:
+        m1 = sum(w * p[nm][0] for _, w, p in runs if nm in p) / tot
+        m2 = sum(w * (p[nm][0] ** 2 + p[nm][1] ** 2) for _, w, p in runs if nm in p) / tot
+        out[nm] = (m1, float(np.sqrt(max(m2 - m1**2, 0.0))), chosen.get(nm, (0, None))[1])
+    return {"params": out, "alternatives": [(lb, w / tot, list(p)) for lb, w, p in runs]}
 
 
 def _model_basis(sigma, model):
@@ -516,6 +618,8 @@ def _predicts_held_out(prob, sigma, model, c: Candidate, folds, cv_z: float) -> 
     z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
          if diff.size > 1 else -np.inf)  # fmt: skip
     better = cva < cvb
+    if c.has_new and better and not z > cv_z:
+        z = max(z, _replicated_gain(diff, folds[use], c.k, cv_z))
     if not c.has_new:  # a prior conflict: replicated in every fold on its own, and the
         # held-out error no worse than the released freedom explains (where the data outweigh
         # the prior, the predictions barely change)
@@ -633,6 +737,7 @@ def select_effects(
         current = fit_map(prob.y, sigma, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c
+        c.averaged = model_average(prob, sigma, model, c)
     sel = Selection(selected=selected, candidates=cands, rounds=rounds)
     sel.model = model
     sel.sigma = sigma

@@ -255,6 +255,7 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
     fams = [c.family for c in cands if c.family is not None]
     if fams:
         e["functions"] = fams
+    _averaged(e, cands)
     if info:
         e["where"] = {n: v for n, v in info.items() if n in e["params"]}
     phys = None
@@ -291,6 +292,31 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
             shaped = c0.cols.model_dependent
             e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
     return e
+
+
+def _averaged(e: dict, cands) -> None:
+    """Parameters of functions the data cannot tell apart, averaged over them
+    (:func:`~cfm_fem.workflows.diagnose.select.model_average`), into the entry ``e``: the
+    mixture's mean, and its std with the chosen function's own variance beyond its plain fit
+    (the vibration's correlation) added; ``alternatives`` lists the functions and weights."""
+    alts = []
+    for c in cands:
+        if not c.averaged:
+            continue
+        for nm, (m, s, s_own) in c.averaged["params"].items():
+            extra = 0.0
+            if nm in e["param_std"] and s_own:
+                extra = max(e["param_std"][nm] ** 2 - s_own**2, 0.0)
+            e["params"][nm] = float(m)
+            e["param_std"][nm] = float(np.sqrt(s**2 + extra))
+            e["units"].setdefault(nm, c.family_block.units[c.family_block.names.index(nm)])
+        alts += [
+            {"function": lb, "params": names, "weight": round(w, 3)}
+            for lb, w, names in c.averaged["alternatives"]
+        ]
+    if alts:
+        e["alternatives"] = alts
+        e["param_corr"] = None  # the mixture has no single correlation matrix
 
 
 def _effects_out(prob, sel, fit1, base) -> list:
