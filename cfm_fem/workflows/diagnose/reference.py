@@ -15,8 +15,8 @@ the node values, with no field equation assumed.
 The model's error between nodes is estimated from the model itself, locally
 (:meth:`error_var`): at a point, the fits of its :data:`SPREAD_NODES` nearest usable nodes (the
 corners of the cell around it, on both sides along every axis, however unequal the steps) all
-describe the field there; their largest departure from the nearest node's fit, over the
-components, is the size of the truncation error of the local polynomials across that cell. It
+describe the field there; their largest departure from the nearest node's fit, per
+component, is the size of the truncation error of the local polynomials across that cell. It
 vanishes at a node (the model is exact there) and grows as the squared distance to the nearest
 node over the median distance to the cell's nodes, to its full size at the cell's centre. Where
 no fit holds, :class:`CurvatureCorrected` serves; its error is estimated from the map's fourth
@@ -137,7 +137,7 @@ class NodeExactHarmonic:
 
     def error_var(self, points) -> np.ndarray:
         """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (module
-        docstring): the largest squared departure, over the components, of the fits of the
+        docstring): per component, the largest squared departure of the fits of the
         :data:`SPREAD_NODES` nearest usable nodes from the nearest one's, times
         (d_1 / d_med)^2 up to 1, d_1 the distance to the nearest of those nodes and d_med the
         median distance to them. Where no fit holds, :meth:`CurvatureCorrected.error_var`, or
@@ -152,13 +152,13 @@ class NodeExactHarmonic:
             q = p[ok]
             near, _ = neighbourhoods(tree, used, q, k)
             b1 = self._eval_node(idx[near[:, 0]], q)
-            dev = np.zeros(len(q))
+            dev = np.zeros((len(q), 3))
             for j in range(1, k):
-                dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], q) - b1).max(1))
+                dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], q) - b1))
             dist = np.linalg.norm(used[near] - q[:, None, :], axis=2)
             med = np.median(dist, axis=1)
             frac = np.divide(dist[:, 0], med, out=np.zeros(len(q)), where=med > 0)
-            var[ok] = (dev * np.clip(frac, 0.0, 1.0))[:, None] ** 2
+            var[ok] = (dev * np.clip(frac, 0.0, 1.0)[:, None]) ** 2
         if (~ok).any() and idx.size:
             q = p[~ok]
             near, _ = neighbourhoods(tree, used, q, 1)
