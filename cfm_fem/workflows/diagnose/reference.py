@@ -12,12 +12,17 @@ export) or a point lies beyond every usable fit's reach, :class:`CurvatureCorrec
 linear interpolant corrected by the field's second and third derivatives from differences of
 the node values, with no field equation assumed.
 
-The model's error between nodes is estimated from the model itself (:meth:`error_var`): at a
-point, the fits of its three nearest usable nodes all describe the field there; their largest
-departure from the nearest node's fit is the size of the truncation error of the local
-polynomials. It vanishes at a node (the model is exact there) and is scaled up to its full size
-half a node spacing away. Where :class:`CurvatureCorrected` serves, its error is estimated from
-the map's fourth differences (:meth:`CurvatureCorrected.error_var`).
+The model's error between nodes is estimated from the model itself, locally
+(:meth:`error_var`): at a point, the fits of its :data:`SPREAD_NODES` nearest usable nodes (the
+corners of the cell around it, on both sides along every axis, however unequal the steps) all
+describe the field there; their largest departure from the nearest node's fit, per
+component, is the size of the truncation error of the local polynomials across that cell. It
+vanishes at a node (the model is exact there) and grows as the squared distance to the nearest
+node over the median distance to the cell's nodes, to its full size at the cell's centre. Where
+no fit holds, :class:`CurvatureCorrected` serves; its error is estimated from the map's fourth
+differences (:meth:`CurvatureCorrected.error_var`), and no smaller than its departure from the
+nearest usable node's fit (two readings of one field: their difference bounds the worse one's
+error), scaled the same way.
 """
 
 from __future__ import annotations
@@ -30,8 +35,9 @@ from ...models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
 __all__ = ["NodeExactHarmonic", "CurvatureCorrected", "node_spacing_mm", "SPREAD_NODES"]
 
-#: Nearest usable nodes whose fits are compared at a point to estimate the model's error.
-SPREAD_NODES = 3
+#: Nearest usable nodes whose fits are compared at a point to estimate the model's error (the
+#: eight corners of a grid's cell).
+SPREAD_NODES = 8
 
 
 def node_spacing_mm(points) -> float:
@@ -72,6 +78,8 @@ class NodeExactHarmonic:
     def __init__(self, fm, linear):
         from dataclasses import replace
 
+        from scipy.spatial import cKDTree
+
         self.fit = fit_harmonic(fm.points, fm.B, source=fm.source)
         self.linear = linear
         self.spacing_mm = node_spacing_mm(fm.points)
@@ -82,6 +90,7 @@ class NodeExactHarmonic:
         self._gmat = field_basis(MAX_DEGREE)
         self._exps = monomial_exponents(MAX_DEGREE)
         self._fm, self._curved = fm, None
+        self._node_tree = cKDTree(fm.points)
 
     @property
     def curved(self) -> CurvatureCorrected:
@@ -128,26 +137,40 @@ class NodeExactHarmonic:
 
     def error_var(self, points) -> np.ndarray:
         """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (module
-        docstring): the largest squared departure of the next usable nodes' fits from the
-        nearest one's, times (2 d / spacing)^2 up to 1, d the distance to the nearest node;
-        :meth:`CurvatureCorrected.error_var` where no fit holds."""
-        from scipy.spatial import cKDTree
-
+        docstring): per component, the largest squared departure of the fits of the
+        :data:`SPREAD_NODES` nearest usable nodes from the nearest one's, times
+        (d_1 / d_med)^2 up to 1, d_1 the distance to the nearest of those nodes and d_med the
+        median distance to them. Where no fit holds, :meth:`CurvatureCorrected.error_var`, or
+        the squared largest departure of the curvature-corrected reading from the nearest
+        usable node's fit, times the same factor over the map's nodes, if larger."""
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         idx, used, tree = self.fit._used
         var = np.zeros((len(p), 3))
         _, ok = self.fit.field_at(p)
-        if idx.size >= SPREAD_NODES and ok.any():
-            near, _ = neighbourhoods(tree, used, p[ok], SPREAD_NODES)
-            b1 = self._eval_node(idx[near[:, 0]], p[ok])
-            dev = np.zeros_like(b1)
-            for j in range(1, SPREAD_NODES):
-                dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], p[ok]) - b1))
-            var[ok] = dev**2
-        if (~ok).any():
+        k = min(SPREAD_NODES, idx.size)
+        if k >= 2 and ok.any():
+            q = p[ok]
+            near, _ = neighbourhoods(tree, used, q, k)
+            b1 = self._eval_node(idx[near[:, 0]], q)
+            dev = np.zeros((len(q), 3))
+            for j in range(1, k):
+                dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], q) - b1))
+            dist = np.linalg.norm(used[near] - q[:, None, :], axis=2)
+            med = np.median(dist, axis=1)
+            frac = np.divide(dist[:, 0], med, out=np.zeros(len(q)), where=med > 0)
+            var[ok] = (dev * np.clip(frac, 0.0, 1.0)[:, None]) ** 2
+        if (~ok).any() and idx.size:
+            q = p[~ok]
+            near, _ = neighbourhoods(tree, used, q, 1)
+            cross = np.abs(self._eval_node(idx[near[:, 0]], q) - self.curved(q)).max(1)
+            d_node, _ = self._node_tree.query(q, k=min(SPREAD_NODES, len(self._fm.points)))
+            d_node = d_node.reshape(len(q), -1)
+            med = np.median(d_node, axis=1)
+            frac = np.clip(np.divide(d_node[:, 0], med, out=np.zeros(len(q)), where=med > 0), 0, 1)
+            var[~ok] = np.maximum(self.curved.error_var(q), ((cross * frac) ** 2)[:, None])
+        elif (~ok).any():
             var[~ok] = self.curved.error_var(p[~ok])
-        d, _ = cKDTree(self.fit.centers).query(p)
-        return var * np.clip(2.0 * d / self.spacing_mm, 0.0, 1.0)[:, None] ** 2
+        return var
 
     def linear_fn(self, points) -> np.ndarray:
         """The linear interpolant's field (NaN outside)."""

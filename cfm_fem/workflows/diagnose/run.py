@@ -156,7 +156,18 @@ def reference_field(spec, rec, r_ref=None, field_model: str = "linear", reader=N
 
             refuse_reader_options(reader, f"--reference {text} is a harmonics file (n, Bn, An)")
             mp = read_harmonics(path, r_ref_mm=r_ref)
-            return mp.field, mp.b_ref, None, f"2-D multipole {path.name}"
+            return (
+                mp.field,
+                mp.b_ref,
+                None,
+                (
+                    f"2-D multipole {path.name}; a 2-D field states no error of its own: the "
+                    "magnet's 3-D departure from it (its ends; in the body, variation along z and "
+                    "B_z) is taken as zero and is not in the noise, so residuals varying along z "
+                    "or in B_z may be that departure (a 3-D field map as reference states its "
+                    "error)"
+                ),
+            )
     return _map_reference(spec, rec, field_model, reader)
 
 
