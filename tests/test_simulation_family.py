@@ -223,6 +223,9 @@ def test_family_summary_per_stratum():
     assert out["goals"]["rank1_per_magnet"] is False  # 18 / 19 < 95 %
     assert out["per_effect"]["planar_hall"]["pull_n"] == 18
     assert "| magnet | dipole |" in markdown_family(out, "header")
+    effects_only = summarise_family([r for r in runs if r["role"] == "effect"])
+    assert "false_alarm_cp95_per_stratum" not in effects_only["goals"]  # no null to judge
+    assert effects_only["goals"]["rank1_per_magnet"] is False
 
 
 def _fitted_t(files):

@@ -115,10 +115,10 @@ def summarise_family(scores: list) -> dict:
 
 def _goals(out) -> tuple:
     g, failing = FAMILY_GOALS, []
-    k, n = out["pooled"]["nulls"]["false_alarms"]
+    k, n_nulls = out["pooled"]["nulls"]["false_alarms"]
     goals = {}  # a goal without runs to judge it is left out
-    if n:
-        goals["false_alarm_pooled"] = k / n <= g["false_alarm_pooled_max"]
+    if n_nulls:
+        goals["false_alarm_pooled"] = k / n_nulls <= g["false_alarm_pooled_max"]
     cp_ok, r1_ok = True, True
     for st, labels in out["strata"].items():
         for lab, row in labels.items():
@@ -131,7 +131,7 @@ def _goals(out) -> tuple:
         if n and k / n < g["rank1_min"]:
             r1_ok = False
             failing.append(f"rank 1 at >= 6 sigma, magnet={lab}: {k}/{n}")
-    if n:
+    if n_nulls:
         goals["false_alarm_cp95_per_stratum"] = cp_ok
     if out["pooled"]["effects"]["rank1_strong"][1]:
         goals["rank1_per_magnet"] = r1_ok
