@@ -8,7 +8,7 @@ import json
 import numba
 import numpy as np
 import pytest
-from test_sweep_harmonic import grid_map
+from test_sweep_harmonic import grid_map, write_map_csv
 
 from cfm_fem import _kernels
 from cfm_fem.cli import main
@@ -83,12 +83,7 @@ def test_adaptive_same_numbers_whatever_threads_and_chunks():
 
 def test_cli_default_is_adaptive_and_its_pieces_slabs_agree_bit_for_bit(tmp_path):
     fm = grid_map(7, 21)
-    f = tmp_path / "map.csv"
-    rows = np.c_[fm.points, fm.B].tolist()
-    f.write_text(
-        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
-        + "".join(",".join(map(repr, r)) + "\n" for r in rows)
-    )
+    f = write_map_csv(fm, tmp_path / "map.csv")
     base = ["sweep", str(f), "--up", "0,30", "--field-model", "harmonic"]
     out = {}
     runs = (("mem", []), ("pieces", ["--pieces", "3"]), ("slabs", ["--slabs", "3"]),

@@ -42,6 +42,16 @@ def exact_field(p):
     ]
 
 
+def write_map_csv(fm, path):
+    """Write a map as the CSV table the readers take (mm, T); returns the path."""
+    rows = np.c_[fm.points, fm.B].tolist()
+    path.write_text(
+        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
+        + "".join(",".join(map(repr, r)) + "\n" for r in rows)
+    )
+    return path
+
+
 def grid_map(n=9, nz=17, half=6.0, half_z=12.0):
     ax = np.linspace(-half, half, n)
     pts = np.stack(np.meshgrid(ax, ax, np.linspace(-half_z, half_z, nz), indexing="ij"), -1)
@@ -144,12 +154,7 @@ def test_same_numbers_whatever_threads_and_chunks():
 
 def test_cli_pieces_slabs_and_memory_agree_bit_for_bit(tmp_path):
     fm = grid_map(7, 21)
-    f = tmp_path / "map.csv"
-    rows = np.c_[fm.points, fm.B].tolist()
-    f.write_text(
-        "x [mm],y [mm],z [mm],Bx [T],By [T],Bz [T]\n"
-        + "".join(",".join(map(repr, r)) + "\n" for r in rows)
-    )
+    f = write_map_csv(fm, tmp_path / "map.csv")
     base = ["sweep", str(f), "--up", "0,30", "--trials", "100", "--field-model", "harmonic"]
     out = {}
     for name, extra in (("mem", []), ("pieces", ["--pieces", "3"]), ("slabs", ["--slabs", "3"])):
