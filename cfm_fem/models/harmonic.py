@@ -15,6 +15,17 @@ ball.
 Reach: a node's model is used up to half the distance to its k-th nearest node
 (`REACH_FRACTION`); displacements beyond it are outside the model.
 
+Unequal steps: on a full grid whose steps along one axis exceed `ANISOTROPY_MAX` times the
+finest (an FEM export 1.5 mm apart across the bore and 10 mm along it), the k nearest nodes
+all lie in one plane, so the fits describe the field across the plane and guess it along the
+coarse axis, and the points between planes lie beyond every reach. With ``metric="grid"``
+(`grid_metric`) neighbourhoods, nearness and reach are measured in steps (coordinates scaled
+so that every axis's step is the finest): a neighbourhood then spans as many planes along
+the coarse axis as across it, which determines the field's derivatives along every axis
+alike. Below that ratio the k nearest nodes already span three planes along every axis and
+millimetres serve. The fits themselves stay in millimetres (Laplace's equation is not
+scale-free per axis).
+
 Fallback: Laplace's equation fails where currents or iron lie inside the neighbourhood, or
 the export is noisy; there the node falls back to the linear interpolant (``use`` False). The
 rule (`FALLBACK_RULE`), with r the weighted RMS residual over the neighbours' components:
@@ -65,6 +76,8 @@ __all__ = [
     "MISFIT_REL",
     "ROUNDING_FLOOR",
     "MIN_NODES",
+    "ANISOTROPY_MAX",
+    "grid_metric",
     "time_fit",
 ]
 
@@ -79,6 +92,9 @@ ROUNDING_FLOOR = 1e-9
 #: Fewest nodes (and neighbours per fit) the model accepts: the curl check fits 10
 #: coefficients per component with at least 2 equations each.
 MIN_NODES = 20
+#: A full grid with a step beyond this multiple of its finest is measured in steps: the 40
+#: nearest nodes of a grid with one step 3.6 times the other two all lie in one plane.
+ANISOTROPY_MAX = 3.0
 
 FALLBACK_RULE = (
     f"a node falls back to the linear interpolant when the RMS residual of its harmonic fit "
@@ -114,13 +130,17 @@ class HarmonicFit:
         RMS residual of the fit over its neighbours' components, weighted as the fit
         (weights normalised to sum 1; NaN if no fit).
     reach_mm : ndarray, shape (n,), mm
-        Displacements beyond it are outside the model's reach.
+        Displacements beyond it are outside the model's reach (measured in the frame of
+        ``metric``).
     use : ndarray, shape (n,), bool
         False: Laplace fails here (`FALLBACK_RULE`); the node falls back to linear.
     k : int
         Neighbours per fit.
     fallback_rule : str
         The fallback rule, in words, for outputs.
+    metric : ndarray, shape (3,)
+        Factors on x, y, z in which neighbourhoods, nearness and reach are measured (ones:
+        millimetres; `grid_metric`).
     """
 
     centers: np.ndarray
@@ -132,12 +152,15 @@ class HarmonicFit:
     use: np.ndarray
     k: int
     fallback_rule: str = field(default=FALLBACK_RULE)
+    metric: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     @cached_property
     def _used(self) -> tuple:
-        """Indices of the nodes with ``use``, their centres and a k-d tree of them."""
+        """Indices of the nodes with ``use``, their centres (times ``metric``) and a k-d tree
+        of them: query it with points times ``metric``."""
         idx = np.flatnonzero(self.use)
-        return idx, self.centers[idx], scipy.spatial.cKDTree(self.centers[idx])
+        cen = self.centers[idx] * self.metric
+        return idx, cen, scipy.spatial.cKDTree(cen)
 
     def field_at(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Field of the model of the nearest node with ``use`` True, within its reach.
@@ -166,7 +189,7 @@ class HarmonicFit:
         exps = monomial_exponents(MAX_DEGREE)
         for a in range(0, len(pts), _EVAL_CHUNK):
             p = pts[a : a + _EVAL_CHUNK]
-            near, dist = neighbourhoods(tree, used, p, 1)
+            near, dist = neighbourhoods(tree, used, p * self.metric, 1)
             g = idx[near[:, 0]]
             u = (p - self.centers[g]) / self.scale[g, None]
             ok = dist <= self.reach_mm[g]
@@ -292,8 +315,36 @@ def fallback_mask(residual_T, flag, checks) -> np.ndarray:
     return ~(curl | misfit | failed)
 
 
+def grid_metric(points) -> np.ndarray:
+    """Factors (3,) on x, y, z that make a full grid's steps equal, or ones.
+
+    Ones unless the nodes form a full tensor grid (every combination of the distinct x, y
+    and z, once) with a median step along some axis above `ANISOTROPY_MAX` times the
+    smallest; then, per axis, the smallest median step over the axis's.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3), mm
+
+    Returns
+    -------
+    ndarray, shape (3,)
+    """
+    pts = np.round(np.asarray(points, dtype=np.float64), 9)
+    axes = [np.unique(pts[:, a]) for a in range(3)]
+    sizes = [a.size for a in axes]
+    if min(sizes) < 2 or int(np.prod(sizes)) != len(pts):
+        return np.ones(3)
+    if len(np.unique(pts, axis=0)) != len(pts):
+        return np.ones(3)
+    steps = np.array([np.median(np.diff(a)) for a in axes])
+    if steps.max() <= ANISOTROPY_MAX * steps.min():
+        return np.ones(3)
+    return steps.min() / steps
+
+
 def fit_harmonic(
-    points, B, *, k=40, min_degree=2, max_degree=MAX_DEGREE, source=None
+    points, B, *, k=40, min_degree=2, max_degree=MAX_DEGREE, source=None, metric=None
 ) -> HarmonicFit:
     """Fit the harmonic field model of every node of a 3-D map.
 
@@ -310,6 +361,9 @@ def fit_harmonic(
         falls back at 94 % of the nodes with degree 2 only, at none with degrees up to 3.
     source : str, optional
         The map's file, for messages.
+    metric : {None, "grid"} or array_like, shape (3,), optional
+        Factors on x, y, z in which neighbourhoods and reach are measured: None, millimetres;
+        "grid", `grid_metric` of the nodes (module docstring, unequal steps).
 
     Returns
     -------
@@ -331,7 +385,14 @@ def fit_harmonic(
     points, B = _check_map(points, B, k, min_degree, max_degree, source)
     n = len(points)
     k = int(min(k, n))
-    tree = scipy.spatial.cKDTree(points)
+    if metric is None:
+        metric = np.ones(3)
+    elif isinstance(metric, str):
+        metric = grid_metric(points)
+    metric = np.asarray(metric, dtype=np.float64)
+    scaled = bool(np.any(metric != 1.0))
+    q = points * metric if scaled else points
+    tree = scipy.spatial.cKDTree(q)
     gmat = np.ascontiguousarray(field_basis(max_degree))
     exps = monomial_exponents(max_degree)
     nbf = n_basis(MAX_DEGREE)
@@ -340,10 +401,14 @@ def fit_harmonic(
     degree = np.empty(n, dtype=np.int64)
     resid = np.empty(n)
     use = np.empty(n, dtype=bool)
+    reach = np.empty(n)
     for a in range(0, n, _QUERY_CHUNK):
         idx = np.arange(a, min(a + _QUERY_CHUNK, n))
-        nbr, sc = neighbourhoods(tree, points, points[idx], k)
+        nbr, sc = neighbourhoods(tree, q, q[idx], k)
         cen = points[idx]
+        reach[idx] = REACH_FRACTION * sc
+        if scaled:  # the fit's unit ball: the farthest neighbour in millimetres
+            sc = np.sqrt(np.max(np.sum((points[nbr] - cen[:, None, :]) ** 2, axis=2), axis=1))
 
         def block(i0, i1, nbr=nbr, sc=sc, cen=cen):
             return _kernels.harmonic_fit_block(
@@ -356,7 +421,7 @@ def fit_harmonic(
         use[idx] = fallback_mask(res, flag, checks)
     return HarmonicFit(
         centers=points, scale=scale, coef=coef, degree=degree, residual_T=resid,
-        reach_mm=REACH_FRACTION * scale, use=use, k=k,
+        reach_mm=reach, use=use, k=k, metric=metric,
     )  # fmt: skip
 
 

@@ -361,6 +361,19 @@ def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> 
     ]
 
 
+def _shared_by(uinv) -> np.ndarray:
+    """Readings of the same point as each reading (n,): the factor on a per-point error's
+    variance when it enters the rows as independent noise.
+
+    The reference's error at a point is one value, the same in every repetition that reads
+    it. Rows weighted as independent with variance v + c r (c readings of the point) give the
+    point's mean the variance v / c + r it has, so the fit's evidence and the located point
+    means count the reference's error once, not once per repetition; within-point departures
+    (drifts, steps) are weighted conservatively.
+    """
+    return np.bincount(uinv)[uinv].astype(float)
+
+
 def _reference_error(field_fn, upts, spacing_mm, nodes):
     """Interpolation error variance of a linear reference map at the distinct points, T^2: zero
     at a node, its full size half a spacing away."""
@@ -696,6 +709,8 @@ def hall_problem(
             f"its interpolation error (rms {rms:.3g} units over the readings, from its "
             "curvature) is added to the noise"
         )
+    if var_ref is not None:
+        var_ref = var_ref * _shared_by(uinv)[:, None]
     t_h, d, speed, temp = _aux(rec)
     ctx = ProblemContext(
         node_step=_node_step(upts, ref_spacing_mm, ref_nodes),

@@ -80,7 +80,7 @@ class NodeExactHarmonic:
 
         from scipy.spatial import cKDTree
 
-        self.fit = fit_harmonic(fm.points, fm.B, source=fm.source)
+        self.fit = fit_harmonic(fm.points, fm.B, source=fm.source, metric="grid")
         self.linear = linear
         self.spacing_mm = node_spacing_mm(fm.points)
         self.n_fallback = int((~self.fit.use).sum())
@@ -116,7 +116,7 @@ class NodeExactHarmonic:
         far = ~np.isfinite(out).all(1)
         idx, used, tree = self.fit._used
         if far.any() and idx.size:  # beyond the cells and every reach: the nearest fit's
-            near, _ = neighbourhoods(tree, used, p[far], 1)
+            near, _ = neighbourhoods(tree, used, p[far] * self.fit.metric, 1)
             out[far] = self._eval_node(idx[near[:, 0]], p[far])
         return out, inside
 
@@ -150,18 +150,19 @@ class NodeExactHarmonic:
         k = min(SPREAD_NODES, idx.size)
         if k >= 2 and ok.any():
             q = p[ok]
-            near, _ = neighbourhoods(tree, used, q, k)
+            qm = q * self.fit.metric
+            near, _ = neighbourhoods(tree, used, qm, k)
             b1 = self._eval_node(idx[near[:, 0]], q)
             dev = np.zeros((len(q), 3))
             for j in range(1, k):
                 dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], q) - b1))
-            dist = np.linalg.norm(used[near] - q[:, None, :], axis=2)
+            dist = np.linalg.norm(used[near] - qm[:, None, :], axis=2)
             med = np.median(dist, axis=1)
             frac = np.divide(dist[:, 0], med, out=np.zeros(len(q)), where=med > 0)
             var[ok] = (dev * np.clip(frac, 0.0, 1.0)[:, None]) ** 2
         if (~ok).any() and idx.size:
             q = p[~ok]
-            near, _ = neighbourhoods(tree, used, q, 1)
+            near, _ = neighbourhoods(tree, used, q * self.fit.metric, 1)
             cross = np.abs(self._eval_node(idx[near[:, 0]], q) - self.curved(q)).max(1)
             d_node, _ = self._node_tree.query(q, k=min(SPREAD_NODES, len(self._fm.points)))
             d_node = d_node.reshape(len(q), -1)
