@@ -268,3 +268,21 @@ def test_drawn_significance_is_measured_on_the_recording(seed, tmp_path):
     files = write_family_case(seed, tmp_path, role="effect")
     t, drawn = _fitted_t(files)
     assert abs(abs(t) - drawn) < 3.0  # t ~ N(drawn, 1)
+
+
+def test_a_prior_conflict_the_truth_has_is_no_false_alarm():
+    truth = {"expected": None, "effects": {}, "params": {"magnet_rot_y": 131.6, "gain_z": 0.2}}
+    base = {"effects": [], "located": [], "outliers": [], "mismatch": True}
+
+    def conflict(name, std):
+        return {"name": name, "prior_mean": 0.0, "prior_std": std, "z": 4.1}
+
+    drawn_far = score(base | {"prior_conflicts": [conflict("magnet_rot_y", 31.5)]}, truth)
+    assert drawn_far["true_conflicts"] == ["magnet_rot_y"] and not drawn_far["alarm"]
+    # the truth within its prior (1.3 sigma): the conflict is a false statement
+    drawn_near = score(base | {"prior_conflicts": [conflict("gain_z", 0.15)]}, truth)
+    assert drawn_near["true_conflicts"] == [] and drawn_near["alarm"]
+    # a true conflict beside a located residual: still an alarm
+    located = base | {"located": [{"component": "x"}]}
+    both = score(located | {"prior_conflicts": [conflict("magnet_rot_y", 31.5)]}, truth)
+    assert both["alarm"]

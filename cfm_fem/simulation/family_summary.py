@@ -30,8 +30,11 @@ def _label(run, stratum):
 
 def _alarm(run) -> bool:
     """A null's false alarm: any effect claimed, or a mismatch stated (a residual located, a
-    plane called bad, a calibrated parameter in conflict with its prior)."""
-    return bool(run["false_alarm"]) or bool(run.get("mismatch"))
+    plane called bad, a calibrated parameter in conflict with its prior) other than conflicts
+    the simulated truth itself has (``mismatch_true``,
+    :func:`cfm_fem.simulation.scoring.true_conflicts`)."""
+    mismatch = bool(run.get("mismatch")) and not run.get("mismatch_true", False)
+    return bool(run["false_alarm"]) or mismatch
 
 
 def _nulls(runs) -> dict:

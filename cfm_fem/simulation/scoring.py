@@ -53,6 +53,26 @@ def _step(summary, truth, names) -> dict:
     }
 
 
+#: A prior conflict is a true statement when the simulated value itself lies this many prior
+#: standard deviations from the prior's mean.
+TRUE_CONFLICT_SIGMA = 3.0
+
+
+def true_conflicts(summary: dict, truth: dict) -> list:
+    """Names of the prior conflicts a diagnosis states that the simulated truth itself has: the
+    drawn value of the parameter lies at least :data:`TRUE_CONFLICT_SIGMA` prior standard
+    deviations from the prior's mean (a survey drawn far in its tail is a real conflict)."""
+    params = truth.get("params", {})
+    out = []
+    for c in summary.get("prior_conflicts", []):
+        t, mean, std = params.get(c.get("name")), c.get("prior_mean"), c.get("prior_std")
+        if t is None or mean is None or not (std or 0) > 0:
+            continue
+        if abs(float(t) - float(mean)) >= TRUE_CONFLICT_SIGMA * float(std):
+            out.append(c["name"])
+    return out
+
+
 def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
     """One diagnosis against its truth; ``model_dependent``: score the parameters the
     diagnosis reports as model-dependent too.
@@ -62,7 +82,9 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
     dict
         ``claimed`` (effect names, strongest first), ``detected``, ``rank1``, ``false_alarm``
         (a null with any effect claimed), ``alarm`` (a null with any effect claimed or a mismatch
-        stated: a residual located, a plane called bad, a prior conflict), ``other_claims``,
+        stated: a residual located, a plane called bad, a prior conflict the truth does not
+        have), ``true_conflicts`` (:func:`true_conflicts`), ``mismatch_true`` (the mismatch
+        is only such conflicts), ``other_claims``,
         ``pulls`` {effect: {param: pull}} of every reported parameter with a known truth (not
         those the diagnosis reports as ``model_dependent``), ``step`` (step case only).
     """
@@ -78,6 +100,13 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
             if t is None or s is None or v is None or not s > 0:
                 continue
             pulls.setdefault(e["name"], {})[p] = (float(v) - t) / float(s)
+    true_c = true_conflicts(summary, truth)
+    only_true = (
+        bool(summary.get("mismatch"))
+        and not summary.get("located")
+        and not summary.get("outliers")
+        and len(true_c) == len(summary.get("prior_conflicts", []))
+    )
     out = {
         "case": truth.get("case"),
         "seed": truth.get("seed"),
@@ -88,7 +117,11 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
         "detected": None if expected is None else expected in names,
         "rank1": None if expected is None else bool(names) and names[0] == expected,
         "false_alarm": bool(names) if expected is None else None,
-        "alarm": (bool(names) or bool(summary.get("mismatch"))) if expected is None else None,
+        "alarm": (bool(names) or (bool(summary.get("mismatch")) and not only_true))
+        if expected is None
+        else None,
+        "true_conflicts": true_c,
+        "mismatch_true": only_true,
         "other_claims": [n for n in names if n != expected],
         "pulls": pulls,
     }
