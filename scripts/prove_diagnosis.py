@@ -179,6 +179,15 @@ def run_family(a) -> int:
     if a.only_reference:  # the Hall seeds whose drawn reference is of that kind
         ref = a.only_reference
         jobs = [j for j in jobs if draw_config(j[0], size, j[1]).get("reference") == ref]
+    if a.only_effect:  # the seeds whose drawn effect is one of these, the first N of each
+        want = {e: 0 for e in a.only_effect.split(",")}
+        keep = []
+        for j in jobs:
+            e = draw_config(j[0], size, j[1]).get("effect")
+            if e in want and (a.per_effect is None or want[e] < a.per_effect):
+                want[e] += 1
+                keep.append(j)
+        jobs = keep
     t0 = time.perf_counter()
     if a.family_merge:
         runs = {}
@@ -341,6 +350,15 @@ def main(argv=None) -> int:
         "--only-reference",
         choices=("exact", "coarse", "harmonics"),
         help="--family: run only the Hall seeds whose drawn reference is of this kind",
+    )
+    ap.add_argument(
+        "--only-effect",
+        metavar="NAMES",
+        help="--family: run only the seeds whose drawn concealed effect is one of these "
+        "(comma-separated), at most --per-effect of each",
+    )
+    ap.add_argument(
+        "--per-effect", type=int, metavar="N", help="--only-effect: the first N seeds of each"
     )
     ap.add_argument(
         "--family-merge",

@@ -59,7 +59,9 @@ def test_thermal_drift():
 
 def test_arm_deflection():
     s, _ = run_tracker({"arm_deflection": {"sag_z": 8.0}})
-    check(s, "arm_deflection", {"sag_z": 8.0, "sag_x": 0.0})
+    first = check(s, "arm_deflection", {"sag_z": 8.0})
+    # each carriage's sag is a function of its own: the concealed one, and no other
+    assert first["functions"] == ["sag_z"] and "sag_x" not in first["params"]
 
 
 def joint_chi2(effect, truth):
@@ -85,6 +87,27 @@ def test_position_dependent_geometric():
     assert set(e["params"]) <= {"eps_z(z)_u1", "eps_z(z)_u2"}
     chi2, k = joint_chi2(e, truth)
     assert chi2 < stats.chi2.isf(2 * stats.norm.sf(3.0), k), (chi2, k)
+    # a linear term reported without its quadratic one is the slope of the chosen order
+    alone = {"eps_z(z)_u1"} if "eps_z(z)_u2" not in e["params"] else set()
+    assert set(e.get("model_dependent", ())) == alone
+
+
+def test_position_dependent_geometric_linear_alone_is_model_dependent():
+    # a curved error (u_x^2) over the part of the stroke a scan covers looks straight: the
+    # linear term the selection fits alone is reported as model-dependent
+    from cfm_fem.workflows.diagnose.calibrate import Columns
+    from cfm_fem.workflows.diagnose.workflow import _lower_order
+
+    cols = Columns(np.zeros((1, 3, 1)), ["eps_z(x)_u1"], ["urad"], np.zeros(1), np.ones(1), "g")
+    cols.lower_order = {"eps_z(x)_u1": "eps_z(x)_u2"}
+    alone = type("C", (), {"cols": cols, "param_names": ["eps_z(x)_u1"]})()
+    e = {"params": {"eps_z(x)_u1": -36.4}}
+    _lower_order(e, [alone])
+    assert e["model_dependent"] == ["eps_z(x)_u1"]
+    both = type("C", (), {"cols": cols, "param_names": ["eps_z(x)_u1", "eps_z(x)_u2"]})()
+    e = {"params": {"eps_z(x)_u1": 1.0, "eps_z(x)_u2": -33.6}}
+    _lower_order(e, [both])
+    assert "model_dependent" not in e
 
 
 def test_parameter_bias():

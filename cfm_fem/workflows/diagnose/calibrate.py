@@ -91,6 +91,13 @@ class Columns:
         Physical parameters that belong to an assumed shape (``fringe_field_3d``: the edges
         and fringe length of a Fermi profile) rather than to the data alone; reported as
         model-dependent. None: every physical parameter when the block has ``model_rows``.
+    lower_order : dict, optional
+        ``{lower-order term: its higher-order term}`` of functions fitted at the order the
+        selection chooses (``position_dependent_geometric``: ``eps_z(z)_u1`` alone, or with
+        ``eps_z(z)_u2``). A lower-order term reported without its higher-order term is the
+        coefficient of that chosen order (the slope of the straight line through a curved error
+        over the scanned part of the stroke), not the function's own coefficient: it is
+        reported as model-dependent. None: no such terms.
     """
 
     J: np.ndarray
@@ -112,6 +119,7 @@ class Columns:
     model_rows: np.ndarray | None = None
     element: tuple | None = None
     model_dependent: tuple | None = None
+    lower_order: dict | None = None
 
     @property
     def p(self) -> int:
@@ -150,6 +158,7 @@ class Columns:
             self.model_rows,
             None if self.element is None else tuple(self.element[k] for k in keep),
             self.model_dependent,
+            self.lower_order,
         )
 
     def released(self, group: str) -> Columns:

@@ -19,9 +19,12 @@ Positioning (tracker), displacement of the probe in the bench frame:
   the normalised axis position, through the HTM chain (um or urad at full stroke). Each error
   function (``eps_z(z)``: its linear term ``_u1``, or ``_u1`` and the quadratic ``_u2``
   together) is tested on its own, the choice among the 36 alternatives accounted for, so one
-  identifiable function is found and named by itself.
+  identifiable function is found and named by itself. A linear term reported without its
+  quadratic term is model-dependent (the straight line the selection chose through the
+  error over the scanned part of the stroke: a curved error has another linear coefficient).
 * ``arm_deflection``: load-dependent sag of the probe: E_y -= c_x s(u_x) + c_z s(u_z),
-  s(u) = 16 u^2 (1 - u)^2 (moving load on a beam; c in um at mid-stroke).
+  s(u) = 16 u^2 (1 - u)^2 (moving load on a beam; c in um at mid-stroke); each carriage's
+  sag is a function of its own.
 * ``parameter_bias``: the 21 errors free of their Table II PDFs (prior release).
 * ``step_event`` (also for Hall maps): an abrupt shift from a change point in time or
   repetition on, per axis or component (:mod:`cfm_fem.workflows.diagnose.step_event`).
@@ -256,6 +259,8 @@ def position_dependent_geometric(prob):
     blk.families = [(ERROR_NAMES[k], [i]) for i, k in enumerate(idx)] + [
         (ERROR_NAMES[k], [i, m + i]) for i, k in enumerate(idx)
     ]
+    # a linear term fitted alone is the slope of the order chosen, not the function's own
+    blk.lower_order = {names[i]: names[m + i] for i in range(m)}
     return blk
 
 
@@ -269,7 +274,12 @@ def arm_deflection(prob):
     J = np.zeros((prob.n, 3, 2))
     J[:, 1, 0] = -_sag(u[:, 0]) * UM
     J[:, 1, 1] = -_sag(u[:, 2]) * UM
-    return effect_columns(J, ["sag_x", "sag_z"], ["um", "um"], "arm_deflection")
+    blk = effect_columns(J, ["sag_x", "sag_z"], ["um", "um"], "arm_deflection")
+    # each carriage's sag is a function of its own, the choice between the two accounted for:
+    # a sag along one stroke must not pay for both (a quadratic error function of that axis,
+    # one parameter, would otherwise take its place)
+    blk.families = [("sag_x", [0]), ("sag_z", [1])]
+    return blk
 
 
 def parameter_bias(prob):

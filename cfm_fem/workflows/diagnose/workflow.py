@@ -291,7 +291,29 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
         if "lack_of_fit" in e:
             shaped = c0.cols.model_dependent
             e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
+    _lower_order(e, cands)
     return e
+
+
+def _lower_order(e: dict, cands) -> None:
+    """Lower-order terms of a function reported without its higher-order term
+    (:attr:`Columns.lower_order`) listed as model-dependent in the entry ``e``."""
+    alone = []
+    for c in cands:
+        pairs = c.cols.lower_order or {}
+        alone += [
+            n
+            for n in c.param_names
+            if n in pairs and pairs[n] not in c.param_names and n in e["params"]
+        ]
+    if alone:
+        e["model_dependent"] = sorted(set(e.get("model_dependent", [])) | set(alone))
+        e.setdefault(
+            "model_dependent_note",
+            "a linear term fitted without its quadratic term is the slope of the straight line "
+            "the selection chose through the error over the scanned part of the stroke; a curved "
+            "error has another linear coefficient",
+        )
 
 
 def _averaged(e: dict, cands) -> None:
