@@ -436,14 +436,23 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
     ndarray, shape (n, 3), T
         B(p + d) to second order.
     """
-    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
-    th = np.asarray(theta, dtype=float) * unit  # mm, rad
-    if not np.any(th) or len(p) != len(B0):
+    d = bench_move(bench, q, theta)
+    if d is None or len(p) != len(B0):
         return B0
-    R = bench.bench_to_magnet_rotation()
-    d = probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T  # exact move, magnet frame
     Hd = np.einsum("nijk,nk->nij", H, d)
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
+
+
+def bench_move(bench: Bench, q, theta):
+    """The probe's exact move by the bench errors ``theta`` (um, urad; order of
+    ``ERROR_NAMES``) at the axis positions ``q`` (n, 3) mm: (n, 3) mm in the magnet frame,
+    or None for all errors zero."""
+    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
+    th = np.asarray(theta, dtype=float) * unit  # mm, rad
+    if not np.any(th):
+        return None
+    R = bench.bench_to_magnet_rotation()
+    return probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T
 
 
 def _node_step(upts, spacing_mm, nodes):
@@ -483,6 +492,16 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
     G = G + Hd
     return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+
+
+def _is_planar(field_fn, upts, h) -> bool:
+    """Whether a reference is a 2-D field at the points ``upts`` (mm): B_z and every
+    derivative along z zero there (2-D harmonics)."""
+    B = field_fn(upts)
+    if np.any(B[:, 2]):
+        return False
+    e = np.array([0.0, 0.0, h])
+    return not (np.any(field_fn(upts + e) - B) or np.any(field_fn(upts - e) - B))
 
 
 #: Prior std of the magnet-to-bench registration where neither the caller nor the bench file
@@ -556,6 +575,7 @@ def hall_problem(
     ref_error=None,
     bench_at=None,
     hessian=None,
+    planar=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -614,6 +634,17 @@ def hall_problem(
     hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
         The reference's Hessian at the distinct points (computed once, then passed on by
         ``ctx.rebuild``).
+    planar : bool, optional
+        The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
+        the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
+        field the readings are taken exactly with the magnet at ``pose`` (the field is
+        analytic), while the columns, ``ctx.B0``, ``ctx.G`` and ``ctx.field_fn`` stay those of
+        the nominal placement: the pose's rotations give the 2-D field a B_z and a variation
+        along z of tens of urad of it, which, kept in the columns, would give the bench's
+        errors, the z gain and the z offset signatures (of a tilted Hall element, of the
+        magnet's ends) that no 2-D field has; their products with the pose are below the
+        noise. Iterated, the fit converges to the pose whose exact field explains the readings
+        (a chord Gauss-Newton: the Jacobian of the nominal placement).
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -629,12 +660,21 @@ def hall_problem(
                       ref_error=ref_error, bench_at=bench_at)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
-    B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
+    if planar is None:  # decided once, at the first linearisation
+        planar = smooth and ref_nodes is None and _is_planar(field_fn, upts, h)
+        rebuild = partial(rebuild, planar=planar)
+    if planar:  # exact at the pose, linearised at the nominal placement
+        B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, np.zeros_like(pose), h, smooth)
+        B_pose = posed_field(field_fn, pose)(upts)[uinv]
+        lever_pt = p
+    else:
+        B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
+        B_pose = B0u[uinv]
+        lever_pt = p - pose[:3] * UM  # from the magnet origin
     B0, G = B0u[uinv], Gu[uinv]
     scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
-    lever_pt = p - pose[:3] * UM  # from the magnet origin
     reg_gain = _registration_and_gains(B0, G, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct)
-    y = rec.B - B0 + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
+    y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
@@ -659,14 +699,18 @@ def hall_problem(
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
         at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
-        if hessian is None and np.any(at):
+        if hessian is None and np.any(at) and not planar:
             # the curvature at the nominal placement: a move of the magnet changes it to
             # second order only, so every relinearisation of this map reuses it
             h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
             hessian = field_hessian(field_fn, upts, h2)
             rebuild = partial(rebuild, hessian=hessian)
         H = None if hessian is None else hessian[uinv]
-        Bb = bench_expansion(bench, q, p, at, B0, G, H)
+        if planar:  # the 2-D field read exactly where the pose and the errors put the probe
+            d = bench_move(bench, q, at)
+            Bb = B0 if d is None else B0 + posed_field(field_fn, pose)(p + d) - B_pose
+        else:
+            Bb = bench_expansion(bench, q, p, at, B0, G, H)
         lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
@@ -767,6 +811,7 @@ __all__ += [
     "ProblemContext",
     "noise_sigma",
     "bench_columns",
+    "bench_move",
     "field_hessian_diag",
     "field_hessian",
     "AXES",

@@ -31,23 +31,25 @@ STEP_TOL = 0.05
 
 def applies(prob: Problem) -> bool:
     """Whether the registration of ``prob`` is made non-linear: a Hall map against a 3-D
-    reference map (smooth, or interpolated linearly with the readings on its nodes), or
-    against any reference that varies along z at the readings.
+    reference map (smooth, or interpolated linearly with the readings on its nodes), against
+    2-D harmonics (read exactly at the pose, the columns kept at the nominal placement:
+    :func:`~cfm_fem.workflows.diagnose.problem.hall_problem`, ``planar``), or against any
+    reference that varies along z at the readings.
 
     A 3-D map holds the magnet's ends where its nodes reach them, so a pose fitted against it
     has nothing to steer it but the data; and in a magnet's body the pose's second-order terms
     are still there: a rotation about x or y of a few tens of urad turns a transverse field
     shifted by a magnet offset of tens of um into a Bz offset of tenths of a uT, above a
-    low-noise probe's floor over a few hundred readings. Against 2-D harmonics, a map
-    through the magnet ends, which that reference lacks, would steer the pose (the soft ends
-    are ``fringe_field_3d``'s). Between the nodes of a linear map its curvature is not known
+    low-noise probe's floor over a few hundred readings. Against 2-D harmonics the offsets
+    of a sextupole or higher leave g (dx^2 - dy^2), a constant field, which a linear pose
+    leaves to a Hall offset. Between the nodes of a linear map its curvature is not known
     better than its own interpolation error (added to the noise), which is of the order of
     the second-order terms of a move of up to a node spacing."""
     if prob.kind != "hall" or prob.ctx.rebuild is None:
         return False
     if not prob.ctx.smooth and prob.ctx.node_step is None:
         return False
-    if prob.ctx.reference_3d:
+    if prob.ctx.reference_3d or getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
         return True
     G = prob.ctx.G
     return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
