@@ -325,12 +325,14 @@ def posed_field(field_fn, pose):
     return fn
 
 
-def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> list:
+def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct, B_gain=None) -> list:
     """The magnet-to-bench registration (translation, small rotation about the magnet origin)
     and the Hall gains as baseline columns of a Hall map, with their priors.
 
     ``B0``, ``G``: the field and its gradient at the readings, the magnet at its current pose;
-    ``p``: the readings' positions from the magnet origin (mm)."""
+    ``p``: the readings' positions from the magnet origin (mm); ``B_gain``: the field the
+    gains multiply (default ``B0``)."""
+    B_gain = B0 if B_gain is None else B_gain
     n = len(p)
     reg = np.zeros((n, 3, 6))
     reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
@@ -340,7 +342,7 @@ def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> 
         reg[:, :, 3 + a] = np.cross(e, B0) - np.einsum("nij,nj->ni", G, np.cross(e, p))
     gain = np.zeros((n, 3, 3))
     for i in range(3):
-        gain[:, i, i] = B0[:, i] * 1e-2
+        gain[:, i, i] = B_gain[:, i] * 1e-2
     return [
         Columns(
             reg,
@@ -494,6 +496,42 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
 
 
+def _axis_positions(bench, p, notes):
+    """The bench's axis positions (n, 3) mm of the readings ``p`` and the bench (None when
+    the map exceeds its strokes); a map placed outside the strokes is centred in them. The
+    assumptions made are appended to ``notes``."""
+    if bench is None:
+        return np.zeros_like(p), None
+    q = bench.axis_positions_for(p)
+    if np.any(bench.outside_stroke(q)):
+        span = p.max(0) - p.min(0)
+        if np.any(span > bench.strokes_mm):
+            notes.append(
+                "the map is larger than the bench strokes: positioning errors not modelled"
+            )
+            return np.zeros_like(p), None
+        q = q - q.mean(0) + bench.strokes_mm / 2
+        notes.append(
+            "bench magnet placement puts the map outside the strokes; the map was "
+            "centred in the working volume (assumption)"
+        )
+    return q, bench
+
+
+def _planar_at_pose(field_fn, p, pose, h, bench, q, at):
+    """A 2-D reference at the readings: field (n, 3) T and gradient (n, 3, 3) T/mm of the
+    registration's columns, and the exact reading (n, 3) T.
+
+    Both are evaluated where the bench errors ``at`` move the probe (exact chain). The
+    reading is the field with the magnet at the whole ``pose``; the registration is
+    linearised with the magnet offset and rolled only, which keeps the field 2-D (see
+    :func:`hall_problem`, ``planar``)."""
+    d = None if bench is None else bench_move(bench, q, at)
+    moved = p if d is None else p + d
+    fn = posed_field(field_fn, pose * (1.0, 1.0, 1.0, 0.0, 0.0, 1.0))
+    return fn(moved), field_jacobian(fn, moved, h), posed_field(field_fn, pose)(moved)
+
+
 def _is_planar(field_fn, upts, h) -> bool:
     """Whether a reference is a 2-D field at the points ``upts`` (mm): B_z and every
     derivative along z zero there (2-D harmonics)."""
@@ -637,14 +675,16 @@ def hall_problem(
     planar : bool, optional
         The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
         the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
-        field the readings are taken exactly with the magnet at ``pose`` (the field is
-        analytic), while the columns, ``ctx.B0``, ``ctx.G`` and ``ctx.field_fn`` stay those of
-        the nominal placement: the pose's rotations give the 2-D field a B_z and a variation
-        along z of tens of urad of it, which, kept in the columns, would give the bench's
-        errors, the z gain and the z offset signatures (of a tilted Hall element, of the
-        magnet's ends) that no 2-D field has; their products with the pose are below the
-        noise. Iterated, the fit converges to the pose whose exact field explains the readings
-        (a chord Gauss-Newton: the Jacobian of the nominal placement).
+        field the readings are taken exactly with the magnet at ``pose`` and the probe where
+        the bench errors ``bench_at`` move it (the field is analytic). The registration's
+        columns are linearised there too, with the magnet offset and rolled only: the
+        offsets' second-order terms (a sextupole's g (dx^2 - dy^2), a constant) carry much of
+        what the data say about the offsets, and depend on the magnet's offset less the
+        bench's. Every other column, ``ctx.B0``, ``ctx.G`` and ``ctx.field_fn`` stay those of
+        the nominal placement: the pose's rotations about x and y give the 2-D field a B_z
+        and a variation along z, which in the bench's columns would reproduce a tilted Hall
+        element, and which the soft ends' model (``fringe_field_3d``, built on ``ctx``) does
+        not expect of a 2-D field.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -663,42 +703,30 @@ def hall_problem(
     if planar is None:  # decided once, at the first linearisation
         planar = smooth and ref_nodes is None and _is_planar(field_fn, upts, h)
         rebuild = partial(rebuild, planar=planar)
-    if planar:  # exact at the pose, linearised at the nominal placement
-        B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, np.zeros_like(pose), h, smooth)
-        B_pose = posed_field(field_fn, pose)(upts)[uinv]
-        lever_pt = p
-    else:
-        B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
-        B_pose = B0u[uinv]
-        lever_pt = p - pose[:3] * UM  # from the magnet origin
+    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T"]
+    q, bench = _axis_positions(bench, p, notes)
+    at = None
+    if bench is not None:
+        at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
+    B0u, Gu, fn_posed = _field_at_pose(
+        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm
+    )
     B0, G = B0u[uinv], Gu[uinv]
-    scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
-    reg_gain = _registration_and_gains(B0, G, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct)
+    B_reg, G_reg, B_pose = B0, G, B0
+    if planar:
+        B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
+    lever_pt = p - pose[:3] * UM  # from the magnet origin
+    notes += check_hall_scale(rec.B, B0, source=rec.source)
+    reg_gain = _registration_and_gains(
+        B_reg, G_reg, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct, B_gain=B0
+    )
     y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
-    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
     blocks = []
     var_known = np.zeros_like(y)
     lever = axis_var = None  # the vibration's lever (n, 3, 3) and variance per axis (3,)
-    q = np.zeros_like(p)
     disp = None
     if bench is not None:
-        q = bench.axis_positions_for(p)
-        if np.any(bench.outside_stroke(q)):
-            span = p.max(0) - p.min(0)
-            if np.any(span > bench.strokes_mm):
-                notes.append(
-                    "the map is larger than the bench strokes: positioning errors not modelled"
-                )
-                bench = None
-            else:
-                q = q - q.mean(0) + bench.strokes_mm / 2
-                notes.append(
-                    "bench magnet placement puts the map outside the strokes; the map was "
-                    "centred in the working volume (assumption)"
-                )
-    if bench is not None:
         R = bench.bench_to_magnet_rotation()
-        at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
         if hessian is None and np.any(at) and not planar:
             # the curvature at the nominal placement: a move of the magnet changes it to
             # second order only, so every relinearisation of this map reuses it
@@ -706,11 +734,8 @@ def hall_problem(
             hessian = field_hessian(field_fn, upts, h2)
             rebuild = partial(rebuild, hessian=hessian)
         H = None if hessian is None else hessian[uinv]
-        if planar:  # the 2-D field read exactly where the pose and the errors put the probe
-            d = bench_move(bench, q, at)
-            Bb = B0 if d is None else B0 + posed_field(field_fn, pose)(p + d) - B_pose
-        else:
-            Bb = bench_expansion(bench, q, p, at, B0, G, H)
+        # a 2-D field is read where the errors put the probe already
+        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
         lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
