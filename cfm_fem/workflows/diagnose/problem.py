@@ -756,7 +756,12 @@ def hall_problem(
                "the spread of the nearest nodes' fits)" if smooth else
                "corrected by its curvature: its own error (rms {:.3g} units over the readings, "
                "from the map's fourth differences)")  # fmt: skip
-        notes.append(f"reference map read between nodes {how.format(rms)} is added to the noise")
+        stated = getattr(ref_error, "note", None)
+        notes.append(
+            f"reference: {stated} (rms {rms:.3g} units over the readings)"
+            if stated
+            else f"reference map read between nodes {how.format(rms)} is added to the noise"
+        )
     elif ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
