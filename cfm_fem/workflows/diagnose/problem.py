@@ -680,11 +680,13 @@ def hall_problem(
         columns are linearised there too, with the magnet offset and rolled only: the
         offsets' second-order terms (a sextupole's g (dx^2 - dy^2), a constant) carry much of
         what the data say about the offsets, and depend on the magnet's offset less the
-        bench's. Every other column, ``ctx.B0``, ``ctx.G`` and ``ctx.field_fn`` stay those of
-        the nominal placement: the pose's rotations about x and y give the 2-D field a B_z
-        and a variation along z, which in the bench's columns would reproduce a tilted Hall
-        element, and which the soft ends' model (``fringe_field_3d``, built on ``ctx``) does
-        not expect of a 2-D field.
+        bench's. The bench's columns see the probe's moves through that same gradient (else
+        a registration column less a bench offset's would leave the field's curvature times
+        the move, the signature of volume averaging). The gains, ``ctx.B0``, ``ctx.G`` and
+        ``ctx.field_fn`` stay those of the nominal placement: the pose's rotations about x
+        and y give the 2-D field a B_z and a variation along z, which in the columns would
+        reproduce a tilted Hall element, and which the soft ends' model
+        (``fringe_field_3d``, built on ``ctx``) does not expect of a 2-D field.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -736,7 +738,7 @@ def hall_problem(
         H = None if hessian is None else hessian[uinv]
         # a 2-D field is read where the errors put the probe already
         Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
-        lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
+        lever = np.einsum("nij,jk->nik", G_reg, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
         # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
