@@ -704,7 +704,7 @@ def hall_problem(
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     if planar is None:  # decided once, at the first linearisation
         planar = smooth and ref_nodes is None and _is_planar(field_fn, upts, h)
-        rebuild = partial(rebuild, planar=planar)
+    rebuild = partial(rebuild, planar=planar)
     notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T"]
     q, bench = _axis_positions(bench, p, notes)
     at = None

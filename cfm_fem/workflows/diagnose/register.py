@@ -32,8 +32,9 @@ STEP_TOL = 0.05
 def applies(prob: Problem) -> bool:
     """Whether the registration of ``prob`` is made non-linear: a Hall map against a 3-D
     reference map (smooth, or interpolated linearly with the readings on its nodes), against
-    2-D harmonics (read exactly at the pose, the columns kept at the nominal placement:
-    :func:`~cfm_fem.workflows.diagnose.problem.hall_problem`, ``planar``), or against any
+    2-D harmonics while the problem is at the nominal placement (read exactly at the pose:
+    :func:`~cfm_fem.workflows.diagnose.problem.hall_problem`, ``planar``; the baseline
+    places the magnet once, the selected model does not move it again), or against any
     reference that varies along z at the readings.
 
     A 3-D map holds the magnet's ends where its nodes reach them, so a pose fitted against it
@@ -49,7 +50,9 @@ def applies(prob: Problem) -> bool:
         return False
     if not prob.ctx.smooth and prob.ctx.node_step is None:
         return False
-    if prob.ctx.reference_3d or getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+    if getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+        return not np.any(prob.ctx.pose)  # placed once, by the baseline (:func:`register`)
+    if prob.ctx.reference_3d:
         return True
     G = prob.ctx.G
     return bool(np.abs(G[:, :, 2]).max() > 1e-3 * max(np.abs(G[:, :, :2]).max(), 1e-300))
@@ -116,6 +119,7 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     prob = bench_step(prob)
     if not applies(prob):
         return prob
+    nominal = prob
     obj, base, fit = _objective(prob)
     for _ in range(max_iter):
         pose, moved = pose_step(prob, base, fit)
@@ -131,7 +135,24 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
         else:
             break
         prob, obj, base, fit = trial, obj_t, base_t, fit_t
-    return prob
+    return repose(nominal, np.zeros(len(REG_NAMES)), planar=False) if _steered(prob) else prob
+
+
+#: Against a 2-D reference, a baseline pose beyond this many survey stds is steered by what
+#: the reference lacks (the magnet's ends), not the magnet's placement.
+STEERED_STD = 4.0
+
+
+def _steered(prob: Problem) -> bool:
+    """Whether the pose the baseline fits against a 2-D reference is beyond
+    :data:`STEERED_STD` survey stds in some parameter: a map through the magnet's ends, which
+    a 2-D field lacks, pulls the baseline's pose by hundreds of urad; relinearised there, the
+    2-D field is read where the magnet is not: it is then read linearly at the nominal
+    placement."""
+    if not getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+        return False
+    reg = next(b for b in prob.baseline if b.group == "registration")
+    return bool(np.any(np.abs(np.asarray(prob.ctx.pose)) > STEERED_STD * reg.prior_std))
 
 
 def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
