@@ -325,12 +325,14 @@ def posed_field(field_fn, pose):
     return fn
 
 
-def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> list:
+def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct, B_gain=None) -> list:
     """The magnet-to-bench registration (translation, small rotation about the magnet origin)
     and the Hall gains as baseline columns of a Hall map, with their priors.
 
     ``B0``, ``G``: the field and its gradient at the readings, the magnet at its current pose;
-    ``p``: the readings' positions from the magnet origin (mm)."""
+    ``p``: the readings' positions from the magnet origin (mm); ``B_gain``: the field the
+    gains multiply (default ``B0``)."""
+    B_gain = B0 if B_gain is None else B_gain
     n = len(p)
     reg = np.zeros((n, 3, 6))
     reg[:, :, 0:3] = -G * UM  # magnet moved by +t: B(p - t)
@@ -340,7 +342,7 @@ def _registration_and_gains(B0, G, p, reg_std_mm, reg_std_rad, gain_std_pct) -> 
         reg[:, :, 3 + a] = np.cross(e, B0) - np.einsum("nij,nj->ni", G, np.cross(e, p))
     gain = np.zeros((n, 3, 3))
     for i in range(3):
-        gain[:, i, i] = B0[:, i] * 1e-2
+        gain[:, i, i] = B_gain[:, i] * 1e-2
     return [
         Columns(
             reg,
@@ -449,14 +451,23 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
     ndarray, shape (n, 3), T
         B(p + d) to second order.
     """
-    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
-    th = np.asarray(theta, dtype=float) * unit  # mm, rad
-    if not np.any(th) or len(p) != len(B0):
+    d = bench_move(bench, q, theta)
+    if d is None or len(p) != len(B0):
         return B0
-    R = bench.bench_to_magnet_rotation()
-    d = probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T  # exact move, magnet frame
     Hd = np.einsum("nijk,nk->nij", H, d)
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
+
+
+def bench_move(bench: Bench, q, theta):
+    """The probe's exact move by the bench errors ``theta`` (um, urad; order of
+    ``ERROR_NAMES``) at the axis positions ``q`` (n, 3) mm: (n, 3) mm in the magnet frame,
+    or None for all errors zero."""
+    unit = np.where([n.startswith(("eps", "alpha")) for n in ERROR_NAMES], URAD, UM)
+    th = np.asarray(theta, dtype=float) * unit  # mm, rad
+    if not np.any(th):
+        return None
+    R = bench.bench_to_magnet_rotation()
+    return probe_errors_for_bench(bench, th[None, :], q)[0] @ R.T
 
 
 def _node_step(upts, spacing_mm, nodes):
@@ -496,6 +507,52 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
     G = G + Hd
     return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+
+
+def _axis_positions(bench, p, notes):
+    """The bench's axis positions (n, 3) mm of the readings ``p`` and the bench (None when
+    the map exceeds its strokes); a map placed outside the strokes is centred in them. The
+    assumptions made are appended to ``notes``."""
+    if bench is None:
+        return np.zeros_like(p), None
+    q = bench.axis_positions_for(p)
+    if np.any(bench.outside_stroke(q)):
+        span = p.max(0) - p.min(0)
+        if np.any(span > bench.strokes_mm):
+            notes.append(
+                "the map is larger than the bench strokes: positioning errors not modelled"
+            )
+            return np.zeros_like(p), None
+        q = q - q.mean(0) + bench.strokes_mm / 2
+        notes.append(
+            "bench magnet placement puts the map outside the strokes; the map was "
+            "centred in the working volume (assumption)"
+        )
+    return q, bench
+
+
+def _planar_at_pose(field_fn, p, pose, h, bench, q, at):
+    """A 2-D reference at the readings: field (n, 3) T and gradient (n, 3, 3) T/mm of the
+    registration's columns, and the exact reading (n, 3) T.
+
+    Both are evaluated where the bench errors ``at`` move the probe (exact chain). The
+    reading is the field with the magnet at the whole ``pose``; the registration is
+    linearised with the magnet offset and rolled only, which keeps the field 2-D (see
+    :func:`hall_problem`, ``planar``)."""
+    d = None if bench is None else bench_move(bench, q, at)
+    moved = p if d is None else p + d
+    fn = posed_field(field_fn, pose * (1.0, 1.0, 1.0, 0.0, 0.0, 1.0))
+    return fn(moved), field_jacobian(fn, moved, h), posed_field(field_fn, pose)(moved)
+
+
+def _is_planar(field_fn, upts, h) -> bool:
+    """Whether a reference is a 2-D field at the points ``upts`` (mm): B_z and every
+    derivative along z zero there (2-D harmonics)."""
+    B = field_fn(upts)
+    if np.any(B[:, 2]):
+        return False
+    e = np.array([0.0, 0.0, h])
+    return not (np.any(field_fn(upts + e) - B) or np.any(field_fn(upts - e) - B))
 
 
 #: Prior std of the magnet-to-bench registration where neither the caller nor the bench file
@@ -569,6 +626,7 @@ def hall_problem(
     ref_error=None,
     bench_at=None,
     hessian=None,
+    planar=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -627,6 +685,21 @@ def hall_problem(
     hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
         The reference's Hessian at the distinct points (computed once, then passed on by
         ``ctx.rebuild``).
+    planar : bool, optional
+        The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
+        the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
+        field the readings are taken exactly with the magnet at ``pose`` and the probe where
+        the bench errors ``bench_at`` move it (the field is analytic). The registration's
+        columns are linearised there too, with the magnet offset and rolled only: the
+        offsets' second-order terms (a sextupole's g (dx^2 - dy^2), a constant) carry much of
+        what the data say about the offsets, and depend on the magnet's offset less the
+        bench's. The bench's columns see the probe's moves through that same gradient (else
+        a registration column less a bench offset's would leave the field's curvature times
+        the move, the signature of volume averaging). The gains, ``ctx.B0``, ``ctx.G`` and
+        ``ctx.field_fn`` stay those of the nominal placement: the pose's rotations about x
+        and y give the 2-D field a B_z and a variation along z, which in the columns would
+        reproduce a tilted Hall element, and which the soft ends' model
+        (``fringe_field_3d``, built on ``ctx``) does not expect of a 2-D field.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -642,45 +715,43 @@ def hall_problem(
                       ref_error=ref_error, bench_at=bench_at)  # fmt: skip
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
-    B0u, Gu, fn_posed = _field_at_pose(field_fn, upts, pose, h, smooth, ref_spacing_mm)
+    if planar is None:  # decided once, at the first linearisation
+        planar = smooth and ref_nodes is None and _is_planar(field_fn, upts, h)
+    rebuild = partial(rebuild, planar=planar)
+    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T"]
+    q, bench = _axis_positions(bench, p, notes)
+    at = None
+    if bench is not None:
+        at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
+    B0u, Gu, fn_posed = _field_at_pose(
+        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm
+    )
     B0, G = B0u[uinv], Gu[uinv]
-    scale_notes = check_hall_scale(rec.B, B0, source=rec.source)
+    B_reg, G_reg, B_pose = B0, G, B0
+    if planar:
+        B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
     lever_pt = p - pose[:3] * UM  # from the magnet origin
-    reg_gain = _registration_and_gains(B0, G, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct)
-    y = rec.B - B0 + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
-    notes = [f"Hall residual = measured - reference field; B_ref = {b_ref:.6g} T", *scale_notes]
+    notes += check_hall_scale(rec.B, B0, source=rec.source)
+    reg_gain = _registration_and_gains(
+        B_reg, G_reg, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct, B_gain=B0
+    )
+    y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
     blocks = []
     var_known = np.zeros_like(y)
     lever = axis_var = None  # the vibration's lever (n, 3, 3) and variance per axis (3,)
-    q = np.zeros_like(p)
     disp = None
     if bench is not None:
-        q = bench.axis_positions_for(p)
-        if np.any(bench.outside_stroke(q)):
-            span = p.max(0) - p.min(0)
-            if np.any(span > bench.strokes_mm):
-                notes.append(
-                    "the map is larger than the bench strokes: positioning errors not modelled"
-                )
-                bench = None
-            else:
-                q = q - q.mean(0) + bench.strokes_mm / 2
-                notes.append(
-                    "bench magnet placement puts the map outside the strokes; the map was "
-                    "centred in the working volume (assumption)"
-                )
-    if bench is not None:
         R = bench.bench_to_magnet_rotation()
-        at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
-        if hessian is None and np.any(at):
+        if hessian is None and np.any(at) and not planar:
             # the curvature at the nominal placement: a move of the magnet changes it to
             # second order only, so every relinearisation of this map reuses it
             h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
             hessian = field_hessian(field_fn, upts, h2)
             rebuild = partial(rebuild, hessian=hessian)
         H = None if hessian is None else hessian[uinv]
-        Bb = bench_expansion(bench, q, p, at, B0, G, H)
-        lever = np.einsum("nij,jk->nik", G, R)  # dB per bench-frame probe displacement
+        # a 2-D field is read where the errors put the probe already
+        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
+        lever = np.einsum("nij,jk->nik", G_reg, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
         # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
@@ -700,7 +771,12 @@ def hall_problem(
                "the spread of the nearest nodes' fits)" if smooth else
                "corrected by its curvature: its own error (rms {:.3g} units over the readings, "
                "from the map's fourth differences)")  # fmt: skip
-        notes.append(f"reference map read between nodes {how.format(rms)} is added to the noise")
+        stated = getattr(ref_error, "note", None)
+        notes.append(
+            f"reference: {stated} (rms {rms:.3g} units over the readings)"
+            if stated
+            else f"reference map read between nodes {how.format(rms)} is added to the noise"
+        )
     elif ref_spacing_mm is not None and not smooth:
         var_ref = _reference_error(field_fn, upts, ref_spacing_mm, ref_nodes)[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
@@ -782,6 +858,7 @@ __all__ += [
     "ProblemContext",
     "noise_sigma",
     "bench_columns",
+    "bench_move",
     "field_hessian_diag",
     "field_hessian",
     "AXES",

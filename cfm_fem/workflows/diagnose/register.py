@@ -31,22 +31,27 @@ STEP_TOL = 0.05
 
 def applies(prob: Problem) -> bool:
     """Whether the registration of ``prob`` is made non-linear: a Hall map against a 3-D
-    reference map (smooth, or interpolated linearly with the readings on its nodes), or
-    against any reference that varies along z at the readings.
+    reference map (smooth, or interpolated linearly with the readings on its nodes), against
+    2-D harmonics while the problem is at the nominal placement (read exactly at the pose:
+    :func:`~cfm_fem.workflows.diagnose.problem.hall_problem`, ``planar``; the baseline
+    places the magnet once, the selected model does not move it again), or against any
+    reference that varies along z at the readings.
 
     A 3-D map holds the magnet's ends where its nodes reach them, so a pose fitted against it
     has nothing to steer it but the data; and in a magnet's body the pose's second-order terms
     are still there: a rotation about x or y of a few tens of urad turns a transverse field
     shifted by a magnet offset of tens of um into a Bz offset of tenths of a uT, above a
-    low-noise probe's floor over a few hundred readings. Against 2-D harmonics, a map
-    through the magnet ends, which that reference lacks, would steer the pose (the soft ends
-    are ``fringe_field_3d``'s). Between the nodes of a linear map its curvature is not known
+    low-noise probe's floor over a few hundred readings. Against 2-D harmonics the offsets
+    of a sextupole or higher leave g (dx^2 - dy^2), a constant field, which a linear pose
+    leaves to a Hall offset. Between the nodes of a linear map its curvature is not known
     better than its own interpolation error (added to the noise), which is of the order of
     the second-order terms of a move of up to a node spacing."""
     if prob.kind != "hall" or prob.ctx.rebuild is None:
         return False
     if not prob.ctx.smooth and prob.ctx.node_step is None:
         return False
+    if getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+        return not np.any(prob.ctx.pose)  # placed once, by the baseline (:func:`register`)
     if prob.ctx.reference_3d:
         return True
     G = prob.ctx.G
@@ -114,6 +119,7 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     prob = bench_step(prob)
     if not applies(prob):
         return prob
+    nominal = prob
     obj, base, fit = _objective(prob)
     for _ in range(max_iter):
         pose, moved = pose_step(prob, base, fit)
@@ -129,7 +135,24 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
         else:
             break
         prob, obj, base, fit = trial, obj_t, base_t, fit_t
-    return prob
+    return repose(nominal, np.zeros(len(REG_NAMES)), planar=False) if _steered(prob) else prob
+
+
+#: Against a 2-D reference, a baseline pose beyond this many survey stds is steered by what
+#: the reference lacks (the magnet's ends), not the magnet's placement.
+STEERED_STD = 4.0
+
+
+def _steered(prob: Problem) -> bool:
+    """Whether the pose the baseline fits against a 2-D reference is beyond
+    :data:`STEERED_STD` survey stds in some parameter: a map through the magnet's ends, which
+    a 2-D field lacks, pulls the baseline's pose by hundreds of urad; relinearised there, the
+    2-D field is read where the magnet is not: it is then read linearly at the nominal
+    placement."""
+    if not getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+        return False
+    reg = next(b for b in prob.baseline if b.group == "registration")
+    return bool(np.any(np.abs(np.asarray(prob.ctx.pose)) > STEERED_STD * reg.prior_std))
 
 
 def bench_step(prob: Problem, max_iter: int = 3) -> Problem:

@@ -7,6 +7,7 @@ diagnose it (`cfm_fem.workflows.diagnose.workflow.diagnose`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from ..inputs import bench_provenance, choose_bench, recording, refuse_reader_op
 from .reference import node_spacing_mm
 
 __all__ = ["DiagnoseRun", "check_options", "run_diagnose", "reference_field", "node_spacing_mm",
-           "MIN_POINTS_SINGLE"]  # fmt: skip
+           "MIN_POINTS_SINGLE", "truncation_note"]  # fmt: skip
 
 #: Without repeated points the noise comes from the residual scatter of single readings; fewer
 #: points than this leave too few degrees of freedom for it (and for the held-out folds).
@@ -93,6 +94,54 @@ def _is_harmonics(spec) -> bool:
     return Path(spec).is_file() and is_harmonics_file(Path(spec))
 
 
+def _tail(mp):
+    """Highest stated order N and the modulus c (T at R_ref) the first order left out is
+    taken to have: the largest of the last max(2, N // 5) stated ones."""
+    c = np.hypot(mp.normal, mp.skew)
+    return int(c.size), float(c[-max(2, c.size // 5) :].max())
+
+
+def truncation_var(mp, points) -> np.ndarray:
+    """Variance (n, 3) T^2 of the first order a harmonics file leaves out, at ``points``
+    (n, 3) mm: its modulus c (r / R_ref)^N (:func:`_tail`) at each point's radius r, half of
+    its square on B_x, half on B_y, none on B_z."""
+    n_top, tail = _tail(mp)
+    bound = tail * (np.hypot(points[:, 0], points[:, 1]) / mp.r_ref) ** n_top
+    var = np.zeros((len(points), 3))
+    var[:, :2] = 0.5 * bound[:, None] ** 2
+    return var
+
+
+def truncation_note(mp, points) -> str:
+    """What the first order a harmonics file leaves out may add at the readings, for the
+    notes (:func:`truncation_var`).
+
+    Parameters
+    ----------
+    mp : Multipole
+    points : ndarray, shape (n, 3), mm
+        The readings, magnet frame.
+
+    Returns
+    -------
+    str
+    """
+    n_top, tail = _tail(mp)
+    rho = float(np.hypot(points[:, 0], points[:, 1]).max()) / mp.r_ref
+    units = 1e4 / mp.b_ref
+    beyond = (
+        f"; the readings reach {rho:.3g} R_ref, where the series need not converge"
+        if rho > 1.0
+        else ""
+    )
+    return (
+        f"2-D harmonics' truncation: the orders stop at {n_top}; the first left out, taken as "
+        f"large at R_ref = {mp.r_ref:.4g} mm as the largest of the last stated "
+        f"({tail * units:.3g} units), adds up to {tail * rho**n_top * units:.3g} units at the "
+        f"readings' largest radius {rho:.3g} R_ref{beyond}; added to the noise"
+    )
+
+
 def _fitted(spec: str, rec, reader):
     from .harmonic_fit import fit_harmonic_field, fit_piecewise_harmonic
 
@@ -156,16 +205,22 @@ def reference_field(spec, rec, r_ref=None, field_model: str = "linear", reader=N
 
             refuse_reader_options(reader, f"--reference {text} is a harmonics file (n, Bn, An)")
             mp = read_harmonics(path, r_ref_mm=r_ref)
+
+            def fn(p):
+                return mp.field(p)
+
+            fn.error_var = partial(truncation_var, mp)
+            fn.error_var.note = truncation_note(mp, rec.cmd)
             return (
-                mp.field,
+                fn,
                 mp.b_ref,
                 None,
                 (
                     f"2-D multipole {path.name}; a 2-D field states no error of its own: the "
                     "magnet's 3-D departure from it (its ends; in the body, variation along z and "
                     "B_z) is taken as zero and is not in the noise, so residuals varying along z "
-                    "or in B_z may be that departure (a 3-D field map as reference states its "
-                    "error)"
+                    "or in B_z may be that departure, which fringe_field_3d tests as an effect "
+                    "(a 3-D field map as reference states its error)"
                 ),
             )
     return _map_reference(spec, rec, field_model, reader)
