@@ -152,8 +152,9 @@ def retire_index(out: Path) -> None:
 
 @locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
-    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True
-) -> dict:
+    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True,
+    summary: dict | None = None,
+) -> dict:  # fmt: skip
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
     The maps are written first, then ``sweep.pvd``, then ``summary.json``: each file atomically,
@@ -170,6 +171,8 @@ def write_sweep(
         that they do not use (`remove_earlier_outputs`: its maps that ``sweep.pvd`` does not
         name, the temporaries of a killed run); False leaves them (``cfm-fem sweep`` removes
         them itself and names them).
+    summary : dict, optional
+        ``summarize(res)``, when the caller made it already (its provenance is set here).
 
     Raises
     ------
@@ -179,7 +182,7 @@ def write_sweep(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    summary = summarize(res)
+    summary = summarize(res) if summary is None else summary
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
