@@ -331,6 +331,10 @@ def _field_sha(field):
 
 def _on_disk(job, fm) -> SweepRun:
     """The sweep in this process or on Dask, resumable, written into ``job.out_dir``."""
+    from concurrent import futures
+
+    import numba
+
     from ...errors import interrupted
     from ...io.sweep_out import write_sweep, write_sweep_pieces
     from .in_memory import run_sweep as run
@@ -384,10 +388,16 @@ def _on_disk(job, fm) -> SweepRun:
                                      remove_stale=False)  # fmt: skip
     else:
         summary, drawing = _report_ahead(job, res, prov)
+        # the figures' thread takes one core of the map writers'
+        writers = None if drawing is None else max(1, numba.get_num_threads() - 1)
         try:
-            summary = write_sweep(out, res, prov, remove_stale=False, summary=summary)
-        finally:  # a failed write still waits for the figures' thread before going on
-            drawn = drawing and drawing.result()
+            summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
+                                  writers=writers)  # fmt: skip
+        except BaseException:  # the write's error, once the figures' thread has ended
+            if drawing is not None:
+                futures.wait([drawing])
+            raise
+        drawn = drawing and drawing.result()
     _remove_stale_maps(out, job.log)  # the new outputs are complete: now the old maps can go
     written = _finish(job, runner, res, drawn)
     return SweepRun(res, summary, written)
