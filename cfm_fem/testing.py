@@ -705,9 +705,19 @@ def cv_stats(y, xu, s, sig1, p=0.95):
         d = ((srt_y[i + m] - s * srt_x[i + m]) - (srt_y[i - m] - s * srt_x[i - m])) * w
         if side == "lo":
             c = np.sum((y <= fy[2]) & (xu > fx[2]))
+            window = xu <= xs[h - 1]  # the h trials of X's low tail
         else:
             c = np.sum((y >= fy[3]) & (xu < fx[3]))
-        var[side] = (a * (1 - a) * ify**2, a * (1 - a) * d**2 + 2.0 * (c / n) * abs(ify * ifx))
+            window = xu >= xs[n - h]
+        v_cv = a * (1 - a) * d**2 + 2.0 * (c / n) * abs(ify * ifx)
+        e = (y - s * xu)[window]  # the remainder near the quantile
+        if len(e) >= 2:  # few trials: Var(e) / (1 + sd(e) / spacing), spacing 1 / (n f_X)
+            sd_e, spacing = e.std(ddof=1), abs(ifx) / n
+            small = sd_e**2 / (1.0 + sd_e / spacing) if spacing > 0 else 0.0
+            v_cv = max(v_cv, a * (1 - a) * d**2 + n * small)
+        else:
+            v_cv = np.inf
+        var[side] = (a * (1 - a) * ify**2, v_cv)
     if var["lo"][1] + var["hi"][1] < var["lo"][0] + var["hi"][0]:
         ex = s * sig1
         exact = np.array([0.0, ex, -zq * ex, zq * ex, -zq * ex, zq * ex])

@@ -107,7 +107,8 @@ def test_normal_quantile_matches_scipy():
 
 
 @pytest.mark.parametrize(
-    "n, coupling, noise", [(1000, 1.0, 1e-3), (4000, 1.0, 0.05), (1000, 0.0, 0.5)]
+    "n, coupling, noise",
+    [(1000, 1.0, 1e-3), (4000, 1.0, 0.05), (1000, 0.0, 0.5), (240, 1.0, 1e-3), (240, 1.0, 0.05)],
 )
 def test_cv_statistics_kernel_matches_its_numpy_twin(n, coupling, noise):
     """`cv_stats` (and the tails of `sample_tails` it takes) against `testing.cv_stats`, on

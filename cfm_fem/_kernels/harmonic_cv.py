@@ -14,8 +14,13 @@ and likewise the mean (0), the standard deviation (s sigma_c) and the shortest i
 (-+ z s sigma_c for a normal X). The estimator's standard error is the asymptotic one of a
 difference of two sample quantiles, sqrt(Var(psi_Y - psi_X) / n) with
 psi = (1{V <= q_V} - a) / f_V(q_V), f_X exact and f_Y from the spacing of the order statistics
-around q^_Y. Where the plain sample quantile has the smaller estimated variance (a first-order
-part that follows Y poorly, as near a zero of |B|) the plain statistics of Y are kept.
+around q^_Y. That variance holds once the order statistics of s X lie closer together
+(1 / (n f_X)) than the remainder e = Y - s X spreads near the quantile; with fewer trials the
+estimate follows the remainder of the one or few trials at the quantile, of variance
+~ Var(e) / (1 + sd(e) n f_X) (`_few_trials`, Var(e) over the trials of X's tail), and the larger
+of the two is taken. Where the plain sample quantile has the smaller estimated variance (a
+first-order part that follows Y poorly, as near a zero of |B|) the plain statistics of Y are
+kept.
 
 Trials are drawn ``pilot`` first, then doubled up to ``cap`` until the standard error of
 both ends of |B|'s symmetric interval is at most ``rel_se`` of U_f = max(|low|, |high|) at
@@ -119,15 +124,55 @@ def _spacing(y_tail, x_tail, s, i, m, n):
 
 
 @nb.njit(**JIT)
-def _crossings(y, xu, n, y_lo, x_lo, y_hi, x_hi):
-    """Trials on the tail side of Y's quantile but not of X's: Y <= y_lo < ... with
-    X > x_lo, and Y >= y_hi with X < x_hi."""
+def _crossings(y, xu, n, s, ends, x_ends, x_win):
+    """Trials on the tail side of Y's quantile but not of X's: Y <= y_lo with X > x_lo, and
+    Y >= y_hi with X < x_hi (``ends`` = (y_lo, y_hi), ``x_ends`` = (x_lo, x_hi)); and the
+    variance of the remainder Y - s X over the trials of each tail window of X, X <= x_win[0]
+    and X >= x_win[1] (NaN if fewer than 2).
+
+    Returns
+    -------
+    c_lo, c_hi : int
+    var_lo, var_hi : float, T^2
+    """
     c_lo = 0
     c_hi = 0
+    k_lo = k_hi = 0.0  # per window: count, sum and sum of squares of e = Y - s X
+    s1_lo = s1_hi = s2_lo = s2_hi = 0.0
     for t in range(n):
-        c_lo += (y[t] <= y_lo) & (xu[t] > x_lo)
-        c_hi += (y[t] >= y_hi) & (xu[t] < x_hi)
-    return c_lo, c_hi
+        c_lo += (y[t] <= ends[0]) & (xu[t] > x_ends[0])
+        c_hi += (y[t] >= ends[1]) & (xu[t] < x_ends[1])
+        e = y[t] - s * xu[t]
+        if xu[t] <= x_win[0]:
+            k_lo += 1.0
+            s1_lo += e
+            s2_lo += e * e
+        elif xu[t] >= x_win[1]:
+            k_hi += 1.0
+            s1_hi += e
+            s2_hi += e * e
+    return c_lo, c_hi, _variance(k_lo, s1_lo, s2_lo), _variance(k_hi, s1_hi, s2_hi)
+
+
+@nb.njit(**JIT)
+def _variance(k, s1, s2):
+    """Sample variance (ddof 1) from a count and the sums of values and squares; NaN if k < 2."""
+    return max(s2 - s1 * s1 / k, 0.0) / (k - 1.0) if k >= 2.0 else np.nan
+
+
+@nb.njit(**JIT)
+def _few_trials(a, d_inv, var_e, inv_f, n):
+    """n times the variance of the difference estimator while the order statistics of s X
+    lie farther apart (1 / (n f_X)) than the remainder e = Y - s X spreads (sd(e) near the
+    quantile, ``var_e``): the estimate then follows the remainder of the one or few trials at
+    the quantile, Var ~ Var(e) / (1 + sd(e) n f_X), which the asymptotic variance (its large-n
+    limit, ~sd(e) / (n f_X)) misses; plus the density term of `_variances`."""
+    if not var_e >= 0.0:
+        return np.inf
+    spacing = abs(inv_f) / n
+    sd = math.sqrt(var_e)
+    small = var_e / (1.0 + sd / spacing) if spacing > 0.0 else 0.0
+    return a * (1.0 - a) * d_inv * d_inv + n * small
 
 
 @nb.njit(**JIT)
@@ -184,9 +229,12 @@ def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
     ify_lo, d_lo = _spacing(low, x_tails[0], s, r - 1, m, n)
     ify_hi, d_hi = _spacing(high, x_tails[1], s, r - 1, m, n)
     ifx = s * sig1 / (math.exp(-0.5 * zq * zq) / math.sqrt(2.0 * math.pi))
-    c_lo, c_hi = _crossings(y, xu, n, out[2], x_st[2], out[3], x_st[3])
+    c_lo, c_hi, ve_lo, ve_hi = _crossings(y, xu, n, s, (out[2], out[3]), (x_st[2], x_st[3]),
+                                          (x_tails[0][h - 1], x_tails[1][0]))  # fmt: skip
     vp_lo, vc_lo = _variances(a_lo, ify_lo, ifx, d_lo, c_lo / n)
     vp_hi, vc_hi = _variances(a_hi, ify_hi, ifx, d_hi, c_hi / n)
+    vc_lo = max(vc_lo, _few_trials(a_lo, d_lo, ve_lo, ifx, n))
+    vc_hi = max(vc_hi, _few_trials(a_hi, d_hi, ve_hi, ifx, n))
     if vc_lo + vc_hi < vp_lo + vp_hi:  # the first-order part helps: difference estimator
         ex = s * sig1
         out[0] = mean - s * x_st[0]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .options import JIT
+from .options import JIT, RJIT
 
 #: A Cholesky pivot of the column-scaled normal matrix (unit diagonal) below this means the
 #: neighbourhood cannot tell the basis field from the lower ones: that degree and higher are
@@ -77,13 +77,14 @@ def _sparse_basis(gmat):
     return start, mono, val
 
 
-@nb.njit(**JIT)
+@nb.njit(**RJIT)
 def _cholesky(a, n):
     """Lower Cholesky factor, in place, of the symmetric matrix in the lower triangle of
     ``a[:n, :n]``, column by column up to the first pivot <= `FIT_PIVOT_MIN`.
 
     Returns the number of columns factorised: the leading block of that size is the factor
-    of the matrix's leading block.
+    of the matrix's leading block. Its dot products are summed in the order the compiled
+    (vectorised) loop fixes.
     """
     for j in range(n):
         for col in range(j + 1):
@@ -277,8 +278,8 @@ def _spread_level(braw, k):
 @nb.njit(**JIT)
 def _factor(arow, at, colnorm, cs, chol):
     """Scale the columns of ``arow`` to unit norm (norms to ``colnorm``, ``at`` its
-    transpose), form the normal matrix by rank-1 updates (contiguous rows: vectorised) and
-    factorise it in ``chol``. Returns the number of columns factorised (`_cholesky`)."""
+    transpose), form the normal matrix (`_gram`) and factorise it in ``chol``. Returns the
+    number of columns factorised (`_cholesky`)."""
     rows, nbf = arow.shape
     for j in range(nbf):
         colnorm[j] = 0.0
@@ -292,18 +293,45 @@ def _factor(arow, at, colnorm, cs, chol):
         for j in range(nbf):
             arow[r, j] *= cs[j]
             at[j, r] = arow[r, j]
-    chol[:, :] = 0.0
-    for r in range(rows):
-        for j in range(nbf):
-            f = arow[r, j]
-            for col in range(j + 1):
-                chol[j, col] += f * arow[r, col]
+    _gram(at, chol)
     return _cholesky(chol, nbf)
 
 
-@nb.njit(**JIT)
+@nb.njit(**RJIT)
+def _gram(at, chol):
+    """Lower triangle of at @ at.T into ``chol`` (upper left zero): dot products of the
+    contiguous rows of ``at``, four columns of a row at a time (each row read once per four),
+    summed in the order the compiled (vectorised) loop fixes."""
+    nbf, rows = at.shape
+    for j in range(nbf):
+        col = 0
+        while col + 3 <= j:
+            s0 = s1 = s2 = s3 = 0.0
+            for r in range(rows):
+                a = at[j, r]
+                s0 += a * at[col, r]
+                s1 += a * at[col + 1, r]
+                s2 += a * at[col + 2, r]
+                s3 += a * at[col + 3, r]
+            chol[j, col] = s0
+            chol[j, col + 1] = s1
+            chol[j, col + 2] = s2
+            chol[j, col + 3] = s3
+            col += 4
+        while col <= j:
+            s0 = 0.0
+            for r in range(rows):
+                s0 += at[j, r] * at[col, r]
+            chol[j, col] = s0
+            col += 1
+        for col in range(j + 1, nbf):
+            chol[j, col] = 0.0
+
+
+@nb.njit(**RJIT)
 def _forward(at, b, chol, nhi, y, zt):
-    """y = L^-1 A^T b and Z = L^-1 A^T over the first ``nhi`` fields (rows of Z as axpys)."""
+    """y = L^-1 A^T b and Z = L^-1 A^T over the first ``nhi`` fields (each row of Z from
+    the rows above it, four at a time, into a row of work space)."""
     rows = at.shape[1]
     for j in range(nhi):
         s = 0.0
@@ -312,16 +340,26 @@ def _forward(at, b, chol, nhi, y, zt):
         for q in range(j):
             s -= chol[j, q] * y[q]
         y[j] = s / chol[j, j]
+    t = np.empty(rows)
     for j in range(nhi):
         for r in range(rows):
-            zt[j, r] = at[j, r]
-        for q in range(j):
-            f = chol[j, q]
+            t[r] = at[j, r]
+        q = 0
+        while q + 3 < j:
+            f0, f1, f2, f3 = chol[j, q], chol[j, q + 1], chol[j, q + 2], chol[j, q + 3]
+            z0, z1, z2, z3 = zt[q], zt[q + 1], zt[q + 2], zt[q + 3]
             for r in range(rows):
-                zt[j, r] -= f * zt[q, r]
+                t[r] -= (f0 * z0[r] + f1 * z1[r]) + (f2 * z2[r] + f3 * z3[r])
+            q += 4
+        while q < j:
+            f = chol[j, q]
+            z0 = zt[q]
+            for r in range(rows):
+                t[r] -= f * z0[r]
+            q += 1
         f = 1.0 / chol[j, j]
         for r in range(rows):
-            zt[j, r] *= f
+            zt[j, r] = t[r] * f
 
 
 @nb.njit(**JIT)

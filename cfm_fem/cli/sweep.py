@@ -55,8 +55,9 @@ def add_args(p):
         type=trial_count_type(),
         default=None,
         metavar="N",
+        # the range: models.sweep.ADAPTIVE_PLAN, written out so that --help stays fast
         help="plain Monte Carlo with N trials per node and U_p (default: under the harmonic "
-        "field model in mode gauss, as many trials as U_f's precision needs, 1000 to 64000 "
+        "field model in mode gauss, as many trials as U_f's precision needs, 256 to 64000 "
         "per node; 10000 elsewhere)",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")

@@ -8,6 +8,7 @@ import re
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..models.sweep import COMPONENTS, SweepResult, summarize
@@ -152,8 +153,9 @@ def retire_index(out: Path) -> None:
 
 @locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
-    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True
-) -> dict:
+    out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True,
+    summary: dict | None = None, writers: int | None = None,
+) -> dict:  # fmt: skip
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
     The maps are written first, then ``sweep.pvd``, then ``summary.json``: each file atomically,
@@ -170,6 +172,12 @@ def write_sweep(
         that they do not use (`remove_earlier_outputs`: its maps that ``sweep.pvd`` does not
         name, the temporaries of a killed run); False leaves them (``cfm-fem sweep`` removes
         them itself and names them).
+    summary : dict, optional
+        ``summarize(res)``, when the caller made it already (its provenance is set here).
+    writers : int, optional
+        Most maps written at once (default: numba's threads, one per core; fewer if their
+        memory would exceed `_WRITE_BYTES`): each writer holds its map's arrays and VTK's
+        buffers, so more writers than cores only add memory.
 
     Raises
     ------
@@ -179,7 +187,7 @@ def write_sweep(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    summary = summarize(res)
+    summary = summarize(res) if summary is None else summary
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
@@ -195,7 +203,9 @@ def write_sweep(
     # VTK compresses and writes without the GIL: maps side by side, as many as fit the budget
     n = len(res.fieldmap.points)
     per_map = n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16  # points, data, cells
-    entries = map_threads(write_map, range(len(res.labels)), max(1, _WRITE_BYTES // per_map))
+    cores = numba.get_num_threads() if writers is None else writers
+    entries = map_threads(write_map, range(len(res.labels)),
+                          max(1, min(_WRITE_BYTES // per_map, cores)))  # fmt: skip
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_paraview_script(out)
     write_json(out / "summary.json", summary)

@@ -69,7 +69,7 @@ ESTIMATORS = ("plain", "adaptive")
 #: The adaptive estimator's plan: pilot trials per node, most trials per node, and the standard
 #: error of each end of |B|'s 95 % interval it stops at, relative to U_f: 0.7 %, so that U_f
 #: lies within +-1.4 % of its exact value at 95 % (`ADAPTIVE_PRECISION`).
-ADAPTIVE_PLAN = (1000, 64000, 0.007)
+ADAPTIVE_PLAN = (256, 64000, 0.007)
 
 #: The stated precision of the adaptive estimator's U_f: relative half-width at 95 %.
 ADAPTIVE_PRECISION = 0.014

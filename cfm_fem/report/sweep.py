@@ -12,7 +12,7 @@ from .html import HtmlReport
 from .plots import count_histograms, fig4_curve, uf_slices
 from .sweep_digest import SweepDigest
 
-__all__ = ["sweep_report", "column_titles", "write_sweep_report"]
+__all__ = ["sweep_report", "column_titles", "draw_sweep_report", "write_sweep_report"]
 
 _COMPONENTS = ("absB", "Bx", "By", "Bz")
 
@@ -169,14 +169,40 @@ def sweep_report(
     return rep
 
 
+def draw_sweep_report(summary: dict, result, command_line: str | None = None,
+                      design: dict | None = None) -> dict:  # fmt: skip
+    """The report's files of a sweep still in memory, drawn before its maps are written (on a
+    thread beside the map writers: VTK writes without the GIL).
+
+    Parameters
+    ----------
+    summary : dict
+        The ``summary.json`` document the run writes (as read back: `json_text` then
+        `json.loads`).
+    result : cfm_fem.models.sweep.SweepResult
+    command_line, design : optional
+        As `sweep_report`.
+
+    Returns
+    -------
+    dict
+        File name -> bytes or text: the PNG figures and ``report.html``, for `write_run`.
+    """
+    digest = SweepDigest.of_result(result, summary["uf_units"]["max"])
+    rep = sweep_report(summary, digest, command_line, design)
+    return {**rep.images, "report.html": rep.render()}
+
+
 def write_sweep_report(
-    out_dir, command_line: str | None = None, design: dict | None = None, result=None
-):
+    out_dir, command_line: str | None = None, design: dict | None = None, result=None,
+    drawn: dict | None = None,
+):  # fmt: skip
     """Write ``report.html`` and its PNG figures beside a written sweep (its ``summary.json``
     and maps, read back one file at a time: bounded memory also for maps written as pieces);
     ``design``: the answer of ``cfm-fem design``, shown on top; ``result``: the
     `cfm_fem.models.sweep.SweepResult` (or `cfm_fem.models.sweep.CompactSweep`) the maps were
-    written from, still in memory: the figures are drawn from it and the maps not read back.
+    written from, still in memory: the figures are drawn from it and the maps not read back;
+    ``drawn``: the files `draw_sweep_report` made of this run, written as they are.
 
     Returns
     -------
@@ -186,6 +212,8 @@ def write_sweep_report(
     from ..io.run_files import write_run
     from ..io.sweep_maps import iter_map_nodes, read_summary
 
+    if drawn is not None:
+        return write_run(out_dir, drawn)
     summary = read_summary(out_dir)
     if result is not None:
         digest = SweepDigest.of_result(result, summary["uf_units"]["max"])

@@ -331,6 +331,10 @@ def _field_sha(field):
 
 def _on_disk(job, fm) -> SweepRun:
     """The sweep in this process or on Dask, resumable, written into ``job.out_dir``."""
+    from concurrent import futures
+
+    import numba
+
     from ...errors import interrupted
     from ...io.sweep_out import write_sweep, write_sweep_pieces
     from .in_memory import run_sweep as run
@@ -376,16 +380,53 @@ def _on_disk(job, fm) -> SweepRun:
                        backend=backend_description(job.scheduler, job.workers),
                        resumed_chunks=runner.loaded)  # fmt: skip
     res.mesh = res.mesh.for_output()  # point location is done: its arrays are freed here
+    drawn = None  # the report's files, when drawn beside the maps
     if job.pieces:
         chunks = chunk_ranges(fm.n_nodes, cfg.chunk_nodes)
         summary = write_sweep_pieces(out, res, job.pieces,
                                      lambda nodes: runner.gather(nodes, chunks), prov,
                                      remove_stale=False)  # fmt: skip
     else:
-        summary = write_sweep(out, res, prov, remove_stale=False)
+        summary, drawing = _report_ahead(job, res, prov)
+        # the figures' thread takes one core of the map writers'
+        writers = None if drawing is None else max(1, numba.get_num_threads() - 1)
+        try:
+            summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
+                                  writers=writers)  # fmt: skip
+        except BaseException:  # the write's error, once the figures' thread has ended
+            if drawing is not None:
+                futures.wait([drawing])
+            raise
+        drawn = drawing and drawing.result()
     _remove_stale_maps(out, job.log)  # the new outputs are complete: now the old maps can go
-    written = _finish(job, runner, res)
+    written = _finish(job, runner, res, drawn)
     return SweepRun(res, summary, written)
+
+
+def _report_ahead(job, res, prov):
+    """The summary `write_sweep` writes, and (when the run writes a report) a future of the
+    report's files drawn from it on a thread, beside the map writers (`draw_sweep_report`):
+    matplotlib holds the GIL, VTK writes without it."""
+    import json
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ...io._atomic import json_text
+    from ...models.sweep import summarize
+
+    summary = summarize(res)
+    if not job.report:
+        return summary, None
+    document = json.loads(json_text({**summary, "provenance": prov}))  # as read back
+
+    def draw():
+        from ...report.sweep import draw_sweep_report  # matplotlib: loaded only when used
+
+        return draw_sweep_report(document, res)
+
+    pool = ThreadPoolExecutor(1)
+    drawing = pool.submit(draw)
+    pool.shutdown(wait=False)  # the thread ends with its one task
+    return summary, drawing
 
 
 def _run_slabs(job):
@@ -483,11 +524,12 @@ def _remove_stale_maps(out, log) -> None:
                   "this run and not written by cfm-fem sweep")  # fmt: skip
 
 
-def _finish(job, runner=None, result=None) -> list:
+def _finish(job, runner=None, result=None, drawn=None) -> list:
     """The per-node table, the report, once the maps, ``sweep.pvd`` and ``summary.json`` are
     written; the chunk store of ``runner`` goes after every output, so a run stopped before
     then resumes from it. ``result``: the sweep's result in memory, the report's figures drawn
-    from it. Returns the files written."""
+    from it; ``drawn``: the report's files, drawn already (`_report_ahead`). Returns the files
+    written."""
     from ...io.sweep_table import remove_stale_table, write_sweep_table
 
     out = Path(job.out_dir)
@@ -501,7 +543,7 @@ def _finish(job, runner=None, result=None) -> list:
     if job.report:
         from ...report.sweep import write_sweep_report  # matplotlib: loaded only when used
 
-        written = list(write_sweep_report(out, result=result) or [])
+        written = list(write_sweep_report(out, result=result, drawn=drawn) or [])
     if runner is not None:
         runner.finish(keep=job.keep_chunks)
     return written
