@@ -765,7 +765,12 @@ def hall_problem(
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
     if ref_error is not None:
-        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
+        var_ref = np.asarray(ref_error(upts), dtype=float)
+        if ref_nodes is not None:  # one error per cell, however many readings share it
+            from .reference import shared_readings
+
+            var_ref = var_ref * shared_readings(upts, np.bincount(uinv), ref_nodes)[:, None]
+        var_ref = var_ref[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
                "the spread of the nearest nodes' fits)" if smooth else

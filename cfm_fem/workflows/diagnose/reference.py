@@ -33,7 +33,13 @@ from ...errors import CfmInputError
 from ...models.harmonic import fit_harmonic, neighbourhoods
 from ...models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
-__all__ = ["NodeExactHarmonic", "CurvatureCorrected", "node_spacing_mm", "SPREAD_NODES"]
+__all__ = [
+    "NodeExactHarmonic",
+    "CurvatureCorrected",
+    "node_spacing_mm",
+    "shared_readings",
+    "SPREAD_NODES",
+]
 
 #: Nearest usable nodes whose fits are compared at a point to estimate the model's error (the
 #: eight corners of a grid's cell).
@@ -47,6 +53,40 @@ def node_spacing_mm(points) -> float:
     d, _ = cKDTree(points).query(points, k=2)
     d = d[:, 1]
     return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
+
+
+def shared_readings(points, counts, nodes) -> np.ndarray:
+    """Readings that share the reference's error with each point: those in its cell (m,).
+
+    A reference's error between its nodes is one smooth function across a cell: every reading
+    of a point (its repetitions) carries the same error, and so, nearly, does every reading of
+    the points in the same cell. A fit that takes those errors as independent averages them
+    down by their number; weighting each reading's share of the error by that number leaves a
+    cell's readings, together, the weight of one draw of the error.
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3), mm
+        Distinct points read.
+    counts : ndarray, shape (m,)
+        Readings of each point.
+    nodes : ndarray, shape (k, 3), mm
+        The reference's nodes: its cells are the boxes between consecutive node coordinates
+        along each axis (:func:`axis_steps` apart, from the nodes' lowest corner).
+
+    Returns
+    -------
+    ndarray, shape (m,)
+        Readings in each point's cell (its own included), >= its own count.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    nodes = np.asarray(nodes, dtype=float).reshape(-1, 3)
+    steps = axis_steps(nodes, node_spacing_mm(nodes))
+    steps = np.where(steps > 0, steps, 1.0)
+    cell = np.floor((p - nodes.min(0)) / steps + 1e-9).astype(np.int64)
+    _, inv = np.unique(cell, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    return np.bincount(inv, weights=np.asarray(counts, dtype=float))[inv]
 
 
 class NodeExactHarmonic:
