@@ -376,6 +376,24 @@ def _shared_by(uinv) -> np.ndarray:
     return np.bincount(uinv)[uinv].astype(float)
 
 
+#: Share of a reference map's stated error variance carried by the reading's own noise (the
+#: part local to its cell); the rest is the smooth term across the scan
+#: (:func:`_reference_smooth_columns`).
+REF_LOCAL_SHARE = 1.0
+REF_SMOOTH_SHARE = 1.0
+
+
+def _reference_smooth_columns(upts, var, uinv) -> Columns:
+    """The smooth part of a reference map's error across the scan
+    (:func:`~cfm_fem.workflows.diagnose.reference.smooth_error_basis`), a baseline block with
+    unit-free coefficients and priors that give it 1 - :data:`REF_LOCAL_SHARE` of the stated
+    variance ``var`` (m, 3) T^2 at the distinct points ``upts`` (m, 3) mm."""
+    from .reference import smooth_error_basis
+
+    J, names, s = smooth_error_basis(upts, np.sqrt(REF_SMOOTH_SHARE * var))
+    return Columns(J[uinv], names, ["sigma"] * len(names), np.zeros(len(names)), s, "reference")
+
+
 def _reference_error(field_fn, upts, spacing_mm, nodes):
     """Interpolation error variance of a linear reference map at the distinct points, T^2: zero
     at a node, its full size half a spacing away."""
@@ -766,11 +784,13 @@ def hall_problem(
     var_ref = None
     if ref_error is not None:
         var_ref = np.asarray(ref_error(upts), dtype=float)
-        if ref_nodes is not None:  # one error per cell, however many readings share it
+        if ref_nodes is not None:  # a 3-D map: one error per cell, however many points read it
             from .reference import shared_readings
 
-            var_ref = var_ref * shared_readings(upts, np.bincount(uinv), ref_nodes)[:, None]
-        var_ref = var_ref[uinv]
+            blocks.append(_reference_smooth_columns(upts, var_ref, uinv))
+            count = np.bincount(uinv)  # the repetitions of each point count below
+            var_ref = var_ref * (shared_readings(upts, count, ref_nodes) / count)[:, None]
+        var_ref = REF_LOCAL_SHARE * var_ref[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
                "the spread of the nearest nodes' fits)" if smooth else
