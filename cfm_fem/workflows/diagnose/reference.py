@@ -18,7 +18,11 @@ corners of the cell around it, on both sides along every axis, however unequal t
 describe the field there; their largest departure from the nearest node's fit, per
 component, is the size of the truncation error of the local polynomials across that cell. It
 vanishes at a node (the model is exact there) and grows as the squared distance to the nearest
-node over the median distance to the cell's nodes, to its full size at the cell's centre. Where
+node over the median distance to the cell's nodes, to its full size at the cell's centre. In
+the map's outermost layer of cells every node's fit is one-sided and the fits err alike (a
+reading there erred by up to twelve times the corners' spread on the family's magnets), so
+the fits of the :data:`SPREAD_WIDE` nearest nodes (the next layer inward too) are compared.
+Where
 no fit holds, :class:`CurvatureCorrected` serves; its error is estimated from the map's fourth
 differences (:meth:`CurvatureCorrected.error_var`), and no smaller than its departure from the
 nearest usable node's fit (two readings of one field: their difference bounds the worse one's
@@ -46,6 +50,9 @@ __all__ = [
 #: Nearest usable nodes whose fits are compared at a point to estimate the model's error (the
 #: eight corners of a grid's cell).
 SPREAD_NODES = 8
+#: Nearest usable nodes compared at a point in the map's outermost layer of cells: the cell's
+#: corners and the next layer inward (every fit near a border is one-sided and they err alike,
+#: so the corners' fits alone understate their common error there).
 SPREAD_WIDE = 18
 
 
@@ -240,7 +247,8 @@ class NodeExactHarmonic:
     def error_var(self, points) -> np.ndarray:
         """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (module
         docstring): per component, the largest squared departure of the fits of the
-        :data:`SPREAD_NODES` nearest usable nodes from the nearest one's, times
+        :data:`SPREAD_NODES` (in the map's outermost cells :data:`SPREAD_WIDE`) nearest
+        usable nodes from the nearest one's, times
         (d_1 / d_med)^2 up to 1, d_1 the distance to the nearest of those nodes and d_med the
         median distance to them. Where no fit holds, :meth:`CurvatureCorrected.error_var`, or
         the squared largest departure of the curvature-corrected reading from the nearest
