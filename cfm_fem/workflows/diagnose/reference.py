@@ -116,7 +116,8 @@ def smooth_error_basis(points, std, degree: int = SMOOTH_DEGREE):
     ``std(p) sum_j a_j P_j(u)``, with P_j the products of Legendre polynomials of the points'
     coordinates scaled to [-1, 1] over the scan, of total degree <= ``degree``, per component,
     and a_j ~ N(0, s^2) with s^2 the reciprocal of the mean of sum_j P_j^2 over the points:
-    averaged over the readings, the variance of the correlated term is the stated one.
+    the term's variance std^2 s^2 sum_j P_j^2, averaged over the points, is the stated one
+    (exactly where the stated error is the same everywhere).
 
     Parameters
     ----------
