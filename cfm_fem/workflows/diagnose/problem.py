@@ -377,8 +377,9 @@ def _shared_by(uinv) -> np.ndarray:
 
 
 #: Share of a reference map's stated error variance carried by the reading's own noise (the
-#: part local to its cell); the rest is the smooth term across the scan
-#: (:func:`_reference_smooth_columns`).
+#: part local to its cell, times the readings that share the cell), and share carried by the
+#: smooth term across the scan (:func:`_reference_smooth_columns`): the error is stated in
+#: full in each.
 REF_LOCAL_SHARE = 1.0
 REF_SMOOTH_SHARE = 1.0
 
@@ -386,8 +387,13 @@ REF_SMOOTH_SHARE = 1.0
 def _reference_smooth_columns(upts, var, uinv) -> Columns:
     """The smooth part of a reference map's error across the scan
     (:func:`~cfm_fem.workflows.diagnose.reference.smooth_error_basis`), a baseline block with
-    unit-free coefficients and priors that give it 1 - :data:`REF_LOCAL_SHARE` of the stated
-    variance ``var`` (m, 3) T^2 at the distinct points ``upts`` (m, 3) mm."""
+    unit-free coefficients and priors that give it :data:`REF_SMOOTH_SHARE` of the stated
+    variance ``var`` (m, 3) T^2 at the distinct points ``upts`` (m, 3) mm.
+
+    Only for a map read by its harmonic fits, whose error is their truncation (the field's
+    higher derivatives, smooth over the magnet's scale). The curvature-corrected reading
+    serves maps whose fits fail, mostly measured ones, whose node values carry their own noise:
+    independent from node to node, part of its stated error, and not smooth across a scan."""
     from .reference import smooth_error_basis
 
     J, names, s = smooth_error_basis(upts, np.sqrt(REF_SMOOTH_SHARE * var))
@@ -787,7 +793,8 @@ def hall_problem(
         if ref_nodes is not None:  # a 3-D map: one error per cell, however many points read it
             from .reference import shared_readings
 
-            blocks.append(_reference_smooth_columns(upts, var_ref, uinv))
+            if smooth:  # the harmonic fits' truncation: smooth across the scan
+                blocks.append(_reference_smooth_columns(upts, var_ref, uinv))
             count = np.bincount(uinv)  # the repetitions of each point count below
             var_ref = var_ref * (shared_readings(upts, count, ref_nodes) / count)[:, None]
         var_ref = REF_LOCAL_SHARE * var_ref[uinv]
