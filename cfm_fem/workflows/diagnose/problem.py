@@ -376,6 +376,30 @@ def _shared_by(uinv) -> np.ndarray:
     return np.bincount(uinv)[uinv].astype(float)
 
 
+#: Share of a reference map's stated error variance carried by the reading's own noise (the
+#: part local to its cell, times the readings that share the cell), and share carried by the
+#: smooth term across the scan (:func:`_reference_smooth_columns`): the error is stated in
+#: full in each.
+REF_LOCAL_SHARE = 1.0
+REF_SMOOTH_SHARE = 1.0
+
+
+def _reference_smooth_columns(upts, var, uinv) -> Columns:
+    """The smooth part of a reference map's error across the scan
+    (:func:`~cfm_fem.workflows.diagnose.reference.smooth_error_basis`), a baseline block with
+    unit-free coefficients and priors that give it :data:`REF_SMOOTH_SHARE` of the stated
+    variance ``var`` (m, 3) T^2 at the distinct points ``upts`` (m, 3) mm.
+
+    Only for a map read by its harmonic fits, whose error is their truncation (the field's
+    higher derivatives, smooth over the magnet's scale). The curvature-corrected reading
+    serves maps whose fits fail, mostly measured ones, whose node values carry their own noise:
+    independent from node to node, part of its stated error, and not smooth across a scan."""
+    from .reference import smooth_error_basis
+
+    J, names, s = smooth_error_basis(upts, np.sqrt(REF_SMOOTH_SHARE * var))
+    return Columns(J[uinv], names, ["sigma"] * len(names), np.zeros(len(names)), s, "reference")
+
+
 def _reference_error(field_fn, upts, spacing_mm, nodes):
     """Interpolation error variance of a linear reference map at the distinct points, T^2: zero
     at a node, its full size half a spacing away."""
@@ -765,7 +789,15 @@ def hall_problem(
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
     if ref_error is not None:
-        var_ref = np.asarray(ref_error(upts), dtype=float)[uinv]
+        var_ref = np.asarray(ref_error(upts), dtype=float)
+        if ref_nodes is not None:  # a 3-D map: one error per cell, however many points read it
+            from .reference import shared_readings
+
+            if smooth:  # the harmonic fits' truncation: smooth across the scan
+                blocks.append(_reference_smooth_columns(upts, var_ref, uinv))
+            count = np.bincount(uinv)  # the repetitions of each point count below
+            var_ref = var_ref * (shared_readings(upts, count, ref_nodes) / count)[:, None]
+        var_ref = REF_LOCAL_SHARE * var_ref[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
                "the spread of the nearest nodes' fits)" if smooth else

@@ -18,7 +18,11 @@ corners of the cell around it, on both sides along every axis, however unequal t
 describe the field there; their largest departure from the nearest node's fit, per
 component, is the size of the truncation error of the local polynomials across that cell. It
 vanishes at a node (the model is exact there) and grows as the squared distance to the nearest
-node over the median distance to the cell's nodes, to its full size at the cell's centre. Where
+node over the median distance to the cell's nodes, to its full size at the cell's centre. In
+the map's outermost layer of cells every node's fit is one-sided and the fits err alike (a
+reading there erred by up to twelve times the corners' spread on the family's magnets), so
+the fits of the :data:`SPREAD_WIDE` nearest nodes (the next layer inward too) are compared.
+Where
 no fit holds, :class:`CurvatureCorrected` serves; its error is estimated from the map's fourth
 differences (:meth:`CurvatureCorrected.error_var`), and no smaller than its departure from the
 nearest usable node's fit (two readings of one field: their difference bounds the worse one's
@@ -33,11 +37,23 @@ from ...errors import CfmInputError
 from ...models.harmonic import fit_harmonic, neighbourhoods
 from ...models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
-__all__ = ["NodeExactHarmonic", "CurvatureCorrected", "node_spacing_mm", "SPREAD_NODES"]
+__all__ = [
+    "NodeExactHarmonic",
+    "CurvatureCorrected",
+    "node_spacing_mm",
+    "shared_readings",
+    "smooth_error_basis",
+    "SMOOTH_DEGREE",
+    "SPREAD_NODES",
+]
 
 #: Nearest usable nodes whose fits are compared at a point to estimate the model's error (the
 #: eight corners of a grid's cell).
 SPREAD_NODES = 8
+#: Nearest usable nodes compared at a point in the map's outermost layer of cells: the cell's
+#: corners and the next layer inward (every fit near a border is one-sided and they err alike,
+#: so the corners' fits alone understate their common error there).
+SPREAD_WIDE = 18
 
 
 def node_spacing_mm(points) -> float:
@@ -47,6 +63,100 @@ def node_spacing_mm(points) -> float:
     d, _ = cKDTree(points).query(points, k=2)
     d = d[:, 1]
     return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
+
+
+def shared_readings(points, counts, nodes) -> np.ndarray:
+    """Readings that share the reference's error with each point: those in its cell (m,).
+
+    A reference's error between its nodes is one smooth function across a cell: every reading
+    of a point (its repetitions) carries the same error, and so, nearly, does every reading of
+    the points in the same cell. A fit that takes those errors as independent averages them
+    down by their number; weighting each reading's share of the error by that number leaves a
+    cell's readings, together, the weight of one draw of the error.
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3), mm
+        Distinct points read.
+    counts : ndarray, shape (m,)
+        Readings of each point.
+    nodes : ndarray, shape (k, 3), mm
+        The reference's nodes: its cells are the boxes between consecutive node coordinates
+        along each axis (:func:`axis_steps` apart, from the nodes' lowest corner).
+
+    Returns
+    -------
+    ndarray, shape (m,)
+        Readings in each point's cell (its own included), >= its own count.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    nodes = np.asarray(nodes, dtype=float).reshape(-1, 3)
+    steps = axis_steps(nodes, node_spacing_mm(nodes))
+    steps = np.where(steps > 0, steps, 1.0)
+    cell = np.floor((p - nodes.min(0)) / steps + 1e-9).astype(np.int64)
+    _, inv = np.unique(cell, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    return np.bincount(inv, weights=np.asarray(counts, dtype=float))[inv]
+
+
+#: Total degree of the polynomials across the scanned volume that carry the smooth part of a
+#: reference's error (:func:`smooth_error_basis`).
+SMOOTH_DEGREE = 2
+
+
+def smooth_error_basis(points, std, degree: int = SMOOTH_DEGREE):
+    """The smooth part of a reference's error across the scan, as columns with unit priors.
+
+    A reference read between its nodes errs by the field's higher derivatives times a function
+    of the position in the cell: the derivatives change over the magnet's own scale, so the
+    error keeps its sign over many cells, along a whole scan line (a quadrupole's B_z error
+    odd in z over its body, a curvature of one sign along a line). Independent per cell, it
+    would average down over the scan, and an effect of the same smooth shape (a volume
+    average, a planar Hall term, a tilt) would be claimed from it. Here the error at a point is
+    ``std(p) sum_j a_j P_j(u)``, with P_j the products of Legendre polynomials of the points'
+    coordinates scaled to [-1, 1] over the scan, of total degree <= ``degree``, per component,
+    and a_j ~ N(0, s^2) with s^2 the reciprocal of the mean of sum_j P_j^2 over the points:
+    the term's variance std^2 s^2 sum_j P_j^2, averaged over the points, is the stated one
+    (exactly where the stated error is the same everywhere).
+
+    Parameters
+    ----------
+    points : ndarray, shape (m, 3), mm
+        Distinct points read.
+    std : ndarray, shape (m, 3), field units
+        Stated standard deviation of the reference's error at each point, per component.
+    degree : int
+
+    Returns
+    -------
+    J : ndarray, shape (m, 3, 3 k), field units per unit coefficient
+        Columns: the k polynomials for B_x, then for B_y, then for B_z; a component whose
+        stated error is zero everywhere keeps zero columns.
+    names : list of str, length 3 k
+        ``ref_<component>_<i><j><l>`` (the degrees along x, y, z).
+    prior_std : ndarray, shape (3 k,)
+    """
+    from numpy.polynomial import legendre
+
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    std = np.asarray(std, dtype=float).reshape(-1, 3)
+    lo, hi = p.min(0), p.max(0)
+    half = 0.5 * (hi - lo)
+    u = np.divide(p - 0.5 * (hi + lo), half, out=np.zeros_like(p), where=half > 0)
+    spans = half > 0
+    exps = [(i, j, k) for i in range(degree + 1) for j in range(degree + 1 - i)
+            for k in range(degree + 1 - i - j)
+            if (i == 0 or spans[0]) and (j == 0 or spans[1]) and (k == 0 or spans[2])]  # fmt: skip
+    leg = [[legendre.legval(u[:, a], np.eye(degree + 1)[d]) for d in range(degree + 1)]
+           for a in range(3)]  # fmt: skip
+    basis = np.stack([leg[0][i] * leg[1][j] * leg[2][k] for i, j, k in exps], axis=1)
+    s = 1.0 / np.sqrt(np.mean(np.sum(basis**2, axis=1)))
+    k = basis.shape[1]
+    J = np.zeros((len(p), 3, 3 * k))
+    for c in range(3):
+        J[:, c, c * k : (c + 1) * k] = std[:, c, None] * basis
+    names = [f"ref_{'xyz'[c]}_{i}{j}{l}" for c in range(3) for i, j, l in exps]
+    return J, names, np.full(3 * k, s)
 
 
 class NodeExactHarmonic:
@@ -89,7 +199,7 @@ class NodeExactHarmonic:
         self._resid = type(linear)(replace(fm, B=resid))
         self._gmat = field_basis(MAX_DEGREE)
         self._exps = monomial_exponents(MAX_DEGREE)
-        self._fm, self._curved = fm, None
+        self._fm, self._curved, self._border = fm, None, None
         self._node_tree = cKDTree(fm.points)
 
     @property
@@ -138,7 +248,8 @@ class NodeExactHarmonic:
     def error_var(self, points) -> np.ndarray:
         """Variance (m, 3) T^2 of the model's own error at ``points`` (m, 3) mm (module
         docstring): per component, the largest squared departure of the fits of the
-        :data:`SPREAD_NODES` nearest usable nodes from the nearest one's, times
+        :data:`SPREAD_NODES` (in the map's outermost cells :data:`SPREAD_WIDE`) nearest
+        usable nodes from the nearest one's, times
         (d_1 / d_med)^2 up to 1, d_1 the distance to the nearest of those nodes and d_med the
         median distance to them. Where no fit holds, :meth:`CurvatureCorrected.error_var`, or
         the squared largest departure of the curvature-corrected reading from the nearest
@@ -148,14 +259,18 @@ class NodeExactHarmonic:
         var = np.zeros((len(p), 3))
         _, ok = self.fit.field_at(p)
         k = min(SPREAD_NODES, idx.size)
+        kw = min(SPREAD_WIDE, idx.size)
         if k >= 2 and ok.any():
             q = p[ok]
             qm = q * self.fit.metric
-            near, _ = neighbourhoods(tree, used, qm, k)
+            near, _ = neighbourhoods(tree, used, qm, kw)
             b1 = self._eval_node(idx[near[:, 0]], q)
             dev = np.zeros((len(q), 3))
-            for j in range(1, k):
-                dev = np.maximum(dev, np.abs(self._eval_node(idx[near[:, j]], q) - b1))
+            edge = self._in_border_cell(q)
+            for j in range(1, kw):
+                dj = np.abs(self._eval_node(idx[near[:, j]], q) - b1)
+                dev = np.maximum(dev, dj if j < k else np.where(edge[:, None], dj, 0.0))
+            near = near[:, :k]
             dist = np.linalg.norm(used[near] - qm[:, None, :], axis=2)
             med = np.median(dist, axis=1)
             frac = np.divide(dist[:, 0], med, out=np.zeros(len(q)), where=med > 0)
@@ -172,6 +287,17 @@ class NodeExactHarmonic:
         elif (~ok).any():
             var[~ok] = self.curved.error_var(p[~ok])
         return var
+
+    def _in_border_cell(self, points) -> np.ndarray:
+        """Whether each point (m, 3) mm lies in the map's outermost layer of cells (within a
+        node step of its bounding box along some axis), where every node's fit is one-sided."""
+        if self._border is None:
+            nodes = self._fm.points
+            self._border = (nodes.min(0), nodes.max(0), axis_steps(nodes, self.spacing_mm))
+        lo, hi, steps = self._border
+        span = hi - lo > 0
+        near = np.minimum(points - lo, hi - points) < steps * (1.0 - 1e-9)
+        return (near & span).any(1)
 
     def linear_fn(self, points) -> np.ndarray:
         """The linear interpolant's field (NaN outside)."""

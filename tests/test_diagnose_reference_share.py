@@ -1,0 +1,80 @@
+"""A reference map's error read between its nodes is shared: by the repetitions of a point, by
+the points of a cell, and, in its smooth part, along a whole scan.
+
+Unit checks of :func:`~cfm_fem.workflows.diagnose.reference.shared_readings` and
+:func:`~cfm_fem.workflows.diagnose.reference.smooth_error_basis`, and two clean family maps
+read against coarse FEM-like grids on which the error, taken as independent per reading, was
+claimed as an effect or a prior conflict: a quadrupole scanned on lines through both ends
+(seed 7186: a planar Hall term at delta BIC 68) and a quadrupole body on lines along the
+border cells of its grid (seed 7010: the gain of B_z 5.4 sigma off its prior).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cfm_fem.cli import main
+from cfm_fem.simulation import write_family_case
+from cfm_fem.workflows.diagnose.reference import shared_readings, smooth_error_basis
+
+
+def _grid(steps=(1.0, 1.0, 4.0), n=(4, 4, 5)):
+    axes = [np.arange(k) * h for k, h in zip(n, steps, strict=True)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_readings_in_one_cell_share_its_error():
+    nodes = _grid()
+    # two points in the cell [0, 1] x [0, 1] x [0, 4], one in the next cell along z, one on
+    # a node (it belongs to the cell above it)
+    pts = np.array([[0.2, 0.3, 1.0], [0.7, 0.9, 3.5], [0.2, 0.3, 5.0], [1.0, 1.0, 4.0]])
+    counts = np.array([3, 4, 5, 2])
+    np.testing.assert_array_equal(shared_readings(pts, counts, nodes), [7, 7, 5, 2])
+
+
+def test_the_smooth_term_carries_the_stated_variance_on_average():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-5, -5, -60], [5, 5, 60], size=(400, 3))
+    std = np.abs(rng.normal(1.0, 0.5, size=(400, 3))) * np.array([1.0, 2.0, 0.0])
+    J, names, s = smooth_error_basis(pts, std)
+    k = len(names) // 3
+    assert k == 10 and names[0] == "ref_x_000" and names[k] == "ref_y_000"
+    var = np.einsum("mcj,j->mc", J**2, s**2)  # the term's variance at each point
+    np.testing.assert_allclose(var.mean(0), (std**2).mean(0), rtol=0.05)
+    J1, _, s1 = smooth_error_basis(pts, np.ones((400, 3)))  # a uniform stated error
+    np.testing.assert_allclose(np.einsum("mcj,j->mc", J1**2, s1**2).mean(0), 1.0, rtol=1e-10)
+    assert not np.any(J[:, 2])  # a component stated exact gets no term
+    assert not np.any(J[:, 0, k:]) and not np.any(J[:, 1, :k])  # one block per component
+
+
+def test_a_single_line_gets_polynomials_along_it_only():
+    pts = np.zeros((20, 3))
+    pts[:, 2] = np.linspace(-50, 50, 20)
+    J, names, _ = smooth_error_basis(pts, np.ones((20, 3)))
+    assert names[:3] == ["ref_x_000", "ref_x_001", "ref_x_002"] and len(names) == 9
+    assert np.linalg.matrix_rank(J.reshape(20 * 3, -1)) == 9
+
+
+def _diagnose(seed, tmp_path):
+    files = write_family_case(seed, tmp_path / "case", "small", role="null", kind="hall")
+    truth = json.loads(Path(files["truth"]).read_text())
+    out = tmp_path / "out"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["diagnose", *files["args"], "--no-report", "--out", str(out)]) == 0
+    return json.loads((out / "diagnosis.json").read_text()), truth
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [7186, 7010])
+def test_a_clean_map_against_a_coarse_grid_raises_no_alarm(seed, tmp_path):
+    d, truth = _diagnose(seed, tmp_path)
+    assert truth["strata"]["reference"] == "coarse" and truth["strata"]["scan"] == "lines"
+    assert d["effects"] == [], [(e["name"], e["delta_bic"]) for e in d["effects"]]
+    assert d["prior_conflicts"] == [], d["prior_conflicts"]
+    assert d["located"] == [] and d["mismatch"] is False
