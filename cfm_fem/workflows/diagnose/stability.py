@@ -33,8 +33,9 @@ from .calibrate import Columns, fit_map, stack
 
 __all__ = ["ALPHA", "heterogeneity", "heterogeneity_p", "split_halves", "unstable_in"]
 
-#: Family-wise level of the heterogeneity tests of a candidate (Bonferroni over the splits).
-ALPHA = 0.01
+#: Family-wise level of the heterogeneity tests of a candidate (Bonferroni over the splits):
+#: a real effect is called unstable in one map of a thousand.
+ALPHA = 0.001
 
 
 def split_halves(pos) -> list:
