@@ -14,9 +14,11 @@ acting on one half only, and the whole map is fitted again with the rest of the 
 The drop of the objective is ~ chi2(r) when the effect is the same in both halves, r being the
 rank the copy adds (a half that cannot see a parameter adds nothing to test). The candidate is
 unstable when a split's drop has p below ``ALPHA`` / (number of splits) (Bonferroni,
-family-wise ``ALPHA``). Where the model leaves a lack of fit (chi2/dof > 1 with the effect),
-the noise is scaled up by its square root first, so that unmodelled structure does not count as
-disagreement.
+family-wise ``ALPHA``) and the drop is at least ``MATERIAL`` of the effect's own drop on the
+whole map (a strong effect fitted by an approximate model differs between halves by a small
+share of itself; a structure confined to one half, by about the whole). Where the model leaves
+a lack of fit (chi2/dof > 1 with the effect), the noise is scaled up by its square root first,
+so that unmodelled structure does not count as disagreement.
 
 Neither half needs to show the effect on its own: at the selection's threshold a real effect
 is significant in a half only about as often as not, and its halves' estimates still agree. An
@@ -36,6 +38,10 @@ __all__ = ["ALPHA", "heterogeneity", "heterogeneity_p", "split_halves", "unstabl
 #: Family-wise level of the heterogeneity tests of a candidate (Bonferroni over the splits):
 #: a real effect is called unstable in one map of a thousand.
 ALPHA = 0.001
+#: Share of the effect's own chi2 (its drop on the whole map) a disagreement must reach: below
+#: it, the halves differ by the model's approximation of a strong effect, not by a structure
+#: confined to part of the map (which disagrees by about the effect itself).
+MATERIAL = 0.1
 
 
 def split_halves(pos) -> list:
@@ -153,10 +159,11 @@ def unstable_in(prob, sigma, model: Columns, trial: Columns) -> str:
     scale = np.sqrt(max(1.0, full.chi2_data / max(full.n_obs - full.edf, 1.0)))
     s = sigma * scale
     splits = split_halves(prob.pos)
+    own = fit_map(prob.y, s, model).objective - fit_map(prob.y, s, trial).objective
     for label, _, high, mid in splits:
         h = heterogeneity(prob.y, s, model, trial, high)
         p = heterogeneity_p(h)
-        if p < ALPHA / len(splits):
+        if p < ALPHA / len(splits) and h["q"] > MATERIAL * own:
             return (
                 f"its parameters differ between the parts {label} <= {mid:g} mm and "
                 f"{label} > {mid:g} mm of the map (heterogeneity chi2 = {h['q']:.1f} on "
