@@ -41,7 +41,10 @@ def diagnosed(tmp_path_factory):
             out = root / f"{case}_{seed}_{velocities}"
             assert main(["diagnose", *files["args"], "--out", str(out)]) == 0
             summary = json.loads((out / "diagnosis.json").read_text())
-            cache[key] = score(summary, json.loads(files["truth"].read_text()))
+            truth = json.loads(files["truth"].read_text())
+            cache[key] = score(summary, truth) | {
+                "with_model_dependent": score(summary, truth, model_dependent=True)
+            }
         return cache[key]
 
     return run
@@ -84,7 +87,9 @@ def test_reading_delay_without_velocity_columns(diagnosed):
 
 
 def test_single_z_roll_profile_is_found(diagnosed):
-    _first_with_pulls(diagnosed("position_dependent_geometric"))
+    # a linear term fitted alone is reported as model-dependent (over part of a stroke a
+    # curved error looks straight); the concealed profile is linear, so it is scored too
+    _first_with_pulls(diagnosed("position_dependent_geometric")["with_model_dependent"])
 
 
 def test_slip_is_located_and_not_taken_for_drift(diagnosed):
