@@ -286,3 +286,6 @@ def test_a_prior_conflict_the_truth_has_is_no_false_alarm():
     located = base | {"located": [{"component": "x"}]}
     both = score(located | {"prior_conflicts": [conflict("magnet_rot_y", 31.5)]}, truth)
     assert both["alarm"]
+    # an effect claimed, no conflict: no true conflict to speak of
+    claimed = score(base | {"effects": [{"name": "planar_hall", "params": {}}]}, truth)
+    assert claimed["alarm"] and not claimed["mismatch_true"]

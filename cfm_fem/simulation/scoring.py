@@ -103,6 +103,7 @@ def score(summary: dict, truth: dict, model_dependent: bool = False) -> dict:
     true_c = true_conflicts(summary, truth)
     only_true = (
         bool(summary.get("mismatch"))
+        and bool(true_c)
         and not summary.get("located")
         and not summary.get("outliers")
         and len(true_c) == len(summary.get("prior_conflicts", []))
