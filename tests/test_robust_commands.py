@@ -361,7 +361,7 @@ def test_the_chunk_store_outlives_a_stop_before_the_report(tmp_path, capsys, mon
     argv = ["sweep", str(path), "--up", "10", "--trials", "20", "--chunk-nodes", "64",
             "--out", str(out)]  # fmt: skip
 
-    def stop(out, result=None):
+    def stop(out, result=None, drawn=None):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cfm_fem.report.sweep, "write_sweep_report", stop)
