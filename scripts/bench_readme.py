@@ -12,7 +12,7 @@ time to the default run's (both from the same process, the best of the repeats).
     python scripts/bench_readme.py --only default --busy 2   # and beside 2 busy processes
 
 With ``--busy N`` each pass is followed by one more of each model while N competing processes
-(`bench_setup.COMPETITORS`, each in a session of its own, as other users' programs run) keep
+(`bench_setup.COMPETITORS`, each in a session of its own, like another user's program) keep
 the cores busy; the best busy wall time of each model is printed with its ratio to the best
 quiet one.
 

@@ -73,10 +73,15 @@ def _per_half_significant(pos, y, sigma, model, trial) -> bool:
     return True
 
 
+def _with_effect(base, pos):
+    """The baseline and the effect's column, its coefficient free."""
+    return stack([base, Columns(_effect(pos), ["e"], ["T"], np.zeros(1), np.full(1, np.inf),
+                                "effect")])  # fmt: skip
+
+
 def test_an_effect_over_the_whole_map_is_stable_where_its_halves_are_weak():
     pos, base = _grid()
-    trial = stack([base, Columns(_effect(pos), ["e"], ["T"], np.zeros(1), np.full(1, np.inf),
-                                 "effect")])  # fmt: skip
+    trial = _with_effect(base, pos)
     sigma = np.ones((len(pos), 3))
     rng = np.random.default_rng(11)
     amp = 0.5  # about 3 sigma in each half, 4 to 5 on the whole map
@@ -97,8 +102,7 @@ def test_an_effect_over_the_whole_map_is_stable_where_its_halves_are_weak():
 
 def test_an_effect_confined_to_one_half_is_unstable():
     pos, base = _grid()
-    trial = stack([base, Columns(_effect(pos), ["e"], ["T"], np.zeros(1), np.full(1, np.inf),
-                                 "effect")])  # fmt: skip
+    trial = _with_effect(base, pos)
     sigma = np.ones((len(pos), 3))
     rng = np.random.default_rng(12)
     unstable = 0
