@@ -505,6 +505,12 @@ def _outlier_entries(isolated) -> list:
     ]
 
 
+def _n_planes(prob, plane) -> int:
+    """Distinct positions of the scan along the axis of ``plane`` (an `isolated_planes` entry)."""
+    axis = "xyz".index(plane["axis"])
+    return int(np.unique(np.round(prob.pos[:, axis], 6)).size)
+
+
 def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
     """Leave out planes that depart from their neighbours after the effects (bad readings, not
     physics), strongest first, one at a time with the attribution done again, while one is
@@ -519,7 +525,7 @@ def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
         top = dict(iso[0])
         rows = np.zeros(prob.n, dtype=bool)
         rows[idx[top["rows"]]] = True
-        if (out | rows).sum() > 0.2 * prob.n:
+        if (out | rows).sum() > 0.2 * prob.n and (out.any() or _n_planes(prob, top) < 4):
             break
         out |= rows
         top["rows"] = rows
