@@ -154,3 +154,22 @@ def test_upstream_at_the_nominal_offset_is_the_owners_shift(emph, body, tmp_path
     p = _values(s)
     for k, tol in (("magnet_dx", 100.0), ("magnet_dy", 100.0), ("magnet_dz", 150.0)):
         assert abs(p[k][0] - OWNERS_FROM_NOMINAL[k]) < tol, (k, p[k], OWNERS_FROM_NOMINAL[k])
+
+
+def test_downstream_first_plane_is_left_out_and_the_rest_agrees_with_the_stitching(
+    emph, body, body_model, stitching
+):
+    """The downstream fringe scan's first plane (z = 200.08 mm at the owners' offset) departs
+    from its neighbours; with it left out nothing is claimed, and the shift and gains agree with
+    the direct stitching (which reads the fringe scan at the body's planes 205-220 mm only)."""
+    pts, B = emph.fringe_points(DATA / emph.FILES["large"], emph.OWNERS_OFFSET_MM["large"])
+    s = _diagnose(emph.overlap(pts, B, body), body, body_model)
+    assert [(o["axis"], round(o["position_mm"], 1)) for o in s["outliers"]] == [("z", 200.1)]
+    assert s["effects"] == [], s["candidates"]
+    d = stitching.stitch(pts, B, body.points, body.B)
+    p = _values(s)
+    for j, c in enumerate("xyz"):
+        for name, v, sd in ((f"magnet_d{c}", d["shift_um"][j], d["shift_std_um"][j]),
+                            (f"gain_{c}", d["gain_pct"][j], d["gain_std_pct"][j])):  # fmt: skip
+            tool, tool_sd = p[name]
+            assert abs(tool - v) < 3.0 * np.hypot(tool_sd, sd), (name, tool, tool_sd, v, sd)

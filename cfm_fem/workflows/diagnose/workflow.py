@@ -505,10 +505,19 @@ def _outlier_entries(isolated) -> list:
     ]
 
 
+def _lone_plane(prob, plane, rows, out) -> bool:
+    """Whether ``plane`` (an `isolated_planes` entry, ``rows`` its rows) may be left out beyond
+    a fifth of the rows: the first left out, on an axis of four planes or more (a quarter of
+    the rows each), holding at most 30 % of the rows."""
+    axis = "xyz".index(plane["axis"])
+    n_planes = np.unique(np.round(prob.pos[:, axis], 6)).size
+    return not out.any() and n_planes >= 4 and rows.sum() <= 0.3 * prob.n
+
+
 def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
     """Leave out planes that depart from their neighbours after the effects (bad readings, not
     physics), strongest first, one at a time with the attribution done again, while one is
-    found and they stay under a fifth of the rows."""
+    found and they stay under a fifth of the rows (or it is a lone plane, `_lone_plane`)."""
     a, isolated = full, []
     idx = np.arange(prob.n)
     out = np.zeros(prob.n, dtype=bool)
@@ -519,7 +528,7 @@ def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
         top = dict(iso[0])
         rows = np.zeros(prob.n, dtype=bool)
         rows[idx[top["rows"]]] = True
-        if (out | rows).sum() > 0.2 * prob.n:
+        if (out | rows).sum() > 0.2 * prob.n and not _lone_plane(prob, top, rows, out):
             break
         out |= rows
         top["rows"] = rows
