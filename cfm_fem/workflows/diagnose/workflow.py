@@ -508,10 +508,11 @@ def _outlier_entries(isolated) -> list:
 def _lone_plane(prob, plane, rows, out) -> bool:
     """Whether ``plane`` (an `isolated_planes` entry, ``rows`` its rows) may be left out beyond
     a fifth of the rows: the first left out, on an axis of four planes or more (a quarter of
-    the rows each), holding at most 30 % of the rows."""
+    the rows each, or less), holding no more rows than its axis' planes on average (a typical
+    plane, not one that holds most of a sparse map)."""
     axis = "xyz".index(plane["axis"])
     n_planes = np.unique(np.round(prob.pos[:, axis], 6)).size
-    return not out.any() and n_planes >= 4 and rows.sum() <= 0.3 * prob.n
+    return not out.any() and n_planes >= 4 and rows.sum() <= 1.05 * prob.n / n_planes
 
 
 def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
