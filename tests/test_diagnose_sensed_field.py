@@ -1,8 +1,9 @@
 """The probe's effects act on the field the probe senses, where the bench's errors move it.
 
-A Hall map's problem expanded at bench errors that move the probe by tens of um reads the
-reference there (``ctx.B_read``); the columns of the planar Hall term, the element mixing and
-the magnet's temperature are built from that field, not from the field at the nominal point.
+A Hall map's problem against a 3-D reference, expanded at bench errors that move the probe by
+tens of um, reads the reference there (``ctx.B_read``); the columns of the planar Hall term,
+the element mixing and the magnet's temperature are built from that field, not from the field
+at the nominal point.
 """
 
 from __future__ import annotations
@@ -20,13 +21,25 @@ from cfm_fem.workflows.diagnose.problem import bench_move, hall_problem
 from cfm_fem.workflows.diagnose.twin import hall_twin
 
 
+class _Field3D:
+    """A twin's multipole whose amplitude varies slowly along z (a 3-D reference)."""
+
+    def __init__(self, mp):
+        self.mp = mp
+
+    def field(self, p):
+        p = np.asarray(p, dtype=float)
+        return self.mp.field(p) * (1.0 + 0.1 * p[:, 2:3] / 300.0)
+
+
 def _moved():
-    """A Hall twin's problem expanded at angular errors of 100 urad (moves of tens of um)."""
+    """A Hall twin's problem against a 3-D reference, expanded at angular errors of 100 urad
+    (moves of tens of um)."""
     rec, _, tw = hall_twin(3, {}, n_reps=1, points=P, dt_s=30.0)
-    mp, bench = tw["multipole"], tw["bench"]
+    mp, bench = _Field3D(tw["multipole"]), tw["bench"]
     at = np.zeros(len(ERROR_NAMES))
     at[[k for k, n in enumerate(ERROR_NAMES) if n.startswith("eps")]] = 100.0
-    prob = hall_problem(rec, mp.field, mp.b_ref, bench, bench_at=at)
+    prob = hall_problem(rec, mp.field, tw["multipole"].b_ref, bench, bench_at=at)
     return prob, mp, bench, at
 
 

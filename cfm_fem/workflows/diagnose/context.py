@@ -57,9 +57,9 @@ class ProblemContext:
     B_read : ndarray, shape (n, 3), T, or None
         Hall map: the field the probe senses, the reference with the magnet at ``pose`` read
         where the bench errors the problem is expanded at move the probe (to second order,
-        :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`; against 2-D harmonics,
-        exactly, the magnet offset and rolled only, which keeps the field 2-D); ``B0`` at the
-        nominal point without a bench model. Per row.
+        :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`); ``B0`` without a bench
+        model and against 2-D harmonics (whose pose a scan through the ends pulls: the
+        effects' columns keep the nominal placement there, as ``B0``). Per row.
     G : ndarray, shape (n, 3, 3), T/mm, or None
         Hall map: its gradient dB_i/dx_j at each reading (magnet frame). Per row.
     reference_fn : callable or None

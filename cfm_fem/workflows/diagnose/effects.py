@@ -29,7 +29,9 @@ Positioning (tracker), displacement of the probe in the bench frame:
 * ``step_event`` (also for Hall maps): an abrupt shift from a change point in time or
   repetition on, per axis or component (:mod:`cfm_fem.workflows.diagnose.step_event`).
 
-Field (Hall map), change of the measured field in the magnet frame:
+Field (Hall map), change of the measured field in the magnet frame. B below is the field
+the probe senses: the reference read where the fitted bench errors move the probe
+(``ctx.B_read``), not at the nominal point.
 
 * ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad). Element i reads
   the field it senses, mixing included, times (1 + gain_i): the columns fit m_ij (1 + gain_i),
