@@ -18,7 +18,7 @@ from cfm_fem.workflows.diagnose.problem import hall_problem, subset_rows, tracke
 from cfm_fem.workflows.diagnose.twin import hall_twin, tracker_twin
 
 #: The pieces of a Hall map's context that hold one entry per row.
-HALL_ROWS = ("B0", "G", "rows", "uinv", "bench_disp", "lever", "H")
+HALL_ROWS = ("B0", "B_read", "G", "rows", "uinv", "bench_disp", "lever", "H")
 
 
 def _per_row(ctx) -> set[str]:

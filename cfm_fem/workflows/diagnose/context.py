@@ -54,6 +54,12 @@ class ProblemContext:
         Hall map: reference field of 'units' (1 unit = 1e-4 ``b_ref``).
     B0 : ndarray, shape (n, 3), T, or None
         Hall map: reference field at each reading with the magnet at ``pose``. Per row.
+    B_read : ndarray, shape (n, 3), T, or None
+        Hall map: the field the probe senses, the reference with the magnet at ``pose`` read
+        where the bench errors the problem is expanded at move the probe (to second order,
+        :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`); ``B0`` without a bench
+        model and against 2-D harmonics (whose pose a scan through the ends pulls: the
+        effects' columns keep the nominal placement there, as ``B0``). Per row.
     G : ndarray, shape (n, 3, 3), T/mm, or None
         Hall map: its gradient dB_i/dx_j at each reading (magnet frame). Per row.
     reference_fn : callable or None
@@ -113,6 +119,7 @@ class ProblemContext:
     nominal: np.ndarray | None = _row_field()
     b_ref: float | None = None
     B0: np.ndarray | None = _row_field()
+    B_read: np.ndarray | None = _row_field()
     G: np.ndarray | None = _row_field()
     reference_fn: Callable | None = None
     field_fn: Callable | None = None

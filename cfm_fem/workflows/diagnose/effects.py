@@ -29,7 +29,9 @@ Positioning (tracker), displacement of the probe in the bench frame:
 * ``step_event`` (also for Hall maps): an abrupt shift from a change point in time or
   repetition on, per axis or component (:mod:`cfm_fem.workflows.diagnose.step_event`).
 
-Field (Hall map), change of the measured field in the magnet frame:
+Field (Hall map), change of the measured field in the magnet frame. B below is the field
+the probe senses: the reference read where the fitted bench errors move the probe
+(``ctx.B_read``), not at the nominal point.
 
 * ``probe_misalignment``: Delta B_i = sum_{j != i} m_ij B_j (6 angles, mrad). Element i reads
   the field it senses, mixing included, times (1 + gain_i): the columns fit m_ij (1 + gain_i),
@@ -291,8 +293,22 @@ def parameter_bias(prob):
 # ------------------------------------------------------------------ field
 
 
+def _sensed(prob) -> np.ndarray:
+    """The field the probe senses at each reading (T, shape (n, 3)): the reference read where
+    the fitted bench errors move the probe (``ctx.B_read``), else at the nominal point.
+
+    An effect of the probe acts on the field it senses: a planar Hall term on the product of
+    two components, a mixing or a temperature scale on the components themselves. The bench
+    moves the probe by tens of um; where the field varies on the scale of the scan radius (a
+    multipole of high order read close to its axis) that move changes the field by several
+    per cent, and the columns at the nominal point would miss the effect's size by as much.
+    """
+    B = getattr(prob.ctx, "B_read", None)
+    return prob.ctx.B0 if B is None else B
+
+
 def probe_misalignment(prob):
-    B = prob.ctx.B0
+    B = _sensed(prob)
     J = np.zeros((prob.n, 3, 6))
     names = []
     k = 0
@@ -348,7 +364,7 @@ def magnet_misalignment(prob):
 
 
 def planar_hall(prob):
-    B = prob.ctx.B0
+    B = _sensed(prob)
     J = np.zeros((prob.n, 3, 3))
     for i in range(3):
         j, k = [c for c in range(3) if c != i]
@@ -382,7 +398,7 @@ def magnet_temperature(prob):
             "no temperature log (temp_C) nor time (t_s): a magnet temperature change is a "
             "uniform scale, the same as a common Hall gain"
         )
-    B = prob.ctx.B0
+    B = _sensed(prob)
     J = (B * 1e-6 * tau[:, None])[..., None]
     return effect_columns(J, ["beta"], [f"ppm/{u}"], "magnet_temperature")
 

@@ -754,6 +754,7 @@ def hall_problem(
     B_reg, G_reg, B_pose = B0, G, B0
     if planar:
         B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
+    B_read = B0  # the field the probe senses: where the bench moves it, below
     lever_pt = p - pose[:3] * UM  # from the magnet origin
     notes += check_hall_scale(rec.B, B0, source=rec.source)
     reg_gain = _registration_and_gains(
@@ -775,6 +776,7 @@ def hall_problem(
         H = None if hessian is None else hessian[uinv]
         # a 2-D field is read where the errors put the probe already
         Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
+        B_read = Bb
         lever = np.einsum("nij,jk->nik", G_reg, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
@@ -825,6 +827,7 @@ def hall_problem(
         reference_3d=ref_nodes is not None and bool(np.ptp(np.asarray(ref_nodes)[:, 2]) > 0),
         reference_fn=field_fn,
         B0=B0,
+        B_read=B_read,
         G=G,
         field_fn=fn_posed,
         b_ref=b_ref,
