@@ -482,6 +482,36 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
 
 
+def moved_gradient(bench: Bench, q, theta, G, H):
+    """The field's gradient where the bench errors ``theta`` put the probe, to first order.
+
+    The axes' vibration moves the probe about where the errors put it, d away from its
+    nominal point, so each reading's vibration is seen through G + H d. On a sextupole's or
+    an octupole's axis G vanishes while H d, for a move of tens of um, reads a few um of
+    vibration as several uT: far above a low-noise probe's floor.
+
+    Parameters
+    ----------
+    bench : Bench
+    q : ndarray, shape (n, 3), mm
+        Axis positions of the readings.
+    theta : ndarray, shape (21,)
+        The errors, in the bench columns' units (um, urad).
+    G : ndarray, shape (n, 3, 3), T/mm
+        Gradient at the nominal points.
+    H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
+        Hessian there; None: ``G`` itself is returned.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3), T/mm
+    """
+    d = None if H is None else bench_move(bench, q, theta)
+    if d is None or len(H) != len(G):
+        return G
+    return G + np.einsum("nijk,nk->nij", H, d)
+
+
 def bench_move(bench: Bench, q, theta):
     """The probe's exact move by the bench errors ``theta`` (um, urad; order of
     ``ERROR_NAMES``) at the axis positions ``q`` (n, 3) mm: (n, 3) mm in the magnet frame,
@@ -777,6 +807,7 @@ def hall_problem(
         Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
         lever = np.einsum("nij,jk->nik", G_reg, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
+        lever = np.einsum("nij,jk->nik", moved_gradient(bench, q, at, G_reg, H), R)
         blocks.append(bcols)
         # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
         y = y - (Bb - B0) + np.einsum("nkp,p->nk", bcols.J, at)
