@@ -489,9 +489,10 @@ def moved_gradient(bench: Bench, q, theta, G, H):
 
     The bench errors put the probe d away from its nominal point; the readings' Jacobian in
     the errors and in the magnet's offset, and the lever of the axes' vibration, are the
-    gradient there, G + H d. On a sextupole's or an octupole's axis G vanishes while H d, for
-    a move of tens of um, turns a few um of vibration into several uT (far above a low-noise
-    probe's floor) and an error of the registration into as much.
+    gradient there, G + H d. On a sextupole's axis G vanishes while H d, for a move of tens of
+    um, turns a few um of vibration into several uT (far above a low-noise probe's floor) and
+    an error of the registration into as much. Terms of higher order in d are left out (on an
+    octupole's axis, where H vanishes too, the gradient there is of order d^2).
 
     Parameters
     ----------
