@@ -64,12 +64,14 @@ import zlib  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from cfm_fem.simulation import CASES, write_case  # noqa: E402
+from cfm_fem.simulation.benches import STACKS, stack_label  # noqa: E402
 from cfm_fem.simulation.family import draw_config, write_family_case  # noqa: E402
 from cfm_fem.simulation.family_summary import (  # noqa: E402
     FAMILY_GOALS,
     markdown_family,
     summarise_family,
 )
+from cfm_fem.simulation.magnets import ORDER_NAMES  # noqa: E402
 from cfm_fem.simulation.scoring import GOALS, score, summarise  # noqa: E402
 
 
@@ -179,6 +181,10 @@ def run_family(a) -> int:
     if a.only_reference:  # the Hall seeds whose drawn reference is of that kind
         ref = a.only_reference
         jobs = [j for j in jobs if draw_config(j[0], size, j[1]).get("reference") == ref]
+    for key, names in (("magnet", a.only_magnet), ("bench_stack", a.only_stack)):
+        if names:  # the seeds whose drawn magnet order (bench stack) is one of these
+            want = set(names.split(","))
+            jobs = [j for j in jobs if draw_config(j[0], size, j[1])["strata"][key] in want]
     if a.only_effect:  # the seeds whose drawn effect is one of these, the first N of each
         want = {e: 0 for e in a.only_effect.split(",")}
         keep = []
@@ -352,6 +358,18 @@ def main(argv=None) -> int:
         help="--family: run only the Hall seeds whose drawn reference is of this kind",
     )
     ap.add_argument(
+        "--only-magnet",
+        metavar="NAMES",
+        help="--family: run only the seeds whose drawn magnet is one of these (comma-separated: "
+        "dipole, quadrupole, sextupole, octupole, solenoid; none for a tracker recording)",
+    )
+    ap.add_argument(
+        "--only-stack",
+        metavar="NAMES",
+        help="--family: run only the seeds whose drawn bench stack is one of these "
+        "(comma-separated, foundation first: X-Y-Z, ..., Z-Y-X)",
+    )
+    ap.add_argument(
         "--only-effect",
         metavar="NAMES",
         help="--family: run only the seeds whose drawn concealed effect is one of these "
@@ -372,6 +390,14 @@ def main(argv=None) -> int:
     if a.family is not None:
         if a.family < 1 or not 0.0 <= a.null_share <= 1.0:
             ap.error("--family needs N >= 1 and --null-share in [0, 1]")
+        known = {
+            "--only-magnet": (a.only_magnet, [*ORDER_NAMES.values(), "none"]),
+            "--only-stack": (a.only_stack, [stack_label(s) for s in STACKS]),
+        }
+        for opt, (names, allowed) in known.items():
+            bad = [n for n in (names or "").split(",") if names and n not in allowed]
+            if bad:
+                ap.error(f"{opt}: unknown {', '.join(bad)}; expected some of {', '.join(allowed)}")
         return run_family(a)
     cases = list(CASES) if not a.cases else [c.strip() for c in a.cases.split(",")]
     unknown = [c for c in cases if c not in CASES]

@@ -451,10 +451,12 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
 
     d the exact move of the bench's kinematic chain, H the reference's Hessian over a step of
     half a mm or a node spacing (a reference read between nodes is not differentiable at them
-    on the scale of the move; its curvature over a cell is). The columns keep the gradient at
-    ``p``, so their span (what the baseline can absorb) stays that of the bench; the change of
-    the gradient along d multiplies theta' - theta, which the Gauss-Newton iterations
-    (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) make small.
+    on the scale of the move; its curvature over a cell is). The columns of the bench and of
+    the registration take the gradient where the probe is, G + H d
+    (:func:`moved_gradient`), so that the Gauss-Newton iterations
+    (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) stop at the optimum: on a
+    sextupole's axis G vanishes, while H d, for a move of tens of um, is what the readings
+    there say about the errors and the magnet's offset.
 
     Parameters
     ----------
@@ -480,6 +482,38 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
         return B0
     Hd = np.einsum("nijk,nk->nij", H, d)
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
+
+
+def moved_gradient(bench: Bench, q, theta, G, H):
+    """The field's gradient where the bench errors ``theta`` put the probe, to first order.
+
+    The bench errors put the probe d away from its nominal point; the readings' Jacobian in
+    the errors and in the magnet's offset, and the lever of the axes' vibration, are the
+    gradient there, G + H d. On a sextupole's axis G vanishes while H d, for a move of tens of
+    um, turns a few um of vibration into several uT (far above a low-noise probe's floor) and
+    an error of the registration into as much. Terms of higher order in d are left out (on an
+    octupole's axis, where H vanishes too, the gradient there is of order d^2).
+
+    Parameters
+    ----------
+    bench : Bench
+    q : ndarray, shape (n, 3), mm
+        Axis positions of the readings.
+    theta : ndarray, shape (21,)
+        The errors, in the bench columns' units (um, urad).
+    G : ndarray, shape (n, 3, 3), T/mm
+        Gradient at the nominal points.
+    H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
+        Hessian there; None: ``G`` itself is returned.
+
+    Returns
+    -------
+    ndarray, shape (n, 3, 3), T/mm
+    """
+    d = None if H is None else bench_move(bench, q, theta)
+    if d is None or len(H) != len(G):
+        return G
+    return G + np.einsum("nijk,nk->nij", H, d)
 
 
 def bench_move(bench: Bench, q, theta):
@@ -755,11 +789,24 @@ def hall_problem(
     if planar:
         B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
     B_read = B0  # the field the probe senses: where the bench moves it, below
+    H = G_move = None
+    if bench is not None and hessian is None and np.any(at) and not planar:
+        # the curvature at the nominal placement: a move of the magnet changes it to
+        # second order only, so every relinearisation of this map reuses it
+        h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
+        hessian = field_hessian(field_fn, upts, h2)
+        rebuild = partial(rebuild, hessian=hessian)
+    if bench is not None:
+        H = None if hessian is None else hessian[uinv]
+        # the gradient where the errors ``at`` put the probe: the Jacobian of the readings
+        # in the registration and the bench errors, and the vibration's lever
+        G_move = moved_gradient(bench, q, at, G_reg, H)
     lever_pt = p - pose[:3] * UM  # from the magnet origin
     notes += check_hall_scale(rec.B, B0, source=rec.source)
     reg_gain = _registration_and_gains(
-        B_reg, G_reg, lever_pt, reg_std_mm, reg_std_rad, gain_std_pct, B_gain=B0
-    )
+        B_reg, G_reg if G_move is None else G_move, lever_pt, reg_std_mm, reg_std_rad,
+        gain_std_pct, B_gain=B0
+    )  # fmt: skip
     y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
     blocks = []
     var_known = np.zeros_like(y)
@@ -767,20 +814,13 @@ def hall_problem(
     disp = None
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
-        if hessian is None and np.any(at) and not planar:
-            # the curvature at the nominal placement: a move of the magnet changes it to
-            # second order only, so every relinearisation of this map reuses it
-            h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
-            hessian = field_hessian(field_fn, upts, h2)
-            rebuild = partial(rebuild, hessian=hessian)
-        H = None if hessian is None else hessian[uinv]
         # a 2-D field is read where the errors put the probe already
         Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
         B_read = Bb
-        lever = np.einsum("nij,jk->nik", G_reg, R)  # dB per bench-frame probe displacement
+        lever = np.einsum("nij,jk->nik", G_move, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
-        # expanded at the errors ``at``: B(p + d(at)) + G D (theta - at)
+        # expanded at the errors ``at``: B(p + d(at)) + G(p + d(at)) D (theta - at)
         y = y - (Bb - B0) + np.einsum("nkp,p->nk", bcols.J, at)
         # probe displacement (magnet frame, mm per display unit) of each bench error
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
