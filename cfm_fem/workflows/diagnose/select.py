@@ -11,9 +11,11 @@ the baseline kept). A candidate has up to two parts:
   m, s: prior); Holm over the parameters the data determine (C < s^2 / 2); the parameters in
   conflict are released one by one while the data still determine each of them alone.
 
-Evidence of a candidate: ``delta_bic`` = delta_chi2 - k ln(n_obs); its p-value (Bonferroni over
-its parts), guarded by Holm over the candidates of the round; held-out RMS (K-fold over whole
-repetitions) before and after; ``survival``: the fraction of the fitted new signature that the
+Evidence of a candidate: ``delta_bic`` = delta_chi2 - k ln(n_obs), delta_chi2 of an effect with
+the shape of the reference's own error (volume averaging) less what an error of the stated size
+could give (:func:`reference_explains`); its p-value (Bonferroni over its parts), guarded by
+Holm over the candidates of the round; held-out RMS (K-fold over whole repetitions) before and
+after; ``survival``: the fraction of the fitted new signature that the
 current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
@@ -373,12 +375,12 @@ def _evaluate(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
     if blk.p:
         trial = stack([model, blk])
         f = fit_map(prob.y, sigma, trial)
-        d = current.objective - f.objective
+        # less what the reference's own error could give (blocks of its shape only)
+        d = current.objective - f.objective - reference_explains(prob, sigma, trial, f, blk)
         k = max(f.edf - current.edf, 1e-9)
         mult = max(float(blk.multiplicity), 1.0)
-        ref = reference_explains(prob, sigma, trial, f, blk)
         parts["new"] = {
-            "d": d - ref,
+            "d": d,
             "k": k,
             "p": min(1.0, mult * float(stats.chi2.sf(max(d, 0.0), max(k, 0.5)))),
             "pen": 2.0 * np.log(mult),  # the choice among mult alternatives (BIC prior)
