@@ -69,7 +69,10 @@ Field (Hall map), change of the measured field in the magnet frame:
   dw_z = w_z - (w_x + w_y) / 2, in 1e-3 mm^2. A 2-D reference has no z curvature: only dw_xy.
   A field linear in position (pure quadrupole) has no curvature: untestable, said so. Against
   a map interpolated linearly, only when the readings lie on its nodes (second differences of
-  node values, step the node spacing); between nodes the map has no curvature to use.
+  node values, step the node spacing); between nodes the map has no curvature to use. A map
+  read between its nodes errs by a curvature term of the same shape, coherent across a plane
+  where the field curves: the block carries the map's stated error (``ref_error``), and the
+  selection credits averaging only with what an error of that size cannot explain.
 
 Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
 (magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
