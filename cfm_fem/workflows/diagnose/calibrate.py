@@ -98,6 +98,12 @@ class Columns:
         coefficient of that chosen order (the slope of the straight line through a curved error
         over the scanned part of the stroke), not the function's own coefficient: it is
         reported as model-dependent. None: no such terms.
+    ref_error : tuple (ndarray (m, 3), ndarray (n,)), optional
+        For an effect with the shape of the reference's own error between its nodes
+        (``sensor_volume_averaging``: a curvature term): the stated std (T) of that error at
+        each distinct point, and each row's point. The selection credits the effect only with
+        what an error of that size cannot explain
+        (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`). None: no such term.
     """
 
     J: np.ndarray
@@ -120,6 +126,7 @@ class Columns:
     element: tuple | None = None
     model_dependent: tuple | None = None
     lower_order: dict | None = None
+    ref_error: tuple | None = None
 
     @property
     def p(self) -> int:
@@ -159,6 +166,7 @@ class Columns:
             None if self.element is None else tuple(self.element[k] for k in keep),
             self.model_dependent,
             self.lower_order,
+            self.ref_error,
         )
 
     def released(self, group: str) -> Columns:

@@ -71,7 +71,10 @@ the probe senses: the reference read where the fitted bench errors move the prob
   dw_z = w_z - (w_x + w_y) / 2, in 1e-3 mm^2. A 2-D reference has no z curvature: only dw_xy.
   A field linear in position (pure quadrupole) has no curvature: untestable, said so. Against
   a map interpolated linearly, only when the readings lie on its nodes (second differences of
-  node values, step the node spacing); between nodes the map has no curvature to use.
+  node values, step the node spacing); between nodes the map has no curvature to use. A map
+  read between its nodes errs by a curvature term of the same shape, coherent across a plane
+  where the field curves: the block carries the map's stated error (``ref_error``), and the
+  selection credits averaging only with what an error of that size cannot explain.
 
 Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
 (magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
@@ -429,7 +432,33 @@ def sensor_volume_averaging(prob):
     J = np.stack(
         [0.5 * (H[..., 0] - H[..., 1]), (2 * H[..., 2] - H[..., 0] - H[..., 1]) / 3.0], axis=-1
     )
-    return effect_columns(J * 1e-3, ["dw_xy", "dw_z"], ["1e-3 mm^2"] * 2, "sensor_volume_averaging")
+    blk = effect_columns(J * 1e-3, ["dw_xy", "dw_z"], ["1e-3 mm^2"] * 2, "sensor_volume_averaging")
+    blk.ref_error = _reference_error_std(ctx)
+    return blk
+
+
+def _reference_error_std(ctx):
+    """The reference's stated error at the readings' points, for the averaging test.
+
+    A reference read between its nodes errs by a curvature term shaped by its cells, one
+    sign across a plane of readings where the field curves (the ends): the shape of volume
+    averaging. The selection does not credit averaging with what an error of this size could
+    produce (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`).
+
+    Returns
+    -------
+    tuple (std, key) or None
+        ``std`` (m, 3) T: the stated standard deviation of the reference's error at the
+        distinct points ``ctx.upts``; ``key`` (n,): the distinct point of each row. None: no
+        error stated (a 2-D field, exact everywhere, or a map read on its nodes).
+    """
+    error_var = getattr(ctx.reference_fn, "error_var", None)
+    if error_var is None or ctx.upts is None or ctx.uinv is None:
+        return None
+    std = np.sqrt(np.maximum(np.asarray(error_var(ctx.upts), dtype=float), 0.0))
+    if not np.any(std > 0):
+        return None
+    return std, np.asarray(ctx.uinv)
 
 
 def averaging_params(a_mm) -> dict:

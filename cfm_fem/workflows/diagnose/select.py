@@ -11,9 +11,11 @@ the baseline kept). A candidate has up to two parts:
   m, s: prior); Holm over the parameters the data determine (C < s^2 / 2); the parameters in
   conflict are released one by one while the data still determine each of them alone.
 
-Evidence of a candidate: ``delta_bic`` = delta_chi2 - k ln(n_obs); its p-value (Bonferroni over
-its parts), guarded by Holm over the candidates of the round; held-out RMS (K-fold over whole
-repetitions) before and after; ``survival``: the fraction of the fitted new signature that the
+Evidence of a candidate: ``delta_bic`` = delta_chi2 - k ln(n_obs), delta_chi2 of an effect with
+the shape of the reference's own error (volume averaging) less what an error of the stated size
+could give (:func:`reference_explains`); its p-value (Bonferroni over its parts), guarded by
+Holm over the candidates of the round; held-out RMS (K-fold over whole repetitions) before and
+after; ``survival``: the fraction of the fitted new signature that the
 current model cannot reproduce within its priors (small: absorbed).
 
 A candidate is accepted when delta_bic > ``bic_min``, its Holm-adjusted p < ``alpha``, its
@@ -53,6 +55,7 @@ __all__ = [
     "implausible_reason",
     "family_weights",
     "model_average",
+    "reference_explains",
 ]
 
 
@@ -372,7 +375,8 @@ def _evaluate(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
     if blk.p:
         trial = stack([model, blk])
         f = fit_map(prob.y, sigma, trial)
-        d = current.objective - f.objective
+        # less what the reference's own error could give (blocks of its shape only)
+        d = current.objective - f.objective - reference_explains(prob, sigma, trial, f, blk)
         k = max(f.edf - current.edf, 1e-9)
         mult = max(float(blk.multiplicity), 1.0)
         parts["new"] = {
@@ -419,6 +423,8 @@ def _evaluate(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
         trial = stack([trial, blk])
     f = fit_map(prob.y, sigma, trial)
     d = current.objective - f.objective
+    if "new" in use:
+        d -= reference_explains(prob, sigma, trial, f, blk)
     k = sum(parts[nm]["k"] for nm in use)
     pen = sum(parts[nm].get("pen", 0.0) for nm in use)
     p = min(1.0, n_parts * min(parts[nm]["p"] for nm in use))
@@ -437,6 +443,57 @@ def _evaluate(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
         conflict=conflict,
         has_new="new" in use,
     )
+
+
+def reference_explains(prob, sigma, trial: Columns, fit: Fit, blk: Columns) -> float:
+    """Part of a new block's drop of the objective that the reference's own error could give.
+
+    A block that carries ``ref_error = (std (m, 3), key (n,))`` (the stated standard deviation
+    of the reference's error at each distinct point, and each row's point) has the shape of
+    that error (``sensor_volume_averaging``: a reference read between its nodes errs by a
+    curvature term, one sign across a plane where the field curves). The error is one value
+    per point, shared by its readings, and may be coherent across the map: its effect on the
+    block's estimate is bounded by b_k = sum_p sum_c |A_kpc| std_pc, with A the estimate's
+    influence of each point's error (``fit.cov`` J' W summed over the point's readings): the
+    largest shift an error within its stated size, of any sign pattern, can make. The
+    evidence left is that of the estimate moved towards zero by b per parameter,
+    theta_a = sign(theta) max(|theta| - b, 0); the part returned is
+    theta' C^-1 theta - theta_a' C^-1 theta_a (C: the block's posterior covariance), >= 0.
+
+    Parameters
+    ----------
+    prob : Problem
+    sigma : ndarray, shape (n, 3)
+    trial : Columns
+        The model the block was fitted in, the block's columns last.
+    fit : Fit
+        That fit.
+    blk : Columns
+
+    Returns
+    -------
+    float
+        0 for a block without ``ref_error``.
+    """
+    ref = getattr(blk, "ref_error", None)
+    if ref is None or not blk.p:
+        return 0.0
+    std, key = ref
+    idx = np.arange(trial.p - blk.p, trial.p)
+    theta, C = fit.theta[idx], fit.cov[np.ix_(idx, idx)]
+    w = np.where(np.isfinite(prob.y), 1.0 / sigma**2, 0.0)
+    infl = np.einsum("kq,ncq->knc", fit.cov[idx], np.nan_to_num(trial.J) * w[..., None])
+    m = len(std)
+    per_point = np.stack([np.stack([np.bincount(key, weights=infl[k, :, c], minlength=m)
+                                    for c in range(3)], axis=-1)
+                          for k in range(blk.p)])  # fmt: skip
+    bound = np.einsum("kmc,mc->k", np.abs(per_point), std)
+    left = np.sign(theta) * np.maximum(np.abs(theta) - bound, 0.0)
+    try:
+        Ci = np.linalg.pinv(C)
+    except np.linalg.LinAlgError:
+        return 0.0
+    return float(max(theta @ Ci @ theta - left @ Ci @ left, 0.0))
 
 
 def _screen(sigma, model, current, J):
