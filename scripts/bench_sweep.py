@@ -295,10 +295,11 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
     peak = peak_rss_bytes()  # both units: "4 GB" can be read either way
     print(f"  peak resident memory       : {peak / 1e9:8.2f} GB ({peak / 2**30:.2f} GiB)")
-    print(
-        f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
-        f"(all {len(ups)} U_p values per trial)"
-    )
+    if estimator == "plain":  # the adaptive estimator's trials differ from node to node
+        print(
+            f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
+            f"(all {len(ups)} U_p values per trial)"
+        )
     print(
         f"  U_f p95 per U_p [units]    : "
         f"{[round(v, 2) if v is not None else None for v in s['uf_units']['p95']]}"
