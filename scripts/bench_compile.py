@@ -6,7 +6,7 @@
 
 Each run compiles into a fresh temporary numba cache (set before numba is imported), the way
 the first run after an install does: ``cv`` calls the adaptive kernel on a one-node model as
-`cfm_fem.workflows.sweep.compile_ahead` does in its second process, ``fit`` fits a small map.
+`cfm_fem.workflows.sweep.compile_ahead` does in a child process, ``fit`` fits a small map.
 It prints the process's CPU time for the whole compilation, then per compiled function (numba's
 own helpers included) the CPU time spent in it alone (``self``, its callees' compilation taken
 out) and with its callees (``with callees``), and how many versions (type signatures) of it were
