@@ -7,6 +7,8 @@
     python scripts/bench_sweep.py big --outside extrapolate   # surface nodes extrapolated
     python scripts/bench_sweep.py big --notch        # a quadrant removed: non-convex map
     python scripts/bench_sweep.py big --field-model harmonic   # per-node harmonic fits
+    python scripts/bench_sweep.py big --field-model harmonic --estimator adaptive
+                                                     # and the command line's default estimator
     python scripts/bench_sweep.py trial              # CPU ns per trial, one thread, bundled map
 
 ``ratio``: perturbed-interpolation samples per second of the numba kernels against
@@ -261,13 +263,15 @@ def fem_like_map(n_target: int, seed: int = 0, notch: bool = False) -> FieldMap:
 
 
 def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outside="exclude",
-              notch=False, field_model="linear"):  # fmt: skip
+              notch=False, field_model="linear", estimator="plain"):  # fmt: skip
     t0 = time.perf_counter()
     fm = fem_like_map(n_nodes, notch=notch)
     t_map = time.perf_counter() - t0
-    cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside, field_model=field_model)
+    cfg = SweepConfig(up_um=ups, trials=trials, seed=0, outside=outside, field_model=field_model,
+                      estimator=estimator)  # fmt: skip
     # compile outside the timing
-    small = SweepConfig(up_um=ups, trials=20, outside=outside, field_model=field_model)
+    small = SweepConfig(up_um=ups, trials=20, outside=outside, field_model=field_model,
+                        estimator=estimator)  # fmt: skip
     run_sweep(fem_like_map(2000, notch=notch), small)
     t0 = time.perf_counter()
     res = run_sweep(fm, cfg)
@@ -281,7 +285,9 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"map: {fm.n_nodes} nodes, {len(fm.cells)} native tetrahedra (made in {t_map:.1f} s)"
           + (", quadrant x > 0, y > 0 removed (non-convex)" if notch else ""))  # fmt: skip
     print(f"sweep: {trials} trials per node, U_p = {ups} um, {numba.get_num_threads()} threads, "
-          f"--outside {outside}, --field-model {field_model}")  # fmt: skip
+          f"--outside {outside}, --field-model {field_model}, estimator {estimator}"
+          + (" (trials: where the plain Monte Carlo runs)" if estimator == "adaptive" else "")
+          )  # fmt: skip
     if res.field_fit is not None:
         print(f"  nodes on the linear interpolant: {int((res.field_fit['degree'] == 0).sum())}")
     print(f"  mesh + kernel + statistics : {t_run:8.1f} s")
@@ -289,10 +295,11 @@ def bench_big(n_nodes: int, trials: int, ups: list[float], out: str | None, outs
     print(f"  total wall                 : {total:8.1f} s  ({total / 60:.1f} min)")
     peak = peak_rss_bytes()  # both units: "4 GB" can be read either way
     print(f"  peak resident memory       : {peak / 1e9:8.2f} GB ({peak / 2**30:.2f} GiB)")
-    print(
-        f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
-        f"(all {len(ups)} U_p values per trial)"
-    )
+    if estimator == "plain":  # the adaptive estimator's trials differ from node to node
+        print(
+            f"  trials per second          : {fm.n_nodes * trials / t_run:.4g} "
+            f"(all {len(ups)} U_p values per trial)"
+        )
     print(
         f"  U_f p95 per U_p [units]    : "
         f"{[round(v, 2) if v is not None else None for v in s['uf_units']['p95']]}"
@@ -338,6 +345,10 @@ def main():
     )
     ap.add_argument("--field-model", choices=["linear", "harmonic"], default="linear",
                     help="'big': the field model between nodes")  # fmt: skip
+    ap.add_argument("--estimator", choices=["plain", "adaptive"], default="plain",
+                    help="'big': plain Monte Carlo of --trials per node, or the command line's "
+                         "default adaptive estimator (harmonic model; --trials then serves the "
+                         "nodes it leaves to the plain Monte Carlo)")  # fmt: skip
     a = ap.parse_args()
     if a.what == "ratio":
         per_node = a.trials or 1000
@@ -356,6 +367,7 @@ def main():
             a.outside,
             a.notch,
             a.field_model,
+            a.estimator,
         )
 
 

@@ -83,6 +83,15 @@ def shell_sort(a):
 
 
 @nb.njit(**JIT)
+def _copy_ends(a, n, h, low, high):
+    """``low[:h] = a[:h]`` and ``high[:h] = a[n - h:n]`` (loops: a slice assignment compiles
+    numba's shape-mismatch message, seconds of compile time)."""
+    for t in range(h):
+        low[t] = a[t]
+        high[t] = a[n - h + t]
+
+
+@nb.njit(**JIT)
 def sample_tails(a, n, h, low, high, scratch, copy):
     """Mean, std (ddof 1) of a[:n] and its h smallest (``low[:h]``) and h largest
     (``high[:h]``) values, both ascending; ``a`` is left unchanged.
@@ -97,14 +106,13 @@ def sample_tails(a, n, h, low, high, scratch, copy):
     if n_lo >= h and n_hi >= h and std > 0.0:
         select_inplace(scratch, np.int64(0), n_lo - 1, h - 1)
         select_inplace(scratch, n - n_hi, n - 1, n - h)
-        low[:h] = scratch[:h]
-        high[:h] = scratch[n - h : n]
+        _copy_ends(scratch, n, h, low, high)
     else:
-        copy[:n] = a[:n]
+        for t in range(n):
+            copy[t] = a[t]
         select_inplace(copy, np.int64(0), n - 1, h - 1)
         select_inplace(copy, h, n - 1, n - h)
-        low[:h] = copy[:h]
-        high[:h] = copy[n - h : n]
+        _copy_ends(copy, n, h, low, high)
     shell_sort(low[:h])
     shell_sort(high[:h])
     return mean, std
@@ -358,9 +366,13 @@ def _grown(n_up, size, p, old, n):
     """`_buffers` for ``size`` trials, the first n trials of ``old`` (its trial arrays)
     carried over."""
     bufs, work, x_tails = _buffers(n_up, size, p)
-    bufs[2][:, :n] = old[2][:, :n]
-    bufs[4][:, :, :n] = old[4][:, :, :n]
-    bufs[5][:, :n] = old[5][:, :n]
+    for t in range(n):  # loops: see `_copy_ends`
+        for a in range(3):
+            bufs[2][a, t] = old[2][a, t]
+        for c in range(4):
+            bufs[5][c, t] = old[5][c, t]
+            for k in range(n_up):
+                bufs[4][k, c, t] = old[4][k, c, t]
     return bufs, work, x_tails
 
 
@@ -410,6 +422,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     cexp = np.zeros((3, gmat.shape[1]))
     lin = _linear_monomials(exps)
     zq = normal_quantile(0.5 * (1.0 + p))
+    c0, c3, c4 = np.int64(0), np.int64(3), np.int64(4)  # not literals: one callee version
     smax = 0.0
     for k in range(n_up):
         smax = max(smax, scales[k])
@@ -427,7 +440,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         _first_order_sigmas(cexp, lin, sigma_axes, inv, b_hat, sig1)
         key = trial_key(skey, keys[i])
         reach2 = (hreach[g] / smax) ** 2 if smax > 0.0 else np.inf
-        n = 0
+        n = np.int64(0)  # not a literal, as above
         target = min(pilot, cap)
         while True:
             if target > size:
@@ -437,14 +450,14 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
                                 scales, bufs)  # fmt: skip
             n = target
             if d2max > reach2:  # beyond the model's support: the plain Monte Carlo's node
-                n = 0
+                n = np.int64(0)
                 break
             vals, xu = bufs[4], bufs[5]
             worst = _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails,
-                                    stats[i], se, 3, 4)  # |B| decides  # fmt: skip
+                                    stats[i], se, c3, c4)  # |B| decides  # fmt: skip
             if worst <= rel_se or n >= cap:  # then the components
                 _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats[i],
-                                se, 0, 3)  # fmt: skip
+                                se, c0, c3)  # fmt: skip
                 break
             target = min(2 * n, cap)
         used[i] = n

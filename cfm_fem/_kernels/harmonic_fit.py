@@ -194,7 +194,7 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
         hat[:, :] = 0.0
         best_press = np.inf
         best_rss = np.nan
-        j0 = 0
+        j0 = np.int64(0)  # not a literal: one compiled `_add_leverages`
         for lev in range(min(lmin, FIT_CHECK_DEGREE), lhi + 1):
             nb_l = _n_basis(lev)
             _add_leverages(zt, j0, nb_l, hat)

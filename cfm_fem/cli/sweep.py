@@ -258,7 +258,7 @@ def _note_compile(mode: str, field_model: str, adaptive: bool = False) -> None:
                 missing = [k.py_func.__name__ for k in kernels if not _kernels.kernels_cached(k)]
                 print(f"cfm-fem sweep: compiling {', '.join(missing + [sweep.py_func.__name__])} "
                       "for this machine (the first run after an install or upgrade; the sweep's "
-                      "kernel in a second process while the map is read and fitted; later runs "
+                      "kernel in two more processes while the map is read and fitted; later runs "
                       "load them from numba's cache)", file=sys.stderr)  # fmt: skip
                 return
         kernels = (_kernels.harmonic_fit_block, sweep)

@@ -103,7 +103,6 @@ def _point_data(res: SweepResult, k: int) -> dict:
             "sym95_high_units": units(st[:, c, 3]),
             "short95_low_units": units(st[:, c, 4]),
             "short95_high_units": units(st[:, c, 5]),
-            "Uk2_units": units(2.0 * st[:, c, 1]),
         }
         if c != 3:  # |B|: its U95 is U_f_units
             per["U95_units"] = units(U95[:, c])

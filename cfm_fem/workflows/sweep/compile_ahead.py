@@ -1,10 +1,12 @@
-"""Compile the adaptive sweep kernel in a second process while this one reads and fits the map.
+"""Compile the adaptive sweep kernel in other processes while this one reads and fits the map.
 
 On the first run after an install numba compiles every kernel a sweep uses. The harmonic fit's
-kernel is needed at once, the sweep's only after the fit: `start` compiles the sweep's in a
-child process (on another core) into numba's on-disk cache, and `wait`, called just before the
-kernel's first use, waits for that process, so that this one then loads the compiled code.
-The child compiles the kernel for the argument types the sweep passes (`model_arrays`).
+kernel is needed at once, the sweep's only after the fit: `start` compiles the sweep's in
+child processes (beside the fit's compilation) into numba's on-disk cache, and `wait`, called
+just before the kernel's first use, waits for them, so that this one then loads the compiled
+code. One child compiles the kernel for the argument types the sweep passes (`model_arrays`);
+the other compiles its per-node statistics (`_node_estimates` and its callees) meanwhile,
+which the first loads from the cache when it comes to them instead of compiling them itself.
 """
 
 from __future__ import annotations
@@ -16,28 +18,29 @@ import numpy as np
 
 from ... import _kernels
 
-__all__ = ["start", "wait", "compile_now", "model_arrays"]
+__all__ = ["start", "wait", "compile_now", "compile_estimates", "model_arrays"]
 
 _pending: list = []
 
 
 def start() -> bool:
-    """Start compiling `harmonic_cv_sweep` in a child process unless numba's cache holds it;
-    True if a process was started."""
+    """Start compiling `harmonic_cv_sweep` in child processes unless numba's cache holds it;
+    True if they were started."""
     if _pending or _kernels.kernels_cached(_kernels.harmonic_cv_sweep):
         return False
-    code = "from cfm_fem.workflows.sweep.compile_ahead import compile_now; compile_now()"
-    _pending.append(
-        subprocess.Popen(
-            [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    for name in ("compile_now", "compile_estimates"):
+        code = f"from cfm_fem.workflows.sweep.compile_ahead import {name}; {name}()"
+        _pending.append(
+            subprocess.Popen(
+                [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            )
         )
-    )
     return True
 
 
 def wait() -> None:
-    """Wait for the process `start` began, if any (it compiles into the cache this process
-    then reads; if it failed, the first call compiles here as it would have anyway)."""
+    """Wait for the processes `start` began, if any (they compile into the cache this process
+    then reads; if they failed, the first call compiles here as it would have anyway)."""
     while _pending:
         _pending.pop().wait()
 
@@ -70,3 +73,21 @@ def compile_now() -> None:
     _kernels.harmonic_cv_sweep(
         nodes, nodes.copy(), model, np.ones(3), np.array([0.0, 0.01]), 0, 0.95, ADAPTIVE_PLAN
     )
+
+
+def compile_estimates(n_up: int = 2, p: float = 0.95) -> None:
+    """Compile `harmonic_cv_sweep`'s per-node statistics (`_node_estimates`) into numba's cache
+    for the argument types the kernel passes them (C-contiguous writable float64 arrays, int64
+    counts, the work arrays of `_buffers` as tuples), without running them."""
+    import numba
+
+    from ..._kernels import harmonic_cv
+
+    size = 4
+    work = tuple(np.empty(size) for _ in range(4))
+    args = (
+        np.int64(size), p, np.ones(n_up), np.empty(4), 1.0, np.empty((n_up, 4, size)),
+        np.empty((4, size)), work, np.empty((4, 6)), np.empty((2, 4, size)),
+        np.empty((1, n_up, 4, 6))[0], np.empty(2), np.int64(0), np.int64(3),
+    )  # fmt: skip
+    harmonic_cv._node_estimates.compile(tuple(numba.typeof(a) for a in args))
