@@ -149,7 +149,7 @@ def _candidates(prob: Problem, cal) -> tuple[dict, dict, dict, list]:
     absorbed = [
         name
         for name, blk in blocks.items()
-        if blk.p and not blk.release and len(absorption[name]) == blk.p
+        if blk.p and not blk.release and len(absorption[name]) == blk.p - len(blk.unbounded)
     ]
     # invisible parameters are not fitted: their value would be set by the baseline's priors,
     # not by the data (and would dilute the evidence of the visible ones)
