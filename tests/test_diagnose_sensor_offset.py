@@ -11,9 +11,7 @@ import pytest
 from diagnose_grids import P
 
 from cfm_fem.workflows.diagnose import effects as fx
-from cfm_fem.workflows.diagnose.calibrate import stack
 from cfm_fem.workflows.diagnose.problem import hall_problem
-from cfm_fem.workflows.diagnose.select import structural_absorption
 from cfm_fem.workflows.diagnose.twin import hall_twin
 
 
@@ -23,22 +21,21 @@ def _twin_problem():
     return hall_problem(rec, mp.field, mp.b_ref, ctx["bench"])
 
 
-def test_centroid_columns_are_kept_free_of_the_baseline():
+def test_the_elements_centroid_is_a_free_nuisance_of_the_offsets():
     prob = _twin_problem()
     blk = fx.sensor_offset(prob)
-    assert blk.unbounded == ("centroid_x", "centroid_y", "centroid_z")
-    assert np.all(blk.prior_std[6:] >= 1e5)  # no prior to speak of
-    # a common shift along j moves every element's reading by dB/dx_j: the magnet's offset
-    # column up to its sign, in the baseline's span, and still not taken as absorbed
-    sigma = np.ones((prob.n, 3)) * 1e-5
-    base = stack(prob.baseline)
-    gone = {a["name"] for a in structural_absorption(prob, sigma, base, blk)}
-    assert not gone & set(blk.unbounded)
-    # in QFDp4, dB_y/dx is nearly uniform: a y element moved along x still reads as the
-    # magnet's offset, absorbed (the relative offsets are judged as before)
-    assert "d_y_x" in gone
-    sub = blk.subset([k for k, n in enumerate(blk.names) if n not in gone])
-    assert sub.unbounded == blk.unbounded
+    assert blk.names == [f"d_{i}_{j}" for j in "xyz" for i in "xy"]
+    nuis = blk.nuisance
+    assert nuis.names == ["centroid_x", "centroid_y", "centroid_z"]
+    assert np.all(nuis.prior_std >= 1e5)  # no prior to speak of
+    # a common shift along j moves every element's reading by dB/dx_j; the x element's
+    # relative column minus the centroid's leaves the z element's change alone
+    j = 1
+    diff = blk.J[..., 2 * j] - nuis.J[..., j]
+    assert np.allclose(diff[:, 0], 0.0)
+    assert np.allclose(diff[:, 1], -nuis.J[:, 1, j])
+    # the block keeps its nuisance when the selection drops absorbed columns
+    assert blk.subset([0, 1]).nuisance is nuis
 
 
 def test_element_offsets_marginalise_the_common_shift():

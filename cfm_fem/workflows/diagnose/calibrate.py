@@ -104,13 +104,13 @@ class Columns:
         each distinct point, and each row's point. The selection credits the effect only with
         what an error of that size cannot explain
         (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`). None: no such term.
-    unbounded : tuple of str
-        Columns that move the readings as baseline parameters do but that the baseline's priors
-        do not bound (``sensor_offset``: the shift common to the three Hall elements moves the
-        readings as the magnet's offset does, while the magnet's survey says nothing about
-        where the elements sit in the probe). Fitted freely with the effect, never taken as
-        absorbed by the baseline (:func:`~cfm_fem.workflows.diagnose.select.structural_absorption`);
-        the effect reports the parameters they leave determined (:attr:`physical`).
+    nuisance : Columns, optional
+        Parameters the effect's reported estimates are marginalised over, which its evidence
+        is not tested with (``sensor_offset``: the shift common to the three Hall elements,
+        free of any prior: it moves the readings as the magnet's offset does, but the magnet's
+        survey says nothing about where the elements sit in the probe). The selection tests
+        the effect's own columns; the accepted effect's parameters and their covariance come
+        from the final model with these columns added. None: no such parameters.
     """
 
     J: np.ndarray
@@ -134,7 +134,7 @@ class Columns:
     model_dependent: tuple | None = None
     lower_order: dict | None = None
     ref_error: tuple | None = None
-    unbounded: tuple = ()
+    nuisance: Columns | None = None
 
     @property
     def p(self) -> int:
@@ -175,7 +175,7 @@ class Columns:
             self.model_dependent,
             self.lower_order,
             self.ref_error,
-            tuple(n for n in self.unbounded if n in [self.names[k] for k in keep]),
+            self.nuisance,
         )
 
     def released(self, group: str) -> Columns:

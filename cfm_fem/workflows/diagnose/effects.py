@@ -38,10 +38,11 @@ the probe senses: the reference read where the fitted bench errors move the prob
   and m_ij is reported divided by the fitted gain (:attr:`Columns.element`; so is k_i of
   ``planar_hall``).
 * ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um), d_ij
-  the displacement of element i along j from the elements' centroid (sum_i d_ij = 0), fitted
-  with the centroid's own shift free (its sum with the magnet's offset is what the readings
-  see; the survey's prior on the magnet does not bound where the elements sit in the probe).
-  The relative offsets are reported.
+  the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
+  common to all three moves the readings as the magnet's offset does). The effect is tested
+  with the centroid left to the registration; its offsets are reported fitted with the
+  centroid's shift free (the survey's prior on the magnet does not bound where the elements
+  sit in the probe), their uncertainty marginalised over it.
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
 * ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components; each
   element's k_i is a function of its own.
@@ -329,31 +330,30 @@ def probe_misalignment(prob):
 
 
 def sensor_offset(prob):
-    """Hall elements displaced relative to the probe's reference point.
+    """Hall elements displaced relative to one another.
 
     The columns are the elements' offsets from their centroid (x and y elements per direction;
-    the z element is minus their sum) and the centroid's own shift, free of any prior. A shift
-    common to the three elements moves the readings as the magnet's offset does, but the
+    the z element is minus their sum). The centroid's own shift moves the readings as the
+    magnet's offset does, so the test of the effect leaves it to the registration; but the
     magnet's survey says nothing about where the elements sit in the probe: held by that
     prior, the common shift of elements placed unevenly (one element a millimetre off) would
     leak into the relative offsets through their gradient-weighted columns, biased by many
-    standard uncertainties. Freed here, the relative offsets carry their full uncertainty,
-    their correlation with the registration included; the centroid is not reported (only
-    its sum with the magnet's offset is seen, the split resting on the survey).
+    standard uncertainties. The reported offsets are fitted with the centroid's shift free
+    (:attr:`Columns.nuisance`), their uncertainty marginalised over it.
     """
     G = prob.ctx.G
-    J = np.zeros((prob.n, 3, 9))
+    J = np.zeros((prob.n, 3, 6))
     names = []
     for j in range(3):
         for k, i in enumerate((0, 1)):
             J[:, i, 2 * j + k] = G[:, i, j] * UM
             J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
             names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
-    for j in range(3):  # the centroid: every element moved along j
-        J[:, :, 6 + j] = G[:, :, j] * UM
-        names.append(f"centroid_{'xyz'[j]}")
-    blk = effect_columns(J, names, ["um"] * 9, "sensor_offset")
-    blk.unbounded = tuple(names[6:])
+    blk = effect_columns(J, names, ["um"] * 6, "sensor_offset")
+    # the centroid: every element moved along j
+    Jc = G * UM
+    centroid = [f"centroid_{a}" for a in "xyz"]
+    blk.nuisance = effect_columns(Jc, centroid, ["um"] * 3, "sensor_offset")
     blk.physical = _element_offsets
     return blk
 

@@ -134,7 +134,7 @@ def cv_rms(prob: Problem, sigma, cols: Columns, folds, rows=None) -> tuple[float
 
 
 def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
-                     min_survival: float = 0.05, unbounded=()) -> np.ndarray:  # fmt: skip
+                     min_survival: float = 0.05) -> np.ndarray:  # fmt: skip
     """Rows whose fold the other folds can predict with the candidate's new columns.
 
     A fold is left out of the held-out test when, on the rows trained without it, some new
@@ -142,14 +142,13 @@ def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
     span of the ``model`` columns (no priors): the training data cannot tell that parameter
     from the baseline, so its value, and the fold's prediction, is arbitrary. (A step from the
     second of three repetitions on is a constant over the last two: the fold of the first
-    repetition cannot test it.) Columns named in ``unbounded`` (:attr:`Columns.unbounded`:
-    in the model's span by construction, held by its priors) are not tested.
+    repetition cannot test it.)
 
     Returns
     -------
     ndarray of bool, shape (n,)
     """
-    new = np.array([k for k in range(model.p, trial.p) if trial.names[k] not in unbounded], int)
+    new = np.arange(model.p, trial.p)
     use = np.ones(prob.n, dtype=bool)
     if new.size == 0:
         return use
@@ -266,8 +265,7 @@ def structural_absorption(prob, sigma, base: Columns, blk: Columns, min_survival
     reproduces it), or when it has no signature at all (below 1e-3 of the noise of the whole
     data set even at the edge of its plausible range). Scale-free in the noise (an effect that
     inflates the noise estimate does not hide itself); depends on the design (positions, field,
-    time, directions), never on the measured values. Columns the baseline's priors do not
-    bound (:attr:`Columns.unbounded`) are in the baseline's span by construction and are kept.
+    time, directions), never on the measured values.
 
     Returns
     -------
@@ -287,8 +285,6 @@ def structural_absorption(prob, sigma, base: Columns, blk: Columns, min_survival
     bnd = blk.bounds if blk.bounds is not None else np.tile([-np.inf, np.inf], (blk.p, 1))
     out = []
     for j in range(blk.p):
-        if blk.names[j] in blk.unbounded:  # a baseline direction its priors do not bound
-            continue
         w = W[:, j]
         nw = float(np.linalg.norm(w))
         proj = u.T @ w
@@ -673,7 +669,7 @@ def _holm(round_c) -> None:
 def _predicts_held_out(prob, sigma, model, c: Candidate, folds, cv_z: float) -> bool:
     """The held-out test of a candidate (module docstring); sets its ``cv_before``,
     ``cv_after`` and ``cv_z``."""
-    use = determined_folds(prob, sigma, model, c.trial, folds, unbounded=c.cols.unbounded)
+    use = determined_folds(prob, sigma, model, c.trial, folds)
     cvb, eb = cv_rms(prob, sigma, model, folds, rows=use)
     cva, ea = cv_rms(prob, sigma, c.trial, folds, rows=use)
     diff = (eb - ea)[use]
