@@ -110,7 +110,10 @@ class Columns:
         free of any prior: it moves the readings as the magnet's offset does, but the magnet's
         survey says nothing about where the elements sit in the probe). The selection tests
         the effect's own columns; the accepted effect's parameters and their covariance come
-        from the final model with these columns added. None: no such parameters.
+        from the final model with these columns added. Its ``release`` names the baseline
+        parameters whose priors the data cannot check while it is free (the magnet's offsets:
+        a conflict of theirs is not stated once the effect is accepted). None: no such
+        parameters.
     """
 
     J: np.ndarray

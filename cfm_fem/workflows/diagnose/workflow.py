@@ -567,6 +567,9 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         if c["status"] == "implausible fit"
     ]
     released = {n for c in sel.accepted for n in c.released}
+    # the baseline priors an accepted effect's free nuisance makes untestable (Columns.nuisance)
+    released |= {n for c in sel.accepted if c.has_new and c.cols.nuisance is not None
+                 for n in c.cols.nuisance.release}  # fmt: skip
     conflicts = prior_conflicts(
         sel.model, fit1, cal.base, released, _family_alpha(o), p.baseline, p.kind
     )
