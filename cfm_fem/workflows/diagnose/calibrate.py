@@ -104,6 +104,16 @@ class Columns:
         each distinct point, and each row's point. The selection credits the effect only with
         what an error of that size cannot explain
         (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`). None: no such term.
+    nuisance : Columns, optional
+        Parameters the effect's reported estimates are marginalised over, which its evidence
+        is not tested with (``sensor_offset``: the shift common to the three Hall elements,
+        free of any prior: it moves the readings as the magnet's offset does, but the magnet's
+        survey says nothing about where the elements sit in the probe). The selection tests
+        the effect's own columns; the accepted effect's parameters and their covariance come
+        from the final model with these columns added. Its ``release`` names the baseline
+        parameters whose priors the data cannot check while it is free (the magnet's offsets:
+        a conflict of theirs is not stated once the effect is accepted). None: no such
+        parameters.
     """
 
     J: np.ndarray
@@ -127,6 +137,7 @@ class Columns:
     model_dependent: tuple | None = None
     lower_order: dict | None = None
     ref_error: tuple | None = None
+    nuisance: Columns | None = None
 
     @property
     def p(self) -> int:
@@ -167,6 +178,7 @@ class Columns:
             self.model_dependent,
             self.lower_order,
             self.ref_error,
+            self.nuisance,
         )
 
     def released(self, group: str) -> Columns:

@@ -39,7 +39,10 @@ the probe senses: the reference read where the fitted bench errors move the prob
   ``planar_hall``).
 * ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um), d_ij
   the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
-  common to all three is the magnet's registration, ``magnet_misalignment``).
+  common to all three moves the readings as the magnet's offset does). The effect is tested
+  with the centroid left to the registration; its offsets are reported fitted with the
+  centroid's shift free (the survey's prior on the magnet does not bound where the elements
+  sit in the probe), their uncertainty marginalised over it.
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
 * ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components; each
   element's k_i is a function of its own.
@@ -95,7 +98,7 @@ from ...models.bench import ERROR_NAMES
 from ...models.kinematics.chain import probe_errors_for_bench
 from .fringe import fringe_field_3d
 from .priors import PLAUSIBLE, bounds_for, effect_columns
-from .problem import UM, URAD, field_hessian, field_hessian_diag
+from .problem import REG_NAMES, UM, URAD, field_hessian, field_hessian_diag
 from .step_event import step_event
 
 __all__ = [
@@ -327,11 +330,18 @@ def probe_misalignment(prob):
 
 
 def sensor_offset(prob):
-    """Hall elements displaced relative to one another (their centroid held fixed: a shift
-    common to the three elements is a registration shift, ``magnet_misalignment``)."""
+    """Hall elements displaced relative to one another.
+
+    The columns are the elements' offsets from their centroid (x and y elements per direction;
+    the z element is minus their sum). The centroid's own shift moves the readings as the
+    magnet's offset does, so the test of the effect leaves it to the registration; but the
+    magnet's survey says nothing about where the elements sit in the probe: held by that
+    prior, the common shift of elements placed unevenly (one element a millimetre off) would
+    leak into the relative offsets through their gradient-weighted columns, biased by many
+    standard uncertainties. The reported offsets are fitted with the centroid's shift free
+    (:attr:`Columns.nuisance`), their uncertainty marginalised over it.
+    """
     G = prob.ctx.G
-    # free parameters: elements x and y along each direction j relative to the centroid;
-    # element z = -(x + y), so its column enters both with a minus sign
     J = np.zeros((prob.n, 3, 6))
     names = []
     for j in range(3):
@@ -340,6 +350,12 @@ def sensor_offset(prob):
             J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
             names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
     blk = effect_columns(J, names, ["um"] * 6, "sensor_offset")
+    # the centroid: every element moved along j
+    Jc = G * UM
+    centroid = [f"centroid_{a}" for a in "xyz"]
+    blk.nuisance = effect_columns(Jc, centroid, ["um"] * 3, "sensor_offset")
+    # with the centroid free, the magnet's offsets are no test of the survey's prior
+    blk.nuisance.release = REG_NAMES[:3]
     blk.physical = _element_offsets
     return blk
 

@@ -37,7 +37,10 @@ PLAUSIBLE = {
         ("alpha", -2000.0, 2000.0, "a squareness error beyond 2 mrad"),
     ],
     "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
-    "sensor_offset": [("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart")],
+    "sensor_offset": [
+        ("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart"),
+        ("centroid_", -2000.0, 2000.0, "Hall elements 2 mm off the probe's reference point"),
+    ],
     "magnet_misalignment": [
         ("magnet_d", -10000.0, 10000.0, "a magnet 10 mm off its survey or nominal placement"),
         ("magnet_", -10000.0, 10000.0, "a magnet rotated 10 mrad off its survey"),

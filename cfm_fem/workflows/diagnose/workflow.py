@@ -345,6 +345,7 @@ def _effects_out(prob, sel, fit1, base) -> list:
     """One entry per effect, the functions of one effect merged, strongest first; their std
     with the vibration correlated across the components of a reading
     (:func:`~cfm_fem.workflows.diagnose.noise.vibration_covariance`)."""
+    noise = None
     if sel.accepted:
         model = sel.model
         vk = prob.var_known if model.var_known is None else model.var_known
@@ -353,7 +354,17 @@ def _effects_out(prob, sel, fit1, base) -> list:
     groups: dict = {}
     for c in sel.accepted:
         groups.setdefault(c.name, []).append(c)
-    out = [_effect_entry(cs, sel.model, fit1, base, sel.sigma) for cs in groups.values()]
+    out = []
+    for cs in groups.values():
+        nuis = cs[0].cols.nuisance if cs[0].has_new else None
+        if nuis is None:
+            out.append(_effect_entry(cs, sel.model, fit1, base, sel.sigma))
+            continue
+        # the effect's estimates marginalised over its nuisance parameters (Columns.nuisance)
+        model = stack([sel.model, nuis])
+        fit = fit_map(prob.y, sel.sigma, model)
+        fit = replace(fit, cov=vibration_covariance(prob, model, fit, sel.sigma, noise))
+        out.append(_effect_entry(cs, model, fit, base, sel.sigma))
     return sorted(out, key=lambda e: -e["delta_bic"])
 
 
@@ -556,6 +567,9 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         if c["status"] == "implausible fit"
     ]
     released = {n for c in sel.accepted for n in c.released}
+    # the baseline priors an accepted effect's free nuisance makes untestable (Columns.nuisance)
+    released |= {n for c in sel.accepted if c.has_new and c.cols.nuisance is not None
+                 for n in c.cols.nuisance.release}  # fmt: skip
     conflicts = prior_conflicts(
         sel.model, fit1, cal.base, released, _family_alpha(o), p.baseline, p.kind
     )
