@@ -437,23 +437,61 @@ def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
     return out
 
 
-def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
-    """The field where the bench's errors ``theta`` put the probe, to second order.
+def field_third(f, p, h: float = 0.5) -> np.ndarray:
+    """d^3 B_i / dx_j dx_k dx_l by central differences of step ``h``, shape (n, 3, 3, 3, 3),
+    T/mm^3.
+
+    The points are p + h (+-e_j +-e_k) (those of :func:`field_hessian`), p +- h e_j,
+    p +- 2 h e_j and p + h (+-e_x +-e_y +-e_z): on a map with nodes h apart around each point
+    they are all nodes. Where a neighbour lies outside a map (NaN), the entry is 0."""
+    out = np.zeros((len(p), 3, 3, 3, 3))
+    eye = np.eye(3) * h
+    one = {}
+    for j in range(3):
+        for s in (1, -1, 2, -2):
+            one[j, s] = f(p + s * eye[j])
+    for j in range(3):
+        d3 = (one[j, 2] - 2.0 * one[j, 1] + 2.0 * one[j, -1] - one[j, -2]) / (2.0 * h**3)
+        out[:, :, j, j, j] = d3
+        for k in range(3):
+            if k == j:
+                continue
+            # d/dx_k of the second difference along x_j
+            up = f(p + eye[j] + eye[k]) - 2.0 * one[k, 1] + f(p - eye[j] + eye[k])
+            dn = f(p + eye[j] - eye[k]) - 2.0 * one[k, -1] + f(p - eye[j] - eye[k])
+            d3 = (up - dn) / (2.0 * h**3)
+            for idx in ((j, j, k), (j, k, j), (k, j, j)):
+                out[:, :, idx[0], idx[1], idx[2]] = d3
+    acc = 0.0
+    for sx in (1, -1):
+        for sy in (1, -1):
+            for sz in (1, -1):
+                acc = acc + sx * sy * sz * f(p + sx * eye[0] + sy * eye[1] + sz * eye[2])
+    d3 = acc / (8.0 * h**3)
+    for idx in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        out[:, :, idx[0], idx[1], idx[2]] = d3
+    out[~np.isfinite(out)] = 0.0
+    return out
+
+
+def bench_expansion(bench: Bench, q, p, theta, B0, G, H, T=None):
+    """The field where the bench's errors ``theta`` put the probe, to third order.
 
     The bench columns model a reading as the field at the probe's point, moved by the errors
     along their linear sensitivities D: B(p) + G D theta. That line leaves out the
-    second-order term of the move, d^T H d / 2, which on a multipole scanned far from the
+    higher-order terms of the move, d^T H d / 2, which on a multipole scanned far from the
     bench's origin (angular errors of tens of urad on levers of hundreds of mm: moves of tens
     of um) is above a Hall probe's noise and shares the signature of a sensor's volume
-    averaging. Expanded at ``theta`` instead, a reading is
+    averaging, and T d d d / 6, all there is on an octupole's axis, where G and H vanish.
+    Expanded at ``theta`` instead, a reading is
 
-        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + d^T H d / 2,
+        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + H d d / 2 + T d d d / 6,
 
-    d the exact move of the bench's kinematic chain, H the reference's Hessian over a step of
-    half a mm or a node spacing (a reference read between nodes is not differentiable at them
-    on the scale of the move; its curvature over a cell is). The columns of the bench and of
-    the registration take the gradient where the probe is, G + H d
-    (:func:`moved_gradient`), so that the Gauss-Newton iterations
+    d the exact move of the bench's kinematic chain, H and T the reference's second and third
+    derivatives over a step of half a mm or a node spacing (a reference read between nodes is
+    not differentiable at them on the scale of the move; its curvature over a cell is). The
+    columns of the bench and of the registration take the gradient where the probe is,
+    G + H d + T d d / 2 (:func:`moved_gradient`), so that the Gauss-Newton iterations
     (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) stop at the optimum: on a
     sextupole's axis G vanishes, while H d, for a move of tens of um, is what the readings
     there say about the errors and the magnet's offset.
@@ -471,28 +509,32 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
         Field and gradient at ``p``.
     H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
         Hessian at ``p`` (None only with all errors zero).
+    T : ndarray, shape (n, 3, 3, 3, 3), T/mm^3, optional
+        Third derivatives at ``p``; None: the expansion stops at second order.
 
     Returns
     -------
     ndarray, shape (n, 3), T
-        B(p + d) to second order.
+        B(p + d) to third order.
     """
     d = bench_move(bench, q, theta)
     if d is None or len(p) != len(B0):
         return B0
     Hd = np.einsum("nijk,nk->nij", H, d)
+    if T is not None:
+        Hd = Hd + np.einsum("nijkl,nk,nl->nij", T, d, d) / 3.0
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
 
 
-def moved_gradient(bench: Bench, q, theta, G, H):
-    """The field's gradient where the bench errors ``theta`` put the probe, to first order.
+def moved_gradient(bench: Bench, q, theta, G, H, T=None):
+    """The field's gradient where the bench errors ``theta`` put the probe, to second order.
 
     The bench errors put the probe d away from its nominal point; the readings' Jacobian in
     the errors and in the magnet's offset, and the lever of the axes' vibration, are the
-    gradient there, G + H d. On a sextupole's axis G vanishes while H d, for a move of tens of
-    um, turns a few um of vibration into several uT (far above a low-noise probe's floor) and
-    an error of the registration into as much. Terms of higher order in d are left out (on an
-    octupole's axis, where H vanishes too, the gradient there is of order d^2).
+    gradient there, G + H d + T d d / 2. On a sextupole's axis G vanishes while H d, for a
+    move of tens of um, turns a few um of vibration into several uT (far above a low-noise
+    probe's floor) and an error of the registration into as much; on an octupole's axis H
+    vanishes too and the gradient there is T d d / 2.
 
     Parameters
     ----------
@@ -505,6 +547,8 @@ def moved_gradient(bench: Bench, q, theta, G, H):
         Gradient at the nominal points.
     H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
         Hessian there; None: ``G`` itself is returned.
+    T : ndarray, shape (n, 3, 3, 3, 3), T/mm^3, optional
+        Third derivatives there; None: the term in d d is left out.
 
     Returns
     -------
@@ -513,7 +557,10 @@ def moved_gradient(bench: Bench, q, theta, G, H):
     d = None if H is None else bench_move(bench, q, theta)
     if d is None or len(H) != len(G):
         return G
-    return G + np.einsum("nijk,nk->nij", H, d)
+    out = G + np.einsum("nijk,nk->nij", H, d)
+    if T is not None:
+        out = out + 0.5 * np.einsum("nijkl,nk,nl->nij", T, d, d)
+    return out
 
 
 def bench_move(bench: Bench, q, theta):
@@ -539,32 +586,46 @@ def _node_step(upts, spacing_mm, nodes):
     return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
 
 
-def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
+def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
     """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
-    ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
-    node spacing: a shorter step sees no curvature inside a cell), default ``h``.
+    ``pose``, the posed field function, and the Hessian (m, 3, 3, 3) T/mm^2 there (None
+    without ``derivs``). ``h2``: step of the Hessian of a linear map (its node spacing: a
+    shorter step sees no curvature inside a cell), default ``h``. ``derivs``: the Hessian and
+    third derivatives (m, 3, 3, 3, 3) T/mm^3 at the nominal placement, or None.
 
     A smooth reference is evaluated at the moved points. A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
-    to the next, and a point moved outside it has no value. Its field is expanded to second
-    order about the points instead (value, gradient and Hessian by differences of step ``h``:
-    node values on a map with nodes either side of each point), which holds the second-order
-    terms of the move."""
+    to the next, and a point moved outside it has no value. Its field is expanded to third
+    order about the points instead (value, gradient and higher derivatives by differences of
+    step ``h``: node values on a map with nodes either side of each point), which holds the
+    second- and third-order terms of the move. The Hessian at the pose is the nominal one
+    moved by the third derivatives: on an octupole's axis the nominal Hessian vanishes, while
+    a magnet offset of tens of um gives it T s."""
     from scipy.spatial.transform import Rotation
 
     fn = posed_field(field_fn, pose)
+    H0, T = (None, None) if derivs is None else derivs
     if not np.any(pose):
-        return field_fn(upts), field_jacobian(field_fn, upts, h), fn
-    if smooth:
-        return fn(upts), field_jacobian(fn, upts, h), fn
+        return field_fn(upts), field_jacobian(field_fn, upts, h), fn, H0
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
     d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
+    H = H0
+    if H is None and not smooth:
+        H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
+    Hp = None
+    if H is not None:
+        Hp = H if T is None else H + np.einsum("nijkl,nl->nijk", T, d)
+        Hp = np.einsum("ia,najk,bj,ck->nibc", R, Hp, R, R)
+    if smooth:
+        return fn(upts), field_jacobian(fn, upts, h), fn, Hp
     B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
-    H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
     Hd = np.einsum("nijk,nk->nij", H, d)
+    dG = Hd if T is None else Hd + 0.5 * np.einsum("nijkl,nk,nl->nij", T, d, d)
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
-    G = G + Hd
-    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+    if T is not None:
+        B = B + np.einsum("nijkl,nj,nk,nl->ni", T, d, d, d) / 6.0
+    G = G + dG
+    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn, Hp
 
 
 def _axis_positions(bench, p, notes):
@@ -740,9 +801,10 @@ def hall_problem(
     bench_at : ndarray, shape (21,), optional
         The bench errors (um, urad; order of ``ERROR_NAMES``) the readings are expanded at
         (:func:`bench_expansion`); None: their prior means.
-    hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
-        The reference's Hessian at the distinct points (computed once, then passed on by
-        ``ctx.rebuild``).
+    hessian : tuple of ndarray, optional
+        The reference's Hessian (m, 3, 3, 3) T/mm^2 and third derivatives (m, 3, 3, 3, 3)
+        T/mm^3 at the distinct points, nominal placement (:func:`field_hessian`,
+        :func:`field_third`; computed once, then passed on by ``ctx.rebuild``).
     planar : bool, optional
         The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
         the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
@@ -781,26 +843,30 @@ def hall_problem(
     at = None
     if bench is not None:
         at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
-    B0u, Gu, fn_posed = _field_at_pose(
-        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm
-    )
+    moved = bench is not None and np.any(at)
+    if hessian is None and not planar and (moved or (not smooth and np.any(pose))):
+        # the second and third derivatives at the nominal placement, once: a move of the
+        # magnet by s changes the Hessian by T s (to first order, exact for an octupole's
+        # body), so every relinearisation of this map reuses them
+        h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
+        hessian = (field_hessian(field_fn, upts, h2), field_third(field_fn, upts, h2))
+        rebuild = partial(rebuild, hessian=hessian)
+    B0u, Gu, fn_posed, Hu = _field_at_pose(
+        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm,
+        derivs=None if planar else hessian,
+    )  # fmt: skip
     B0, G = B0u[uinv], Gu[uinv]
     B_reg, G_reg, B_pose = B0, G, B0
     if planar:
         B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
     B_read = B0  # the field the probe senses: where the bench moves it, below
-    H = G_move = None
-    if bench is not None and hessian is None and np.any(at) and not planar:
-        # the curvature at the nominal placement: a move of the magnet changes it to
-        # second order only, so every relinearisation of this map reuses it
-        h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
-        hessian = field_hessian(field_fn, upts, h2)
-        rebuild = partial(rebuild, hessian=hessian)
+    H = T = G_move = None
     if bench is not None:
-        H = None if hessian is None else hessian[uinv]
+        if Hu is not None:
+            H, T = Hu[uinv], hessian[1][uinv]
         # the gradient where the errors ``at`` put the probe: the Jacobian of the readings
         # in the registration and the bench errors, and the vibration's lever
-        G_move = moved_gradient(bench, q, at, G_reg, H)
+        G_move = moved_gradient(bench, q, at, G_reg, H, T)
     lever_pt = p - pose[:3] * UM  # from the magnet origin
     notes += check_hall_scale(rec.B, B0, source=rec.source)
     reg_gain = _registration_and_gains(
@@ -815,7 +881,7 @@ def hall_problem(
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
         # a 2-D field is read where the errors put the probe already
-        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
+        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H, T)
         B_read = Bb
         lever = np.einsum("nij,jk->nik", G_move, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
@@ -936,6 +1002,7 @@ __all__ += [
     "bench_move",
     "field_hessian_diag",
     "field_hessian",
+    "field_third",
     "AXES",
     "REG_NAMES",
     "posed_field",
