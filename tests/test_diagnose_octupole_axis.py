@@ -111,3 +111,30 @@ def test_columns_on_the_axis_are_the_exact_readings_derivatives():
             assert err < 0.01 * np.abs(num[axis]).max(), (name, err)
             seen += 1
     assert seen >= 10
+
+
+def test_the_derivatives_are_taken_once_per_map():
+    bench, pts, q, at, pose = _setup()
+    calls = []
+
+    def counted(p):
+        calls.append(len(p))
+        return _octupole(p)
+
+    n = len(pts)
+    rec = Recording(
+        kind="hall",
+        point_id=np.arange(n),
+        rep=np.zeros(n, dtype=np.int64),
+        cmd=pts,
+        B=_reading(bench, pts, q, at, pose),
+    )
+    prob = hall_problem(rec, counted, 0.64, bench, pose=pose, bench_at=at)
+    first = len(calls)
+    assert first >= 33  # the value, gradient, Hessian and third derivatives
+    again = prob.ctx.rebuild(pose=pose * 0.5, bench_at=at * 0.5)
+    again.ctx.rebuild(pose=pose, bench_at=at)
+    # each relinearisation reads the field and its gradient at the pose only
+    assert len(calls) - first <= 2 * 8, len(calls) - first
+    H, T = prob.ctx.rebuild.keywords["hessian"]
+    assert H.shape == (len(np.unique(pts, axis=0)), 3, 3, 3) and T.shape[1:] == (3, 3, 3, 3)

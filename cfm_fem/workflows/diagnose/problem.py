@@ -439,39 +439,61 @@ def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
 
 def field_third(f, p, h: float = 0.5) -> np.ndarray:
     """d^3 B_i / dx_j dx_k dx_l by central differences of step ``h``, shape (n, 3, 3, 3, 3),
-    T/mm^3.
+    T/mm^3 (:func:`field_derivatives`)."""
+    return field_derivatives(f, p, h)[1]
 
-    The points are p + h (+-e_j +-e_k) (those of :func:`field_hessian`), p +- h e_j,
-    p +- 2 h e_j and p + h (+-e_x +-e_y +-e_z): on a map with nodes h apart around each point
-    they are all nodes. Where a neighbour lies outside a map (NaN), the entry is 0."""
-    out = np.zeros((len(p), 3, 3, 3, 3))
-    eye = np.eye(3) * h
-    one = {}
+
+def field_derivatives(f, p, h: float = 0.5):
+    """The Hessian (n, 3, 3, 3) T/mm^2 and third derivatives (n, 3, 3, 3, 3) T/mm^3 of ``f``
+    at ``p`` by central differences of step ``h``, from 33 evaluations of ``f``.
+
+    The Hessian is :func:`field_hessian`'s (points p + h (+-e_j +-e_k)); the third
+    derivatives add p +- 2 h e_j and p + h (+-e_x +-e_y +-e_z): on a map with nodes h apart
+    around each point all are nodes. Where a neighbour lies outside a map (NaN), the entry is
+    0."""
+    memo = {}
+
+    def at(*off):
+        key = tuple(int(v) for v in np.sum(off, axis=0)) if off else (0, 0, 0)
+        if key not in memo:
+            memo[key] = f(p + h * np.asarray(key, dtype=float))
+        return memo[key]
+
+    e = [np.eye(3, dtype=int)[j] for j in range(3)]
+    n = len(p)
+    H = np.zeros((n, 3, 3, 3))
+    T = np.zeros((n, 3, 3, 3, 3))
+    b0 = at()
     for j in range(3):
-        for s in (1, -1, 2, -2):
-            one[j, s] = f(p + s * eye[j])
-    for j in range(3):
-        d3 = (one[j, 2] - 2.0 * one[j, 1] + 2.0 * one[j, -1] - one[j, -2]) / (2.0 * h**3)
-        out[:, :, j, j, j] = d3
+        H[:, :, j, j] = (at(e[j]) - 2.0 * b0 + at(-e[j])) / h**2
+        T[:, :, j, j, j] = (at(2 * e[j]) - 2.0 * at(e[j]) + 2.0 * at(-e[j]) - at(-2 * e[j])) / (
+            2.0 * h**3
+        )
         for k in range(3):
             if k == j:
                 continue
+            if k > j:
+                d = (at(e[j], e[k]) - at(e[j], -e[k]) - at(-e[j], e[k]) + at(-e[j], -e[k])) / (
+                    4.0 * h**2
+                )
+                H[:, :, j, k] = H[:, :, k, j] = d
             # d/dx_k of the second difference along x_j
-            up = f(p + eye[j] + eye[k]) - 2.0 * one[k, 1] + f(p - eye[j] + eye[k])
-            dn = f(p + eye[j] - eye[k]) - 2.0 * one[k, -1] + f(p - eye[j] - eye[k])
+            up = at(e[j], e[k]) - 2.0 * at(e[k]) + at(-e[j], e[k])
+            dn = at(e[j], -e[k]) - 2.0 * at(-e[k]) + at(-e[j], -e[k])
             d3 = (up - dn) / (2.0 * h**3)
             for idx in ((j, j, k), (j, k, j), (k, j, j)):
-                out[:, :, idx[0], idx[1], idx[2]] = d3
+                T[:, :, idx[0], idx[1], idx[2]] = d3
     acc = 0.0
     for sx in (1, -1):
         for sy in (1, -1):
             for sz in (1, -1):
-                acc = acc + sx * sy * sz * f(p + sx * eye[0] + sy * eye[1] + sz * eye[2])
+                acc = acc + sx * sy * sz * at(sx * e[0], sy * e[1], sz * e[2])
     d3 = acc / (8.0 * h**3)
     for idx in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
-        out[:, :, idx[0], idx[1], idx[2]] = d3
-    out[~np.isfinite(out)] = 0.0
-    return out
+        T[:, :, idx[0], idx[1], idx[2]] = d3
+    H[~np.isfinite(H)] = 0.0
+    T[~np.isfinite(T)] = 0.0
+    return H, T
 
 
 def bench_expansion(bench: Bench, q, p, theta, B0, G, H, T=None):
@@ -814,8 +836,8 @@ def hall_problem(
         (:func:`bench_expansion`); None: their prior means.
     hessian : tuple of ndarray, optional
         The reference's Hessian (m, 3, 3, 3) T/mm^2 and third derivatives (m, 3, 3, 3, 3)
-        T/mm^3 at the distinct points, nominal placement (:func:`field_hessian`,
-        :func:`field_third`; computed once, then passed on by ``ctx.rebuild``).
+        T/mm^3 at the distinct points, nominal placement (:func:`field_derivatives`;
+        computed once, then passed on by ``ctx.rebuild``).
     planar : bool, optional
         The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
         the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
@@ -860,7 +882,8 @@ def hall_problem(
         # magnet by s changes the Hessian by T s (to first order, exact for an octupole's
         # body), so every relinearisation of this map reuses them
         h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
-        hessian = (field_hessian(field_fn, upts, h2), field_third(field_fn, upts, h2))
+        hessian = field_derivatives(field_fn, upts, h2)
+    if hessian is not None:
         rebuild = partial(rebuild, hessian=hessian)
     B0u, Gu, fn_posed, Hu = _field_at_pose(
         field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm,
@@ -1014,6 +1037,7 @@ __all__ += [
     "field_hessian_diag",
     "field_hessian",
     "field_third",
+    "field_derivatives",
     "AXES",
     "REG_NAMES",
     "posed_field",
