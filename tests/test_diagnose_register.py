@@ -10,6 +10,7 @@ from cfm_fem.workflows.diagnose.problem import (
     field_hessian,
     field_hessian_diag,
     field_jacobian,
+    field_third,
     posed_field,
 )
 
@@ -45,7 +46,7 @@ def test_second_order_expansion_holds_the_second_order_terms():
     pose = np.array([0.0, 0.0, 300.0, 0.0, 0.0, 500.0])
     R = Rotation.from_rotvec(pose[3:] * 1e-6).as_matrix()
     exact = posed_field(_field, pose)(PTS)
-    B2, G2, _ = _field_at_pose(_field, PTS, pose, 0.1, smooth=False)
+    B2, G2, _, _ = _field_at_pose(_field, PTS, pose, 0.1, smooth=False)
     d = (PTS - pose[:3] * 1e-3) @ R - PTS
     first = (_field(PTS) + np.einsum("nij,nj->ni", field_jacobian(_field, PTS, 0.1), d)) @ R.T
     err2, err1 = np.abs(B2 - exact).max(), np.abs(first - exact).max()
@@ -53,6 +54,13 @@ def test_second_order_expansion_holds_the_second_order_terms():
     G_exact = field_jacobian(posed_field(_field, pose), PTS, 0.1)
     G0 = np.einsum("ab,nbc,dc->nad", R, field_jacobian(_field, PTS, 0.1), R)
     assert np.abs(G2 - G_exact).max() < 0.1 * np.abs(G0 - G_exact).max()
+    # with the third derivatives the expansion holds the third-order terms as well
+    derivs = (field_hessian(_field, PTS, 0.1), field_third(_field, PTS, 0.1))
+    B3, G3, _, H3 = _field_at_pose(_field, PTS, pose, 0.1, smooth=False, derivs=derivs)
+    assert np.abs(B3 - exact).max() < 0.25 * err2, (np.abs(B3 - exact).max(), err2)
+    assert np.abs(G3 - G_exact).max() < 0.2 * np.abs(G2 - G_exact).max()
+    H_exact = field_hessian(posed_field(_field, pose), PTS, 0.1)
+    assert np.abs(H3 - H_exact).max() < 0.25 * np.abs(derivs[0] - H_exact).max()
 
 
 def test_hessian_is_symmetric_and_matches_its_diagonal_stencil():

@@ -23,6 +23,14 @@ from ...models.kinematics.chain import probe_errors_for_bench, sensitivities
 from ...models.recordings import check_hall_scale
 from .calibrate import Columns
 from .context import ProblemContext
+from .derivatives import (
+    debiased_jacobian,
+    field_derivatives,
+    field_hessian,
+    field_hessian_diag,
+    field_jacobian,
+    field_third,
+)
 from .motion import axis_velocities
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian", "subset_rows"]
@@ -250,48 +258,6 @@ def tracker_problem(rec, bench: Bench, reg_std_mm: float | None = None,
     )
 
 
-def field_jacobian(f, p, h: float = 0.5) -> np.ndarray:
-    """Finite-difference Jacobian dB_i/dx_j of a field function, shape (n, 3, 3), T/mm.
-
-    Central differences; one-sided ones at points on the border of a reference map, where one
-    neighbour lies outside it (``f`` gives NaN there); 0 where neither neighbour is inside.
-    """
-    b0 = None
-    out = np.empty((len(p), 3, 3))
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        fp, fm = f(p + e), f(p - e)
-        d = (fp - fm) / (2 * h)
-        bad = ~np.isfinite(d).all(1)
-        if bad.any():
-            b0 = f(p) if b0 is None else b0
-            fwd = (fp - b0) / h
-            bwd = (b0 - fm) / h
-            ok_f = np.isfinite(fwd).all(1)
-            d[bad] = np.where(ok_f[bad, None], fwd[bad], bwd[bad])
-            d[~np.isfinite(d).all(1)] = 0.0
-        out[:, :, j] = d
-    return out
-
-
-def field_hessian_diag(f, p, h: float = 1.0) -> np.ndarray:
-    """d^2 B_i / dx_j^2 by fourth-order central differences, shape (n, 3, 3) [i, j], T/mm^2.
-
-    Five-point stencil: exact for fields polynomial up to degree 5 along each axis, so the
-    Laplace identity sum_j d^2 B_i / dx_j^2 = 0 of a harmonic reference holds to rounding (the
-    averaging signatures rely on it)."""
-    b0 = f(p)
-    out = np.empty((len(p), 3, 3))
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        out[:, :, j] = (-f(p + 2 * e) + 16 * f(p + e) - 30 * b0 + 16 * f(p - e) - f(p - 2 * e)) / (
-            12 * h**2
-        )
-    return out
-
-
 #: The magnet-to-bench registration parameters of a Hall map (um, um, um, urad, urad, urad).
 REG_NAMES = ("magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll")
 
@@ -414,46 +380,24 @@ def _reference_error(field_fn, upts, spacing_mm, nodes):
     return var
 
 
-def field_hessian(f, p, h: float = 0.5) -> np.ndarray:
-    """d^2 B_i / dx_j dx_k by central differences of step ``h``, shape (n, 3, 3, 3), T/mm^2.
-
-    Only the points p + h (+-e_j +-e_k) are used: on a map with nodes h either side of each
-    point the second differences read node values only. Where a neighbour lies outside a map
-    (NaN), the entry is 0."""
-    b0 = f(p)
-    out = np.zeros((len(p), 3, 3, 3))
-    eye = np.eye(3) * h
-    for j in range(3):
-        out[:, :, j, j] = (f(p + eye[j]) - 2.0 * b0 + f(p - eye[j])) / h**2
-        for k in range(j + 1, 3):
-            d = (
-                f(p + eye[j] + eye[k])
-                - f(p + eye[j] - eye[k])
-                - f(p - eye[j] + eye[k])
-                + f(p - eye[j] - eye[k])
-            ) / (4.0 * h**2)
-            out[:, :, j, k] = out[:, :, k, j] = d
-    out[~np.isfinite(out)] = 0.0
-    return out
-
-
-def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
-    """The field where the bench's errors ``theta`` put the probe, to second order.
+def bench_expansion(bench: Bench, q, p, theta, B0, G, H, T=None):
+    """The field where the bench's errors ``theta`` put the probe, to third order.
 
     The bench columns model a reading as the field at the probe's point, moved by the errors
     along their linear sensitivities D: B(p) + G D theta. That line leaves out the
-    second-order term of the move, d^T H d / 2, which on a multipole scanned far from the
+    higher-order terms of the move, d^T H d / 2, which on a multipole scanned far from the
     bench's origin (angular errors of tens of urad on levers of hundreds of mm: moves of tens
     of um) is above a Hall probe's noise and shares the signature of a sensor's volume
-    averaging. Expanded at ``theta`` instead, a reading is
+    averaging, and T d d d / 6, all there is on an octupole's axis, where G and H vanish.
+    Expanded at ``theta`` instead, a reading is
 
-        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + d^T H d / 2,
+        B(p + d) + G D (theta' - theta),  B(p + d) = B + G d + H d d / 2 + T d d d / 6,
 
-    d the exact move of the bench's kinematic chain, H the reference's Hessian over a step of
-    half a mm or a node spacing (a reference read between nodes is not differentiable at them
-    on the scale of the move; its curvature over a cell is). The columns of the bench and of
-    the registration take the gradient where the probe is, G + H d
-    (:func:`moved_gradient`), so that the Gauss-Newton iterations
+    d the exact move of the bench's kinematic chain, H and T the reference's second and third
+    derivatives over a step of half a mm or a node spacing (a reference read between nodes is
+    not differentiable at them on the scale of the move; its curvature over a cell is). The
+    columns of the bench and of the registration take the gradient where the probe is,
+    G + H d + T d d / 2 (:func:`moved_gradient`), so that the Gauss-Newton iterations
     (:func:`~cfm_fem.workflows.diagnose.register.bench_step`) stop at the optimum: on a
     sextupole's axis G vanishes, while H d, for a move of tens of um, is what the readings
     there say about the errors and the magnet's offset.
@@ -471,28 +415,32 @@ def bench_expansion(bench: Bench, q, p, theta, B0, G, H):
         Field and gradient at ``p``.
     H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
         Hessian at ``p`` (None only with all errors zero).
+    T : ndarray, shape (n, 3, 3, 3, 3), T/mm^3, optional
+        Third derivatives at ``p``; None: the expansion stops at second order.
 
     Returns
     -------
     ndarray, shape (n, 3), T
-        B(p + d) to second order.
+        B(p + d) to third order.
     """
     d = bench_move(bench, q, theta)
     if d is None or len(p) != len(B0):
         return B0
     Hd = np.einsum("nijk,nk->nij", H, d)
+    if T is not None:
+        Hd = Hd + np.einsum("nijkl,nk,nl->nij", T, d, d) / 3.0
     return B0 + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
 
 
-def moved_gradient(bench: Bench, q, theta, G, H):
-    """The field's gradient where the bench errors ``theta`` put the probe, to first order.
+def moved_gradient(bench: Bench, q, theta, G, H, T=None):
+    """The field's gradient where the bench errors ``theta`` put the probe, to second order.
 
     The bench errors put the probe d away from its nominal point; the readings' Jacobian in
     the errors and in the magnet's offset, and the lever of the axes' vibration, are the
-    gradient there, G + H d. On a sextupole's axis G vanishes while H d, for a move of tens of
-    um, turns a few um of vibration into several uT (far above a low-noise probe's floor) and
-    an error of the registration into as much. Terms of higher order in d are left out (on an
-    octupole's axis, where H vanishes too, the gradient there is of order d^2).
+    gradient there, G + H d + T d d / 2. On a sextupole's axis G vanishes while H d, for a
+    move of tens of um, turns a few um of vibration into several uT (far above a low-noise
+    probe's floor) and an error of the registration into as much; on an octupole's axis H
+    vanishes too and the gradient there is T d d / 2.
 
     Parameters
     ----------
@@ -505,6 +453,8 @@ def moved_gradient(bench: Bench, q, theta, G, H):
         Gradient at the nominal points.
     H : ndarray, shape (n, 3, 3, 3), T/mm^2, or None
         Hessian there; None: ``G`` itself is returned.
+    T : ndarray, shape (n, 3, 3, 3, 3), T/mm^3, optional
+        Third derivatives there; None: the term in d d is left out.
 
     Returns
     -------
@@ -513,7 +463,10 @@ def moved_gradient(bench: Bench, q, theta, G, H):
     d = None if H is None else bench_move(bench, q, theta)
     if d is None or len(H) != len(G):
         return G
-    return G + np.einsum("nijk,nk->nij", H, d)
+    out = G + np.einsum("nijk,nk->nij", H, d)
+    if T is not None:
+        out = out + 0.5 * np.einsum("nijkl,nk,nl->nij", T, d, d)
+    return out
 
 
 def bench_move(bench: Bench, q, theta):
@@ -539,32 +492,46 @@ def _node_step(upts, spacing_mm, nodes):
     return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
 
 
-def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None):
+def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
     """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
-    ``pose``, and the posed field function. ``h2``: step of the Hessian of a linear map (its
-    node spacing: a shorter step sees no curvature inside a cell), default ``h``.
+    ``pose``, the posed field function, and the Hessian (m, 3, 3, 3) T/mm^2 there (None
+    without ``derivs``). ``h2``: step of the Hessian of a linear map (its node spacing: a
+    shorter step sees no curvature inside a cell), default ``h``. ``derivs``: the Hessian and
+    third derivatives (m, 3, 3, 3, 3) T/mm^3 at the nominal placement, or None.
 
     A smooth reference is evaluated at the moved points. A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
-    to the next, and a point moved outside it has no value. Its field is expanded to second
-    order about the points instead (value, gradient and Hessian by differences of step ``h``:
-    node values on a map with nodes either side of each point), which holds the second-order
-    terms of the move."""
+    to the next, and a point moved outside it has no value. Its field is expanded to third
+    order about the points instead (value, gradient and higher derivatives by differences of
+    step ``h``: node values on a map with nodes either side of each point), which holds the
+    second- and third-order terms of the move. The Hessian at the pose is the nominal one
+    moved by the third derivatives: on an octupole's axis the nominal Hessian vanishes, while
+    a magnet offset of tens of um gives it T s."""
     from scipy.spatial.transform import Rotation
 
     fn = posed_field(field_fn, pose)
+    H0, T = (None, None) if derivs is None else derivs
     if not np.any(pose):
-        return field_fn(upts), field_jacobian(field_fn, upts, h), fn
-    if smooth:
-        return fn(upts), field_jacobian(fn, upts, h), fn
+        return field_fn(upts), debiased_jacobian(field_fn, upts, h, T), fn, H0
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
     d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
-    B, G = field_fn(upts), field_jacobian(field_fn, upts, h)
-    H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
+    H = H0
+    if H is None and not smooth:
+        H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
+    Hp = None
+    if H is not None:
+        Hp = H if T is None else H + np.einsum("nijkl,nl->nijk", T, d)
+        Hp = np.einsum("ia,najk,bj,ck->nibc", R, Hp, R, R)
+    if smooth:
+        return fn(upts), debiased_jacobian(fn, upts, h, T), fn, Hp
+    B, G = field_fn(upts), debiased_jacobian(field_fn, upts, h, T)
     Hd = np.einsum("nijk,nk->nij", H, d)
+    dG = Hd if T is None else Hd + 0.5 * np.einsum("nijkl,nk,nl->nij", T, d, d)
     B = B + np.einsum("nij,nj->ni", G + 0.5 * Hd, d)
-    G = G + Hd
-    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn
+    if T is not None:
+        B = B + np.einsum("nijkl,nj,nk,nl->ni", T, d, d, d) / 6.0
+    G = G + dG
+    return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn, Hp
 
 
 def _axis_positions(bench, p, notes):
@@ -740,9 +707,10 @@ def hall_problem(
     bench_at : ndarray, shape (21,), optional
         The bench errors (um, urad; order of ``ERROR_NAMES``) the readings are expanded at
         (:func:`bench_expansion`); None: their prior means.
-    hessian : ndarray, shape (m, 3, 3, 3), T/mm^2, optional
-        The reference's Hessian at the distinct points (computed once, then passed on by
-        ``ctx.rebuild``).
+    hessian : tuple of ndarray, optional
+        The reference's Hessian (m, 3, 3, 3) T/mm^2 and third derivatives (m, 3, 3, 3, 3)
+        T/mm^3 at the distinct points, nominal placement (:func:`field_derivatives`;
+        computed once, then passed on by ``ctx.rebuild``).
     planar : bool, optional
         The reference is a 2-D field (:func:`_is_planar`: 2-D harmonics); None: decided from
         the field at the nominal placement (then passed on by ``ctx.rebuild``). Against a 2-D
@@ -781,26 +749,31 @@ def hall_problem(
     at = None
     if bench is not None:
         at = bench_columns(bench, q).prior_mean if bench_at is None else np.asarray(bench_at)
-    B0u, Gu, fn_posed = _field_at_pose(
-        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm
-    )
+    moved = bench is not None and np.any(at)
+    if hessian is None and not planar and (moved or (not smooth and np.any(pose))):
+        # the second and third derivatives at the nominal placement, once: a move of the
+        # magnet by s changes the Hessian by T s (to first order, exact for an octupole's
+        # body), so every relinearisation of this map reuses them
+        h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
+        hessian = field_derivatives(field_fn, upts, h2)
+    if hessian is not None:
+        rebuild = partial(rebuild, hessian=hessian)
+    B0u, Gu, fn_posed, Hu = _field_at_pose(
+        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm,
+        derivs=None if planar else hessian,
+    )  # fmt: skip
     B0, G = B0u[uinv], Gu[uinv]
     B_reg, G_reg, B_pose = B0, G, B0
     if planar:
         B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
     B_read = B0  # the field the probe senses: where the bench moves it, below
-    H = G_move = None
-    if bench is not None and hessian is None and np.any(at) and not planar:
-        # the curvature at the nominal placement: a move of the magnet changes it to
-        # second order only, so every relinearisation of this map reuses it
-        h2 = max(STEP_MAP_MM, h if ref_spacing_mm is None else max(h, ref_spacing_mm))
-        hessian = field_hessian(field_fn, upts, h2)
-        rebuild = partial(rebuild, hessian=hessian)
+    H = T = G_move = None
     if bench is not None:
-        H = None if hessian is None else hessian[uinv]
+        if Hu is not None:
+            H, T = Hu[uinv], hessian[1][uinv]
         # the gradient where the errors ``at`` put the probe: the Jacobian of the readings
         # in the registration and the bench errors, and the vibration's lever
-        G_move = moved_gradient(bench, q, at, G_reg, H)
+        G_move = moved_gradient(bench, q, at, G_reg, H, T)
     lever_pt = p - pose[:3] * UM  # from the magnet origin
     notes += check_hall_scale(rec.B, B0, source=rec.source)
     reg_gain = _registration_and_gains(
@@ -815,7 +788,7 @@ def hall_problem(
     if bench is not None:
         R = bench.bench_to_magnet_rotation()
         # a 2-D field is read where the errors put the probe already
-        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H)
+        Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H, T)
         B_read = Bb
         lever = np.einsum("nij,jk->nik", G_move, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
@@ -936,6 +909,8 @@ __all__ += [
     "bench_move",
     "field_hessian_diag",
     "field_hessian",
+    "field_third",
+    "field_derivatives",
     "AXES",
     "REG_NAMES",
     "posed_field",

@@ -9,7 +9,7 @@ registration until the step is far below its standard uncertainty. The reported 
 are those of the final linearisation.
 
 The bench's errors move the probe by tens of um on a long lever; a Hall map's readings are
-first expanded to second order in that move at the errors the calibrated baseline fits
+first expanded to third order in that move at the errors the calibrated baseline fits
 (Gauss-Newton from their prior means,
 :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`), each step kept when it lowers the
 MAP objective.
