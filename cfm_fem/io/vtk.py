@@ -37,7 +37,8 @@ def read_text_field(field_data, name: str) -> str:
 
 
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
-    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (binary, zlib).
+    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (binary, zlib;
+    connectivity and offsets as Int32 where the counts allow, Int64 beyond).
 
     Parameters
     ----------
@@ -61,6 +62,9 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         cells = np.asarray(cells, dtype=np.int64)
         kind = CellType.TETRA if cells.shape[1] == 4 else CellType.TRIANGLE
         grid = pv.UnstructuredGrid({kind: cells}, points)
+    cell_array = grid.GetCells()
+    if max(n, cell_array.GetNumberOfConnectivityIds()) < 2**31:  # every id and offset fits
+        cell_array.ConvertTo32BitStorage()  # zlib packs the Int64 zeros well: ~2 % smaller
     for name, values in (point_data or {}).items():
         grid.point_data[name] = np.ascontiguousarray(values)
     for name, value in (field_data or {}).items():
