@@ -180,8 +180,8 @@ def write_sweep(
     beside : callable, optional
         Other work, called with no argument on one of the writers' threads before any map
         (the report's figures): it takes a writer's place while it runs, and that thread
-        writes maps once it returns. Its exception, if any, is raised once the maps being
-        written are done, before ``sweep.pvd`` and ``summary.json``.
+        writes maps once it returns. Its exception, if any, is raised once the maps are
+        written, before ``sweep.pvd`` and ``summary.json`` are.
 
     Raises
     ------
