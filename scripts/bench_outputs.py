@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         saved = plots.png_bytes
         for _ in range(args.repeat):
             for crop in (False, True):
-                plots.png_bytes = lambda fig, crop=crop, **_: saved(fig, crop=crop)
+                plots.png_bytes = lambda fig, _crop=crop, **_: saved(fig, crop=_crop)
                 c = time.process_time()
                 draw_sweep_report(document, res)
                 print(f"figures and HTML, crop={crop}: {time.process_time() - c:.2f} s CPU")
