@@ -211,7 +211,7 @@ def write_sweep(
     threads = max(1, min(_WRITE_BYTES // per_map, cores))
     if beside is None:
         entries = map_threads(write_map, range(len(res.labels)), threads)
-    else:  # the first task: the threads that end it and the maps write the rest
+    else:  # `beside` first: the thread that runs it then writes maps, as the others do
         tasks = [None, *range(len(res.labels))]
         done = map_threads(lambda k: beside() if k is None else write_map(k), tasks, threads)
         entries = done[1:]

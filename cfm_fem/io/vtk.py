@@ -16,7 +16,7 @@ __all__ = ["write_vtu", "write_pvd", "TEXT_SUFFIX", "text_field", "read_text_fie
 #: Suffix of the name under which `write_vtu` stores a text field-data value.
 TEXT_SUFFIX = "_utf8"
 
-#: Characters of a map's XML text encoded and written at a time, bytes.
+#: Characters of a map's XML text (ASCII: one byte each) encoded and written at a time.
 _WRITE_CHUNK = 1 << 22
 
 
