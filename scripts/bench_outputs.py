@@ -1,6 +1,6 @@
 """Time the outputs of the README's sweep: the report's figures and the six VTU maps.
 
-    python scripts/bench_outputs.py             # figures 3 times, each write layout twice
+    python scripts/bench_outputs.py             # figures 3 times, each way to write twice
     python scripts/bench_outputs.py --repeat 1  # each once
 
 Runs ``cfm-fem sweep meshes/quadrupole.vtu --up 0:50:10`` once (through the command line's
@@ -11,9 +11,8 @@ own code, kernels compiled by it if needed) and keeps its result in memory; then
   command's way) and with every figure cropped to its content (``crop=True``: matplotlib
   draws a cropped figure twice);
 * the wall and CPU time of `write_sweep` (six maps, ``sweep.pvd``, ``summary.json``) with one
-  and with two map writers, with the figures drawn beside the writers on one of their threads
-  (``beside=``, the command's way), and with the figures on a thread of their own beside one
-  writer.
+  and with two map writers, and with one writer beside the figures on a thread of their own
+  (the command's way).
 
 CPU time is the process's, all its threads.
 """
@@ -100,13 +99,9 @@ def main(argv=None) -> int:
             drawing.result()
             pool.shutdown()
 
-        def beside(out):
-            write_sweep(out, res, prov, beside=lambda: draw_sweep_report(document, res))
-
         for _ in range(max(1, args.repeat - 1)):
             timed("maps, 1 writer", lambda out: write_sweep(out, res, prov, writers=1))
             timed("maps, 2 writers", lambda out: write_sweep(out, res, prov, writers=2))
-            timed("maps and figures beside them (beside=)", beside)
             timed("maps (1 writer), figures on a thread of their own", own_thread)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     return 0

@@ -73,7 +73,7 @@ TIMED = (
     ("outputs: maps, summary, index", "cfm_fem.io.sweep_out", "write_sweep"),
     ("  of which the summary statistics", "cfm_fem.io.sweep_out", "summarize"),
     (
-        "  figures and HTML, on a writer thread beside the maps",
+        "  figures and HTML, on a thread beside the maps",
         "cfm_fem.report.sweep",
         "draw_sweep_report",
     ),

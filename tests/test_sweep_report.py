@@ -155,34 +155,6 @@ def test_report_drawn_from_memory_is_the_one_drawn_from_the_maps(grid_map, tmp_p
             assert (out / name).read_bytes() == png
 
 
-def test_work_beside_the_map_writers_runs_once_and_its_error_stops_the_index(grid_map, tmp_path):
-    """`write_sweep` runs ``beside`` (the report's figures) on one of its writers' threads:
-    once, the maps the same bytes as without it; its error is raised before ``sweep.pvd`` and
-    ``summary.json`` are written."""
-    from cfm_fem.io import read_field
-    from cfm_fem.io.sweep_out import write_sweep
-    from cfm_fem.models.sweep import SweepConfig
-    from cfm_fem.workflows.sweep.in_memory import run_sweep
-
-    res = run_sweep(read_field(grid_map), SweepConfig(up_um=[0.0, 20.0, 40.0], trials=64))
-    calls = []
-    write_sweep(tmp_path / "a", res, {"run": 1})
-    write_sweep(tmp_path / "b", res, {"run": 1}, beside=lambda: calls.append(1))
-    assert calls == [1]
-    names = sorted(p.name for p in (tmp_path / "a").iterdir() if p.suffix == ".vtu")
-    assert len(names) == 3
-    for name in names:
-        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
-
-    def fail():
-        raise RuntimeError("figure failed")
-
-    with pytest.raises(RuntimeError, match="figure failed"):
-        write_sweep(tmp_path / "c", res, {"run": 1}, beside=fail)
-    assert not (tmp_path / "c" / "summary.json").exists()
-    assert not (tmp_path / "c" / "sweep.pvd").exists()
-
-
 def test_digest_keeps_the_nodes_nearest_the_plane_in_bounded_memory(monkeypatch):
     monkeypatch.setattr(sweep_digest, "MAX_PLANE_NODES", 50)
     rng = np.random.default_rng(1)

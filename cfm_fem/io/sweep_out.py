@@ -153,7 +153,7 @@ def retire_index(out: Path) -> None:
 @locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
     out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True,
-    summary: dict | None = None, writers: int | None = None, beside=None,
+    summary: dict | None = None, writers: int | None = None,
 ) -> dict:  # fmt: skip
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
@@ -177,11 +177,6 @@ def write_sweep(
         Most maps written at once (default: numba's threads, one per core; fewer if their
         memory would exceed `_WRITE_BYTES`): each writer holds its map's arrays and VTK's
         buffers, so more writers than cores only add memory.
-    beside : callable, optional
-        Other work, called with no argument on one of the writers' threads before any map
-        (the report's figures): it takes a writer's place while it runs, and that thread
-        writes maps once it returns. Its exception, if any, is raised once the maps are
-        written, before ``sweep.pvd`` and ``summary.json`` are.
 
     Raises
     ------
@@ -208,13 +203,8 @@ def write_sweep(
     n = len(res.fieldmap.points)
     per_map = n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16  # points, data, cells
     cores = numba.get_num_threads() if writers is None else writers
-    threads = max(1, min(_WRITE_BYTES // per_map, cores))
-    if beside is None:
-        entries = map_threads(write_map, range(len(res.labels)), threads)
-    else:  # `beside` first: the thread that runs it then writes maps, as the others do
-        tasks = [None, *range(len(res.labels))]
-        done = map_threads(lambda k: beside() if k is None else write_map(k), tasks, threads)
-        entries = done[1:]
+    entries = map_threads(write_map, range(len(res.labels)),
+                          max(1, min(_WRITE_BYTES // per_map, cores)))  # fmt: skip
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_paraview_script(out)
     write_json(out / "summary.json", summary)

@@ -331,6 +331,10 @@ def _field_sha(field):
 
 def _on_disk(job, fm) -> SweepRun:
     """The sweep in this process or on Dask, resumable, written into ``job.out_dir``."""
+    from concurrent import futures
+
+    import numba
+
     from ...errors import interrupted
     from ...io.sweep_out import write_sweep, write_sweep_pieces
     from .in_memory import run_sweep as run
@@ -383,23 +387,28 @@ def _on_disk(job, fm) -> SweepRun:
                                      lambda nodes: runner.gather(nodes, chunks), prov,
                                      remove_stale=False)  # fmt: skip
     else:
-        summary, draw = _report_ahead(job, res, prov)
-        drawing = {}  # the figures, drawn on one of the map writers' threads
-        beside = None if draw is None else (lambda: drawing.update(files=draw()))
-        summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
-                              beside=beside)  # fmt: skip
-        drawn = drawing.get("files")
+        summary, drawing = _report_ahead(job, res, prov)
+        # the figures' thread takes one core of the map writers'
+        writers = None if drawing is None else max(1, numba.get_num_threads() - 1)
+        try:
+            summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
+                                  writers=writers)  # fmt: skip
+        except BaseException:  # the write's error, once the figures' thread has ended
+            if drawing is not None:
+                futures.wait([drawing])
+            raise
+        drawn = drawing and drawing.result()
     _remove_stale_maps(out, job.log)  # the new outputs are complete: now the old maps can go
     written = _finish(job, runner, res, drawn)
     return SweepRun(res, summary, written)
 
 
 def _report_ahead(job, res, prov):
-    """The summary `write_sweep` writes, and (when the run writes a report) a function that
-    draws the report's files from it (`draw_sweep_report`), for `write_sweep` to call on one
-    of its writers' threads while the others write maps: matplotlib holds the GIL, VTK
-    writes without it; None without a report."""
+    """The summary `write_sweep` writes, and (when the run writes a report) a future of the
+    report's files drawn from it on a thread, beside the map writers (`draw_sweep_report`):
+    matplotlib holds the GIL, VTK writes without it."""
     import json
+    from concurrent.futures import ThreadPoolExecutor
 
     from ...io._atomic import json_text
     from ...models.sweep import summarize
@@ -414,7 +423,10 @@ def _report_ahead(job, res, prov):
 
         return draw_sweep_report(document, res)
 
-    return summary, draw
+    pool = ThreadPoolExecutor(1)
+    drawing = pool.submit(draw)
+    pool.shutdown(wait=False)  # the thread ends with its one task
+    return summary, drawing
 
 
 def _run_slabs(job):
