@@ -14,7 +14,9 @@ time to the default run's (both from the same process, the best of the repeats).
 With ``--busy N`` each pass is followed by one more of each model while N competing processes
 (`bench_setup.COMPETITORS`, each in a session of its own, like another user's program) keep
 the cores busy; the best busy wall time of each model is printed with its ratio to the best
-quiet one.
+quiet one. ``--busy-session same`` starts them in this process's session instead: with
+``kernel.sched_autogroup_enabled = 1`` Linux shares the CPU between sessions first, so the
+two settings give different ratios (docs/performance.md).
 
 Phases are timed by wrapping the functions the command calls (reading, set-up and harmonic
 fit, the chunks of the Monte Carlo kernel, gradients and GUM figures, the maps' VTU files,
@@ -133,13 +135,17 @@ def _run(argv, profile=None):
     return phases, time.perf_counter() - t, time.process_time() - c
 
 
-def _beside_busy(n, competitor, run):
+def _beside_busy(n, competitor, run, own_session=True):
     """``run()`` while ``n`` competing processes (`bench_setup.COMPETITORS`) keep the cores
-    busy, each in a session of its own (Linux shares the CPU between sessions first)."""
+    busy, each in a session of its own (Linux shares the CPU between sessions first, when
+    ``kernel.sched_autogroup_enabled`` is 1), or with ``own_session`` False in this one (the
+    CPU then shared between threads: this command's threads against the competitors)."""
     from bench_setup import COMPETITORS
 
     procs = [
-        subprocess.Popen([sys.executable, "-c", COMPETITORS[competitor]], start_new_session=True)
+        subprocess.Popen(
+            [sys.executable, "-c", COMPETITORS[competitor]], start_new_session=own_session
+        )
         for _ in range(n)
     ]
     try:
@@ -176,6 +182,9 @@ def main(argv=None) -> int:
                     help="also run each pass beside this many busy processes")  # fmt: skip
     ap.add_argument("--competitor", default="python", choices=("python", "blas"),
                     help="what the busy processes run (bench_setup.py)")  # fmt: skip
+    ap.add_argument("--busy-session", default="own", choices=("own", "same"),
+                    help="busy processes each in a session of its own (another user's "
+                         "programs), or in this one")  # fmt: skip
     args = ap.parse_args(argv)
     print(f"load average before: {os.getloadavg()[0]:.2f}; {os.cpu_count()} CPUs")
     with tempfile.TemporaryDirectory() as tmp:
@@ -203,9 +212,11 @@ def main(argv=None) -> int:
                 print(f"load average: {os.getloadavg()[0]:.2f}")
                 if args.busy:
                     phases, wall, cpu = _beside_busy(args.busy, args.competitor,
-                                                     lambda argv=argv: _run(argv))  # fmt: skip
+                                                     lambda argv=argv: _run(argv),
+                                                     args.busy_session == "own")  # fmt: skip
                     _table(f"{model} model, pass {r + 1}, beside {args.busy} busy "
-                           f"'{args.competitor}' process(es)", phases, wall, cpu)  # fmt: skip
+                           f"'{args.competitor}' process(es), {args.busy_session} session",
+                           phases, wall, cpu)  # fmt: skip
                     if model not in busy or wall < busy[model][0]:
                         busy[model] = (wall, cpu)
         print()

@@ -32,6 +32,22 @@ def test_vtu_round_trip_keeps_points_cells_arrays_and_dtypes(tmp_path):
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".")]  # no temporary left behind
 
 
+def test_connectivity_and_offsets_are_int32_and_read_back_by_meshio_and_pyvista(tmp_path):
+    import pyvista as pv
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(size=(30, 3))
+    cells = rng.integers(0, 30, size=(12, 4))
+    path = tmp_path / "i.vtu"
+    write_vtu(path, pts, cells, {"a": np.arange(30.0)})
+    arrays = {a.get("Name"): a.get("type") for a in ET.parse(path).iter("DataArray")}
+    assert arrays["connectivity"] == "Int32" and arrays["offsets"] == "Int32"
+    np.testing.assert_array_equal(meshio.read(path).cells[0].data, cells)
+    grid = pv.read(path)
+    np.testing.assert_array_equal(grid.cells_dict[pv.CellType.TETRA], cells)
+    np.testing.assert_array_equal(grid.point_data["a"], np.arange(30.0))
+
+
 def test_point_cloud_and_triangles(tmp_path):
     pts = np.eye(3)
     write_vtu(tmp_path / "p.vtu", pts, None, {"a": np.arange(3.0)})

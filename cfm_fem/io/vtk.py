@@ -16,6 +16,9 @@ __all__ = ["write_vtu", "write_pvd", "TEXT_SUFFIX", "text_field", "read_text_fie
 #: Suffix of the name under which `write_vtu` stores a text field-data value.
 TEXT_SUFFIX = "_utf8"
 
+#: Characters of a map's XML text (ASCII: one byte each) encoded and written at a time.
+_WRITE_CHUNK = 1 << 22
+
 
 def text_field(value: str) -> np.ndarray:
     """A text as the field-data array `write_vtu` stores: its UTF-8 bytes, shape (k,), uint8
@@ -37,7 +40,8 @@ def read_text_field(field_data, name: str) -> str:
 
 
 def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> None:
-    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (binary, zlib).
+    """Write an unstructured grid ``.vtu`` atomically with VTK's XML writer (binary, zlib;
+    connectivity and offsets as Int32 where the counts allow, Int64 beyond).
 
     Parameters
     ----------
@@ -61,6 +65,9 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         cells = np.asarray(cells, dtype=np.int64)
         kind = CellType.TETRA if cells.shape[1] == 4 else CellType.TRIANGLE
         grid = pv.UnstructuredGrid({kind: cells}, points)
+    cell_array = grid.GetCells()
+    if max(n, cell_array.GetNumberOfConnectivityIds()) < 2**31:  # every id and offset fits
+        cell_array.ConvertTo32BitStorage()  # zlib packs the Int64 zeros well: ~2 % smaller
     for name, values in (point_data or {}).items():
         grid.point_data[name] = np.ascontiguousarray(values)
     for name, value in (field_data or {}).items():
@@ -84,10 +91,12 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
     writer.WriteToOutputStringOn()
     if writer.Write() != 1:
         raise OSError(f"VTK could not write {path}")
-    data = writer.GetOutputString().encode("ascii")  # inline base64: ASCII
-    check_free_space(Path(path).parent, len(data), Path(path).name)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+    text = writer.GetOutputString()  # inline base64: ASCII, one byte a character
+    del writer, grid  # VTK's copy of the text goes: maps written side by side share the memory
+    check_free_space(Path(path).parent, len(text), Path(path).name)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        for i in range(0, len(text), _WRITE_CHUNK):  # no bytes copy of the whole text
+            f.write(text[i : i + _WRITE_CHUNK].encode("ascii"))
 
 
 def write_pvd(path, entries, provenance: dict | None = None) -> None:

@@ -31,10 +31,15 @@ __all__ = [
 DPI = 110
 
 
-def png_bytes(fig) -> bytes:
-    """Render ``fig`` to PNG bytes and close it."""
+def png_bytes(fig, crop: bool = True) -> bytes:
+    """Render ``fig`` to PNG bytes and close it.
+
+    ``crop``: trim the figure to its drawn content (``bbox_inches="tight"``), which draws it
+    twice; a figure laid out already (``tight_layout``, ``constrained_layout``) passes False
+    and is drawn once.
+    """
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if crop else None)
     plt.close(fig)
     return buf.getvalue()
 
@@ -137,7 +142,7 @@ def fig4_curve(up_um, series: dict, paper=None, analytic=None) -> bytes:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    return png_bytes(fig)
+    return png_bytes(fig, crop=False)
 
 
 def _marker_size(n_points: int, area_pts: float) -> float:
@@ -191,7 +196,7 @@ def _xz_panels(panels, title: str) -> bytes:
         cb.set_label("U_f (95 %) [units of 1e-4 B_ref]", fontsize=9)
         cb.ax.tick_params(labelsize=8)
     fig.suptitle(title, fontsize=11)
-    return png_bytes(fig)
+    return png_bytes(fig, crop=False)  # constrained layout
 
 
 def fig10_systematic(points, mean_um, title: str) -> bytes:
@@ -281,7 +286,7 @@ def count_histograms(histograms, labels, title: str, unit: str = "units") -> byt
         axes[k // cols][k % cols].set_visible(False)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    return png_bytes(fig)
+    return png_bytes(fig, crop=False)
 
 
 def share_bars(names, shares, title: str) -> bytes:
