@@ -94,6 +94,35 @@ def test_significance_by_hand():
     assert significance.excess_for(6.0, 1.0, 3.0) == pytest.approx(6.0 * np.sqrt(10.0))
 
 
+def test_significance_with_priors_by_hand():
+    n = 4
+    sigma = np.full((n, 3), 2.0)
+    s = np.zeros((n, 3))
+    s[0, 0], s[1, 0] = 2.0, 2.0  # whitened: (1, 1, 0, ...)
+    other = np.zeros((n, 3))
+    other[0, 0] = 5.0  # whitened (2.5, 0, ...) per unit amplitude
+    # min_c (1 - 2.5 c)^2 + 1 + (c / p)^2 = 1 + 1 / (1 + 6.25 p^2): 1.5 at p = 0.4
+    z, kept = significance.per_unit_prior(s, [other], sigma, [0.4])
+    assert z == pytest.approx(np.sqrt(1.5))
+    assert kept == pytest.approx(np.sqrt(1.5 / 2.0))
+    free = significance.per_unit_prior(s, [other], sigma, [np.inf])
+    assert free == pytest.approx(significance.per_unit(s, [other], sigma))
+    assert significance.per_unit_prior(s, [other], sigma, [1e-9])[0] == pytest.approx(np.sqrt(2))
+
+
+@pytest.mark.parametrize(("seed", "kept"), [(22083, False), (50027, True)])
+def test_harmonics_null_needs_a_body_within_its_priors(seed, kept, tmp_path):
+    # 22083: a sextupole's body whose own B_z (the ends' field) is 11.8 sigma from the 2-D
+    # field; a free gain of B_z near -100 % would absorb it, its 0.15 % prior does not
+    files = write_family_case(seed, tmp_path, role="null", kind="hall")
+    truth = json.loads(files["truth"].read_text())
+    assert draw_config(seed, role="null", kind="hall")["reference"] == "harmonics"
+    z = truth["significance"]["body_vs_2d_sigma"]
+    assert (z <= 1.0) == kept
+    assert truth["strata"]["reference"] == ("harmonics" if kept else "exact")
+    assert files["reference"].name.endswith(".harmonics.csv" if kept else ".reference.csv")
+
+
 def test_drawn_effect_has_its_stated_significance(tmp_path):
     files = write_family_case(21, tmp_path, role="effect", kind="tracker")
     truth = json.loads(files["truth"].read_text())

@@ -393,12 +393,28 @@ def _reference(cfg, ctx, folder: Path, stem: str) -> Path:
     )
 
 
+def _prior_std(cfg, name) -> float:
+    """Prior std (display units) of a nuisance the case's files state: the survey (pose), the
+    probe's S_HP gain (%), a bench error's PDF."""
+    eff, p = name
+    if eff == "pose":
+        t_um, r_urad = cfg["bench"]["survey_std"]
+        return float(t_um if p.startswith("magnet_d") else r_urad)
+    if eff == "gain":
+        return float(FH.GAIN_HALF_WIDTH_PCT / np.sqrt(3.0))
+    kind, a, b = cfg["bench"]["pdfs"][p]
+    return float((b - a) / np.sqrt(12.0) if kind == "uniform" else b)
+
+
 def _null_harmonics_ok(cfg, ctx, base, grad, sigma) -> float:
     """Significance of the body's own 3-D departure from the 2-D harmonics (a null must have
-    none)."""
+    none), after the pose, gains and bench errors within their priors."""
     names = [("pose", p) for p in FH.POSE] + [("gain", f"gain_{c}") for c in "xyz"]
+    names += [("bench", n) for n in benches.B.NAMES]
     sig = FH.signatures(cfg, ctx, names, base=base, grad=grad)
-    return significance.per_unit(base - _harmonic_field(cfg, ctx), list(sig.values()), sigma)[0]
+    prior = [_prior_std(cfg, k) for k in sig]
+    dep = base - _harmonic_field(cfg, ctx)
+    return significance.per_unit_prior(dep, list(sig.values()), sigma, prior)[0]
 
 
 def write_family_case(seed: int, folder, size: str = "small", role=None, kind=None) -> dict:

@@ -13,13 +13,17 @@ signature, ``sigma`` the std of each reading. A prior release (a calibrated para
 prior) is significant by how far the data put it beyond the prior: with ``s_data`` = 1 / ||(I -
 P) (s / sigma)|| the std with which the data determine it, z = |excess| / sqrt(prior^2 +
 s_data^2).
+
+A departure the references cannot describe (the body's 3-D field against its 2-D harmonics) is
+judged against the nuisances within their priors: with the columns' amplitudes ``c`` of prior
+stds ``p``, z^2 = min_c || s / sigma - A c ||^2 + || c / p ||^2 (:func:`per_unit_prior`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["whitened", "per_unit", "excess_for"]
+__all__ = ["whitened", "per_unit", "per_unit_prior", "excess_for"]
 
 
 def whitened(vectors, sigma) -> np.ndarray:
@@ -63,6 +67,50 @@ def per_unit(signal, others, sigma) -> tuple[float, float]:
         r = y - u @ (u.T @ y)
     norm = float(np.linalg.norm(y))
     z = float(np.linalg.norm(r))
+    return z, (z / norm if norm > 0 else 0.0)
+
+
+def per_unit_prior(signal, others, sigma, prior_std) -> tuple[float, float]:
+    """Significance per unit amplitude of ``signal`` against ``others`` of bounded size.
+
+    The amplitude of each column has a Gaussian prior of mean 0 and std ``prior_std`` (its
+    display units): least squares augmented with one row ``c_k / prior_k`` per column.
+
+    Parameters
+    ----------
+    signal : ndarray, shape (n, 3)
+        Change of the noiseless recording per unit amplitude.
+    others : list of ndarray, shape (n, 3)
+        Nuisance signatures, per display unit of their parameter.
+    sigma : ndarray, shape (n, 3)
+        Std of each reading, in the units of the signatures.
+    prior_std : sequence of float, length ``len(others)``
+        Prior std of each amplitude (display units; ``inf``: free, as in :func:`per_unit`).
+
+    Returns
+    -------
+    z_per_unit : float
+        sqrt(min_c || signal / sigma - A c ||^2 + || c / prior ||^2).
+    kept : float
+        ``z_per_unit`` over || signal / sigma ||.
+    """
+    y = (np.asarray(signal, dtype=float) / sigma).ravel()
+    prior = np.asarray(prior_std, dtype=float).ravel()
+    a = whitened(others, sigma)
+    if a.shape[1] != prior.size:
+        raise ValueError(f"{a.shape[1]} signatures but {prior.size} prior stds")
+    if np.any(prior <= 0):
+        raise ValueError("prior stds must be positive")
+    norm = float(np.linalg.norm(y))
+    if not a.shape[1]:
+        return norm, (1.0 if norm > 0 else 0.0)
+    scale = np.linalg.norm(a, axis=0)
+    use = scale > 0
+    a, prior, scale = a[:, use] / scale[use], prior[use], scale[use]
+    # amplitudes in units of the column norms: the prior row of column k is c_k / (p_k s_k)
+    rows = np.diag(1.0 / (prior * scale))
+    c = np.linalg.lstsq(np.vstack([a, rows]), np.r_[y, np.zeros(len(prior))], rcond=None)[0]
+    z = float(np.sqrt(np.sum((y - a @ c) ** 2) + np.sum((rows @ c) ** 2)))
     return z, (z / norm if norm > 0 else 0.0)
 
 
