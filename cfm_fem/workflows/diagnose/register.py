@@ -23,7 +23,15 @@ from ...models.bench import ERROR_NAMES
 from .calibrate import fit_map, stack
 from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
 
-__all__ = ["applies", "register", "repose", "pose_step", "bench_step", "registration_note"]
+__all__ = [
+    "applies",
+    "register",
+    "repose",
+    "pose_step",
+    "bench_step",
+    "bench_target",
+    "registration_note",
+]
 
 #: Converged when every registration step is below this fraction of its std.
 STEP_TOL = 0.05
@@ -108,13 +116,56 @@ def pose_step(prob: Problem, model, fit) -> tuple[np.ndarray, bool]:
     return new, moved
 
 
-def register(prob: Problem, max_iter: int = 6) -> Problem:
-    """Gauss-Newton on the magnet's pose with the calibrated baseline (registration priors
-    kept): the problem linearised at the registration it fits.
+def bench_target(prob: Problem, model, fit) -> tuple[np.ndarray | None, bool]:
+    """The bench errors a fit puts the probe at, and whether they moved beyond the tolerance.
 
-    A step that raises the MAP objective is halved (three times at most, then the pose stays).
-    A problem :func:`applies` rejects keeps its pose. A Hall map's readings are first expanded
-    at the bench errors the baseline fits (:func:`bench_step`).
+    Parameters
+    ----------
+    prob : Problem
+        A Hall-map problem expanded at the bench errors of its ``ctx.rebuild`` (``bench_at``;
+        None: their prior means).
+    model : Columns
+        The model fitted (its bench columns named as ``ERROR_NAMES``).
+    fit : Fit
+
+    Returns
+    -------
+    at : ndarray, shape (21,), display units of the bench errors, or None
+        None where the problem has no bench to expand at.
+    moved : bool
+        Some error moved by more than ``STEP_TOL`` times its std.
+    """
+    if prob.ctx.rebuild is None or prob.ctx.bench is None:
+        return None, False
+    if not set(ERROR_NAMES) <= set(model.names):
+        return None, False
+    idx = [model.names.index(n) for n in ERROR_NAMES]
+    at = np.asarray(fit.theta[idx], dtype=float)
+    now = _bench_now(prob, model)
+    std = np.maximum(np.asarray(fit.std[idx], dtype=float), 1e-12)
+    return at, bool(np.any(np.abs(at - np.asarray(now, dtype=float)) > STEP_TOL * std))
+
+
+def _bench_now(prob: Problem, model) -> np.ndarray:
+    """The bench errors ``prob`` is expanded at (their prior means unless stated)."""
+    now = getattr(prob.ctx.rebuild, "keywords", {}).get("bench_at")
+    if now is None:
+        now = [model.prior_mean[model.names.index(n)] for n in ERROR_NAMES]
+    return np.asarray(now, dtype=float)
+
+
+def register(prob: Problem, max_iter: int = 6) -> Problem:
+    """Gauss-Newton on the magnet's pose and the bench errors the readings are expanded at,
+    with the calibrated baseline (registration priors kept): the problem linearised at the
+    registration and the bench errors it fits.
+
+    A Hall map's readings are first expanded at the bench errors the baseline fits
+    (:func:`bench_step`). The pose and those errors then step together: a pose fitted at
+    bench errors fitted at another pose leaves their product terms (on a sextupole's or an
+    octupole's axis, where the gradient vanishes, the field is all second- and third-order
+    terms of the probe's move and the readings' noise is the probe's floor alone). A step
+    that raises the MAP objective is halved (three times at most, then the pose alone steps,
+    likewise; else they stay). A problem :func:`applies` rejects keeps its pose.
     """
     prob = bench_step(prob)
     if not applies(prob):
@@ -123,19 +174,33 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     obj, base, fit = _objective(prob)
     for _ in range(max_iter):
         pose, moved = pose_step(prob, base, fit)
-        if not moved:
+        at, at_moved = bench_target(prob, base, fit)
+        if not (moved or at_moved):
             break
-        start = np.asarray(prob.ctx.pose, dtype=float)
-        for _half in range(4):
-            trial = repose(prob, pose)
-            obj_t, base_t, fit_t = _objective(trial)
-            if obj_t <= obj * (1.0 + 1e-9):
-                break
-            pose = 0.5 * (start + pose)
-        else:
+        step = _step(prob, obj, pose, (at, _bench_now(prob, base)) if at_moved else None)
+        if step is None and at_moved and moved:
+            step = _step(prob, obj, pose, None)  # the pose alone
+        if step is None:
             break
-        prob, obj, base, fit = trial, obj_t, base_t, fit_t
+        prob, obj, base, fit = step
     return repose(nominal, np.zeros(len(REG_NAMES)), planar=False) if _steered(prob) else prob
+
+
+def _step(prob: Problem, obj: float, pose, bench=None):
+    """The problem relinearised at ``pose`` (and, ``bench = (at, now)``, at the bench errors
+    ``at`` instead of ``now``) with its objective and fit, the step halved while it raises
+    the MAP objective; None if it still does after three halvings."""
+    start = np.asarray(prob.ctx.pose, dtype=float)
+    at, at0 = (None, None) if bench is None else bench
+    for _half in range(4):
+        trial = repose(prob, pose) if at is None else repose(prob, pose, bench_at=at)
+        obj_t, base_t, fit_t = _objective(trial)
+        if obj_t <= obj * (1.0 + 1e-9):
+            return trial, obj_t, base_t, fit_t
+        pose = 0.5 * (start + pose)
+        if at is not None:
+            at = 0.5 * (at0 + at)
+    return None
 
 
 #: Against a 2-D reference, a baseline pose beyond this many survey stds is steered by what

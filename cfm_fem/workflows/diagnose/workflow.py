@@ -23,7 +23,14 @@ from .locate import isolated_planes, locate
 from .noise import estimate_noise, vibration_covariance
 from .priors import WIDE, bounds_for
 from .problem import Problem, noise_sigma, subset_rows
-from .register import applies, pose_step, register, registration_note, repose
+from .register import (
+    applies,
+    bench_target,
+    pose_step,
+    register,
+    registration_note,
+    repose,
+)
 from .select import cv_rms, select_effects, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
@@ -452,17 +459,19 @@ def _arrays(prob, cal, fit1, loc0, loc1) -> dict:
 
 def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> SimpleNamespace:
     """Steps 1-4 with the magnet's registration non-linear (a Hall map): the problem is
-    linearised at the registration the baseline fits, and again at the one the selected model
-    fits (a released ``magnet_misalignment`` moves it) until it stays put."""
+    linearised at the registration and the bench errors the baseline fits, and again at those
+    the selected model fits (a released ``magnet_misalignment`` moves the pose; an effect the
+    baseline lacks moves both) until they stay put."""
     prob = register(prob)
     for _ in range(max_refits + 1):
         a = _attribute_at(prob, o, progress)
         if not applies(prob):
             break
         pose, moved = pose_step(prob, a.sel.model, a.fit1)
-        if not moved:
+        at, at_moved = bench_target(prob, a.sel.model, a.fit1)
+        if not (moved or at_moved):
             break
-        prob = repose(prob, pose)
+        prob = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
     return a
 
 
