@@ -70,11 +70,11 @@ def test_hessian_is_symmetric_and_matches_its_diagonal_stencil():
     assert np.abs(np.einsum("nijj->nij", H) - diag).max() < 1e-3 * np.abs(diag).max()
 
 
-@pytest.mark.slow  # one command-line run of 20-50 s
-def test_2d_harmonics_are_read_at_the_pose_so_a_sextupole_offset_is_no_hall_offset(tmp_path):
-    # family seed 2021 (effect): a sextupole body grid against its 2-D harmonics, the magnet
-    # offset by (33, -20) um; linearised, g (dx^2 - dy^2) is left as a constant B_x that a
-    # Hall offset takes (offset_x -3.2 uT, delta BIC 22) beside the concealed tilt m_zx
+@pytest.mark.slow  # one command-line run of a few seconds
+def test_2d_harmonics_are_read_at_the_pose_so_a_multipole_offset_is_no_hall_offset(tmp_path):
+    # family seed 50385 (effect): a sextupole's sparse body map against its 2-D harmonics, the
+    # magnet offset by (-43, -20) um, a planar Hall term concealed; with the pose linearised,
+    # g (dx^2 - dy^2) is left as a constant B_x that a Hall offset takes beside the planar Hall
     import contextlib
     import io
     import json
@@ -82,10 +82,12 @@ def test_2d_harmonics_are_read_at_the_pose_so_a_sextupole_offset_is_no_hall_offs
     from cfm_fem.cli import main
     from cfm_fem.simulation import write_family_case
 
-    files = write_family_case(2021, tmp_path / "case", "small", role="effect")
+    files = write_family_case(50385, tmp_path / "case", "small", role="effect")
+    truth = json.loads(files["truth"].read_text())
+    assert truth["strata"]["reference"] == "harmonics"
     out = tmp_path / "out"
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["diagnose", *files["args"], "--no-report", "--out", str(out)]) == 0
     d = json.loads((out / "diagnosis.json").read_text())
-    assert [e["name"] for e in d["effects"]] == ["probe_misalignment"], d["effects"]
+    assert [e["name"] for e in d["effects"]] == ["planar_hall"], d["effects"]
     assert any(n.startswith("registration non-linear") for n in d["notes"]), d["notes"]
