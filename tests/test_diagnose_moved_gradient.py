@@ -10,13 +10,12 @@ magnet's offset and the axes' vibration. The columns of `hall_problem` linearise
 from __future__ import annotations
 
 import numpy as np
+from hall_exact import exact_problem, exact_reading
 
 from cfm_fem.models.bench import ERROR_NAMES
-from cfm_fem.models.recordings import Recording
 from cfm_fem.workflows.diagnose.problem import (
     REG_NAMES,
     bench_move,
-    hall_problem,
     moved_gradient,
     posed_field,
 )
@@ -49,20 +48,11 @@ def _setup():
 
 
 def _reading(bench, pts, q, theta, pose):
-    """The exact reading at the probe moved by the errors ``theta``, the magnet at ``pose``."""
-    return posed_field(_sextupole, pose)(pts + bench_move(bench, q, theta))
+    return exact_reading(_sextupole, bench, pts, q, theta, pose)
 
 
 def _problem(bench, pts, q, at, pose):
-    n = len(pts)
-    rec = Recording(
-        kind="hall",
-        point_id=np.arange(n),
-        rep=np.zeros(n, dtype=np.int64),
-        cmd=pts,
-        B=_reading(bench, pts, q, at, pose),
-    )
-    return hall_problem(rec, _sextupole, 0.1, bench, pose=pose, bench_at=at)
+    return exact_problem(_sextupole, _sextupole, 0.1, bench, pts, q, at, pose)
 
 
 def test_bench_and_registration_columns_are_the_exact_readings_derivatives():

@@ -10,16 +10,14 @@ derivatives in the errors and the registration, well within a low-noise probe's 
 from __future__ import annotations
 
 import numpy as np
+from hall_exact import exact_problem, exact_reading
 
 from cfm_fem.models.bench import ERROR_NAMES
-from cfm_fem.models.recordings import Recording
 from cfm_fem.workflows.diagnose.problem import (
     REG_NAMES,
     _axis_positions,
     bench_move,
     field_third,
-    hall_problem,
-    posed_field,
 )
 from cfm_fem.workflows.inputs import choose_bench
 
@@ -49,19 +47,11 @@ def _setup():
 
 
 def _reading(bench, pts, q, theta, pose):
-    return posed_field(_octupole, pose)(pts + bench_move(bench, q, theta))
+    return exact_reading(_octupole, bench, pts, q, theta, pose)
 
 
-def _problem(bench, pts, q, at, pose):
-    n = len(pts)
-    rec = Recording(
-        kind="hall",
-        point_id=np.arange(n),
-        rep=np.zeros(n, dtype=np.int64),
-        cmd=pts,
-        B=_reading(bench, pts, q, at, pose),
-    )
-    return hall_problem(rec, _octupole, 0.64, bench, pose=pose, bench_at=at)
+def _problem(bench, pts, q, at, pose, reference=_octupole):
+    return exact_problem(_octupole, reference, 0.64, bench, pts, q, at, pose)
 
 
 def test_third_derivatives_of_a_cubic_field_are_exact():
@@ -121,15 +111,7 @@ def test_the_derivatives_are_taken_once_per_map():
         calls.append(len(p))
         return _octupole(p)
 
-    n = len(pts)
-    rec = Recording(
-        kind="hall",
-        point_id=np.arange(n),
-        rep=np.zeros(n, dtype=np.int64),
-        cmd=pts,
-        B=_reading(bench, pts, q, at, pose),
-    )
-    prob = hall_problem(rec, counted, 0.64, bench, pose=pose, bench_at=at)
+    prob = _problem(bench, pts, q, at, pose, reference=counted)
     first = len(calls)
     assert first >= 33  # the value, gradient, Hessian and third derivatives
     again = prob.ctx.rebuild(pose=pose * 0.5, bench_at=at * 0.5)
