@@ -234,3 +234,22 @@ def test_points_next_to_removed_hull_cells_are_found():
     gone = interp.mesh.hull_slivers
     centre = pts[gone].mean(axis=1)  # inside a removed cell only
     assert not interp.field_at(centre)[1].any()
+
+
+def test_inside_agrees_with_scipy_around_and_on_the_hull():
+    """Points around a scattered map, some on its hull's faces: inside exactly where scipy's
+    Delaunay finds a simplex, and the field exact there."""
+    import scipy.spatial
+
+    pts, fm = _random_cube_map(300)
+    interp = LinearInterpolator(fm, "delaunay")
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-1.0, 6.0, (2000, 3))
+    tri = scipy.spatial.Delaunay(pts)
+    faces = tri.convex_hull[rng.integers(0, len(tri.convex_hull), 200)]
+    on_face = np.einsum("qk,qkd->qd", rng.dirichlet(np.ones(3), 200), pts[faces])
+    B, inside = interp.field_at(np.r_[q, on_face])
+    np.testing.assert_array_equal(inside[: len(q)], tri.find_simplex(q) >= 0)
+    assert inside[len(q) :].all()
+    np.testing.assert_allclose(B[inside], linear(np.r_[q, on_face][inside]), atol=1e-12)
+    assert np.isnan(B[~inside]).all()

@@ -125,6 +125,7 @@ class LinearInterpolator:
         self.mesh = build_mesh(fm, method, hull_slivers)
         self._tree = None
         self._spheres = None
+        self._hull = None
 
     def field_at(self, points):
         """Interpolated B at ``points``.
@@ -148,16 +149,21 @@ class LinearInterpolator:
         nearest = nearest.reshape(len(local), k)
         m = self.mesh
         B, cell = interpolate_points(m, self.fieldmap.B, local, m.node_cell[nearest[:, 0]])
-        # A walk can be blocked by a hole of a non-convex mesh: retry from the next nearest nodes.
+        # A walk can be blocked by a hole of a non-convex mesh: retry from the next nearest
+        # nodes. A point outside the nodes' convex hull is in no cell: no retry (the
+        # finite differences of a map's border put many points there).
+        retry = cell < 0
+        if retry.any():
+            retry[retry] = self._in_hull(local[retry])
         for j in range(1, k):
-            redo = np.flatnonzero(cell < 0)
+            redo = np.flatnonzero(retry & (cell < 0))
             if redo.size == 0:
                 break
             b2, c2 = interpolate_points(
                 m, self.fieldmap.B, local[redo], m.node_cell[nearest[redo, j]]
             )
             B[redo], cell[redo] = b2, c2
-        redo = np.flatnonzero(cell < 0)
+        redo = np.flatnonzero(retry & (cell < 0))
         if redo.size:  # walks blocked by a notch of the border: search the cells around
             c2 = self._cells_around(local[redo])
             found = redo[c2 >= 0]
@@ -165,6 +171,27 @@ class LinearInterpolator:
             # a walk that starts in the containing cell takes no step
             B[found] = interpolate_points(m, self.fieldmap.B, local[found], cell[found])[0]
         return B, cell >= 0
+
+    def _in_hull(self, local) -> np.ndarray:
+        """Whether points (k, dim) of the mesh frame lie in the convex hull of its nodes, to a
+        tolerance of 1e-9 of the mesh's extent (a point on a border face counts as in)."""
+        if self._hull is None:
+            c = self.mesh.coords
+            tol = 1e-9 * float(np.ptp(c, axis=0).max())
+            try:
+                eq = scipy.spatial.ConvexHull(c).equations
+            except scipy.spatial.QhullError:  # degenerate node set: test nothing out
+                eq = np.zeros((0, c.shape[1] + 1))
+            self._hull = (eq, tol)
+        eq, tol = self._hull
+        if not len(eq):
+            return np.ones(len(local), bool)
+        block = max(1, 4_000_000 // len(eq))  # points at a time: a few tens of MB
+        out = np.empty(len(local), bool)
+        for a in range(0, len(local), block):
+            part = local[a : a + block] @ eq[:, :-1].T + eq[:, -1]
+            out[a : a + block] = part.max(axis=1) <= tol
+        return out
 
     def _cells_around(self, local):
         """Containing cell of each point (k, dim), -1 if none, by testing every cell whose
