@@ -31,6 +31,12 @@ fold on its own (Stouffer z > ``cv_z``) and the held-out chi2 is no worse than t
 freedom's own estimation noise explains (:func:`_release_within_its_freedom`).
 Last, its parameters estimated from either half of the map must agree
 (:mod:`~cfm_fem.workflows.diagnose.stability`; else: unstable, with the reason).
+
+An accepted effect whose model is approximate where it carries the signal
+(:attr:`~cfm_fem.workflows.diagnose.calibrate.Columns.model_rows`: the soft ends) states its
+misfit there as a model error added to the noise of those rows for the later rounds and the
+final fit (:func:`approximation_error`): that misfit is the same on every repetition, so
+without it a further effect whose columns share its structure would pass every test on it.
 """
 
 from __future__ import annotations
