@@ -727,6 +727,7 @@ def select_effects(
     model = stack(prob.baseline)
     fit0 = fit_map(prob.y, np.ones_like(prob.y), model)
     sigma = sigma_fn(fit0.resid, fit0.edf)
+    noise = sigma
     current = fit_map(prob.y, sigma, model)
     folds = folds_of(prob, k_folds)
     log_n = np.log(current.n_obs)
@@ -798,7 +799,7 @@ def select_effects(
             done.add(accepted.name)
         model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
-        sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
+        noise, sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
         current = fit_map(prob.y, sigma, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c
@@ -806,6 +807,8 @@ def select_effects(
     sel = Selection(selected=selected, candidates=cands, rounds=rounds)
     sel.model = model
     sel.sigma = sigma
+    sel.noise_sigma = noise  # without the stated errors of approximate models
+    sel.model_error = model_error
     sel.fit = current
     sel.folds = folds
     sel.accepted = accepted_c
@@ -847,14 +850,15 @@ def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
     return rows, var
 
 
-def _noise_with(prob, sigma_fn, accepted: Candidate, model: Columns, model_error) -> np.ndarray:
-    """The noise (n, 3) re-estimated with an accepted effect in ``model``, and the stated
-    error of every accepted approximate model (``model_error``, extended by ``accepted``'s
-    when its model is approximate, :func:`approximation_error`) added at its rows."""
-    sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)
+def _noise_with(prob, sigma_fn, accepted: Candidate, model: Columns, model_error) -> tuple:
+    """The noise (n, 3) re-estimated with an accepted effect in ``model``, and that noise with
+    the stated error of every accepted approximate model (``model_error``, extended by
+    ``accepted``'s when its model is approximate, :func:`approximation_error`) added at its
+    rows: ``(noise, sigma)``."""
+    noise = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)
     if accepted.has_new and accepted.cols.model_rows is not None:
-        model_error.append(approximation_error(prob, sigma, model, accepted.cols.model_rows))
-    return _with_model_error(sigma, model_error)
+        model_error.append(approximation_error(prob, noise, model, accepted.cols.model_rows))
+    return noise, _with_model_error(noise, model_error)
 
 
 def _with_model_error(sigma, model_error) -> np.ndarray:
