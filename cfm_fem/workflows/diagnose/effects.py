@@ -66,7 +66,13 @@ the probe senses: the reference read where the fitted bench errors move the prob
   the Fermi z_entry, z_exit and lambda fitted to those values, as a model-dependent summary
   whose std includes its spread over the planes (a real end is not that shape). Edges and
   planes are in the map frame (they carry the magnet's z offset). An end more than 10 lambda
-  outside the map is not estimated.
+  outside the map is not estimated. The baseline's columns there are read through the
+  measured profile, and elsewhere through the Fermi profile with its amplitude within [0, 2]
+  (beyond the measured planes, far from the ends, that amplitude is not determined). Once
+  the ends are accepted, the end model's misfit where it carries the signal is stated as a
+  model error added to the noise there
+  (:func:`~cfm_fem.workflows.diagnose.select.approximation_error`), which a further claim
+  must exceed; against 2-D harmonics the pose then stays where the baseline placed it.
 * ``sensor_volume_averaging``: Delta B_i = sum_j w_j d^2 B_i / dx_j^2 (w = a_j^2 / 24 for a
   box of side a_j). A field in free space is harmonic (sum_j d^2 B / dx_j^2 = 0), so the
   isotropic part of w never shows (mean-value property: a cube averages to its centre value at

@@ -614,12 +614,18 @@ def _plane_block(prob, blk, th, a, inside, shape):
 
     def profile(theta):
         """Per row g, g', ... (2 `PLANE_LAYERS` + 3 rows): the fitted values of the planes that
-        separate every layer, the Fermi profile with the fitted amplitude elsewhere."""
-        amp = theta[0] if n_lead else a
+        separate every layer; the Fermi profile elsewhere, with the amplitude fitted to the
+        Fermi tail beyond the planes there, within its plausible range [0, 2] (far from the
+        ends that tail is g - 1 ~ 0 and its amplitude is not determined: a value of thousands
+        would scale the baseline's columns wherever the Fermi shape departs from 1), and with
+        the amplitude ``a`` of the whole profile in the planes that keep it (truncated)."""
+        amp = float(np.clip(theta[0], 0.0, 2.0)) if n_lead else a
         prof = amp * fermi_rows
         prof[0] += 1.0 - amp
         for rows, first, layers in slots:
             if layers < PLANE_LAYERS:  # a truncated plane keeps the Fermi profile
+                prof[:, rows] = a * fermi_rows[:, rows]
+                prof[0, rows] += 1.0 - a
                 continue
             for m in range(2 * layers):
                 prof[m, rows] = theta[n_lead + first + m] + (1.0 if m == 0 else 0.0)

@@ -31,6 +31,12 @@ fold on its own (Stouffer z > ``cv_z``) and the held-out chi2 is no worse than t
 freedom's own estimation noise explains (:func:`_release_within_its_freedom`).
 Last, its parameters estimated from either half of the map must agree
 (:mod:`~cfm_fem.workflows.diagnose.stability`; else: unstable, with the reason).
+
+An accepted effect whose model is approximate where it carries the signal
+(:attr:`~cfm_fem.workflows.diagnose.calibrate.Columns.model_rows`: the soft ends) states its
+misfit there as a model error added to the noise of those rows for the later rounds and the
+final fit (:func:`approximation_error`): that misfit is the same on every repetition, so
+without it a further effect whose columns share its structure would pass every test on it.
 """
 
 from __future__ import annotations
@@ -721,10 +727,12 @@ def select_effects(
     model = stack(prob.baseline)
     fit0 = fit_map(prob.y, np.ones_like(prob.y), model)
     sigma = sigma_fn(fit0.resid, fit0.edf)
+    noise = sigma
     current = fit_map(prob.y, sigma, model)
     folds = folds_of(prob, k_folds)
     log_n = np.log(current.n_obs)
     selected, cands, rounds, accepted_c = [], {}, [], []
+    model_error = []  # (rows, variance (3,)) of the accepted approximate models
     absorbed = set(absorbed)
     blocks = dict(blocks)
     done = set()
@@ -791,7 +799,7 @@ def select_effects(
             done.add(accepted.name)
         model = accepted.trial
         # re-estimate the noise with the effect in the model, then refit
-        sigma = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)
+        noise, sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
         current = fit_map(prob.y, sigma, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c
@@ -799,10 +807,69 @@ def select_effects(
     sel = Selection(selected=selected, candidates=cands, rounds=rounds)
     sel.model = model
     sel.sigma = sigma
+    sel.noise_sigma = noise  # without the stated errors of approximate models
+    sel.model_error = model_error
     sel.fit = current
     sel.folds = folds
     sel.accepted = accepted_c
     return sel
+
+
+def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
+    """The error of an accepted approximate model where it carries the signal
+    (:attr:`Columns.model_rows`: the soft ends' profile), stated as a variance per component.
+
+    Such a model (an Enge/Fermi profile per end, plane values truncated to the layers a plane's
+    points separate) need not describe a real magnet's ends to the noise: its misfit there is
+    the same on every repetition, so the held-out tests of a further effect whose columns share
+    its structure along z and in r (the probe's tilt mixes B_z into B_x and B_y, volume
+    averaging is the Laplacian term, the elements' offsets and the magnet's pose read the
+    gradient) would pass on it. The model's error at those rows, s_c^2 = mean(r^2 - sigma^2)
+    over the rows of component c (0 where the fit is within the noise), is added to their
+    noise, so that a further claim must exceed it.
+
+    Parameters
+    ----------
+    prob : Problem
+    sigma : ndarray, shape (n, 3)
+        Noise of the readings (units of ``prob.y``).
+    model : Columns
+        The model holding the approximate effect.
+    rows : ndarray of bool, shape (n,)
+
+    Returns
+    -------
+    tuple
+        ``(rows, variance)``: the rows and the error's variance (3,), units of ``y`` squared.
+    """
+    fit = fit_map(prob.y, sigma, model)
+    r2 = fit.resid[rows] ** 2 - sigma[rows] ** 2
+    ok = np.isfinite(r2)
+    n_c = np.maximum(ok.sum(0), 1)
+    var = np.maximum(np.where(ok, r2, 0.0).sum(0) / n_c, 0.0)
+    return rows, var
+
+
+def _noise_with(prob, sigma_fn, accepted: Candidate, model: Columns, model_error) -> tuple:
+    """The noise (n, 3) re-estimated with an accepted effect in ``model``, and that noise with
+    the stated error of every accepted approximate model (``model_error``, extended by
+    ``accepted``'s when its model is approximate, :func:`approximation_error`) added at its
+    rows: ``(noise, sigma)``."""
+    noise = sigma_fn(accepted.fit.resid, accepted.fit.edf, model.var_known)
+    if accepted.has_new and accepted.cols.model_rows is not None:
+        model_error.append(approximation_error(prob, noise, model, accepted.cols.model_rows))
+    return noise, _with_model_error(noise, model_error)
+
+
+def _with_model_error(sigma, model_error) -> np.ndarray:
+    """``sigma`` (n, 3) with the stated errors of accepted approximate models added in
+    quadrature at their rows (:func:`approximation_error`)."""
+    if not model_error:
+        return sigma
+    var = sigma**2
+    for rows, v in model_error:
+        var[rows] += v[None, :]
+    return np.sqrt(var)
 
 
 def _signature(model: Columns, cand: Candidate):

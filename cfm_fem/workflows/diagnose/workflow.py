@@ -211,8 +211,10 @@ def _per_gain(cands, model, fit1, names) -> tuple[np.ndarray, np.ndarray]:
     return theta, T @ fit1.cov[np.ix_(ext, ext)] @ T.T
 
 
-def _effect_entry(cands, model, fit1, base, sigma) -> dict:
-    """The ``effects[]`` entry of one effect (one or several of its functions accepted)."""
+def _effect_entry(cands, model, fit1, base, sigma, noise=None) -> dict:
+    """The ``effects[]`` entry of one effect (one or several of its functions accepted);
+    ``noise``: ``sigma`` without the stated errors of approximate models (the lack of fit of
+    such a model is reported against it)."""
     c0 = cands[0]
     names = [n for c in cands for n in c.param_names]
     idx = [model.names.index(n) for n in names]
@@ -274,10 +276,13 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
         phys = c0.cols.physical(c0.param_names[-nb:], fit1.theta[ib], cov)
         if c0.cols.model_rows is not None:
             e["lack_of_fit"] = {
-                "reduced_chi2": round(lof, 2),
+                "reduced_chi2": round(_lack_of_fit(c0.cols, fit1, _or(noise, sigma)), 2),
                 "note": "the parameters listed in model_dependent are those of an assumed shape "
-                "fitted to these data, not of the data alone; every std of the effect is scaled "
-                "by sqrt(reduced chi2) of the fit where its model carries the signal",
+                "fitted to these data, not of the data alone; reduced_chi2 is the fit's against "
+                "the noise where the model carries the signal: that misfit is stated as a model "
+                "error added to the noise there (every std of the fit includes it, and a further "
+                "effect must exceed it), and every std of the effect is scaled by sqrt(reduced "
+                "chi2) of what is left",
             }
     if phys:  # a linearised non-linear or constrained effect: report its physical parameters
         e["linear_params"] = {"params": e["params"], "param_std": e["param_std"]}
@@ -300,6 +305,11 @@ def _effect_entry(cands, model, fit1, base, sigma) -> dict:
             e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
     _lower_order(e, cands)
     return e
+
+
+def _or(a, b):
+    """``a`` unless it is None, else ``b``."""
+    return b if a is None else a
 
 
 def _lower_order(e: dict, cands) -> None:
@@ -364,14 +374,15 @@ def _effects_out(prob, sel, fit1, base) -> list:
     out = []
     for cs in groups.values():
         nuis = cs[0].cols.nuisance if cs[0].has_new else None
+        noise_only = getattr(sel, "noise_sigma", None)
         if nuis is None:
-            out.append(_effect_entry(cs, sel.model, fit1, base, sel.sigma))
+            out.append(_effect_entry(cs, sel.model, fit1, base, sel.sigma, noise_only))
             continue
         # the effect's estimates marginalised over its nuisance parameters (Columns.nuisance)
         model = stack([sel.model, nuis])
         fit = fit_map(prob.y, sel.sigma, model)
         fit = replace(fit, cov=vibration_covariance(prob, model, fit, sel.sigma, noise))
-        out.append(_effect_entry(cs, model, fit, base, sel.sigma))
+        out.append(_effect_entry(cs, model, fit, base, sel.sigma, noise_only))
     return sorted(out, key=lambda e: -e["delta_bic"])
 
 
@@ -465,7 +476,7 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
     prob = register(prob)
     for _ in range(max_refits + 1):
         a = _attribute_at(prob, o, progress)
-        if not applies(prob):
+        if not applies(prob) or _ends_on_2d(prob, a.sel):
             break
         pose, moved = pose_step(prob, a.sel.model, a.fit1)
         at, at_moved = bench_target(prob, a.sel.model, a.fit1)
@@ -473,6 +484,18 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
             break
         prob = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
     return a
+
+
+def _ends_on_2d(prob: Problem, sel) -> bool:
+    """Whether the selected model holds the soft ends against 2-D harmonics read at the pose.
+
+    The ends scale the body field at the nominal placement (every effect's columns against a
+    2-D reference stay those of the nominal placement); a pose moved by a model holding them
+    would read the body exactly at that pose while the ends still scale the nominal field,
+    leaving the pose's second-order terms (a sextupole's g d^2, hundreds of uT for d ~ 100 um)
+    wherever the ends remove the field: the pose stays where the baseline put it."""
+    keywords = getattr(prob.ctx.rebuild, "keywords", {})
+    return bool(keywords.get("planar")) and "fringe_field_3d" in sel.selected
 
 
 def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
