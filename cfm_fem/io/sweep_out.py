@@ -135,7 +135,8 @@ def map_field_data(
     }
 
 
-#: Memory that maps written side by side may take in all (each map: its point data).
+#: Memory that maps written side by side may take in all (each map: its point data, and
+#: the points and cells encoded once for all of them).
 _WRITE_BYTES = 1 << 30
 #: Point-data values per node of one map (float32-equivalent, `_point_data`; an estimate).
 _POINT_VALUES = 110
@@ -206,7 +207,8 @@ def write_sweep(
         return (ups[k] if res.config.mode == "gauss" else float(k), path)
 
     # zlib compresses without the GIL: maps side by side, as many as fit the budget
-    per_map = max(1, len(res.fieldmap.points) * 4 * _POINT_VALUES)  # its point data
+    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
+    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
     most = max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
     first = most if writers is None else max(1, min(writers, most))
     if widen_after is None:
