@@ -17,8 +17,9 @@ psi = (1{V <= q_V} - a) / f_V(q_V), f_X exact and f_Y from the spacing of the or
 around q^_Y. That variance holds once the order statistics of s X lie closer together
 (1 / (n f_X)) than the remainder e = Y - s X spreads near the quantile; with fewer trials the
 estimate follows the remainder of the one or few trials at the quantile, of variance
-~ Var(e) / (1 + sd(e) n f_X) (`_few_trials`, Var(e) over the trials of X's tail), and the larger
-of the two is taken. Where the plain sample quantile has the smaller estimated variance (a
+~ Var(e) / (1 + sd(e) n f_X) (`_few_trials`, Var(e) over the trials of X's tail): while sd(e) is
+below 1 / (n f_X) that variance is taken, beyond it the larger of the two
+(`_difference_variance`). Where the plain sample quantile has the smaller estimated variance (a
 first-order part that follows Y poorly, as near a zero of |B|) the plain statistics of Y are
 kept.
 
