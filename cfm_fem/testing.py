@@ -714,7 +714,10 @@ def cv_stats(y, xu, s, sig1, p=0.95):
         if len(e) >= 2:  # few trials: Var(e) / (1 + sd(e) / spacing), spacing 1 / (n f_X)
             sd_e, spacing = e.std(ddof=1), abs(ifx) / n
             small = sd_e**2 / (1.0 + sd_e / spacing) if spacing > 0 else 0.0
-            v_cv = max(v_cv, a * (1 - a) * d**2 + n * small)
+            v_few = a * (1 - a) * d**2 + n * small
+            # the remainder spreads less than X's order statistics lie apart: the count of
+            # crossings says nothing, the few-trials variance holds
+            v_cv = v_few if sd_e < spacing else max(v_cv, v_few)
         else:
             v_cv = np.inf
         var[side] = (a * (1 - a) * ify**2, v_cv)

@@ -43,6 +43,41 @@ def map_threads(func, items, threads: int | None = None) -> list:
         return list(pool.map(func, items))
 
 
+def map_threads_widening(func, items, start: int, threads: int, widen) -> list:
+    """`map_threads` on ``threads`` threads of which only ``start`` run ``func`` at once until
+    the future ``widen`` is done (finished, failed or cancelled), then all of them.
+
+    For work that shares the cores with another task for a while (the report's figures beside
+    the map writers): the other task's core is taken up as soon as it is free.
+
+    Parameters
+    ----------
+    func : callable
+    items : iterable
+    start : int
+        Calls at once while ``widen`` runs (at least 1).
+    threads : int
+        Calls at once after it.
+    widen : concurrent.futures.Future
+    """
+    import threading
+
+    items = list(items)
+    threads = min(threads, len(items))
+    start = max(1, min(start, threads))
+    if threads <= start:
+        return map_threads(func, items, start)
+    gate = threading.Semaphore(start)
+    widen.add_done_callback(lambda _: gate.release(threads - start))
+
+    def gated(x):
+        with gate:
+            return func(x)
+
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(gated, items))
+
+
 #: Share of the available memory one run may plan to use: the rest stays for the operating
 #: system, the interpreter and the arrays an estimate leaves out.
 MEMORY_SHARE = 0.8

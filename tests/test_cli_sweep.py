@@ -600,17 +600,21 @@ def test_interrupted_rerun_leaves_no_earlier_summary_beside_new_maps(
     base = ["sweep", str(csv_map), "--up", "0,10,20", "--trials", "50", "--out", str(out)]
     assert main([*base, *layout, "--seed", "1"]) == 0
     assert (out / "summary.json").exists() and (out / "sweep.pvd").exists()
-    real = cfm_fem.io.sweep_out.write_vtu
     calls = []
 
-    def stop_after_one(*args, **kwargs):
-        if calls:
-            raise KeyboardInterrupt
-        calls.append(args[0])
-        return real(*args, **kwargs)
+    def stop_after_one(real):
+        def write(*args, **kwargs):
+            if calls:
+                raise KeyboardInterrupt
+            calls.append(args[0])
+            return real(*args, **kwargs)
 
-    monkeypatch.setattr(cfm_fem.io.sweep_out, "write_vtu", stop_after_one)
-    monkeypatch.setattr(cfm_fem.io.slab_files, "write_vtu", stop_after_one)
+        return write
+
+    for module, name in ((cfm_fem.io.sweep_out, "write_vtu"),
+                         (cfm_fem.io.sweep_out, "write_mesh_vtu"),
+                         (cfm_fem.io.slab_files, "write_vtu")):  # fmt: skip
+        monkeypatch.setattr(module, name, stop_after_one(getattr(module, name)))
     assert main([*base, *layout, "--seed", "0"]) == 1  # interrupted
     assert len(calls) == 1  # one new map (or piece) was written
     assert not (out / "summary.json").exists() and not (out / "sweep.pvd").exists()

@@ -140,3 +140,44 @@ def test_cv_statistics_kernel_matches_its_numpy_twin(n, coupling, noise):
     np.testing.assert_allclose(se, ref_se, rtol=1e-9, atol=1e-18)
     plain = np.sort(y)[h // 2 - 1]  # the plain symmetric low end (h even here)
     assert (out[2] == plain) == (coupling == 0.0)
+
+
+def test_one_crossing_below_the_spacing_leaves_the_few_trials_error():
+    """256 trials whose remainder is far below the spacing of X's order statistics, one trial
+    pushed across the low quantile: the standard error of the low end is the few-trials one
+    (the remainder's), not the asymptotic one that a single crossing lifts many times over."""
+    from cfm_fem._kernels import harmonic_cv as hcv
+    from cfm_fem._kernels.order_stats import _intervals, coverage_count
+
+    n, s, sig1 = 256, 0.02, 3.0
+    rng = np.random.default_rng(11)
+    xu = sig1 * rng.standard_normal(n)
+    q = coverage_count(n, 0.95)
+    h = n - q
+    order = np.argsort(xu)
+    r = h // 2 if h % 2 == 0 else (h + 1) // 2
+    gap = s * (xu[order[r]] - xu[order[r - 1]])
+    e = 1e-3 * gap * rng.standard_normal(n)
+    e[order[r]] = -1.5 * gap  # the trial just above X's quantile crosses below Y's
+    y = s * xu + e
+    work = tuple(np.empty(n) for _ in range(4))
+    x_tails = (np.empty(h), np.empty(h))
+    x_st = np.empty(6)
+    x_st[0], x_st[1] = hcv.sample_tails(xu, n, h, *x_tails, work[2], work[3])
+    _intervals(*x_tails, n, q, x_st)
+    out, se = np.empty(6), np.empty(2)
+    zq = _kernels.normal_quantile(0.975)
+    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se)
+    y_st = np.empty(6)  # the plain sample figures of Y: its quantiles for the crossings
+    y_tails = (np.empty(h), np.empty(h))
+    hcv.sample_tails(y, n, h, *y_tails, work[2], work[3])
+    _intervals(*y_tails, n, q, y_st)
+    c_lo, _, var_lo, _ = hcv._crossings(y, xu, n, s, (y_st[2], y_st[3]), (x_st[2], x_st[3]),
+                                        (x_tails[0][h - 1], x_tails[1][0]))  # fmt: skip
+    assert c_lo >= 1
+    ifx = s * sig1 / (np.exp(-0.5 * zq * zq) / np.sqrt(2.0 * np.pi))
+    assert np.sqrt(var_lo) < ifx / n  # the remainder is below the spacing
+    asymptotic = np.sqrt(2.0 * c_lo / n * ifx * ifx / n)  # its crossing term alone
+    uf = zq * s * sig1
+    assert se[0] < 0.25 * asymptotic
+    assert se[0] / uf < ADAPTIVE_PLAN[2]  # the node stops at its pilot

@@ -17,8 +17,9 @@ psi = (1{V <= q_V} - a) / f_V(q_V), f_X exact and f_Y from the spacing of the or
 around q^_Y. That variance holds once the order statistics of s X lie closer together
 (1 / (n f_X)) than the remainder e = Y - s X spreads near the quantile; with fewer trials the
 estimate follows the remainder of the one or few trials at the quantile, of variance
-~ Var(e) / (1 + sd(e) n f_X) (`_few_trials`, Var(e) over the trials of X's tail), and the larger
-of the two is taken. Where the plain sample quantile has the smaller estimated variance (a
+~ Var(e) / (1 + sd(e) n f_X) (`_few_trials`, Var(e) over the trials of X's tail): while sd(e) is
+below 1 / (n f_X) that variance is taken, beyond it the larger of the two
+(`_difference_variance`). Where the plain sample quantile has the smaller estimated variance (a
 first-order part that follows Y poorly, as near a zero of |B|) the plain statistics of Y are
 kept.
 
@@ -184,6 +185,21 @@ def _few_trials(a, d_inv, var_e, inv_f, n):
 
 
 @nb.njit(**JIT)
+def _difference_variance(v_asym, v_few, var_e, inv_f, n):
+    """n times the variance of the difference estimator: the few-trials one (`_few_trials`)
+    while the remainder spreads less (sd(e), ``var_e``) than the order statistics of s X lie
+    apart (1 / (n f_X)); else the larger of it and the asymptotic one (`_variances`).
+
+    With so few trials the asymptotic variance's share of trials on different sides of the
+    two quantiles (``p10``) is a count of 0, 1 or 2 that its expectation, about f_X E|e|,
+    lies far below, and the one or few trials at the quantile move it by e, not by
+    1 / f_X."""
+    if var_e >= 0.0 and math.sqrt(var_e) < abs(inv_f) / n:
+        return v_few
+    return max(v_asym, v_few)
+
+
+@nb.njit(**JIT)
 def _variances(a, inv_fy, inv_fx, d_inv, p10):
     """n times the asymptotic variance of the plain sample quantile of Y and of the difference
     estimator, at probability ``a``: Var(psi_Y - psi_X) = a (1 - a) (1/f_Y - 1/f_X)^2
@@ -241,8 +257,8 @@ def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
                                           (x_tails[0][h - 1], x_tails[1][0]))  # fmt: skip
     vp_lo, vc_lo = _variances(a_lo, ify_lo, ifx, d_lo, c_lo / n)
     vp_hi, vc_hi = _variances(a_hi, ify_hi, ifx, d_hi, c_hi / n)
-    vc_lo = max(vc_lo, _few_trials(a_lo, d_lo, ve_lo, ifx, n))
-    vc_hi = max(vc_hi, _few_trials(a_hi, d_hi, ve_hi, ifx, n))
+    vc_lo = _difference_variance(vc_lo, _few_trials(a_lo, d_lo, ve_lo, ifx, n), ve_lo, ifx, n)
+    vc_hi = _difference_variance(vc_hi, _few_trials(a_hi, d_hi, ve_hi, ifx, n), ve_hi, ifx, n)
     if vc_lo + vc_hi < vp_lo + vp_hi:  # the first-order part helps: difference estimator
         ex = s * sig1
         out[0] = mean - s * x_st[0]

@@ -12,12 +12,13 @@ import numba
 import numpy as np
 
 from ..models.sweep import COMPONENTS, SweepResult, summarize
-from ..threads import map_threads
+from ..threads import map_threads, map_threads_widening
 from ._atomic import TEMPORARY_AGE_S, remove_old_temporaries, write_json
 from .lock import locks_output
 from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import read_text_field, write_pvd, write_vtu
+from .vtu_stream import MeshBlock, write_mesh_vtu
 
 __all__ = [
     "write_sweep",
@@ -134,7 +135,8 @@ def map_field_data(
     }
 
 
-#: Memory that maps written side by side may take in all (each map: its grid and point data).
+#: Memory that maps written side by side may take in all (each map: its point data, and
+#: the points and cells encoded once for all of them).
 _WRITE_BYTES = 1 << 30
 #: Point-data values per node of one map (float32-equivalent, `_point_data`; an estimate).
 _POINT_VALUES = 110
@@ -153,7 +155,7 @@ def retire_index(out: Path) -> None:
 @locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
     out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True,
-    summary: dict | None = None, writers: int | None = None,
+    summary: dict | None = None, writers: int | None = None, widen_after=None,
 ) -> dict:  # fmt: skip
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
@@ -175,8 +177,12 @@ def write_sweep(
         ``summarize(res)``, when the caller made it already (its provenance is set here).
     writers : int, optional
         Most maps written at once (default: numba's threads, one per core; fewer if their
-        memory would exceed `_WRITE_BYTES`): each writer holds its map's arrays and VTK's
-        buffers, so more writers than cores only add memory.
+        memory would exceed `_WRITE_BYTES`): each writer holds its map's point data, so more
+        writers than cores only add memory. The points and cells are encoded once for all
+        maps (`cfm_fem.io.vtu_stream.MeshBlock`).
+    widen_after : concurrent.futures.Future, optional
+        Another task sharing the cores (the report's figures): ``writers`` maps are written
+        at once until it is done, then as many as the default allows.
 
     Raises
     ------
@@ -190,21 +196,26 @@ def write_sweep(
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
+    mesh = MeshBlock(res.fieldmap.points, res.mesh.simplices)  # the same in every map
 
     def write_map(k):
         path = out / vtu_name(res.labels[k])
         fields = map_field_data(
             ups[k], res.labels[k], res.b_ref_T, res.config, summary["provenance"]
         )
-        write_vtu(path, res.fieldmap.points, res.mesh.simplices, _point_data(res, k), fields)
+        write_mesh_vtu(path, mesh, _point_data(res, k), fields)
         return (ups[k] if res.config.mode == "gauss" else float(k), path)
 
-    # VTK compresses and writes without the GIL: maps side by side, as many as fit the budget
-    n = len(res.fieldmap.points)
-    per_map = n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16  # points, data, cells
-    cores = numba.get_num_threads() if writers is None else writers
-    entries = map_threads(write_map, range(len(res.labels)),
-                          max(1, min(_WRITE_BYTES // per_map, cores)))  # fmt: skip
+    # zlib compresses without the GIL: maps side by side, as many as fit the budget
+    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
+    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
+    most = max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
+    first = most if writers is None else max(1, min(writers, most))
+    if widen_after is None:
+        entries = map_threads(write_map, range(len(res.labels)), first)
+    else:
+        entries = map_threads_widening(write_map, range(len(res.labels)), first, most,
+                                       widen_after)  # fmt: skip
     write_pvd(out / "sweep.pvd", entries, provenance=summary["provenance"])
     write_paraview_script(out)
     write_json(out / "summary.json", summary)

@@ -388,11 +388,11 @@ def _on_disk(job, fm) -> SweepRun:
                                      remove_stale=False)  # fmt: skip
     else:
         summary, drawing = _report_ahead(job, res, prov)
-        # the figures' thread takes one core of the map writers'
+        # the figures' thread takes one core of the map writers' until it is done
         writers = None if drawing is None else max(1, numba.get_num_threads() - 1)
         try:
             summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
-                                  writers=writers)  # fmt: skip
+                                  writers=writers, widen_after=drawing)  # fmt: skip
         except BaseException:  # the write's error, once the figures' thread has ended
             if drawing is not None:
                 futures.wait([drawing])
