@@ -78,13 +78,19 @@ def test_squareness_leans_the_upper_axis_towards_the_lower():
     assert p[0, 0] == pytest.approx(100.0 * np.sin(1e-3), rel=1e-9)
 
 
+def _signature_and_neighbour():
+    """Noise 2 on 4 readings; a signature whitened to (1, 1, 0, ...) and a neighbour whitened
+    to (2.5, 0, ...) per unit amplitude."""
+    sigma = np.full((4, 3), 2.0)
+    s = np.zeros((4, 3))
+    s[0, 0], s[1, 0] = 2.0, 2.0
+    other = np.zeros((4, 3))
+    other[0, 0] = 5.0
+    return s, other, sigma
+
+
 def test_significance_by_hand():
-    n = 4
-    sigma = np.full((n, 3), 2.0)
-    s = np.zeros((n, 3))
-    s[0, 0], s[1, 0] = 2.0, 2.0  # whitened: (1, 1, 0, ...)
-    other = np.zeros((n, 3))
-    other[0, 0] = 5.0  # whitened: (2.5, 0, ...): removes the first entry
+    s, other, sigma = _signature_and_neighbour()  # the neighbour removes the first entry
     z, kept = significance.per_unit(s, [other], sigma)
     assert z == pytest.approx(1.0)
     assert kept == pytest.approx(1.0 / np.sqrt(2.0))
@@ -95,12 +101,7 @@ def test_significance_by_hand():
 
 
 def test_significance_with_priors_by_hand():
-    n = 4
-    sigma = np.full((n, 3), 2.0)
-    s = np.zeros((n, 3))
-    s[0, 0], s[1, 0] = 2.0, 2.0  # whitened: (1, 1, 0, ...)
-    other = np.zeros((n, 3))
-    other[0, 0] = 5.0  # whitened (2.5, 0, ...) per unit amplitude
+    s, other, sigma = _signature_and_neighbour()
     # min_c (1 - 2.5 c)^2 + 1 + (c / p)^2 = 1 + 1 / (1 + 6.25 p^2): 1.5 at p = 0.4
     z, kept = significance.per_unit_prior(s, [other], sigma, [0.4])
     assert z == pytest.approx(np.sqrt(1.5))
