@@ -70,3 +70,23 @@ def test_the_probe_effects_are_built_on_the_sensed_field():
     ratio = mt.J[:, :, 0] / np.where(B == 0, np.nan, B)
     spread = np.nanstd(ratio, axis=1)  # one temperature per reading scales all components
     assert np.all(spread[np.isfinite(spread)] <= 1e-9 * np.nanmax(np.abs(ratio)))
+
+
+def test_a_2d_reference_is_sensed_at_the_pose_where_the_bench_moves_the_probe():
+    """Against 2-D harmonics the problem reads the field exactly where the magnet's pose and
+    the bench's errors put the probe; the probe's effects must act on that field, not on the
+    field of the magnet unmoved at the nominal point (on a multipole's symmetry plane a
+    component vanishes there, and with it a planar Hall term's whole signature)."""
+    from cfm_fem.workflows.diagnose.problem import _axis_positions, posed_field
+
+    rec, _, tw = hall_twin(3, {}, n_reps=1, points=P, dt_s=30.0)
+    mp, bench = tw["multipole"], tw["bench"]
+    at = np.zeros(len(ERROR_NAMES))
+    at[[k for k, n in enumerate(ERROR_NAMES) if n.startswith("eps")]] = 100.0
+    pose = np.array([30.0, -20.0, 5.0, 40.0, -60.0, 50.0])  # um, urad
+    prob = hall_problem(rec, mp.field, mp.b_ref, bench, bench_at=at, pose=pose)
+    q, bench2 = _axis_positions(bench, prob.pos, [])
+    exact = posed_field(mp.field, pose)(prob.pos + bench_move(bench2, q, at))
+    assert np.abs(exact - mp.field(prob.pos)).max() > 1e-3 * np.abs(exact).max()
+    np.testing.assert_allclose(prob.ctx.B_read, exact, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(planar_hall(prob).J[:, 2, 2], exact[:, 0] * exact[:, 1], atol=1e-15)

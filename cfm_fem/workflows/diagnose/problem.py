@@ -766,7 +766,7 @@ def hall_problem(
     B_reg, G_reg, B_pose = B0, G, B0
     if planar:
         B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
-    B_read = B0  # the field the probe senses: where the bench moves it, below
+    B_read = B_pose  # the field the probe senses: where the bench moves it, below
     H = T = G_move = None
     if bench is not None:
         if Hu is not None:
@@ -789,7 +789,7 @@ def hall_problem(
         R = bench.bench_to_magnet_rotation()
         # a 2-D field is read where the errors put the probe already
         Bb = B0 if planar else bench_expansion(bench, q, p, at, B0, G, H, T)
-        B_read = Bb
+        B_read = B_pose if planar else Bb
         lever = np.einsum("nij,jk->nik", G_move, R)  # dB per bench-frame probe displacement
         bcols = bench_columns(bench, q, lever_to=lever)
         blocks.append(bcols)
