@@ -175,6 +175,7 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     for _ in range(max_iter):
         pose, moved = pose_step(prob, base, fit)
         at, at_moved = bench_target(prob, base, fit)
+        at_moved = at_moved and not _bench_steered(prob, base, at)
         if not (moved or at_moved):
             break
         step = _step(prob, obj, pose, (at, _bench_now(prob, base)) if at_moved else None)
@@ -220,6 +221,22 @@ def _steered(prob: Problem) -> bool:
     return bool(np.any(np.abs(np.asarray(prob.ctx.pose)) > STEERED_STD * reg.prior_std))
 
 
+def _bench_steered(prob: Problem, model, at) -> bool:
+    """Whether bench errors ``at`` (display units, in :data:`ERROR_NAMES` order) that a fit
+    against a 2-D reference puts the probe at lie beyond :data:`STEERED_STD` prior stds of
+    some error: a map through the magnet's ends, which a 2-D field lacks, pulls the linear
+    baseline's bench errors by hundreds of their stds (tens of mrad of angular error) to
+    take the field's fall-off. Expanded there, the readings would be read where no bench
+    put the probe, and the soft-end model tested from that point: the expansion stays at
+    the errors the problem holds."""
+    if at is None or not getattr(prob.ctx.rebuild, "keywords", {}).get("planar"):
+        return False
+    idx = [model.names.index(n) for n in ERROR_NAMES]
+    mean, std = model.prior_mean[idx], model.prior_std[idx]
+    beyond = np.abs(np.asarray(at, dtype=float) - mean) > STEERED_STD * std
+    return bool(np.any(beyond & np.isfinite(std)))
+
+
 def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
     """A Hall map's problem expanded at the bench errors the calibrated baseline fits
     (Gauss-Newton, while each step lowers the MAP objective, until the steps are below
@@ -231,6 +248,8 @@ def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
         return prob
     for _ in range(max_iter):
         at = np.array([fit.theta[base.names.index(n)] for n in ERROR_NAMES])
+        if _bench_steered(prob, base, at):
+            break
         trial = repose(prob, prob.ctx.pose, bench_at=at)
         obj_t, base_t, fit_t = _objective(trial)
         if obj_t > obj * (1.0 + 1e-9):

@@ -732,7 +732,7 @@ def select_effects(
     folds = folds_of(prob, k_folds)
     log_n = np.log(current.n_obs)
     selected, cands, rounds, accepted_c = [], {}, [], []
-    model_error = []  # (rows, variance (3,)) of the accepted approximate models
+    model_error = []  # (rows, variance (rows, 3)) of the accepted approximate models
     absorbed = set(absorbed)
     blocks = dict(blocks)
     done = set()
@@ -815,18 +815,29 @@ def select_effects(
     return sel
 
 
-def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
-    """The error of an accepted approximate model where it carries the signal
-    (:attr:`Columns.model_rows`: the soft ends' profile), stated as a variance per component.
+#: Family-wise level at which a z plane's misfit under an accepted approximate model is taken
+#: as that model's error there (:func:`approximation_error`).
+PLANE_MISFIT_ALPHA = 0.01
 
-    Such a model (an Enge/Fermi profile per end, plane values truncated to the layers a plane's
-    points separate) need not describe a real magnet's ends to the noise: its misfit there is
-    the same on every repetition, so the held-out tests of a further effect whose columns share
-    its structure along z and in r (the probe's tilt mixes B_z into B_x and B_y, volume
-    averaging is the Laplacian term, the elements' offsets and the magnet's pose read the
-    gradient) would pass on it. The model's error at those rows, s_c^2 = mean(r^2 - sigma^2)
-    over the rows of component c (0 where the fit is within the noise), is added to their
-    noise, so that a further claim must exceed it.
+
+def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
+    """The error of an accepted approximate model, stated as a variance per reading and
+    component where the model misfits.
+
+    Such a model (the soft ends: an Enge/Fermi profile per end, plane values truncated to the
+    layers a plane's points separate, on a 2-D reference) need not describe a real magnet's
+    3-D field to the noise: its misfit is the same on every repetition, so the held-out tests
+    of a further effect whose columns share its structure along z and in r (the probe's tilt
+    mixes B_z into B_x and B_y, volume averaging is the Laplacian term, the elements' offsets
+    and the magnet's pose read the gradient, a planar Hall term the product of two
+    components) would pass on it. Where the model carries the signal (``rows``: the soft ends'
+    profile) the error is s_c^2 = mean(r^2 - sigma^2) over those rows of component c. A
+    magnet whose field varies along z beyond the profile's transition (a short coil magnet's
+    ends decay over several bore radii, slower than a Fermi tail) leaves misfit in planes
+    the profile calls body: each z plane whose chi^2 per component exceeds its readings' count
+    at the family-wise level :data:`PLANE_MISFIT_ALPHA` (the planes and components tested)
+    gets its own s_c^2 = mean(r^2 - sigma^2) there. The larger of the two is added to the
+    noise, so that a further claim must exceed it; a plane within the noise keeps 0.
 
     Parameters
     ----------
@@ -840,14 +851,28 @@ def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
     Returns
     -------
     tuple
-        ``(rows, variance)``: the rows and the error's variance (3,), units of ``y`` squared.
+        ``(rows, variance)``: the rows with a stated error (n,) bool and its variance there
+        (rows, 3), units of ``y`` squared.
     """
     fit = fit_map(prob.y, sigma, model)
-    r2 = fit.resid[rows] ** 2 - sigma[rows] ** 2
+    r2 = fit.resid**2 - sigma**2
     ok = np.isfinite(r2)
-    n_c = np.maximum(ok.sum(0), 1)
-    var = np.maximum(np.where(ok, r2, 0.0).sum(0) / n_c, 0.0)
-    return rows, var
+    r2 = np.where(ok, r2, 0.0)
+    var = np.zeros_like(r2)
+    n_c = np.maximum(ok[rows].sum(0), 1)
+    var[rows] = np.maximum(r2[rows].sum(0) / n_c, 0.0)
+    chi = np.where(ok, fit.resid**2 / sigma**2, 0.0)
+    _, plane = np.unique(np.round(prob.pos[:, 2], 3), return_inverse=True)
+    n_planes = int(plane.max()) + 1
+    for c in range(3):
+        count = np.bincount(plane, ok[:, c], n_planes)
+        t = np.bincount(plane, chi[:, c], n_planes)
+        p = stats.chi2.sf(t, np.maximum(count, 1))
+        off = (p < PLANE_MISFIT_ALPHA / (3 * n_planes)) & (count > 0)
+        excess = np.maximum(np.bincount(plane, r2[:, c], n_planes) / np.maximum(count, 1), 0.0)
+        var[:, c] = np.maximum(var[:, c], np.where(off, excess, 0.0)[plane])
+    has = np.any(var > 0, axis=1) | np.asarray(rows, dtype=bool)
+    return has, var[has]
 
 
 def _noise_with(prob, sigma_fn, accepted: Candidate, model: Columns, model_error) -> tuple:
@@ -868,7 +893,7 @@ def _with_model_error(sigma, model_error) -> np.ndarray:
         return sigma
     var = sigma**2
     for rows, v in model_error:
-        var[rows] += v[None, :]
+        var[rows] += v
     return np.sqrt(var)
 
 
