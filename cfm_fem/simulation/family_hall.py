@@ -18,7 +18,16 @@ from . import bench as B
 from . import benches, magnets, scans
 from .common import streams, temperature
 
-__all__ = ["context", "forward", "truth_params", "signatures", "POSE", "PARAMS", "noise_std"]
+__all__ = [
+    "context",
+    "forward",
+    "truth_params",
+    "signatures",
+    "magnet_pose",
+    "POSE",
+    "PARAMS",
+    "noise_std",
+]
 
 POSE = ("magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll")
 GAIN_HALF_WIDTH_PCT = 0.15 * np.sqrt(3.0)
