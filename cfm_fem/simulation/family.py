@@ -274,7 +274,11 @@ def _relative_offsets(sig: dict) -> None:
 
 
 def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
-    """The concealed effect's parameters and its significance record."""
+    """The concealed effect's parameters and its significance record.
+
+    ``base``, ``grad`` and ``sigma`` are the noiseless readings, field gradient and reading
+    std of the configuration as recorded (for a Hall map the magnet at its surveyed pose;
+    :func:`.family_hall.forward`), so the effect is sized on the data it is concealed in."""
     effect = cfg["effect"]
     sim = FH if cfg["kind"] == "hall" else FT
     others = _neighbour_names(cfg, effect)
@@ -343,14 +347,17 @@ def _amplitudes(cfg, effect, params, u, z1, target):
 
 
 def _harmonic_field(cfg, ctx):
-    """The 2-D harmonics' field at the nominal readings (bench axes, gains applied)."""
+    """The 2-D harmonics' field (T, shape (n, 3), bench axes, gains applied) at the noiseless
+    readings with the magnet at its recorded pose: what the reference gives where the
+    recording's field was taken, so that the recording less it is the body's 3-D departure
+    alone (the pose, a nuisance the diagnosis fits, is not part of it)."""
     spec = cfg["magnet"]
     r_ref = 0.5 * spec["bore_mm"]
     rows = magnets.harmonics_2d(spec, r_ref, 20)
-    local, _ = FH.element_positions(cfg, ctx, {}, noisy=False)
+    local, rot = FH.element_positions(cfg, ctx, {}, noisy=False)
     w = (local[:, 0] + 1j * local[:, 1]) / r_ref
     f = sum((bn + 1j * an) * w ** (int(n) - 1) for n, bn, an in rows)
-    b = np.stack([f.imag, f.real, np.zeros(len(w))], -1)
+    b = np.stack([f.imag, f.real, np.zeros(len(w))], -1) @ rot.T
     return b * (1.0 + 1e-2 * ctx["gains"])
 
 
@@ -408,7 +415,12 @@ def _prior_std(cfg, name) -> float:
 
 def _null_harmonics_ok(cfg, ctx, base, grad, sigma) -> float:
     """Significance of the body's own 3-D departure from the 2-D harmonics (a null must have
-    none), after the pose, gains and bench errors within their priors."""
+    none), after the pose, gains and bench errors within their priors.
+
+    The departure, the signatures and ``sigma`` are those of the recorded configuration (the
+    magnet at its surveyed pose, the drawn gains and bench errors): each prior bounds how far
+    its nuisance may move from the value the recording has to absorb the departure, so the
+    recording's own draw of the nuisances within their priors is no departure."""
     names = [("pose", p) for p in FH.POSE] + [("gain", f"gain_{c}") for c in "xyz"]
     names += [("bench", n) for n in benches.B.NAMES]
     sig = FH.signatures(cfg, ctx, names, base=base, grad=grad)

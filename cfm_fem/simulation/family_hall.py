@@ -18,7 +18,16 @@ from . import bench as B
 from . import benches, magnets, scans
 from .common import streams, temperature
 
-__all__ = ["context", "forward", "truth_params", "signatures", "POSE", "PARAMS", "noise_std"]
+__all__ = [
+    "context",
+    "forward",
+    "truth_params",
+    "signatures",
+    "magnet_pose",
+    "POSE",
+    "PARAMS",
+    "noise_std",
+]
 
 POSE = ("magnet_dx", "magnet_dy", "magnet_dz", "magnet_rot_x", "magnet_rot_y", "magnet_roll")
 GAIN_HALF_WIDTH_PCT = 0.15 * np.sqrt(3.0)
@@ -67,28 +76,42 @@ def _disc(disc_mm, rot):
     return pts, list(np.repeat(wr / wr.sum(), len(phi)) / len(phi))
 
 
+def magnet_pose(ctx: dict, effects: dict) -> np.ndarray:
+    """The magnet's pose as recorded: the survey draw plus any concealed ``magnet_misalignment``
+    (the :data:`POSE` parameters: um, urad; shape (6,))."""
+    mis = effects.get("magnet_misalignment", {})
+    return ctx["survey"] + np.array([mis.get(k, 0.0) for k in POSE])
+
+
 def element_positions(cfg, ctx, effects, noisy=True, errors=None):
     """Probe positions in the magnet frame and the magnet rotation.
+
+    The magnet is at its recorded pose (:func:`magnet_pose`) whether ``noisy`` or not;
+    ``noisy=False`` drops the axes' vibration and reading error alone.
 
     Returns
     -------
     local : ndarray, shape (n, 3), mm
     rot : ndarray, shape (3, 3)
+        Magnet frame to bench axes.
     """
     bench = cfg["bench"]
     scan = ctx["scan"]
     travel = scan.q + (ctx["vib"] if noisy else 0.0)
     probe = benches.probe_position(travel, bench["errors"] if errors is None else errors, bench)
-    mis = effects.get("magnet_misalignment", {})
-    pose = (ctx["survey"] if noisy else np.zeros(6)) + [mis.get(k, 0.0) for k in POSE]
+    pose = magnet_pose(ctx, effects)
     rot = B.rotation(*(pose[3:] * 1e-6))[0]
     local = (probe - np.asarray(bench["magnet_mm"]) - pose[:3] * 1e-3) @ rot
     return local, rot
 
 
 def forward(cfg: dict, ctx: dict, effects: dict, noisy: bool = True) -> np.ndarray:
-    """The readings (T, shape (n, 3)) of a configuration with concealed ``effects``;
-    ``noisy=False``: without vibration, survey draw and white noise (the signatures)."""
+    """The readings (T, shape (n, 3)) of a configuration with concealed ``effects``.
+
+    ``noisy=False``: the recorded configuration (the magnet at its surveyed pose, the bench's
+    errors, the gains and temperatures of the recording) without what is drawn afresh at each
+    reading, the axes' vibration and the white noise: the readings the signatures, the field
+    gradient and the noise are taken about."""
     spec = cfg["magnet"]
     local, rot = element_positions(cfg, ctx, effects, noisy)
     offs = effects.get("sensor_offset", {})
@@ -130,8 +153,10 @@ def noise_std(cfg: dict, ctx: dict, grad: np.ndarray) -> np.ndarray:
 
 
 def gradient(cfg, ctx, h_mm: float = 0.05) -> np.ndarray:
-    """dB_i/dx_j (T/mm, shape (n, 3, 3)) at the nominal reading positions (bench axes)."""
-    local, _ = element_positions(cfg, ctx, {}, noisy=False)
+    """dB_i/dx_j (T/mm, shape (n, 3, 3)), field and displacement along the bench axes, at the
+    noiseless reading positions with the magnet at its recorded pose (the configuration the
+    vibration and the bench errors move the probe about)."""
+    local, rot = element_positions(cfg, ctx, {}, noisy=False)
     g = np.empty((len(local), 3, 3))
     for j in range(3):
         e = np.zeros(3)
@@ -139,14 +164,20 @@ def gradient(cfg, ctx, h_mm: float = 0.05) -> np.ndarray:
         g[:, :, j] = (
             magnets.field(cfg["magnet"], local + e) - magnets.field(cfg["magnet"], local - e)
         ) / (2 * h_mm)
-    return g
+    # B_bench = R B(R^T (p - o)): the magnet-frame gradient turned into the bench axes
+    return np.einsum("ik,nkl,jl->nij", rot, g, rot)
 
 
 def signatures(cfg: dict, ctx: dict, names, base=None, grad=None) -> dict:
     """Linearised signatures: for each (effect, param) in ``names`` the change of the noiseless
-    readings per unit of the parameter (T per display unit, shape (n, 3)). Effect ``"pose"``:
-    the registration (the 6 :data:`POSE` parameters); ``"gain"``: the calibrated gains (%);
-    ``"bench"``: one of the 21 bench errors, through the field gradient."""
+    readings per unit of the parameter (T per display unit, shape (n, 3)).
+
+    Every signature is taken about the recorded configuration (``base``, the noiseless readings
+    of :func:`forward`, and ``grad``, :func:`gradient`): a pose step is added to the surveyed
+    pose, the probe's errors act on the field at the recorded pose. Effect ``"pose"``: the
+    registration (the 6 :data:`POSE` parameters); ``"gain"``: the calibrated gains (%);
+    ``"bench"``: one of the 21 bench errors, through the field gradient; ``sensor_offset``: an
+    element moved along the magnet's axes, through the field gradient."""
     base = forward(cfg, ctx, {}, noisy=False) if base is None else base
     out = {}
     for eff, p in names:
@@ -167,7 +198,7 @@ def signatures(cfg: dict, ctx: dict, names, base=None, grad=None) -> dict:
         elif eff == "sensor_offset":
             i, j = "xyz".index(p[2]), "xyz".index(p[4])
             s = np.zeros_like(base)
-            s[:, i] = grad[:, i, j] * 1e-3
+            s[:, i] = (grad @ _rotation(ctx))[:, i, j] * 1e-3
             out[eff, p] = s
         elif eff == "sensor_volume_averaging":  # per unit of disc_mm^2 at 2 mm
             plus = forward(cfg, ctx, {eff: {"disc_mm": 2.0}}, noisy=False)
@@ -184,6 +215,11 @@ def signatures(cfg: dict, ctx: dict, names, base=None, grad=None) -> dict:
     return out
 
 
+def _rotation(ctx):
+    """The magnet's recorded rotation (magnet frame to bench axes), shape (3, 3)."""
+    return B.rotation(*(magnet_pose(ctx, {})[3:] * 1e-6))[0]
+
+
 def _raw(cfg, ctx, base):
     """The true field behind noiseless readings ``base`` (the calibrated gains undone)."""
     return base / (1.0 + 1e-2 * ctx["gains"])
@@ -192,8 +228,7 @@ def _raw(cfg, ctx, base):
 def truth_params(cfg: dict, ctx: dict, effects: dict) -> dict:
     """The parameters a correct diagnosis reports (diagnosis conventions)."""
     params = dict(cfg["bench"]["errors"])
-    pose = ctx["survey"] + [effects.get("magnet_misalignment", {}).get(k, 0.0) for k in POSE]
-    params |= dict(zip(POSE, pose.tolist(), strict=True))
+    params |= dict(zip(POSE, magnet_pose(ctx, effects).tolist(), strict=True))
     og = effects.get("hall_offset_gain", {})
     for c, g in zip("xyz", ctx["gains"], strict=True):
         params[f"gain_{c}"] = float(g + og.get(f"gain_{c}", 0.0))

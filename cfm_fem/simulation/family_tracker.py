@@ -62,8 +62,15 @@ def _sag(u):
 
 
 def forward(cfg: dict, ctx: dict, effects: dict, noisy: bool = True, errors=None):
-    """Measured reflector positions (mm, shape (n, 3)); ``noisy=False``: without vibration,
-    registration and white noise."""
+    """Measured reflector positions (mm, shape (n, 3)).
+
+    ``noisy=False``: the recorded configuration (the bench's errors, the temperatures of the
+    recording) without the axes' vibration and reading error and the white noise, which are
+    drawn afresh at each reading, and in the bench frame (without the tracker's registration).
+    The signatures are taken about it: the registration is one rigid motion of every
+    recording, and the reading std is the same along every axis (:func:`noise_std`), so it
+    turns each signature and the span of the pose signatures alike and leaves every
+    whitened projection, and so every significance, as it is."""
     bench = cfg["bench"]
     scan = ctx["scan"]
     q = scan.q
