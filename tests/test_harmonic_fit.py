@@ -347,3 +347,26 @@ def test_neighbour_order_kernel_is_its_twin_bit_for_bit(layout):
     want_nbr, want_d2 = harmonic._canonical(pts, centres, cand)
     np.testing.assert_array_equal(nbr, want_nbr)
     np.testing.assert_array_equal(d2, want_d2)
+
+
+def test_fit_kernels_allocate_by_np_empty_alone():
+    """The fit's module allocates with np.empty only: numba compiles each of np.zeros,
+    np.full and np.ones (and np.empty again for the dtype they pass it) as a function of its
+    own, CPU time of the first run after an install (docs/performance.md)."""
+    import ast
+    import inspect
+
+    from cfm_fem._kernels import harmonic_fit
+
+    tree = ast.parse(inspect.getsource(harmonic_fit))
+    others = {"zeros", "full", "ones", "zeros_like", "full_like", "ones_like"}
+    calls = [
+        (node.lineno, node.func.attr)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and isinstance(node.func.value, ast.Name)
+        and node.func.value.id == "np"
+        and node.func.attr in others
+    ]
+    assert calls == []

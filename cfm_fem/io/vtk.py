@@ -6,8 +6,6 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
-import pyvista as pv
-from pyvista import CellType
 
 from ._atomic import atomic_path, check_free_space, write_text
 
@@ -57,6 +55,9 @@ def write_vtu(path, points, cells=None, point_data=None, field_data=None) -> Non
         ``s`` as a UInt8 array (`text_field`; `read_text_field` turns it back): meshio, pyvista
         and ParaView read every array of the file (meshio stops at a VTK string array).
     """
+    import pyvista as pv  # here: the sweep's maps are written by `vtu_stream`, without it
+    from pyvista import CellType
+
     points = np.asarray(points, dtype=np.float64)
     n = len(points)
     if cells is None:
