@@ -861,7 +861,8 @@ def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
     var = np.zeros_like(r2)
     n_c = np.maximum(ok[rows].sum(0), 1)
     var[rows] = np.maximum(r2[rows].sum(0) / n_c, 0.0)
-    chi = np.where(ok, fit.resid**2 / sigma**2, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # rows left out: sigma inf
+        chi = np.where(ok, fit.resid**2 / sigma**2, 0.0)
     _, plane = np.unique(np.round(prob.pos[:, 2], 3), return_inverse=True)
     n_planes = int(plane.max()) + 1
     for c in range(3):
