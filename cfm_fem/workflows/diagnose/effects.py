@@ -356,6 +356,10 @@ def sensor_offset(prob):
             J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
             names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
     blk = effect_columns(J, names, ["um"] * 6, "sensor_offset")
+    # the elements' offsets along one direction at a time, the choice among the three
+    # accounted for: one element displaced along one direction (two parameters relative to
+    # the centroid) must not pay for six; offsets along several directions join round by round
+    blk.families = [(f"along_{a}", [2 * j, 2 * j + 1]) for j, a in enumerate("xyz")]
     # the centroid: every element moved along j
     Jc = G * UM
     centroid = [f"centroid_{a}" for a in "xyz"]

@@ -74,6 +74,28 @@ class NoiseModel:
         return np.sqrt(v if var_ref is None else v + var_ref)
 
 
+def _normalised(s2, v, w_dof, mult):
+    """The arguments of :func:`_fit_floor_scale` made dimensionless: (sn, vn, k, S, use_b), or
+    None when there is no scatter at all."""
+    s2 = np.asarray(s2, dtype=float)
+    v = np.asarray(v, dtype=float)
+    k = np.asarray(w_dof, dtype=float)
+    if s2.size == 0 or not float(np.mean(s2)) > 0.0:
+        return None
+    S = float(np.sum(k * s2) / np.sum(k)) / mult  # variance scale of the problem
+    return s2 / (mult * S), v / S, k, S, bool(np.any(v > 0))
+
+
+def _nll(la, b, sn, vn, k):
+    """Negative log-likelihood of one component (:func:`_fit_floor_scale`) at floor exp(la),
+    scale b, with the scale's prior; value and gradient in (la, b)."""
+    a = np.exp(la)
+    m = np.maximum(a + b * vn, 1e-12)
+    g = 0.5 * k * (1.0 / m - sn / m**2)
+    f = float(np.sum(0.5 * k * (sn / m + np.log(m))) + 0.5 * (b - 1.0) ** 2)
+    return f, float(g.sum()) * a, float((g * vn).sum()) + b - 1.0
+
+
 def _fit_floor_scale(s2, v, w_dof, mult=1.0):
     """Maximum-likelihood fit of E[s2] = mult * (a + b v), a, b >= 0; s2, v, w_dof shape (k,).
 
@@ -89,16 +111,12 @@ def _fit_floor_scale(s2, v, w_dof, mult=1.0):
     """
     from scipy.optimize import minimize
 
-    s2 = np.asarray(s2, dtype=float)
-    v = np.asarray(v, dtype=float)
-    k = np.asarray(w_dof, dtype=float)
-    if s2.size == 0 or not float(np.mean(s2)) > 0.0:  # no scatter at all: nothing to fit
+    got = _normalised(s2, v, w_dof, mult)
+    if got is None:  # no scatter at all: nothing to fit
         return 0.0, 0.0
-    use_b = bool(np.any(v > 0))
+    sn, vn, k, S, use_b = got
     if not use_b:  # the floor alone: its estimate in closed form
-        return float(np.sum(k * s2) / np.sum(k)) / mult, 0.0
-    S = float(np.sum(k * s2) / np.sum(k)) / mult  # variance scale of the problem
-    sn, vn = s2 / (mult * S), v / S
+        return S, 0.0
     tiny = 1e-12
 
     def nll(x):
@@ -114,6 +132,67 @@ def _fit_floor_scale(s2, v, w_dof, mult=1.0):
                    bounds=[(tiny, None), (0.0, None)])  # fmt: skip
     a, b = res.x
     return float(a) * S, float(b)
+
+
+#: Spread of the three Hall elements' noise floors about their common value (one standard
+#: deviation of ln floor): a factor 3 between elements of one probe and its readout.
+FLOOR_SPREAD = float(np.log(3.0))
+
+
+def _pooled_floors(data, spread: float = FLOOR_SPREAD):
+    """Floors and scales of the three components, each floor held by a prior towards the
+    others: ln a_c ~ N(mu, spread^2), mu free; the joint maximum a posteriori.
+
+    A component whose readings nearly all scatter by the bench's vibration (a transverse
+    component across a multipole's body) hardly determines its floor: fitted alone it can
+    collapse to zero, and its few quiet readings then weigh as if exact. The elements of one
+    probe share its readout, so the components that do determine their floor tell what the
+    others' is; a floor the data determine well stays where its data put it.
+
+    Parameters
+    ----------
+    data : list of 3 tuples (s2, v, w_dof, mult)
+        Each component's arguments of :func:`_fit_floor_scale`.
+
+    Returns
+    -------
+    floor, scale : ndarray, shape (3,)
+    """
+    from scipy.optimize import minimize
+
+    alone = [_fit_floor_scale(*d) for d in data]
+    comps = [(i, _normalised(*d)) for i, d in enumerate(data)]
+    comps = [(i, g) for i, g in comps if g is not None]
+    if len(comps) < 2:
+        return np.array([f[0] for f in alone]), np.array([f[1] for f in alone])
+    n = len(comps)
+    lS = np.array([np.log(g[3]) for _, g in comps])
+
+    def objective(x):  # x: ln(a_c / S_c), b_c per component, then mu (ln a, absolute)
+        la, b, mu = x[:n], x[n : 2 * n], x[-1]
+        f, grad = 0.0, np.zeros_like(x)
+        for j, (_, (sn, vn, k, _, _)) in enumerate(comps):
+            fj, ga, gb = _nll(la[j], b[j], sn, vn, k)
+            dz = (la[j] + lS[j] - mu) / spread
+            f += fj + 0.5 * dz**2
+            grad[j] = ga + dz / spread
+            grad[n + j] = gb
+            grad[-1] -= dz / spread
+        return f, grad
+
+    a_alone = np.array([max(alone[i][0], 1e-12 * g[3]) for i, g in comps])
+    la0 = np.log(a_alone) - lS
+    mu0 = float(np.median(np.log(a_alone)))  # a collapsed floor aside
+    x0 = np.concatenate([la0, [alone[i][1] for i, _ in comps], [mu0]])
+    bounds = ([(np.log(1e-12), None)] * n
+              + [(0.0, None if g[4] else 0.0) for _, g in comps] + [(None, None)])  # fmt: skip
+    res = minimize(objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+    floor = np.array([f[0] for f in alone])
+    scale = np.array([f[1] for f in alone])
+    for j, (i, g) in enumerate(comps):
+        floor[i] = float(np.exp(res.x[j])) * g[3]
+        scale[i] = float(res.x[n + j])
+    return floor, scale
 
 
 def line_triples(pos, tol: float = 1e-3):
@@ -148,25 +227,35 @@ def line_triples(pos, tol: float = 1e-3):
     return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int64)
 
 
-def _from_repeats(point, resid, vk, n_points):
+def _fit_components(data, pooled: bool):
+    """Floors and scales of the three components (``data``: :func:`_pooled_floors`), pooled
+    or each on its own."""
+    if pooled:
+        return _pooled_floors(data)
+    fits = [_fit_floor_scale(*d) for d in data]
+    return np.array([f[0] for f in fits]), np.array([f[1] for f in fits])
+
+
+def _from_repeats(point, resid, vk, n_points, pooled=False):
     cnt = np.bincount(point, minlength=n_points).astype(float)
     rep_ok = cnt >= 2
-    floor, scale = np.zeros(3), np.zeros(3)
+    data = []
     for c in range(3):
         mean = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
         dev2 = np.bincount(point, (resid[:, c] - mean[point]) ** 2, n_points)
         v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
         s2 = dev2[rep_ok] / (cnt[rep_ok] - 1)
-        floor[c], scale[c] = _fit_floor_scale(s2, v[rep_ok], cnt[rep_ok] - 1)
+        data.append((s2, v[rep_ok], cnt[rep_ok] - 1, 1.0))
+    floor, scale = _fit_components(data, pooled)
     return floor, scale, float(np.sum(cnt[rep_ok] - 1))
 
 
-def _from_lines(point, pos_pt, resid, vk, n_points):
+def _from_lines(point, pos_pt, resid, vk, n_points, pooled=False):
     tri = line_triples(pos_pt)
     if len(tri) < _MIN_TRIPLES:
         return None
     cnt = np.bincount(point, minlength=n_points).astype(float)
-    floor, scale = np.zeros(3), np.zeros(3)
+    data = []
     for c in range(3):
         r = np.bincount(point, resid[:, c], n_points) / np.maximum(cnt, 1)
         v = np.bincount(point, vk[:, c], n_points) / np.maximum(cnt, 1)
@@ -181,7 +270,8 @@ def _from_lines(point, pos_pt, resid, vk, n_points):
             if np.array_equal(new, keep):
                 break
             keep = new
-        floor[c], scale[c] = a, b
+        data.append((e2[keep], vv[keep], np.ones(keep.sum()), 6.0))
+    floor, scale = _fit_components(data, pooled)
     return floor, scale, float(len(tri))
 
 
@@ -204,23 +294,23 @@ def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
     """
     vk = prob.var_known if var_known is None else var_known
     m = prob.n_points
+    pooled = getattr(prob, "kind", None) == "hall"  # the elements of one probe (_pooled_floors)
     if prob.n_reps >= 2:
-        floor, scale, dof = _from_repeats(prob.point, resid, vk, m)
+        floor, scale, dof = _from_repeats(prob.point, resid, vk, m, pooled)
         source = "repeated readings of the same points (within-point scatter)"
     else:
         cnt = np.bincount(prob.point, minlength=m).astype(float)
         pos_pt = np.zeros((m, 3))
         np.add.at(pos_pt, prob.point, prob.pos)
         pos_pt /= np.maximum(cnt, 1)[:, None]
-        got = _from_lines(prob.point, pos_pt, resid, vk, m)
+        got = _from_lines(prob.point, pos_pt, resid, vk, m, pooled)
         if got is not None:
             floor, scale, dof = got
             source = "one reading per point: second differences of the residuals along scan lines"
         else:
             dof = max(prob.n - edf / 3.0, 1.0)
-            floor, scale = np.zeros(3), np.zeros(3)
-            for c in range(3):
-                floor[c], scale[c] = _fit_floor_scale(resid[:, c] ** 2, vk[:, c], np.ones(prob.n))
+            data = [(resid[:, c] ** 2, vk[:, c], np.ones(prob.n), 1.0) for c in range(3)]
+            floor, scale = _fit_components(data, pooled)
             floor, scale = floor * prob.n / dof, scale * prob.n / dof
             source = "one reading per point, no scan lines: the residuals themselves (n - edf)"
     tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)

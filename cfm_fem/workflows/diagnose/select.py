@@ -23,8 +23,10 @@ survival is at least ``min_survival`` (else: absorbed), its fitted parameters ar
 plausible (else: implausible fit, with the reason) and it predicts data it was not fitted to
 (folds of whole repetitions in time order, :func:`folds_of`): for a new signature the held-out
 chi2 (each reading weighted by its noise; the held-out RMS, which the noisiest readings rule, is
-reported, not tested) drops, significantly in the paired test over the rows (z > ``cv_z``) or
-replicated in every fold beyond its parameters' estimation cost (:func:`_replicated_gain`), over
+reported, not tested) drops, and the held-out residuals follow the change the fit on the other
+folds predicts, significantly in the paired test over the rows (z > ``cv_z``,
+:func:`_held_out_score`) or the chi2 gain replicated in every fold beyond its parameters'
+estimation cost (:func:`_replicated_gain`), over
 the folds whose training data determine the new signature (:func:`determined_folds`); for a
 prior release, whose data already steer the calibration, the conflict is replicated in every
 fold on its own (Stouffer z > ``cv_z``) and the held-out chi2 is no worse than the released
@@ -128,15 +130,39 @@ def cv_rms(prob: Problem, sigma, cols: Columns, folds, rows=None) -> tuple[float
     """Held-out RMS (display units; over ``rows``, default all) and the per-row held-out chi2
     (sum over the components of the squared residual in units of its sigma), for paired tests:
     weighting by the noise keeps the quiet readings from being drowned by the noisy ones."""
+    rms, w = _held_out(prob, sigma, cols, folds)
+    return float(np.sqrt(rms[slice(None) if rows is None else rows].mean())), (w**2).sum(1)
+
+
+def _held_out(prob: Problem, sigma, cols: Columns, folds) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's held-out mean squared residual (display units, shape (n,)) and its held-out
+    residual in units of its sigma (shape (n, 3)), the model fitted to the other folds."""
     rms = np.empty(prob.n)
-    chi2 = np.empty(prob.n)
+    w = np.empty((prob.n, 3))
     for f in np.unique(folds):
         test = folds == f
         fit = fit_map(prob.y, sigma, cols, mask=~test)
         r = fit.resid[test]
         rms[test] = ((r * prob.to_display) ** 2).mean(1)
-        chi2[test] = ((r / sigma[test]) ** 2).sum(1)
-    return float(np.sqrt(rms[slice(None) if rows is None else rows].mean())), chi2
+        w[test] = r / sigma[test]
+    return rms, w
+
+
+def _held_out_score(w_before, w_after) -> float:
+    """Paired z over the rows of the held-out score: does each held-out residual lie along the
+    change the other folds predict?
+
+    Per row u = sum_c w_b (w_b - w_a) (whitened held-out residuals before and after the
+    candidate; w_b - w_a is the change its fit on the other folds predicts there). The held-out
+    noise is independent of that prediction, so u has mean 0 without the effect and the
+    effect's own chi2 per row with it; its rows' scatter is the noise times the prediction.
+    The held-out chi2 gain per row, 2 u - (w_b - w_a)^2, scatters twice as much for the same
+    mean: its paired z is half this one (3 against 6 for an effect of joint significance 6).
+    """
+    u = np.nansum(w_before * (w_before - w_after), axis=1)
+    if u.size < 2:
+        return -np.inf
+    return float(u.mean() / (u.std(ddof=1) / np.sqrt(u.size) + 1e-300))
 
 
 def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
@@ -676,11 +702,11 @@ def _predicts_held_out(prob, sigma, model, c: Candidate, folds, cv_z: float) -> 
     """The held-out test of a candidate (module docstring); sets its ``cv_before``,
     ``cv_after`` and ``cv_z``."""
     use = determined_folds(prob, sigma, model, c.trial, folds)
-    cvb, eb = cv_rms(prob, sigma, model, folds, rows=use)
-    cva, ea = cv_rms(prob, sigma, c.trial, folds, rows=use)
-    diff = (eb - ea)[use]
-    z = (float(diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size) + 1e-300))
-         if diff.size > 1 else -np.inf)  # fmt: skip
+    rms_b, wb = _held_out(prob, sigma, model, folds)
+    rms_a, wa = _held_out(prob, sigma, c.trial, folds)
+    cvb, cva = float(np.sqrt(rms_b[use].mean())), float(np.sqrt(rms_a[use].mean()))
+    diff = ((wb**2).sum(1) - (wa**2).sum(1))[use]
+    z = _held_out_score(wb[use], wa[use])
     better = diff.sum() > 0  # the held-out chi2: the RMS is ruled by the noisiest readings
     if c.has_new and better and not z > cv_z:
         z = max(z, _replicated_gain(diff, folds[use], c.k, cv_z))
