@@ -86,8 +86,10 @@ def test_sums_and_tails_one_pass():
 
 
 def test_coverage_count_twin():
-    for n in (2, 3, 20, 21, 999, 1000, 10_001):
-        assert _kernels.coverage_count(n, 0.95) == coverage_count(n, 0.95)
+    # p n exactly or nearly an integer, and p n + 1/2 exactly an integer (p = 0.5, n odd)
+    for p in (0.5, 0.6827, 0.9, 0.95, 0.99, 0.9973):
+        for n in (*range(2, 1200), 10_000, 10_001, 64_000, 1_000_003):
+            assert _kernels.coverage_count(n, p) == coverage_count(n, p), (n, p)
 
 
 def test_select_inplace_orders_around_k():

@@ -293,7 +293,9 @@ def _first_order_sigmas(cexp, lin, sigma_axes, inv, b_hat, out):
 @nb.njit(**JIT)
 def _linear_monomials(exps):
     """Rows of ``exps`` (M, 3) of the monomials x, y and z."""
-    lin = np.zeros(3, dtype=np.int64)
+    lin = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        lin[a] = 0
     for m in range(exps.shape[0]):
         if exps[m, 0] + exps[m, 1] + exps[m, 2] == 1:
             for a in range(3):
@@ -350,7 +352,9 @@ def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats
     for k in range(scales.shape[0]):
         s = scales[k]
         if s == 0.0:  # no displacement: every error is exactly zero
-            stats_i[k] = 0.0
+            for c in range(4):
+                for j in range(6):
+                    stats_i[k, c, j] = 0.0
             continue
         for c in range(c0, c1):  # |B| last: ``se`` is then its
             x_tc = (x_tails[0, c], x_tails[1, c])
@@ -372,7 +376,11 @@ def _buffers(n_up, size, p):
     `_add_trials`, the statistics' work arrays, the first-order parts' tails)."""
     bufs = (np.empty((3, PART_BLOCK)), np.empty(PART_BLOCK, dtype=np.bool_), np.empty((3, size)),
             np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, size)), np.empty((4, size)),
-            np.empty(PART_BLOCK), np.zeros(4), np.zeros((4, 2)))  # fmt: skip
+            np.empty(PART_BLOCK), np.empty(4), np.empty((4, 2)))  # fmt: skip
+    for c in range(4):  # zeros, filled by loops: np.zeros compiles apart from np.empty
+        bufs[7][c] = 0.0
+        bufs[8][c, 0] = 0.0
+        bufs[8][c, 1] = 0.0
     work = (np.empty(size), np.empty(size), np.empty(size), np.empty(size))
     return bufs, work, np.empty((2, 4, size - coverage_count(size, p) + 1))
 
@@ -426,7 +434,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     k_nodes = nodes.shape[0]
     n_up = scales.shape[0]
     stats, n_out, n_lost, star = sweep_outputs(k_nodes, n_up)
-    used = np.zeros(k_nodes, dtype=np.int64)
+    used = np.empty(k_nodes, dtype=np.int64)  # every node's count is set below
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     size = min(4 * pilot, cap)  # most nodes need no more; grown for those that do
@@ -434,8 +442,8 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     x_st = np.empty((4, 6))
     se = np.empty(2)
     sig1 = np.empty(4)
-    b_hat = np.zeros(3)
-    cexp = np.zeros((3, gmat.shape[1]))
+    b_hat = np.empty(3)
+    cexp = np.empty((3, gmat.shape[1]))  # every coefficient is set at each node
     lin = _linear_monomials(exps)
     zq = normal_quantile(0.5 * (1.0 + p))
     c0, c3, c4 = np.int64(0), np.int64(3), np.int64(4)  # not literals: one callee version
@@ -447,7 +455,9 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         deg = hdeg[g]
         n_mono = (deg + 1) * (deg + 2) * (deg + 3) // 6
         expand_node(hcoef[g], (deg + 1) * (deg + 3), gmat, n_mono, cexp)
-        cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
+        for c in range(3):  # the unrolled polynomial is of the highest degree
+            for m in range(n_mono, cexp.shape[1]):
+                cexp[c, m] = 0.0
         b0 = cexp[:, 0]
         abs0 = math.sqrt(b0[0] ** 2 + b0[1] ** 2 + b0[2] ** 2)
         for c in range(3):
@@ -478,5 +488,8 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
             target = min(2 * n, cap)
         used[i] = n
         if n == 0:
-            stats[i] = np.nan
+            for k in range(n_up):
+                for c in range(4):
+                    for j in range(6):
+                        stats[i, k, c, j] = np.nan
     return stats, n_out, n_lost, star, used

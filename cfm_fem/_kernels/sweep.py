@@ -546,13 +546,23 @@ def _gauss_buffers(n_up, n_trials, d):
 @nb.njit(**JIT)
 def sweep_outputs(k_nodes, n_col):
     """Output arrays of a sweep kernel for ``k_nodes`` nodes and ``n_col`` columns: statistics
-    (NaN until computed), outside and lost-trial counts (0) and the star flags (False)."""
-    return (
-        np.full((k_nodes, n_col, 4, 6), np.nan),
-        np.zeros((k_nodes, n_col), dtype=np.int64),
-        np.zeros((k_nodes, n_col), dtype=np.int64),
-        np.zeros(k_nodes, dtype=np.bool_),
-    )
+    (NaN until computed), outside and lost-trial counts (0) and the star flags (False).
+
+    Filled by loops: np.full and np.zeros each compile apart from np.empty.
+    """
+    stats = np.empty((k_nodes, n_col, 4, 6))
+    n_out = np.empty((k_nodes, n_col), dtype=np.int64)
+    n_lost = np.empty((k_nodes, n_col), dtype=np.int64)
+    star = np.empty(k_nodes, dtype=np.bool_)
+    for i in range(k_nodes):
+        star[i] = False
+        for k in range(n_col):
+            n_out[i, k] = 0
+            n_lost[i, k] = 0
+            for c in range(4):
+                for j in range(6):
+                    stats[i, k, c, j] = np.nan
+    return stats, n_out, n_lost, star
 
 
 @nb.njit(**JIT)
