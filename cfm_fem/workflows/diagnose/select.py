@@ -823,7 +823,7 @@ def select_effects(
                 ]
         if accepted.family is None or not rest:
             done.add(accepted.name)
-        model = accepted.trial
+        model = _untestable_released(accepted)
         # re-estimate the noise with the effect in the model, then refit
         noise, sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
         current = fit_map(prob.y, sigma, model)
@@ -839,6 +839,16 @@ def select_effects(
     sel.folds = folds
     sel.accepted = accepted_c
     return sel
+
+
+def _untestable_released(accepted: Candidate) -> Columns:
+    """The model with an accepted effect, the baseline priors its free nuisance makes
+    untestable released (:attr:`Columns.nuisance`: the elements' common shift moves the
+    readings as the magnet's offset does), so that no later round tests them."""
+    nuis = accepted.cols.nuisance if accepted.has_new else None
+    if nuis is None or not nuis.release:
+        return accepted.trial
+    return released_in(accepted.trial, [n for n in nuis.release if n in accepted.trial.names])
 
 
 #: Family-wise level at which a z plane's misfit under an accepted approximate model is taken
