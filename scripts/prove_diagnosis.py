@@ -37,6 +37,11 @@ kind): false alarms with their exact one-sided 95 % Clopper-Pearson upper bound,
 
     nice -n 5 python scripts/prove_diagnosis.py --family 80 --first-seed 1 --jobs 2 --out fam/
 
+``--replicas N`` runs each case N times, replica k > 0 with the readings' noise drawn afresh
+(the same magnet, bench, scan and concealed effect); the summary then gives each case's pulls
+over its replicas and, per effect, their std about each case's mean: the spread the stated std
+must match, apart from the bias a configuration puts on a parameter.
+
 Goals of the family: false alarms <= 1 % pooled and CP95 upper <= 3 % in every stratum; every
 effect at >= 6 sigma ranked first in >= 95 % of its runs per magnet order; pull std 0.8-1.25
 per effect.
