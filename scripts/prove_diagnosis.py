@@ -37,6 +37,11 @@ kind): false alarms with their exact one-sided 95 % Clopper-Pearson upper bound,
 
     nice -n 5 python scripts/prove_diagnosis.py --family 80 --first-seed 1 --jobs 2 --out fam/
 
+``--replicas N`` runs each case N times, replica k > 0 with the readings' noise drawn afresh
+(the same magnet, bench, scan and concealed effect); the summary then gives each case's pulls
+over its replicas and, per effect, their std about each case's mean: the spread the stated std
+must match, apart from the bias a configuration puts on a parameter.
+
 Goals of the family: false alarms <= 1 % pooled and CP95 upper <= 3 % in every stratum; every
 effect at >= 6 sigma ranked first in >= 95 % of its runs per magnet order; pull std 0.8-1.25
 per effect.
@@ -138,10 +143,11 @@ def family_jobs(n: int, first_seed: int, null_share: float) -> list:
 
 def run_family_one(job) -> dict:
     """Simulate one family case, diagnose it with the command line, score it."""
-    seed, role, out, size, keep = job
-    sim_dir, run_dir = Path(out) / "sim", Path(out) / "runs" / f"family_{seed}"
+    seed, role, out, size, keep, replica = job
+    stem = f"family_{seed}" + (f"_r{replica}" if replica else "")
+    sim_dir, run_dir = Path(out) / "sim", Path(out) / "runs" / stem
     t0 = time.perf_counter()
-    files = write_family_case(seed, sim_dir, size, role=role)
+    files = write_family_case(seed, sim_dir, size, role=role, replica=replica)
     t_sim = time.perf_counter() - t0
     truth = json.loads(Path(files["truth"]).read_text())
     if run_dir.exists():
@@ -149,7 +155,8 @@ def run_family_one(job) -> dict:
     code, err = _cli(["diagnose", *files["args"], "--no-report", "--out", str(run_dir)])
     seconds = time.perf_counter() - t0
     sig = truth["significance"] or {}
-    base = {"case": truth["case"], "seed": seed, "role": role, "kind": truth["kind"],
+    base = {"case": truth["case"], "seed": seed, "replica": replica, "role": role,
+            "kind": truth["kind"],
             "expected": truth["expected"], "strata": truth["strata"],
             "sigma": sig.get("sigma_drawn") if truth["expected"] else None,
             "seconds": seconds, "sim_seconds": t_sim}  # fmt: skip
@@ -194,6 +201,7 @@ def run_family(a) -> int:
                 want[e] += 1
                 keep.append(j)
         jobs = keep
+    jobs = [(*j, k) for j in jobs for k in range(a.replicas)]
     t0 = time.perf_counter()
     if a.family_merge:
         runs = {}
@@ -201,12 +209,14 @@ def run_family(a) -> int:
             path = Path(folder) / "family_results.json"
             if not path.is_file():
                 raise SystemExit(f"prove_diagnosis: {path}: no family_results.json")
-            runs |= {(r["seed"], r["role"]): r for r in json.loads(path.read_text())["runs"]}
-        results = sorted(runs.values(), key=lambda r: (r["role"], r["seed"]))
+            runs |= {(r["seed"], r["role"], r.get("replica", 0)): r
+                     for r in json.loads(path.read_text())["runs"]}  # fmt: skip
+        results = sorted(runs.values(), key=lambda r: (r["role"], r["seed"], r.get("replica", 0)))
         what = f"pooled from {', '.join(a.family_merge)}"
     else:
         print(f"{len(jobs)} family runs, size {size}, {a.jobs} worker(s)", flush=True)
-        results = sorted(run_all(jobs, a.jobs, run_family_one), key=lambda r: r["seed"])
+        results = sorted(run_all(jobs, a.jobs, run_family_one),
+                         key=lambda r: (r["seed"], r["replica"]))  # fmt: skip
         what = (f"seeds {a.first_seed}-{a.first_seed + a.family - 1}, size {size}, "
                 f"{time.perf_counter() - t0:.0f} s wall with {a.jobs} worker(s)")  # fmt: skip
     summary = summarise_family(results)
@@ -379,6 +389,15 @@ def main(argv=None) -> int:
         "--per-effect", type=int, metavar="N", help="--only-effect: the first N seeds of each"
     )
     ap.add_argument(
+        "--replicas",
+        type=int,
+        default=1,
+        metavar="N",
+        help="family mode: run each case N times, replica k > 0 with the readings' noise drawn "
+        "afresh (the same magnet, bench, scan and effect); the summary gives each case's pull "
+        "std over its replicas",
+    )
+    ap.add_argument(
         "--family-merge",
         nargs="+",
         metavar="DIR",
@@ -390,6 +409,8 @@ def main(argv=None) -> int:
     if a.family is not None:
         if a.family < 1 or not 0.0 <= a.null_share <= 1.0:
             ap.error("--family needs N >= 1 and --null-share in [0, 1]")
+        if a.replicas < 1:
+            ap.error("--replicas needs N >= 1")
         known = {
             "--only-magnet": (a.only_magnet, [*ORDER_NAMES.values(), "none"]),
             "--only-stack": (a.only_stack, [stack_label(s) for s in STACKS]),

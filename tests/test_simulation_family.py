@@ -258,6 +258,63 @@ def test_family_summary_per_stratum():
     assert effects_only["goals"]["rank1_per_magnet"] is False
 
 
+@pytest.mark.parametrize("kind", ["hall", "tracker"])
+def test_a_replica_redraws_the_readings_noise_alone(kind, tmp_path):
+    from cfm_fem.simulation import family_hall as FH
+    from cfm_fem.simulation import family_tracker as FT
+
+    sim = FH if kind == "hall" else FT
+    cfg = draw_config(1003, role="effect", kind=kind)
+    ctx0 = sim.context(cfg)
+    assert all(np.array_equal(ctx0[k], sim.context(cfg | {"replica": 0})[k]) for k in ctx0
+               if isinstance(ctx0[k], np.ndarray))  # fmt: skip
+    ctx1, ctx2 = (sim.context(cfg | {"replica": k}) for k in (1, 2))
+    for key, v in ctx0.items():
+        if not isinstance(v, np.ndarray):
+            continue
+        fresh = key in ("vib", "noise")
+        assert np.array_equal(v, ctx1[key]) != fresh, key
+        assert np.array_equal(ctx1[key], ctx2[key]) != fresh, key
+    if kind == "hall":  # white noise and vibration drawn afresh at the same size
+        assert np.std(ctx1["noise"]) == pytest.approx(np.std(ctx0["noise"]), rel=0.2)
+    a = write_family_case(1003, tmp_path, role="effect", kind=kind)
+    b = write_family_case(1003, tmp_path, role="effect", kind=kind, replica=1)
+    ta, tb = (json.loads(f["truth"].read_text()) for f in (a, b))
+    assert b["recording"].name == "family_1003_r1.csv" and tb["replica"] == 1
+    assert ta["effects"] == tb["effects"] and ta["params"] == tb["params"]
+    assert a["recording"].read_bytes() != b["recording"].read_bytes()
+    with pytest.raises(ValueError, match="replica"):
+        sim.context(cfg | {"replica": -1})
+
+
+def test_pulls_over_replicas_are_taken_about_each_cases_mean():
+    from cfm_fem.simulation.family_summary import markdown_family, summarise_family
+
+    def run(seed, replica, pull):
+        return {"seed": seed, "replica": replica, "role": "effect", "kind": "tracker",
+                "expected": "step_event", "strata": dict.fromkeys(
+                    ("magnet", "bench_stack", "source", "ends", "scan", "noise", "reference"),
+                    "a"), "sigma": 6.5, "rank1": True, "detected": True,
+                "pulls": {"step_event": {"step_x": pull}}}  # fmt: skip
+
+    # two cases biased by +3 and -3, each with pulls of std 1 about its own mean
+    runs = [run(1, k, 3.0 + d) for k, d in enumerate((-1.0, 0.0, 1.0))]
+    runs += [run(2, k, -3.0 + d) for k, d in enumerate((-1.0, 0.0, 1.0))]
+    runs += [run(3, 0, 0.5)]  # one replica: no spread of its own
+    out = summarise_family(runs)
+    rep = out["replicas"]
+    assert [c["seed"] for c in rep["cases"]] == [1, 2]
+    assert rep["cases"][0]["params"]["step_x"] == pytest.approx({"n": 3, "mean": 3.0, "std": 1.0})
+    row = rep["per_effect"]["step_event"]
+    assert row["cases"] == 2 and row["n"] == 6
+    assert row["within_std"] == pytest.approx(1.0)
+    assert out["per_effect"]["step_event"]["pull_std"] > 2.5  # across cases: the biases too
+    md = markdown_family(out, "header")
+    assert "| 1 | step_event | 3 | step_x | 3 | 3.00 | 1.00 |" in md
+    assert "| step_event | 2 | 6 | 1.00 |" in md
+    assert "replicas" not in markdown_family(summarise_family([run(3, 0, 0.5)]), "h")
+
+
 def _fitted_t(files):
     """t of the concealed effect's signature fitted to the noisy recording with every
     neighbour and nuisance signature (the drawn significance, measured)."""

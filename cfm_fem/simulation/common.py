@@ -6,6 +6,7 @@ import numpy as np
 
 __all__ = [
     "streams",
+    "reading_streams",
     "temperature",
     "speeds_for",
     "circle_harmonics",
@@ -23,6 +24,30 @@ def streams(seed: int, names) -> dict:
     part or an effect does not change the draws of the others."""
     children = np.random.SeedSequence(int(seed)).spawn(len(names))
     return {nm: np.random.default_rng(c) for nm, c in zip(names, children, strict=True)}
+
+
+#: The streams a replica draws afresh: the axes' vibration and reading error, the white noise.
+READING_NOISE = ("vib", "noise")
+
+
+def reading_streams(cfg: dict, names) -> dict:
+    """:func:`streams` of a configuration, with the readings' noise of its replica.
+
+    Replica 0 (``cfg.get("replica", 0)``) is the configuration as drawn. Replica k > 0 keeps
+    every other draw (magnet, bench, scan, survey, gains, temperatures, the concealed effect)
+    and draws the streams of :data:`READING_NOISE` from the seed sequence ``(seed, k)``: the
+    same recording with other noise, whose spread of fitted parameters is the one their
+    stated std must match.
+    """
+    rng = streams(cfg["seed"], names)
+    k = int(cfg.get("replica", 0))
+    if k < 0:
+        raise ValueError(f"replica must be >= 0; found {k}")
+    if k:
+        fresh = [nm for nm in names if nm in READING_NOISE]
+        children = np.random.SeedSequence([int(cfg["seed"]), k]).spawn(len(fresh))
+        rng |= {nm: np.random.default_rng(c) for nm, c in zip(fresh, children, strict=True)}
+    return rng
 
 
 def temperature(t_s, rng: np.random.Generator):

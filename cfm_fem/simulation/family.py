@@ -429,8 +429,13 @@ def _null_harmonics_ok(cfg, ctx, base, grad, sigma) -> float:
     return significance.per_unit_prior(dep, list(sig.values()), sigma, prior)[0]
 
 
-def write_family_case(seed: int, folder, size: str = "small", role=None, kind=None) -> dict:
+def write_family_case(
+    seed: int, folder, size: str = "small", role=None, kind=None, replica: int = 0
+) -> dict:
     """Simulate one family case and write its recording, truth, reference and bench file.
+
+    ``replica`` k > 0 writes the same case with the readings' noise drawn afresh
+    (:func:`.common.reading_streams`); its files are named ``family_<seed>_r<k>``.
 
     Returns
     -------
@@ -440,6 +445,7 @@ def write_family_case(seed: int, folder, size: str = "small", role=None, kind=No
         ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
     """
     cfg = draw_config(seed, size, role, kind)
+    cfg["replica"] = int(replica)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     hall = cfg["kind"] == "hall"
@@ -475,11 +481,12 @@ def write_family_case(seed: int, folder, size: str = "small", role=None, kind=No
             cfg["reference"] = cfg["strata"]["reference"] = "exact"
         record = {"body_vs_2d_sigma": z}
     cols = _columns(cfg, ctx, sim.forward(cfg, ctx, effects))
-    stem = f"family_{seed}"
+    stem = f"family_{seed}" + (f"_r{replica}" if replica else "")
     expected = cfg["effect"]
     truth = {
         "case": f"family_{cfg['kind']}",
         "seed": int(seed),
+        "replica": int(replica),
         "kind": cfg["kind"],
         "role": cfg["role"],
         "expected": expected,

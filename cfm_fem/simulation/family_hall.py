@@ -16,7 +16,7 @@ import numpy as np
 
 from . import bench as B
 from . import benches, magnets, scans
-from .common import streams, temperature
+from .common import reading_streams, temperature
 
 __all__ = [
     "context",
@@ -48,7 +48,7 @@ def context(cfg: dict) -> dict:
     bench = cfg["bench"]
     scan = scans.build(cfg["scan"], benches.travel_offset(bench))
     n = len(scan.point)
-    rng = streams(cfg["seed"], ["vib", "noise", "survey", "gain", "temp"])
+    rng = reading_streams(cfg, ["vib", "noise", "survey", "gain", "temp"])
     t_um, r_urad = bench["survey_std"]
     t_true, t_log = temperature(scan.t_s, rng["temp"])
     return {

@@ -112,8 +112,55 @@ def summarise_family(scores: list) -> dict:
         first = (r.get("claimed") or ["nothing"])[0]
         row = out["per_effect"][r["expected"]].setdefault("first_instead", {})
         row[first] = row.get(first, 0) + 1
+    out["replicas"] = _replica_pulls(effects)
     out["goals"], out["failing"] = _goals(out)
     return out
+
+
+def _replica_pulls(effects) -> dict:
+    """Pulls of each case run with several noise replicas (``replica`` in the scores).
+
+    Across cases a pull mixes the noise with the case's own configuration (a parameter the
+    configuration biases); over the replicas of one case only the noise varies, so their
+    spread about the case's mean pull is what the stated std must match.
+
+    Returns
+    -------
+    dict
+        ``cases`` [{seed, effect, replicas, params {name: {n, mean, std}}}] and ``per_effect``
+        {effect: {cases, n, within_std}}: the pooled std of the pulls about their case's mean
+        (each (case, parameter) with n pulls giving n - 1 degrees of freedom).
+    """
+    groups = {}
+    for r in effects:
+        if "error" in r or "replica" not in r:
+            continue
+        groups.setdefault((r["seed"], r["expected"]), []).append(r)
+    cases, per = [], {}
+    for (seed, eff), runs in sorted(groups.items()):
+        if len(runs) < 2:
+            continue
+        pulls = {}
+        for r in runs:
+            for name, v in r["pulls"].get(eff, {}).items():
+                pulls.setdefault(name, []).append(v)
+        params = {
+            name: {"n": len(v), "mean": float(np.mean(v)), "std": float(np.std(v, ddof=1))}
+            for name, v in pulls.items()
+            if len(v) > 1
+        }
+        cases.append({"seed": seed, "effect": eff, "replicas": len(runs), "params": params})
+        row = per.setdefault(eff, {"cases": 0, "ss": 0.0, "dof": 0, "n": 0})
+        row["cases"] += 1
+        for v in pulls.values():
+            if len(v) > 1:
+                row["ss"] += float(np.sum((np.asarray(v) - np.mean(v)) ** 2))
+                row["dof"] += len(v) - 1
+                row["n"] += len(v)
+    for row in per.values():
+        dof = row.pop("dof")
+        row["within_std"] = float(np.sqrt(row.pop("ss") / dof)) if dof else None
+    return {"cases": cases, "per_effect": dict(sorted(per.items()))}
 
 
 def _goals(out) -> tuple:
@@ -193,6 +240,7 @@ def markdown_family(summary: dict, header: str) -> str:
             f"| {eff} | {row['runs']} | {row['rank1']}/{row['runs']} | {inst} | {row['pull_n']} "
             f"| {m} | {s} |"
         )
+    lines += _markdown_replicas(summary.get("replicas") or {})
     claims = ", ".join(f"{k} {v}" for k, v in summary.get("null_claims", {}).items())
     lines += ["", f"Claimed on nulls (effect: nulls): {claims or 'none'}."]
     lines += [
@@ -202,3 +250,27 @@ def markdown_family(summary: dict, header: str) -> str:
     ]
     lines += [f"- {f}" for f in summary["failing"]]
     return "\n".join(lines) + "\n"
+
+
+def _markdown_replicas(rep: dict) -> list:
+    """The table of pulls over each case's noise replicas (none without replicas)."""
+    if not rep.get("cases"):
+        return []
+    lines = [
+        "",
+        "Pulls over each case's noise replicas (the same case, the readings' noise drawn afresh):",
+        "",
+        "| seed | effect | replicas | parameter | pulls | mean | std |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in rep["cases"]:
+        for name, p in c["params"].items():
+            lines.append(
+                f"| {c['seed']} | {c['effect']} | {c['replicas']} | {name} | {p['n']} "
+                f"| {p['mean']:.2f} | {p['std']:.2f} |"
+            )
+    lines += ["", "| effect | cases | pulls | std about each case's mean |", "|---|---|---|---|"]
+    for eff, row in rep["per_effect"].items():
+        s = "-" if row["within_std"] is None else f"{row['within_std']:.2f}"
+        lines.append(f"| {eff} | {row['cases']} | {row['n']} | {s} |")
+    return lines

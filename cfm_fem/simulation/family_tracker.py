@@ -15,7 +15,7 @@ import numpy as np
 
 from . import bench as B
 from . import benches, scans
-from .common import streams, temperature
+from .common import reading_streams, temperature
 
 __all__ = ["context", "forward", "truth_params", "signatures", "PARAMS", "PDG_FUNCTIONS"]
 
@@ -44,7 +44,7 @@ def context(cfg: dict) -> dict:
     """The scan and every random draw of a tracker configuration (from ``cfg['seed']``)."""
     scan = scans.build(cfg["scan"], _centre(cfg))
     n = len(scan.point)
-    rng = streams(cfg["seed"], ["vib", "noise", "reg", "temp"])
+    rng = reading_streams(cfg, ["vib", "noise", "reg", "temp"])
     t_true, t_log = temperature(scan.t_s, rng["temp"])
     return {
         "scan": scan,
