@@ -36,13 +36,14 @@ def _recorded_z(signal, others, sigma, truth):
         return z
     cfg = truth["config"]
     ((p, value),) = truth["effects"][eff].items()
-    if eff == "magnet_misalignment":
-        excess, prior = value, F._prior_std(cfg, ("pose", p))
+    if eff == "magnet_misalignment":  # the recorded pose: the survey draw plus the effect
+        survey = FH.context(cfg)["survey"][FH.POSE.index(p)]
+        excess, prior = survey + value, F._prior_std(cfg, ("pose", p))
     else:
         kind, a, b = cfg["bench"]["pdfs"][p]
         mean = (a + b) / 2 if kind == "uniform" else a
         excess, prior = value - mean, F._prior_std(cfg, ("bench", p))
-    return abs(excess) / np.hypot(prior, abs(excess) / z)
+    return abs(excess) / np.hypot(prior, abs(value) / z)
 
 
 def test_noiseless_hall_readings_are_the_recorded_configuration():
@@ -83,6 +84,42 @@ def test_hall_stated_significance_is_that_of_the_recording(seed, effect, tmp_pat
     # the whole effect against its linearised signature: equal for effects linear in their
     # parameters, within their second-order terms for the others
     assert z == pytest.approx(truth["significance"]["sigma_drawn"], rel=0.01)
+
+
+@pytest.mark.parametrize(
+    "seed",
+    [
+        62029,  # a survey draw of +101.5 urad against a misalignment about y of -477.5 urad
+        62055,  # +39.1 urad against a roll of -509.9 urad
+        62081,  # -56.8 urad against a misalignment about y of +434.7 urad
+    ],
+)
+def test_magnet_misalignment_is_sized_on_the_recorded_pose(seed, tmp_path):
+    """The stated significance is that of the magnet's whole departure from the nominal pose
+    (the prior's mean): the survey draw plus the concealed effect, all a recording shows."""
+    truth, cfg = _case(seed, tmp_path, "hall")
+    assert truth["expected"] == "magnet_misalignment"
+    ((p, value),) = truth["effects"]["magnet_misalignment"].items()
+    ctx = FH.context(cfg)
+    survey = float(ctx["survey"][FH.POSE.index(p)])
+    total = survey + value
+    assert abs(survey) > 10.0  # a survey draw of tens of urad
+    # the truth a diagnosis is scored against is the recorded pose
+    assert truth["params"][p] == pytest.approx(total, rel=1e-12)
+    grad = FH.gradient(cfg, ctx)
+    sigma = FH.noise_std(cfg, ctx, grad)
+    base = FH.forward(cfg, ctx, {}, noisy=False)
+    names = [*F._neighbour_names(cfg, "magnet_misalignment"), ("magnet_misalignment", p)]
+    sigs = FH.signatures(cfg, ctx, names, base=base, grad=grad)
+    s = sigs.pop(("magnet_misalignment", p))
+    F._relative_offsets(sigs)
+    z1, _ = significance.per_unit(s, list(sigs.values()), sigma)
+    prior = F._prior_std(cfg, ("pose", p))
+    z = abs(total) / np.hypot(prior, 1.0 / z1)
+    sig = truth["significance"]
+    assert z == pytest.approx(sig["sigma_drawn"], rel=1e-6)
+    assert sig["survey_draw"] == pytest.approx(survey, rel=1e-12)
+    assert sig["total_departure"] == pytest.approx(total, rel=1e-12)
 
 
 def _registered_signatures(cfg, ctx, names):

@@ -278,7 +278,13 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
 
     ``base``, ``grad`` and ``sigma`` are the noiseless readings, field gradient and reading
     std of the configuration as recorded (for a Hall map the magnet at its surveyed pose;
-    :func:`.family_hall.forward`), so the effect is sized on the data it is concealed in."""
+    :func:`.family_hall.forward`), so the effect is sized on the data it is concealed in.
+
+    The record holds the target and drawn significance (``sigma_target``, ``sigma_drawn``),
+    ``kept``, ``z_per_unit``, ``direction`` and the neighbours and nuisances; for a
+    ``magnet_misalignment`` also ``survey_draw`` (the survey's draw of its parameter, um or
+    urad) and ``total_departure`` (the survey draw plus the concealed value: the recorded
+    pose's departure from the nominal one, which the drawn significance sizes)."""
     effect = cfg["effect"]
     sim = FH if cfg["kind"] == "hall" else FT
     others = _neighbour_names(cfg, effect)
@@ -311,27 +317,60 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
         z1, kept = significance.per_unit(s, vec if effect == "parameter_bias" else vec_o, sigma)
         if kept < 0.05 or z1 <= 0:
             continue
-        values = _amplitudes(cfg, effect, params, u, z1, target)
+        values = _amplitudes(cfg, ctx, effect, params, u, z1, target)
         if values is None:
             continue
-        return {effect: values}, record | {
+        record |= {
             "sigma_drawn": target,
             "kept": kept,
             "z_per_unit": z1,
             "direction": dict(zip(params, u.tolist(), strict=True)),
         }
+        if effect == "magnet_misalignment":
+            drawn = float(ctx["survey"][FH.POSE.index(params[0])])
+            record |= {"survey_draw": drawn, "total_departure": drawn + values[params[0]]}
+        return {effect: values}, record
     return None, record | {"sigma_drawn": None, "kept": None}
 
 
-def _amplitudes(cfg, effect, params, u, z1, target):
-    """Parameter values of the drawn size (None when beyond :data:`CAPS`)."""
+def _amplitudes(cfg, ctx, effect, params, u, z1, target):
+    """Parameter values of the drawn size (None when beyond :data:`CAPS`).
+
+    Parameters
+    ----------
+    cfg, ctx : dict
+        The configuration and its draws (:func:`.family_hall.context` or
+        :func:`.family_tracker.context`).
+    effect : str
+    params : list of str
+        The parameters drawn (one for a prior release).
+    u : ndarray, shape (len(params),)
+        Unit direction of the effect along ``params``.
+    z1 : float
+        Joint significance per unit amplitude along ``u`` (per display unit).
+    target : float
+        The drawn significance.
+
+    Returns
+    -------
+    dict or None
+        Value of each parameter (display units). An effect other than a prior release has
+        amplitude ``target / z1`` along ``u``. A prior release is sized by its departure from
+        the prior's mean, ``significance.excess_for(target, z1, prior)`` of the sign of
+        ``u``: a ``parameter_bias`` is the bench error's value ``mean + excess``; a
+        ``magnet_misalignment`` is added to the survey draw (``ctx["survey"]``, um or urad)
+        in the recorded pose, so its value is the departure less the survey draw and the
+        recorded pose departs from the nominal one (the prior's mean, 0) by the excess. The
+        cap applies to the concealed value.
+    """
     if effect in PRIOR_RELEASE:
         p = params[0]
         if effect == "magnet_misalignment":
             t_um, r_urad = cfg["bench"]["survey_std"]
             prior = t_um if p.startswith("magnet_d") else r_urad
-            excess = significance.excess_for(target, z1, prior) * np.sign(u[0])
-            return None if abs(excess) > CAPS[effect] else {p: excess}
+            total = significance.excess_for(target, z1, prior) * np.sign(u[0])
+            value = float(total - ctx["survey"][FH.POSE.index(p)])
+            return None if abs(value) > CAPS[effect] else {p: value}
         kind, a, b = cfg["bench"]["pdfs"][p]
         mean, prior = ((a + b) / 2, (b - a) / np.sqrt(12)) if kind == "uniform" else (a, b)
         excess = significance.excess_for(target, z1, prior) * np.sign(u[0])
