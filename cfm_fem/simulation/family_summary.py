@@ -152,11 +152,10 @@ def _replica_pulls(effects) -> dict:
         cases.append({"seed": seed, "effect": eff, "replicas": len(runs), "params": params})
         row = per.setdefault(eff, {"cases": 0, "ss": 0.0, "dof": 0, "n": 0})
         row["cases"] += 1
-        for v in pulls.values():
-            if len(v) > 1:
-                row["ss"] += float(np.sum((np.asarray(v) - np.mean(v)) ** 2))
-                row["dof"] += len(v) - 1
-                row["n"] += len(v)
+        for p in params.values():  # the sum of squares about the case's mean, from its std
+            row["ss"] += p["std"] ** 2 * (p["n"] - 1)
+            row["dof"] += p["n"] - 1
+            row["n"] += p["n"]
     for row in per.values():
         dof = row.pop("dof")
         row["within_std"] = float(np.sqrt(row.pop("ss") / dof)) if dof else None
