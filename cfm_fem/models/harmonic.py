@@ -291,7 +291,7 @@ def _canonical(points, centres, cand):
     return np.take_along_axis(cand, order, -1), np.take_along_axis(d2, order, -1)
 
 
-def fallback_mask(residual_T, flag, checks) -> np.ndarray:
+def fallback_mask(residual_T, flag, checks, misfit_rel: float = MISFIT_REL) -> np.ndarray:
     """``use`` of the fallback rule (`FALLBACK_RULE`) from the kernel's outputs.
 
     Parameters
@@ -300,6 +300,8 @@ def fallback_mask(residual_T, flag, checks) -> np.ndarray:
     flag : ndarray, shape (n,), int64
     checks : ndarray, shape (n, 4), T
         See `cfm_fem._kernels.harmonic_fit_block`.
+    misfit_rel : float
+        Bound of the misfit check (`MISFIT_REL`); ``inf``: the curl check alone.
 
     Returns
     -------
@@ -310,7 +312,7 @@ def fallback_mask(residual_T, flag, checks) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         free = checks[:, _kernels.CHECK_FREE]
         curl = (harm > CURL_RATIO * free) & (residual_T > free) & (harm > floor)
-        misfit = (residual_T > MISFIT_REL * checks[:, _kernels.CHECK_SPREAD]) & (residual_T > floor)
+        misfit = (residual_T > misfit_rel * checks[:, _kernels.CHECK_SPREAD]) & (residual_T > floor)
     failed = (flag & _kernels.FIT_FAILED) != 0
     return ~(curl | misfit | failed)
 
@@ -344,7 +346,15 @@ def grid_metric(points) -> np.ndarray:
 
 
 def fit_harmonic(
-    points, B, *, k=40, min_degree=2, max_degree=MAX_DEGREE, source=None, metric=None
+    points,
+    B,
+    *,
+    k=40,
+    min_degree=2,
+    max_degree=MAX_DEGREE,
+    source=None,
+    metric=None,
+    misfit_rel: float = MISFIT_REL,
 ) -> HarmonicFit:
     """Fit the harmonic field model of every node of a 3-D map.
 
@@ -364,6 +374,10 @@ def fit_harmonic(
     metric : {None, "grid"} or array_like, shape (3,), optional
         Factors on x, y, z in which neighbourhoods and reach are measured: None, millimetres;
         "grid", `grid_metric` of the nodes (module docstring, unequal steps).
+    misfit_rel : float
+        Bound of the misfit check of the fallback rule; ``inf`` keeps every fit that passes
+        the curl check (a reader whose alternative between nodes errs more than a fit that
+        follows the field less closely than `MISFIT_REL`).
 
     Returns
     -------
@@ -418,7 +432,7 @@ def fit_harmonic(
         c, deg, res, flag, checks = map_blocks(block, len(idx), _FIT_BLOCK)
         coef[idx, : c.shape[1]] = c
         scale[idx], degree[idx], resid[idx] = sc, deg, res
-        use[idx] = fallback_mask(res, flag, checks)
+        use[idx] = fallback_mask(res, flag, checks, misfit_rel)
     return HarmonicFit(
         centers=points, scale=scale, coef=coef, degree=degree, residual_T=resid,
         reach_mm=reach, use=use, k=k, metric=metric,

@@ -7,10 +7,19 @@ fit then takes for a probe or magnet effect. :class:`NodeExactHarmonic` reads th
 per-node harmonic fits of :func:`cfm_fem.models.harmonic.fit_harmonic` (a Maxwell-consistent
 polynomial around each node, fitted to its nearest nodes), corrected so that it reproduces the
 map exactly at every node: the harmonic fits' own residuals at the nodes are interpolated
-linearly and added. Where a node's fit fails Laplace's test (currents, iron, noise in the
-export) or a point lies beyond every usable fit's reach, :class:`CurvatureCorrected` serves: the
-linear interpolant corrected by the field's second and third derivatives from differences of
-the node values, with no field equation assumed.
+linearly and added. Where a node's fit fails Laplace's curl test (currents or iron in its
+neighbourhood) or a point lies beyond every usable fit's reach, :class:`CurvatureCorrected`
+serves: the linear interpolant corrected by the field's second and third derivatives from
+differences of the node values, with no field equation assumed. A fit that passes the curl
+test but follows its neighbours less closely than the misfit bound of
+:data:`cfm_fem.models.harmonic.FALLBACK_RULE` still serves here (``misfit_rel=inf``): such a
+field (a coil's conductors near the map) is read worse by the curvature-corrected
+interpolant, whose differences span whole cells. On the coarse map of a coil dipole (11 mm
+bore radius, nodes 1.47 mm apart across and 2.76 mm along the bore; 2,062 of its 6,561
+nodes past the misfit bound, none failing the curl test), within 0.3 mm of one scan point
+the curvature-corrected reading erred by 360-840 uT in B_y and the nearest misfitting
+node's fit by at most 42 uT, and the diagnosis took the jump between the two readings for a
+bad reading.
 
 The model's error between nodes is estimated from the model itself, locally
 (:meth:`error_var`): at a point, the fits of its :data:`SPREAD_NODES` nearest usable nodes (the
@@ -190,7 +199,7 @@ class NodeExactHarmonic:
 
         from scipy.spatial import cKDTree
 
-        self.fit = fit_harmonic(fm.points, fm.B, source=fm.source, metric="grid")
+        self.fit = fit_harmonic(fm.points, fm.B, source=fm.source, metric="grid", misfit_rel=np.inf)
         self.linear = linear
         self.spacing_mm = node_spacing_mm(fm.points)
         self.n_fallback = int((~self.fit.use).sum())
