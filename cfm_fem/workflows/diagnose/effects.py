@@ -228,7 +228,12 @@ def reversal(prob):
     J = np.zeros((prob.n, 3, len(ok)))
     for k, a in enumerate(ok):
         J[:, a, k] = 0.5 * d[:, a] * UM
-    return effect_columns(J, [f"backlash_{'xyz'[a]}" for a in ok], ["um"] * len(ok), "reversal")
+    names = [f"backlash_{'xyz'[a]}" for a in ok]
+    blk = effect_columns(J, names, ["um"] * len(ok), "reversal")
+    # one axis's backlash at a time, the choice among the axes accounted for: the backlash of
+    # one axis must not pay for three parameters; the others join round by round
+    blk.families = [(nm, [k]) for k, nm in enumerate(names)]
+    return blk
 
 
 def reading_delay(prob):
@@ -332,6 +337,10 @@ def probe_misalignment(prob):
                 k += 1
     blk = effect_columns(J, names, ["mrad"] * 6, "probe_misalignment")
     blk.element = (0, 0, 1, 1, 2, 2)
+    # one element's tilt towards one axis at a time, the choice among the six accounted for:
+    # an element tilted along one direction must not pay for six parameters; tilts of other
+    # elements or directions join round by round
+    blk.families = [(nm, [k]) for k, nm in enumerate(names)]
     return blk
 
 

@@ -935,11 +935,14 @@ def _with_model_error(sigma, model_error) -> np.ndarray:
 
 
 def _signature(model: Columns, cand: Candidate):
-    """Columns of a candidate's signature and the indices of the model columns it uses."""
+    """Columns of a candidate's signature and the indices of the model columns it uses; an
+    effect tested function by function signs with all its functions (``family_block``), not
+    the one its evidence chose."""
     idx = [model.names.index(n) for n in cand.released]
     J = [model.J[..., idx]] if idx else []
-    if cand.has_new and cand.cols.p:
-        J.append(cand.cols.J)
+    cols = cand.cols if cand.family_block is None else cand.family_block
+    if cand.has_new and cols.p:
+        J.append(cols.J)
     if not J:
         return None, idx
     return np.concatenate(J, axis=-1), idx
