@@ -144,6 +144,12 @@ def _release(prob, groups, effect, names=None, J=None, new_names=(), new_units=(
 TEMP_MAX_DEGREE = 6
 
 
+def _each_alone(names) -> list:
+    """``families`` of an effect whose every parameter is a function of its own:
+    [(name, [index])] in column order."""
+    return [(nm, [k]) for k, nm in enumerate(names)]
+
+
 def smooth_temperature(t_h, temp) -> np.ndarray:
     """A logged temperature smoothed in time (K, shape (n,)).
 
@@ -232,7 +238,7 @@ def reversal(prob):
     blk = effect_columns(J, names, ["um"] * len(ok), "reversal")
     # one axis's backlash at a time, the choice among the axes accounted for: the backlash of
     # one axis must not pay for three parameters; the others join round by round
-    blk.families = [(nm, [k]) for k, nm in enumerate(names)]
+    blk.families = _each_alone(names)
     return blk
 
 
@@ -340,7 +346,7 @@ def probe_misalignment(prob):
     # one element's tilt towards one axis at a time, the choice among the six accounted for:
     # an element tilted along one direction must not pay for six parameters; tilts of other
     # elements or directions join round by round
-    blk.families = [(nm, [k]) for k, nm in enumerate(names)]
+    blk.families = _each_alone(names)
     return blk
 
 
@@ -425,7 +431,7 @@ def hall_offset_gain(prob):
     # one element's offset at a time, the choice among the three accounted for: an offset of
     # one element must not pay for three parameters (a step of that element from the first
     # repetitions on, one parameter, would otherwise take its place)
-    blk.families = [(nm, [i]) for i, nm in enumerate(names)]
+    blk.families = _each_alone(names)
     return blk
 
 
