@@ -71,6 +71,10 @@ class ProblemContext:
     pose : ndarray, shape (6,), or None
         Hall map: registration the problem is linearised at, um (3 translations) and urad
         (3 rotations), in the order of :data:`~cfm_fem.workflows.diagnose.problem.REG_NAMES`.
+    elements_at : ndarray, shape (3, 3), or None
+        Hall map: the Hall elements' offsets (um) from their centroid the problem is
+        linearised at (row i: element x, y, z; :mod:`~cfm_fem.workflows.diagnose.elements`);
+        None: the elements at the probe's point.
     rows : ndarray, shape (n,), int, or None
         Hall map: index of each row in the problem ``rebuild`` returns (all rows of the
         recording). Per row.
@@ -124,6 +128,7 @@ class ProblemContext:
     reference_fn: Callable | None = None
     field_fn: Callable | None = None
     pose: np.ndarray | None = None
+    elements_at: np.ndarray | None = None
     rows: np.ndarray | None = _row_field()
     rebuild: Callable | None = None
     smooth: bool = True

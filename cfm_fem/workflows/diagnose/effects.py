@@ -42,7 +42,9 @@ the probe senses: the reference read where the fitted bench errors move the prob
   common to all three moves the readings as the magnet's offset does). The effect is tested
   with the centroid left to the registration; its offsets are reported fitted with the
   centroid's shift free (the survey's prior on the magnet does not bound where the elements
-  sit in the probe), their uncertainty marginalised over it.
+  sit in the probe), their uncertainty marginalised over it. Where the field curves over the
+  offsets, G is taken at each element's own point: the problem is linearised at the offsets
+  the selected model fits (:mod:`~cfm_fem.workflows.diagnose.elements`).
 * ``magnet_misalignment``: magnet offset and roll beyond the survey (registration released).
 * ``planar_hall``: Delta B_i = k_i B_j B_k (1/T), j, k the in-plane components; each
   element's k_i is a function of its own.
@@ -361,6 +363,10 @@ def sensor_offset(prob):
     leak into the relative offsets through their gradient-weighted columns, biased by many
     standard uncertainties. The reported offsets are fitted with the centroid's shift free
     (:attr:`Columns.nuisance`), their uncertainty marginalised over it.
+
+    The gradient is ``ctx.G``: each element's row at the element's own point when the problem
+    is linearised at the elements' offsets (``ctx.elements_at``, whose linear term the
+    residual then carries), so that the fitted offsets are the whole offsets.
     """
     G = prob.ctx.G
     J = np.zeros((prob.n, 3, 6))

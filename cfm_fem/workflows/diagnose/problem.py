@@ -31,6 +31,7 @@ from .derivatives import (
     field_jacobian,
     field_third,
 )
+from .elements import at_elements, element_offsets, linear_term
 from .motion import axis_velocities
 
 __all__ = ["Problem", "tracker_problem", "hall_problem", "field_jacobian", "subset_rows"]
@@ -492,12 +493,15 @@ def _node_step(upts, spacing_mm, nodes):
     return float(spacing_mm) if np.all(d <= 1e-3 * spacing_mm) else None
 
 
-def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
+def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None, shift=None):
     """Field (m, 3) T and gradient (m, 3, 3) T/mm at the points ``upts`` with the magnet at
     ``pose``, the posed field function, and the Hessian (m, 3, 3, 3) T/mm^2 there (None
     without ``derivs``). ``h2``: step of the Hessian of a linear map (its node spacing: a
     shorter step sees no curvature inside a cell), default ``h``. ``derivs``: the Hessian and
-    third derivatives (m, 3, 3, 3, 3) T/mm^3 at the nominal placement, or None.
+    third derivatives (m, 3, 3, 3, 3) T/mm^3 at the nominal placement, or None. ``shift``
+    (3,) mm: every point moved by it (a Hall element's offset,
+    :func:`~cfm_fem.workflows.diagnose.elements.at_elements`), the derivatives still those
+    at ``upts``.
 
     A smooth reference is evaluated at the moved points. A map interpolated linearly between
     its nodes is not: between nodes its kinks would make the fit jump from one linearisation
@@ -511,10 +515,11 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
 
     fn = posed_field(field_fn, pose)
     H0, T = (None, None) if derivs is None else derivs
-    if not np.any(pose):
+    if not np.any(pose) and shift is None:
         return field_fn(upts), debiased_jacobian(field_fn, upts, h, T), fn, H0
+    pts = upts if shift is None else upts + np.asarray(shift, dtype=float)
     R = Rotation.from_rotvec(pose[3:] * URAD).as_matrix()
-    d = (upts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
+    d = (pts - pose[:3] * UM) @ R - upts  # where the magnet frame sees each point, less it
     H = H0
     if H is None and not smooth:
         H = field_hessian(field_fn, upts, h if h2 is None else max(h, h2))
@@ -523,7 +528,7 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
         Hp = H if T is None else H + np.einsum("nijkl,nl->nijk", T, d)
         Hp = np.einsum("ia,najk,bj,ck->nibc", R, Hp, R, R)
     if smooth:
-        return fn(upts), debiased_jacobian(fn, upts, h, T), fn, Hp
+        return fn(pts), debiased_jacobian(fn, pts, h, T), fn, Hp
     B, G = field_fn(upts), debiased_jacobian(field_fn, upts, h, T)
     Hd = np.einsum("nijk,nk->nij", H, d)
     dG = Hd if T is None else Hd + 0.5 * np.einsum("nijkl,nk,nl->nij", T, d, d)
@@ -532,6 +537,11 @@ def _field_at_pose(field_fn, upts, pose, h, smooth, h2=None, derivs=None):
         B = B + np.einsum("nijkl,nj,nk,nl->ni", T, d, d, d) / 6.0
     G = G + dG
     return B @ R.T, np.einsum("ab,nbc,dc->nad", R, G, R), fn, Hp
+
+
+def _without_fn(at_pose) -> tuple:
+    """Field, gradient and Hessian of a :func:`_field_at_pose` result (its function left out)."""
+    return at_pose[0], at_pose[1], at_pose[3]
 
 
 def _axis_positions(bench, p, notes):
@@ -556,16 +566,19 @@ def _axis_positions(bench, p, notes):
     return q, bench
 
 
-def _planar_at_pose(field_fn, p, pose, h, bench, q, at):
+def _planar_at_pose(field_fn, p, pose, h, bench, q, at, shift=None):
     """A 2-D reference at the readings: field (n, 3) T and gradient (n, 3, 3) T/mm of the
     registration's columns, and the exact reading (n, 3) T.
 
-    Both are evaluated where the bench errors ``at`` move the probe (exact chain). The
-    reading is the field with the magnet at the whole ``pose``; the registration is
-    linearised with the magnet offset and rolled only, which keeps the field 2-D (see
-    :func:`hall_problem`, ``planar``)."""
+    Both are evaluated where the bench errors ``at`` move the probe (exact chain), moved
+    further by ``shift`` (3,) mm if given (a Hall element's offset). The reading is the field
+    with the magnet at the whole ``pose``; the registration is linearised with the magnet
+    offset and rolled only, which keeps the field 2-D (see :func:`hall_problem`,
+    ``planar``)."""
     d = None if bench is None else bench_move(bench, q, at)
     moved = p if d is None else p + d
+    if shift is not None:
+        moved = moved + np.asarray(shift, dtype=float)
     fn = posed_field(field_fn, pose * (1.0, 1.0, 1.0, 0.0, 0.0, 1.0))
     return fn(moved), field_jacobian(fn, moved, h), posed_field(field_fn, pose)(moved)
 
@@ -652,6 +665,7 @@ def hall_problem(
     bench_at=None,
     hessian=None,
     planar=None,
+    elements_at=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -726,6 +740,13 @@ def hall_problem(
         and y give the 2-D field a B_z and a variation along z, which in the columns would
         reproduce a tilted Hall element, and which the soft ends' model
         (``fringe_field_3d``, built on ``ctx``) does not expect of a 2-D field.
+    elements_at : ndarray, shape (3, 3), um, optional
+        The Hall elements' offsets from their centroid the problem is linearised at (row i:
+        element x, y, z; the rows sum to zero; :mod:`~cfm_fem.workflows.diagnose.elements`):
+        each element's component of the field, the gradient and the Hessian (``ctx.B0``,
+        ``ctx.G``, ``ctx.B_read``, every column) is taken at its own point, and the residual
+        carries the offsets' linear term, so that ``sensor_offset`` fits the whole offsets.
+        None: the elements at the probe's point.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -738,7 +759,9 @@ def hall_problem(
     rebuild = partial(hall_problem, rec, field_fn, b_ref, bench, reg_std_mm=reg_std_mm,
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
                       ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
-                      ref_error=ref_error, bench_at=bench_at)  # fmt: skip
+                      ref_error=ref_error, bench_at=bench_at,
+                      elements_at=elements_at)  # fmt: skip
+    D = element_offsets(elements_at)
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
     if planar is None:  # decided once, at the first linearisation
@@ -758,14 +781,21 @@ def hall_problem(
         hessian = field_derivatives(field_fn, upts, h2)
     if hessian is not None:
         rebuild = partial(rebuild, hessian=hessian)
-    B0u, Gu, fn_posed, Hu = _field_at_pose(
-        field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth, ref_spacing_mm,
-        derivs=None if planar else hessian,
+    at_pose = partial(
+        _field_at_pose, field_fn, upts, np.zeros_like(pose) if planar else pose, h, smooth,
+        ref_spacing_mm, derivs=None if planar else hessian,
     )  # fmt: skip
+    B0u, Gu, fn_posed, Hu = at_pose()
+    if D is not None:  # each element's component where the element sits
+        B0u, Gu, Hu = at_elements(lambda s: _without_fn(at_pose(shift=s)), D, (B0u, Gu, Hu))
     B0, G = B0u[uinv], Gu[uinv]
     B_reg, G_reg, B_pose = B0, G, B0
     if planar:
-        B_reg, G_reg, B_pose = _planar_at_pose(field_fn, p, pose, h, bench, q, at)
+        planar_at = partial(_planar_at_pose, field_fn, p, pose, h, bench, q, at)
+        B_reg, G_reg, B_pose = planar_at()
+        if D is not None:
+            B_reg, G_reg, B_pose = at_elements(lambda s: planar_at(shift=s), D,
+                                               (B_reg, G_reg, B_pose))  # fmt: skip
     B_read = B_pose  # the field the probe senses: where the bench moves it, below
     H = T = G_move = None
     if bench is not None:
@@ -781,6 +811,8 @@ def hall_problem(
         gain_std_pct, B_gain=B0
     )  # fmt: skip
     y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
+    if D is not None:  # the offsets' linear term: ``sensor_offset`` fits the whole offsets
+        y = y + linear_term(G, D)
     blocks = []
     var_known = np.zeros_like(y)
     lever = axis_var = None  # the vibration's lever (n, 3, 3) and variance per axis (3,)
@@ -845,6 +877,7 @@ def hall_problem(
         field_fn=fn_posed,
         b_ref=b_ref,
         pose=pose,
+        elements_at=None if D is None else np.asarray(elements_at, dtype=float),
         rows=np.arange(len(p)),
         registration_prior=prior,
         rebuild=rebuild,

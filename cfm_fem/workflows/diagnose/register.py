@@ -13,14 +13,26 @@ first expanded to third order in that move at the errors the calibrated baseline
 (Gauss-Newton from their prior means,
 :func:`~cfm_fem.workflows.diagnose.problem.bench_expansion`), each step kept when it lowers the
 MAP objective.
+
+The Hall elements' offsets (``sensor_offset``) enter the readings non-linearly too: an
+element read a millimetre from the probe's point, where the field curves over that distance,
+changes its reading by more than the gradient times its offset. Once the effect is found, the
+problem is linearised at the offsets the selected model fits (:func:`relinearise_elements`:
+Gauss-Newton with that model, each element's field and gradient taken at its own point,
+:mod:`~cfm_fem.workflows.diagnose.elements`), and the attribution is done again there.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ...models.bench import ERROR_NAMES
-from .calibrate import fit_map, stack
+from .calibrate import Columns, fit_map, stack
+from .effects import sensor_offset
+from .elements import STEP_TOL as ELEMENT_TOL
+from .elements import curvature_chi2, element_target
 from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
 
 __all__ = [
@@ -31,6 +43,7 @@ __all__ = [
     "bench_step",
     "bench_target",
     "registration_note",
+    "relinearise_elements",
 ]
 
 #: Converged when every registration step is below this fraction of its std.
@@ -273,3 +286,142 @@ def registration_note(prob: Problem) -> str | None:
         f"its fitted pose ({moved}; um, urad), iterated until each step is below "
         f"{STEP_TOL:g} of its std"
     )
+
+
+#: The elements' offsets the model fits (x and y elements per direction).
+OFFSET_NAMES = frozenset(f"d_{e}_{a}" for e in "xy" for a in "xyz")
+
+
+def _model_at(prob: Problem, model: Columns, keep=()) -> Columns:
+    """``model`` with its baseline columns and its elements' offsets formed at ``prob``'s
+    linearisation (same names, priors and order); the other columns, and those named in
+    ``keep`` (baseline columns an effect replaced), as they are."""
+    fresh = stack(prob.baseline)
+    blk = sensor_offset(prob)
+    cols = dict(zip(fresh.names, np.moveaxis(fresh.J, -1, 0), strict=True))
+    cols.update(zip(blk.names, np.moveaxis(blk.J, -1, 0), strict=True))
+    J = model.J.copy()
+    for k, nm in enumerate(model.names):
+        if nm in cols and nm not in keep:
+            J[..., k] = cols[nm]
+    return replace(model, J=J)
+
+
+def _objective_of(prob: Problem, model: Columns, sigma, keep=()):
+    """MAP objective, model and fit of ``model`` formed at ``prob``'s linearisation, with the
+    noise ``sigma`` (n, 3) held (the same weights at every linearisation)."""
+    m = _model_at(prob, model, keep)
+    fit = fit_map(prob.y, sigma, m)
+    return fit.objective, m, fit
+
+
+def _offsets_of(model: Columns, fit) -> tuple[np.ndarray, np.ndarray]:
+    """Values and stds (um) of the elements' offsets a fit of ``model`` holds."""
+    idx = [k for k, nm in enumerate(model.names) if nm in OFFSET_NAMES]
+    return np.asarray(fit.theta[idx]), np.asarray(fit.std[idx])
+
+
+def relinearise_elements(prob: Problem, model: Columns, fit, sigma, keep=(), max_iter: int = 8,
+                         max_halvings: int = 6) -> Problem:  # fmt: skip
+    """The problem linearised at the Hall elements' offsets ``model`` fits (Gauss-Newton).
+
+    Each step moves the elements to the offsets the model fits at the current linearisation
+    (:func:`~cfm_fem.workflows.diagnose.elements.element_target`), with the model's structure
+    held: its columns of the baseline and of the offsets formed anew at each linearisation,
+    the other effects' as they are. The magnet's pose stays: the attribution moves it
+    (:func:`~cfm_fem.workflows.diagnose.workflow._attribute`), and a pose moved here would
+    change the offsets where the field is linear over them. A step that raises the MAP
+    objective is halved (``max_halvings`` times at most, then the iteration stops); the
+    iteration stops once every offset's step is below ``STEP_TOL`` of its std.
+
+    Where the field is linear over the offsets, the offsets and stds at the final
+    linearisation are those of ``fit`` (within ``STEP_TOL`` of their std): ``prob`` itself is
+    returned, so that the attribution need not be done again.
+
+    Parameters
+    ----------
+    prob : Problem
+        A Hall-map problem, linearised at ``prob.ctx.elements_at`` (None: zero offsets).
+    model : Columns
+        The selected model (the offsets' columns named ``d_<element>_<direction>``).
+    fit : Fit
+        Its fit at ``prob``.
+    sigma : ndarray, shape (n, 3)
+        The noise of that fit, held at every linearisation.
+    keep : iterable of str
+        Baseline columns an effect of the model replaced (``fringe_field_3d``): held as they
+        are.
+
+    Returns
+    -------
+    Problem
+        ``prob`` itself, or the same rows linearised at the elements' offsets the model
+        converges to (the pose unchanged).
+    """
+    target, moved = element_target(prob, model, fit)
+    if target is None or not moved:
+        return prob
+    curved = _curved_directions(prob, target, sigma)
+    if not curved.any():
+        return prob  # the field is linear over the offsets: the linear fit holds
+    theta0, std0 = _offsets_of(model, fit)
+    obj, m, f = fit.objective, model, fit
+    cur = prob
+    for _ in range(max_iter):
+        target, moved = element_target(cur, m, f, curved)
+        if not moved:
+            break
+        step = _element_step(cur, obj, target, model, sigma, keep, max_halvings)
+        if step is None:
+            break
+        cur, obj, m, f = step
+    if cur is prob:
+        return prob
+    theta, std = _offsets_of(m, f)
+    tol = ELEMENT_TOL * np.maximum(std0, 1e-12)
+    if np.all(np.abs(theta - theta0) <= tol) and np.all(np.abs(std - std0) <= tol):
+        return prob  # the linear fit holds: the field is linear over the offsets
+    return cur
+
+
+def _elements_at(prob: Problem) -> np.ndarray:
+    """The elements' offsets (3, 3) um ``prob`` is linearised at (zero: at the probe's
+    point)."""
+    now = prob.ctx.elements_at
+    return np.zeros((3, 3)) if now is None else np.asarray(now, dtype=float)
+
+
+def _curved_directions(prob: Problem, target, sigma) -> np.ndarray:
+    """The directions (3,) bool to linearise at: those ``prob`` is linearised along already,
+    and those along which the field curves over the offsets ``target`` (3, 3) um, their
+    departure from their linear term reaching ``STEP_TOL``
+    (:func:`~cfm_fem.workflows.diagnose.elements.curvature_chi2`). Along the others the
+    linear fit holds, and their offsets (which a later attribution may not fit again) stay
+    out of the linearisation. All of them where the departure is not known (a map read from
+    its nodes)."""
+    now = _elements_at(prob)
+    out = np.zeros(3, dtype=bool)
+    for j in range(3):
+        if np.any(now[:, j]):
+            out[j] = True
+            continue
+        at = now.copy()
+        at[:, j] = target[:, j]
+        chi2 = curvature_chi2(prob, at, sigma)
+        out[j] = chi2 is None or chi2 >= ELEMENT_TOL**2
+    return out
+
+
+def _element_step(prob: Problem, obj: float, at, model, sigma, keep, max_halvings: int):
+    """The problem relinearised at the elements' offsets ``at`` (3, 3) um with its objective,
+    model and fit, the step halved while it raises the MAP objective; None if it still does
+    after ``max_halvings`` halvings."""
+    at = np.asarray(at, dtype=float)
+    at0 = _elements_at(prob)
+    for _half in range(max_halvings + 1):
+        trial = repose(prob, prob.ctx.pose, elements_at=at)
+        obj_t, m_t, f_t = _objective_of(trial, model, sigma, keep)
+        if obj_t <= obj * (1.0 + 1e-9):
+            return trial, obj_t, m_t, f_t
+        at = 0.5 * (at0 + at)
+    return None

@@ -19,6 +19,7 @@ from . import effects as fx
 from .advice import advise
 from .calibrate import correlated_pairs, fit_map, identifiability, stack
 from .conflicts import prior_conflicts
+from .elements import elements_note, holds_offsets
 from .locate import isolated_planes, locate
 from .noise import estimate_noise, vibration_covariance
 from .priors import WIDE, bounds_for
@@ -29,6 +30,7 @@ from .register import (
     pose_step,
     register,
     registration_note,
+    relinearise_elements,
     repose,
 )
 from .select import cv_rms, select_effects, structural_absorption
@@ -472,18 +474,82 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
     """Steps 1-4 with the magnet's registration non-linear (a Hall map): the problem is
     linearised at the registration and the bench errors the baseline fits, and again at those
     the selected model fits (a released ``magnet_misalignment`` moves the pose; an effect the
-    baseline lacks moves both) until they stay put."""
+    baseline lacks moves both) until they stay put. Hall elements found displaced
+    (``sensor_offset``) are read where the selected model puts them
+    (:func:`~cfm_fem.workflows.diagnose.register.relinearise_elements`) when the field is not
+    linear over their offsets; should the offsets not be found again there (the offsets'
+    signature taken by the baseline at the elements' points), the problem and attribution
+    where it was found are kept, and the offsets Gauss-Newton moved the elements to are
+    returned as ``unheld``: the offsets that linearisation fits are not the readings' (they
+    are then reported as not determined, :func:`_offsets_not_held`)."""
     prob = register(prob)
-    for _ in range(max_refits + 1):
+    kept = None  # the problem and attribution before the elements were relinearised
+    unheld = None
+    refits = relinearised = 0
+    while True:
         a = _attribute_at(prob, o, progress)
-        if not applies(prob) or _ends_on_2d(prob, a.sel):
+        if kept is not None and not holds_offsets(prob, a.sel.model):
+            unheld = prob.ctx.elements_at
+            (prob, a), kept = kept, None
+            relinearised = max_refits  # the linearisation does not hold the effect
+        moved = _at_elements(prob, a) if relinearised < max_refits else prob
+        if moved is not prob:
+            kept = (prob, a)
+            prob = moved
+            relinearised += 1
+            continue
+        if refits == max_refits or not applies(prob) or _ends_on_2d(prob, a.sel):
             break
+        refits += 1
         pose, moved = pose_step(prob, a.sel.model, a.fit1)
         at, at_moved = bench_target(prob, a.sel.model, a.fit1)
         if not (moved or at_moved):
             break
         prob = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
+    a.unheld = unheld
     return a
+
+
+def _at_elements(prob: Problem, a) -> Problem:
+    """``prob`` linearised at the Hall elements' offsets the selected model fits, where the
+    field is not linear over them; else ``prob`` itself."""
+    if "sensor_offset" not in a.sel.selected and prob.ctx.elements_at is None:
+        return prob
+    keep = {n for c in a.sel.accepted if c.has_new and c.cols.replaces for n in c.cols.replaces}
+    return relinearise_elements(prob, a.sel.model, a.fit1, a.sel.sigma, keep)
+
+
+def _offsets_not_held(effects: list, unheld) -> str | None:
+    """The Hall elements' offsets reported as not determined when the linearisation at the
+    offsets the model fits does not hold the effect (``unheld``: those offsets, (3, 3) um;
+    None: it does, or was not needed), with the note saying why.
+
+    The offsets of the entry are those of the elements read at the probe's point, where the
+    field's change over them is not their gradient times them: Gauss-Newton moves them
+    elsewhere, and there the attribution does not fit them again (their signature at the
+    elements' points is the baseline's, or another direction's). Neither linearisation
+    states them with an uncertainty that holds: the effect stays found, its offsets are not
+    determined."""
+    entry = next((e for e in effects if e["name"] == "sensor_offset"), None)
+    if unheld is None or entry is None:
+        return None
+    fitted = ", ".join(f"{n} {v:.4g}" for n, v in entry["params"].items())
+    moved = ", ".join(
+        f"d_{e}_{c} {unheld[i][j]:.4g}"
+        for i, e in enumerate("xyz")
+        for j, c in enumerate("xyz")
+        if unheld[i][j]
+    )
+    entry["not_determined"] = list(entry["params"]) + list(entry["not_determined"])
+    entry["params"], entry["param_std"], entry["units"] = {}, {}, {}
+    entry["param_corr"] = None
+    entry.pop("linear_params", None)  # the linear fit's std does not hold either
+    return (
+        f"sensor_offset: the Hall elements' offsets fitted with the elements read at the probe's "
+        f"point ({fitted or 'none determined'}; um) are not the readings' offsets: read where "
+        f"the fit puts them, Gauss-Newton moves them ({moved}; um), where the attribution does "
+        "not fit them again; the offsets are reported as not determined"
+    )
 
 
 def _ends_on_2d(prob: Problem, sel) -> bool:
@@ -592,6 +658,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
     cv_b, _ = cv_rms(p, cal.sigma0, cal.base, sel.folds)
     cv_a, _ = cv_rms(p, sel.sigma, sel.model, sel.folds) if sel.selected else (cv_b, None)
     eff_out = _effects_out(p, sel, fit1, cal.base)
+    unheld_note = _offsets_not_held(eff_out, getattr(a, "unheld", None))
     cand_out = _candidate_table(sel, a.absorbed, a.absorption)
     implausible = [
         {"name": c["name"], "reason": c["reason"], "delta_bic": c["delta_bic"]}
@@ -636,7 +703,7 @@ def _diagnose(prob: Problem, progress=None, **opts) -> Diagnosis:
         "calibration": cal.calib,
         "thresholds": o,
         "kind": prob.kind,
-        "notes": p.notes + [n for n in [registration_note(p)] if n],
+        "notes": p.notes + [n for n in [registration_note(p), elements_note(p), unheld_note] if n],
     }
     dt = time.perf_counter() - t0
     summary["seconds"] = round(dt, 2)
