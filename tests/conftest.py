@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,10 @@ import pytest
 #: Real field-map files (``../shared/data`` beside the repository); tests that read them skip
 #: when the folder is absent.
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+# Every test fits its maps afresh (and leaves the user's cache alone); tests of the fits' cache
+# name a folder of their own.
+os.environ["CFM_FEM_FIT_CACHE"] = "off"
 
 
 def grid_nodes(n: int) -> np.ndarray:

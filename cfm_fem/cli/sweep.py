@@ -95,7 +95,9 @@ def add_args(p):
         "gradient (div B = curl B = 0) to its nearest nodes, right where the field bends (3-D "
         "maps; nodes where the fit shows Laplace's equation violated keep the linear model), or "
         "linear interpolation in the mesh's cells; auto (default): harmonic on a 3-D map, "
-        "linear on a planar one",
+        "linear on a planar one. A map's fits are kept for its next runs in the user's cache "
+        "folder (~/.cache/cfm_fem/fits; the environment variable CFM_FEM_FIT_CACHE names "
+        "another, or off for none)",
     )
     p.add_argument(
         "--outside",

@@ -18,8 +18,9 @@ import numpy as np
 import scipy.spatial
 
 from ..errors import CfmInputError
+from ..io.fit_cache import cached_fit
 from ..models.field import FieldMap
-from ..models.harmonic import HarmonicFit, fit_harmonic
+from ..models.harmonic import HarmonicFit
 from ..models.interpolation import LinearInterpolator
 from ..models.mc import symmetric_interval
 from ..models.probe import HallProbe
@@ -213,7 +214,7 @@ def scan_plan(fm, sampling, r_ref_mm, radius_mm, dz_mm, n_angles, notes):
 
 def _field_model(fm, field_model):
     if field_model == "harmonic":
-        fit = fit_harmonic(fm.points, fm.B, source=fm.source)
+        fit, _ = cached_fit(fm.points, fm.B, source=fm.source)
         lost = int((~fit.use).sum())
         return fit, (
             f"local harmonic model per node ({fit.k} nearest nodes, {lost} node(s) on the "

@@ -43,7 +43,8 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import CfmInputError
-from ...models.harmonic import fit_harmonic, neighbourhoods
+from ...io.fit_cache import cached_fit
+from ...models.harmonic import neighbourhoods
 from ...models.harmonic_basis import MAX_DEGREE, field_basis, monomial_exponents
 
 __all__ = [
@@ -199,7 +200,9 @@ class NodeExactHarmonic:
 
         from scipy.spatial import cKDTree
 
-        self.fit = fit_harmonic(fm.points, fm.B, source=fm.source, metric="grid", misfit_rel=np.inf)
+        self.fit, _ = cached_fit(
+            fm.points, fm.B, source=fm.source, metric="grid", misfit_rel=np.inf
+        )
         self.linear = linear
         self.spacing_mm = node_spacing_mm(fm.points)
         self.n_fallback = int((~self.fit.use).sum())

@@ -593,13 +593,23 @@ def _harmonic_fit(fm: FieldMap, cfg: SweepConfig, mesh: SimplexMesh):
                 "3-D map)"
             )
         return None
-    from ...models.harmonic import fit_harmonic
+    from ...io.fit_cache import cached_fit
 
-    fit = fit_harmonic(fm.points, fm.B, source=fm.source)
+    fit, cached = cached_fit(fm.points, fm.B, source=fm.source)
+    if cached is not None:
+        mesh.notes.append(fit_cache_note(len(fit.use), cached))
     n_lin = int((~fit.use).sum())
     if n_lin:
         mesh.notes.append(fallback_note(n_lin, len(fit.use), fit.fallback_rule))
     return fit
+
+
+def fit_cache_note(n: int, path) -> str:
+    """The note of harmonic fits of ``n`` nodes read from the cache file ``path``."""
+    return (
+        f"harmonic fits of the {n} nodes read from the cache ({path}; set CFM_FEM_FIT_CACHE=off "
+        "to fit afresh)"
+    )
 
 
 def fallback_note(n_linear: int, n: int, rule: str) -> str:
