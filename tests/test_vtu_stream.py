@@ -6,7 +6,7 @@ import pytest
 import pyvista as pv
 
 from cfm_fem.io.vtk import read_text_field, write_vtu
-from cfm_fem.io.vtu_stream import BLOCK, MeshBlock, write_mesh_vtu
+from cfm_fem.io.vtu_stream import BLOCK, EncodedArray, MeshBlock, write_mesh_vtu
 
 
 def _map(n_points, cells_per_point, rng):
@@ -61,3 +61,23 @@ def test_mesh_block_map_refuses_point_data_of_another_mesh_and_leaves_no_file(tm
     with pytest.raises(ValueError, match="rows"):
         write_mesh_vtu(tmp_path / "m.vtu", MeshBlock(pts[:40], cells % 40), data, fields)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_arrays_encoded_once_and_blocks_compressed_side_by_side_write_the_same_bytes(tmp_path):
+    """A map with its shared arrays pre-encoded (`EncodedArray`) and its mesh block's zlib
+    blocks compressed on threads is byte for byte the map written array by array."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(7)
+    pts, cells, data, fields = _map(3000, 5, rng)
+    write_mesh_vtu(tmp_path / "plain.vtu", MeshBlock(pts, cells), data, fields)
+    with ThreadPoolExecutor(3) as pool:
+        mesh = MeshBlock(pts, cells, pool)
+        shared = {k: EncodedArray(k, data[k], pool) for k in ("B_nominal_T", "grad")}
+    write_mesh_vtu(tmp_path / "shared.vtu", mesh, {k: shared.get(k, v) for k, v in data.items()},
+                   fields)  # fmt: skip
+    assert (tmp_path / "shared.vtu").read_bytes() == (tmp_path / "plain.vtu").read_bytes()
+    short = EncodedArray("grad", data["grad"][:-1])
+    with pytest.raises(ValueError, match="rows"):
+        write_mesh_vtu(tmp_path / "bad.vtu", mesh, {"grad": short}, fields)
+    assert not (tmp_path / "bad.vtu").exists()

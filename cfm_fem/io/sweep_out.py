@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numba
@@ -18,7 +19,7 @@ from .lock import locks_output
 from .paraview_script import write_paraview_script
 from .pvtu import GHOST_ARRAY, ghost_flags, write_pvtu
 from .vtk import read_text_field, write_pvd, write_vtu
-from .vtu_stream import MeshBlock, write_mesh_vtu
+from .vtu_stream import EncodedArray, MeshBlock, write_mesh_vtu
 
 __all__ = [
     "write_sweep",
@@ -53,36 +54,15 @@ def read_provenance(field_data) -> dict:
     return json.loads(read_text_field(field_data, "provenance"))
 
 
-def _point_data(res: SweepResult, k: int) -> dict:
-    """Per-node arrays for column ``k``; names say the quantity and the unit.
-
-    A statistic of the error is a node's figure only where every trial has a value
-    (``complete`` = 1); elsewhere (a node on the map's surface whose perturbed positions partly
-    left the map) the per-component statistics are NaN, and the |B| figures of the trials that
-    stayed inside are kept apart, under ``absB_*_inside_trials_units``.
-    """
-    st = res.stats[:, k]  # (n, 4, 6)
-    units = res.to_units
-    U95 = res.expanded_95(k)  # one column at a time: no map-sized temporaries per column
-    _, _, disagree = res.gum_check(k)
-    complete = res.complete()[:, k]
-    partial = ~complete & np.isfinite(st[:, 3, 1])  # truncated sample: not a U_f
-    absb = np.sqrt((res.fieldmap.B**2).sum(axis=1))
-    f32 = np.float32  # Monte Carlo noise is ~1e-2 relative: float32 loses nothing, halves the files
-
-    def only(mask, values):
-        return np.where(mask, values, np.nan).astype(f32)
-
+def _shared_values(res: SweepResult) -> dict:
+    """The point data that is the same in every map of a sweep: the nominal field, its
+    gradient, the nodes' volumes and what the field model is worth at each node."""
+    f32 = np.float32
+    n = len(res.fieldmap.B)
     data = {
         "B_nominal_T": res.fieldmap.B,
-        "absB_nominal_T": absb,
-        "grad_B_T_per_mm": res.gradient.reshape(len(absb), 9),
-        "U_f_units": only(complete, units(U95[:, 3])),
-        "absB_U95_inside_trials_units": only(partial, units(U95[:, 3])),
-        "absB_systematic_inside_trials_units": only(partial, units(st[:, 3, 0])),
-        "outside_fraction": (res.n_outside[:, k] / res.config.trials).astype(f32),
-        "walk_failed_fraction": (res.n_walk_failed[:, k] / res.config.trials).astype(f32),
-        "complete": complete.astype(np.uint8),
+        "absB_nominal_T": np.sqrt((res.fieldmap.B**2).sum(axis=1)),
+        "grad_B_T_per_mm": res.gradient.reshape(n, 9),
         "node_volume_mm3": res.node_volumes().astype(f32),
         "linear_in_up": res.linear_in_up.astype(np.uint8),
     }
@@ -90,7 +70,51 @@ def _point_data(res: SweepResult, k: int) -> dict:
         data["in_region"] = res.config.region.mask(res.fieldmap.points).astype(np.uint8)
     if res.field_fit is not None:  # harmonic model: what each node's fit is worth
         data["field_fit_degree"] = res.field_fit["degree"].astype(np.uint8)
-        data["field_fit_residual_units"] = units(res.field_fit["residual_T"]).astype(f32)
+        residual = res.to_units(res.field_fit["residual_T"])
+        data["field_fit_residual_units"] = residual.astype(f32)
+    return data
+
+
+def shared_point_data(res: SweepResult, pool=None) -> dict:
+    """The point data every map of a sweep holds alike (`_shared_values`), each array encoded
+    once (`cfm_fem.io.vtu_stream.EncodedArray`; ``pool`` compresses their blocks side by
+    side)."""
+    return {k: EncodedArray(k, v, pool) for k, v in _shared_values(res).items()}
+
+
+def _point_data(res: SweepResult, k: int, shared: dict | None = None) -> dict:
+    """Per-node arrays for column ``k``; names say the quantity and the unit.
+
+    A statistic of the error is a node's figure only where every trial has a value
+    (``complete`` = 1); elsewhere (a node on the map's surface whose perturbed positions partly
+    left the map) the per-component statistics are NaN, and the |B| figures of the trials that
+    stayed inside are kept apart, under ``absB_*_inside_trials_units``. ``shared``
+    (`shared_point_data`) holds the arrays every map has alike (computed here without it).
+    """
+    const = _shared_values(res) if shared is None else shared
+    st = res.stats[:, k]  # (n, 4, 6)
+    units = res.to_units
+    U95 = res.expanded_95(k)  # one column at a time: no map-sized temporaries per column
+    _, _, disagree = res.gum_check(k)
+    complete = res.complete()[:, k]
+    partial = ~complete & np.isfinite(st[:, 3, 1])  # truncated sample: not a U_f
+    f32 = np.float32  # Monte Carlo noise is ~1e-2 relative: float32 loses nothing, halves the files
+
+    def only(mask, values):
+        return np.where(mask, values, np.nan).astype(f32)
+
+    data = {name: const[name] for name in ("B_nominal_T", "absB_nominal_T", "grad_B_T_per_mm")}
+    data |= {
+        "U_f_units": only(complete, units(U95[:, 3])),
+        "absB_U95_inside_trials_units": only(partial, units(U95[:, 3])),
+        "absB_systematic_inside_trials_units": only(partial, units(st[:, 3, 0])),
+        "outside_fraction": (res.n_outside[:, k] / res.config.trials).astype(f32),
+        "walk_failed_fraction": (res.n_walk_failed[:, k] / res.config.trials).astype(f32),
+        "complete": complete.astype(np.uint8),
+    }
+    rest = ("node_volume_mm3", "linear_in_up", "in_region", "field_fit_degree",
+            "field_fit_residual_units")  # fmt: skip
+    data |= {name: const[name] for name in rest if name in const}
     if res.positioning is not None:
         data["positioning_mean_um"] = (res.positioning[:, k, 0] * 1e3).astype(f32)
         data["positioning_std_um"] = (res.positioning[:, k, 1] * 1e3).astype(f32)
@@ -196,20 +220,23 @@ def write_sweep(
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
-    mesh = MeshBlock(res.fieldmap.points, res.mesh.simplices)  # the same in every map
+    # zlib compresses without the GIL: maps side by side, as many as fit the budget
+    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
+    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
+    most = max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
+    # what every map holds alike is encoded once, its blocks compressed side by side
+    with ThreadPoolExecutor(max(1, min(writers or most, most))) as pool:
+        mesh = MeshBlock(res.fieldmap.points, res.mesh.simplices, pool)
+        shared = shared_point_data(res, pool)
 
     def write_map(k):
         path = out / vtu_name(res.labels[k])
         fields = map_field_data(
             ups[k], res.labels[k], res.b_ref_T, res.config, summary["provenance"]
         )
-        write_mesh_vtu(path, mesh, _point_data(res, k), fields)
+        write_mesh_vtu(path, mesh, _point_data(res, k, shared), fields)
         return (ups[k] if res.config.mode == "gauss" else float(k), path)
 
-    # zlib compresses without the GIL: maps side by side, as many as fit the budget
-    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
-    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
-    most = max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
     first = most if writers is None else max(1, min(writers, most))
     if widen_after is None:
         entries = map_threads(write_map, range(len(res.labels)), first)

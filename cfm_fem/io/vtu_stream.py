@@ -20,7 +20,7 @@ import numpy as np
 from ._atomic import atomic_path, check_free_space
 from .vtk import TEXT_SUFFIX, text_field
 
-__all__ = ["MeshBlock", "write_mesh_vtu"]
+__all__ = ["EncodedArray", "MeshBlock", "write_mesh_vtu"]
 
 #: Uncompressed bytes per zlib block (VTK's default).
 BLOCK = 1 << 15
@@ -38,14 +38,19 @@ _TYPES = {
 _TETRA, _TRIANGLE, _VERTEX = 10, 5, 1
 
 
-def _encoded(values: np.ndarray) -> bytes:
+def _encoded(values: np.ndarray, pool=None) -> bytes:
     """The base64 text of one array as VTK's zlib compressor writes it: a UInt32 header
     (blocks, block size, size of a partial last block, compressed size of each block) and the
     compressed blocks, each base64-encoded on its own. ``values`` is C-contiguous and
-    little-endian."""
+    little-endian; ``pool`` (an executor) compresses the blocks side by side (zlib releases
+    the GIL), with the same bytes."""
     raw = memoryview(values).cast("B")
     n = len(raw)
-    blocks = [zlib.compress(raw[i : i + BLOCK], LEVEL) for i in range(0, n, BLOCK)]
+    parts = [raw[i : i + BLOCK] for i in range(0, n, BLOCK)]
+    if pool is None:
+        blocks = [zlib.compress(b, LEVEL) for b in parts]
+    else:
+        blocks = list(pool.map(lambda b: zlib.compress(b, LEVEL), parts))
     header = np.array([len(blocks), BLOCK, n % BLOCK, *map(len, blocks)], dtype="<u4")
     return base64.b64encode(header.tobytes()) + base64.b64encode(b"".join(blocks))
 
@@ -62,8 +67,9 @@ def _range(values: np.ndarray) -> str:
     return f' RangeMin="{float(finite.min())!r}" RangeMax="{float(finite.max())!r}"'
 
 
-def _array(name: str, values, indent: str, count: str = "NumberOfComponents") -> bytes:
-    """One ``<DataArray>`` element of ``values`` (shape (n,) or (n, k)), encoded."""
+def _array(name: str, values, indent: str, count: str = "NumberOfComponents", pool=None) -> bytes:
+    """One ``<DataArray>`` element of ``values`` (shape (n,) or (n, k)), encoded (``pool``:
+    `_encoded`)."""
     a = np.ascontiguousarray(values)
     if a.dtype.byteorder == ">":
         a = a.astype(a.dtype.newbyteorder("<"))
@@ -78,7 +84,24 @@ def _array(name: str, values, indent: str, count: str = "NumberOfComponents") ->
         extra = f' NumberOfComponents="{a.shape[1]}"' if a.ndim > 1 and a.shape[1] > 1 else ""
     head = (f'{indent}<DataArray type="{kind}" Name={quoteattr(name)}{extra} format="binary"'
             f"{_range(a)}>\n{indent}  ")  # fmt: skip
-    return head.encode("ascii") + _encoded(a) + f"\n{indent}</DataArray>\n".encode("ascii")
+    return head.encode("ascii") + _encoded(a, pool) + f"\n{indent}</DataArray>\n".encode("ascii")
+
+
+class EncodedArray:
+    """A point-data array encoded once, for every map written on the same points.
+
+    Parameters
+    ----------
+    name : str
+    values : ndarray, shape (n,) or (n, k)
+    pool : concurrent.futures.Executor, optional
+        Compresses its blocks side by side.
+    """
+
+    def __init__(self, name: str, values, pool=None):
+        self.rows = len(values)
+        self.nbytes = np.asarray(values).nbytes
+        self.text = _array(name, values, "        ", pool=pool)
 
 
 class MeshBlock:
@@ -89,9 +112,11 @@ class MeshBlock:
     points : ndarray, shape (n, 3), mm
     cells : ndarray, shape (m, 4) or (m, 3), int, optional
         Tetrahedra or triangles; None: one vertex cell per point (a point cloud).
+    pool : concurrent.futures.Executor, optional
+        Compresses each array's blocks side by side (the same bytes).
     """
 
-    def __init__(self, points, cells=None):
+    def __init__(self, points, cells=None, pool=None):
         points = np.ascontiguousarray(points, dtype=np.float64)
         if cells is None:
             cells = np.arange(len(points))[:, None]
@@ -105,11 +130,11 @@ class MeshBlock:
         ind = "        "
         self.text = b"".join((
             b"      <Points>\n",
-            _array("Points", points, ind),
+            _array("Points", points, ind, pool=pool),
             b"      </Points>\n      <Cells>\n",
-            _array("connectivity", cells.astype(ids, copy=False).reshape(-1), ind),
-            _array("offsets", offsets, ind),
-            _array("types", np.full(self.n_cells, kind, dtype=np.uint8), ind),
+            _array("connectivity", cells.astype(ids, copy=False).reshape(-1), ind, pool=pool),
+            _array("offsets", offsets, ind, pool=pool),
+            _array("types", np.full(self.n_cells, kind, dtype=np.uint8), ind, pool=pool),
             b"      </Cells>\n",
         ))  # fmt: skip
 
@@ -121,9 +146,10 @@ def write_mesh_vtu(path, mesh: MeshBlock, point_data: dict, field_data: dict) ->
     ----------
     path : path-like
     mesh : MeshBlock
-    point_data : dict of str -> ndarray, shape (n,) or (n, k)
+    point_data : dict of str -> ndarray, shape (n,) or (n, k), or EncodedArray
         Arrays are written with their own dtype (float32 keeps large maps small); the first
-        is the map's active scalars, as pyvista makes it.
+        is the map's active scalars, as pyvista makes it. An `EncodedArray` (made under the
+        same name) is written as it was encoded.
     field_data : dict of str -> number or str
         As `cfm_fem.io.vtk.write_vtu`: a number is a Float64 array of one value, a string
         ``s`` under ``name`` the UTF-8 bytes of ``s`` under ``name_utf8``.
@@ -141,7 +167,8 @@ def write_mesh_vtu(path, mesh: MeshBlock, point_data: dict, field_data: dict) ->
         else:
             fields.append((name, np.atleast_1d(np.asarray(value, dtype=np.float64))))
     # base64 of zlib of data that barely compresses: 4/3 of the raw bytes and zlib's margin
-    raw = sum(np.asarray(v).nbytes for v in point_data.values())
+    raw = sum(v.nbytes if isinstance(v, EncodedArray) else np.asarray(v).nbytes
+              for v in point_data.values())  # fmt: skip
     check_free_space(Path(path).parent, int(raw * 1.34) + len(mesh.text) + (1 << 16),
                      Path(path).name)  # fmt: skip
     scalars = f" Scalars={quoteattr(next(iter(point_data)))}" if point_data else ""
@@ -158,10 +185,14 @@ def write_mesh_vtu(path, mesh: MeshBlock, point_data: dict, field_data: dict) ->
         f.write(f'    <Piece NumberOfPoints="{mesh.n_points}" NumberOfCells="{mesh.n_cells}">\n'
                 f"      <PointData{scalars}>\n".encode("ascii"))  # fmt: skip
         for name, values in point_data.items():
-            if len(values) != mesh.n_points:
-                raise ValueError(f"point data {name!r} has {len(values)} rows, not "
+            rows = values.rows if isinstance(values, EncodedArray) else len(values)
+            if rows != mesh.n_points:
+                raise ValueError(f"point data {name!r} has {rows} rows, not "
                                  f"{mesh.n_points}")  # fmt: skip
-            f.write(_array(name, values, "        "))
+            if isinstance(values, EncodedArray):
+                f.write(values.text)
+            else:
+                f.write(_array(name, values, "        "))
         f.write(b"      </PointData>\n      <CellData>\n      </CellData>\n")
         f.write(mesh.text)
         f.write(b"    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n")
