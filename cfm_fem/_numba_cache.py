@@ -15,7 +15,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["configure", "CACHE", "NOTE"]
+__all__ = ["configure", "user_cache_base", "CACHE", "NOTE"]
 
 #: Whether the kernels are compiled with ``cache=True`` (`cfm_fem._kernels.JIT`).
 CACHE = True
@@ -47,11 +47,17 @@ def _private(folder: Path) -> bool:
     return stat.S_ISDIR(st.st_mode) and own and not st.st_mode & 0o022 and _writable(folder)
 
 
-def _user_cache(env) -> Path | None:
+def user_cache_base(env) -> Path | None:
+    """The user's cache folder (``$XDG_CACHE_HOME``, else ``~/.cache``; None without either)."""
     base = env.get("XDG_CACHE_HOME") or (
         os.path.join(env["HOME"], ".cache") if env.get("HOME") else None
     )
-    return None if base is None else Path(base) / "numba"
+    return None if base is None else Path(base)
+
+
+def _user_cache(env) -> Path | None:
+    base = user_cache_base(env)
+    return None if base is None else base / "numba"
 
 
 def configure(package_dir=None, env=None, temp_dir=None) -> str | None:

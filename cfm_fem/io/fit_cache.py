@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._numba_cache import user_cache_base
 from ..models.harmonic import HarmonicFit, fit_harmonic
 from ._atomic import atomic_path
 
@@ -51,10 +52,8 @@ def cache_folder(env=None) -> Path | None:
     given = env.get(ENV)
     if given:
         return None if given.strip().lower() == "off" else Path(given)
-    base = env.get("XDG_CACHE_HOME") or (
-        os.path.join(env["HOME"], ".cache") if env.get("HOME") else None
-    )
-    return None if base is None else Path(base) / "cfm_fem" / "fits"
+    base = user_cache_base(env)
+    return None if base is None else base / "cfm_fem" / "fits"
 
 
 def _code_fingerprint() -> bytes:

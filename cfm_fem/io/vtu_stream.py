@@ -189,10 +189,8 @@ def write_mesh_vtu(path, mesh: MeshBlock, point_data: dict, field_data: dict) ->
             if rows != mesh.n_points:
                 raise ValueError(f"point data {name!r} has {rows} rows, not "
                                  f"{mesh.n_points}")  # fmt: skip
-            if isinstance(values, EncodedArray):
-                f.write(values.text)
-            else:
-                f.write(_array(name, values, "        "))
+            encoded = values if isinstance(values, EncodedArray) else EncodedArray(name, values)
+            f.write(encoded.text)
         f.write(b"      </PointData>\n      <CellData>\n      </CellData>\n")
         f.write(mesh.text)
         f.write(b"    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n")
