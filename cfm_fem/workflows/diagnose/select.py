@@ -43,6 +43,7 @@ without it a further effect whose columns share its structure would pass every t
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +63,7 @@ __all__ = [
     "structural_absorption",
     "implausible_reason",
     "family_weights",
+    "function_options",
     "model_average",
     "reference_explains",
 ]
@@ -92,6 +94,7 @@ class Candidate:
     has_new: bool = True
     reason: str = ""
     family: str | None = None
+    functions: list = field(default_factory=list)
     alternatives: list = field(default_factory=list)
     family_block: Columns | None = None
     averaged: dict | None = None
@@ -528,57 +531,112 @@ def reference_explains(prob, sigma, trial: Columns, fit: Fit, blk: Columns) -> f
     return float(max(theta @ Ci @ theta - left @ Ci @ left, 0.0))
 
 
-def _screen(sigma, model, current, J):
-    """Drop of the MAP objective when columns ``J`` (n, 3, k) join ``model`` (vague priors on
-    them), from the current fit alone: g' (W'W - W'QQ'W)^-1 g with W the whitened columns, Q an
-    orthonormal basis of the whitened, prior-augmented model and g = W' r (the current
-    whitened residual r is orthogonal to Q)."""
+def _screen_gram(sigma, model, current, J):
+    """Screening of columns ``J`` (n, 3, k) joining ``model`` (vague priors on them), from the
+    current fit alone: the drop of the MAP objective when a subset S of them joins is
+    g_S' M_SS^-1 g_S, with W the whitened columns, Q an orthonormal basis of the whitened,
+    prior-augmented model, M = W'W - W'QQ'W and g = W' r (the current whitened residual r is
+    orthogonal to Q). Returns ``(M, g)``, shapes (k, k) and (k,)."""
     W = (J / sigma[..., None]).reshape(-1, J.shape[-1])
     r = (current.resid / sigma).reshape(-1)
     ok = np.isfinite(r)
     W, r = W[ok], r[ok]
     QW = current.q_data[ok].T @ W if current.q_data is not None else np.zeros((0, W.shape[1]))
-    M = W.T @ W - QW.T @ QW
-    g = W.T @ r
+    return W.T @ W - QW.T @ QW, W.T @ r
+
+
+def _screened_drop(M, g, idx) -> float:
+    """Drop of the objective when the columns ``idx`` join (:func:`_screen_gram`)."""
+    Ms, gs = M[np.ix_(idx, idx)], g[idx]
     try:
-        return float(g @ np.linalg.lstsq(M, g, rcond=1e-10)[0])
+        return float(gs @ np.linalg.lstsq(Ms, gs, rcond=1e-10)[0])
     except np.linalg.LinAlgError:
         return 0.0
 
 
-def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n):
+def function_options(families) -> list:
+    """The ways an effect made of several error functions can be present: each function alone,
+    then each pair of functions (an effect spread over two of them: a tilt about two axes, an
+    offset along two), without a pair that one function already is (a quadratic profile with
+    its own linear term).
+
+    Parameters
+    ----------
+    families : list of (str, list of int)
+
+    Returns
+    -------
+    list of (labels, idx, stage)
+        ``labels`` the functions' labels (one or two), ``idx`` their columns, ``stage`` 1 for
+        single functions and 2 for pairs.
+    """
+    out = [([label], list(idx), 1) for label, idx in families]
+    seen = {frozenset(idx) for _, idx in families}
+    for (la, ia), (lb, ib) in itertools.combinations(families, 2):
+        idx = sorted(set(ia) | set(ib))
+        key = frozenset(idx)
+        if key in seen:
+            continue
+        seen.add(key)
+        out.append(([la, lb], idx, 2))
+    return out
+
+
+def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, log_n,
+                    min_survival=0.0):  # fmt: skip
     """Evidence of a candidate; an effect made of several error functions (``families``) is
-    the best of its functions tested one by one, corrected for the choice among them. The
-    functions are ranked by the drop of the objective each gives on its own (one projection
-    each), and the best is evaluated in full."""
+    the best of its functions, alone or in pairs (:func:`function_options`), corrected for the
+    choice among them: Bonferroni within each of the two stages (singles, pairs) and over the
+    two, and the same choice as a prior in the BIC (2 ln of the options of the stage, twice).
+    The options are ranked by the drop of the objective each gives (one projection each, less
+    k ln n), and the best is evaluated in full. A pair whose fitted signature the current model
+    reproduces (survival below ``min_survival``: its second function is the baseline's) gives
+    way to the better of its two functions alone."""
     if not blk.families:
         return _evaluate(prob, sigma, model, current, blk, name, alpha=alpha, bic_min=bic_min,
                          log_n=log_n)  # fmt: skip
-    m = len(blk.families)
+    options = function_options(blk.families)
+    stages = {st: sum(1 for o in options if o[2] == st) for st in (1, 2)}
+    per_stage = 2.0 if stages[2] else 1.0
     if current.q_data is None:
         current.q_data = _model_basis(sigma, model)
-    score = [
-        _screen(sigma, model, current, blk.J[..., idx]) - len(idx) * log_n
-        for _, idx in blk.families
-    ]
-    label, idx = blk.families[int(np.argmax(score))]
-    sub = blk.subset(idx)
-    sub.families = None
-    sub.multiplicity = blk.multiplicity * m
-    c = _evaluate(prob, sigma, model, current, sub, name, alpha=alpha, bic_min=bic_min,
-                  log_n=log_n)  # fmt: skip
-    if c is not None:
-        c.family = label
+    M, g = _screen_gram(sigma, model, current, blk.J)
+    score = np.array([
+        _screened_drop(M, g, idx) - len(idx) * log_n - 2.0 * np.log(stages[st])
+        for _, idx, st in options
+    ])  # fmt: skip
+
+    def evaluated(i):
+        labels, idx, st = options[i]
+        sub = blk.subset(idx)
+        sub.families = None
+        sub.multiplicity = blk.multiplicity * per_stage * stages[st]
+        c = _evaluate(prob, sigma, model, current, sub, name, alpha=alpha, bic_min=bic_min,
+                      log_n=log_n)  # fmt: skip
+        if c is None:
+            return None
+        c.family = "+".join(labels)
+        c.functions = list(labels)
         w = family_weights(score)
         # other functions, not the chosen one's own order (its linear term with or without the
         # quadratic, an offset drift with or without the scale drift): the BIC chose that order
         c.alternatives = [
-            (blk.families[i][0], list(blk.families[i][1]), float(w[i]))
-            for i in np.argsort(-w, kind="stable")
-            if w[i] >= ALT_MIN_WEIGHT and (list(blk.families[i][1]) == list(idx)
-                                           or not set(blk.families[i][1]) & set(idx))
+            ("+".join(lb), ix, float(w[j]))
+            for j in np.argsort(-w, kind="stable")
+            for lb, ix, _ in [options[j]]
+            if w[j] >= ALT_MIN_WEIGHT and (ix == idx or not set(ix) & set(idx))
         ]  # fmt: skip
         c.family_block = blk
+        return c
+
+    best = int(np.argmax(score))
+    c = evaluated(best)
+    if options[best][2] == 2 and c is not None and c.has_new and c.survival < min_survival:
+        # the pair's part the baseline does not reproduce: the better of its functions alone
+        inside = [
+            i for i, o in enumerate(options) if o[2] == 1 and set(o[1]) <= set(options[best][1])
+        ]
+        c = evaluated(max(inside, key=score.__getitem__))
     return c
 
 
@@ -768,7 +826,8 @@ def select_effects(
             if name in done:
                 continue
             c = _evaluate_block(prob, sigma, model, current, blk, name, alpha=alpha,
-                                bic_min=bic_min, log_n=log_n)  # fmt: skip
+                                bic_min=bic_min, log_n=log_n,
+                                min_survival=min_survival)  # fmt: skip
             if progress:
                 progress(1)
             if c is None:
@@ -815,11 +874,12 @@ def select_effects(
         accepted_c.append(accepted)
         blk = blocks[accepted.name]
         if accepted.family is not None:  # the effect's other functions stay candidates
-            rest = sorted({k for lb, idx in blk.families if lb != accepted.family for k in idx})
+            used = set(accepted.functions)
+            rest = sorted({k for lb, idx in blk.families if lb not in used for k in idx})
             blocks[accepted.name] = blk.subset(rest) if rest else blk
             if rest:
                 blocks[accepted.name].families = [
-                    f for f in blocks[accepted.name].families if f[0] != accepted.family
+                    f for f in blocks[accepted.name].families if f[0] not in used
                 ]
         if accepted.family is None or not rest:
             done.add(accepted.name)

@@ -263,7 +263,7 @@ def _effect_entry(cands, model, fit1, base, sigma, noise=None) -> dict:
         "cv_z": min((c.cv_z for c in cands if c.cv_z is not None), default=None),
         "description": fx.DESCRIPTION[c0.name],
     }
-    fams = [c.family for c in cands if c.family is not None]
+    fams = [f for c in cands for f in c.functions]
     if fams:
         e["functions"] = fams
     _averaged(e, cands)

@@ -1,0 +1,33 @@
+"""An effect made of several error functions is tested one function at a time and in pairs."""
+
+from __future__ import annotations
+
+from test_diagnose_effects import run_hall
+
+from cfm_fem.workflows.diagnose.select import function_options
+
+
+def test_options_are_the_functions_then_their_pairs_without_repeats():
+    fams = [("a", [0]), ("b", [1]), ("ab", [0, 1]), ("c", [2])]
+    opts = function_options(fams)
+    assert [(lb, idx, st) for lb, idx, st in opts[:4]] == [
+        (["a"], [0], 1),
+        (["b"], [1], 1),
+        (["ab"], [0, 1], 1),
+        (["c"], [2], 1),
+    ]
+    pairs = {tuple(lb): idx for lb, idx, st in opts if st == 2}
+    # a + b is the function ab already, and a or b with ab adds nothing to it
+    assert pairs == {("a", "c"): [0, 2], ("b", "c"): [1, 2], ("ab", "c"): [0, 1, 2]}
+
+
+def test_a_tilt_about_two_axes_is_reported_whole():
+    """Each axis alone falls short of the evidence asked; the two together pass, and the
+    effect is reported with both tilts, each within three standard uncertainties."""
+    truth = {"m_zx": 0.03, "m_zy": -0.03}
+    s, _ = run_hall({"probe_misalignment": truth})
+    first = s["effects"][0]
+    assert first["name"] == "probe_misalignment", s["candidates"]
+    assert sorted(first["functions"]) == ["m_zx", "m_zy"]
+    for p, v in truth.items():
+        assert abs(first["params"][p] - v) < 3.0 * first["param_std"][p], (p, first["params"])
