@@ -1,7 +1,8 @@
 """The family's stated significance is that of the concealed effect in the recording: the
 noiseless recording with the effect less the one without, both of the configuration actually
 recorded (the magnet at its surveyed pose, the tracker's registration applied), whitened by the
-reading std and projected off the nuisances and the neighbours."""
+reading std (with a coarse reference's reading error shared by each point's readings) and
+projected off the nuisances and the neighbours."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 
 from cfm_fem.simulation import family as F
 from cfm_fem.simulation import family_hall as FH
+from cfm_fem.simulation import family_reference as FR
 from cfm_fem.simulation import family_tracker as FT
 from cfm_fem.simulation import significance
 
@@ -20,6 +22,16 @@ def _quiet(ctx):
     """The recording's context without what is drawn afresh at each reading (the axes'
     vibration and reading error, the white noise): the recorded configuration itself."""
     return ctx | {"vib": np.zeros_like(ctx["vib"]), "noise": np.zeros_like(ctx["noise"])}
+
+
+def _whitening_std(cfg, ctx, grad):
+    """The reading std of a Hall case with a coarse reference's reading error shared by the
+    readings of each point (the cubic reader's error of the coarse table)."""
+    sigma = FH.noise_std(cfg, ctx, grad)
+    if cfg["reference"] != "coarse":
+        return sigma
+    error = FR.reading_error(cfg, FR.table(cfg))
+    return significance.shared_error_std(sigma, ctx["scan"].point, error)
 
 
 def _case(seed, tmp_path, kind, size="small"):
@@ -75,7 +87,7 @@ def test_hall_stated_significance_is_that_of_the_recording(seed, effect, tmp_pat
     quiet = _quiet(ctx)
     signal = FH.forward(cfg, quiet, truth["effects"]) - FH.forward(cfg, quiet, {})
     grad = FH.gradient(cfg, ctx)
-    sigma = FH.noise_std(cfg, ctx, grad)
+    sigma = _whitening_std(cfg, ctx, grad)
     base = FH.forward(cfg, ctx, {}, noisy=False)
     others = FH.signatures(cfg, ctx, F._neighbour_names(cfg, effect), base=base, grad=grad)
     if effect != "sensor_offset":
@@ -107,7 +119,7 @@ def test_magnet_misalignment_is_sized_on_the_recorded_pose(seed, tmp_path):
     # the truth a diagnosis is scored against is the recorded pose
     assert truth["params"][p] == pytest.approx(total, rel=1e-12)
     grad = FH.gradient(cfg, ctx)
-    sigma = FH.noise_std(cfg, ctx, grad)
+    sigma = _whitening_std(cfg, ctx, grad)
     base = FH.forward(cfg, ctx, {}, noisy=False)
     names = [*F._neighbour_names(cfg, "magnet_misalignment"), ("magnet_misalignment", p)]
     sigs = FH.signatures(cfg, ctx, names, base=base, grad=grad)

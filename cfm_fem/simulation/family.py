@@ -11,12 +11,24 @@ A case of the family is a Hall map or a laser-tracker recording of a drawn confi
   3 to 10 repetitions (:mod:`.scans`);
 * the noise: Hall probe 0.5 to 20 uT, tracker 1 to 8 um (log-uniform);
 * the reference given to a Hall diagnosis: the exact field on a grid through the map's points,
-  an FEM-like coarser grid, or 2-D harmonics (body-only scans, and the soft-ends case);
+  an FEM-like coarser grid, or 2-D harmonics (body-only scans, and the soft-ends case)
+  (:mod:`.family_reference`);
 * the role: a null (nothing concealed) or one catalogued effect whose size is drawn so that its
-  joint significance against its neighbours is a drawn 5 to 8 sigma (:mod:`.significance`).
+  joint significance against its neighbours and nuisances is a drawn 5 to 8 sigma
+  (:mod:`.significance`), each reading whitened by its own std and, against a coarse map, by
+  the map's error where a cubic reader reads it between its nodes, shared by the point's
+  repetitions (:func:`.family_reference.reading_error`).
 
-Every label (``strata``), the whole configuration and the drawn significance go into the truth
-file, so a case can be replayed from its seed and role.
+A size beyond :data:`CAPS` is drawn again along another direction, then for another effect;
+for an effect of :data:`PHYSICAL` (the magnet's temperature coefficient, at most 2000 ppm/K)
+the case draws another configuration for the same effect instead, from a seed derived from the
+case's seed and the attempt (:func:`_drawn_case`).
+
+Every label (``strata``), the whole configuration (``config["seed"]``: the seed it was drawn
+from), the number of configurations drawn (``attempts``) and the drawn significance
+(``sigma_drawn``; ``sigma_noise_only`` without the reference's error and
+``reference_error_rms``, uT) go into the truth file, so a case can be replayed from its seed
+and role.
 """
 
 from __future__ import annotations
@@ -27,6 +39,7 @@ import numpy as np
 
 from . import benches, magnets, output, scans, significance
 from . import family_hall as FH
+from . import family_reference as FR
 from . import family_tracker as FT
 
 __all__ = ["draw_config", "write_family_case", "HALL_EFFECTS", "TRACKER_EFFECTS", "SIGMA_RANGE"]
@@ -51,14 +64,17 @@ TRACKER_EFFECTS = (
     "parameter_bias",
     "step_event",
 )
-#: Largest plausible size of a parameter (display units); a draw beyond is redrawn.
+#: Largest plausible size of a parameter (display units); a draw beyond is redrawn (another
+#: direction, then another effect; for the effects of :data:`PHYSICAL`, another configuration).
 CAPS = {
     "probe_misalignment": 50.0,
     "sensor_offset": 2000.0,
     "magnet_misalignment": 3000.0,
     "planar_hall": 1.0,
     "hall_offset_gain": 1000.0,
-    "magnet_temperature": 5000.0,
+    # beta, ppm/K: ferrite's -0.19 %/K is the largest remanence coefficient of common magnet
+    # materials (NdFeB about -0.12 %/K, SmCo -0.03 %/K)
+    "magnet_temperature": 2000.0,
     "sensor_volume_averaging": 25.0,
     "thermal_drift": 50.0,
     "reversal": 100.0,
@@ -83,6 +99,13 @@ ONE_PARAM = (
     "magnet_temperature",
     "reading_delay",
 )
+#: Effects whose cap is a physical range of the hardware: a configuration on which the drawn
+#: significance needs more is not a physical one, so the case draws another configuration for
+#: the same effect (:func:`_attempt_seed`) rather than conceal another effect.
+PHYSICAL = ("magnet_temperature",)
+#: Configurations a case draws at most for an effect of :data:`PHYSICAL`; the last one then
+#: conceals the next effect of its fallback list that fits within the caps.
+MAX_ATTEMPTS = 20
 POSITIVE = ("reversal", "reading_delay", "arm_deflection", "sensor_volume_averaging")
 PRIOR_RELEASE = ("magnet_misalignment", "parameter_bias")
 
@@ -182,7 +205,9 @@ def _tracker_config(rng, cfg, size):
     }
 
 
-def draw_config(seed: int, size: str = "small", role: str | None = None, kind=None) -> dict:
+def draw_config(
+    seed: int, size: str = "small", role: str | None = None, kind=None, *, effect=None
+) -> dict:
     """The configuration of a family case, all from ``seed``.
 
     Parameters
@@ -195,6 +220,10 @@ def draw_config(seed: int, size: str = "small", role: str | None = None, kind=No
         Drawn from the seed (half each) when not given.
     kind : {'hall', 'tracker'}, optional
         Drawn from the seed (Hall 70 %) when not given.
+    effect : str, optional
+        The effect of an effect case, in place of the one drawn from the seed (which is
+        drawn all the same, so the other draws stay those of the seed); one of
+        :func:`effect_pool` of the configuration.
 
     Returns
     -------
@@ -215,7 +244,10 @@ def draw_config(seed: int, size: str = "small", role: str | None = None, kind=No
     cfg["effect"] = None
     if role == "effect":
         pool = effect_pool(cfg)
-        cfg["effect"] = str(rng.choice(pool))
+        drawn = str(rng.choice(pool))
+        cfg["effect"] = drawn if effect is None else str(effect)
+        if cfg["effect"] not in pool:
+            raise ValueError(f"effect {effect!r} is not one of this configuration's {pool}")
         rest = [e for e in pool if e != cfg["effect"]]
         cfg["fallback"] = [str(e) for e in rng.permutation(rest)]
         if cfg["effect"] == "fringe_field_3d":
@@ -273,19 +305,43 @@ def _relative_offsets(sig: dict) -> None:
                 sig[key] = sig[key] - z
 
 
-def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
+def _draw_effect(cfg, ctx, rng, base, grad, sigmas) -> tuple:
     """The concealed effect's parameters and its significance record.
 
-    ``base``, ``grad`` and ``sigma`` are the noiseless readings, field gradient and reading
-    std of the configuration as recorded (for a Hall map the magnet at its surveyed pose;
-    :func:`.family_hall.forward`), so the effect is sized on the data it is concealed in.
+    Parameters
+    ----------
+    cfg, ctx : dict
+        The configuration and its draws (:func:`.family_hall.context` or
+        :func:`.family_tracker.context`); ``cfg["effect"]`` is the effect to conceal.
+    rng : numpy.random.Generator
+        The stream of the effect's target, parameters and direction.
+    base : ndarray, shape (n, 3)
+        The noiseless readings of the configuration as recorded (T or mm; for a Hall map the
+        magnet at its surveyed pose, :func:`.family_hall.forward`), so the effect is sized on
+        the data it is concealed in.
+    grad : ndarray, shape (n, 3, 3) or None
+        The field gradient (T/mm) of a Hall map (:func:`.family_hall.gradient`).
+    sigmas : tuple of ndarray, shape (n, 3)
+        The readings' own std (``noise``) and their whitening std with the reference's error
+        shared by the readings of each point (``total``, :func:`.significance.shared_error_std`;
+        ``noise`` itself without a coarse reference), in the units of ``base``.
 
-    The record holds the target and drawn significance (``sigma_target``, ``sigma_drawn``),
-    ``kept``, ``z_per_unit``, ``direction`` and the neighbours and nuisances; for a
-    ``magnet_misalignment`` also ``survey_draw`` (the survey's draw of its parameter, um or
-    urad) and ``total_departure`` (the survey draw plus the concealed value: the recorded
-    pose's departure from the nominal one, which the drawn significance sizes)."""
+    Returns
+    -------
+    effects : dict or None
+        ``{effect: {param: value}}`` (display units), None when no draw fits.
+    record : dict
+        The target and drawn significance (``sigma_target``, ``sigma_drawn``: against
+        ``total``, the reference's error included), ``sigma_noise_only`` (the same values
+        against ``noise``), ``kept``, ``z_per_unit`` (against ``total``), ``direction`` and the
+        neighbours and nuisances; for a ``magnet_misalignment`` also ``survey_draw`` (the
+        survey's draw of its parameter, um or urad) and ``total_departure`` (the survey draw
+        plus the concealed value: the recorded pose's departure from the nominal one, which
+        the drawn significance sizes). A failed draw holds ``beyond_cap``: whether a direction
+        separable from the neighbours needed a size beyond :data:`CAPS`.
+    """
     effect = cfg["effect"]
+    noise, total = sigmas
     sim = FH if cfg["kind"] == "hall" else FT
     others = _neighbour_names(cfg, effect)
     sig_o = sim.signatures(cfg, ctx, others, base=base, grad=grad)
@@ -299,12 +355,14 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
         "neighbours": sorted({e for e, _ in sig_o if e not in ("bench", "pose", "gain")}),
         "nuisances": sorted({e for e, _ in sig_o if e in ("bench", "pose", "gain")}),
     }
-    if effect == "fringe_field_3d":
+    if effect == "fringe_field_3d":  # against 2-D harmonics: no reference error of a table
         ref = _harmonic_field(cfg, ctx)
-        z, kept = significance.per_unit(base - ref, vec_o, sigma)
-        record |= {"sigma_drawn": z, "kept": kept, "sized": "fixed by the magnet"}
+        z, kept = significance.per_unit(base - ref, vec_o, noise)
+        record |= {"sigma_drawn": z, "sigma_noise_only": z, "kept": kept}
+        record["sized"] = "fixed by the magnet"
         return ({effect: {}} if z >= SIGMA_RANGE[0] else None), record
     pool = DRAWN.get(effect, FH.PARAMS.get(effect) or FT.PARAMS.get(effect))
+    beyond = False
     for _ in range(8):
         k = min(1 if effect in ONE_PARAM else int(rng.integers(1, 3)), len(pool))
         params = [str(p) for p in rng.choice(pool, k, replace=False)]
@@ -314,14 +372,18 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
         sig = sim.signatures(cfg, ctx, [(effect, p) for p in params], base=base, grad=grad)
         s = sum(ui * sig[effect, p] for ui, p in zip(u, params, strict=True))
         vec = vec_o + [v for (e, p), v in sig_o.items() if e == "bench" and p not in params]
-        z1, kept = significance.per_unit(s, vec if effect == "parameter_bias" else vec_o, sigma)
+        vec = vec if effect == "parameter_bias" else vec_o
+        z1, kept = significance.per_unit(s, vec, total)
         if kept < 0.05 or z1 <= 0:
             continue
         values = _amplitudes(cfg, ctx, effect, params, u, z1, target)
         if values is None:
+            beyond = True
             continue
+        z1_noise = z1 if total is noise else significance.per_unit(s, vec, noise)[0]
         record |= {
             "sigma_drawn": target,
+            "sigma_noise_only": _noise_only(cfg, effect, params[0], target, (z1, z1_noise)),
             "kept": kept,
             "z_per_unit": z1,
             "direction": dict(zip(params, u.tolist(), strict=True)),
@@ -330,7 +392,49 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigma) -> tuple:
             drawn = float(ctx["survey"][FH.POSE.index(params[0])])
             record |= {"survey_draw": drawn, "total_departure": drawn + values[params[0]]}
         return {effect: values}, record
-    return None, record | {"sigma_drawn": None, "kept": None}
+    failed = {"sigma_drawn": None, "sigma_noise_only": None, "kept": None, "beyond_cap": beyond}
+    return None, record | failed
+
+
+def _release_prior(cfg, effect, param) -> tuple[float, float]:
+    """The prior (mean, std; display units) of a prior release's parameter: the survey's for
+    a ``magnet_misalignment`` (mean 0), the bench error's PDF for a ``parameter_bias``."""
+    if effect == "magnet_misalignment":
+        return 0.0, _prior_std(cfg, ("pose", param))
+    kind, a, b = cfg["bench"]["pdfs"][param]
+    return ((a + b) / 2 if kind == "uniform" else a), _prior_std(cfg, ("bench", param))
+
+
+def _noise_only(cfg, effect, param, target, z_per_unit) -> float:
+    """The significance of the drawn effect against the readings' own std alone.
+
+    Parameters
+    ----------
+    cfg : dict
+    effect : str
+    param : str
+        The first parameter drawn (the one of a prior release).
+    target : float
+        The drawn significance, with the reference's error.
+    z_per_unit : (float, float)
+        Significance per display unit along the drawn direction with the reference's error
+        and without it.
+
+    Returns
+    -------
+    float
+        ``target`` scaled by the ratio of the two per-unit significances; for a prior release,
+        the same excess beyond the prior (:func:`.significance.release_sigma`). Equal to
+        ``target`` when the two are equal (no reference error).
+    """
+    z1, z1_noise = z_per_unit
+    if z1_noise == z1:
+        return target
+    if effect in PRIOR_RELEASE:
+        prior = _release_prior(cfg, effect, param)[1]
+        excess = significance.excess_for(target, z1, prior)
+        return significance.release_sigma(excess, z1_noise, prior)
+    return float(target * z1_noise / z1)
 
 
 def _amplitudes(cfg, ctx, effect, params, u, z1, target):
@@ -347,7 +451,8 @@ def _amplitudes(cfg, ctx, effect, params, u, z1, target):
     u : ndarray, shape (len(params),)
         Unit direction of the effect along ``params``.
     z1 : float
-        Joint significance per unit amplitude along ``u`` (per display unit).
+        Joint significance per unit amplitude along ``u`` (per display unit), the reference's
+        error included.
     target : float
         The drawn significance.
 
@@ -365,15 +470,11 @@ def _amplitudes(cfg, ctx, effect, params, u, z1, target):
     """
     if effect in PRIOR_RELEASE:
         p = params[0]
-        if effect == "magnet_misalignment":
-            t_um, r_urad = cfg["bench"]["survey_std"]
-            prior = t_um if p.startswith("magnet_d") else r_urad
-            total = significance.excess_for(target, z1, prior) * np.sign(u[0])
-            value = float(total - ctx["survey"][FH.POSE.index(p)])
-            return None if abs(value) > CAPS[effect] else {p: value}
-        kind, a, b = cfg["bench"]["pdfs"][p]
-        mean, prior = ((a + b) / 2, (b - a) / np.sqrt(12)) if kind == "uniform" else (a, b)
+        mean, prior = _release_prior(cfg, effect, p)
         excess = significance.excess_for(target, z1, prior) * np.sign(u[0])
+        if effect == "magnet_misalignment":
+            value = float(excess - ctx["survey"][FH.POSE.index(p)])
+            return None if abs(value) > CAPS[effect] else {p: value}
         return None if abs(excess) > CAPS[effect] else {p: mean + excess}
     amp = target / z1
     if effect == "sensor_volume_averaging":  # the signature is per mm^2 of disc diameter
@@ -400,10 +501,28 @@ def _harmonic_field(cfg, ctx):
     return b * (1.0 + 1e-2 * ctx["gains"])
 
 
-def _reference(cfg, ctx, folder: Path, stem: str) -> Path:
-    """The reference file of a Hall case."""
+def _reference(cfg, ctx, folder: Path, stem: str, tab=None) -> Path:
+    """Write the reference file of a Hall case.
+
+    Parameters
+    ----------
+    cfg : dict
+        A Hall configuration; ``cfg["reference"]`` is ``"harmonics"`` (2-D multipoles at half
+        the bore radius) or a field table (:data:`.family_reference.TABLE_KINDS`).
+    ctx : dict or None
+        The configuration's draws (unused: the reference is that of the nominal magnet).
+    folder : Path
+    stem : str
+        The file's name less its suffix.
+    tab : tuple, optional
+        ``(axes, values)`` of :func:`.family_reference.table`, when already computed.
+
+    Returns
+    -------
+    Path
+        ``<stem>.harmonics.csv`` or ``<stem>.reference.csv`` (nodes in mm, field in T).
+    """
     spec = cfg["magnet"]
-    pts = scans.map_points(cfg["scan"])
     if cfg["reference"] == "harmonics":
         r_ref = 0.5 * spec["bore_mm"]
         return output.write_harmonics(
@@ -413,28 +532,13 @@ def _reference(cfg, ctx, folder: Path, stem: str) -> Path:
             [f"2-D multipoles of the simulated {cfg['strata']['magnet']} (z = 0)"],
             main=spec["order"],
         )
-
-    def axis(g, fine):
-        g = np.unique(np.round(g, 6))
-        if not fine:
-            lo, hi = g.min() - 2.0, g.max() + 2.0
-            step = max((hi - lo) / 8.0, 0.5) if len(g) > 1 or hi - lo > 4 else 1.0
-            return np.arange(lo, hi + 0.5 * step, step)
-        return np.unique(np.concatenate([g, g - 0.5, g + 0.5, [g.min() - 2.0, g.max() + 2.0]]))
-
+    axes, values = FR.table(cfg) if tab is None else tab
     fine = cfg["reference"] == "exact"
-    gx, gy = axis(pts[:, 0], fine), axis(pts[:, 1], fine)
-    if fine:
-        gz = axis(pts[:, 2], True)
-    else:
-        step = float(np.clip(spec["bore_mm"] / 4.0, 2.0, 5.0))
-        gz = np.arange(pts[:, 2].min() - 2.0 * step, pts[:, 2].max() + 2.5 * step, step)
-    nodes = np.stack(np.meshgrid(gx, gy, gz, indexing="ij"), -1).reshape(-1, 3)
     what = "exact field on a grid through the map's points" if fine else "coarse FEM-like grid"
     return output.write_reference_table(
         folder / f"{stem}.reference.csv",
-        nodes,
-        magnets.field(spec, nodes),
+        FR.nodes(axes),
+        values.reshape(-1, 3),
         [f"{what}, simulated {cfg['strata']['magnet']}"],
     )
 
@@ -468,46 +572,113 @@ def _null_harmonics_ok(cfg, ctx, base, grad, sigma) -> float:
     return significance.per_unit_prior(dep, list(sig.values()), sigma, prior)[0]
 
 
-def write_family_case(
-    seed: int, folder, size: str = "small", role=None, kind=None, replica: int = 0
-) -> dict:
-    """Simulate one family case and write its recording, truth, reference and bench file.
+def _attempt_seed(seed: int, attempt: int) -> int:
+    """The seed of a case's configuration at its ``attempt``-th draw (1: the case's seed).
 
-    ``replica`` k > 0 writes the same case with the readings' noise drawn afresh
-    (:func:`.common.reading_streams`); its files are named ``family_<seed>_r<k>``.
+    A later attempt's seed is derived from the case's seed and the attempt (53 bits, so the
+    truth's JSON keeps it exact): no other case's configuration is reused.
+    """
+    if attempt == 1:
+        return int(seed)
+    state = np.random.SeedSequence([20261129, int(seed), 2, int(attempt)]).generate_state(
+        1, np.uint64
+    )
+    return int(state[0] >> np.uint64(11))
+
+
+def _conceal(cfg, ctx, rng, base, grad, sigmas, redraw: bool) -> tuple:
+    """The concealed effect of an effect case: its own, else the first of its fallback list
+    that fits within the caps and is separable (:func:`_draw_effect`).
+
+    Parameters
+    ----------
+    cfg, ctx, rng, base, grad, sigmas
+        As :func:`_draw_effect`.
+    redraw : bool
+        Whether the case may draw another configuration: then a case's own effect of
+        :data:`PHYSICAL` that needs a size beyond its cap is not replaced.
 
     Returns
     -------
-    dict
-        ``recording``, ``truth``, ``reference`` (None for a tracker recording) and ``bench``
-        paths, ``kind``, ``expected`` (the effect or None) and the ``args`` of
-        ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
+    effects : dict or None
+        ``{effect: {param: value}}``, ``{}`` when no effect fits (the case is a null), None
+        when the configuration is to be redrawn.
+    record : dict
+        The significance record, with ``not_separable`` (the effects passed over).
     """
-    cfg = draw_config(seed, size, role, kind)
-    cfg["replica"] = int(replica)
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    tried = []
+    effects, record = None, {}
+    for name in [cfg["effect"], *cfg["fallback"]]:
+        cfg["effect"] = name
+        effects, record = _draw_effect(cfg, ctx, rng, base, grad, sigmas)
+        if effects is not None:
+            break
+        if redraw and not tried and name in PHYSICAL and record["beyond_cap"]:
+            return None, record
+        tried.append(name)  # not separable within the caps on this configuration
+    if effects is None:
+        effects, cfg["effect"] = {}, None
+        record["note"] = "no effect separable within the caps: the case is a null"
+    record["not_separable"] = tried
+    return effects, record
+
+
+def _reference_error(cfg: dict) -> tuple:
+    """The coarse reference table of a Hall case and its reading error at the map's points.
+
+    Returns
+    -------
+    table : tuple or None
+        ``(axes, values)`` of :func:`.family_reference.table` for a coarse reference (the
+        file's nodes and values), else None.
+    error : ndarray, shape (m, 3) or (1, 3), T
+        :func:`.family_reference.reading_error` at each of the map's points; zeros of shape
+        (1, 3) for another reference or a tracker recording.
+    """
+    if cfg["kind"] != "hall" or cfg["reference"] != "coarse":
+        return None, np.zeros((1, 3))
+    tab = FR.table(cfg)
+    return tab, FR.reading_error(cfg, tab)
+
+
+def _sized_case(cfg: dict, redraw: bool) -> dict | None:
+    """The draws of a configuration and its concealed effect, sized on them.
+
+    Parameters
+    ----------
+    cfg : dict
+        A configuration (:func:`draw_config`) with its ``replica``.
+    redraw : bool
+        Whether the case may draw another configuration (:func:`_conceal`).
+
+    Returns
+    -------
+    dict or None
+        ``cfg`` (its ``effect`` and ``reference`` as concealed and written), ``ctx``,
+        ``effects``, ``record`` (the significance record, with ``reference_error_rms``: the
+        rms over the map's points of the reference's reading error of each component, uT,
+        zero but for a coarse table) and ``table`` (the coarse reference table, else None).
+        None when the configuration cannot carry its effect within the effect's physical
+        range.
+    """
     hall = cfg["kind"] == "hall"
     sim = FH if hall else FT
     ctx = sim.context(cfg)
     base = sim.forward(cfg, ctx, {}, noisy=False)
     grad = FH.gradient(cfg, ctx) if hall else None
     sigma = FH.noise_std(cfg, ctx, grad) if hall else FT.noise_std(cfg, ctx)
-    rng = _rng(seed, 1)
+    tab, error = _reference_error(cfg)
+    total = significance.shared_error_std(sigma, ctx["scan"].point, error)
     effects, record = {}, None
     if cfg["effect"]:
-        tried = []
-        for name in [cfg["effect"], *cfg["fallback"]]:
-            cfg["effect"] = name
-            effects, record = _draw_effect(cfg, ctx, rng, base, grad, sigma)
-            if effects is not None:
-                break
-            tried.append(name)  # not separable within the caps on this configuration
+        rng = _rng(cfg["seed"], 1)
+        effects, record = _conceal(cfg, ctx, rng, base, grad, (sigma, total), redraw)
         if effects is None:
-            effects, cfg["effect"] = {}, None
-            record["note"] = "no effect separable within the caps: the case is a null"
-        record["not_separable"] = tried
-        if cfg["effect"] == "fringe_field_3d":
+            return None
+        # the soft ends are judged against the 2-D harmonics, which have no table's error
+        soft_ends = cfg["effect"] == "fringe_field_3d"
+        record["reference_error_rms"] = FR.error_rms_uT(np.zeros((1, 3)) if soft_ends else error)
+        if soft_ends:
             cfg["reference"] = cfg["strata"]["reference"] = "harmonics"
         elif (
             cfg.get("reference") == "harmonics"
@@ -519,6 +690,70 @@ def write_family_case(
         if z > 1.0:
             cfg["reference"] = cfg["strata"]["reference"] = "exact"
         record = {"body_vs_2d_sigma": z}
+    return {"cfg": cfg, "ctx": ctx, "effects": effects, "record": record, "table": tab}
+
+
+def _drawn_case(seed: int, size: str, role, kind, replica: int) -> dict:
+    """A case's configuration, draws and concealed effect, from its seed.
+
+    The first attempt is the configuration of ``seed`` (:func:`draw_config`). When the
+    case's effect is one of :data:`PHYSICAL` and its drawn significance needs a size beyond
+    the effect's cap on that configuration, the configuration is not a physical one: attempt
+    k draws the configuration of :func:`_attempt_seed` (seed, k) with the same role, kind and
+    effect, up to :data:`MAX_ATTEMPTS` (the last one conceals a fallback effect instead).
+
+    Returns
+    -------
+    dict
+        As :func:`_sized_case`, with ``attempts`` (1: the seed's own configuration).
+    """
+    cfg = draw_config(seed, size, role, kind)
+    effect = cfg["effect"]
+    for attempt in range(1, MAX_ATTEMPTS + 1):
+        if attempt > 1:
+            cfg = draw_config(
+                _attempt_seed(seed, attempt), size, cfg["role"], cfg["kind"], effect=effect
+            )
+        cfg["replica"] = int(replica)
+        case = _sized_case(cfg, redraw=attempt < MAX_ATTEMPTS)
+        if case is not None:
+            return case | {"attempts": attempt}
+    raise AssertionError("the last attempt conceals a fallback effect")  # not reached
+
+
+def write_family_case(
+    seed: int, folder, size: str = "small", role=None, kind=None, replica: int = 0
+) -> dict:
+    """Simulate one family case and write its recording, truth, reference and bench file.
+
+    Parameters
+    ----------
+    seed : int
+        The case's seed: its configuration (:func:`draw_config`), or, when the case's effect
+        needs a size beyond its physical range there, a configuration drawn from the seed and
+        an attempt counter (:func:`_drawn_case`; the truth's ``attempts`` and
+        ``config["seed"]``).
+    folder : str or Path
+    size : {'small', 'full'}
+    role : {'null', 'effect'}, optional
+    kind : {'hall', 'tracker'}, optional
+    replica : int
+        k > 0 writes the same case with the readings' noise drawn afresh
+        (:func:`.common.reading_streams`); its files are named ``family_<seed>_r<k>``.
+
+    Returns
+    -------
+    dict
+        ``recording``, ``truth``, ``reference`` (None for a tracker recording) and ``bench``
+        paths, ``kind``, ``expected`` (the effect or None) and the ``args`` of
+        ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
+    """
+    case = _drawn_case(seed, size, role, kind, replica)
+    cfg, ctx, effects = case["cfg"], case["ctx"], case["effects"]
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    hall = cfg["kind"] == "hall"
+    sim = FH if hall else FT
     cols = _columns(cfg, ctx, sim.forward(cfg, ctx, effects))
     stem = f"family_{seed}" + (f"_r{replica}" if replica else "")
     expected = cfg["effect"]
@@ -526,13 +761,14 @@ def write_family_case(
         "case": f"family_{cfg['kind']}",
         "seed": int(seed),
         "replica": int(replica),
+        "attempts": case["attempts"],
         "kind": cfg["kind"],
         "role": cfg["role"],
         "expected": expected,
         "effects": effects,
         "params": sim.truth_params(cfg, ctx, effects),
         "strata": cfg["strata"],
-        "significance": record,
+        "significance": case["record"],
         "config": cfg,
         "size": size,
         "n_reps": cfg["scan"]["n_reps"],
@@ -548,7 +784,7 @@ def write_family_case(
         folder / f"{stem}.bench.toml",
         benches.bench_toml(cfg["bench"], comment=f"family case {seed}"),
     )
-    ref = _reference(cfg, ctx, folder, stem) if hall else None
+    ref = _reference(cfg, ctx, folder, stem, case["table"]) if hall else None
     args = ["--hall-map", str(rec), "--reference", str(ref)] if hall else ["--tracker", str(rec)]
     return {
         "recording": rec,
