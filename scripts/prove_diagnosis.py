@@ -159,6 +159,7 @@ def run_family_one(job) -> dict:
             "kind": truth["kind"],
             "expected": truth["expected"], "strata": truth["strata"],
             "sigma": sig.get("sigma_drawn") if truth["expected"] else None,
+            "sigma_noise_only": sig.get("sigma_noise_only") if truth["expected"] else None,
             "seconds": seconds, "sim_seconds": t_sim}  # fmt: skip
     if code != 0:
         return base | {"error": err.strip()[-2000:]}
