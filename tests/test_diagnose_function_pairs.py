@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from test_diagnose_effects import run_hall
 
-from cfm_fem.workflows.diagnose.select import function_options
+from cfm_fem.workflows.diagnose.select import PAIR_MAX_FUNCTIONS, function_options
 
 
 def test_options_are_the_functions_then_their_pairs_without_repeats():
@@ -19,6 +19,11 @@ def test_options_are_the_functions_then_their_pairs_without_repeats():
     pairs = {tuple(lb): idx for lb, idx, st in opts if st == 2}
     # a + b is the function ab already, and a or b with ab adds nothing to it
     assert pairs == {("a", "c"): [0, 2], ("b", "c"): [1, 2], ("ab", "c"): [0, 1, 2]}
+
+
+def test_an_effect_of_many_functions_is_tested_one_function_at_a_time():
+    fams = [(f"f{i}", [i]) for i in range(PAIR_MAX_FUNCTIONS + 1)]
+    assert [st for _, _, st in function_options(fams)] == [1] * len(fams)
 
 
 def test_a_tilt_about_two_axes_is_reported_whole():

@@ -554,11 +554,20 @@ def _screened_drop(M, g, idx) -> float:
         return 0.0
 
 
+#: Most functions an effect may have for its functions to be tested in pairs as well
+#: (:func:`function_options`).
+PAIR_MAX_FUNCTIONS = 8
+
+
 def function_options(families) -> list:
     """The ways an effect made of several error functions can be present: each function alone,
     then each pair of functions (an effect spread over two of them: a tilt about two axes, an
     offset along two), without a pair that one function already is (a quadratic profile with
-    its own linear term).
+    its own linear term). An effect of more than :data:`PAIR_MAX_FUNCTIONS` functions (the 18
+    position-dependent errors at two orders, the drifts of each axis) is tested function by
+    function: its pairs would outnumber its functions many times over, and a pair of two
+    such functions can take the place of another effect (a bench's straightness and pitch
+    along one stroke against a reversal's backlash).
 
     Parameters
     ----------
@@ -571,6 +580,8 @@ def function_options(families) -> list:
         single functions and 2 for pairs.
     """
     out = [([label], list(idx), 1) for label, idx in families]
+    if len(families) > PAIR_MAX_FUNCTIONS:
+        return out
     seen = {frozenset(idx) for _, idx in families}
     for (la, ia), (lb, ib) in itertools.combinations(families, 2):
         idx = sorted(set(ia) | set(ib))
