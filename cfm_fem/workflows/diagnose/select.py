@@ -600,9 +600,10 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     choice among them: Bonferroni within each of the two stages (singles, pairs) and over the
     two, and the same choice as a prior in the BIC (2 ln of the options of the stage, twice).
     The options are ranked by the drop of the objective each gives (one projection each, less
-    k ln n), and the best is evaluated in full. A pair whose fitted signature the current model
-    reproduces (survival below ``min_survival``: its second function is the baseline's) gives
-    way to the better of its two functions alone."""
+    k ln n), and the best is evaluated in full. A pair is taken only where its score passes
+    its better function's by more than ``bic_min`` (the evidence a function must carry on its
+    own), and a pair whose fitted signature the current model reproduces (survival below
+    ``min_survival``: its second function is the baseline's) gives way to that function."""
     if not blk.families:
         return _evaluate(prob, sigma, model, current, blk, name, alpha=alpha, bic_min=bic_min,
                          log_n=log_n)  # fmt: skip
@@ -641,14 +642,20 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
         return c
 
     best = int(np.argmax(score))
+    if options[best][2] == 2:  # the second function must carry the evidence asked of a function
+        member = max(_members(options, best), key=score.__getitem__)
+        if score[best] - score[member] <= bic_min:
+            best = member
     c = evaluated(best)
     if options[best][2] == 2 and c is not None and c.has_new and c.survival < min_survival:
         # the pair's part the baseline does not reproduce: the better of its functions alone
-        inside = [
-            i for i, o in enumerate(options) if o[2] == 1 and set(o[1]) <= set(options[best][1])
-        ]
-        c = evaluated(max(inside, key=score.__getitem__))
+        c = evaluated(max(_members(options, best), key=score.__getitem__))
     return c
+
+
+def _members(options, pair) -> list:
+    """Indices of the single functions of a pair among ``options`` (:func:`function_options`)."""
+    return [i for i, o in enumerate(options) if o[2] == 1 and set(o[1]) <= set(options[pair][1])]
 
 
 #: Functions of an effect whose posterior weight (:func:`family_weights`) is at least this are
