@@ -77,15 +77,18 @@ def test_unevenly_placed_elements_are_reported_within_their_uncertainty(tmp_path
 
 @pytest.mark.slow
 def test_an_element_off_the_probe_centre_is_not_taken_for_the_magnet_offset(tmp_path):
-    """A solenoid's body on lines (family seed 29181): the x element sits 0.70 mm from the
-    others along z, so the elements' centroid is 0.23 mm off the probe's reference point. That
-    common shift moves the readings as the magnet's offset does; once the elements' offsets
-    are claimed it is theirs, and the magnet's offset along z is no test of the survey."""
+    """A solenoid's body on lines (family seed 29181, element offsets concealed): the y element
+    sits 0.86 mm from the others along z, so the elements' centroid is 0.29 mm off the probe's
+    reference point. That common shift moves the readings as the magnet's offset does; once
+    the elements' offsets are claimed it is theirs, and the magnet's offset along z is no test
+    of the survey."""
     pytest.importorskip("magpylib")
     from cfm_fem.cli import main
     from cfm_fem.simulation.family import write_family_case
 
-    files = write_family_case(29181, tmp_path / "sim", "small", role="effect")
+    files = write_family_case(
+        29181, tmp_path / "sim", "small", role="effect", effect="sensor_offset"
+    )
     out = tmp_path / "d"
     assert main(["diagnose", *files["args"], "--no-report", "--out", str(out)]) == 0
     summary = json.loads((out / "diagnosis.json").read_text())

@@ -693,7 +693,7 @@ def _sized_case(cfg: dict, redraw: bool) -> dict | None:
     return {"cfg": cfg, "ctx": ctx, "effects": effects, "record": record, "table": tab}
 
 
-def _drawn_case(seed: int, size: str, role, kind, replica: int) -> dict:
+def _drawn_case(seed: int, size: str, role, kind, replica: int, effect=None) -> dict:
     """A case's configuration, draws and concealed effect, from its seed.
 
     The first attempt is the configuration of ``seed`` (:func:`draw_config`). When the
@@ -707,7 +707,7 @@ def _drawn_case(seed: int, size: str, role, kind, replica: int) -> dict:
     dict
         As :func:`_sized_case`, with ``attempts`` (1: the seed's own configuration).
     """
-    cfg = draw_config(seed, size, role, kind)
+    cfg = draw_config(seed, size, role, kind, effect=effect)
     effect = cfg["effect"]
     for attempt in range(1, MAX_ATTEMPTS + 1):
         if attempt > 1:
@@ -722,7 +722,7 @@ def _drawn_case(seed: int, size: str, role, kind, replica: int) -> dict:
 
 
 def write_family_case(
-    seed: int, folder, size: str = "small", role=None, kind=None, replica: int = 0
+    seed: int, folder, size: str = "small", role=None, kind=None, replica: int = 0, effect=None
 ) -> dict:
     """Simulate one family case and write its recording, truth, reference and bench file.
 
@@ -740,6 +740,9 @@ def write_family_case(
     replica : int
         k > 0 writes the same case with the readings' noise drawn afresh
         (:func:`.common.reading_streams`); its files are named ``family_<seed>_r<k>``.
+    effect : str, optional
+        The effect to conceal instead of the seed's own draw (:func:`draw_config`), the
+        seed's other draws kept.
 
     Returns
     -------
@@ -748,7 +751,7 @@ def write_family_case(
         paths, ``kind``, ``expected`` (the effect or None) and the ``args`` of
         ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
     """
-    case = _drawn_case(seed, size, role, kind, replica)
+    case = _drawn_case(seed, size, role, kind, replica, effect)
     cfg, ctx, effects = case["cfg"], case["ctx"], case["effects"]
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
