@@ -598,7 +598,7 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     """Evidence of a candidate; an effect made of several error functions (``families``) is
     the best of its functions, alone or in pairs (:func:`function_options`), corrected for the
     choice among them: Bonferroni within each of the two stages (singles, pairs) and over the
-    two, and the same choice as a prior in the BIC (2 ln of the options of the stage, twice).
+    two, and in the BIC 2 ln of that factor.
     The options are ranked by the drop of the objective each gives (one projection each, less
     k ln n), and the best is evaluated in full. A pair is taken only where its score passes
     its better function's by more than ``bic_min`` (the evidence a function must carry on its
@@ -642,14 +642,13 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
         return c
 
     best = int(np.argmax(score))
-    if options[best][2] == 2:  # the second function must carry the evidence asked of a function
-        member = max(_members(options, best), key=score.__getitem__)
-        if score[best] - score[member] <= bic_min:
-            best = member
+    # a pair's better function alone (a single function is its own)
+    member = max(_members(options, best), key=score.__getitem__) if options[best][2] == 2 else best
+    if score[best] - score[member] <= bic_min:  # the second function carries too little
+        best = member
     c = evaluated(best)
-    if options[best][2] == 2 and c is not None and c.has_new and c.survival < min_survival:
-        # the pair's part the baseline does not reproduce: the better of its functions alone
-        c = evaluated(max(_members(options, best), key=score.__getitem__))
+    if best != member and c is not None and c.has_new and c.survival < min_survival:
+        c = evaluated(member)  # the pair's part the baseline does not reproduce
     return c
 
 
