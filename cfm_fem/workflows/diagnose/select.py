@@ -600,10 +600,12 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     choice among them: Bonferroni within each of the two stages (singles, pairs) and over the
     two, and in the BIC 2 ln of that factor.
     The options are ranked by the drop of the objective each gives (one projection each, less
-    k ln n), and the best is evaluated in full. A pair is taken only where its score passes
-    its better function's by more than ``bic_min`` (the evidence a function must carry on its
-    own), and a pair whose fitted signature the current model reproduces (survival below
-    ``min_survival``: its second function is the baseline's) gives way to that function."""
+    k ln n), and the best is evaluated in full. Where the pair's better function passes
+    ``bic_min`` alone, the pair is taken only where its score passes that function's by more
+    than ``bic_min`` (the evidence a function must carry on its own); where neither function
+    does, the pair is the effect's only evidence and is weighed whole. A pair whose fitted
+    signature the current model reproduces (survival below ``min_survival``: its second
+    function is the baseline's) gives way to that function."""
     if not blk.families:
         return _evaluate(prob, sigma, model, current, blk, name, alpha=alpha, bic_min=bic_min,
                          log_n=log_n)  # fmt: skip
@@ -644,7 +646,9 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     best = int(np.argmax(score))
     # a pair's better function alone (a single function is its own)
     member = max(_members(options, best), key=score.__getitem__) if options[best][2] == 2 else best
-    if score[best] - score[member] <= bic_min:  # the second function carries too little
+    # where the better function carries the effect on its own, the second must carry evidence
+    # of its own too; where neither does, the pair is the effect's only evidence
+    if score[member] > bic_min and score[best] - score[member] <= bic_min:
         best = member
     c = evaluated(best)
     if best != member and c is not None and c.has_new and c.survival < min_survival:
