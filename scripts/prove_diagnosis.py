@@ -70,7 +70,11 @@ from pathlib import Path  # noqa: E402
 
 from cfm_fem.simulation import CASES, write_case  # noqa: E402
 from cfm_fem.simulation.benches import STACKS, stack_label  # noqa: E402
-from cfm_fem.simulation.family import draw_config, write_family_case  # noqa: E402
+from cfm_fem.simulation.family import (  # noqa: E402
+    draw_config,
+    write_family_case,
+    written_config,
+)
 from cfm_fem.simulation.family_summary import (  # noqa: E402
     FAMILY_GOALS,
     markdown_family,
@@ -141,15 +145,73 @@ def family_jobs(n: int, first_seed: int, null_share: float) -> list:
     return [(first_seed + i, "null" if i < n_null else "effect") for i in range(n)]
 
 
+def family_filters(a) -> dict:
+    """The labels the ``--only-kind``, ``--only-reference``, ``--only-magnet`` and
+    ``--only-stack`` options ask of a family case's configuration: {label: allowed values}."""
+    filters = {}
+    if a.only_kind:
+        filters["kind"] = {a.only_kind}
+    if a.only_reference:
+        filters["reference"] = {a.only_reference}
+    for key, names in (("magnet", a.only_magnet), ("bench_stack", a.only_stack)):
+        if names:
+            filters[key] = set(names.split(","))
+    return filters
+
+
+def _labels(cfg) -> dict:
+    """A configuration's labels the filters read (the reference is None on a tracker)."""
+    strata = cfg["strata"]
+    return {"kind": cfg["kind"], "reference": cfg.get("reference"),
+            "magnet": strata["magnet"], "bench_stack": strata["bench_stack"]}  # fmt: skip
+
+
+def matches(cfg, filters: dict) -> bool:
+    """Whether a configuration (a case's as written: its truth's ``config``) has the labels
+    the filters ask."""
+    labels = _labels(cfg)
+    return all(labels[k] in allowed for k, allowed in filters.items())
+
+
+def may_match(cfg, filters: dict) -> bool:
+    """Whether a case of this first draw (:func:`draw_config`) is run: it has the labels the
+    filters ask, or, for an effect case, a reference of 2-D harmonics where the exact one is
+    asked (the family replaces harmonics the body departs from by the exact field).
+
+    The first draw is the configuration written but for an effect case the family redraws
+    (an effect beyond its physical range there, ``attempts`` > 1 in the truth) or whose
+    reference it replaces, which takes the case's sizing to know; such a case is selected on
+    its first draw and checked again once written (:func:`run_family_one`), so a case runs
+    only if its written configuration has the labels too. A redrawn configuration is drawn
+    from a seed of its own, so the redrawn cases kept are a random share of those whose
+    written configuration has the labels."""
+    if matches(cfg, filters):
+        return True
+    if cfg["role"] != "effect" or "exact" not in filters.get("reference", ()):
+        return False
+    return cfg.get("reference") == "harmonics" and matches(cfg | {"reference": "exact"}, filters)
+
+
 def run_family_one(job) -> dict:
-    """Simulate one family case, diagnose it with the command line, score it."""
-    seed, role, out, size, keep, replica = job
+    """Simulate one family case, diagnose it with the command line, score it; a case whose
+    written configuration leaves the filters (:func:`may_match`) is not diagnosed and its
+    result is marked ``deselected``."""
+    seed, role, out, size, keep, filters, replica = job
     stem = f"family_{seed}" + (f"_r{replica}" if replica else "")
     sim_dir, run_dir = Path(out) / "sim", Path(out) / "runs" / stem
     t0 = time.perf_counter()
     files = write_family_case(seed, sim_dir, size, role=role, replica=replica)
     t_sim = time.perf_counter() - t0
     truth = json.loads(Path(files["truth"]).read_text())
+    if not matches(truth["config"], filters):
+        if not keep:
+            for f in ("recording", "reference", "truth", "bench"):
+                if files[f]:
+                    Path(files[f]).unlink()
+        return {"case": truth["case"], "seed": seed, "replica": replica, "role": role,
+                "deselected": True, "seconds": t_sim,
+                "note": f"deselected: written as {_labels(truth['config'])} "
+                        f"(attempts {truth['attempts']})"}  # fmt: skip
     if run_dir.exists():
         shutil.rmtree(run_dir)
     code, err = _cli(["diagnose", *files["args"], "--no-report", "--out", str(run_dir)])
@@ -183,25 +245,21 @@ def run_family(a) -> int:
     out.mkdir(parents=True, exist_ok=True)
     share = 1.0 if a.nulls_only else a.null_share
     size = "small" if a.small or a.size == "small" else "full"
-    jobs = [(s, r, str(out), size, a.keep) for s, r in family_jobs(a.family, a.first_seed, share)]
-    if a.only_kind:  # the seeds whose drawn recording is of that kind
-        jobs = [j for j in jobs if draw_config(j[0], size, j[1])["kind"] == a.only_kind]
-    if a.only_reference:  # the Hall seeds whose drawn reference is of that kind
-        ref = a.only_reference
-        jobs = [j for j in jobs if draw_config(j[0], size, j[1]).get("reference") == ref]
-    for key, names in (("magnet", a.only_magnet), ("bench_stack", a.only_stack)):
-        if names:  # the seeds whose drawn magnet order (bench stack) is one of these
-            want = set(names.split(","))
-            jobs = [j for j in jobs if draw_config(j[0], size, j[1])["strata"][key] in want]
-    if a.only_effect:  # the seeds whose drawn effect is one of these, the first N of each
-        want = {e: 0 for e in a.only_effect.split(",")}
-        keep = []
-        for j in jobs:
-            e = draw_config(j[0], size, j[1]).get("effect")
-            if e in want and (a.per_effect is None or want[e] < a.per_effect):
-                want[e] += 1
-                keep.append(j)
-        jobs = keep
+    filters = family_filters(a)
+    jobs = []
+    per_effect = {e: 0 for e in (a.only_effect or "").split(",") if e}
+    for seed, role in family_jobs(a.family, a.first_seed, share):
+        cfg = draw_config(seed, size, role)
+        if role == "null" and "reference" in filters:  # exact: a null's sizing is cheap
+            cfg = written_config(seed, size, role)
+        if not may_match(cfg, filters):
+            continue
+        if per_effect:  # the seeds whose drawn effect is one of these, the first N of each
+            e = cfg.get("effect")
+            if e not in per_effect or (a.per_effect is not None and per_effect[e] >= a.per_effect):
+                continue
+            per_effect[e] += 1
+        jobs.append((seed, role, str(out), size, a.keep, filters))
     jobs = [(*j, k) for j in jobs for k in range(a.replicas)]
     t0 = time.perf_counter()
     if a.family_merge:
@@ -218,6 +276,11 @@ def run_family(a) -> int:
         print(f"{len(jobs)} family runs, size {size}, {a.jobs} worker(s)", flush=True)
         results = sorted(run_all(jobs, a.jobs, run_family_one),
                          key=lambda r: (r["seed"], r["replica"]))  # fmt: skip
+        dropped = [r for r in results if r.get("deselected")]
+        results = [r for r in results if not r.get("deselected")]
+        if dropped:
+            print(f"{len(dropped)} run(s) deselected: written outside the filters "
+                  f"(seeds {sorted({r['seed'] for r in dropped})})", flush=True)  # fmt: skip
         what = (f"seeds {a.first_seed}-{a.first_seed + a.family - 1}, size {size}, "
                 f"{time.perf_counter() - t0:.0f} s wall with {a.jobs} worker(s)")  # fmt: skip
     summary = summarise_family(results)
@@ -245,7 +308,11 @@ def run_all(jobs: list, workers: int, one=run_one) -> list:
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
         for i, r in enumerate(pool.imap_unordered(one, jobs), 1):
             results.append(r)
-            what = r.get("error", "")[-200:] or f"expected {r['expected']}, claimed {r['claimed']}"
+            what = (
+                r.get("error", "")[-200:]
+                or r.get("note")
+                or f"expected {r['expected']}, claimed {r['claimed']}"
+            )
             print(f"[{i}/{len(jobs)}] {r['case']} seed {r['seed']}: {r['seconds']:.1f} s; {what}",
                   flush=True)  # fmt: skip
     return results

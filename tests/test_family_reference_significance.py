@@ -1,7 +1,8 @@
 """The family's significance against a coarse reference: the reference's own error where a
 standard reader reads it between its nodes, shared by every repetition of a point, widens each
-reading's whitening std; effects are sized against it; a magnet's temperature coefficient stays
-within what magnet materials have."""
+reading's whitening std; effects are sized against it; a magnet's temperature coefficient, the
+Hall elements' offsets, the planar Hall coefficients, the averaging disc and the tracker's scale
+drift stay within what the hardware has."""
 
 from __future__ import annotations
 
@@ -21,6 +22,16 @@ EXACT_SEED = 1  # small: a quadrupole on lines against the exact field
 HARMONICS_SEED = 7  # small: a quadrupole's body against 2-D harmonics
 REDRAWN_SEED = 1  # small effect: a temperature coefficient beyond 2000 ppm/K on its first two
 # configurations
+#: Small effect cases whose effect needs more than its physical range on the seed's own
+#: configuration along every direction tried (seed, kind, effect), and the range of each
+#: parameter (display units).
+BEYOND_RANGE = [
+    (15, "hall", "sensor_offset"),  # 1 mm per element offset
+    (109042, "hall", "planar_hall"),  # 0.05 /T
+    (109049, "hall", "sensor_volume_averaging"),  # a disc of 2 mm
+    (4, "tracker", "thermal_drift"),  # 25 ppm/K of scale drift, 50 um/K of offset drift
+]
+RANGES = {"d_": 1000.0, "k_": 0.05, "disc_mm": 2.0, "scale_drift_": 25.0, "drift_": 50.0}
 
 
 def _truth(files) -> dict:
@@ -175,3 +186,37 @@ def test_magnet_temperature_within_the_range_of_magnet_materials(tmp_path):
     assert truth["config"]["seed"] == F._attempt_seed(REDRAWN_SEED, truth["attempts"])
     assert abs(truth["effects"]["magnet_temperature"]["beta"]) <= 2000.0
     assert 5.0 <= truth["significance"]["sigma_drawn"] <= 8.0
+
+
+def _range(param: str) -> float:
+    return next(bound for start, bound in RANGES.items() if param.startswith(start))
+
+
+@pytest.mark.parametrize(("seed", "kind", "effect"), BEYOND_RANGE)
+def test_an_effect_beyond_its_physical_range_is_drawn_on_another_configuration(
+    seed, kind, effect, tmp_path
+):
+    first = F.draw_config(seed, "small", "effect", kind, effect=effect)
+    assert F._sized_case(first | {"replica": 0}, redraw=True) is None
+    files = F.write_family_case(seed, tmp_path, "small", role="effect", kind=kind, effect=effect)
+    truth = _truth(files)
+    assert truth["expected"] == effect
+    assert truth["attempts"] > 1
+    assert truth["config"]["seed"] == F._attempt_seed(seed, truth["attempts"])
+    values = truth["effects"][effect]
+    assert values and all(abs(v) <= _range(p) for p, v in values.items())
+    assert 5.0 <= truth["significance"]["sigma_drawn"] <= 8.0
+
+
+def test_written_config_is_the_configuration_written(tmp_path):
+    seed, kind, effect = BEYOND_RANGE[0]
+    written = F.written_config(seed, "small", "effect", kind, effect)
+    truth = _truth(F.write_family_case(seed, tmp_path, "small", "effect", kind, effect=effect))
+    assert written["attempts"] == truth["attempts"] > 1
+    assert json.loads(json.dumps(written)) == truth["config"] | {"attempts": truth["attempts"]}
+    # a null without 2-D harmonics is its seed's draw
+    null = F.written_config(EXACT_SEED, "small", "null", "hall")
+    assert null == F.draw_config(EXACT_SEED, "small", "null", "hall") | {
+        "replica": 0,
+        "attempts": 1,
+    }

@@ -16,6 +16,7 @@ from cfm_fem.simulation.family import (
     draw_config,
     effect_pool,
     write_family_case,
+    written_config,
 )
 from cfm_fem.simulation.scoring import score
 
@@ -122,6 +123,8 @@ def test_harmonics_null_needs_a_body_within_its_priors(seed, kept, tmp_path):
     assert (z <= 1.0) == kept
     assert truth["strata"]["reference"] == ("harmonics" if kept else "exact")
     assert files["reference"].name.endswith(".harmonics.csv" if kept else ".reference.csv")
+    written = written_config(seed, role="null", kind="hall")
+    assert written["strata"] == truth["strata"] and written["attempts"] == truth["attempts"] == 1
 
 
 def test_drawn_effect_has_its_stated_significance(tmp_path):

@@ -19,10 +19,14 @@ A case of the family is a Hall map or a laser-tracker recording of a drawn confi
   the map's error where a cubic reader reads it between its nodes, shared by the point's
   repetitions (:func:`.family_reference.reading_error`).
 
-A size beyond :data:`CAPS` is drawn again along another direction, then for another effect;
-for an effect of :data:`PHYSICAL` (the magnet's temperature coefficient, at most 2000 ppm/K)
-the case draws another configuration for the same effect instead, from a seed derived from the
-case's seed and the attempt (:func:`_drawn_case`).
+A size beyond :data:`CAPS` (:data:`PARAM_CAPS`) is drawn again along another direction, then
+for another effect; for an effect of :data:`PHYSICAL`, whose cap is the hardware's physical
+range (the magnet's temperature coefficient, |beta| <= 2000 ppm/K; the Hall elements' offsets,
+|d| <= 1 mm each; the planar Hall coefficients, |k| <= 0.05 /T; the averaging disc, at most
+2 mm across; the tracker's thermal drift, its scale drifts |scale_drift| <= 25 ppm/K and its
+offset drifts |drift| <= 50 um/K), the case draws another configuration for the same effect
+instead, from a seed derived from the case's seed and the attempt (:func:`_drawn_case`;
+:func:`written_config` gives the configuration a case is written with).
 
 Every label (``strata``), the whole configuration (``config["seed"]``: the seed it was drawn
 from), the number of configurations drawn (``attempts``) and the drawn significance
@@ -42,7 +46,14 @@ from . import family_hall as FH
 from . import family_reference as FR
 from . import family_tracker as FT
 
-__all__ = ["draw_config", "write_family_case", "HALL_EFFECTS", "TRACKER_EFFECTS", "SIGMA_RANGE"]
+__all__ = [
+    "draw_config",
+    "written_config",
+    "write_family_case",
+    "HALL_EFFECTS",
+    "TRACKER_EFFECTS",
+    "SIGMA_RANGE",
+]
 
 SIGMA_RANGE = (5.0, 8.0)
 HALL_EFFECTS = (
@@ -66,16 +77,23 @@ TRACKER_EFFECTS = (
 )
 #: Largest plausible size of a parameter (display units); a draw beyond is redrawn (another
 #: direction, then another effect; for the effects of :data:`PHYSICAL`, another configuration).
+#: :data:`PARAM_CAPS` narrows it for some of an effect's parameters.
 CAPS = {
     "probe_misalignment": 50.0,
-    "sensor_offset": 2000.0,
+    # d_i_j, um: a Hall sensor's three elements sit within a millimetre of each other
+    "sensor_offset": 1000.0,
     "magnet_misalignment": 3000.0,
-    "planar_hall": 1.0,
+    # k_i, 1/T: a Hall element's planar Hall voltage stays within a few % of its Hall voltage
+    # at 1 T in the element's plane
+    "planar_hall": 0.05,
     "hall_offset_gain": 1000.0,
     # beta, ppm/K: ferrite's -0.19 %/K is the largest remanence coefficient of common magnet
     # materials (NdFeB about -0.12 %/K, SmCo -0.03 %/K)
     "magnet_temperature": 2000.0,
-    "sensor_volume_averaging": 25.0,
+    # disc_mm, mm: the diameter of the disc a Hall element averages the field over; an
+    # element's active area is well under a millimetre across, 2 mm with its package
+    "sensor_volume_averaging": 2.0,
+    # drift_i, um/K (scale_drift_i: PARAM_CAPS)
     "thermal_drift": 50.0,
     "reversal": 100.0,
     "reading_delay": 50.0,
@@ -83,6 +101,12 @@ CAPS = {
     "arm_deflection": 200.0,
     "parameter_bias": 2000.0,
     "step_event": 200.0,
+}
+#: Caps of single parameters (display units), within their effect's :data:`CAPS`.
+PARAM_CAPS = {
+    # scale_drift_i, ppm/K: an axis's scale grows with temperature as its scale or frame
+    # expands, at most aluminium's 23 ppm/K (steel 11.5, glass scales near 0-8)
+    **{f"scale_drift_{c}": 25.0 for c in "xyz"},
 }
 #: Parameters an effect is drawn along (one or two of them at random).
 DRAWN = {
@@ -102,7 +126,13 @@ ONE_PARAM = (
 #: Effects whose cap is a physical range of the hardware: a configuration on which the drawn
 #: significance needs more is not a physical one, so the case draws another configuration for
 #: the same effect (:func:`_attempt_seed`) rather than conceal another effect.
-PHYSICAL = ("magnet_temperature",)
+PHYSICAL = (
+    "magnet_temperature",
+    "sensor_offset",
+    "planar_hall",
+    "sensor_volume_averaging",
+    "thermal_drift",
+)
 #: Configurations a case draws at most for an effect of :data:`PHYSICAL`; the last one then
 #: conceals the next effect of its fallback list that fits within the caps.
 MAX_ATTEMPTS = 20
@@ -338,7 +368,7 @@ def _draw_effect(cfg, ctx, rng, base, grad, sigmas) -> tuple:
         survey's draw of its parameter, um or urad) and ``total_departure`` (the survey draw
         plus the concealed value: the recorded pose's departure from the nominal one, which
         the drawn significance sizes). A failed draw holds ``beyond_cap``: whether a direction
-        separable from the neighbours needed a size beyond :data:`CAPS`.
+        separable from the neighbours needed a size beyond :data:`CAPS` (:data:`PARAM_CAPS`).
     """
     effect = cfg["effect"]
     noise, total = sigmas
@@ -438,7 +468,8 @@ def _noise_only(cfg, effect, param, target, z_per_unit) -> float:
 
 
 def _amplitudes(cfg, ctx, effect, params, u, z1, target):
-    """Parameter values of the drawn size (None when beyond :data:`CAPS`).
+    """Parameter values of the drawn size (None when beyond :data:`CAPS` or
+    :data:`PARAM_CAPS`).
 
     Parameters
     ----------
@@ -479,9 +510,9 @@ def _amplitudes(cfg, ctx, effect, params, u, z1, target):
     amp = target / z1
     if effect == "sensor_volume_averaging":  # the signature is per mm^2 of disc diameter
         disc = float(np.sqrt(amp))
-        return None if disc > 5.0 else {"disc_mm": disc}
+        return None if disc > CAPS[effect] else {"disc_mm": disc}
     vals = {p: float(amp * ui) for p, ui in zip(params, u, strict=True)}
-    if max(abs(v) for v in vals.values()) > CAPS[effect]:
+    if any(abs(v) > PARAM_CAPS.get(p, CAPS[effect]) for p, v in vals.items()):
         return None
     return vals | ({"from_rep": FT.step_rep(cfg)} if effect == "step_event" else {})
 
@@ -719,6 +750,40 @@ def _drawn_case(seed: int, size: str, role, kind, replica: int, effect=None) -> 
         if case is not None:
             return case | {"attempts": attempt}
     raise AssertionError("the last attempt conceals a fallback effect")  # not reached
+
+
+def written_config(seed: int, size: str = "small", role=None, kind=None, effect=None) -> dict:
+    """The configuration a case is written with (:func:`write_family_case`, the truth's
+    ``config``), with its ``attempts``.
+
+    It is :func:`draw_config` of the seed but where the case's own draws change it: an effect
+    case whose effect is one of :data:`PHYSICAL` and needs a size beyond its range on the
+    seed's configuration is written on another one (:func:`_drawn_case`); an effect the
+    configuration cannot carry is replaced by one of its fallback list (``effect``; the soft
+    ends then bring their 2-D harmonics); a reference of 2-D harmonics from which the body
+    departs by more than 1 sigma is replaced by the exact one.
+
+    Cost: a null without a reference of 2-D harmonics takes :func:`draw_config` alone
+    (about 1 ms); any other case is sized as :func:`write_family_case` sizes it (its
+    signatures and significance: a fraction of a second per configuration at ``size``
+    ``'small'``, several seconds at ``'full'``).
+
+    Parameters
+    ----------
+    seed, size, role, kind, effect
+        As :func:`write_family_case`.
+
+    Returns
+    -------
+    dict
+        The configuration (:func:`draw_config`, with ``replica`` 0) as written, and
+        ``attempts`` (1: the seed's own configuration).
+    """
+    cfg = draw_config(seed, size, role, kind, effect=effect)
+    if cfg["role"] == "null" and cfg.get("reference") != "harmonics":
+        return cfg | {"replica": 0, "attempts": 1}
+    case = _drawn_case(seed, size, cfg["role"], cfg["kind"], 0, effect)
+    return case["cfg"] | {"attempts": case["attempts"]}
 
 
 def write_family_case(
