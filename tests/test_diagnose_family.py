@@ -60,7 +60,7 @@ def test_a_clean_tracker_recording_calls_no_plane_bad(tmp_path):
 @pytest.mark.parametrize(
     "seed",
     [
-        1003,  # planar Hall k_y of 0.18 1/T near one end of an octupole, 6.6 sigma
+        1003,  # planar Hall k_z of -4e-5 1/T near one end of an octupole, 6.6 sigma
         1014,  # one element's offset (0.34 uT, solenoid grid), against a step of that element
         1030,  # a temperature coefficient whose true change (2.5 mK) is below the log's noise
     ],

@@ -48,7 +48,7 @@ def test_tracker_null_claims_nothing(seed, tmp_path):
 @pytest.mark.parametrize(
     "seed",
     [
-        1148,  # straightness delta_x(x), 6.4 sigma, and the pitch eps_y(x) through the lever
+        1157,  # straightness delta_x(x), 6.7 sigma, and the pitch eps_y(x) through the lever
         1252,  # the same pair on lines, 7.2 sigma: the data weigh them about equally
     ],
 )

@@ -72,9 +72,10 @@ def test_hessian_is_symmetric_and_matches_its_diagonal_stencil():
 
 @pytest.mark.slow  # one command-line run of a few seconds
 def test_2d_harmonics_are_read_at_the_pose_so_a_multipole_offset_is_no_hall_offset(tmp_path):
-    # family seed 50385 (effect): a sextupole's sparse body map against its 2-D harmonics, the
-    # magnet offset by (-43, -20) um, a planar Hall term concealed; with the pose linearised,
-    # g (dx^2 - dy^2) is left as a constant B_x that a Hall offset takes beside the planar Hall
+    # family seed 50385, a planar Hall term concealed on its configuration: a sextupole's sparse
+    # body map against its 2-D harmonics, the magnet offset by (-43, -20) um; with the pose
+    # linearised, g (dx^2 - dy^2) is left as a constant B_x that a Hall offset takes beside the
+    # planar Hall
     import contextlib
     import io
     import json
@@ -82,7 +83,9 @@ def test_2d_harmonics_are_read_at_the_pose_so_a_multipole_offset_is_no_hall_offs
     from cfm_fem.cli import main
     from cfm_fem.simulation import write_family_case
 
-    files = write_family_case(50385, tmp_path / "case", "small", role="effect")
+    files = write_family_case(
+        50385, tmp_path / "case", "small", role="effect", effect="planar_hall"
+    )
     truth = json.loads(files["truth"].read_text())
     assert truth["strata"]["reference"] == "harmonics"
     out = tmp_path / "out"

@@ -51,40 +51,18 @@ def test_element_offsets_marginalise_the_common_shift():
 
 
 @pytest.mark.slow
-def test_unevenly_placed_elements_are_reported_within_their_uncertainty(tmp_path):
-    """A dipole's body against a coarse map (family seed 23086): the y element sits 1.28 mm
-    below the others along y, so the elements' centroid is 0.43 mm off the probe's reference
-    point. Held to the magnet's survey (25 um), that shift leaked into the relative offsets
-    (d_z_y 147 +- 37 um for a true 426 um) and into a prior conflict of magnet_dy."""
-    pytest.importorskip("magpylib")
-    from cfm_fem.cli import main
-    from cfm_fem.simulation.family import write_family_case
-    from cfm_fem.simulation.scoring import score
-
-    files = write_family_case(23086, tmp_path / "sim", "small", role="effect")
-    out = tmp_path / "d"
-    assert main(["diagnose", *files["args"], "--no-report", "--out", str(out)]) == 0
-    summary = json.loads((out / "diagnosis.json").read_text())
-    truth = json.loads(Path(files["truth"]).read_text())
-    s = score(summary, truth)
-    assert s["rank1"], s["claimed"]
-    pulls = s["pulls"]["sensor_offset"]
-    # the offsets along the displaced direction, all three elements'
-    assert {"d_x_y", "d_y_y", "d_z_y"} <= set(pulls), pulls
-    assert max(abs(v) for v in pulls.values()) < 3.0, pulls
-    assert not any(c["name"] == "magnet_dy" for c in summary["prior_conflicts"])
-
-
-@pytest.mark.slow
 def test_an_element_off_the_probe_centre_is_not_taken_for_the_magnet_offset(tmp_path):
     """A solenoid's body on lines (family seed 29181, element offsets concealed): the y element
     sits 0.86 mm from the others along z, so the elements' centroid is 0.29 mm off the probe's
     reference point. That common shift moves the readings as the magnet's offset does; once
     the elements' offsets are claimed it is theirs, and the magnet's offset along z is no test
-    of the survey."""
+    of the survey. Held to the survey's prior instead, the shift would leak into the relative
+    offsets: the three elements' offsets along z lie within three standard uncertainties of
+    the truth."""
     pytest.importorskip("magpylib")
     from cfm_fem.cli import main
     from cfm_fem.simulation.family import write_family_case
+    from cfm_fem.simulation.scoring import score
 
     files = write_family_case(
         29181, tmp_path / "sim", "small", role="effect", effect="sensor_offset"
@@ -94,3 +72,6 @@ def test_an_element_off_the_probe_centre_is_not_taken_for_the_magnet_offset(tmp_
     summary = json.loads((out / "diagnosis.json").read_text())
     assert [e["name"] for e in summary["effects"]] == ["sensor_offset"]
     assert not any(c["name"].startswith("magnet_d") for c in summary["prior_conflicts"])
+    pulls = score(summary, json.loads(Path(files["truth"]).read_text()))["pulls"]["sensor_offset"]
+    assert {"d_x_z", "d_y_z", "d_z_z"} <= set(pulls), pulls
+    assert max(abs(v) for v in pulls.values()) < 3.0, pulls
