@@ -75,3 +75,21 @@ def test_an_element_off_the_probe_centre_is_not_taken_for_the_magnet_offset(tmp_
     pulls = score(summary, json.loads(Path(files["truth"]).read_text()))["pulls"]["sensor_offset"]
     assert {"d_x_z", "d_y_z", "d_z_z"} <= set(pulls), pulls
     assert max(abs(v) for v in pulls.values()) < 3.0, pulls
+
+
+def test_an_element_offset_without_its_partner_is_model_dependent():
+    """Along x only the x element's offset is reported (the y element's column absorbed): it
+    holds only if the y element sits at the centroid, so it is model-dependent; along z both
+    free elements are reported and the z element follows, model-independent."""
+    from cfm_fem.workflows.diagnose.workflow import _lone_element_offsets
+
+    e = {
+        "name": "sensor_offset",
+        "params": {"d_x_x": 2.3, "d_x_z": -4.0, "d_y_z": 3.2, "d_z_z": 0.8},
+    }
+    _lone_element_offsets(e)
+    assert e["model_dependent"] == ["d_x_x"]
+    assert "centroid" in e["model_dependent_note"]
+    both = {"name": "sensor_offset", "params": {"d_x_y": 1.0, "d_y_y": -2.0, "d_z_y": 1.0}}
+    _lone_element_offsets(both)
+    assert "model_dependent" not in both

@@ -306,6 +306,7 @@ def _effect_entry(cands, model, fit1, base, sigma, noise=None) -> dict:
             shaped = c0.cols.model_dependent
             e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
     _lower_order(e, cands)
+    _lone_element_offsets(e)
     return e
 
 
@@ -332,6 +333,29 @@ def _lower_order(e: dict, cands) -> None:
             "a linear term fitted without its quadratic term is the slope of the straight line "
             "the selection chose through the error over the scanned part of the stroke; a curved "
             "error has another linear coefficient",
+        )
+
+
+def _lone_element_offsets(e: dict) -> None:
+    """Hall elements' offsets along a direction reported for one of the x and y elements alone
+    (the other's column absorbed by the calibrated model, or not determined) listed as
+    model-dependent in the entry ``e`` (``sensor_offset``): offsets are relative to the
+    elements' centroid, whose shift is free, so one element's offset is known only beside the
+    other's; alone it is the value that holds if the other sits at the centroid."""
+    if e.get("name") != "sensor_offset":
+        return
+    lone = []
+    for j in "xyz":
+        present = [f"d_{i}_{j}" for i in "xy" if f"d_{i}_{j}" in e["params"]]
+        if len(present) == 1:
+            lone += present
+    if lone:
+        e["model_dependent"] = sorted(set(e.get("model_dependent", [])) | set(lone))
+        e.setdefault(
+            "model_dependent_note",
+            "an element's offset reported without the other free element's along the same "
+            "direction assumes that element at the elements' centroid: the data fix only a "
+            "combination of the two once the centroid's shift is free",
         )
 
 
