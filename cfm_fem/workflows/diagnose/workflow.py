@@ -326,14 +326,13 @@ def _lower_order(e: dict, cands) -> None:
             for n in c.param_names
             if n in pairs and pairs[n] not in c.param_names and n in e["params"]
         ]
-    if alone:
-        e["model_dependent"] = sorted(set(e.get("model_dependent", [])) | set(alone))
-        e.setdefault(
-            "model_dependent_note",
-            "a linear term fitted without its quadratic term is the slope of the straight line "
-            "the selection chose through the error over the scanned part of the stroke; a curved "
-            "error has another linear coefficient",
-        )
+    _mark_model_dependent(
+        e,
+        alone,
+        "a linear term fitted without its quadratic term is the slope of the straight line the "
+        "selection chose through the error over the scanned part of the stroke; a curved error "
+        "has another linear coefficient",
+    )
 
 
 def _lone_element_offsets(e: dict) -> None:
@@ -349,14 +348,21 @@ def _lone_element_offsets(e: dict) -> None:
         present = [f"d_{i}_{j}" for i in "xy" if f"d_{i}_{j}" in e["params"]]
         if len(present) == 1:
             lone += present
-    if lone:
-        e["model_dependent"] = sorted(set(e.get("model_dependent", [])) | set(lone))
-        e.setdefault(
-            "model_dependent_note",
-            "an element's offset reported without the other free element's along the same "
-            "direction assumes that element at the elements' centroid: the data fix only a "
-            "combination of the two once the centroid's shift is free",
-        )
+    _mark_model_dependent(
+        e,
+        lone,
+        "an element's offset reported without the other free element's along the same "
+        "direction assumes that element at the elements' centroid: the data fix only a "
+        "combination of the two once the centroid's shift is free",
+    )
+
+
+def _mark_model_dependent(e: dict, names, note: str) -> None:
+    """Add ``names`` to the entry's ``model_dependent`` list, with ``note`` as its note unless
+    it has one."""
+    if names:
+        e["model_dependent"] = sorted(set(e.get("model_dependent", [])) | set(names))
+        e.setdefault("model_dependent_note", note)
 
 
 def _averaged(e: dict, cands) -> None:
