@@ -182,12 +182,14 @@ def test_hall_offset():
 
 def test_sensor_offset_in_pure_quadrupole_is_absorbed_not_invented():
     # dB_y/dx of a quadrupole is uniform: a shifted y element reads a constant offset, the same
-    # signature as a magnet offset. The tool must say it is absorbed, not claim it.
+    # signature as a magnet offset. The tool must say it is absorbed, not claim it: in a pure
+    # 2-D quadrupole every element's offset is (no B_z, no gradient along z)
     s, _ = run_hall({"sensor_offset": {"d_y_x": 150.0}})
     assert all(e["name"] != "sensor_offset" for e in s["effects"])
     cand = {c["name"]: c for c in s["candidates"]}
-    assert "d_y_x" in cand["sensor_offset"]["absorbed_params"]
-    assert any("d_y_x" in a and "probe flipped" in a for a in s["advice"]), s["advice"]
+    assert "e_y_x" in cand["sensor_offset"]["absorbed_params"]
+    assert cand["sensor_offset"]["status"] == "absorbed"
+    assert any("'sensor_offset' is absorbed" in a and "probe flipped" in a for a in s["advice"])
 
 
 def test_magnet_offset_and_roll():

@@ -24,30 +24,77 @@ def _twin_problem():
 def test_the_elements_centroid_is_a_free_nuisance_of_the_offsets():
     prob = _twin_problem()
     blk = fx.sensor_offset(prob)
-    assert blk.names == [f"d_{i}_{j}" for j in "xyz" for i in "xy"]
+    assert blk.names == [f"e_{i}_{j}" for j in "xyz" for i in "xyz"]
     nuis = blk.nuisance
     assert nuis.names == ["centroid_x", "centroid_y", "centroid_z"]
     assert np.all(nuis.prior_std >= 1e5)  # no prior to speak of
-    # a common shift along j moves every element's reading by dB/dx_j; the x element's
-    # relative column minus the centroid's leaves the z element's change alone
+    # a common shift along j moves every element's reading by dB/dx_j; the x element displaced
+    # from the others with the centroid held, plus a third of the centroid's shift, is the x
+    # element moved alone: its own reading changes, the others' do not
     j = 1
-    diff = blk.J[..., 2 * j] - nuis.J[..., j]
-    assert np.allclose(diff[:, 0], 0.0)
-    assert np.allclose(diff[:, 1], -nuis.J[:, 1, j])
+    alone = blk.J[..., 3 * j] + nuis.J[..., j] / 3.0
+    assert np.allclose(alone[:, 1:], 0.0)
+    assert np.allclose(alone[:, 0], nuis.J[:, 0, j])
+    # the three elements' displacements along a direction carry no common shift
+    assert np.allclose(blk.J[..., 3 * j : 3 * j + 3].sum(axis=-1), 0.0)
     # the block keeps its nuisance when the selection drops absorbed columns
     assert blk.subset([0, 1]).nuisance is nuis
 
 
-def test_element_offsets_marginalise_the_common_shift():
-    # two free relative offsets along x, with a centroid column correlated with both: the
-    # reported std of the z element is that of -(d_x + d_y), correlations included
-    names = ["d_x_x", "d_y_x", "centroid_x"]
-    theta = np.array([10.0, -4.0, 300.0])
-    cov = np.array([[4.0, 1.0, 3.0], [1.0, 9.0, -2.0], [3.0, -2.0, 100.0]])
+def test_each_element_along_each_direction_is_a_function_then_the_pairs():
+    from cfm_fem.workflows.diagnose.select import function_options
+
+    blk = fx.sensor_offset(_twin_problem())
+    opts = function_options(blk.families, blk.pairs)
+    singles = [lb[0] for lb, idx, st in opts if st == 1]
+    assert singles == [f"{i}_along_{j}" for j in "xyz" for i in "xyz"]
+    pairs = {"+".join(lb) for lb, idx, st in opts if st == 2}
+    # one pair of two elements per direction (any two span the relative offsets along it) and
+    # every pair of two directions, of one element or of two
+    along = {f"x_along_{j}+y_along_{j}" for j in "xyz"}
+    across = {
+        f"{e}_along_{a}+{f}_along_{b}" for a, b in ("xy", "xz", "yz") for e in "xyz" for f in "xyz"
+    }
+    assert len(across) == 27
+    assert pairs == along | across
+    # with the x element's column along y gone, the pair along y is the y and z elements'
+    sub = blk.subset([k for k, n in enumerate(blk.names) if n != "e_x_y"])
+    pairs = {"+".join(lb) for lb, idx, st in function_options(sub.families, sub.pairs) if st == 2}
+    assert "y_along_y+z_along_y" in pairs
+    assert not any("x_along_y" in p for p in pairs)
+
+
+def test_element_offsets_from_the_centroid_follow_the_fitted_displacements():
+    # the x and y elements fitted along x from the z element: every element's offset from the
+    # centroid, the z element's std with the correlation of the two
+    names = ["e_x_x", "e_y_x"]
+    theta = np.array([10.0, -4.0])
+    cov = np.array([[4.0, 1.0], [1.0, 9.0]])
     out = fx._element_offsets(names, theta, cov)
     assert set(out) == {"d_x_x", "d_y_x", "d_z_x"}
-    assert out["d_z_x"][0] == pytest.approx(-6.0)
-    assert out["d_z_x"][1] == pytest.approx(np.sqrt(4.0 + 9.0 + 2.0))
+    assert [out[f"d_{e}_x"][0] for e in "xyz"] == pytest.approx([8.0, -6.0, -2.0])
+    assert out["d_x_x"][0] - out["d_z_x"][0] == pytest.approx(10.0)
+    assert out["d_z_x"][1] == pytest.approx(np.sqrt(4.0 + 9.0 + 2.0) / 3.0)
+    # one element from the other two: they share its offset's third
+    one = fx._element_offsets(["e_z_y"], np.array([9.0]), np.array([[9.0]]))
+    assert [one[f"d_{e}_y"][0] for e in "xyz"] == pytest.approx([-3.0, -3.0, 6.0])
+    assert one["d_z_y"][1] == pytest.approx(2.0)
+
+
+def test_the_third_element_along_a_direction_two_are_fitted_along_leaves_the_candidates():
+    from cfm_fem.workflows.diagnose.calibrate import stack
+    from cfm_fem.workflows.diagnose.select import _unspanned
+
+    prob = _twin_problem()
+    blk = fx.sensor_offset(prob)
+    two = blk.subset([blk.names.index("e_x_y"), blk.names.index("e_y_y")])
+    model = stack([*prob.baseline, two])
+    rest = blk.subset([k for k, n in enumerate(blk.names) if n not in two.names])
+    left = _unspanned(np.ones((prob.n, 3)), model, rest)
+    assert "e_z_y" not in left.names
+    # along x the x and y elements stay (the z element alone moves the readings as the
+    # magnet's offset does in this 2-D field, and nothing varies along z)
+    assert {"e_x_x", "e_y_x"} <= set(left.names)
 
 
 @pytest.mark.slow
@@ -77,19 +124,26 @@ def test_an_element_off_the_probe_centre_is_not_taken_for_the_magnet_offset(tmp_
     assert max(abs(v) for v in pulls.values()) < 3.0, pulls
 
 
-def test_an_element_offset_without_its_partner_is_model_dependent():
-    """Along x only the x element's offset is reported (the y element's column absorbed): it
-    holds only if the y element sits at the centroid, so it is model-dependent; along z both
-    free elements are reported and the z element follows, model-independent."""
-    from cfm_fem.workflows.diagnose.workflow import _lone_element_offsets
+def test_offsets_along_a_direction_with_an_unseen_element_are_model_dependent():
+    """Along x the z element is fitted alone while the y element's displacement along x is
+    absorbed (not among the functions tested): the offsets from the centroid along x hold only
+    if the y element sits with the x element, so they are model-dependent. Along z the x
+    element is fitted alone with both others seen: the data put those two together."""
+    from types import SimpleNamespace
 
-    e = {
-        "name": "sensor_offset",
-        "params": {"d_x_x": 2.3, "d_x_z": -4.0, "d_y_z": 3.2, "d_z_z": 0.8},
-    }
-    _lone_element_offsets(e)
-    assert e["model_dependent"] == ["d_x_x"]
-    assert "centroid" in e["model_dependent_note"]
-    both = {"name": "sensor_offset", "params": {"d_x_y": 1.0, "d_y_y": -2.0, "d_z_y": 1.0}}
-    _lone_element_offsets(both)
-    assert "model_dependent" not in both
+    from cfm_fem.workflows.diagnose.workflow import _unseen_elements
+
+    tested = [n for n in (f"e_{i}_{j}" for j in "xyz" for i in "xyz") if n != "e_y_x"]
+    cand = SimpleNamespace(
+        has_new=True,
+        cols=SimpleNamespace(names=["e_z_x", "e_x_z"]),
+        family_block=SimpleNamespace(names=tested),
+    )
+    e = {"name": "sensor_offset", "params": {f"d_{i}_{j}": 1.0 for i in "xyz" for j in "xz"}}
+    _unseen_elements(e, [cand])
+    assert e["model_dependent"] == ["d_x_x", "d_y_x", "d_z_x"]
+    assert "unseen" in e["model_dependent_note"]
+    cand.family_block.names = tested + ["e_y_x"]
+    e.pop("model_dependent")
+    _unseen_elements(e, [cand])
+    assert "model_dependent" not in e

@@ -66,17 +66,18 @@ def _column(prob, rec, name, block=None):
         ("magnet_misalignment", "magnet_dz", 30.0, None),
         ("magnet_misalignment", "magnet_roll", 200.0, None),
         ("magnet_misalignment", "magnet_rot_x", 200.0, None),
-        ("sensor_offset", "d_y_x", 30.0, "sensor_offset"),
-        ("sensor_offset", "d_x_y", 30.0, "sensor_offset"),
+        ("sensor_offset", "e_y_x", 30.0, "sensor_offset"),
+        ("sensor_offset", "e_x_y", 30.0, "sensor_offset"),
         ("probe_misalignment", "m_zx", 0.3, "probe_misalignment"),
     ],
 )
 def test_hall_parameters_match_the_tools_columns(hall_problem_small, effect, name, value, block):
     prob, rec = hall_problem_small
     params = {name: value}
-    if effect == "sensor_offset":  # the tool's offsets are from the elements' centroid:
-        # element x or y moved by +value along j, element z by -value (their sum stays 0)
-        params[f"d_z_{name[-1]}"] = -value
+    if effect == "sensor_offset":  # the tool's element i displaced from the other two, the
+        # elements' centroid held: element i moved by 2/3 of it, the others by -1/3
+        i, j = name[2], name[-1]
+        params = {f"d_{k}_{j}": value * (2.0 if k == i else -1.0) / 3.0 for k in "xyz"}
     change = _change({effect: params})
     col = value * _column(prob, rec, name, block)
     scale = np.abs(col).max()

@@ -68,6 +68,12 @@ class Columns:
         and quadratic profile). The selection tests each function on its own, with the
         multiplicity of the choice accounted for, and may take several in turn. None: the
         block is one function.
+    pairs : list of (str, str, str), optional
+        The pairs of ``families`` tested together, each a group and two labels; of the pairs
+        of one group only the first whose functions are both present is tested (pairs that
+        span the same columns: ``sensor_offset``'s two elements of three along one
+        direction). None: every pair, where the effect has at most
+        :data:`~cfm_fem.workflows.diagnose.select.PAIR_MAX_FUNCTIONS` functions.
     multiplicity : float
         Number of alternatives searched to build the columns (``step_event``: candidate change
         points); the evidence is corrected for it (Bonferroni). 1: none.
@@ -129,6 +135,7 @@ class Columns:
     replaces: dict | None = None
     var_known: np.ndarray | None = None
     families: list | None = None
+    pairs: list | None = None
     multiplicity: float = 1.0
     info: dict | None = None
     bounds_why: list | None = None
@@ -145,7 +152,7 @@ class Columns:
 
     def subset(self, keep) -> Columns:
         """The block restricted to the columns ``keep`` (indices; release kept, families
-        renumbered and emptied ones dropped)."""
+        renumbered and emptied ones dropped, with the pairs of a dropped one)."""
         keep = list(keep)
         rb = self.release_bounds
         fams = None
@@ -156,6 +163,10 @@ class Columns:
                 for label, idx in self.families
                 if any(k in where for k in idx)
             ]
+        pairs = self.pairs
+        if pairs is not None and fams is not None:
+            labels = {label for label, _ in fams}
+            pairs = [pr for pr in pairs if pr[1] in labels and pr[2] in labels]
         return Columns(
             self.J[..., keep],
             [self.names[k] for k in keep],
@@ -170,6 +181,7 @@ class Columns:
             self.replaces,
             self.var_known,
             fams,
+            pairs,
             self.multiplicity,
             self.info,
             None if self.bounds_why is None else [self.bounds_why[k] for k in keep],

@@ -39,8 +39,10 @@ the probe senses: the reference read where the fitted bench errors move the prob
   ``planar_hall``).
 * ``sensor_offset``: Hall elements not co-located: Delta B_i = sum_j dB_i/dx_j d_ij (um), d_ij
   the displacement of element i along j from the elements' centroid (sum_i d_ij = 0: a shift
-  common to all three moves the readings as the magnet's offset does). The effect is tested
-  with the centroid left to the registration; its offsets are reported fitted with the
+  common to all three moves the readings as the magnet's offset does). Each element displaced
+  from the other two along one direction (``e_<i>_<j>``) is a function of its own; two
+  elements along one direction, or one element along two, are tested as pairs. The effect is
+  tested with the centroid left to the registration; its offsets are reported fitted with the
   centroid's shift free (the survey's prior on the magnet does not bound where the elements
   sit in the probe), their uncertainty marginalised over it. Where the field curves over the
   offsets, G is taken at each element's own point: the problem is linearised at the offsets
@@ -104,6 +106,7 @@ import numpy as np
 
 from ...models.bench import ERROR_NAMES
 from ...models.kinematics.chain import probe_errors_for_bench
+from .elements import ELEMENT_SHARE, element_map
 from .fringe import fringe_field_3d
 from .priors import PLAUSIBLE, bounds_for, effect_columns
 from .problem import REG_NAMES, UM, URAD, field_hessian, field_hessian_diag
@@ -355,32 +358,44 @@ def probe_misalignment(prob):
 def sensor_offset(prob):
     """Hall elements displaced relative to one another.
 
-    The columns are the elements' offsets from their centroid (x and y elements per direction;
-    the z element is minus their sum). The centroid's own shift moves the readings as the
-    magnet's offset does, so the test of the effect leaves it to the registration; but the
-    magnet's survey says nothing about where the elements sit in the probe: held by that
-    prior, the common shift of elements placed unevenly (one element a millimetre off) would
-    leak into the relative offsets through their gradient-weighted columns, biased by many
-    standard uncertainties. The reported offsets are fitted with the centroid's shift free
-    (:attr:`Columns.nuisance`), their uncertainty marginalised over it.
+    One column per element and direction: element i displaced by e along j from the other
+    two (the elements' centroid held: offsets 2e/3 for element i, -e/3 for the others, so
+    the three columns of a direction sum to zero). Each is a function of its own, one
+    parameter: one element off the others along one direction is the usual fault of a
+    three-element probe (elements on separate dies) and must not pay for the two parameters
+    of a general offset. Two elements along one direction span every relative offset along
+    it (the third then holds the reference: e_i is element i's offset from it): one such pair
+    per direction is tested, beside every pair of two directions (one element displaced
+    obliquely, or two elements each along its own direction), :attr:`Columns.pairs`; further
+    offsets join round by round.
+
+    The centroid's own shift moves the readings as the magnet's offset does, so the test of
+    the effect leaves it to the registration; but the magnet's survey says nothing about
+    where the elements sit in the probe: held by that prior, the common shift of elements
+    placed unevenly (one element a millimetre off) would leak into the relative offsets
+    through their gradient-weighted columns, biased by many standard uncertainties. The
+    reported offsets are fitted with the centroid's shift free (:attr:`Columns.nuisance`),
+    their uncertainty marginalised over it, and stated per element from the centroid
+    (:func:`_element_offsets`).
 
     The gradient is ``ctx.G``: each element's row at the element's own point when the problem
     is linearised at the elements' offsets (``ctx.elements_at``, whose linear term the
     residual then carries), so that the fitted offsets are the whole offsets.
     """
     G = prob.ctx.G
-    J = np.zeros((prob.n, 3, 6))
-    names = []
-    for j in range(3):
-        for k, i in enumerate((0, 1)):
-            J[:, i, 2 * j + k] = G[:, i, j] * UM
-            J[:, 2, 2 * j + k] = -G[:, 2, j] * UM
-            names.append(f"d_{'xyz'[i]}_{'xyz'[j]}")
-    blk = effect_columns(J, names, ["um"] * 6, "sensor_offset")
-    # the elements' offsets along one direction at a time, the choice among the three
-    # accounted for: one element displaced along one direction (two parameters relative to
-    # the centroid) must not pay for six; offsets along several directions join round by round
-    blk.families = [(f"along_{a}", [2 * j, 2 * j + 1]) for j, a in enumerate("xyz")]
+    J = np.zeros((prob.n, 3, 9))
+    names, families = [], []
+    for j, a in enumerate("xyz"):
+        for i, e in enumerate("xyz"):
+            J[:, :, 3 * j + i] = G[:, :, j] * ELEMENT_SHARE[i] * UM
+            names.append(f"e_{e}_{a}")
+            families.append((f"{e}_along_{a}", [3 * j + i]))
+    blk = effect_columns(J, names, ["um"] * 9, "sensor_offset")
+    blk.families = families
+    blk.pairs = [(f"along_{a}", f"{p}_along_{a}", f"{q}_along_{a}")
+                 for a in "xyz" for p, q in ("xy", "xz", "yz")]  # fmt: skip
+    blk.pairs += [(f"{e}_along_{a}+{f}_along_{b}", f"{e}_along_{a}", f"{f}_along_{b}")
+                  for a, b in ("xy", "xz", "yz") for e in "xyz" for f in "xyz"]  # fmt: skip
     # the centroid: every element moved along j
     Jc = G * UM
     centroid = [f"centroid_{a}" for a in "xyz"]
@@ -392,20 +407,18 @@ def sensor_offset(prob):
 
 
 def _element_offsets(names, theta, cov):
-    """All three elements' offsets from their centroid (um), from the free ones (x and y
-    elements per direction), uncertainty propagated."""
+    """All three elements' offsets from their centroid (um) along each direction some element
+    is fitted along, from the fitted displacements, uncertainty propagated."""
     names = list(names)
+    theta = np.asarray(theta, dtype=float)
     out = {}
     for j in "xyz":
-        idx = [names.index(f"d_{i}_{j}") for i in "xy" if f"d_{i}_{j}" in names]
-        for i in "xy":
-            if f"d_{i}_{j}" in names:
-                k = names.index(f"d_{i}_{j}")
-                out[f"d_{i}_{j}"] = (float(theta[k]), float(np.sqrt(max(cov[k, k], 0.0))), "um")
-        if len(idx) == 2:  # the z element follows only when both free ones are determined
-            g = np.zeros(len(names))
-            g[idx] = -1.0
-            out[f"d_z_{j}"] = (float(g @ theta), float(np.sqrt(max(g @ cov @ g, 0.0))), "um")
+        A = element_map(names, j)
+        if not A.any():
+            continue
+        d, C = A @ theta, A @ cov @ A.T
+        for i, e in enumerate("xyz"):
+            out[f"d_{e}_{j}"] = (float(d[i]), float(np.sqrt(max(C[i, i], 0.0))), "um")
     return out
 
 

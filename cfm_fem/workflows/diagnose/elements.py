@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ELEMENTS", "at_elements", "element_offsets", "element_target", "linear_term",
-           "curvature_chi2", "holds_offsets", "elements_note"]  # fmt: skip
+__all__ = ["ELEMENTS", "ELEMENT_SHARE", "element_map", "at_elements", "element_offsets",
+           "element_target", "linear_term", "curvature_chi2", "holds_offsets",
+           "elements_note"]  # fmt: skip
 
 #: The Hall elements, by the field component each reads.
 ELEMENTS = "xyz"
@@ -36,6 +37,20 @@ ELEMENTS = "xyz"
 STEP_TOL = 0.05
 #: Display unit of the offsets, mm per um.
 UM = 1e-3
+#: Offsets from the elements' centroid (x, y, z elements) per unit displacement of element i
+#: from the other two, row i.
+ELEMENT_SHARE = np.eye(3) - 1.0 / 3.0
+
+
+def element_map(names, direction: str) -> np.ndarray:
+    """The matrix (3, len(names)) from the fitted element displacements ``e_<i>_<direction>``
+    among ``names`` to the three elements' offsets from their centroid along ``direction``
+    (zero columns for the other names)."""
+    A = np.zeros((3, len(names)))
+    for k, nm in enumerate(names):
+        if nm.startswith("e_") and nm.endswith(f"_{direction}"):
+            A[:, k] = ELEMENT_SHARE["xyz".index(nm[2])]
+    return A
 
 
 def element_offsets(elements_at) -> np.ndarray | None:
@@ -104,8 +119,8 @@ def element_target(prob, model, fit, directions=None) -> tuple[np.ndarray | None
     prob : Problem
         A Hall-map problem linearised at the offsets ``prob.ctx.elements_at``.
     model : Columns
-        The model fitted (the offsets named ``d_<element>_<direction>``, the x and y
-        elements' per direction; the z element's is minus their sum).
+        The model fitted (the elements' displacements named ``e_<element>_<direction>``:
+        element i's from the elements not fitted along that direction).
     fit : Fit
     directions : array_like of bool, shape (3,), optional
         The directions to linearise at (default all): zero along the others.
@@ -113,9 +128,10 @@ def element_target(prob, model, fit, directions=None) -> tuple[np.ndarray | None
     Returns
     -------
     elements_at : ndarray, shape (3, 3), um, or None
-        Zero along a direction the model does not fit; None where the problem is not
-        relinearised: no rebuild, or a map read linearly between its nodes (its curvature is
-        known no better than its interpolation error, as for the magnet's pose).
+        The elements' offsets from their centroid; zero along a direction the model does not
+        fit; None where the problem is not relinearised: no rebuild, or a map read linearly
+        between its nodes (its curvature is known no better than its interpolation error, as
+        for the magnet's pose).
     moved : bool
         Some offset moved by more than ``STEP_TOL`` times its std, or a direction the
         problem is linearised at is no longer fitted.
@@ -130,20 +146,15 @@ def element_target(prob, model, fit, directions=None) -> tuple[np.ndarray | None
     moved = False
     use = np.ones(3, dtype=bool) if directions is None else np.asarray(directions, dtype=bool)
     for j, a in enumerate(ELEMENTS):
-        if not use[j]:
+        # a direction the model does not fit (or not linearised along) is held at zero, as
+        # in the fit
+        A = element_map(model.names, a) if use[j] else np.zeros((3, model.p))
+        if not A.any():
             moved |= bool(np.any(now[:, j]))
             continue
-        for i, e in enumerate("xy"):
-            # an offset the model does not fit (not along this direction, or absorbed by the
-            # baseline and left out of the effect's columns) is held at zero, as in the fit
-            nm = f"d_{e}_{a}"
-            if nm not in model.names:
-                moved |= bool(now[i, j] != 0.0)
-                continue
-            k = model.names.index(nm)
-            new[i, j] = fit.theta[k]
-            moved |= bool(abs(new[i, j] - now[i, j]) > STEP_TOL * max(fit.std[k], 1e-12))
-        new[2, j] = -(new[0, j] + new[1, j])
+        new[:, j] = A @ fit.theta
+        std = np.sqrt(np.clip(np.einsum("ik,kl,il->i", A, fit.cov, A), 0.0, None))
+        moved |= bool(np.any(np.abs(new[:, j] - now[:, j]) > STEP_TOL * np.maximum(std, 1e-12)))
     return new, moved
 
 
@@ -189,17 +200,17 @@ def curvature_chi2(prob, at, sigma) -> float | None:
 
 
 def holds_offsets(prob, model) -> bool:
-    """Whether ``model`` fits every offset ``prob`` is linearised at (the x and y elements'
-    non-zero ones): else the residual carries a linear term of the offsets that no column
-    gives back."""
+    """Whether ``model`` fits some element along every direction ``prob`` is linearised at
+    (along which the elements' offsets are non-zero): else the residual carries a linear term
+    of the offsets that no column gives back. Where the elements sit along a fitted direction
+    is the iteration's concern (:func:`element_target`)."""
     now = prob.ctx.elements_at if prob.kind == "hall" else None
     if now is None:
         return True
     return all(
-        f"d_{e}_{a}" in model.names
-        for i, e in enumerate("xy")
+        any(f"e_{e}_{a}" in model.names for e in ELEMENTS)
         for j, a in enumerate(ELEMENTS)
-        if now[i][j]
+        if np.any(np.asarray(now)[:, j])
     )
 
 

@@ -39,6 +39,7 @@ PLAUSIBLE = {
     "probe_misalignment": [("m_", -50.0, 50.0, "a probe tilted by more than 50 mrad (3 deg)")],
     "sensor_offset": [
         ("d_", -1000.0, 1000.0, "Hall elements more than 1 mm apart"),
+        ("e_", -1000.0, 1000.0, "a Hall element more than 1 mm from the others"),
         ("centroid_", -2000.0, 2000.0, "Hall elements 2 mm off the probe's reference point"),
     ],
     "magnet_misalignment": [

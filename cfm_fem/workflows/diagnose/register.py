@@ -288,8 +288,8 @@ def registration_note(prob: Problem) -> str | None:
     )
 
 
-#: The elements' offsets the model fits (x and y elements per direction).
-OFFSET_NAMES = frozenset(f"d_{e}_{a}" for e in "xy" for a in "xyz")
+#: The elements' displacements the model may fit (each element along each direction).
+OFFSET_NAMES = frozenset(f"e_{e}_{a}" for e in "xyz" for a in "xyz")
 
 
 def _model_at(prob: Problem, model: Columns, keep=()) -> Columns:
@@ -343,7 +343,7 @@ def relinearise_elements(prob: Problem, model: Columns, fit, sigma, keep=(), max
     prob : Problem
         A Hall-map problem, linearised at ``prob.ctx.elements_at`` (None: zero offsets).
     model : Columns
-        The selected model (the offsets' columns named ``d_<element>_<direction>``).
+        The selected model (the offsets' columns named ``e_<element>_<direction>``).
     fit : Fit
         Its fit at ``prob``.
     sigma : ndarray, shape (n, 3)

@@ -559,7 +559,7 @@ def _screened_drop(M, g, idx) -> float:
 PAIR_MAX_FUNCTIONS = 8
 
 
-def function_options(families) -> list:
+def function_options(families, pairs=None) -> list:
     """The ways an effect made of several error functions can be present: each function alone,
     then each pair of functions (an effect spread over two of them: a tilt about two axes, an
     offset along two), without a pair that one function already is (a quadratic profile with
@@ -567,11 +567,15 @@ def function_options(families) -> list:
     position-dependent errors at two orders, the drifts of each axis) is tested function by
     function: its pairs would outnumber its functions many times over, and a pair of two
     such functions can take the place of another effect (a bench's straightness and pitch
-    along one stroke against a reversal's backlash).
+    along one stroke against a reversal's backlash). An effect that lists its pairs
+    (:attr:`~cfm_fem.workflows.diagnose.calibrate.Columns.pairs`) is tested with those.
 
     Parameters
     ----------
     families : list of (str, list of int)
+    pairs : list of (str, str, str), optional
+        Group and labels of the pairs to test; of one group the first whose two functions are
+        both in ``families``.
 
     Returns
     -------
@@ -580,6 +584,15 @@ def function_options(families) -> list:
         single functions and 2 for pairs.
     """
     out = [([label], list(idx), 1) for label, idx in families]
+    if pairs is not None:
+        cols = dict(families)
+        groups = set()
+        for group, la, lb in pairs:
+            if group in groups or la not in cols or lb not in cols:
+                continue
+            groups.add(group)
+            out.append(([la, lb], sorted(set(cols[la]) | set(cols[lb])), 2))
+        return out
     if len(families) > PAIR_MAX_FUNCTIONS:
         return out
     seen = {frozenset(idx) for _, idx in families}
@@ -605,11 +618,13 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     than ``bic_min`` (the evidence a function must carry on its own); where neither function
     does, the pair is the effect's only evidence and is weighed whole. A pair whose fitted
     signature the current model reproduces (survival below ``min_survival``: its second
-    function is the baseline's) gives way to that function."""
+    function is the baseline's) gives way to that function. A function whose fit is
+    implausible gives way to the best plausible one among the next :data:`IMPLAUSIBLE_TRIES`
+    by score."""
     if not blk.families:
         return _evaluate(prob, sigma, model, current, blk, name, alpha=alpha, bic_min=bic_min,
                          log_n=log_n)  # fmt: skip
-    options = function_options(blk.families)
+    options = function_options(blk.families, blk.pairs)
     stages = {st: sum(1 for o in options if o[2] == st) for st in (1, 2)}
     per_stage = 2.0 if stages[2] else 1.0
     if current.q_data is None:
@@ -653,7 +668,21 @@ def _evaluate_block(prob, sigma, model, current, blk, name, *, alpha, bic_min, l
     c = evaluated(best)
     if best != member and c is not None and c.has_new and c.survival < min_survival:
         c = evaluated(member)  # the pair's part the baseline does not reproduce
+    if c is None or not c.has_new or not _plausibility(c, model.p):
+        return c
+    # a function outside the effect's plausible range is no evidence of the effect: the next
+    # ones by score stand in for it (the choice among all of them is accounted for already)
+    for i in np.argsort(-score, kind="stable")[1 : 1 + IMPLAUSIBLE_TRIES]:
+        if i in (best, member):
+            continue
+        alt = evaluated(int(i))
+        if alt is not None and alt.has_new and not _plausibility(alt, model.p):
+            return alt
     return c
+
+
+#: Further functions of an effect tried, best score first, when its best is implausible.
+IMPLAUSIBLE_TRIES = 3
 
 
 def _members(options, pair) -> list:
@@ -674,7 +703,7 @@ def family_weights(score) -> np.ndarray:
     return w / w.sum()
 
 
-def model_average(prob, sigma, model: Columns, c: Candidate) -> dict | None:
+def model_average(prob, sigma, model: Columns, c: Candidate, log_n=None) -> dict | None:
     """The parameters of an effect found as one of several functions, averaged over the
     functions the data cannot tell apart.
 
@@ -688,18 +717,29 @@ def model_average(prob, sigma, model: Columns, c: Candidate) -> dict | None:
     parameter is reported with the mixture's mean and std over the alternatives (zero where a
     function lacks it): std^2 = sum_f w_f (var_f + theta_f^2) - mean^2.
 
+    An effect that states physical parameters (:attr:`Columns.physical`: ``sensor_offset``'s
+    offsets from the elements' centroid) is averaged in those. An effect whose nuisance is
+    free in the final model (:attr:`Columns.nuisance`) has its functions weighed again there
+    (:func:`_weighed_free`, ``log_n`` the BIC's ln n).
+
     Returns
     -------
     dict or None
         ``params`` {name: (mean, std, std of the chosen function's own fit or None)},
+        ``units`` {name: unit},
         ``alternatives`` [(label, weight, names)]; None when one function carries the weight.
     """
-    if not c.has_new or c.family_block is None or len(c.alternatives) < 2:
+    if not c.has_new or c.family_block is None:
         return None
     own = list(c.cols.names)
     rest = model.subset([i for i, n in enumerate(model.names) if n not in own])
-    runs = []
-    for label, idx, w in c.alternatives:
+    alternatives = c.alternatives
+    if c.cols.nuisance is not None and log_n is not None:
+        alternatives = _weighed_free(prob, sigma, rest, c, log_n)
+    if len(alternatives) < 2:
+        return None
+    runs, units = [], {}
+    for label, idx, w in alternatives:
         sub = c.family_block.subset(idx)
         sub.families = None
         if set(sub.names) & set(rest.names):
@@ -707,19 +747,66 @@ def model_average(prob, sigma, model: Columns, c: Candidate) -> dict | None:
         f = fit_map(prob.y, sigma, stack([rest, sub]))
         if np.any(f.std[rest.p :] > 0.5 * sub.prior_std):
             continue  # the data do not determine the function's parameters: no estimate
-        runs.append((label, w, dict(zip(sub.names, zip(f.theta[rest.p :], f.std[rest.p :],
-                                                        strict=True), strict=True))))  # fmt: skip
+        th, cov = f.theta[rest.p :], f.cov[rest.p :, rest.p :]
+        if sub.physical is not None:  # averaged as the effect reports them
+            phys = sub.physical(sub.names, th, cov)
+            params = {n: v[:2] for n, v in phys.items()}
+            units |= {n: v[2] for n, v in phys.items()}
+        else:
+            params = dict(zip(sub.names, zip(th, f.std[rest.p :], strict=True), strict=True))
+            units |= dict(zip(sub.names, sub.units, strict=True))
+        runs.append((label, w, params))
     tot = sum(w for _, w, _ in runs)
     if len(runs) < 2 or tot <= 0:
         return None
-    names = list(dict.fromkeys(own + [n for _, _, p in runs for n in p]))
-    chosen = next((p for _, _, p in runs if set(p) == set(own)), {})
+    names = list(dict.fromkeys(n for _, _, p in runs for n in p))
+    chosen = next((p for lb, _, p in runs if lb == c.family), {})
     out = {}
     for nm in names:
         m1 = sum(w * p[nm][0] for _, w, p in runs if nm in p) / tot
         m2 = sum(w * (p[nm][0] ** 2 + p[nm][1] ** 2) for _, w, p in runs if nm in p) / tot
         out[nm] = (m1, float(np.sqrt(max(m2 - m1**2, 0.0))), chosen.get(nm, (0, None))[1])
-    return {"params": out, "alternatives": [(lb, w / tot, list(p)) for lb, w, p in runs]}
+    return {
+        "params": out,
+        "units": {nm: units[nm] for nm in out},
+        "alternatives": [(lb, w / tot, list(p)) for lb, w, p in runs],
+    }
+
+
+def _weighed_free(prob, sigma, rest: Columns, c: Candidate, log_n: float) -> list:
+    """The functions of an accepted effect weighed as :func:`_evaluate_block` weighs them, but
+    against ``rest`` (the final model less the effect's chosen function), where the effect's
+    nuisance is free (``sensor_offset``: the elements' common shift, the magnet's offsets
+    released). In the selection that shift is held by the survey, which prefers the element
+    whose displacement carries the least common shift; with it free, two elements along a
+    direction only one of the others sees (the x and the z element of a quadrupole's body,
+    along x) read alike, and their offsets from the centroid are averaged over both.
+
+    Returns
+    -------
+    list of (label, idx, weight)
+        As ``Candidate.alternatives``, of weight at least :data:`ALT_MIN_WEIGHT`: the chosen
+        function and those neither within it nor holding it (a pair sharing one function
+        with the chosen pair is another placement of the elements).
+    """
+    blk = c.family_block
+    own = {blk.names.index(n) for n in c.cols.names}
+    current = fit_map(prob.y, sigma, rest)
+    current.q_data = _model_basis(sigma, rest)
+    M, g = _screen_gram(sigma, rest, current, blk.J)
+    options = function_options(blk.families, blk.pairs)
+    stages = {st: sum(1 for o in options if o[2] == st) for st in (1, 2)}
+    score = np.array([
+        _screened_drop(M, g, idx) - len(idx) * log_n - 2.0 * np.log(stages[st])
+        for _, idx, st in options
+    ])  # fmt: skip
+    w = family_weights(score)
+    return [
+        ("+".join(lb), ix, float(w[j]))
+        for j in np.argsort(-w, kind="stable")
+        for lb, ix, _ in [options[j]]
+        if w[j] >= ALT_MIN_WEIGHT and (set(ix) == own or not (set(ix) <= own or own <= set(ix)))
+    ]
 
 
 def _model_basis(sigma, model):
@@ -893,24 +980,18 @@ def select_effects(
         accepted.status = "found"
         selected.append(accepted.name)
         accepted_c.append(accepted)
-        blk = blocks[accepted.name]
-        if accepted.family is not None:  # the effect's other functions stay candidates
-            used = set(accepted.functions)
-            rest = sorted({k for lb, idx in blk.families if lb not in used for k in idx})
-            blocks[accepted.name] = blk.subset(rest) if rest else blk
-            if rest:
-                blocks[accepted.name].families = [
-                    f for f in blocks[accepted.name].families if f[0] not in used
-                ]
-        if accepted.family is None or not rest:
-            done.add(accepted.name)
         model = _untestable_released(accepted)
+        rest = _other_functions(sigma, model, accepted, blocks[accepted.name])
+        if rest is None:
+            done.add(accepted.name)
+        else:
+            blocks[accepted.name] = rest
         # re-estimate the noise with the effect in the model, then refit
         noise, sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
         current = fit_map(prob.y, sigma, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c
-        c.averaged = model_average(prob, sigma, model, c)
+        c.averaged = model_average(prob, sigma, model, c, log_n)
     sel = Selection(selected=selected, candidates=cands, rounds=rounds)
     sel.model = model
     sel.sigma = sigma
@@ -920,6 +1001,44 @@ def select_effects(
     sel.folds = folds
     sel.accepted = accepted_c
     return sel
+
+
+def _other_functions(sigma, model: Columns, accepted: Candidate, blk: Columns):
+    """The functions of an accepted effect that stay candidates (``blk`` less the functions
+    accepted and those ``model`` spans), or None when none is left."""
+    if accepted.family is None:
+        return None
+    used = set(accepted.functions)
+    rest = sorted({k for lb, idx in blk.families if lb not in used for k in idx})
+    if not rest:
+        return None
+    out = blk.subset(rest)
+    out.families = [f for f in out.families if f[0] not in used]
+    if out.pairs is not None:
+        out.pairs = [pr for pr in out.pairs if not {pr[1], pr[2]} & used]
+    out = _unspanned(sigma, model, out)
+    return out if out.p else None
+
+
+#: A column whose whitened norm the model leaves below this fraction is one the model spans.
+SPANNED = 1e-8
+
+
+def _unspanned(sigma, model: Columns, blk: Columns) -> Columns:
+    """``blk`` (an effect of several functions) without the functions all of whose columns
+    ``model`` spans (``sensor_offset``: the third element along a direction two elements are
+    fitted along, whose offset the other two give)."""
+    W = (model.J / sigma[..., None]).reshape(-1, model.p)
+    V = (blk.J / sigma[..., None]).reshape(-1, blk.p)
+    ok = np.all(np.isfinite(W), axis=1) & np.all(np.isfinite(V), axis=1)
+    Q = np.linalg.qr(W[ok])[0] if model.p else np.zeros((ok.sum(), 0))
+    V = V[ok]
+    left = np.sum((V - Q @ (Q.T @ V)) ** 2, axis=0)
+    spanned = left <= SPANNED * np.maximum(np.sum(V**2, axis=0), 1e-300)
+    fams = [f for f in blk.families if not all(spanned[k] for k in f[1])]
+    if len(fams) == len(blk.families):
+        return blk
+    return blk.subset(sorted({k for _, idx in fams for k in idx}))
 
 
 def _untestable_released(accepted: Candidate) -> Columns:

@@ -266,16 +266,16 @@ def _effect_entry(cands, model, fit1, base, sigma, noise=None) -> dict:
     fams = [f for c in cands for f in c.functions]
     if fams:
         e["functions"] = fams
-    _averaged(e, cands)
     if info:
         e["where"] = {n: v for n, v in info.items() if n in e["params"]}
     phys = None
     if c0.has_new and c0.cols.physical is not None:
-        nb = c0.cols.p
-        ib = [model.names.index(n) for n in c0.param_names[-nb:]]
+        # every function of the effect found, in whichever round
+        own = [n for c in cands if c.has_new for n in c.cols.names]
+        ib = [model.names.index(n) for n in own]
         lof = _lack_of_fit(c0.cols, fit1, sigma)
         cov = fit1.cov[np.ix_(ib, ib)] * lof
-        phys = c0.cols.physical(c0.param_names[-nb:], fit1.theta[ib], cov)
+        phys = c0.cols.physical(own, fit1.theta[ib], cov)
         if c0.cols.model_rows is not None:
             e["lack_of_fit"] = {
                 "reduced_chi2": round(_lack_of_fit(c0.cols, fit1, _or(noise, sigma)), 2),
@@ -305,8 +305,9 @@ def _effect_entry(cands, model, fit1, base, sigma, noise=None) -> dict:
         if "lack_of_fit" in e:
             shaped = c0.cols.model_dependent
             e["model_dependent"] = [n for n in e["params"] if shaped is None or n in shaped]
+    _averaged(e, cands)
     _lower_order(e, cands)
-    _lone_element_offsets(e)
+    _unseen_elements(e, cands)
     return e
 
 
@@ -335,25 +336,30 @@ def _lower_order(e: dict, cands) -> None:
     )
 
 
-def _lone_element_offsets(e: dict) -> None:
-    """Hall elements' offsets along a direction reported for one of the x and y elements alone
-    (the other's column absorbed by the calibrated model, or not determined) listed as
-    model-dependent in the entry ``e`` (``sensor_offset``): offsets are relative to the
-    elements' centroid, whose shift is free, so one element's offset is known only beside the
-    other's; alone it is the value that holds if the other sits at the centroid."""
+def _unseen_elements(e: dict, cands) -> None:
+    """Hall elements' offsets from their centroid along a direction listed as model-dependent
+    in the entry ``e`` (``sensor_offset``) where one element is fitted along it and another's
+    displacement along it is one the data cannot see (its column absorbed by the calibrated
+    model: a quadrupole's x element along x, where dB_x/dx vanishes and dB_y/dx moves the y
+    element's reading as the magnet's offset does). The fitted element is displaced from the
+    others taken together; the data fix its offset from the elements they see only, so the
+    offsets from the centroid hold only if the unseen element sits with the others."""
     if e.get("name") != "sensor_offset":
         return
-    lone = []
+    fitted = {n for c in cands if c.has_new for n in c.cols.names}
+    seen = fitted | {n for c in cands if c.family_block is not None for n in c.family_block.names}
+    unseen = []
     for j in "xyz":
-        present = [f"d_{i}_{j}" for i in "xy" if f"d_{i}_{j}" in e["params"]]
-        if len(present) == 1:
-            lone += present
+        along = [f"e_{i}_{j}" for i in "xyz"]
+        if sum(n in fitted for n in along) == 1 and not all(n in seen for n in along):
+            unseen += [f"d_{i}_{j}" for i in "xyz" if f"d_{i}_{j}" in e["params"]]
     _mark_model_dependent(
         e,
-        lone,
-        "an element's offset reported without the other free element's along the same "
-        "direction assumes that element at the elements' centroid: the data fix only a "
-        "combination of the two once the centroid's shift is free",
+        unseen,
+        "an element fitted alone along a direction along which another element's displacement "
+        "is unseen (absorbed by the calibrated model) is displaced from the others taken "
+        "together: its offsets from the centroid along it hold only if the unseen element sits "
+        "with the others",
     )
 
 
@@ -380,7 +386,7 @@ def _averaged(e: dict, cands) -> None:
                 extra = max(e["param_std"][nm] ** 2 - s_own**2, 0.0)
             e["params"][nm] = float(m)
             e["param_std"][nm] = float(np.sqrt(s**2 + extra))
-            e["units"].setdefault(nm, c.family_block.units[c.family_block.names.index(nm)])
+            e["units"].setdefault(nm, c.averaged["units"][nm])
         alts += [
             {"function": lb, "params": names, "weight": round(w, 3)}
             for lb, w, names in c.averaged["alternatives"]
