@@ -718,9 +718,9 @@ def model_average(prob, sigma, model: Columns, c: Candidate, log_n=None) -> dict
     function lacks it): std^2 = sum_f w_f (var_f + theta_f^2) - mean^2.
 
     An effect that states physical parameters (:attr:`Columns.physical`: ``sensor_offset``'s
-    offsets from the elements' centroid) is averaged in those. An effect whose nuisance is
-    free in the final model (:attr:`Columns.nuisance`) has its functions weighed again there
-    (:func:`_weighed_free`, ``log_n`` the BIC's ln n).
+    offsets from the elements' centroid) is averaged in those, the chosen function's only.
+    An effect whose nuisance is free in the final model (:attr:`Columns.nuisance`) has its
+    functions weighed again there (:func:`_weighed_free`, ``log_n`` the BIC's ln n).
 
     Returns
     -------
@@ -759,8 +759,12 @@ def model_average(prob, sigma, model: Columns, c: Candidate, log_n=None) -> dict
     tot = sum(w for _, w, _ in runs)
     if len(runs) < 2 or tot <= 0:
         return None
-    names = list(dict.fromkeys(n for _, _, p in runs for n in p))
     chosen = next((p for lb, _, p in runs if lb == c.family), {})
+    names = list(dict.fromkeys(n for _, _, p in runs for n in p))
+    if c.cols.physical is not None and chosen:
+        # offsets along the directions the chosen function fits: an alternative's along
+        # another direction would read as zero within a std the data never gave
+        names = list(chosen)
     out = {}
     for nm in names:
         m1 = sum(w * p[nm][0] for _, w, p in runs if nm in p) / tot
@@ -780,17 +784,18 @@ def _weighed_free(prob, sigma, rest: Columns, c: Candidate, log_n: float) -> lis
     released). In the selection that shift is held by the survey, which prefers the element
     whose displacement carries the least common shift; with it free, two elements along a
     direction only one of the others sees (the x and the z element of a quadrupole's body,
-    along x) read alike, and their offsets from the centroid are averaged over both.
+    along x) read alike, and their offsets from the centroid are averaged over both. A pair
+    that holds the chosen function is another placement of the elements too, not another
+    order of one error: one element displaced from two that sit together, or two displaced
+    from the third (the offsets from the centroid differ by the second's share), and is
+    averaged over like any other.
 
     Returns
     -------
     list of (label, idx, weight)
-        As ``Candidate.alternatives``, of weight at least :data:`ALT_MIN_WEIGHT`: the chosen
-        function and those neither within it nor holding it (a pair sharing one function
-        with the chosen pair is another placement of the elements).
+        As ``Candidate.alternatives``, of weight at least :data:`ALT_MIN_WEIGHT`.
     """
     blk = c.family_block
-    own = {blk.names.index(n) for n in c.cols.names}
     current = fit_map(prob.y, sigma, rest)
     current.q_data = _model_basis(sigma, rest)
     M, g = _screen_gram(sigma, rest, current, blk.J)
@@ -805,7 +810,7 @@ def _weighed_free(prob, sigma, rest: Columns, c: Candidate, log_n: float) -> lis
         ("+".join(lb), ix, float(w[j]))
         for j in np.argsort(-w, kind="stable")
         for lb, ix, _ in [options[j]]
-        if w[j] >= ALT_MIN_WEIGHT and (set(ix) == own or not (set(ix) <= own or own <= set(ix)))
+        if w[j] >= ALT_MIN_WEIGHT
     ]
 
 
