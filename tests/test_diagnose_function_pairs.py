@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from test_diagnose_effects import run_hall
 
-from cfm_fem.workflows.diagnose.select import PAIR_MAX_FUNCTIONS, function_options
+from cfm_fem.workflows.diagnose.functions import PAIR_MAX_FUNCTIONS, function_options
 
 
 def test_options_are_the_functions_then_their_pairs_without_repeats():

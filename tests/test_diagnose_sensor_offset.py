@@ -42,7 +42,7 @@ def test_the_elements_centroid_is_a_free_nuisance_of_the_offsets():
 
 
 def test_each_element_along_each_direction_is_a_function_then_the_pairs():
-    from cfm_fem.workflows.diagnose.select import function_options
+    from cfm_fem.workflows.diagnose.functions import function_options
 
     blk = fx.sensor_offset(_twin_problem())
     opts = function_options(blk.families, blk.pairs)
@@ -83,14 +83,14 @@ def test_element_offsets_from_the_centroid_follow_the_fitted_displacements():
 
 def test_the_third_element_along_a_direction_two_are_fitted_along_leaves_the_candidates():
     from cfm_fem.workflows.diagnose.calibrate import stack
-    from cfm_fem.workflows.diagnose.select import _unspanned
+    from cfm_fem.workflows.diagnose.functions import unspanned
 
     prob = _twin_problem()
     blk = fx.sensor_offset(prob)
     two = blk.subset([blk.names.index("e_x_y"), blk.names.index("e_y_y")])
     model = stack([*prob.baseline, two])
     rest = blk.subset([k for k, n in enumerate(blk.names) if n not in two.names])
-    left = _unspanned(np.ones((prob.n, 3)), model, rest)
+    left = unspanned(np.ones((prob.n, 3)), model, rest)
     assert "e_z_y" not in left.names
     # along x the x and y elements stay (the z element alone moves the readings as the
     # magnet's offset does in this 2-D field, and nothing varies along z)

@@ -73,7 +73,7 @@ class Columns:
         of one group only the first whose functions are both present is tested (pairs that
         span the same columns: ``sensor_offset``'s two elements of three along one
         direction). None: every pair, where the effect has at most
-        :data:`~cfm_fem.workflows.diagnose.select.PAIR_MAX_FUNCTIONS` functions.
+        :data:`~cfm_fem.workflows.diagnose.functions.PAIR_MAX_FUNCTIONS` functions.
     multiplicity : float
         Number of alternatives searched to build the columns (``step_event``: candidate change
         points); the evidence is corrected for it (Bonferroni). 1: none.
@@ -284,7 +284,7 @@ class Fit:
     singular_values: np.ndarray
     vt: np.ndarray
     scale: np.ndarray
-    q_data: np.ndarray | None = None  # cache of the selection's screening (select._screen)
+    q_data: np.ndarray | None = None  # cache of the selection's screening (functions.screen_gram)
 
     @property
     def objective(self) -> float:

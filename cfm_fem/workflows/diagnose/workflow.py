@@ -373,7 +373,7 @@ def _mark_model_dependent(e: dict, names, note: str) -> None:
 
 def _averaged(e: dict, cands) -> None:
     """Parameters of functions the data cannot tell apart, averaged over them
-    (:func:`~cfm_fem.workflows.diagnose.select.model_average`), into the entry ``e``: the
+    (:func:`~cfm_fem.workflows.diagnose.functions.model_average`), into the entry ``e``: the
     mixture's mean, and its std with the chosen function's own variance beyond its plain fit
     (the vibration's correlation) added; ``alternatives`` lists the functions and weights."""
     alts = []
