@@ -806,11 +806,7 @@ def hall_problem(
         G_move = moved_gradient(bench, q, at, G_reg, H, T)
     lever_pt = p - pose[:3] * UM  # from the magnet origin
     notes += check_hall_scale(rec.B, B0, source=rec.source)
-    reg_gain = _registration_and_gains(
-        B_reg, G_reg if G_move is None else G_move, lever_pt, reg_std_mm, reg_std_rad,
-        gain_std_pct, B_gain=B0
-    )  # fmt: skip
-    y = rec.B - B_pose + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
+    y = rec.B - B_pose
     if D is not None:  # the offsets' linear term: ``sensor_offset`` fits the whole offsets
         y = y + linear_term(G, D)
     blocks = []
@@ -831,6 +827,14 @@ def hall_problem(
         disp = np.einsum("ij,njp->nip", R, bench_columns(bench, q).J)
         axis_var = bench.noise_std_mm() ** 2
         var_known = np.einsum("nik,k->ni", lever**2, axis_var)
+    # a gain scales the field the element senses, where the bench moves the probe: on a
+    # multipole that field departs from the nominal one by G d, and a gain of 0.1 % times
+    # a move of tens of um is above a Hall probe's noise
+    reg_gain = _registration_and_gains(
+        B_reg, G_reg if G_move is None else G_move, lever_pt, reg_std_mm, reg_std_rad,
+        gain_std_pct, B_gain=B_read
+    )  # fmt: skip
+    y = y + np.einsum("nkp,p->nk", reg_gain[0].J, pose)
     blocks += reg_gain
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
