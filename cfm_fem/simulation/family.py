@@ -25,7 +25,7 @@ range (the magnet's temperature coefficient, |beta| <= 2000 ppm/K; the Hall elem
 |d| <= 1 mm each; the planar Hall coefficients, |k| <= 0.05 /T; the averaging disc, at most
 2 mm across; the tracker's thermal drift, its scale drifts |scale_drift| <= 25 ppm/K and its
 offset drifts |drift| <= 50 um/K), the case draws another configuration for the same effect
-instead, from a seed derived from the case's seed and the attempt (:func:`_drawn_case`;
+instead, from a seed derived from the case's seed and the attempt (:func:`drawn_case`;
 :func:`written_config` gives the configuration a case is written with).
 
 Every label (``strata``), the whole configuration (``config["seed"]``: the seed it was drawn
@@ -48,6 +48,7 @@ from . import family_tracker as FT
 
 __all__ = [
     "draw_config",
+    "drawn_case",
     "written_config",
     "write_family_case",
     "HALL_EFFECTS",
@@ -724,7 +725,7 @@ def _sized_case(cfg: dict, redraw: bool) -> dict | None:
     return {"cfg": cfg, "ctx": ctx, "effects": effects, "record": record, "table": tab}
 
 
-def _drawn_case(seed: int, size: str, role, kind, replica: int, effect=None) -> dict:
+def drawn_case(seed: int, size: str, role, kind, replica: int, effect=None) -> dict:
     """A case's configuration, draws and concealed effect, from its seed.
 
     The first attempt is the configuration of ``seed`` (:func:`draw_config`). When the
@@ -758,7 +759,7 @@ def written_config(seed: int, size: str = "small", role=None, kind=None, effect=
 
     It is :func:`draw_config` of the seed but where the case's own draws change it: an effect
     case whose effect is one of :data:`PHYSICAL` and needs a size beyond its range on the
-    seed's configuration is written on another one (:func:`_drawn_case`); an effect the
+    seed's configuration is written on another one (:func:`drawn_case`); an effect the
     configuration cannot carry is replaced by one of its fallback list (``effect``; the soft
     ends then bring their 2-D harmonics); a reference of 2-D harmonics from which the body
     departs by more than 1 sigma is replaced by the exact one.
@@ -782,7 +783,7 @@ def written_config(seed: int, size: str = "small", role=None, kind=None, effect=
     cfg = draw_config(seed, size, role, kind, effect=effect)
     if cfg["role"] == "null" and cfg.get("reference") != "harmonics":
         return cfg | {"replica": 0, "attempts": 1}
-    case = _drawn_case(seed, size, cfg["role"], cfg["kind"], 0, effect)
+    case = drawn_case(seed, size, cfg["role"], cfg["kind"], 0, effect)
     return case["cfg"] | {"attempts": case["attempts"]}
 
 
@@ -796,7 +797,7 @@ def write_family_case(
     seed : int
         The case's seed: its configuration (:func:`draw_config`), or, when the case's effect
         needs a size beyond its physical range there, a configuration drawn from the seed and
-        an attempt counter (:func:`_drawn_case`; the truth's ``attempts`` and
+        an attempt counter (:func:`drawn_case`; the truth's ``attempts`` and
         ``config["seed"]``).
     folder : str or Path
     size : {'small', 'full'}
@@ -816,7 +817,7 @@ def write_family_case(
         paths, ``kind``, ``expected`` (the effect or None) and the ``args`` of
         ``cfm-fem diagnose`` (less ``--out``), as :func:`.cases.write_case`.
     """
-    case = _drawn_case(seed, size, role, kind, replica, effect)
+    case = drawn_case(seed, size, role, kind, replica, effect)
     cfg, ctx, effects = case["cfg"], case["ctx"], case["effects"]
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

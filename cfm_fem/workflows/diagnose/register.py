@@ -275,6 +275,33 @@ def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
     return prob
 
 
+def refit_step(prob: Problem, model: Columns, fit, sigma, keep=()) -> Problem | None:
+    """``prob`` linearised at the pose and bench errors a selected ``model`` fits there, the
+    step halved while the model's MAP objective rises (its baseline columns formed anew at each
+    linearisation, the noise ``sigma`` held); ``prob`` itself when the model fits them where
+    they are, None when the objective still rises after three halvings.
+
+    The linear model's optimum is no step of the non-linear one where the linearisation fails
+    over the step (a pose whose second-order terms reach a low-noise component's floor): taken
+    unchecked, such a step moves the pose where the baseline fits worse, and the misfit it
+    leaves is then attributed to an effect. ``keep``: baseline columns an effect replaced."""
+    pose, moved = pose_step(prob, model, fit)
+    at, at_moved = bench_target(prob, model, fit)
+    if not (moved or at_moved):
+        return prob
+    obj = _objective_of(prob, model, sigma, keep)[0]
+    start = np.asarray(prob.ctx.pose, dtype=float)
+    at0 = _bench_now(prob, model) if at_moved else None
+    for _half in range(4):
+        trial = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
+        if _objective_of(trial, model, sigma, keep)[0] <= obj * (1.0 + 1e-9):
+            return trial
+        pose = 0.5 * (start + pose)
+        if at_moved:
+            at = 0.5 * (at0 + at)
+    return None
+
+
 def registration_note(prob: Problem) -> str | None:
     """What the non-linear registration did, for the notes of the diagnosis."""
     pose = prob.ctx.pose if prob.kind == "hall" else None

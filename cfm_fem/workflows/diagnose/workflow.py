@@ -26,12 +26,10 @@ from .priors import WIDE, bounds_for
 from .problem import Problem, noise_sigma, subset_rows
 from .register import (
     applies,
-    bench_target,
-    pose_step,
+    refit_step,
     register,
     registration_note,
     relinearise_elements,
-    repose,
 )
 from .select import cv_rms, select_effects, structural_absorption
 
@@ -537,11 +535,10 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
         if refits == max_refits or not applies(prob) or _ends_on_2d(prob, a.sel):
             break
         refits += 1
-        pose, moved = pose_step(prob, a.sel.model, a.fit1)
-        at, at_moved = bench_target(prob, a.sel.model, a.fit1)
-        if not (moved or at_moved):
+        stepped = refit_step(prob, a.sel.model, a.fit1, a.sel.sigma, _replaced(a))
+        if stepped is None or stepped is prob:
             break
-        prob = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
+        prob = stepped
     a.unheld = unheld
     return a
 
@@ -551,8 +548,12 @@ def _at_elements(prob: Problem, a) -> Problem:
     field is not linear over them; else ``prob`` itself."""
     if "sensor_offset" not in a.sel.selected and prob.ctx.elements_at is None:
         return prob
-    keep = {n for c in a.sel.accepted if c.has_new and c.cols.replaces for n in c.cols.replaces}
-    return relinearise_elements(prob, a.sel.model, a.fit1, a.sel.sigma, keep)
+    return relinearise_elements(prob, a.sel.model, a.fit1, a.sel.sigma, _replaced(a))
+
+
+def _replaced(a) -> set:
+    """Names of the baseline columns an accepted effect of the attribution ``a`` replaced."""
+    return {n for c in a.sel.accepted if c.has_new and c.cols.replaces for n in c.cols.replaces}
 
 
 def _offsets_not_held(effects: list, unheld) -> str | None:
