@@ -52,7 +52,7 @@ def without_vibration(seed: int, size: str, folder: Path) -> dict:
     readings = family_hall.forward(cfg, ctx, {}, noisy=False) + ctx["noise"]
     rewrite_readings(Path(files["recording"]), readings)
     out = folder / "run"
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         rc = main(["diagnose", *map(str, files["args"]), "--no-report", "--out", str(out)])
     d = json.loads((out / "diagnosis.json").read_text())
     return {

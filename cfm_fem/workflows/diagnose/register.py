@@ -275,20 +275,26 @@ def bench_step(prob: Problem, max_iter: int = 3) -> Problem:
     return prob
 
 
-def refit_step(prob: Problem, model: Columns, fit, sigma, keep=()) -> Problem | None:
-    """``prob`` linearised at the pose and bench errors a selected ``model`` fits there, the
-    step halved while the model's MAP objective rises (its baseline columns formed anew at each
-    linearisation, the noise ``sigma`` held); ``prob`` itself when the model fits them where
-    they are, None when the objective still rises after three halvings.
+def refit_step(prob: Problem, model: Columns, fit, sigma, keep=(), checked=True):
+    """``prob`` linearised at the pose and bench errors ``model`` fits there; ``prob`` itself
+    when the model fits them where they are.
 
-    The linear model's optimum is no step of the non-linear one where the linearisation fails
-    over the step (a pose whose second-order terms reach a low-noise component's floor): taken
-    unchecked, such a step moves the pose where the baseline fits worse, and the misfit it
-    leaves is then attributed to an effect. ``keep``: baseline columns an effect replaced."""
+    ``checked``: the step is halved while the model's MAP objective rises (its baseline
+    columns formed anew at each linearisation, the noise ``sigma`` held), and None is returned
+    when it still rises after three halvings, as :func:`register` steps the baseline. A model
+    with no effect selected is the baseline: a step :func:`register` refused would move the
+    pose where the baseline fits worse (a pose whose second-order terms reach a low-noise
+    component's floor), and the misfit left there would be attributed to an effect. A model
+    with an effect is stepped unchecked: its linear optimum is the pose the effect's
+    parameters are fitted at, and against a coarse map the objective barely tells two
+    linearisations apart (the reading error moves with the pose) while the effect's
+    parameters do. ``keep``: baseline columns an effect replaced."""
     pose, moved = pose_step(prob, model, fit)
     at, at_moved = bench_target(prob, model, fit)
     if not (moved or at_moved):
         return prob
+    if not checked:
+        return repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
     obj = _objective_of(prob, model, sigma, keep)[0]
     start = np.asarray(prob.ctx.pose, dtype=float)
     at0 = _bench_now(prob, model) if at_moved else None

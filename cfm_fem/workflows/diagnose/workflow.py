@@ -508,8 +508,9 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
     """Steps 1-4 with the magnet's registration non-linear (a Hall map): the problem is
     linearised at the registration and the bench errors the baseline fits, and again at those
     the selected model fits (a released ``magnet_misalignment`` moves the pose; an effect the
-    baseline lacks moves both) until they stay put. Hall elements found displaced
-    (``sensor_offset``) are read where the selected model puts them
+    baseline lacks moves both) until they stay put; with no effect selected, only where the
+    baseline's objective falls (:func:`~cfm_fem.workflows.diagnose.register.refit_step`). Hall
+    elements found displaced (``sensor_offset``) are read where the selected model puts them
     (:func:`~cfm_fem.workflows.diagnose.register.relinearise_elements`) when the field is not
     linear over their offsets; should the offsets not be found again there (the offsets'
     signature taken by the baseline at the elements' points), the problem and attribution
@@ -535,7 +536,8 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
         if refits == max_refits or not applies(prob) or _ends_on_2d(prob, a.sel):
             break
         refits += 1
-        stepped = refit_step(prob, a.sel.model, a.fit1, a.sel.sigma, _replaced(a))
+        stepped = refit_step(prob, a.sel.model, a.fit1, a.sel.sigma, _replaced(a),
+                             checked=not a.sel.selected)  # fmt: skip
         if stepped is None or stepped is prob:
             break
         prob = stepped
