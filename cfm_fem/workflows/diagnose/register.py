@@ -25,6 +25,7 @@ Gauss-Newton with that model, each element's field and gradient taken at its own
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -200,15 +201,17 @@ def register(prob: Problem, max_iter: int = 6) -> Problem:
     return repose(nominal, np.zeros(len(REG_NAMES)), planar=False) if _steered(prob) else prob
 
 
-def _step(prob: Problem, obj: float, pose, bench=None):
+def _step(prob: Problem, obj: float, pose, bench=None, objective=None):
     """The problem relinearised at ``pose`` (and, ``bench = (at, now)``, at the bench errors
     ``at`` instead of ``now``) with its objective and fit, the step halved while it raises
-    the MAP objective; None if it still does after three halvings."""
+    the MAP objective; None if it still does after three halvings. ``objective``: (objective,
+    model, fit) of a problem, default the calibrated baseline's (:func:`_objective`)."""
+    objective = _objective if objective is None else objective
     start = np.asarray(prob.ctx.pose, dtype=float)
     at, at0 = (None, None) if bench is None else bench
     for _half in range(4):
         trial = repose(prob, pose) if at is None else repose(prob, pose, bench_at=at)
-        obj_t, base_t, fit_t = _objective(trial)
+        obj_t, base_t, fit_t = objective(trial)
         if obj_t <= obj * (1.0 + 1e-9):
             return trial, obj_t, base_t, fit_t
         pose = 0.5 * (start + pose)
@@ -295,17 +298,10 @@ def refit_step(prob: Problem, model: Columns, fit, sigma, keep=(), checked=True)
         return prob
     if not checked:
         return repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
-    obj = _objective_of(prob, model, sigma, keep)[0]
-    start = np.asarray(prob.ctx.pose, dtype=float)
-    at0 = _bench_now(prob, model) if at_moved else None
-    for _half in range(4):
-        trial = repose(prob, pose, bench_at=at) if at_moved else repose(prob, pose)
-        if _objective_of(trial, model, sigma, keep)[0] <= obj * (1.0 + 1e-9):
-            return trial
-        pose = 0.5 * (start + pose)
-        if at_moved:
-            at = 0.5 * (at0 + at)
-    return None
+    held = partial(_objective_of, model=model, sigma=sigma, keep=keep)
+    bench = (at, _bench_now(prob, model)) if at_moved else None
+    step = _step(prob, held(prob)[0], pose, bench, objective=held)
+    return None if step is None else step[0]
 
 
 def registration_note(prob: Problem) -> str | None:
