@@ -81,3 +81,23 @@ def test_arrays_encoded_once_and_blocks_compressed_side_by_side_write_the_same_b
     with pytest.raises(ValueError, match="rows"):
         write_mesh_vtu(tmp_path / "bad.vtu", mesh, {"grad": short}, fields)
     assert not (tmp_path / "bad.vtu").exists()
+
+
+def test_maps_deflated_by_zlib_where_isal_is_missing_read_back_the_same(tmp_path, monkeypatch):
+    """Without ISA-L the point data is deflated by zlib: other bytes, the same arrays."""
+    import zlib
+
+    from cfm_fem.io import vtu_stream
+
+    rng = np.random.default_rng(9)
+    pts, cells, data, fields = _map(3000, 5, rng)
+    write_mesh_vtu(tmp_path / "fast.vtu", MeshBlock(pts, cells), data, fields)
+    isal = vtu_stream.fast_zlib is not zlib
+    monkeypatch.setattr(vtu_stream, "fast_zlib", zlib)
+    write_mesh_vtu(tmp_path / "zlib.vtu", MeshBlock(pts, cells), data, fields)
+    fast, slow = (tmp_path / "fast.vtu").read_bytes(), (tmp_path / "zlib.vtu").read_bytes()
+    assert (fast != slow) == isal
+    a, b = meshio.read(tmp_path / "fast.vtu"), meshio.read(tmp_path / "zlib.vtu")
+    for name, values in data.items():
+        assert np.array_equal(a.point_data[name], values, equal_nan=True)
+        assert np.array_equal(b.point_data[name], values, equal_nan=True)
