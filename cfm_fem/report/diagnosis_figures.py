@@ -121,14 +121,11 @@ def markdown(summary: dict, source: str = "") -> str:
 def figures(summary: dict, arrays: dict) -> dict:
     """Matplotlib figures: ``fit`` (before/after bars and residual histograms) and
     ``residuals`` (standardised point means against the three coordinates)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plots import subplots
 
     fit = summary["fit"]
     u = fit["unit"]
-    f1, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    f1, ax = subplots(1, 2, figsize=(10, 3.8))
     labels = ["RMS", "held-out RMS"]
     before = [fit["rms_before"], fit["cv_rms_before"]]
     after = [fit["rms_after"], fit["cv_rms_after"]]
@@ -154,7 +151,7 @@ def figures(summary: dict, arrays: dict) -> dict:
     ax[1].set_title("residuals of every reading", fontsize=10)
     ax[1].legend()
     f1.tight_layout()
-    f2, ax = plt.subplots(3, 3, figsize=(11, 8), sharey="row")
+    f2, ax = subplots(3, 3, figsize=(11, 8), sharey="row")
     zp, pp = arrays["zp_before"], arrays["point_pos"]
     za = arrays["zp_after"]
     for c in range(3):

@@ -1,21 +1,23 @@
-"""Figures of the reports (matplotlib, Agg backend); every function returns PNG bytes.
+"""Figures of the reports (matplotlib); every function returns PNG bytes.
 
 Figure analogues of the paper: Fig. 4 (U_f against U_p, and the map on the longitudinal plane),
 Fig. 10 (systematic positioning error over the volume), Fig. 12 / 13 (95 % intervals of simulation
 and experiment), and histograms of E_p and E_f with their coverage intervals.
+
+Figures are `matplotlib.figure.Figure` objects saved by their own canvas, not pyplot's: no
+global figure registry (the sweep draws its report on a thread beside the maps), and pyplot's
+backend machinery is not imported.
 """
 
 from __future__ import annotations
 
 import io
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
 
 __all__ = [
+    "subplots",
     "png_bytes",
     "hist_figure",
     "interval_figure",
@@ -31,8 +33,15 @@ __all__ = [
 DPI = 110
 
 
+def subplots(*args, figsize, **kwargs):
+    """A new figure of ``figsize`` (inches) and its axes, as ``Figure.subplots(*args,
+    **kwargs)`` makes them; returns (figure, axes)."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kwargs)
+
+
 def png_bytes(fig, crop: bool = True) -> bytes:
-    """Render ``fig`` to PNG bytes and close it.
+    """Render ``fig`` to PNG bytes.
 
     ``crop``: trim the figure to its drawn content (``bbox_inches="tight"``), which draws it
     twice; a figure laid out already (``tight_layout``, ``constrained_layout``) passes False
@@ -40,7 +49,6 @@ def png_bytes(fig, crop: bool = True) -> bytes:
     """
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if crop else None)
-    plt.close(fig)
     return buf.getvalue()
 
 
@@ -84,7 +92,7 @@ def hist_figure(panels, title: str) -> bytes:
     n = len(panels)
     cols = 3 if n in (5, 6, 9) else min(4, n)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.3 * cols, 2.6 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(3.3 * cols, 2.6 * rows), squeeze=False)
     for k, (x, lo, hi, label, unit) in enumerate(panels):
         _hist(axes[k // cols][k % cols], x, lo, hi, label, unit, color=f"C{k % 10}")
     for k in range(n, rows * cols):
@@ -104,7 +112,7 @@ def interval_figure(rows, unit: str, title: str, labels=("MC", "experiment")) ->
     unit : str
         Axis label unit.
     """
-    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.4))
+    fig, ax = subplots(figsize=(1.6 + 1.3 * len(rows), 3.4))
     for i, r in enumerate(rows):
         for j, (side, lab) in enumerate(zip(("sim", "exp"), labels, strict=True)):
             d = r[side]
@@ -148,7 +156,7 @@ def fig4_curve(up_um, series: dict, paper=None, analytic=None) -> bytes:
     analytic : sequence of float, optional
         1.96 U_p |grad |B|| / B_ref, dashed.
     """
-    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    fig, ax = subplots(figsize=(4.8, 3.4))
     for k, (lab, v) in enumerate(series.items()):
         ax.plot(up_um, v, "o-", color=f"C{k}", label=lab)
     if analytic is not None:
@@ -188,7 +196,7 @@ def _xz_panels(panels, title: str) -> bytes:
     n = len(panels)
     cols = min(2, n)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False)
     _margins(fig, rows, cols, (0.8, 1.05, 0.45, 0.6), (0.85, 0.65))
     finite = [uf[np.isfinite(uf)] for _, uf, _ in panels]
     vmax = max((float(v.max()) for v in finite if v.size), default=1.0) or 1.0
@@ -228,7 +236,7 @@ def fig10_systematic(points, mean_um, title: str) -> bytes:
     mean_um : ndarray, shape (m, 3), um
         Systematic error per point and axis.
     """
-    fig = plt.figure(figsize=(11.0, 8.6))
+    fig = Figure(figsize=(11.0, 8.6))
     norm = np.sqrt((mean_um**2).sum(1))
     panels = [(f"E_{a}", mean_um[:, k]) for k, a in enumerate("xyz")] + [("|E|", norm)]
     size = _marker_size(len(points), 150.0 * 150.0)
@@ -253,7 +261,7 @@ def fig10_systematic(points, mean_um, title: str) -> bytes:
 def residual_figure(z, labels, title: str) -> bytes:
     """Histogram of standardised residuals per quantity against the standard normal."""
     z = np.asarray(z, dtype=np.float64)
-    fig, axes = plt.subplots(1, z.shape[1], figsize=(3.0 * z.shape[1], 2.6), squeeze=False)
+    fig, axes = subplots(1, z.shape[1], figsize=(3.0 * z.shape[1], 2.6), squeeze=False)
     grid = np.linspace(-4, 4, 200)
     for k, lab in enumerate(labels):
         ax = axes[0][k]
@@ -294,7 +302,7 @@ def count_histograms(histograms, labels, title: str, unit: str = "units") -> byt
     n = len(histograms)
     cols = min(3, n)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.5 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(3.6 * cols, 2.5 * rows), squeeze=False)
     for k, ((edges, counts), label) in enumerate(zip(histograms, labels, strict=True)):
         ax = axes[k // cols][k % cols]
         ax.stairs(counts, edges, fill=True, color=f"C{k % 10}", alpha=0.75)
@@ -319,7 +327,7 @@ def share_bars(names, shares, title: str) -> bytes:
     title : str
     """
     k = len(names)
-    fig, ax = plt.subplots(figsize=(7.0, 0.45 * k + 1.2))
+    fig, ax = subplots(figsize=(7.0, 0.45 * k + 1.2))
     y = np.arange(k)
     for a, label in enumerate("XYZ"):
         ax.barh(y + (a - 1) * 0.27, shares[:, a], height=0.27, label=label)

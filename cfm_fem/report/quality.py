@@ -7,7 +7,7 @@ import numpy as np
 
 from ..models.quality.harmonics import N_HARMONICS
 from .html import HtmlReport
-from .plots import plt, png_bytes
+from .plots import png_bytes, subplots
 
 __all__ = ["quality_report", "harmonics_figure", "centre_figure", "budget_figure"]
 
@@ -21,7 +21,7 @@ def harmonics_figure(summary: dict) -> bytes:
     n = np.array(integ["n"])
     main = summary["main_order"]
     tol = {t["quantity"]: t["tolerance"] for t in (summary.get("tolerances") or [])}
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), sharey=True)
+    fig, axes = subplots(1, 2, figsize=(11, 3.8), sharey=True)
     for ax, key, letter in ((axes[0], "b_n_units", "b"), (axes[1], "a_n_units", "a")):
         v = np.array([np.nan if x is None else abs(x) for x in integ[key]])
         u = integ.get(f"U95_{key}")
@@ -56,7 +56,7 @@ def centre_figure(summary: dict, deviations) -> bytes:
            np.sin(t)]))).T  # fmt: skip
     mean = d.mean(axis=0)
     ell = ell + mean
-    fig, ax = plt.subplots(figsize=(5, 5))
+    fig, ax = subplots(figsize=(5, 5))
     ax.plot(d[:2000, 0], d[:2000, 1], ".", ms=2, alpha=0.4, color="C0", label="trials")
     ax.plot(ell[:, 0], ell[:, 1], "k-", lw=1.5, label="95 % ellipse about the mean")
     ax.plot([mean[0]], [mean[1]], "k+", ms=10, label="mean (systematic)")
@@ -79,7 +79,7 @@ def budget_figure(budget: dict) -> bytes:
               ("centre y (um)", [None if c[1] is None else 1e3 * c[1] for c in centre]),
               ("roll (mrad)", [g["U95_roll_mrad"] for g in groups]),
               ("magnetic length (mm)", [g["U95_magnetic_length_mm"] for g in groups])]  # fmt: skip
-    fig, axes = plt.subplots(1, 4, figsize=(13, 3.2), sharey=True)
+    fig, axes = subplots(1, 4, figsize=(13, 3.2), sharey=True)
     y = np.arange(len(names))
     for ax, (title, vals) in zip(axes, panels, strict=True):
         ax.barh(y, [np.nan if x is None else x for x in vals], color="C1")
