@@ -106,6 +106,15 @@ def test_normal_quantile_matches_scipy():
         assert _kernels.normal_quantile(p) == pytest.approx(norm.ppf(p), abs=1e-12)
 
 
+def _window(xu, x_tails):
+    """The trials of ``xu``'s tail windows, as `cv_stats` takes them (`window_trials`)."""
+    from cfm_fem._kernels import harmonic_cv as hcv
+
+    lo, hi = np.empty(len(xu), dtype=np.int64), np.empty(len(xu), dtype=np.int64)
+    k_lo, k_hi = hcv.window_trials(xu, len(xu), (x_tails[0][-1], x_tails[1][0]), lo, hi)
+    return lo, hi, k_lo, k_hi
+
+
 @pytest.mark.parametrize(
     "n, coupling, noise",
     [(1000, 1.0, 1e-3), (4000, 1.0, 0.05), (1000, 0.0, 0.5), (240, 1.0, 1e-3), (240, 1.0, 0.05)],
@@ -134,7 +143,7 @@ def test_cv_statistics_kernel_matches_its_numpy_twin(n, coupling, noise):
     _intervals(*x_tails, n, q, x_st)
     out, se = np.empty(6), np.empty(2)
     zq = _kernels.normal_quantile(0.975)
-    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se)
+    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, _window(xu, x_tails), work, out, se)
     ref_out, ref_se = testing.cv_stats(y, xu, s, sig1)
     np.testing.assert_allclose(out, ref_out, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(se, ref_se, rtol=1e-9, atol=1e-18)
@@ -167,7 +176,7 @@ def test_one_crossing_below_the_spacing_leaves_the_few_trials_error():
     _intervals(*x_tails, n, q, x_st)
     out, se = np.empty(6), np.empty(2)
     zq = _kernels.normal_quantile(0.975)
-    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se)
+    hcv.cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, _window(xu, x_tails), work, out, se)
     y_st = np.empty(6)  # the plain sample figures of Y: its quantiles for the crossings
     y_tails = (np.empty(h), np.empty(h))
     hcv.sample_tails(y, n, h, *y_tails, work[2], work[3])
@@ -181,3 +190,43 @@ def test_one_crossing_below_the_spacing_leaves_the_few_trials_error():
     uf = zq * s * sig1
     assert se[0] < 0.25 * asymptotic
     assert se[0] / uf < ADAPTIVE_PLAN[2]  # the node stops at its pilot
+
+
+@pytest.mark.parametrize("n", [64, 256, 1000])
+@pytest.mark.parametrize("coupling", [1.0, 0.3, 0.0])
+def test_crossings_from_the_tail_windows_are_those_of_every_trial(n, coupling):
+    """The crossing counts and the remainder's window variances taken from X's tail windows
+    and Y's tails (O(h) trials) are those of the pass over every trial, to the bit; where a
+    tie reaches the edge of Y's tail the windows decline (-1) and the pass is taken."""
+    from cfm_fem._kernels import harmonic_cv as hcv
+    from cfm_fem._kernels.order_stats import _intervals, coverage_count
+
+    rng = np.random.default_rng(n + int(10 * coupling))
+    q = coverage_count(n, 0.95)
+    h = n - q
+    s = 0.02
+    for _ in range(20):
+        xu = rng.standard_normal(n)
+        y = coupling * s * xu + 0.01 * s * rng.standard_normal(n)
+        work = tuple(np.empty(n) for _ in range(4))
+        tails = {}
+        st = {}
+        for name, v in (("x", xu), ("y", y)):
+            tails[name] = (np.empty(h), np.empty(h))
+            st[name] = np.empty(6)
+            hcv.sample_tails(v, n, h, *tails[name], work[2], work[3])
+            _intervals(*tails[name], n, q, st[name])
+        ends, x_ends = (st["y"][2], st["y"][3]), (st["x"][2], st["x"][3])
+        x_win = (tails["x"][0][h - 1], tails["x"][1][0])
+        full = hcv._crossings(y, xu, n, s, ends, x_ends, x_win)
+        fast = hcv._crossings_in_windows(y, xu, s, ends, x_ends, _window(xu, tails["x"]),
+                                         tails["y"], h)  # fmt: skip
+        assert fast == full
+    r = h // 2 if h % 2 == 0 else (h + 1) // 2
+    y[np.argsort(y)[r - 1 : h + 1]] = np.sort(y)[r - 1]  # ties from the low end past the edge
+    hcv.sample_tails(y, n, h, *tails["y"], work[2], work[3])
+    _intervals(*tails["y"], n, q, st["y"])
+    ends = (st["y"][2], st["y"][3])
+    fast = hcv._crossings_in_windows(y, xu, s, ends, x_ends, _window(xu, tails["x"]), tails["y"],
+                                     h)  # fmt: skip
+    assert fast[0] == -1

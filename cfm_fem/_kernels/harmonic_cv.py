@@ -133,6 +133,61 @@ def _spacing(y_tail, x_tail, s, i, m, n):
 
 
 @nb.njit(**JIT)
+def window_trials(xu, n, x_win, lo, hi):
+    """The trials of the two tail windows of the first-order part, in index order: X <= x_win[0]
+    into ``lo``, else X >= x_win[1] into ``hi`` (each shape >= n); returns their counts."""
+    k_lo = 0
+    k_hi = 0
+    for t in range(n):  # branch-free: every trial is written, the counts say which stay
+        v = xu[t]
+        in_lo = v <= x_win[0]
+        lo[k_lo] = t
+        k_lo += in_lo
+        hi[k_hi] = t
+        k_hi += (v >= x_win[1]) & (not in_lo)
+    return k_lo, k_hi
+
+
+@nb.njit(**JIT)
+def _crossings_in_windows(y, xu, s, ends, x_ends, window, tails, h):
+    """`_crossings` from the tails alone, or (-1, ...) where they do not settle it.
+
+    The trials of X's tail side (X <= x_lo, X >= x_hi) all lie in X's windows (``window``:
+    `window_trials`, disjoint, the quantile ends within their edges), and those at or beyond
+    Y's ends among Y's h extreme values (``tails``, ascending) unless a tie reaches a tail's
+    edge; so the counts, and the window sums in the same order, come from O(h) trials, not n.
+    """
+    lo, hi, k_lo, k_hi = window
+    low, high = tails
+    y_lo, y_hi = ends
+    if not (low[h - 1] > y_lo and high[0] < y_hi):  # ties across a tail's edge: all trials
+        return -1, -1, np.nan, np.nan
+    c_lo = 0
+    c_hi = 0
+    for j in range(h):
+        c_lo += low[j] <= y_lo
+        c_hi += high[j] >= y_hi
+    s1 = 0.0
+    s2 = 0.0
+    for j in range(k_lo):
+        t = lo[j]
+        c_lo -= (y[t] <= y_lo) & (xu[t] <= x_ends[0])
+        e = y[t] - s * xu[t]
+        s1 += e
+        s2 += e * e
+    var_lo = _variance(float(k_lo), s1, s2)
+    s1 = 0.0
+    s2 = 0.0
+    for j in range(k_hi):
+        t = hi[j]
+        c_hi -= (y[t] >= y_hi) & (xu[t] >= x_ends[1])
+        e = y[t] - s * xu[t]
+        s1 += e
+        s2 += e * e
+    return c_lo, c_hi, var_lo, _variance(float(k_hi), s1, s2)
+
+
+@nb.njit(**JIT)
 def _crossings(y, xu, n, s, ends, x_ends, x_win):
     """Trials on the tail side of Y's quantile but not of X's: Y <= y_lo with X > x_lo, and
     Y >= y_hi with X < x_hi (``ends`` = (y_lo, y_hi), ``x_ends`` = (x_lo, x_hi)); and the
@@ -211,7 +266,7 @@ def _variances(a, inv_fy, inv_fx, d_inv, p10):
 
 
 @nb.njit(**JIT)
-def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
+def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, window, work, out, se):
     """Statistics of one quantity at one U_p from the n trials' errors ``y`` and first-order
     parts per unit U_p ``xu``, into ``out`` (6: mean, std, symmetric low/high, shortest
     low/high, T) and the standard errors of the symmetric ends into ``se`` (2, T).
@@ -232,6 +287,9 @@ def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
         high; T/mm).
     x_tails : tuple of 2 ndarray, shape (>= n - q,)
         The n - q smallest and largest values of ``xu``, ascending.
+    window : tuple (ndarray, ndarray, int, int)
+        The trials of ``xu``'s tail windows at its (n - q)-th smallest and largest values
+        and their counts (`window_trials`).
     work : tuple
         (low, high, scratch, copy) work arrays (>= n).
     """
@@ -253,8 +311,14 @@ def cv_stats(y, xu, n, q, s, sig1, zq, x_st, x_tails, work, out, se):
     ify_lo, d_lo = _spacing(low, x_tails[0], s, r - 1, m, n)
     ify_hi, d_hi = _spacing(high, x_tails[1], s, r - 1, m, n)
     ifx = s * sig1 / (math.exp(-0.5 * zq * zq) / math.sqrt(2.0 * math.pi))
-    c_lo, c_hi, ve_lo, ve_hi = _crossings(y, xu, n, s, (out[2], out[3]), (x_st[2], x_st[3]),
-                                          (x_tails[0][h - 1], x_tails[1][0]))  # fmt: skip
+    ends, x_ends = (out[2], out[3]), (x_st[2], x_st[3])
+    x_win = (x_tails[0][h - 1], x_tails[1][0])
+    c_lo, c_hi, ve_lo, ve_hi = -1, -1, np.nan, np.nan
+    if x_win[0] < x_win[1]:  # disjoint windows (else X is all but constant)
+        c_lo, c_hi, ve_lo, ve_hi = _crossings_in_windows(y, xu, s, ends, x_ends, window,
+                                                         (low, high), h)  # fmt: skip
+    if c_lo < 0:
+        c_lo, c_hi, ve_lo, ve_hi = _crossings(y, xu, n, s, ends, x_ends, x_win)
     vp_lo, vc_lo = _variances(a_lo, ify_lo, ifx, d_lo, c_lo / n)
     vp_hi, vc_hi = _variances(a_hi, ify_hi, ifx, d_hi, c_hi / n)
     vc_lo = _difference_variance(vc_lo, _few_trials(a_lo, d_lo, ve_lo, ifx, n), ve_lo, ifx, n)
@@ -336,18 +400,23 @@ def _add_trials(key, fkey, t0, t1, sigma_axes, inv, cexp, b0, abs0, b_hat, scale
 
 
 @nb.njit(**JIT)
-def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats_i, se, c0, c1):
+def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, x_win, stats_i, se, c0,
+                    c1):  # fmt: skip
     """The statistics of quantities c0 .. c1-1 of one node from its n trials into
     ``stats_i`` (n_up, 4, 6); returns the largest ratio of a standard error of |B|'s interval
-    ends to U_f over the U_p values (0 unless c1 = 4)."""
+    ends to U_f over the U_p values (0 unless c1 = 4). ``x_win``: the trials of the first-order
+    parts' tail windows, (2, 4, >= n), and their counts (4, 2), set here."""
     q = coverage_count(n, p)
     h = n - q
     scratch, copy = work[2], work[3]
+    win, k_win = x_win
     for c in range(c0, c1):  # the first-order parts' figures, per unit U_p (scaled below)
         mean, std = sample_tails(xu[c], n, h, x_tails[0, c], x_tails[1, c], scratch, copy)
         x_st[c, 0] = mean
         x_st[c, 1] = std
         _intervals(x_tails[0, c], x_tails[1, c], n, q, x_st[c])
+        edges = (x_tails[0, c][h - 1], x_tails[1, c][0])
+        k_win[c, 0], k_win[c, 1] = window_trials(xu[c], n, edges, win[0, c], win[1, c])
     worst = 0.0
     for k in range(scales.shape[0]):
         s = scales[k]
@@ -358,8 +427,9 @@ def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats
             continue
         for c in range(c0, c1):  # |B| last: ``se`` is then its
             x_tc = (x_tails[0, c], x_tails[1, c])
-            cv_stats(vals[k, c], xu[c], n, q, s, sig1[c], zq, x_st[c], x_tc, work, stats_i[k, c],
-                     se)  # fmt: skip
+            window = (win[0, c], win[1, c], k_win[c, 0], k_win[c, 1])
+            cv_stats(vals[k, c], xu[c], n, q, s, sig1[c], zq, x_st[c], x_tc, window, work,
+                     stats_i[k, c], se)  # fmt: skip
         uf = max(abs(stats_i[k, 3, 2]), abs(stats_i[k, 3, 3]))
         if c1 < 4:
             continue
@@ -373,7 +443,8 @@ def _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats
 @nb.njit(**JIT)
 def _buffers(n_up, size, p):
     """Work arrays of `harmonic_cv_sweep` for ``size`` trials per node: (the trial arrays of
-    `_add_trials`, the statistics' work arrays, the first-order parts' tails)."""
+    `_add_trials`, the statistics' work arrays, the first-order parts' tails and their
+    windows' trials)."""
     bufs = (np.empty((3, PART_BLOCK)), np.empty(PART_BLOCK, dtype=np.bool_), np.empty((3, size)),
             np.empty(N_SLOTS * PART_PITCH), np.empty((n_up, 4, size)), np.empty((4, size)),
             np.empty(PART_BLOCK), np.empty(4), np.empty((4, 2)))  # fmt: skip
@@ -382,14 +453,15 @@ def _buffers(n_up, size, p):
         bufs[8][c, 0] = 0.0
         bufs[8][c, 1] = 0.0
     work = (np.empty(size), np.empty(size), np.empty(size), np.empty(size))
-    return bufs, work, np.empty((2, 4, size - coverage_count(size, p) + 1))
+    x_win = (np.empty((2, 4, size), dtype=np.int64), np.empty((4, 2), dtype=np.int64))
+    return bufs, work, np.empty((2, 4, size - coverage_count(size, p) + 1)), x_win
 
 
 @nb.njit(**JIT)
 def _grown(n_up, size, p, old, n):
     """`_buffers` for ``size`` trials, the first n trials of ``old`` (its trial arrays)
     carried over."""
-    bufs, work, x_tails = _buffers(n_up, size, p)
+    bufs, work, x_tails, x_win = _buffers(n_up, size, p)
     for t in range(n):  # loops: see `_copy_ends`
         for a in range(3):
             bufs[2][a, t] = old[2][a, t]
@@ -397,7 +469,7 @@ def _grown(n_up, size, p, old, n):
             bufs[5][c, t] = old[5][c, t]
             for k in range(n_up):
                 bufs[4][k, c, t] = old[4][k, c, t]
-    return bufs, work, x_tails
+    return bufs, work, x_tails, x_win
 
 
 @nb.njit(**JIT)
@@ -438,7 +510,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     size = min(4 * pilot, cap)  # most nodes need no more; grown for those that do
-    bufs, work, x_tails = _buffers(n_up, size, p)
+    bufs, work, x_tails, x_win = _buffers(n_up, size, p)
     x_st = np.empty((4, 6))
     se = np.empty(2)
     sig1 = np.empty(4)
@@ -471,7 +543,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         while True:
             if target > size:
                 size = min(2 * size, cap)
-                bufs, work, x_tails = _grown(n_up, size, p, bufs, n)
+                bufs, work, x_tails, x_win = _grown(n_up, size, p, bufs, n)
             d2max = _add_trials(key, fkey, n, target, sigma_axes, inv, cexp, b0, abs0, b_hat,
                                 scales, bufs)  # fmt: skip
             n = target
@@ -480,10 +552,10 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
                 break
             vals, xu = bufs[4], bufs[5]
             worst = _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails,
-                                    stats[i], se, c3, c4)  # |B| decides  # fmt: skip
+                                    x_win, stats[i], se, c3, c4)  # |B| decides  # fmt: skip
             if worst <= rel_se or n >= cap:  # then the components
-                _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, stats[i],
-                                se, c0, c3)  # fmt: skip
+                _node_estimates(n, p, scales, sig1, zq, vals, xu, work, x_st, x_tails, x_win,
+                                stats[i], se, c0, c3)  # fmt: skip
                 break
             target = min(2 * n, cap)
         used[i] = n

@@ -85,9 +85,10 @@ def compile_estimates(n_up: int = 2, p: float = 0.95) -> None:
 
     size = 4
     work = tuple(np.empty(size) for _ in range(4))
+    x_win = (np.empty((2, 4, size), dtype=np.int64), np.empty((4, 2), dtype=np.int64))
     args = (
         np.int64(size), p, np.ones(n_up), np.empty(4), 1.0, np.empty((n_up, 4, size)),
-        np.empty((4, size)), work, np.empty((4, 6)), np.empty((2, 4, size)),
+        np.empty((4, size)), work, np.empty((4, 6)), np.empty((2, 4, size)), x_win,
         np.empty((1, n_up, 4, 6))[0], np.empty(2), np.int64(0), np.int64(3),
     )  # fmt: skip
     harmonic_cv._node_estimates.compile(tuple(numba.typeof(a) for a in args))
