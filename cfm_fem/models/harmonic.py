@@ -58,7 +58,6 @@ from functools import cached_property
 
 import numba
 import numpy as np
-import scipy.spatial
 
 from .. import _kernels
 from ..errors import CfmInputError
@@ -158,6 +157,8 @@ class HarmonicFit:
     def _used(self) -> tuple:
         """Indices of the nodes with ``use``, their centres (times ``metric``) and a k-d tree
         of them: query it with points times ``metric``."""
+        import scipy.spatial
+
         idx = np.flatnonzero(self.use)
         cen = self.centers[idx] * self.metric
         return idx, cen, scipy.spatial.cKDTree(cen)
@@ -396,6 +397,8 @@ def fit_harmonic(
     the neighbour search of one chunk (~0.1 GB); a 1,000,000-node map peaks at ~0.8 GB for the
     whole process.
     """
+    import scipy.spatial
+
     points, B = _check_map(points, B, k, min_degree, max_degree, source)
     n = len(points)
     k = int(min(k, n))

@@ -9,7 +9,6 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-import scipy.spatial
 
 from .. import _kernels
 from .field import FieldMap
@@ -140,6 +139,8 @@ class LinearInterpolator:
             NaN where the point is outside the mesh (never extrapolated).
         inside : ndarray, shape (k,), bool
         """
+        import scipy.spatial
+
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
         if self._tree is None:
             self._tree = scipy.spatial.cKDTree(self.mesh.coords)
@@ -175,6 +176,8 @@ class LinearInterpolator:
     def _in_hull(self, local) -> np.ndarray:
         """Whether points (k, dim) of the mesh frame lie in the convex hull of its nodes, to a
         tolerance of 1e-9 of the mesh's extent (a point on a border face counts as in)."""
+        import scipy.spatial
+
         if self._hull is None:
             c = self.mesh.coords
             tol = 1e-9 * float(np.ptp(c, axis=0).max())
@@ -198,6 +201,8 @@ class LinearInterpolator:
         bounding sphere (centroid, farthest vertex) holds it: cells are grouped by radius in
         powers of two, one KD-tree of centroids per group. Exact, for the few points whose
         walks a non-convex border blocked."""
+        import scipy.spatial
+
         block = 4096  # points at a time: their candidate pairs stay a few MB
         if len(local) > block:
             parts = [self._cells_around(local[k : k + block]) for k in range(0, len(local), block)]

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special
 
 from ..errors import CfmInputError
 
@@ -382,6 +381,8 @@ class Pdf:
             Inverse-CDF transform (the same formulas as the numba kernels), except the
             curvilinear trapezoid (JCGM 101 6.4.3.4, two uniforms).
         """
+        from scipy import special
+
         u = np.asarray(u, dtype=np.float64)
         k, p = self.kind, self.params
         if k == "curvilinear_trapezoidal":
@@ -628,6 +629,8 @@ class GumResult:
         ndarray or float
             The two-sided Student-t quantile t_{(1+p)/2}(nu), or the normal one for nu = inf.
         """
+        from scipy import special
+
         if dof is None:
             nu = np.asarray(self.dof, dtype=np.float64)
             nu = np.where(nu >= 1.0, np.floor(nu), nu)
@@ -774,6 +777,8 @@ def ppf_numpy(code: int, par, u):
     u : ndarray
         Uniforms in (0, 1).
     """
+    from scipy import special
+
     u = np.asarray(u, dtype=np.float64)
     p0, p1, p2 = float(par[0]), float(par[1]), float(par[2])
     if code == 0:

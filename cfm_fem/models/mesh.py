@@ -23,7 +23,6 @@ import itertools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.spatial
 from threadpoolctl import threadpool_limits
 
 from .. import _kernels
@@ -491,6 +490,8 @@ def convex_hull_points(points) -> np.ndarray:
     scipy.spatial.QhullError
         For points that span fewer than d dimensions.
     """
+    import scipy.spatial
+
     points = np.asarray(points, dtype=np.float64)
     return points[np.sort(scipy.spatial.ConvexHull(centred(points)).vertices)]
 
@@ -523,6 +524,8 @@ def hull_sliver_cells(coords, simplices, hull_points=None, cells_per_block: int 
     ndarray, shape (m,), bool
         True for the cells to remove.
     """
+    import scipy.spatial
+
     m, dp1 = simplices.shape
     out = np.zeros(m, dtype=bool)
     i, j = np.triu_indices(dp1, 1)
@@ -690,6 +693,8 @@ def _delaunay(coords, source, span):
         keep far more of their volume).
     notes : list of str
     """
+    import scipy.spatial
+
     notes = []
     moved = delaunay_coords(coords, span)
     try:  # centred and scaled: Qhull's round-off then does not grow with the map's offset
@@ -749,6 +754,8 @@ def face_excess(coords, simplices, transform, neighbors):
         Entry (s, j): the excess of the face opposite vertex j of cell s if it is a border face,
         else 0; values up to `cfm_fem._kernels.EXCESS_TOL` (rounding) are set to 0.
     """
+    import scipy.spatial
+
     m, dp1 = simplices.shape
     d = dp1 - 1
     out = np.zeros((m, dp1))
