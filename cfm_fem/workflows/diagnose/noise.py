@@ -91,7 +91,8 @@ def _nll(la, b, sn, vn, k):
     scale b, with the scale's prior; value and gradient in (la, b)."""
     a = np.exp(la)
     m = np.maximum(a + b * vn, 1e-12)
-    g = 0.5 * k * (1.0 / m - sn / m**2)
+    with np.errstate(over="ignore"):  # a floor the search tries far out: sn / m^2 -> 0, its limit
+        g = 0.5 * k * (1.0 / m - sn / m**2)
     f = float(np.sum(0.5 * k * (sn / m + np.log(m))) + 0.5 * (b - 1.0) ** 2)
     return f, float(g.sum()) * a, float((g * vn).sum()) + b - 1.0
 
@@ -123,7 +124,8 @@ def _fit_floor_scale(s2, v, w_dof, mult=1.0):
         a, b = x
         m = np.maximum(a + b * vn, tiny)
         r = 0.5 * k * (sn / m + np.log(m))
-        g = 0.5 * k * (1.0 / m - sn / m**2)
+        with np.errstate(over="ignore"):  # as in `_nll`
+            g = 0.5 * k * (1.0 / m - sn / m**2)
         return float(r.sum() + 0.5 * (b - 1.0) ** 2), np.array([g.sum(), (g * vn).sum() + b - 1.0])
 
     low = vn <= np.quantile(vn, 0.25)
