@@ -12,6 +12,7 @@ On later runs `start` loads the cached kernel on a thread while the map is read.
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import threading
@@ -32,7 +33,7 @@ def start() -> bool:
     if _pending:
         return False
     if _kernels.kernels_cached(_kernels.harmonic_cv_sweep):
-        loader = threading.Thread(target=compile_now, name="cfm_fem kernel loader")
+        loader = threading.Thread(target=_load_quietly, name="cfm_fem kernel loader")
         loader.start()
         _pending.append(loader)
         return False
@@ -52,7 +53,17 @@ def wait() -> None:
     would have anyway)."""
     while _pending:
         task = _pending.pop()
-        task.join() if isinstance(task, threading.Thread) else task.wait()
+        if isinstance(task, threading.Thread):
+            task.join()
+        else:
+            task.wait()
+
+
+def _load_quietly() -> None:
+    """`compile_now` on the loader thread; a failure there is left to the kernel's own first
+    call, which meets it again and reports it where the sweep runs."""
+    with contextlib.suppress(Exception):  # not this thread's to report
+        compile_now()
 
 
 def model_arrays(coords, coef, degree, scale, reach_mm, gmat, exps) -> tuple:
