@@ -50,9 +50,11 @@ def compare(problem, nodes, reference_trials: int, reference_seed: int = 7):
         np.ascontiguousarray(field_basis()), monomial_exponents(),
     )  # fmt: skip
     keys = problem.keys[nodes]
-    st, _, _, _, used = _kernels.harmonic_cv_sweep(
+    buffers = _kernels.harmonic_cv_buffers(len(problem.scales_mm), float(problem.coverage),
+                                           ADAPTIVE_PLAN)  # fmt: skip
+    st, _, _, _, used, _ = _kernels.harmonic_cv_sweep(
         nodes, keys, model, problem.axis_scale, problem.scales_mm, int(problem.seed),
-        float(problem.coverage), ADAPTIVE_PLAN,
+        float(problem.coverage), ADAPTIVE_PLAN, buffers,
     )  # fmt: skip
     ref = _kernels.harmonic_gauss_sweep(
         nodes, keys, model, problem.axis_scale, problem.scales_mm, int(reference_trials),

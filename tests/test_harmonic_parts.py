@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cfm_fem import _kernels, testing
-from cfm_fem.models.harmonic_basis import monomial_exponents, n_monomials
+from cfm_fem.models.harmonic_basis import field_basis, monomial_exponents, n_basis, n_monomials
 
 ROOT = Path(__file__).resolve().parents[1]
 B = _kernels.PART_BLOCK
@@ -49,6 +49,25 @@ def test_parts_match_numpy_monomials_across_blocks(degree):
             np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
             if q > degree:
                 assert not got.any()
+
+
+@pytest.mark.parametrize("degree", [1, 3, 5])
+def test_expanded_node_is_the_dense_product_of_basis_and_coefficients(degree):
+    """`expand_node` (the basis's non-zero entries only) gives the monomial coefficients of
+    the dense product field_basis @ coef, term for term in the order of the basis fields, and
+    zero beyond the node's monomials."""
+    gmat = field_basis()
+    rng = np.random.default_rng(degree)
+    coef = rng.normal(size=gmat.shape[2])
+    nb_, nm = n_basis(degree), n_monomials(degree)
+    want = np.zeros((3, nm))
+    for j in range(nb_):  # the dense sum, term by term in j
+        want = want + gmat[:, :nm, j] * coef[j]
+    out = np.full((3, gmat.shape[1]), np.nan)
+    _kernels.expand_node(coef, nb_, _kernels.sparse_basis(gmat), nm, out)
+    np.testing.assert_array_equal(out[:, :nm], want)
+    start, mono, val = _kernels.sparse_basis(gmat)
+    assert len(val) == np.count_nonzero(gmat) and np.all(val != 0.0)
 
 
 def _tail_case(n, curvature, seed=0, p=0.95, pilot_shift=0.0):

@@ -48,7 +48,9 @@ def test_adaptive_u_f_lies_within_its_precision_of_a_1e5_trial_reference(curved_
     problem, model, nodes = curved_case
     keys = problem.keys[nodes]
     args = (model, problem.axis_scale, problem.scales_mm)
-    st, n_out, _, _, used = _kernels.harmonic_cv_sweep(nodes, keys, *args, 5, 0.95, ADAPTIVE_PLAN)
+    buffers = _kernels.harmonic_cv_buffers(len(problem.scales_mm), 0.95, ADAPTIVE_PLAN)
+    st, n_out, _, _, used, _ = _kernels.harmonic_cv_sweep(nodes, keys, *args, 5, 0.95,
+                                                          ADAPTIVE_PLAN, buffers)  # fmt: skip
     ref = _kernels.harmonic_gauss_sweep(nodes, keys, *args, 100_000, 11, 0.95, False)[0]
     assert (n_out == 0).all() and (used <= ADAPTIVE_PLAN[1]).all()
     ran = used > 0  # 0: a trial beyond the model's reach, left to the plain Monte Carlo
@@ -66,6 +68,30 @@ def test_adaptive_u_f_lies_within_its_precision_of_a_1e5_trial_reference(curved_
     # the curvature shows at 250 um: the first-order U_f (1.96 sigma) is off there
     lin = 1.959964 * ref[:, 2, 3, 1]
     assert np.median(np.abs(lin / _uf(ref[:, 2]) - 1.0)) > 2 * ADAPTIVE_PRECISION
+
+
+def test_work_arrays_carried_between_blocks_give_the_same_numbers(curved_case):
+    """Nodes run in blocks, each call taking the work arrays the previous one returned (grown
+    by its nodes of many trials), give the numbers of one call on all of them, and of calls
+    each starting from fresh arrays."""
+    problem, model, nodes = curved_case
+    keys = problem.keys[nodes]
+    args = (model, problem.axis_scale, problem.scales_mm, 5, 0.95, ADAPTIVE_PLAN)
+
+    def fresh():
+        return _kernels.harmonic_cv_buffers(len(problem.scales_mm), 0.95, ADAPTIVE_PLAN)
+
+    whole = _kernels.harmonic_cv_sweep(nodes, keys, *args, fresh())
+    assert whole[4].max() > 4 * ADAPTIVE_PLAN[0]  # some node grew the arrays
+    carried, alone, buffers = [], [], fresh()
+    for i0 in range(0, len(nodes), 7):
+        sl = slice(i0, i0 + 7)
+        *out, buffers = _kernels.harmonic_cv_sweep(nodes[sl], keys[sl], *args, buffers)
+        carried.append(out)
+        alone.append(_kernels.harmonic_cv_sweep(nodes[sl], keys[sl], *args, fresh())[:5])
+    for parts in (carried, alone):
+        for k in range(5):
+            np.testing.assert_array_equal(np.concatenate([o[k] for o in parts]), whole[k])
 
 
 def test_adaptive_same_numbers_whatever_threads_and_chunks():

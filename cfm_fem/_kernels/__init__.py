@@ -22,6 +22,7 @@ from .coupled import (
 from .harmonic import (
     expand_node,
     poly_points,
+    sparse_basis,
 )
 from .harmonic_bounds import (
     degree_bounds,
@@ -30,6 +31,7 @@ from .harmonic_bounds import (
     symmetric3_norm,
 )
 from .harmonic_cv import (
+    harmonic_cv_buffers,
     harmonic_cv_sweep,
     normal_quantile,
 )
@@ -290,6 +292,7 @@ __all__ = [
     "coupled_probe_errors",
     "htm_sweep",
     "expand_node",
+    "sparse_basis",
     "poly_points",
     "PART_BLOCK",
     "PART_PITCH",
@@ -307,6 +310,7 @@ __all__ = [
     "keep_candidates",
     "harmonic_gauss_sweep",
     "harmonic_htm_sweep",
+    "harmonic_cv_buffers",
     "harmonic_cv_sweep",
     "normal_quantile",
     "FIT_PIVOT_MIN",

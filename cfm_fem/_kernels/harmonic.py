@@ -16,7 +16,35 @@ from .options import JIT
 
 
 @nb.njit(**JIT)
-def expand_node(coef, n_basis, gmat, n_mono, out):
+def sparse_basis(gmat):
+    """Non-zero entries of ``gmat`` (3, M, NB) by component, then basis field: (start of the
+    entries of component c and field j at ``start[c, j]``, their monomials, their values).
+    About 3 % of `field_basis`'s entries are non-zero."""
+    nbf = gmat.shape[2]
+    start = np.empty((3, nbf + 1), dtype=np.int64)
+    count = 0
+    for c in range(3):
+        for j in range(nbf):
+            for m in range(gmat.shape[1]):
+                if gmat[c, m, j] != 0.0:
+                    count += 1
+    mono = np.empty(count, dtype=np.int64)
+    val = np.empty(count)
+    e = 0
+    for c in range(3):
+        start[c, 0] = e
+        for j in range(nbf):
+            for m in range(gmat.shape[1]):
+                if gmat[c, m, j] != 0.0:
+                    mono[e] = m
+                    val[e] = gmat[c, m, j]
+                    e += 1
+            start[c, j + 1] = e
+    return start, mono, val
+
+
+@nb.njit(**JIT)
+def expand_node(coef, n_basis, basis, n_mono, out):
     """Monomial coefficients of one node's field model.
 
     Parameters
@@ -25,17 +53,23 @@ def expand_node(coef, n_basis, gmat, n_mono, out):
         Coefficients of the basis fields (`field_basis` order).
     n_basis, n_mono : int
         Basis fields and monomials of the node's degree (`n_basis`, `n_monomials`).
-    gmat : ndarray, shape (3, M, NB)
-        `field_basis` of the highest degree.
+    basis : tuple
+        `sparse_basis` of `field_basis` of the highest degree.
     out : ndarray, shape (3, >= n_mono), T
-        Output: coefficient of monomial m in component c.
+        Output: coefficient of monomial m in component c, the sum over the basis fields j of
+        their entry times coef[j], added in the order of j (only the non-zero entries: the
+        same sum, term by term, as over every entry).
     """
+    start, mono, val = basis
     for c in range(3):
         for m in range(n_mono):
-            s = 0.0
-            for j in range(n_basis):
-                s += gmat[c, m, j] * coef[j]
-            out[c, m] = s
+            out[c, m] = 0.0
+        for j in range(n_basis):
+            cj = coef[j]
+            for e in range(start[c, j], start[c, j + 1]):
+                m = mono[e]
+                if m < n_mono:
+                    out[c, m] += val[e] * cj
 
 
 @nb.njit(**JIT)

@@ -37,11 +37,11 @@ import math
 import numba as nb
 import numpy as np
 
-from .harmonic import expand_node
+from .harmonic import expand_node, sparse_basis
 from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
 from .harmonic_stats import changes_block, first_order_abs
 from .options import JIT
-from .order_stats import _intervals, coverage_count, select_inplace, sums_and_tails
+from .order_stats import _intervals, coverage_count, select_inplace, sort_values, sums_and_tails
 from .rng import STREAM_FALLBACK, STREAM_SWEEP, normals_by_index, stream_key, trial_key
 from .sweep import sweep_outputs
 
@@ -60,29 +60,6 @@ def normal_quantile(prob):
     return 0.5 * (lo + hi)
 
 
-#: Gaps of `shell_sort` (Ciura's, extended by x 2.25).
-SHELL_GAPS = np.array([1, 4, 10, 23, 57, 132, 301, 701, 1577, 3548, 7983, 17961, 40412])
-
-
-@nb.njit(**JIT)
-def shell_sort(a):
-    """Sort ``a`` (finite values) in place: Shell's sort, a few lines that compile in a
-    fraction of a second and sort the few thousand values of a tail in O(n^1.3)."""
-    n = a.shape[0]
-    k = 0
-    while k + 1 < SHELL_GAPS.shape[0] and SHELL_GAPS[k + 1] < n:
-        k += 1
-    for j in range(k, -1, -1):
-        gap = SHELL_GAPS[j]
-        for i in range(gap, n):
-            x = a[i]
-            m = i
-            while m >= gap and a[m - gap] > x:
-                a[m] = a[m - gap]
-                m -= gap
-            a[m] = x
-
-
 @nb.njit(**JIT)
 def _copy_ends(a, n, h, low, high):
     """``low[:h] = a[:h]`` and ``high[:h] = a[n - h:n]`` (loops: a slice assignment compiles
@@ -99,7 +76,9 @@ def sample_tails(a, n, h, low, high, scratch, copy):
 
     ``scratch`` and ``copy`` (>= n) are work space: the tails beyond mean -+ 1.3 std are
     gathered (`sums_and_tails`) and the h extreme values of each selected, or, if a tail is
-    thinner than h, selected from a copy of the whole sample; then sorted (`shell_sort`).
+    thinner than h, selected from a copy of the whole sample; then sorted (`sort_values`: a
+    radix pass and an insertion pass, a few ns per value whatever the order the selection
+    left them in).
     """
     shift, s1, s2, n_lo, n_hi = sums_and_tails(a, n, scratch, n)
     mean = shift + s1 / n
@@ -114,8 +93,8 @@ def sample_tails(a, n, h, low, high, scratch, copy):
         select_inplace(copy, np.int64(0), n - 1, h - 1)
         select_inplace(copy, h, n - 1, n - h)
         _copy_ends(copy, n, h, low, high)
-    shell_sort(low[:h])
-    shell_sort(high[:h])
+    sort_values(low[:h])
+    sort_values(high[:h])
     return mean, std
 
 
@@ -473,7 +452,18 @@ def _grown(n_up, size, p, old, n):
 
 
 @nb.njit(**JIT)
-def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
+def harmonic_cv_buffers(n_up, p, plan):
+    """Work arrays of `harmonic_cv_sweep` for ``n_up`` U_p values, coverage ``p`` and ``plan``
+    (pilot, most trials, target), sized for a pilot's trials (grown by the kernel as a node
+    needs). A caller that runs the kernel on many blocks of nodes passes the arrays each call
+    returns to its next call: grown once, not once per block (megabytes for nodes that take
+    tens of thousands of trials)."""
+    pilot, cap, _ = plan
+    return _buffers(n_up, min(4 * pilot, cap), p)
+
+
+@nb.njit(**JIT)
+def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan, buffers):
     """Statistics of B(x + N(0, U_p)) - B(x) at each node under its harmonic model, by the
     adaptive control-variate estimator (module docstring).
 
@@ -492,6 +482,9 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         Coverage probability.
     plan : tuple (int, int, float)
         Pilot trials, most trials, and the target standard error of U_f relative to U_f.
+    buffers : tuple
+        Work arrays (`harmonic_cv_buffers` for the same ``scales`` count, ``p`` and ``plan``,
+        or those an earlier call returned); their content is not read.
 
     Returns
     -------
@@ -500,6 +493,9 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     used : ndarray, shape (k,), int64
         Trials each node took; 0 where a trial left the node's reach (its model's support):
         such nodes have no statistics here and are left to the plain Monte Carlo.
+    buffers : tuple
+        The work arrays, grown where a node took more trials than they held: for the next
+        call.
     """
     pilot, cap, rel_se = plan
     coords, hcoef, hdeg, hscale, hreach, gmat, exps = model
@@ -509,14 +505,15 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
     used = np.empty(k_nodes, dtype=np.int64)  # every node's count is set below
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
-    size = min(4 * pilot, cap)  # most nodes need no more; grown for those that do
-    bufs, work, x_tails, x_win = _buffers(n_up, size, p)
+    bufs, work, x_tails, x_win = buffers
+    size = bufs[2].shape[1]  # trials they hold; grown for a node that needs more
     x_st = np.empty((4, 6))
     se = np.empty(2)
     sig1 = np.empty(4)
     b_hat = np.empty(3)
     cexp = np.empty((3, gmat.shape[1]))  # every coefficient is set at each node
     lin = _linear_monomials(exps)
+    basis = sparse_basis(gmat)
     zq = normal_quantile(0.5 * (1.0 + p))
     c0, c3, c4 = np.int64(0), np.int64(3), np.int64(4)  # not literals: one callee version
     smax = 0.0
@@ -526,7 +523,7 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
         g = nodes[i]
         deg = hdeg[g]
         n_mono = (deg + 1) * (deg + 2) * (deg + 3) // 6
-        expand_node(hcoef[g], (deg + 1) * (deg + 3), gmat, n_mono, cexp)
+        expand_node(hcoef[g], (deg + 1) * (deg + 3), basis, n_mono, cexp)
         for c in range(3):  # the unrolled polynomial is of the highest degree
             for m in range(n_mono, cexp.shape[1]):
                 cexp[c, m] = 0.0
@@ -564,4 +561,4 @@ def harmonic_cv_sweep(nodes, keys, model, sigma_axes, scales, seed, p, plan):
                 for c in range(4):
                     for j in range(6):
                         stats[i, k, c, j] = np.nan
-    return stats, n_out, n_lost, star, used
+    return stats, n_out, n_lost, star, used, (bufs, work, x_tails, x_win)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .harmonic import sparse_basis
 from .options import JIT, RJIT
 
 #: A Cholesky pivot of the column-scaled normal matrix (unit diagonal) below this means the
@@ -48,33 +49,6 @@ FIT_FAILED = 4  # no degree >= the lowest asked for could be fitted: coefficient
 @nb.njit(inline="always", **JIT)
 def _n_basis(degree):
     return (degree + 1) * (degree + 3)
-
-
-@nb.njit(**JIT)
-def _sparse_basis(gmat):
-    """Non-zero entries of ``gmat`` (3, M, NB) by component, then basis field: (start of the
-    entries of component c and field j at ``start[c, j]``, their monomials, their values)."""
-    nbf = gmat.shape[2]
-    start = np.empty((3, nbf + 1), dtype=np.int64)
-    count = 0
-    for c in range(3):
-        for j in range(nbf):
-            for m in range(gmat.shape[1]):
-                if gmat[c, m, j] != 0.0:
-                    count += 1
-    mono = np.empty(count, dtype=np.int64)
-    val = np.empty(count)
-    e = 0
-    for c in range(3):
-        start[c, 0] = e
-        for j in range(nbf):
-            for m in range(gmat.shape[1]):
-                if gmat[c, m, j] != 0.0:
-                    mono[e] = m
-                    val[e] = gmat[c, m, j]
-                    e += 1
-            start[c, j + 1] = e
-    return start, mono, val
 
 
 @nb.njit(**RJIT)
@@ -147,7 +121,7 @@ def harmonic_fit_block(centers, scale, nbr, points, B, gmat, exps, lmin, lmax):
     n, k = nbr.shape
     nbf = _n_basis(lmax)
     rows = 3 * k
-    basis = _sparse_basis(gmat)
+    basis = sparse_basis(gmat)
     # np.empty only, filled here: numba compiles np.zeros and np.full (and np.empty for
     # each dtype argument they pass it) apart, about 0.1 s of CPU time each
     coef = np.empty((n, nbf))

@@ -13,7 +13,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .harmonic import expand_node
+from .harmonic import expand_node, sparse_basis
 from .harmonic_bounds import BOUND_SAFETY, degree_bounds, inverse_multinomials, remainder_bounds
 from .harmonic_parts import N_SLOTS, PART_BLOCK, PART_PITCH, homogeneous_parts
 from .harmonic_stats import (
@@ -45,11 +45,12 @@ MAX_DEG = N_SLOTS // 3
 
 
 @nb.njit(inline="always", **JIT)
-def _node_model(g, hcoef, hdeg, gmat, cexp):
-    """Expand node g's model into ``cexp``; returns the number of monomials."""
+def _node_model(g, hcoef, hdeg, fields, cexp):
+    """Expand node g's model into ``cexp`` (``basis``: `sparse_basis`); returns the number of
+    monomials."""
     deg = hdeg[g]
     n_mono = (deg + 1) * (deg + 2) * (deg + 3) // 6
-    expand_node(hcoef[g], (deg + 1) * (deg + 3), gmat, n_mono, cexp)
+    expand_node(hcoef[g], (deg + 1) * (deg + 3), fields, n_mono, cexp)
     return n_mono
 
 
@@ -230,6 +231,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     skey = stream_key(seed, STREAM_SWEEP)
     fkey = stream_key(seed, STREAM_FALLBACK)
     buffers = _gauss_buffers(n_up, n, gmat.shape[1])
+    fields = sparse_basis(gmat)
     (z, ok, u, d2, parts, vals, lin, tail_val, tail_idx, limits, low, high, counts, scratch,
      cexp) = buffers  # fmt: skip
     w = np.zeros((3, 3))
@@ -252,7 +254,7 @@ def harmonic_gauss_sweep(nodes, keys, model, sigma_axes, scales, n_trials, seed,
     z_h = tail_quantile_z(n, q)
     for i in range(k_nodes):
         g = nodes[i]
-        n_mono = _node_model(g, hcoef, hdeg, gmat, cexp)
+        n_mono = _node_model(g, hcoef, hdeg, fields, cexp)
         cexp[:, n_mono:] = 0.0  # the unrolled polynomial is of the highest degree
         normals_by_index(trial_key(skey, keys[i]), fkey, 0, n, z, ok)
         inv = 1.0 / hscale[g]
@@ -334,11 +336,12 @@ def harmonic_htm_sweep(nodes, keys, model, start_cells, trials, geo, use_geometr
     absb = np.empty(n_trials)
     scratch = np.empty(n_trials)
     cexp = np.empty((3, gmat.shape[1]))
+    fields = sparse_basis(gmat)
     for i in range(k_nodes):
         g = nodes[i]
         if start_cells[g, 0] < 0:  # out of the bench's strokes
             continue
-        n_mono = _node_model(g, hcoef, hdeg, gmat, cexp)
+        n_mono = _node_model(g, hcoef, hdeg, fields, cexp)
         gk = keys[i]
         if use_noise:
             normals_by_key(tkeys, fkey, gk, n_trials, z, ok)

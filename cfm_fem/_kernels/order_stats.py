@@ -42,15 +42,25 @@ def select_inplace(a, lo, hi, k):
 
 
 @nb.njit(**JIT)
-def _insertion_sort(a, src):
-    """a[:len(src)] = sorted(src); exact, fast when src is nearly sorted or short."""
-    for i in range(src.shape[0]):
-        x = src[i]
+def _insertion_sort_inplace(a):
+    """Sort ``a`` in place by insertion; exact, fast when ``a`` is nearly sorted or short, and
+    no allocation (for short arrays a copy's allocation costs as much as the sort)."""
+    for i in range(1, a.shape[0]):
+        x = a[i]
         j = i
         while j > 0 and a[j - 1] > x:
             a[j] = a[j - 1]
             j -= 1
         a[j] = x
+
+
+@nb.njit(**JIT)
+def _insertion_sort(a, src):
+    """a[:len(src)] = sorted(src), ``src`` an array other than ``a``."""
+    n = src.shape[0]
+    for i in range(n):
+        a[i] = src[i]
+    _insertion_sort_inplace(a[:n])
 
 
 @nb.njit(**JIT)
@@ -70,7 +80,7 @@ def sort_values(a):
     """
     n = a.shape[0]
     if n < 48:
-        _insertion_sort(a, a.copy())
+        _insertion_sort_inplace(a)
         return
     lo = a[0]
     hi = a[0]
@@ -89,7 +99,7 @@ def sort_values(a):
                 k += 1
         a[k:] = np.nan
         if k < 48:
-            _insertion_sort(a[:k], a[:k].copy())
+            _insertion_sort_inplace(a[:k])
             return
         n = k
         lo = a[0]
@@ -163,7 +173,7 @@ def sort_in_range(a, lo, hi, work):
     """
     n = a.shape[0]
     if n < 48:
-        _insertion_sort(a, a.copy())
+        _insertion_sort_inplace(a)
         return
     if not hi > lo:  # every value equal
         return

@@ -81,7 +81,8 @@ def model_arrays(coords, coef, degree, scale, reach_mm, gmat, exps) -> tuple:
 
 
 def compile_now() -> None:
-    """Call `harmonic_cv_sweep` once on a one-node model: numba compiles it into its cache."""
+    """Call `harmonic_cv_sweep` (and `harmonic_cv_buffers`) once on a one-node model: numba
+    compiles them into its cache."""
     from ...models.harmonic_basis import field_basis, monomial_exponents
     from ...models.sweep import ADAPTIVE_PLAN
 
@@ -91,9 +92,11 @@ def compile_now() -> None:
         gmat, monomial_exponents(),
     )  # fmt: skip
     nodes = np.zeros(1, dtype=np.int64)
+    buffers = _kernels.harmonic_cv_buffers(2, 0.95, ADAPTIVE_PLAN)
     _kernels.harmonic_cv_sweep(
-        nodes, nodes.copy(), model, np.ones(3), np.array([0.0, 0.01]), 0, 0.95, ADAPTIVE_PLAN
-    )
+        nodes, nodes.copy(), model, np.ones(3), np.array([0.0, 0.01]), 0, 0.95, ADAPTIVE_PLAN,
+        buffers,
+    )  # fmt: skip
 
 
 def compile_estimates(n_up: int = 2, p: float = 0.95) -> None:

@@ -9,6 +9,7 @@ in pieces, in slabs, resumed or on Dask workers) with the same numbers.
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections import namedtuple
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -418,12 +419,19 @@ class SweepProblem:
 
         model = model_arrays(*model)
         wait()  # a first run: the kernel compiled beside the fit
+        kept = threading.local()  # each thread's work arrays, from one block to the next
 
         def block(i0, i1):
-            return _kernels.harmonic_cv_sweep(
+            buffers = getattr(kept, "buffers", None)
+            if buffers is None:
+                buffers = _kernels.harmonic_cv_buffers(
+                    len(self.scales_mm), float(self.coverage), ADAPTIVE_PLAN
+                )
+            *out, kept.buffers = _kernels.harmonic_cv_sweep(
                 nodes[i0:i1], keys[i0:i1], model, self.axis_scale, self.scales_mm,
-                int(self.seed), float(self.coverage), ADAPTIVE_PLAN,
+                int(self.seed), float(self.coverage), ADAPTIVE_PLAN, buffers,
             )  # fmt: skip
+            return tuple(out)
 
         s, o, lost, star, used = map_blocks(block, len(nodes), 64)
         plain = used == 0
