@@ -176,10 +176,28 @@ def retire_index(out: Path) -> None:
             path.unlink()
 
 
+def _most_writers(res: SweepResult) -> int:
+    """Most maps written side by side: one per core, as many as fit `_WRITE_BYTES` (each
+    writer holds its map's point data; zlib compresses without the GIL)."""
+    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
+    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
+    return max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
+
+
+def encode_shared(res: SweepResult, writers: int | None = None) -> tuple:
+    """What every map of ``res`` holds alike, encoded once: (the points and cells,
+    `cfm_fem.io.vtu_stream.MeshBlock`; the shared point data, `shared_point_data`), their
+    blocks compressed side by side on up to ``writers`` threads (default: `_most_writers`)."""
+    most = _most_writers(res)
+    with ThreadPoolExecutor(max(1, min(writers or most, most))) as pool:
+        mesh = MeshBlock(res.fieldmap.points, res.mesh.simplices, pool)
+        return mesh, shared_point_data(res, pool)
+
+
 @locks_output  # one run at a time in out_dir (cfm_fem.io.lock)
 def write_sweep(
     out_dir, res: SweepResult, provenance: dict | None = None, *, remove_stale: bool = True,
-    summary: dict | None = None, writers: int | None = None, widen_after=None,
+    summary: dict | None = None, writers: int | None = None, widen_after=None, encoded=None,
 ) -> dict:  # fmt: skip
     """Write every output of a sweep into ``out_dir``; return the summary that was written.
 
@@ -207,6 +225,9 @@ def write_sweep(
     widen_after : concurrent.futures.Future, optional
         Another task sharing the cores (the report's figures): ``writers`` maps are written
         at once until it is done, then as many as the default allows.
+    encoded : tuple, optional
+        `encode_shared` of ``res``, when the caller made it already (before starting a task
+        that holds the GIL, which the encoding's threads would wait for).
 
     Raises
     ------
@@ -220,14 +241,8 @@ def write_sweep(
     retire_index(out)
     summary["provenance"] = provenance or {}
     ups = res.column_up_um()
-    # zlib compresses without the GIL: maps side by side, as many as fit the budget
-    n = len(res.fieldmap.points)  # its point data, and the encoding of the shared cells
-    per_map = max(1, n * (24 + 4 * _POINT_VALUES) + res.mesh.simplices.size * 16)
-    most = max(1, min(_WRITE_BYTES // per_map, numba.get_num_threads()))
-    # what every map holds alike is encoded once, its blocks compressed side by side
-    with ThreadPoolExecutor(max(1, min(writers or most, most))) as pool:
-        mesh = MeshBlock(res.fieldmap.points, res.mesh.simplices, pool)
-        shared = shared_point_data(res, pool)
+    most = _most_writers(res)
+    mesh, shared = encode_shared(res, writers) if encoded is None else encoded
 
     def write_map(k):
         path = out / vtu_name(res.labels[k])

@@ -196,7 +196,10 @@ def _xz_panels(panels, title: str) -> bytes:
     n = len(panels)
     cols = min(2, n)
     rows = (n + cols - 1) // cols
-    fig, axes = subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False)
+    first = panels[0][0] if panels else None
+    same = all(np.array_equal(pts, first) for pts, _, _ in panels)  # one plane: shared axes
+    fig, axes = subplots(rows, cols, figsize=(6.0 * cols, 2.9 * rows), squeeze=False,
+                         sharex=same, sharey=same)  # fmt: skip
     _margins(fig, rows, cols, (0.8, 1.05, 0.45, 0.6), (0.85, 0.65))
     finite = [uf[np.isfinite(uf)] for _, uf, _ in panels]
     vmax = max((float(v.max()) for v in finite if v.size), default=1.0) or 1.0
@@ -214,6 +217,8 @@ def _xz_panels(panels, title: str) -> bytes:
         ax.set_xlabel("z [mm]", fontsize=9)
         ax.set_ylabel("x [mm]", fontsize=9)
         ax.tick_params(labelsize=8)
+        if same:  # the axes' labels on the outer panels only
+            ax.label_outer()
     for k in range(n, rows * cols):
         axes[k // cols][k % cols].set_visible(False)
     if sc is not None:

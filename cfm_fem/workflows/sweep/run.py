@@ -336,7 +336,7 @@ def _on_disk(job, fm) -> SweepRun:
     import numba
 
     from ...errors import interrupted
-    from ...io.sweep_out import write_sweep, write_sweep_pieces
+    from ...io.sweep_out import encode_shared, write_sweep, write_sweep_pieces
     from .in_memory import run_sweep as run
     from .pieces import run_sweep_pieces
     from .problem import chunk_ranges
@@ -387,12 +387,16 @@ def _on_disk(job, fm) -> SweepRun:
                                      lambda nodes: runner.gather(nodes, chunks), prov,
                                      remove_stale=False)  # fmt: skip
     else:
+        # the maps' shared arrays first: their compressing threads would wait for the GIL
+        # that the figures' thread holds
+        encoded = encode_shared(res)
         summary, drawing = _report_ahead(job, res, prov)
         # the figures' thread takes one core of the map writers' until it is done
         writers = None if drawing is None else max(1, numba.get_num_threads() - 1)
         try:
             summary = write_sweep(out, res, prov, remove_stale=False, summary=summary,
-                                  writers=writers, widen_after=drawing)  # fmt: skip
+                                  writers=writers, widen_after=drawing,
+                                  encoded=encoded)  # fmt: skip
         except BaseException:  # the write's error, once the figures' thread has ended
             if drawing is not None:
                 futures.wait([drawing])
