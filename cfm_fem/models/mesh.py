@@ -274,8 +274,11 @@ def barycentric_transforms(coords, simplices):
     det = np.linalg.det(A)
     T = np.empty((len(simplices), d + 1, d))
     ok = np.abs(det) > 0
-    T[ok, :d, :] = np.linalg.inv(A[ok])
-    T[~ok, :d, :] = np.nan
+    if ok.all():  # the usual case: no masked copies of A and T
+        T[:, :d, :] = np.linalg.inv(A)
+    else:
+        T[ok, :d, :] = np.linalg.inv(A[ok])
+        T[~ok, :d, :] = np.nan
     T[:, d, :] = r
     return T, det / (2.0 if d == 2 else 6.0)
 
