@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 
 import numpy as np
@@ -240,11 +241,19 @@ class ResumableRun:
                 continue
             self.loaded += 1
             yield (a, b), result
-        for (a, b), result in inner(problem, todo):
-            parts = {f"part{j}": np.asarray(x) for j, x in enumerate(result)}
-            self.store.save(a, b, dict(parts, n_parts=len(result), key=self.key))
-            self.computed += 1
-            yield (a, b), result
+        # each chunk's file is written on a thread while the next chunk runs (an error there
+        # is raised here once the chunks are done; an interrupted run waits for the files
+        # under way, which then count as finished)
+        with ThreadPoolExecutor(1) as saver:
+            saving = []
+            for (a, b), result in inner(problem, todo):
+                parts = {f"part{j}": np.asarray(x) for j, x in enumerate(result)}
+                parts.update(n_parts=len(result), key=self.key)
+                saving.append(saver.submit(self.store.save, a, b, parts))
+                self.computed += 1
+                yield (a, b), result
+            for done in saving:
+                done.result()
 
     def _load(self, a, b, problem=None):
         """The result tuple of chunk (a, b) from its file, or None if it cannot be used."""
