@@ -46,7 +46,7 @@ MAX_DEG = N_SLOTS // 3
 
 @nb.njit(inline="always", **JIT)
 def _node_model(g, hcoef, hdeg, fields, cexp):
-    """Expand node g's model into ``cexp`` (``basis``: `sparse_basis`); returns the number of
+    """Expand node g's model into ``cexp`` (``fields``: `sparse_basis`); returns the number of
     monomials."""
     deg = hdeg[g]
     n_mono = (deg + 1) * (deg + 2) * (deg + 3) // 6
