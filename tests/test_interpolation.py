@@ -253,3 +253,53 @@ def test_inside_agrees_with_scipy_around_and_on_the_hull():
     assert inside[len(q) :].all()
     np.testing.assert_allclose(B[inside], linear(np.r_[q, on_face][inside]), atol=1e-12)
     assert np.isnan(B[~inside]).all()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_barycentric_transforms_invert_each_simplex_as_lapack_does(d):
+    """The adjugate inverses and determinants agree with numpy.linalg to rounding; a flat
+    simplex gets NaN rows and a zero measure."""
+    from cfm_fem.models.mesh import barycentric_transforms
+
+    rng = np.random.default_rng(d)
+    coords = rng.normal(size=(60, d)) * np.array([1.0, 1e3, 1e-2][:d])
+    simplices = np.array([rng.choice(60, d + 1, replace=False) for _ in range(400)])
+    simplices[0, 0] = simplices[0, d]  # the last node repeated: a flat simplex
+    T, measure = barycentric_transforms(coords, simplices)
+    v = coords[simplices]
+    A = np.swapaxes(v[:, :d] - v[:, d][:, None], 1, 2)
+    ok = np.arange(len(simplices)) > 0
+    inv = np.linalg.inv(A[ok])
+    scale = np.abs(inv).max(axis=(1, 2))[:, None, None]
+    assert np.all(np.abs(T[ok, :d] - inv) <= 1e-9 * scale)
+    factor = 2.0 if d == 2 else 6.0
+    np.testing.assert_allclose(measure[ok] * factor, np.linalg.det(A[ok]), rtol=1e-10)
+    assert np.isnan(T[0, :d]).all() and measure[0] == 0 and np.array_equal(T[:, d], v[:, d])
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3, 4])
+def test_morton_bits_spread_as_one_bit_at_a_time(dim):
+    from cfm_fem.models.mesh import _spread_bits
+
+    bits = 64 // dim
+    v = np.random.default_rng(dim).integers(0, 2 ** min(bits, 63), 5000, dtype=np.uint64)
+    v[:2] = [0, 2 ** min(bits, 63) - 1]
+    expected = np.zeros_like(v)
+    for b in range(bits):
+        expected |= ((v >> np.uint64(b)) & np.uint64(1)) << np.uint64(dim * b)
+    assert np.array_equal(_spread_bits(v, dim), expected)
+
+
+def test_face_neighbors_of_a_shuffled_mesh_match_across_each_shared_face():
+    """Every interior face pairs the two cells that hold it, whatever the cells' node order."""
+    pts = grid(6, 5, 4)
+    cells = kuhn_simplices((6, 5, 4), np.arange(len(pts)))
+    rng = np.random.default_rng(7)
+    cells = rng.permuted(cells[rng.permutation(len(cells))], axis=1)
+    nb = face_neighbors(cells)
+    for c, j in zip(*np.nonzero(nb >= 0), strict=True):
+        face = set(np.delete(cells[c], j))
+        other = cells[nb[c, j]]
+        assert face <= set(other) and c in nb[nb[c, j]]
+    faces = np.sort(np.delete(cells, 0, axis=1), axis=1)
+    assert (nb >= 0).sum() % 2 == 0 and len(faces) == len(cells)

@@ -228,6 +228,18 @@ def kuhn_simplices(shape, order) -> np.ndarray:
     return np.concatenate(out).astype(np.int64)
 
 
+def _sorted_columns(a: np.ndarray) -> np.ndarray:
+    """``np.sort(a, axis=1)`` for a (m, 2) or (m, 3) array, by a network of element-wise
+    minima and maxima (a face's few node indices: numpy's row sort costs a call per row)."""
+    if a.shape[1] == 2:
+        return np.stack([np.minimum(a[:, 0], a[:, 1]), np.maximum(a[:, 0], a[:, 1])], axis=1)
+    if a.shape[1] != 3:
+        return np.sort(a, axis=1)
+    lo, hi = np.minimum(a[:, 0], a[:, 1]), np.maximum(a[:, 0], a[:, 1])
+    mid, top = np.minimum(hi, a[:, 2]), np.maximum(hi, a[:, 2])
+    return np.stack([np.minimum(lo, mid), np.maximum(lo, mid), top], axis=1)
+
+
 def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
     """Neighbour across each face of each simplex (-1 on the border), by matching sorted faces.
 
@@ -237,15 +249,16 @@ def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
         If a face is shared by more than two simplices (non-manifold mesh).
     """
     m, k = simplices.shape
-    faces = np.stack([np.delete(simplices, j, axis=1) for j in range(k)], axis=1)
-    faces = np.sort(faces, axis=2).reshape(-1, k - 1)
+    faces = np.stack([_sorted_columns(np.delete(simplices, j, axis=1)) for j in range(k)], axis=1)
+    faces = faces.reshape(-1, k - 1)
     n_bits = max(int(simplices.max()).bit_length(), 1)
     if n_bits * (k - 1) <= 63:
         key = np.zeros(len(faces), dtype=np.int64)
         for j in range(k - 1):
             key = (key << n_bits) | faces[:, j]
-        order = np.argsort(key, kind="stable")
-        same = key[order][1:] == key[order][:-1]
+        order = np.argsort(key)  # a face's key is held by at most two cells: any order pairs them
+        sorted_key = key[order]
+        same = sorted_key[1:] == sorted_key[:-1]
     else:
         order = np.lexsort(faces.T[::-1])
         fs = faces[order]
@@ -264,21 +277,53 @@ def face_neighbors(simplices, source="<mesh>") -> np.ndarray:
     return nb.reshape(m, k)
 
 
-@threadpool_limits.wrap(limits=1, user_api="blas")  # small matrices: idle BLAS threads spin
+def _inverse_and_det(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses (m, d, d) and determinants (m,) of small matrices A (m, d, d), d = 2 or 3.
+
+    The inverse is the adjugate over the determinant: a few vector operations over all m at
+    once, where LAPACK's inverse factors each matrix on its own. The determinant is LAPACK's
+    (exactly 0 for a simplex with a repeated node, where the adjugate's triple product keeps
+    a rounding error): rows of a matrix with det 0 are NaN."""
+    d = A.shape[1]
+    if d == 3:
+        a0, a1, a2 = A[:, :, 0], A[:, :, 1], A[:, :, 2]  # columns
+        adj = np.stack([np.cross(a1, a2), np.cross(a2, a0), np.cross(a0, a1)], axis=1)
+    else:
+        adj = np.empty_like(A)
+        adj[:, 0, 0], adj[:, 1, 1] = A[:, 1, 1], A[:, 0, 0]
+        adj[:, 0, 1], adj[:, 1, 0] = -A[:, 0, 1], -A[:, 1, 0]
+    with threadpool_limits(limits=1, user_api="blas"):  # small matrices: idle threads spin
+        det = np.linalg.det(A)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = adj / det[:, None, None]
+    inv[det == 0] = np.nan
+    return inv, det
+
+
 def barycentric_transforms(coords, simplices):
-    """scipy-layout barycentric transforms and signed measures (volume or area) of simplices."""
+    """scipy-layout barycentric transforms and signed measures (volume or area) of simplices.
+
+    Parameters
+    ----------
+    coords : ndarray, shape (n, d)
+        Node coordinates, d = 2 or 3.
+    simplices : ndarray, shape (m, d + 1)
+        Node indices of each simplex.
+
+    Returns
+    -------
+    T : ndarray, shape (m, d + 1, d)
+        ``T[:, :d]`` maps ``p - T[:, d]`` to the first d barycentric coordinates (NaN for a
+        flat simplex), ``T[:, d]`` the last vertex.
+    measure : ndarray, shape (m,)
+        Signed volume (area in 2-D), in the units of ``coords`` cubed (squared).
+    """
     d = coords.shape[1]
     v = coords[simplices]  # (m, d+1, d)
     r = v[:, d, :]
     A = np.swapaxes(v[:, :d, :] - r[:, None, :], 1, 2)  # columns v_j - v_d
-    det = np.linalg.det(A)
     T = np.empty((len(simplices), d + 1, d))
-    ok = np.abs(det) > 0
-    if ok.all():  # the usual case: no masked copies of A and T
-        T[:, :d, :] = np.linalg.inv(A)
-    else:
-        T[ok, :d, :] = np.linalg.inv(A[ok])
-        T[~ok, :d, :] = np.nan
+    T[:, :d, :], det = _inverse_and_det(A)
     T[:, d, :] = r
     return T, det / (2.0 if d == 2 else 6.0)
 
@@ -441,8 +486,26 @@ def build_mesh(
     )
 
 
+#: Shift-and-mask steps that spread the low bits of a uint64 apart, per dimension (the
+#: classic Morton "magic numbers"): five passes over the array instead of one per bit.
+_SPREAD_STEPS = {
+    2: ((16, 0x0000FFFF0000FFFF), (8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F),
+        (2, 0x3333333333333333), (1, 0x5555555555555555)),
+    3: ((32, 0x001F00000000FFFF), (16, 0x001F0000FF0000FF), (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)),
+}  # fmt: skip
+
+
 def _spread_bits(v: np.ndarray, dim: int) -> np.ndarray:
     """Insert dim - 1 zero bits between the bits of v (uint64, < 2**(64 // dim))."""
+    if dim == 1:
+        return v.copy()
+    if dim in _SPREAD_STEPS:
+        out = v.copy()
+        for shift, mask in _SPREAD_STEPS[dim]:
+            out |= out << np.uint64(shift)
+            out &= np.uint64(mask)
+        return out
     out = np.zeros_like(v)
     for b in range(64 // dim):
         out |= ((v >> np.uint64(b)) & np.uint64(1)) << np.uint64(dim * b)
