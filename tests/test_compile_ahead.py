@@ -48,3 +48,33 @@ def test_estimates_compiled_ahead_are_loaded_by_the_kernel(tmp_path):
     assert "harmonic_cv_sweep" in compiled  # the kernel itself was compiled here
     assert "_add_trials" in compiled
     assert "_node_estimates" not in compiled and "cv_stats" not in compiled
+
+
+def test_report_modules_are_imported_once_the_first_chunk_is_done():
+    """The sweep's progress, wrapped, passes every count on and starts importing the report's
+    modules (matplotlib) at its first call, in a fresh process; without a report it is the
+    caller's own callable."""
+    script = """
+import sys, threading
+from types import SimpleNamespace
+from cfm_fem.workflows.sweep.run import _preloading_report
+
+seen = []
+job = SimpleNamespace(report=False, progress=seen.append)
+assert _preloading_report(job) == seen.append
+job.report = True
+progress = _preloading_report(job)
+assert "matplotlib" not in sys.modules
+progress(5)
+progress(7)
+for t in threading.enumerate():
+    if t.name == "cfm_fem report import":
+        t.join()
+assert seen == [5, 7], seen
+assert "cfm_fem.report.sweep" in sys.modules and "matplotlib" in sys.modules
+job.progress = None
+_preloading_report(job)(3)  # no callable of the caller's: only the import
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

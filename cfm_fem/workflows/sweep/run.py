@@ -9,7 +9,10 @@ Messages for the user (what was removed, resumed, kept) go to ``log``; nothing h
 
 from __future__ import annotations
 
+import contextlib
+import threading
 from dataclasses import dataclass, field
+from importlib import import_module
 from pathlib import Path
 
 from ...errors import CfmInputError
@@ -362,7 +365,7 @@ def _on_disk(job, fm) -> SweepRun:
             if job.pieces:
                 res = run_sweep_pieces(fm, cfg, mapper, progress=job.progress)
             else:
-                res = run(fm, cfg, progress=job.progress, map_chunks=mapper)
+                res = run(fm, cfg, progress=_preloading_report(job), map_chunks=mapper)
     except (KeyboardInterrupt, SystemError) as exc:
         if not interrupted(exc):
             raise
@@ -405,6 +408,34 @@ def _on_disk(job, fm) -> SweepRun:
     _remove_stale_maps(out, job.log)  # the new outputs are complete: now the old maps can go
     written = _finish(job, runner, res, drawn)
     return SweepRun(res, summary, written)
+
+
+def _preloading_report(job):
+    """``job.progress``, which also starts importing the report's modules on a thread once the
+    first chunk is done, when the run writes a report.
+
+    Importing matplotlib takes about 0.35 s and holds the GIL. While the kernels run, the
+    GIL is free (numba releases it) and the import only shares a core with them; after
+    them, it would delay the figures' thread, the last to finish."""
+    if not job.report:
+        return job.progress
+    started = []
+
+    def progress(n_done):
+        if not started:
+            started.append(threading.Thread(target=_import_report, name="cfm_fem report import",
+                                            daemon=True))  # fmt: skip
+            started[0].start()
+        if job.progress is not None:
+            job.progress(n_done)
+
+    return progress
+
+
+def _import_report() -> None:
+    """Import the report's drawing modules; a failure is left to the drawing itself."""
+    with contextlib.suppress(Exception):
+        import_module("cfm_fem.report.sweep")
 
 
 def _report_ahead(job, res, prov):
