@@ -435,7 +435,7 @@ def _preloading_report(job):
 def _import_report() -> None:
     """Import the report's drawing modules; a failure is left to the drawing itself."""
     with contextlib.suppress(Exception):
-        import_module("cfm_fem.report.sweep")
+        import_module("...report.sweep", __package__)
 
 
 def _report_ahead(job, res, prov):
