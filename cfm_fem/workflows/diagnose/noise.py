@@ -11,7 +11,10 @@ the data, per component, and both >= 0. The floor holds where the gradient vanis
 magnet ends), the scale lets the data say how much vibration the bench really has (the bench
 file may describe another bench). Against a piecewise-linear reference (an FEM or measured map),
 the variance of its interpolation error is added (:func:`reference_error_var`): the reference
-is not exact between its nodes, and that error is no effect of the bench or the probe.
+is not exact between its nodes, and that error is no effect of the bench or the probe. That
+variance is a bound stated from the map alone (the spread of neighbouring nodes' fits, the
+map's curvature), often far above the error in one component; it is scaled per component by
+the share of it the residuals' point means show (:func:`reference_share`), never above 1.
 
 Where the data come from:
 
@@ -27,7 +30,7 @@ Where the data come from:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,6 +39,7 @@ __all__ = [
     "estimate_noise",
     "line_triples",
     "reference_error_var",
+    "reference_share",
     "vibration_covariance",
 ]
 
@@ -60,18 +64,22 @@ class NoiseModel:
         What the estimate rests on (repeated readings, second differences, residuals).
     dof : float
         Degrees of freedom of the estimate (per component).
+    ref_share : ndarray, shape (3,)
+        Share of the reference's stated error variance carried per component, in [0, 1]
+        (:func:`reference_share`); ones when the reference states none.
     """
 
     floor: np.ndarray
     scale: np.ndarray
     source: str
     dof: float
+    ref_share: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     def sigma(self, var_known, var_ref=None) -> np.ndarray:
         """Standard deviation of each observation, shape (n, 3); ``var_ref`` (n, 3): the
-        reference map's own interpolation error variance, added as it is."""
+        reference map's own stated error variance, added at its share per component."""
         v = self.floor[None, :] + self.scale[None, :] * var_known
-        return np.sqrt(v if var_ref is None else v + var_ref)
+        return np.sqrt(v if var_ref is None else v + self.ref_share[None, :] * var_ref)
 
 
 def _normalised(s2, v, w_dof, mult):
@@ -317,7 +325,97 @@ def estimate_noise(prob, resid, edf: float = 0.0, var_known=None) -> NoiseModel:
             source = "one reading per point, no scan lines: the residuals themselves (n - edf)"
     tiny = 1e-12 * max(float(np.mean(prob.y**2)), 1e-300)
     floor = np.maximum(floor, tiny)
-    return NoiseModel(floor=floor, scale=scale, source=source, dof=dof)
+    share = np.ones(3)
+    if getattr(prob, "var_ref", None) is not None:
+        own = floor[None, :] + scale[None, :] * vk
+        share = reference_share(prob.point, resid, own, prob.var_ref, prob.ref_cell, edf)
+    return NoiseModel(floor=floor, scale=scale, source=source, dof=dof, ref_share=share)
+
+
+#: One-sided level of the upper bound taken as a reference error's share
+#: (:func:`reference_share`): chi^2_1 at 90 % two-sided, 95 % one-sided.
+_SHARE_CHI2 = 2.705543454095404
+
+
+def reference_share(point, resid, own_var, var_ref, ref_cell, edf: float = 0.0) -> np.ndarray:
+    """Share of a reference's stated error variance that the residuals show, per component.
+
+    A reference map states its error between nodes from the map alone (the spread of the
+    nearest nodes' harmonic fits, the curvature of a linear reading): a bound, the same in
+    every component where the map is coarse, while a multipole's error there may lie mostly
+    in one component (a sextupole's B_z varies as the product of x, y and the end's slope;
+    its transverse components as r^2). Stated in full, it drowns a component's signal under
+    an error that component does not carry. The error is one value per point, the same in
+    every repetition: the point means of the residuals scatter by the readings' own noise
+    over their count plus f times the point's stated variance, f in [0, 1] per component.
+    With r_i the mean residual of point i (scaled by m / (m - edf) for the parameters the
+    model fitted, in variance), the likelihood of r_i ~ N(0, N_i + f V_i) is maximised over
+    f, and its one-sided 95 % upper bound is returned (the share is never set below what the
+    data allow: a clean map's claims stay as conservative as the data permit).
+
+    Parameters
+    ----------
+    point : ndarray, shape (n,), int
+        Distinct point of each row.
+    resid : ndarray, shape (n, 3)
+        Residuals of the current model.
+    own_var : ndarray, shape (n, 3)
+        The readings' own noise variance (floor and vibration).
+    var_ref : ndarray, shape (n, 3)
+        The reference's stated error variance per row, as the rows carry it (times ``ref_cell``).
+    ref_cell : ndarray, shape (n,), or None
+        Factor by which a row's ``var_ref`` exceeds its point's own error variance (the
+        readings that share the error: :func:`~cfm_fem.workflows.diagnose.problem._shared_by`,
+        :func:`~cfm_fem.workflows.diagnose.reference.shared_readings`); None: 1.
+    edf : float
+        Parameters the model fitted.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        The share per component, in [0, 1].
+    """
+    from scipy.optimize import minimize_scalar
+
+    point = np.asarray(point)
+    m = int(point.max()) + 1
+    cnt = np.bincount(point, minlength=m).astype(float)
+    has = cnt > 0
+    cell = np.ones(len(point)) if ref_cell is None else np.asarray(ref_cell, dtype=float)
+    inflate = m / max(m - float(edf), 1.0)
+    share = np.ones(3)
+    for c in range(3):
+        ok = np.isfinite(resid[:, c]) & np.isfinite(own_var[:, c]) & np.isfinite(var_ref[:, c])
+        n_ok = np.bincount(point, ok, m)
+        use = has & (n_ok == cnt)
+        if use.sum() < 10:
+            continue
+        r = np.bincount(point, np.where(ok, resid[:, c], 0.0), m)[use] / cnt[use]
+        own = np.bincount(point, np.where(ok, own_var[:, c], 0.0), m)[use] / cnt[use] ** 2
+        ref = np.bincount(point, np.where(ok, var_ref[:, c] / cell, 0.0), m)[use] / cnt[use]
+        r2 = inflate * r**2
+        if not np.any(ref > 0):
+            continue
+        scale = float(np.median(own[own > 0])) if np.any(own > 0) else float(np.mean(r2))
+        if not scale > 0:
+            continue
+        r2, own, ref = r2 / scale, own / scale, ref / scale
+
+        def nll(f, r2=r2, own=own, ref=ref):
+            v = np.maximum(own + f * ref, 1e-300)
+            return float(np.sum(r2 / v + np.log(v)))
+
+        best = minimize_scalar(nll, bounds=(0.0, 1.0), method="bounded")
+        f_hat = 0.0 if nll(0.0) <= best.fun else float(best.x)
+        lo = nll(f_hat)
+        if nll(1.0) - lo <= _SHARE_CHI2:
+            continue  # the full stated error is within the bound
+        a, b = f_hat, 1.0  # bisect for nll(f) - lo = chi2 (-2 log L rises monotonically)
+        for _ in range(40):
+            mid = 0.5 * (a + b)
+            a, b = (mid, b) if nll(mid) - lo < _SHARE_CHI2 else (a, mid)
+        share[c] = b
+    return share
 
 
 def vibration_covariance(prob, model, fit, sigma, noise: NoiseModel) -> np.ndarray:

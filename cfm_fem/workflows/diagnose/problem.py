@@ -63,8 +63,12 @@ class Problem:
         Signed axis velocities at acquisition (recorded, or inferred by
         :func:`~cfm_fem.workflows.diagnose.motion.axis_velocities`).
     var_ref : ndarray, shape (n, 3), or None
-        Variance of the reference's own interpolation error (y units^2), added to the noise;
+        Variance of the reference's own interpolation error (y units^2), added to the noise
+        at the share the residuals show (:func:`~cfm_fem.workflows.diagnose.noise.reference_share`);
         None for an exact reference.
+    ref_cell : ndarray, shape (n,), or None
+        Factor by which each row's ``var_ref`` exceeds its point's own error variance: the
+        readings that share that error (:func:`_shared_by`, and the point's cell on a 3-D map).
     to_display : float
         Factor from the unit of ``y`` to the reported unit (``unit``).
     unit : str
@@ -94,6 +98,7 @@ class Problem:
     notes: list = field(default_factory=list)
     vel: np.ndarray | None = None
     var_ref: np.ndarray | None = None
+    ref_cell: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -148,6 +153,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         notes=list(prob.notes),
         vel=take(prob.vel),
         var_ref=take(prob.var_ref),
+        ref_cell=take(prob.ref_cell),
     )
 
 
@@ -666,6 +672,7 @@ def hall_problem(
     hessian=None,
     planar=None,
     elements_at=None,
+    ref_share=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -747,6 +754,10 @@ def hall_problem(
         ``ctx.G``, ``ctx.B_read``, every column) is taken at its own point, and the residual
         carries the offsets' linear term, so that ``sensor_offset`` fits the whole offsets.
         None: the elements at the probe's point.
+    ref_share : ndarray, shape (3,), optional
+        Share of ``ref_error``'s variance per component given to the smooth term of a map read
+        by its harmonic fits (:func:`~cfm_fem.workflows.diagnose.register.share_reference_error`);
+        None: the stated error in full.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -760,7 +771,7 @@ def hall_problem(
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
                       ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
                       ref_error=ref_error, bench_at=bench_at,
-                      elements_at=elements_at)  # fmt: skip
+                      elements_at=elements_at, ref_share=ref_share)  # fmt: skip
     D = element_offsets(elements_at)
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
@@ -839,15 +850,19 @@ def hall_problem(
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
     var_ref = None
+    ref_cell = _shared_by(uinv)
     if ref_error is not None:
         var_ref = np.asarray(ref_error(upts), dtype=float)
         if ref_nodes is not None:  # a 3-D map: one error per cell, however many points read it
             from .reference import shared_readings
 
             if smooth:  # the harmonic fits' truncation: smooth across the scan
-                blocks.append(_reference_smooth_columns(upts, var_ref, uinv))
+                share = np.ones(3) if ref_share is None else np.asarray(ref_share, dtype=float)
+                blocks.append(_reference_smooth_columns(upts, var_ref * share, uinv))
             count = np.bincount(uinv)  # the repetitions of each point count below
-            var_ref = var_ref * (shared_readings(upts, count, ref_nodes) / count)[:, None]
+            shared = shared_readings(upts, count, ref_nodes)
+            var_ref = var_ref * (shared / count)[:, None]
+            ref_cell = shared[uinv].astype(float)
         var_ref = REF_LOCAL_SHARE * var_ref[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
@@ -913,6 +928,7 @@ def hall_problem(
         notes=notes,
         vel=_velocities(rec, notes),
         var_ref=var_ref,
+        ref_cell=None if var_ref is None else ref_cell / REF_LOCAL_SHARE,
     )
 
 
@@ -939,8 +955,53 @@ def noise_sigma(
     return model.sigma(vk, prob.var_ref), model.floor
 
 
+def located_sigma(prob: Problem, sigma, resid, edf: float = 0.0, var_known=None) -> np.ndarray:
+    """``sigma`` (n, 3) with the reference's stated error restored in full, for the tests that
+    name single points and planes (:func:`~cfm_fem.workflows.diagnose.locate.locate`).
+
+    The share of that error the noise carries
+    (:func:`~cfm_fem.workflows.diagnose.noise.reference_share`) is one factor per component
+    over all points, fitted to the point means of ``resid``; the stated error is a bound per
+    point, and where the map's real error lies above its share at one point (a cell the map
+    resolves worse than its neighbours' fits tell) that point would stand out of clean data.
+    A point or plane is therefore named only beyond its stated bound; effects are tested at
+    the share."""
+    if prob.var_ref is None:
+        return sigma
+    from .noise import estimate_noise
+
+    vk = prob.var_known if var_known is None else var_known
+    share = estimate_noise(prob, resid, edf, vk).ref_share
+    if np.all(share >= 1.0):
+        return sigma
+    return np.sqrt(sigma**2 + (1.0 - share)[None, :] * prob.var_ref)
+
+
+def model_sigma(prob: Problem, model: Columns, var_known=None):
+    """Per-observation sigma (n, 3) of the readings about ``model``, its noise fitted to the
+    model's own residuals.
+
+    The floor and the vibration scale come from the within-point scatter (or the scan lines'
+    second differences) and hardly depend on the fit; the share of a reference's stated error
+    (:func:`~cfm_fem.workflows.diagnose.noise.reference_share`) comes from the point means,
+    which an unweighted fit leaves full of the components read least precisely (a multipole's
+    transverse components, hundreds of uT of vibration, pull the fit off a B_z read to 1 uT).
+    With a stated reference error the noise is therefore fitted again to the residuals of the
+    fit weighted by the first estimate."""
+    from .calibrate import fit_map
+
+    fit = fit_map(prob.y, np.ones_like(prob.y), model)
+    sigma = noise_sigma(prob, fit.resid, fit.edf, var_known)[0]
+    if prob.var_ref is not None:
+        fit = fit_map(prob.y, sigma, model)
+        sigma = noise_sigma(prob, fit.resid, fit.edf, var_known)[0]
+    return sigma
+
+
 __all__ += [
     "ProblemContext",
+    "located_sigma",
+    "model_sigma",
     "noise_sigma",
     "bench_columns",
     "bench_move",

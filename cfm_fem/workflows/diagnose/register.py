@@ -34,12 +34,13 @@ from .calibrate import Columns, fit_map, stack
 from .effects import sensor_offset
 from .elements import STEP_TOL as ELEMENT_TOL
 from .elements import curvature_chi2, element_target
-from .problem import REG_NAMES, Problem, noise_sigma, subset_rows
+from .problem import REG_NAMES, Problem, model_sigma, subset_rows
 
 __all__ = [
     "applies",
     "register",
     "repose",
+    "share_reference_error",
     "pose_step",
     "bench_step",
     "bench_target",
@@ -83,8 +84,7 @@ def applies(prob: Problem) -> bool:
 def _objective(prob: Problem):
     """MAP objective and fit of the calibrated baseline (noise from its own residuals)."""
     base = stack(prob.baseline)
-    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
-    sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+    sigma = model_sigma(prob, base)
     fit = fit_map(prob.y, sigma, base)
     return fit.objective, base, fit
 
@@ -166,6 +166,35 @@ def _bench_now(prob: Problem, model) -> np.ndarray:
     if now is None:
         now = [model.prior_mean[model.names.index(n)] for n in ERROR_NAMES]
     return np.asarray(now, dtype=float)
+
+
+def share_reference_error(prob: Problem) -> Problem:
+    """The problem with its reference's smooth error term scaled to the share the readings
+    show (:func:`~cfm_fem.workflows.diagnose.noise.reference_share`).
+
+    A map read by its harmonic fits states one error per point, from the map alone; it enters
+    twice, as noise local to each cell and as a smooth term across the scan
+    (:func:`~cfm_fem.workflows.diagnose.problem._reference_smooth_columns`). Both are the same
+    error: where the point means of the baseline's residuals show only a share f_c of it in a
+    component (a multipole's B_z, read to 1 uT where the map's coarse cells state tens), the
+    smooth term keeps f_c of its variance too, so that it no longer takes whatever smooth
+    signal that component carries. f_c is the one-sided 95 % upper bound the baseline's
+    residuals allow, never above 1; a problem without such a term is returned as it is."""
+    rebuild = prob.ctx.rebuild
+    keywords = getattr(rebuild, "keywords", {})
+    if prob.var_ref is None or rebuild is None or keywords.get("ref_share") is not None:
+        return prob
+    if not any(b.group == "reference" for b in prob.baseline):
+        return prob
+    from .noise import estimate_noise
+
+    base = stack(prob.baseline)
+    sigma = model_sigma(prob, base)
+    fit = fit_map(prob.y, sigma, base)
+    share = estimate_noise(prob, fit.resid, fit.edf).ref_share
+    if np.all(share >= 1.0):
+        return prob
+    return repose(prob, prob.ctx.pose, ref_share=share)
 
 
 def register(prob: Problem, max_iter: int = 6) -> Problem:

@@ -39,6 +39,9 @@ An accepted effect whose model is approximate where it carries the signal
 misfit there as a model error added to the noise of those rows for the later rounds and the
 final fit (:func:`approximation_error`): that misfit is the same on every repetition, so
 without it a further effect whose columns share its structure would pass every test on it.
+Further effects are tested where the accepted models describe the readings to their noise,
+the rows with a stated error weighed 1e-6 (:func:`_testing_sigma`): the stated error is a
+variance per plane, the misfit it stands for is structured within the plane.
 """
 
 from __future__ import annotations
@@ -73,6 +76,7 @@ __all__ = [
     "structural_absorption",
     "implausible_reason",
     "reference_explains",
+    "stated_error_rows",
 ]
 
 
@@ -713,8 +717,12 @@ def select_effects(
     model = stack(prob.baseline)
     fit0 = fit_map(prob.y, np.ones_like(prob.y), model)
     sigma = sigma_fn(fit0.resid, fit0.edf)
+    if prob.var_ref is not None:  # the reference's share from a weighted fit (model_sigma)
+        fit0 = fit_map(prob.y, sigma, model)
+        sigma = sigma_fn(fit0.resid, fit0.edf)
     noise = sigma
     current = fit_map(prob.y, sigma, model)
+    sigma_test, current_test = sigma, current  # what further effects are tested against
     folds = folds_of(prob, k_folds)
     log_n = np.log(current.n_obs)
     selected, cands, rounds, accepted_c = [], {}, [], []
@@ -727,7 +735,7 @@ def select_effects(
         for name, blk in blocks.items():
             if name in done:
                 continue
-            c = _evaluate_block(prob, sigma, model, current, blk, name, alpha=alpha,
+            c = _evaluate_block(prob, sigma_test, model, current_test, blk, name, alpha=alpha,
                                 bic_min=bic_min, log_n=log_n,
                                 min_survival=min_survival)  # fmt: skip
             if progress:
@@ -758,10 +766,10 @@ def select_effects(
             if n_cv == 2:  # the best two plausible ones get the held-out test
                 break
             n_cv += 1
-            if not _predicts_held_out(prob, sigma, model, c, folds, cv_z):
+            if not _predicts_held_out(prob, sigma_test, model, c, folds, cv_z):
                 c.status = "fails held-out test"
                 continue
-            why = unstable_in(prob, sigma, model, c.trial)
+            why = unstable_in(prob, sigma_test, model, c.trial)
             if why:
                 c.status = "unstable"
                 c.reason = why
@@ -783,6 +791,8 @@ def select_effects(
         # re-estimate the noise with the effect in the model, then refit
         noise, sigma = _noise_with(prob, sigma_fn, accepted, model, model_error)
         current = fit_map(prob.y, sigma, model)
+        sigma_test = _testing_sigma(sigma, model_error)
+        current_test = current if sigma_test is sigma else fit_map(prob.y, sigma_test, model)
     for c in accepted_c:  # the final status of the found ones (later rounds overwrite cands)
         cands[c.name] = c
         c.averaged = model_average(prob, sigma, model, c, log_n)
@@ -828,8 +838,11 @@ def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
     ends decay over several bore radii, slower than a Fermi tail) leaves misfit in planes
     the profile calls body: each z plane whose chi^2 per component exceeds its readings' count
     at the family-wise level :data:`PLANE_MISFIT_ALPHA` (the planes and components tested)
-    gets its own s_c^2 = mean(r^2 - sigma^2) there. The larger of the two is added to the
-    noise, so that a further claim must exceed it; a plane within the noise keeps 0.
+    gets its own s_c^2 = mean(r^2 - sigma^2) there; so does every other plane outside the
+    rows when those planes' chi^2, pooled, exceeds their count at that level (a body whose 3-D
+    field departs from the 2-D reference by a fraction of the noise in each plane). The larger
+    of the two is added to the noise, so that a further claim must exceed it; a plane within
+    the noise keeps 0.
 
     Parameters
     ----------
@@ -862,6 +875,10 @@ def approximation_error(prob: Problem, sigma, model: Columns, rows) -> tuple:
         t = np.bincount(plane, chi[:, c], n_planes)
         p = stats.chi2.sf(t, np.maximum(count, 1))
         off = (p < PLANE_MISFIT_ALPHA / (3 * n_planes)) & (count > 0)
+        # a misfit spread thinly over many planes: the planes left, pooled, in one test
+        rest = ~off & (count > 0) & (np.bincount(plane, rows, n_planes) == 0)
+        if rest.any() and stats.chi2.sf(t[rest].sum(), count[rest].sum()) < PLANE_MISFIT_ALPHA / 3:
+            off |= rest
         excess = np.maximum(np.bincount(plane, r2[:, c], n_planes) / np.maximum(count, 1), 0.0)
         var[:, c] = np.maximum(var[:, c], np.where(off, excess, 0.0)[plane])
     has = np.any(var > 0, axis=1) | np.asarray(rows, dtype=bool)
@@ -888,6 +905,43 @@ def _with_model_error(sigma, model_error) -> np.ndarray:
     for rows, v in model_error:
         var[rows] += v
     return np.sqrt(var)
+
+
+#: Factor on the noise of the rows where an accepted approximate model states an error, in
+#: the tests of further effects (:func:`_testing_sigma`): their weight there is 1e-6.
+UNTESTED_ROWS_FACTOR = 1e3
+
+
+def _testing_sigma(sigma, model_error) -> np.ndarray:
+    """The noise (n, 3) against which further effects are tested once approximate models are
+    accepted: ``sigma`` where no accepted model states an error, and
+    :data:`UNTESTED_ROWS_FACTOR` times it at the rows where one does.
+
+    Such a model's misfit is stated as a variance per plane and component
+    (:func:`approximation_error`), while the misfit itself is structured within the plane
+    (a coil's end departs from a Fermi profile as r^n, differently in each component): an
+    effect whose columns share that structure (a Hall offset, element offsets, a tilt) would
+    take a share of the misfit at every repetition and pass every test on it. A further
+    effect must therefore show itself where the accepted models describe the readings to
+    their noise; where their error covers every plane, no further effect is claimed. The
+    rows keep a finite weight so that the parameters they alone determine stay determined.
+    """
+    if not model_error:
+        return sigma
+    out = sigma.copy()
+    for rows, _ in model_error:
+        out[rows] *= UNTESTED_ROWS_FACTOR
+    return out
+
+
+def stated_error_rows(sel: Selection) -> np.ndarray | None:
+    """Rows (n,) bool where an accepted approximate model of ``sel`` states an error, or None."""
+    if not getattr(sel, "model_error", None):
+        return None
+    rows = np.zeros(len(sel.sigma), dtype=bool)
+    for r, _ in sel.model_error:
+        rows |= r
+    return rows
 
 
 def _signature(model: Columns, cand: Candidate):

@@ -15,7 +15,7 @@ import numpy as np
 
 from .calibrate import Columns, fit_map, stack
 from .priors import bounds_for
-from .problem import UM, noise_sigma
+from .problem import UM, model_sigma
 
 __all__ = ["step_event", "change_points"]
 
@@ -97,8 +97,7 @@ def step_event(prob):
             "cannot be placed"
         )
     base = stack(prob.baseline)
-    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
-    sigma = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+    sigma = model_sigma(prob, base)
     fit = fit_map(prob.y, sigma, base)
     # whitened baseline design with its priors; steps are judged beyond it
     A = (base.J / sigma[..., None]).reshape(-1, base.p)

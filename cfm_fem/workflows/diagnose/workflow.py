@@ -23,15 +23,16 @@ from .elements import elements_note, holds_offsets
 from .locate import isolated_planes, locate
 from .noise import estimate_noise, vibration_covariance
 from .priors import WIDE, bounds_for
-from .problem import Problem, noise_sigma, subset_rows
+from .problem import Problem, located_sigma, model_sigma, noise_sigma, subset_rows
 from .register import (
     applies,
     refit_step,
     register,
     registration_note,
     relinearise_elements,
+    share_reference_error,
 )
-from .select import cv_rms, select_effects, structural_absorption
+from .select import cv_rms, select_effects, stated_error_rows, structural_absorption
 
 __all__ = ["Diagnosis", "diagnose", "DEFAULTS"]
 
@@ -111,8 +112,7 @@ def _registration_prior_doc(prob: Problem) -> dict | None:
 def _calibrate(prob: Problem) -> SimpleNamespace:
     """Fit the baseline (what the model already contains) and describe the calibration."""
     base = stack(prob.baseline)
-    fit0 = fit_map(prob.y, np.ones_like(prob.y), base)
-    sigma0 = noise_sigma(prob, fit0.resid, fit0.edf)[0]
+    sigma0 = model_sigma(prob, base)
     fit_b = fit_map(prob.y, sigma0, base)
     ident = identifiability(sigma0, base)
     has = np.isfinite(base.prior_std)
@@ -449,9 +449,13 @@ def _candidate_table(sel, absorbed, absorption) -> list:
 
 def _noise_doc(prob, noise) -> dict:
     d = prob.to_display
-    ref = None if prob.var_ref is None else float(np.sqrt(prob.var_ref.mean()) * d)
+    ref = share = None
+    if prob.var_ref is not None:
+        ref = float(np.sqrt((prob.var_ref * noise.ref_share).mean()) * d)
+        share = [float(v) for v in noise.ref_share]
     return {
         "reference_error_rms": ref,
+        "reference_error_share": share,
         "source": noise.source,
         "floor_std": [float(v) for v in np.sqrt(noise.floor) * d],
         "vibration_scale": [float(v) for v in noise.scale],
@@ -517,7 +521,7 @@ def _attribute(prob: Problem, o: dict, progress=None, max_refits: int = 2) -> Si
     where it was found are kept, and the offsets Gauss-Newton moved the elements to are
     returned as ``unheld``: the offsets that linearisation fits are not the readings' (they
     are then reported as not determined, :func:`_offsets_not_held`)."""
-    prob = register(prob)
+    prob = register(share_reference_error(prob))
     kept = None  # the problem and attribution before the elements were relinearised
     unheld = None
     refits = relinearised = 0
@@ -611,7 +615,8 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
 
     cal = _calibrate(prob)
     fw = _family_alpha(o)
-    loc0 = locate(prob, cal.fit_b.resid, cal.sigma0, q=o["fdr_q"], edf=cal.fit_b.edf, alpha=fw)
+    sigma_loc = located_sigma(prob, cal.sigma0, cal.fit_b.resid, cal.fit_b.edf)
+    loc0 = locate(prob, cal.fit_b.resid, sigma_loc, q=o["fdr_q"], edf=cal.fit_b.edf, alpha=fw)
     blocks, untestable, absorption, absorbed = _candidates(prob, cal)
     sel = select_effects(
         prob,
@@ -624,7 +629,8 @@ def _attribute_at(prob: Problem, o: dict, progress=None) -> SimpleNamespace:
         progress=progress,
     )
     fit1 = fit_map(prob.y, sel.sigma, sel.model)
-    loc1 = locate(prob, fit1.resid, sel.sigma, q=o["fdr_q"], edf=fit1.edf, alpha=fw)
+    sigma_loc = located_sigma(prob, sel.sigma, fit1.resid, fit1.edf, sel.model.var_known)
+    loc1 = locate(prob, fit1.resid, sigma_loc, q=o["fdr_q"], edf=fit1.edf, alpha=fw)
     return SimpleNamespace(
         prob=prob,
         cal=cal,
@@ -666,12 +672,17 @@ def _lone_plane(prob, plane, rows, out) -> bool:
 def _without_bad_planes(prob, full, o, progress, max_planes: int = 3):
     """Leave out planes that depart from their neighbours after the effects (bad readings, not
     physics), strongest first, one at a time with the attribution done again, while one is
-    found and they stay under a fifth of the rows (or it is a lone plane, `_lone_plane`)."""
+    found and they stay under a fifth of the rows (or it is a lone plane, `_lone_plane`).
+    A plane whose every reading carries an accepted approximate model's stated error is not
+    one: that model's misfit there is structured, and the plane's departure may be it."""
     a, isolated = full, []
     idx = np.arange(prob.n)
     out = np.zeros(prob.n, dtype=bool)
     for _ in range(max_planes):
         iso = isolated_planes(a.prob, a.loc1["z_row"], q=o["fdr_q"], alpha=_family_alpha(o))
+        stated = stated_error_rows(a.sel)
+        if stated is not None:  # a misfit stated as an approximate model's error is no bad plane
+            iso = [d for d in iso if not stated[d["rows"]].all()]
         if not iso:
             break
         top = dict(iso[0])
