@@ -69,6 +69,9 @@ class Problem:
     ref_cell : ndarray, shape (n,), or None
         Factor by which each row's ``var_ref`` exceeds its point's own error variance: the
         readings that share that error (:func:`_shared_by`, and the point's cell on a 3-D map).
+    ref_bound : ndarray, shape (n, 3), or None
+        A bound on the reference's error per row, as ``var_ref`` carries it (>= ``var_ref``):
+        what a point or plane must depart by to be named (:func:`located_sigma`).
     to_display : float
         Factor from the unit of ``y`` to the reported unit (``unit``).
     unit : str
@@ -99,6 +102,7 @@ class Problem:
     vel: np.ndarray | None = None
     var_ref: np.ndarray | None = None
     ref_cell: np.ndarray | None = None
+    ref_bound: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -154,6 +158,7 @@ def subset_rows(prob: Problem, keep) -> Problem:
         vel=take(prob.vel),
         var_ref=take(prob.var_ref),
         ref_cell=take(prob.ref_cell),
+        ref_bound=take(prob.ref_bound),
     )
 
 
@@ -673,6 +678,7 @@ def hall_problem(
     planar=None,
     elements_at=None,
     ref_share=None,
+    ref_bound=None,
 ):
     """Problem of a Hall map against a reference field.
 
@@ -758,6 +764,10 @@ def hall_problem(
         Share of ``ref_error``'s variance per component given to the smooth term of a map read
         by its harmonic fits (:func:`~cfm_fem.workflows.diagnose.register.share_reference_error`);
         None: the stated error in full.
+    ref_bound : callable, optional
+        ``ref_bound(points (m, 3) mm) -> variance (m, 3) T^2``: a bound on the reference's
+        error per point, above ``ref_error`` (:meth:`.reference.NodeExactHarmonic.error_bound`),
+        for naming points and planes; None: ``ref_error``.
     """
     if h is None:
         h = STEP_SMOOTH_MM if smooth else STEP_MAP_MM
@@ -771,7 +781,8 @@ def hall_problem(
                       reg_std_rad=reg_std_rad, gain_std_pct=gain_std_pct, smooth=smooth, h=h,
                       ref_spacing_mm=ref_spacing_mm, ref_nodes=ref_nodes,
                       ref_error=ref_error, bench_at=bench_at,
-                      elements_at=elements_at, ref_share=ref_share)  # fmt: skip
+                      elements_at=elements_at, ref_share=ref_share,
+                      ref_bound=ref_bound)  # fmt: skip
     D = element_offsets(elements_at)
     prior = registration_prior(bench, reg_std_mm, reg_std_rad)
     reg_std_mm, reg_std_rad = prior["translation_mm"], prior["rotation_rad"]
@@ -849,10 +860,11 @@ def hall_problem(
     blocks += reg_gain
     notes.append(_prior_note(prior))
     notes.append(f"Hall gain prior {gain_std_pct:g} % (Table I S_HP); offsets assumed zeroed")
-    var_ref = None
+    var_ref = bound = None
     ref_cell = _shared_by(uinv)
     if ref_error is not None:
         var_ref = np.asarray(ref_error(upts), dtype=float)
+        bound = var_ref if ref_bound is None else np.maximum(ref_bound(upts), var_ref)
         if ref_nodes is not None:  # a 3-D map: one error per cell, however many points read it
             from .reference import shared_readings
 
@@ -862,8 +874,10 @@ def hall_problem(
             count = np.bincount(uinv)  # the repetitions of each point count below
             shared = shared_readings(upts, count, ref_nodes)
             var_ref = var_ref * (shared / count)[:, None]
+            bound = bound * (shared / count)[:, None]
             ref_cell = shared[uinv].astype(float)
         var_ref = REF_LOCAL_SHARE * var_ref[uinv]
+        bound = REF_LOCAL_SHARE * bound[uinv]
         rms = float(np.sqrt(var_ref.mean())) * 1e4 / b_ref
         how = ("by its harmonic fits: their own error (rms {:.3g} units over the readings, from "
                "the spread of the nearest nodes' fits)" if smooth else
@@ -885,6 +899,7 @@ def hall_problem(
         )
     if var_ref is not None:
         var_ref = var_ref * _shared_by(uinv)[:, None]
+        bound = None if bound is None else bound * _shared_by(uinv)[:, None]
     t_h, d, speed, temp = _aux(rec)
     ctx = ProblemContext(
         node_step=_node_step(upts, ref_spacing_mm, ref_nodes),
@@ -929,6 +944,7 @@ def hall_problem(
         vel=_velocities(rec, notes),
         var_ref=var_ref,
         ref_cell=None if var_ref is None else ref_cell / REF_LOCAL_SHARE,
+        ref_bound=bound,
     )
 
 
@@ -964,17 +980,16 @@ def located_sigma(prob: Problem, sigma, resid, edf: float = 0.0, var_known=None)
     over all points, fitted to the point means of ``resid``; the stated error is a bound per
     point, and where the map's real error lies above its share at one point (a cell the map
     resolves worse than its neighbours' fits tell) that point would stand out of clean data.
-    A point or plane is therefore named only beyond its stated bound; effects are tested at
-    the share."""
+    A point or plane is therefore named only beyond the bound the reference states per point
+    (``prob.ref_bound``, else its stated error in full); effects are tested at the share."""
     if prob.var_ref is None:
         return sigma
     from .noise import estimate_noise
 
     vk = prob.var_known if var_known is None else var_known
     share = estimate_noise(prob, resid, edf, vk).ref_share
-    if np.all(share >= 1.0):
-        return sigma
-    return np.sqrt(sigma**2 + (1.0 - share)[None, :] * prob.var_ref)
+    bound = prob.var_ref if prob.ref_bound is None else prob.ref_bound
+    return np.sqrt(sigma**2 + bound - share[None, :] * prob.var_ref)
 
 
 def model_sigma(prob: Problem, model: Columns, var_known=None):

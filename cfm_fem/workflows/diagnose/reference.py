@@ -35,7 +35,9 @@ Where
 no fit holds, :class:`CurvatureCorrected` serves; its error is estimated from the map's fourth
 differences (:meth:`CurvatureCorrected.error_var`), and no smaller than its departure from the
 nearest usable node's fit (two readings of one field: their difference bounds the worse one's
-error), scaled the same way.
+error), scaled the same way. The fits can also agree with one another and all miss the map (a
+coil's end); :meth:`NodeExactHarmonic.error_bound` adds the node-exact correction's size, a
+bound per point for naming points and planes that depart from the reference.
 """
 
 from __future__ import annotations
@@ -298,6 +300,35 @@ class NodeExactHarmonic:
             var[~ok] = np.maximum(self.curved.error_var(q), ((cross * frac) ** 2)[:, None])
         elif (~ok).any():
             var[~ok] = self.curved.error_var(p[~ok])
+        return var
+
+    def error_bound(self, points) -> np.ndarray:
+        """A bound (m, 3) T^2 on the model's error at ``points`` (m, 3) mm, per point, for
+        naming a point or plane that departs from it: :meth:`error_var` plus the square of the
+        node-exact correction's largest component there times d_1 / d_med up to 1.
+
+        The fits of neighbouring nodes can agree with one another and all miss the map (a
+        coil's end: on a coarse map of a coil quadrupole, a reading just past the end erred by
+        270 uT in B_z where their spread stated 11 uT); the correction, their misfit to the
+        nodes around the point interpolated, measures that. One potential misfits in every
+        component, so its largest component bounds each; an interpolated misfit that varies
+        from node to node errs between the nodes by about its own size, hence the linear
+        growth from zero at a node. The bound is not the error's variance: it lies above it
+        in most components (the noise carries :meth:`error_var` at the share the readings
+        show)."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        var = self.error_var(p)
+        idx, used, tree = self.fit._used
+        _, ok = self.fit.field_at(p)
+        k = min(SPREAD_NODES, idx.size)
+        if k >= 2 and ok.any():
+            qm = p[ok] * self.fit.metric
+            near, _ = neighbourhoods(tree, used, qm, k)
+            dist = np.linalg.norm(used[near] - qm[:, None, :], axis=2)
+            med = np.median(dist, axis=1)
+            frac = np.clip(np.divide(dist[:, 0], med, out=np.zeros(len(qm)), where=med > 0), 0, 1)
+            miss = np.abs(np.nan_to_num(self._resid.field_at(p[ok])[0])).max(1)
+            var[ok] += (miss**2 * frac)[:, None]
         return var
 
     def _in_border_cell(self, points) -> np.ndarray:

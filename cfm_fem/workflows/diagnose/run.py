@@ -270,6 +270,7 @@ def _map_reference(spec, rec, field_model, reader):
     fn.nodes = fm.points  # exact there, either way
     if kind == "harmonic":  # smooth between nodes; its own error estimated by the model
         fn.error_var, fn.spacing = interp.error_var, spacing
+        fn.error_bound = interp.error_bound
         n_lin = int((~served).sum())
         fb = (f"; {n_lin} of {len(served)} readings, where no fit holds, read linearly "
               "corrected by the field's curvature") if n_lin else ""  # fmt: skip
@@ -372,7 +373,8 @@ def run_diagnose(rec, reference=None, bench=None, *, b_ref_T=None, r_ref_mm=None
         step = spacing if spacing is not None else getattr(fn, "spacing", None)
         prob = hall_problem(rec, fn, b_ref, bench_model, smooth=spacing is None,
                             ref_spacing_mm=step, ref_nodes=getattr(fn, "nodes", None),
-                            ref_error=getattr(fn, "error_var", None))  # fmt: skip
+                            ref_error=getattr(fn, "error_var", None),
+                            ref_bound=getattr(fn, "error_bound", None))  # fmt: skip
         prob.notes.append(f"reference: {desc}")
     source = str(rec.source)
     if on_start is not None:
