@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cfm_fem.workflows.diagnose.locate import standardised
-from cfm_fem.workflows.diagnose.problem import _shared_by
+from cfm_fem.workflows.diagnose.reference_rows import shared_by
 
 
 @pytest.mark.parametrize("reps", [1, 3, 10])
@@ -21,7 +21,7 @@ def test_point_means_of_a_shared_reference_error_are_standard(reps):
     m, v, r = 4000, 1.0, 4.0  # points; noise and reference-error variances
     point = np.repeat(np.arange(m), reps)
     resid = rng.normal(0.0, np.sqrt(r), (m, 3))[point] + rng.normal(0.0, np.sqrt(v), (m * reps, 3))
-    var_ref = np.full((m * reps, 3), r) * _shared_by(point)[:, None]
+    var_ref = np.full((m * reps, 3), r) * shared_by(point)[:, None]
     prob = SimpleNamespace(point=point, n_points=m)
     _, zp = standardised(prob, resid, np.sqrt(v + var_ref))
     assert abs(np.std(zp) - 1.0) < 0.03
@@ -32,4 +32,4 @@ def test_point_means_of_a_shared_reference_error_are_standard(reps):
 
 
 def test_readings_of_one_point_share_it():
-    assert np.array_equal(_shared_by(np.array([0, 1, 0, 2, 0, 1])), [3, 2, 3, 1, 3, 2])
+    assert np.array_equal(shared_by(np.array([0, 1, 0, 2, 0, 1])), [3, 2, 3, 1, 3, 2])

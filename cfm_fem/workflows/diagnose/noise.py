@@ -365,7 +365,7 @@ def reference_share(point, resid, own_var, var_ref, ref_cell, edf: float = 0.0) 
         The reference's stated error variance per row, as the rows carry it (times ``ref_cell``).
     ref_cell : ndarray, shape (n,), or None
         Factor by which a row's ``var_ref`` exceeds its point's own error variance (the
-        readings that share the error: :func:`~cfm_fem.workflows.diagnose.problem._shared_by`,
+        readings that share the error: :func:`~cfm_fem.workflows.diagnose.reference_rows.shared_by`,
         :func:`~cfm_fem.workflows.diagnose.reference.shared_readings`); None: 1.
     edf : float
         Parameters the model fitted.

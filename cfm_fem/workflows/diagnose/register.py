@@ -174,7 +174,7 @@ def share_reference_error(prob: Problem) -> Problem:
 
     A map read by its harmonic fits states one error per point, from the map alone; it enters
     twice, as noise local to each cell and as a smooth term across the scan
-    (:func:`~cfm_fem.workflows.diagnose.problem._reference_smooth_columns`). Both are the same
+    (:func:`~cfm_fem.workflows.diagnose.reference_rows.smooth_columns`). Both are the same
     error: where the point means of the baseline's residuals show only a share f_c of it in a
     component (a multipole's B_z, read to 1 uT where the map's coarse cells state tens), the
     smooth term keeps f_c of its variance too, so that it no longer takes whatever smooth
