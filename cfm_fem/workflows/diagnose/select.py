@@ -185,10 +185,10 @@ def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
 
     A fold is left out of the held-out test when, on the rows trained without it, some new
     column of ``trial`` has less than ``min_survival`` of its whitened signature outside the
-    span of the ``model`` columns (no priors): the training data cannot tell that parameter
-    from the baseline, so its value, and the fold's prediction, is arbitrary. (A step from the
-    second of three repetitions on is a constant over the last two: the fold of the first
-    repetition cannot test it.)
+    span of the ``model`` columns (no priors; :func:`free_columns`): the training data cannot
+    tell that parameter from the baseline, so its value, and the fold's prediction, is
+    arbitrary. (A step from the second of three repetitions on is a constant over the last two:
+    the fold of the first repetition cannot test it.)
 
     Returns
     -------
@@ -198,6 +198,7 @@ def determined_folds(prob, sigma, model: Columns, trial: Columns, folds,
     use = np.ones(prob.n, dtype=bool)
     if new.size == 0:
         return use
+    model = free_columns(prob, model)
     for f in np.unique(folds):
         train = folds != f
         A = _whiten(model.J[train], sigma[train])
@@ -303,15 +304,29 @@ def _whiten(J, sigma):
     return (J / sigma[..., None]).reshape(-1, J.shape[-1])
 
 
+def free_columns(prob, model: Columns) -> Columns:
+    """The columns of ``model`` whose parameters take whatever value the data ask.
+
+    All but the smooth term of the reference's error (baseline group ``"reference"``): its
+    priors are the stated error, so it reproduces an effect's signature only up to that size,
+    which the fits, with their priors, weigh. The tests that ask what the baseline could
+    reproduce with no priors (:func:`structural_absorption`, :func:`determined_folds`) leave
+    it out: a probe tilt's B_z-shaped column is not absorbed by a term whose prior allows
+    nanotesla."""
+    fixed = {n for b in prob.baseline if b.group == "reference" for n in b.names}
+    keep = [k for k, n in enumerate(model.names) if n not in fixed]
+    return model if len(keep) == model.p else model.subset(keep)
+
+
 def structural_absorption(prob, sigma, base: Columns, blk: Columns, min_survival: float = 0.05):
     """Which new parameters of an effect the baseline absorbs, whatever the data say.
 
     A parameter is absorbed when less than ``min_survival`` of its (whitened) signature lies
     outside the span of the baseline columns (no priors: any value of the baseline parameters
-    reproduces it), or when it has no signature at all (below 1e-3 of the noise of the whole
-    data set even at the edge of its plausible range). Scale-free in the noise (an effect that
-    inflates the noise estimate does not hide itself); depends on the design (positions, field,
-    time, directions), never on the measured values.
+    reproduces it; :func:`free_columns`), or when it has no signature at all (below 1e-3 of the
+    noise of the whole data set even at the edge of its plausible range). Scale-free in the
+    noise (an effect that inflates the noise estimate does not hide itself); depends on the
+    design (positions, field, time, directions), never on the measured values.
 
     Returns
     -------
@@ -321,6 +336,7 @@ def structural_absorption(prob, sigma, base: Columns, blk: Columns, min_survival
     """
     if blk.p == 0:
         return []
+    base = free_columns(prob, base)
     A = _whiten(base.J, sigma)
     sc = np.linalg.norm(A, axis=0)
     sc[sc == 0] = 1.0
