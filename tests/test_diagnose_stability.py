@@ -147,7 +147,7 @@ def _hall_like(rng, n_points=60, reps=4, offset=0.6):
     eff = Columns(off, ["offset_x"], ["T"], np.zeros(1), np.full(1, np.inf), "offset")
     y = rng.normal(size=(n, 3)) * sigma
     y[:, 0] += offset
-    prob = SimpleNamespace(y=y, rep=rep, point=point, t_h=None, n=n, to_display=1.0)
+    prob = SimpleNamespace(y=y, rep=rep, point=point, t_h=None, n=n, to_display=1.0, baseline=[])
     return prob, sigma, model, stack([model, eff])
 
 
