@@ -106,9 +106,8 @@ class Columns:
         reported as model-dependent. None: no such terms.
     ref_error : tuple (ndarray (m, 3), ndarray (n,)), optional
         For an effect with the shape of the reference's own error between its nodes
-        (``sensor_volume_averaging``: a curvature term; ``sensor_offset``: the gradient, large
-        where that error is): the std (T) of that error at each distinct point, and each
-        row's point. The selection credits the effect only with
+        (``sensor_volume_averaging``: a curvature term): the stated std (T) of that error at
+        each distinct point, and each row's point. The selection credits the effect only with
         what an error of that size cannot explain
         (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`). None: no such term.
     nuisance : Columns, optional

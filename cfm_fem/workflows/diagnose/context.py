@@ -102,11 +102,6 @@ class ProblemContext:
         (the gradient turned into the bench frame). Per row.
     axis_var : ndarray, shape (3,), mm^2, or None
         Hall map on a known bench: variance of the bench's vibration along each axis.
-    ref_share : ndarray, shape (3,), or None
-        Hall map against a map read by its harmonic fits: the share of the reference's stated
-        error variance per component that the baseline's residuals allow (one-sided 95 %
-        upper bound, :func:`~cfm_fem.workflows.diagnose.noise.reference_share`); None: the
-        stated error in full.
     U : ndarray, shape (layers, m, 3), or None
         Cache: potential layers U_k (T mm^(2k+1)) and their transverse gradients
         (T mm^(2k)) at ``upts`` (:func:`~cfm_fem.workflows.diagnose.fringe.potential_layers`).
@@ -144,7 +139,6 @@ class ProblemContext:
     bench_disp: np.ndarray | None = _row_field()
     lever: np.ndarray | None = _row_field()
     axis_var: np.ndarray | None = None
-    ref_share: np.ndarray | None = None
     U: np.ndarray | None = None
     HU: np.ndarray | None = None
     V: np.ndarray | None = None

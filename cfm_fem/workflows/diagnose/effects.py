@@ -88,9 +88,6 @@ the probe senses: the reference read where the fitted bench errors move the prob
   read between its nodes errs by a curvature term of the same shape, coherent across a plane
   where the field curves: the block carries the map's stated error (``ref_error``), and the
   selection credits averaging only with what an error of that size cannot explain.
-  Against a 3-D map, ``sensor_offset``'s columns (the gradient times an element's offset)
-  are as large where the map's error is, at the ends: they carry the same bound, so that
-  neither effect takes the other's signal for being spared the reference's error.
 
 Three effects are prior releases: ``parameter_bias`` (bench errors), ``magnet_misalignment``
 (magnet registration) and the gains of ``hall_offset_gain`` re-use baseline columns; their
@@ -406,8 +403,6 @@ def sensor_offset(prob):
     # with the centroid free, the magnet's offsets are no test of the survey's prior
     blk.nuisance.release = REG_NAMES[:3]
     blk.physical = _element_offsets
-    # a 3-D map errs most between its nodes at the ends, where these columns are largest
-    blk.ref_error = _reference_error_std(prob.ctx) if prob.ctx.reference_3d else None
     return blk
 
 
@@ -507,27 +502,20 @@ def _reference_error_std(ctx):
 
     A reference read between its nodes errs by a curvature term shaped by its cells, one
     sign across a plane of readings where the field curves (the ends): the shape of volume
-    averaging, and large where the gradient of an element's offset is. The selection does
-    not credit either effect with what an error of this size could produce
-    (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`). The error is taken at the
-    share of its stated variance the readings allow (``ctx.ref_share``), as in the noise and
-    in the smooth reference term: a coarse map's fits state one bound in every component, and
-    in full it would bar an effect any credit where the readings show the map right to a few
-    percent of that bound.
+    averaging. The selection does not credit averaging with what an error of this size could
+    produce (:func:`~cfm_fem.workflows.diagnose.select.reference_explains`).
 
     Returns
     -------
     tuple (std, key) or None
-        ``std`` (m, 3) T: the standard deviation of the reference's error at the distinct
-        points ``ctx.upts``; ``key`` (n,): the distinct point of each row. None: no error
-        stated (a 2-D field, exact everywhere, or a map read on its nodes).
+        ``std`` (m, 3) T: the stated standard deviation of the reference's error at the
+        distinct points ``ctx.upts``; ``key`` (n,): the distinct point of each row. None: no
+        error stated (a 2-D field, exact everywhere, or a map read on its nodes).
     """
     error_var = getattr(ctx.reference_fn, "error_var", None)
     if error_var is None or ctx.upts is None or ctx.uinv is None:
         return None
     std = np.sqrt(np.maximum(np.asarray(error_var(ctx.upts), dtype=float), 0.0))
-    if ctx.ref_share is not None:
-        std = std * np.sqrt(np.clip(ctx.ref_share, 0.0, 1.0))[None, :]
     if not np.any(std > 0):
         return None
     return std, np.asarray(ctx.uinv)

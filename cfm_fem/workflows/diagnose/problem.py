@@ -841,7 +841,6 @@ def hall_problem(
         bench_disp=disp,
         lever=lever,
         axis_var=axis_var,
-        ref_share=None if ref_share is None else np.asarray(ref_share, dtype=float),
     )
     return Problem(
         kind="hall",

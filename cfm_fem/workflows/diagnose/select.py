@@ -513,8 +513,7 @@ def reference_explains(prob, sigma, trial: Columns, fit: Fit, blk: Columns) -> f
     A block that carries ``ref_error = (std (m, 3), key (n,))`` (the stated standard deviation
     of the reference's error at each distinct point, and each row's point) has the shape of
     that error (``sensor_volume_averaging``: a reference read between its nodes errs by a
-    curvature term, one sign across a plane where the field curves) or is large where it is
-    (``sensor_offset``: the gradient, at the ends). The error is one value
+    curvature term, one sign across a plane where the field curves). The error is one value
     per point, shared by its readings, and may be coherent across the map: its effect on the
     block's estimate is bounded by b_k = sum_p sum_c |A_kpc| std_pc, with A the estimate's
     influence of each point's error (``fit.cov`` J' W summed over the point's readings): the
