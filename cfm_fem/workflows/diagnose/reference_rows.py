@@ -13,7 +13,13 @@ import numpy as np
 
 from .calibrate import Columns
 
-__all__ = ["REF_LOCAL_SHARE", "REF_SMOOTH_SHARE", "reference_error_terms", "shared_by"]
+__all__ = [
+    "REF_GROUP",
+    "REF_LOCAL_SHARE",
+    "REF_SMOOTH_SHARE",
+    "reference_error_terms",
+    "shared_by",
+]
 
 
 def shared_by(uinv) -> np.ndarray:
@@ -28,6 +34,9 @@ def shared_by(uinv) -> np.ndarray:
     """
     return np.bincount(uinv)[uinv].astype(float)
 
+
+#: Baseline group of the smooth term of a map's error (:func:`smooth_columns`).
+REF_GROUP = "reference"
 
 #: Share of a reference map's stated error variance carried by the reading's own noise (the
 #: part local to its cell, times the readings that share the cell), and share carried by the
@@ -50,7 +59,7 @@ def smooth_columns(upts, var, uinv) -> Columns:
     from .reference import smooth_error_basis
 
     J, names, s = smooth_error_basis(upts, np.sqrt(REF_SMOOTH_SHARE * var))
-    return Columns(J[uinv], names, ["sigma"] * len(names), np.zeros(len(names)), s, "reference")
+    return Columns(J[uinv], names, ["sigma"] * len(names), np.zeros(len(names)), s, REF_GROUP)
 
 
 def interpolation_error_var(field_fn, upts, spacing_mm, nodes):

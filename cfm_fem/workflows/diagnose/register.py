@@ -35,6 +35,7 @@ from .effects import sensor_offset
 from .elements import STEP_TOL as ELEMENT_TOL
 from .elements import curvature_chi2, element_target
 from .problem import REG_NAMES, Problem, model_sigma, subset_rows
+from .reference_rows import REF_GROUP
 
 __all__ = [
     "applies",
@@ -184,7 +185,7 @@ def share_reference_error(prob: Problem) -> Problem:
     keywords = getattr(rebuild, "keywords", {})
     if prob.var_ref is None or rebuild is None or keywords.get("ref_share") is not None:
         return prob
-    if not any(b.group == "reference" for b in prob.baseline):
+    if not any(b.group == REF_GROUP for b in prob.baseline):
         return prob
     from .noise import estimate_noise
 

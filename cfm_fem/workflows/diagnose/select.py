@@ -65,6 +65,7 @@ from .functions import (
 )
 from .priors import bounds_for
 from .problem import Problem
+from .reference_rows import REF_GROUP
 from .stability import unstable_in
 
 __all__ = [
@@ -307,13 +308,13 @@ def _whiten(J, sigma):
 def free_columns(prob, model: Columns) -> Columns:
     """The columns of ``model`` whose parameters take whatever value the data ask.
 
-    All but the smooth term of the reference's error (baseline group ``"reference"``): its
+    All but the smooth term of the reference's error (baseline group :data:`.REF_GROUP`): its
     priors are the stated error, so it reproduces an effect's signature only up to that size,
     which the fits, with their priors, weigh. The tests that ask what the baseline could
     reproduce with no priors (:func:`structural_absorption`, :func:`determined_folds`) leave
     it out: a probe tilt's B_z-shaped column is not absorbed by a term whose prior allows
     nanotesla."""
-    fixed = {n for b in prob.baseline if b.group == "reference" for n in b.names}
+    fixed = {n for b in prob.baseline if b.group == REF_GROUP for n in b.names}
     keep = [k for k, n in enumerate(model.names) if n not in fixed]
     return model if len(keep) == model.p else model.subset(keep)
 
